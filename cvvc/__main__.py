@@ -1,0 +1,3 @@
+from cvvc.cli import main
+
+raise SystemExit(main())

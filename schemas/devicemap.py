@@ -1,0 +1,168 @@
+"""Device map: which OpenDSS feeder, which field devices the agent controls, their limits and costs.
+
+A device map is a TOML file beside (or pointing at) an OpenDSS master file. It is the only
+configuration that makes an arbitrary OpenDSS feeder usable by the simulator, the trainer and the agent.
+Paths inside it are relative to the TOML file itself. Example (IEEE 123)::
+
+    [feeder]
+    name = "ieee123"
+    master = "../../shared/feeders/ieee123/IEEE123Master.dss"
+    head_element = "Line.sw1"
+    source_bus = "150"
+
+    [[regulator]]
+    id = "creg2a"
+    regcontrol = "creg2a"
+
+    [[pv]]
+    id = "pv1"
+    bus = "66"
+    phases = 3
+    kv_ll = 4.16
+    kva = 1200.0
+    pmpp_kw = 1080.0
+"""
+
+from __future__ import annotations
+
+import hashlib
+from pathlib import Path
+from typing import Annotated, Literal
+
+import msgspec
+from msgspec import Meta
+
+from schemas.errors import CvvcError
+
+__all__ = [
+    "DeviceMap",
+    "DeviceMapError",
+    "FeederSection",
+    "PvPlantSpec",
+    "RegulatorSpec",
+    "load_device_map",
+]
+
+Name = Annotated[str, Meta(pattern=r"^[A-Za-z0-9_.\-]{1,64}$")]
+PositiveFloat = Annotated[float, Meta(gt=0.0, le=1e7)]
+Cost = Annotated[float, Meta(ge=0.0, le=1e6)]
+Pu = Annotated[float, Meta(ge=0.5, le=1.5)]
+V120 = Annotated[float, Meta(ge=90.0, le=150.0)]
+
+
+class DeviceMapError(CvvcError):
+    """A device map that cannot be read or names something that does not exist."""
+
+
+class FeederSection(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """The OpenDSS model and the study limits.
+
+    ``head_element`` is the OpenDSS element (``Class.name``) whose terminal 1 the feeder-head meter
+    measures; ``source_bus`` is where electrical distance is measured from.
+    """
+
+    name: Name
+    master: str
+    head_element: str
+    source_bus: str
+    extra_commands: list[str] = []
+    judged_limits_pu: tuple[Pu, Pu] = (0.965, 1.05)
+    optimization_limits_pu: tuple[Pu, Pu] = (0.975, 1.04)
+    control_period_s: Annotated[int, Meta(ge=60, le=3600)] = 300
+    step_s: Annotated[int, Meta(ge=1, le=3600)] = 60
+    load_pf: Annotated[float, Meta(gt=0.5, le=1.0)] = 0.95
+
+
+class RegulatorSpec(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """One controllable regulator controller (an OpenDSS RegControl; one tap changer).
+
+    ``setpoint_v120`` / ``band_v120`` are its local default (on the 120 V base); when omitted, the
+    values in the OpenDSS model are used.
+    """
+
+    id: Name
+    regcontrol: str
+    cost_per_tap: Cost = 0.14
+    max_taps_per_interval: Annotated[int, Meta(ge=0, le=32)] = 4
+    setpoint_v120: V120 | None = None
+    band_v120: Annotated[float, Meta(gt=0.0, le=12.0)] | None = None
+
+
+class PvPlantSpec(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """One PV plant. ``create`` adds it to the model at ``bus``; otherwise ``pvsystem`` names an existing one.
+
+    ``cost_per_kvar`` is per kvar of set point per control interval.
+    """
+
+    id: Name
+    bus: str
+    phases: Literal[1, 3] = 3
+    kv_ll: PositiveFloat
+    kva: PositiveFloat
+    pmpp_kw: PositiveFloat
+    cost_per_kvar: Cost = 0.001
+    create: bool = True
+    pvsystem: str | None = None
+    profile_lag_min: Annotated[int, Meta(ge=0, le=120)] = 0
+
+
+class DeviceMap(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """A whole device map, as decoded from TOML. ``root`` is the folder the TOML file is in."""
+
+    feeder: FeederSection
+    regulator: list[RegulatorSpec] = []
+    pv: list[PvPlantSpec] = []
+    root: str = "."
+
+    @property
+    def master_path(self) -> Path:
+        return (Path(self.root) / self.feeder.master).resolve()
+
+    def fingerprint(self) -> str:
+        """SHA-256 over the map's own content and every ``.dss`` file of the model folder.
+
+        The agent refuses a model whose fingerprint differs from its feeder's.
+        """
+        h = hashlib.sha256()
+        h.update(msgspec.json.encode(msgspec.structs.replace(self, root=".")))
+        folder = self.master_path.parent
+        for f in sorted(folder.rglob("*")):
+            if f.is_file() and f.suffix.lower() in {".dss", ".csv", ".dat", ".txt"}:
+                h.update(f.relative_to(folder).as_posix().encode())
+                h.update(f.read_bytes())
+        return h.hexdigest()[:16]
+
+
+def load_device_map(path: str | Path) -> DeviceMap:
+    """Read and validate a device map TOML file.
+
+    Checks what can be checked without OpenDSS: unique ids, kVA >= Pmpp, the master file exists.
+    Bus and RegControl names are checked by the simulator when it compiles the feeder.
+    """
+    path = Path(path)
+    try:
+        raw = path.read_bytes()
+    except OSError as e:
+        raise DeviceMapError(f"{path}: cannot read device map: {e}") from e
+    try:
+        dm = msgspec.toml.decode(raw, type=DeviceMap)
+    except msgspec.ValidationError as e:
+        raise DeviceMapError(f"{path}: invalid device map: {e}") from e
+    except msgspec.DecodeError as e:
+        raise DeviceMapError(f"{path}: not valid TOML: {e}") from e
+    dm = msgspec.structs.replace(dm, root=str(path.parent.resolve()))
+    for kind, ids in (("regulator", [r.id for r in dm.regulator]), ("pv", [p.id for p in dm.pv])):
+        dupes = {i for i in ids if ids.count(i) > 1}
+        if dupes:
+            raise DeviceMapError(f"{path}: duplicate {kind} id(s): {sorted(dupes)}")
+    for p in dm.pv:
+        if p.kva < p.pmpp_kw:
+            raise DeviceMapError(
+                f"{path}: PV plant {p.id!r}: kva {p.kva} < pmpp_kw {p.pmpp_kw}; the inverter must be "
+                "rated at least at the array's maximum power"
+            )
+        if not p.create and not p.pvsystem:
+            raise DeviceMapError(f"{path}: PV plant {p.id!r}: create = false needs pvsystem = NAME")
+    if not dm.master_path.is_file():
+        raise DeviceMapError(f"{path}: master file {dm.feeder.master!r} not found at {dm.master_path}")
+    return dm

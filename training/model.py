@@ -1,0 +1,256 @@
+"""The trained model file: everything the agent needs from training, versioned and fingerprinted.
+
+One msgspec-encoded JSON document (readable, diffable, small). Arrays are nested lists in the file
+and numpy arrays in memory (``ModelArrays``). Written by ``training``; read by ``agent`` and
+``recordings`` (offline replay). No OpenDSS here.
+
+Index conventions used by every array:
+- ``n`` = critical node, in ``critical_nodes`` order;
+- ``k`` = PV plant, in ``pv`` order;
+- ``r`` = regulator (one tap changer), in ``regulators`` order;
+- ``m`` = regression feature, in ``feature_names`` order (see ``features``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Annotated, Literal
+
+import msgspec
+import numpy as np
+from msgspec import Meta
+
+from schemas.errors import CvvcError
+
+__all__ = [
+    "MODEL_FORMAT_VERSION",
+    "CriticalNode",
+    "CvvcModel",
+    "FitStats",
+    "ModelArrays",
+    "ModelError",
+    "PvInfo",
+    "RegulatorInfo",
+    "SensitivityFit",
+    "TrainingSettings",
+    "features",
+    "feature_names",
+    "read_model",
+    "write_model",
+]
+
+MODEL_FORMAT_VERSION = 1
+
+Finite = Annotated[float, Meta(ge=-1e12, le=1e12)]
+
+
+class ModelError(CvvcError):
+    """A model file that is missing, corrupt, of another version, or for another feeder."""
+
+
+NodeKind = Literal["head", "reg_primary", "reg_secondary", "pv", "extreme"]
+
+
+class CriticalNode(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """A node (one phase of one bus) whose voltage the agent estimates and constrains.
+
+    ``upstream_regulator`` is the index (into ``regulators``) of the nearest regulator upstream on the
+    same phase, used for the correction of paper eq. (6)-(7); ``None`` when no regulator is upstream.
+    """
+
+    name: str  # "bus.phase", lower case, as OpenDSS names nodes
+    phase: Literal[1, 2, 3]
+    kinds: list[NodeKind]
+    upstream_regulator: int | None = None
+
+
+class RegulatorInfo(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """A controllable tap changer as the agent sees it.
+
+    ``secondary_node`` indexes ``critical_nodes``. ``pu_per_v120`` converts the controller's raw
+    120 V-base reading to per-unit of the secondary node's base (ptratio / (kV_LN base * 1000)).
+    ``step_v120`` is the voltage of one tap step on the 120 V base (0.75 V for +/-10 %, 32 steps).
+    """
+
+    id: str
+    secondary_node: int
+    pu_per_v120: float
+    tap_min: int = -16
+    tap_max: int = 16
+    step_v120: float = 0.75
+    cost_per_tap: float = 0.14
+    max_taps_per_interval: int = 4
+    default_setpoint_v120: float = 120.0
+    default_band_v120: float = 2.0
+
+
+class PvInfo(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """A PV plant as the agent sees it: rating and the cost of its reactive power."""
+
+    id: str
+    kva: float
+    pmpp_kw: float
+    cost_per_kvar: float
+    phases: int = 3
+
+
+class SensitivityFit(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """dV/dQ of one critical node to one plant's Q [pu/kvar], as a function of feeder-head Q [kvar].
+
+    ``form == "power"``: paper eq. (3) ``a / (c + q_head_kvar) ** b``;
+    ``form == "linear"``: ``a + b * q_head_kvar`` (c unused);
+    ``form == "constant"``: ``a``.
+    ``q_head_kvar`` is clipped to ``[q_min_kvar, q_max_kvar]`` (the training range) before evaluation.
+    """
+
+    form: Literal["power", "linear", "constant"]
+    a: float
+    b: float = 0.0
+    c: float = 0.0
+    q_min_kvar: float = -1e9
+    q_max_kvar: float = 1e9
+
+
+class TrainingSettings(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    year_seed: int
+    selection: Literal["guided", "random"]
+    blocks: tuple[int, int]
+    q_steps_pct: list[float]
+    scenarios: int
+    power_flows: int
+    seconds: float
+
+
+class FitStats(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """Training-set fit statistics [pu]."""
+
+    voltage_rmse_pu: float
+    voltage_max_abs_pu: float
+    sensitivity_median_rel_err: float
+    per_node_rmse_pu: list[float] = []
+
+
+class CvvcModel(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """Everything the online agent needs. See the module docstring for index conventions.
+
+    - ``alpha[n]``: linear coefficients over ``feature_names`` plus a trailing intercept (eq. 5) [pu].
+    - ``tap0[r]``: the taps the training power flows ran at (eq. 5's T_r^0).
+    - ``dv_dtap_pu[n][r]``: static voltage change per tap step (eq. 4) [pu/step].
+    - ``sens_q[n][k]``: dV_n/dQ_k fits (eq. 3) [pu/kvar].
+    """
+
+    format_version: int = MODEL_FORMAT_VERSION
+    feeder_name: str
+    fingerprint: str
+    cvvc_version: str
+    settings: TrainingSettings
+    feature_names: list[str]
+    critical_nodes: list[CriticalNode]
+    regulators: list[RegulatorInfo]
+    pv: list[PvInfo]
+    alpha: list[list[Finite]]
+    tap0: list[int]
+    dv_dtap_pu: list[list[Finite]]
+    sens_q: list[list[SensitivityFit]]
+    optimization_limits_pu: tuple[float, float] = (0.975, 1.04)
+    judged_limits_pu: tuple[float, float] = (0.965, 1.05)
+    control_period_s: int = 300
+    node_count: int = 0  # single-phase nodes in the whole feeder, for reporting the critical share
+    fit: FitStats | None = None
+
+
+def feature_names(n_pv: int) -> list[str]:
+    """Regression features M of eq. (5), as we read it (see docs/method.md).
+
+    Feeder-head per-phase P and Q, then per-plant *total* P and Q. Per-phase P/Q of a balanced
+    three-phase plant are collinear (reference experiment, trap 1), so the plant enters by its totals.
+    """
+    names = [f"head_p_kw_{ph}" for ph in "abc"] + [f"head_q_kvar_{ph}" for ph in "abc"]
+    for k in range(n_pv):
+        names += [f"pv{k}_p_kw", f"pv{k}_q_kvar"]
+    return names
+
+
+def features(
+    head_p_kw: np.ndarray, head_q_kvar: np.ndarray, pv_p_kw: np.ndarray, pv_q_kvar: np.ndarray
+) -> np.ndarray:
+    """Feature vector(s) M in ``feature_names`` order.
+
+    Parameters
+    ----------
+    head_p_kw, head_q_kvar : (..., 3) per-phase feeder-head power [kW], [kvar] (generator convention
+        is NOT used here: the head delivers power, positive into the feeder).
+    pv_p_kw, pv_q_kvar : (..., K) per-plant total output [kW], [kvar], generator convention.
+
+    Returns
+    -------
+    (..., 6 + 2K) array.
+    """
+    pv = np.stack([np.asarray(pv_p_kw, float), np.asarray(pv_q_kvar, float)], axis=-1)
+    pv = pv.reshape(*pv.shape[:-2], -1)
+    return np.concatenate([np.asarray(head_p_kw, float), np.asarray(head_q_kvar, float), pv], axis=-1)
+
+
+@dataclass(frozen=True)
+class ModelArrays:
+    """The model's numbers as numpy arrays, built once at load."""
+
+    alpha: np.ndarray  # (N, M+1)
+    tap0: np.ndarray  # (R,)
+    dv_dtap_pu: np.ndarray  # (N, R)
+    upstream_regulator: np.ndarray  # (N,) int, -1 where none
+    reg_secondary_node: np.ndarray  # (R,) int
+    reg_pu_per_v120: np.ndarray  # (R,)
+
+    @classmethod
+    def of(cls, model: CvvcModel) -> ModelArrays:
+        n_reg = len(model.regulators)
+        return cls(
+            alpha=np.asarray(model.alpha, float),
+            tap0=np.asarray(model.tap0, float),
+            dv_dtap_pu=np.asarray(model.dv_dtap_pu, float).reshape(len(model.critical_nodes), n_reg),
+            upstream_regulator=np.asarray(
+                [-1 if c.upstream_regulator is None else c.upstream_regulator for c in model.critical_nodes],
+                int,
+            ),
+            reg_secondary_node=np.asarray([r.secondary_node for r in model.regulators], int),
+            reg_pu_per_v120=np.asarray([r.pu_per_v120 for r in model.regulators], float),
+        )
+
+
+def write_model(model: CvvcModel, path: str | Path) -> None:
+    """Write ``model`` as JSON, refusing non-finite numbers (msgspec would write them as null)."""
+    for row in model.alpha + model.dv_dtap_pu:
+        if not np.all(np.isfinite(row)):
+            raise ModelError("refusing to write a model with non-finite coefficients")
+    Path(path).write_bytes(msgspec.json.format(msgspec.json.encode(model), indent=1))
+
+
+def read_model(path: str | Path, *, expect_fingerprint: str | None = None) -> CvvcModel:
+    """Read and validate a model file; with ``expect_fingerprint``, refuse a model of another feeder."""
+    path = Path(path)
+    try:
+        raw = path.read_bytes()
+    except OSError as e:
+        raise ModelError(f"{path}: cannot read model: {e}") from e
+    try:
+        head = msgspec.json.decode(raw, type=dict)
+    except msgspec.DecodeError as e:
+        raise ModelError(f"{path}: not a model file (invalid JSON): {e}") from e
+    version = head.get("format_version")
+    if version != MODEL_FORMAT_VERSION:
+        raise ModelError(
+            f"{path}: model format {version!r}, this cvvc-edge reads {MODEL_FORMAT_VERSION}; retrain with "
+            "`cvvc train`"
+        )
+    try:
+        model = msgspec.json.decode(raw, type=CvvcModel)
+    except msgspec.ValidationError as e:
+        raise ModelError(f"{path}: invalid model file: {e}") from e
+    if expect_fingerprint is not None and model.fingerprint != expect_fingerprint:
+        raise ModelError(
+            f"{path}: model was trained for feeder {model.feeder_name!r} (fingerprint {model.fingerprint}), "
+            f"not this feeder (fingerprint {expect_fingerprint}); train a model for it with `cvvc train`"
+        )
+    return model
