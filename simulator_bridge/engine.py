@@ -1,0 +1,650 @@
+"""The feeder engine: the only module that imports ``opendssdirect``.
+
+One :class:`FeederEngine` holds one OpenDSS context (``dss.NewContext()``), compiled from a device map.
+It sets loads, PV plants and regulator taps, solves one power flow, and reads what field devices would
+measure (:class:`FieldReadings`) and the truth (every node's voltage). Device physics that spans time
+(regulator local control, volt-var, night behaviour) lives in ``qsts.py``; this module is one snapshot.
+
+Every OpenDSS name and unit is translated to ours here:
+
+==========================  ==========================================================================
+ours                        OpenDSS
+==========================  ==========================================================================
+``node_names``              ``Circuit.AllNodeNames`` lower case, ``"bus.phase"``
+``v_pu``                    ``Circuit.AllBusVmagPu`` (each node on its own bus ``kVBase``, L-N)
+``head_p_kw`` (load conv.)  ``CktElement.Powers`` of terminal 1 of ``head_element``
+``pv_p_kw`` (gen. conv.)    minus ``CktElement.Powers`` of the ``PVSystem``
+``reg_v120``                ``|V(winding, PTphase)| / PTratio`` (``RegControl`` properties)
+``reg_v120_compared``       ``|V/PTratio + (R + jX)·I/CTprim|``, ``I`` into the controlled winding
+``reg_tap``                 ``RegControls.TapNumber``
+==========================  ==========================================================================
+
+Conventions (see ``docs/simulation.md``): voltages are line-to-neutral; ``q_kvar > 0`` injects reactive
+power at PV plants (generator convention); at the feeder head P and Q are positive into the feeder.
+OpenDSS's own controls are off (``set controlmode=off``); regulator behaviour is ``qsts.py``'s.
+"""
+
+from __future__ import annotations
+
+import os
+from collections import deque
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import opendssdirect as dss
+
+from schemas.devicemap import DeviceMap, DeviceMapError
+from schemas.errors import CvvcError
+
+__all__ = ["EngineError", "FeederEngine", "FieldReadings", "OpenDssSnapshot", "opendss_snapshot"]
+
+_PHASES = (1, 2, 3)
+_LOAD_SETTER_FLAGS = 2  # SetterFlags_AvoidFullRecalc: a kW change does not rebuild the load's Yprim
+_BATCH_SET = 0  # BatchOperation_Set
+
+
+class EngineError(CvvcError):
+    """OpenDSS could not compile or solve the feeder, or was asked for something impossible."""
+
+
+@dataclass(frozen=True)
+class FieldReadings:
+    """What the field devices measure at one solved state.
+
+    Attributes
+    ----------
+    head_v_mag_v, head_v_ang_deg : (3,) line-to-neutral voltage phasor on terminal 1 of the head
+        element, phases a, b, c [V], [deg]; 0 on absent phases.
+    head_i_mag_a, head_i_ang_deg : (3,) current phasor into the feeder through the head element [A], [deg].
+    head_p_kw, head_q_kvar : (3,) active / reactive power into the feeder per phase [kW], [kvar].
+    pv_p_kw, pv_q_kvar : (K, 3) output per phase of each PV plant, generator convention [kW], [kvar].
+    pv_v_v : (K, 3) line-to-neutral voltage magnitude at each PV plant per phase [V].
+    reg_v120 : (R,) raw secondary line-to-neutral voltage / PT ratio [V on the 120 V base].
+    reg_v120_compared : (R,) the voltage the controller compares with its band: ``reg_v120`` with
+        line-drop compensation applied [V on the 120 V base].
+    reg_tap : (R,) tap positions, -16..16 for a 32-step regulator.
+    """
+
+    head_v_mag_v: np.ndarray
+    head_v_ang_deg: np.ndarray
+    head_i_mag_a: np.ndarray
+    head_i_ang_deg: np.ndarray
+    head_p_kw: np.ndarray
+    head_q_kvar: np.ndarray
+    pv_p_kw: np.ndarray
+    pv_q_kvar: np.ndarray
+    pv_v_v: np.ndarray
+    reg_v120: np.ndarray
+    reg_v120_compared: np.ndarray
+    reg_tap: np.ndarray
+
+
+@dataclass(frozen=True)
+class _Terminal:
+    """Where to read one terminal of one element: its full name and, per phase a/b/c, the conductor."""
+
+    element: str
+    terminal: int  # 1-based
+    n_conductors: int  # per terminal
+    conductor_of_phase: tuple[int, ...]  # (3,) 0-based conductor index within the terminal, -1 if absent
+    neutral_conductor: int  # 0-based conductor index of the neutral within the terminal, -1 if grounded
+
+
+@dataclass(frozen=True)
+class _Regulator:
+    regcontrol: str
+    transformer: str
+    winding: int
+    pt_phase: int  # 0-based conductor of the controlled winding the PT reads
+    n_conductors: int
+    pt_ratio: float
+    ct_primary_a: float
+    ldc_r_v: float
+    ldc_x_v: float
+    tap_max: int
+
+
+class FeederEngine:
+    """One OpenDSS feeder in its own context: set, solve, read.
+
+    Parameters
+    ----------
+    device_map : DeviceMap
+        The feeder and its field devices (``schemas.devicemap.load_device_map``).
+    tolerance : float
+        OpenDSS solution tolerance [pu of voltage change between iterations]. Finite-difference
+        sensitivities need 1e-6 or smaller.
+
+    Raises
+    ------
+    EngineError
+        The master file or an ``extra_commands`` entry does not compile, or the base case does not solve.
+    DeviceMapError
+        The map names a bus, element or RegControl that the model does not have.
+    """
+
+    def __init__(self, device_map: DeviceMap, *, tolerance: float = 1e-6) -> None:
+        self.device_map = device_map
+        self.tolerance = float(tolerance)
+        self._where = f"device map of feeder {device_map.feeder.name!r} (in {device_map.root})"
+        self._dss = dss.NewContext()
+        self._compile(device_map.master_path)
+        for cmd in device_map.feeder.extra_commands:
+            self._command(cmd, what=f"{self._where}: extra command")
+        self._check_names()
+        self._add_pv_plants()
+        self._command("set controlmode=off", what="engine setup")
+        self._command(f"set tolerance={self.tolerance:.3g}", what="engine setup")
+        self._command("set maxiterations=100", what="engine setup")
+        self._disable_meters()
+        self._api = self._dss.to_dss_python()
+        self._circuit = self._api.ActiveCircuit
+        self.solve()  # builds the node lists that the element readers below need
+
+        self.node_names: tuple[str, ...] = tuple(n.lower() for n in self._dss.Circuit.AllNodeNames())
+        self._node_index = {n: i for i, n in enumerate(self.node_names)}
+        self._init_loads()
+        self._init_pv()
+        self._init_regulators()
+        self._head = self._terminal(device_map.feeder.head_element, 1)
+        bus_distance = self._bus_distance_ohm()
+        self.node_distance_ohm = np.array([bus_distance.get(n.split(".")[0], np.inf) for n in self.node_names])
+        self.load_distance_ohm = np.array([bus_distance.get(b, np.inf) for b in self._load_buses])
+        self.pv_distance_ohm = np.array([bus_distance.get(p.bus.split(".")[0].lower(), np.inf)
+                                         for p in device_map.pv])
+        self.solve()
+
+    # ------------------------------------------------------------------ setup
+    def _command(self, cmd: str, *, what: str) -> str:
+        try:
+            self._dss.Text.Command(cmd)
+        except dss.DSSException as e:
+            raise EngineError(f"{what}: OpenDSS rejected {cmd!r}: {e}; fix the command or the model") from e
+        return self._dss.Text.Result()
+
+    def _compile(self, master: Path) -> None:
+        cwd = os.getcwd()
+        try:
+            self._dss.Text.Command(f'compile "{master}"')
+        except dss.DSSException as e:
+            raise EngineError(f"{master}: the feeder does not compile: {e}; fix the OpenDSS model") from e
+        finally:
+            os.chdir(cwd)
+        if self._dss.Circuit.NumBuses() == 0:
+            raise EngineError(f"{master}: compiled to an empty circuit; is this an OpenDSS master file?")
+
+    def _check_names(self) -> None:
+        dm = self.device_map
+        buses = {b.lower() for b in self._dss.Circuit.AllBusNames()}
+        elements = {e.lower() for e in self._dss.Circuit.AllElementNames()}
+        regcontrols = {r.lower() for r in self._dss.RegControls.AllNames()}
+        master = dm.master_path.name
+        if dm.feeder.source_bus.lower() not in buses:
+            raise DeviceMapError(f"{self._where}: feeder.source_bus {dm.feeder.source_bus!r} is not a bus "
+                                 f"of {master}")
+        if dm.feeder.head_element.lower() not in elements:
+            raise DeviceMapError(f"{self._where}: feeder.head_element {dm.feeder.head_element!r} is not an "
+                                 f"element of {master} (write it as Class.name, e.g. Line.sw1)")
+        for r in dm.regulator:
+            if r.regcontrol.lower() not in regcontrols:
+                raise DeviceMapError(f"{self._where}: regulator {r.id!r}: RegControl {r.regcontrol!r} not "
+                                     f"found in {master}; known: {sorted(regcontrols)}")
+        for p in dm.pv:
+            if p.bus.split(".")[0].lower() not in buses:
+                raise DeviceMapError(f"{self._where}: PV plant {p.id!r}: bus {p.bus!r} not found in {master}")
+            if not p.create and f"pvsystem.{p.pvsystem}".lower() not in elements:
+                raise DeviceMapError(f"{self._where}: PV plant {p.id!r}: PVSystem {p.pvsystem!r} not found "
+                                     f"in {master}")
+
+    def _add_pv_plants(self) -> None:
+        for p in self.device_map.pv:
+            name = self._pv_name(p.id)
+            if p.create:
+                kv = p.kv_ll if p.phases == 3 else p.kv_ll / np.sqrt(3.0)  # 1-phase: kV across the terminals
+                self._command(
+                    f"new pvsystem.{name} phases={p.phases} bus1={p.bus} kv={kv:.6g} kva={p.kva:.6g} "
+                    f"pmpp={p.pmpp_kw:.6g} irradiance=0 %cutin=0.01 %cutout=0.01 kvar=0 "
+                    "wattpriority=yes varfollowinverter=no",
+                    what=f"{self._where}: PV plant {p.id!r}",
+                )
+            else:
+                self._command(f"edit pvsystem.{name} kva={p.kva:.6g} pmpp={p.pmpp_kw:.6g} irradiance=0 kvar=0 "
+                              "wattpriority=yes varfollowinverter=no",
+                              what=f"{self._where}: PV plant {p.id!r}")
+
+    def _pv_name(self, pv_id: str) -> str:
+        spec = next(p for p in self.device_map.pv if p.id == pv_id)
+        return (spec.pvsystem if not spec.create and spec.pvsystem else f"cvvc_{spec.id}").lower()
+
+    def _disable_meters(self) -> None:
+        for name in self._dss.Meters.AllNames():
+            if name and name.upper() != "NONE":
+                self._command(f"disable energymeter.{name}", what="engine setup")
+        for name in self._dss.Monitors.AllNames():
+            if name and name.upper() != "NONE":
+                self._command(f"disable monitor.{name}", what="engine setup")
+
+    def _init_loads(self) -> None:
+        d = self._dss
+        names, kw, buses = [], [], []
+        i = d.Loads.First()
+        while i > 0:
+            names.append(d.Loads.Name().lower())
+            kw.append(d.Loads.kW())
+            buses.append(d.CktElement.BusNames()[0].split(".")[0].lower())
+            i = d.Loads.Next()
+        self.load_names: tuple[str, ...] = tuple(names)
+        self.load_kw_nominal = np.array(kw, dtype=float)
+        self._load_buses = tuple(buses)
+        self._tan_phi = float(np.tan(np.arccos(self.device_map.feeder.load_pf)))
+        # Batch handle over every load, in the same order as Loads.First/Next (class order).
+        ffi, lib = d.dss_ffi, d.dss_lib
+        self._ffi, self._lib = ffi, lib
+        self._load_batch_ptr = ffi.new("void***")
+        dims = ffi.new("int32_t[4]")
+        lib.Batch_CreateByClassS(self._load_batch_ptr, dims, b"Load")
+        self._n_batch = int(dims[0])
+        if self._n_batch != len(names):
+            raise EngineError(f"internal: load batch has {self._n_batch} loads, Loads has {len(names)}")
+        if names:
+            d.Circuit.SetActiveElement(f"Load.{names[0]}")
+            props = [p.lower() for p in d.Element.AllPropertyNames()]
+            self._kw_prop, self._kvar_prop = props.index("kw") + 1, props.index("kvar") + 1
+
+    def _init_pv(self) -> None:
+        pvs = self.device_map.pv
+        self.pv_ids: tuple[str, ...] = tuple(p.id for p in pvs)
+        self._pv_names = tuple(self._pv_name(p.id) for p in pvs)
+        self.pv_kva = np.array([p.kva for p in pvs], dtype=float)
+        self.pv_pmpp_kw = np.array([p.pmpp_kw for p in pvs], dtype=float)
+        self._pv_terms = tuple(self._terminal(f"PVSystem.{n}", 1) for n in self._pv_names)
+        node_index = []
+        for t in self._pv_terms:
+            self._dss.Circuit.SetActiveElement(t.element)
+            bus = self._dss.CktElement.BusNames()[0].split(".")[0].lower()
+            phases = [ph for ph, c in zip(_PHASES, t.conductor_of_phase, strict=True) if c >= 0]
+            node_index.append(tuple(self._node_index[f"{bus}.{ph}"] for ph in phases))
+        self.pv_node_index: tuple[tuple[int, ...], ...] = tuple(node_index)
+        self._pv_p_kw = np.zeros(len(pvs))
+        self._pv_q_kvar = np.zeros(len(pvs))
+
+    def _init_regulators(self) -> None:
+        d = self._dss
+        regs, primary, secondary, pu_per_v120, sp, band, taps_max = [], [], [], [], [], [], []
+        for spec in self.device_map.regulator:
+            d.RegControls.Name(spec.regcontrol)
+            xf, winding = d.RegControls.Transformer().lower(), int(d.RegControls.Winding())
+            pt_ratio, ct = float(d.RegControls.PTRatio()), float(d.RegControls.CTPrimary())
+            r_v, x_v = float(d.RegControls.ForwardR()), float(d.RegControls.ForwardX())
+            vreg, bandw = float(d.RegControls.ForwardVreg()), float(d.RegControls.ForwardBand())
+            pt_phase = self._command(f"? regcontrol.{spec.regcontrol}.ptphase", what=f"regulator {spec.id!r}")
+            if not pt_phase.strip().isdigit():
+                raise DeviceMapError(f"{self._where}: regulator {spec.id!r}: RegControl {spec.regcontrol!r} "
+                                     f"uses PTphase={pt_phase}; only a single PT phase is supported")
+            d.Transformers.Name(xf)
+            tap_max = int(d.Transformers.NumTaps()) // 2
+            d.Circuit.SetActiveElement(f"Transformer.{xf}")
+            buses = [b.split(".") for b in d.CktElement.BusNames()]
+            n_cond = int(d.CktElement.NumConductors())
+            order = list(d.CktElement.NodeOrder())
+            ph = int(pt_phase) - 1
+            other = 1 if winding != 1 else 2
+            sec_node = f"{buses[winding - 1][0].lower()}.{order[(winding - 1) * n_cond + ph]}"
+            pri_node = f"{buses[other - 1][0].lower()}.{order[(other - 1) * n_cond + ph]}"
+            d.Circuit.SetActiveBus(buses[winding - 1][0])
+            base_v = d.Bus.kVBase() * 1000.0
+            regs.append(_Regulator(spec.regcontrol.lower(), xf, winding, ph, n_cond, pt_ratio, ct, r_v, x_v,
+                                   tap_max))
+            primary.append(self._node_index[pri_node])
+            secondary.append(self._node_index[sec_node])
+            pu_per_v120.append(pt_ratio / base_v)
+            sp.append(spec.setpoint_v120 if spec.setpoint_v120 is not None else vreg)
+            band.append(spec.band_v120 if spec.band_v120 is not None else bandw)
+            taps_max.append(tap_max)
+        self._regs = tuple(regs)
+        self.regulator_ids: tuple[str, ...] = tuple(r.id for r in self.device_map.regulator)
+        self.reg_primary_node = np.array(primary, dtype=int)
+        self.reg_secondary_node = np.array(secondary, dtype=int)
+        self.reg_pu_per_v120 = np.array(pu_per_v120, dtype=float)
+        self.reg_default_setpoint_v120 = np.array(sp, dtype=float)
+        self.reg_default_band_v120 = np.array(band, dtype=float)
+        self.reg_tap_max = np.array(taps_max, dtype=int)
+
+    def _terminal(self, element: str, terminal: int) -> _Terminal:
+        d = self._dss
+        if d.Circuit.SetActiveElement(element) < 0:
+            raise DeviceMapError(f"{self._where}: element {element!r} not found")
+        n_cond = int(d.CktElement.NumConductors())
+        n_phases = int(d.CktElement.NumPhases())
+        order = list(d.CktElement.NodeOrder())[(terminal - 1) * n_cond: terminal * n_cond]
+        cond = tuple(order.index(ph) if ph in order[:n_phases] else -1 for ph in _PHASES)
+        neutral = n_phases if n_cond > n_phases and order[n_phases] != 0 else -1
+        return _Terminal(d.CktElement.Name(), terminal, n_cond, cond, neutral)
+
+    def _bus_distance_ohm(self) -> dict[str, float]:
+        """Electrical distance of every bus from ``source_bus`` [ohm, referred to the source bus voltage].
+
+        Breadth-first over power-delivery elements from the source bus; each line adds its positive-
+        sequence series impedance ``Z1 = mean(Z_self) - mean(Z_mutual)`` (from its phase impedance
+        matrix, = R1 + jX1 for a transposed line) times its length, referred to the source bus voltage
+        by ``(kV_source / kV_line)^2``; transformers, regulators and switches-as-elements add 0. The
+        distance is ``|sum Z1|`` along the path.
+        """
+        d = self._dss
+        kv_base: dict[str, float] = {}
+        for bus in d.Circuit.AllBusNames():
+            d.Circuit.SetActiveBus(bus)
+            kv_base[bus.lower()] = d.Bus.kVBase()
+        src = self.device_map.feeder.source_bus.lower()
+        kv_src = kv_base.get(src, 0.0)
+        edges: dict[str, list[tuple[str, complex]]] = {}
+        line_z: dict[str, complex] = {}
+        i = d.Lines.First()
+        while i > 0:
+            n = int(d.Lines.Phases())
+            r = np.asarray(d.Lines.RMatrix(), dtype=float).reshape(n, n)
+            x = np.asarray(d.Lines.XMatrix(), dtype=float).reshape(n, n)
+            z = r + 1j * x
+            z1 = np.mean(np.diag(z)) - (np.mean(z[~np.eye(n, dtype=bool)]) if n > 1 else 0.0)
+            line_z[f"line.{d.Lines.Name().lower()}"] = complex(z1 * d.Lines.Length())
+            i = d.Lines.Next()
+        i = d.PDElements.First()
+        while i > 0:
+            name = d.CktElement.Name().lower()
+            buses = [b.split(".")[0].lower() for b in d.CktElement.BusNames()]
+            if d.CktElement.Enabled() and len(set(buses)) > 1 and not name.startswith("capacitor."):
+                z = line_z.get(name, 0j)
+                kv = kv_base.get(buses[0], 0.0)
+                if z and kv > 0 and kv_src > 0:
+                    z *= (kv_src / kv) ** 2
+                for a in buses:
+                    for b in buses:
+                        if a != b:
+                            edges.setdefault(a, []).append((b, z))
+            i = d.PDElements.Next()
+        total: dict[str, complex] = {src: 0j}
+        queue = deque([src])
+        while queue:
+            a = queue.popleft()
+            for b, z in edges.get(a, []):
+                if b not in total:
+                    total[b] = total[a] + z
+                    queue.append(b)
+        return {b: abs(z) for b, z in total.items()}
+
+    # ------------------------------------------------------------------ set
+    def set_loads_kw(self, p_kw: np.ndarray) -> None:
+        """Set every load's active power; reactive power follows the feeder's ``load_pf``.
+
+        Parameters
+        ----------
+        p_kw : (n_loads,) active power per load, in ``load_names`` order [kW].
+        """
+        p = np.ascontiguousarray(p_kw, dtype=float)
+        if p.shape != (self._n_batch,):
+            raise EngineError(f"set_loads_kw: expected {self._n_batch} loads, got shape {p.shape}")
+        if not np.all(np.isfinite(p)):
+            raise EngineError("set_loads_kw: non-finite load power; check the profiles")
+        q = np.ascontiguousarray(p * self._tan_phi)
+        batch = self._load_batch_ptr[0]
+        self._lib.Batch_Float64Array(batch, self._n_batch, self._kw_prop, _BATCH_SET,
+                                     self._ffi.from_buffer("double[]", p), _LOAD_SETTER_FLAGS)
+        self._lib.Batch_Float64Array(batch, self._n_batch, self._kvar_prop, _BATCH_SET,
+                                     self._ffi.from_buffer("double[]", q), _LOAD_SETTER_FLAGS)
+
+    def set_pv(self, p_kw: np.ndarray, q_kvar: np.ndarray) -> np.ndarray:
+        """Set each PV plant's available active power and its reactive power set point.
+
+        ``p_kw`` is clipped to ``[0, pmpp_kw]``; ``q_kvar`` to the inverter headroom
+        ``±sqrt(kva² - p²)`` (watt priority). Night behaviour is the caller's (``qsts.py``).
+
+        Parameters
+        ----------
+        p_kw : (K,) available AC power [kW].
+        q_kvar : (K,) reactive power set point, generator convention [kvar].
+
+        Returns
+        -------
+        (K,) the reactive power actually applied [kvar].
+        """
+        p = np.clip(np.asarray(p_kw, dtype=float), 0.0, self.pv_pmpp_kw)
+        headroom = np.sqrt(np.maximum(self.pv_kva**2 - p**2, 0.0))
+        q = np.clip(np.asarray(q_kvar, dtype=float), -headroom, headroom)
+        if p.shape != self.pv_kva.shape or q.shape != self.pv_kva.shape or not np.all(np.isfinite(q)):
+            raise EngineError(f"set_pv: expected {len(self.pv_ids)} finite values, got {p_kw!r}, {q_kvar!r}")
+        pv = self._dss.PVsystems
+        for k, name in enumerate(self._pv_names):
+            pv.Name(name)
+            pv.Irradiance(p[k] / self.pv_pmpp_kw[k])
+            pv.kvar(q[k])
+        self._pv_p_kw, self._pv_q_kvar = p, q
+        return q.copy()
+
+    def pv_setpoints(self) -> tuple[np.ndarray, np.ndarray]:
+        """The present (available P [kW], applied Q [kvar]) of every plant, each (K,)."""
+        return self._pv_p_kw.copy(), self._pv_q_kvar.copy()
+
+    def set_taps(self, taps: np.ndarray) -> None:
+        """Set every regulator's tap position (integers within ``±reg_tap_max``)."""
+        t = np.asarray(taps)
+        if t.shape != (len(self._regs),) or np.any(t != np.round(t)) or np.any(np.abs(t) > self.reg_tap_max):
+            raise EngineError(f"set_taps: expected {len(self._regs)} integer taps within ±{self.reg_tap_max}, "
+                              f"got {taps!r}")
+        rc = self._dss.RegControls
+        for reg, tap in zip(self._regs, t, strict=True):
+            rc.Name(reg.regcontrol)
+            if rc.TapNumber() != int(tap):
+                rc.TapNumber(int(tap))
+
+    def taps(self) -> np.ndarray:
+        """(R,) present tap positions."""
+        rc = self._dss.RegControls
+        out = np.empty(len(self._regs), dtype=int)
+        for r, reg in enumerate(self._regs):
+            rc.Name(reg.regcontrol)
+            out[r] = rc.TapNumber()
+        return out
+
+    # ------------------------------------------------------------------ solve and read
+    def solve(self) -> None:
+        """Solve one power flow at the present loads, PV and taps.
+
+        Raises
+        ------
+        EngineError
+            OpenDSS did not converge.
+        """
+        try:
+            self._dss.Solution.Solve()
+        except dss.DSSException as e:
+            raise EngineError(f"{self.device_map.feeder.name}: power flow failed: {e}") from e
+        if not self._dss.Solution.Converged():
+            raise EngineError(f"{self.device_map.feeder.name}: power flow did not converge; check loads/PV "
+                              "for unrealistic values")
+
+    def node_voltages_pu(self) -> np.ndarray:
+        """(n_nodes,) voltage magnitude of every node, in ``node_names`` order [pu of its bus's L-N base]."""
+        return np.array(self._circuit.AllBusVmagPu, dtype=float)
+
+    def _read_terminal(self, t: _Terminal) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Phase voltages [V], currents into the element [A] (complex, (3,)) and powers [kVA] (complex)."""
+        self._circuit.SetActiveElement(t.element)
+        el = self._circuit.ActiveCktElement
+        v = el.Voltages
+        i = el.Currents
+        s = el.Powers
+        base = (t.terminal - 1) * t.n_conductors
+        v_c = v[0::2] + 1j * v[1::2]
+        i_c = i[0::2] + 1j * i[1::2]
+        s_c = s[0::2] + 1j * s[1::2]
+        vn = v_c[base + t.neutral_conductor] if t.neutral_conductor >= 0 else 0j
+        out_v, out_i, out_s = np.zeros(3, complex), np.zeros(3, complex), np.zeros(3, complex)
+        for ph, c in enumerate(t.conductor_of_phase):
+            if c >= 0:
+                out_v[ph] = v_c[base + c] - vn
+                out_i[ph] = i_c[base + c]
+                out_s[ph] = s_c[base + c]
+        return out_v, out_i, out_s
+
+    def readings(self) -> FieldReadings:
+        """What the field devices measure at the present solution (call after :meth:`solve`)."""
+        v, i, s = self._read_terminal(self._head)
+        k = len(self._pv_terms)
+        pv_p, pv_q, pv_v = np.zeros((k, 3)), np.zeros((k, 3)), np.zeros((k, 3))
+        for n, t in enumerate(self._pv_terms):
+            pv_volts, _, pv_s = self._read_terminal(t)
+            pv_p[n], pv_q[n], pv_v[n] = -pv_s.real, -pv_s.imag, np.abs(pv_volts)
+        v120, compared = self._regulator_v120()
+        return FieldReadings(
+            head_v_mag_v=np.abs(v), head_v_ang_deg=np.degrees(np.angle(v)),
+            head_i_mag_a=np.abs(i), head_i_ang_deg=np.degrees(np.angle(i)),
+            head_p_kw=s.real, head_q_kvar=s.imag,
+            pv_p_kw=pv_p, pv_q_kvar=pv_q, pv_v_v=pv_v,
+            reg_v120=v120, reg_v120_compared=compared, reg_tap=self.taps(),
+        )
+
+    def _regulator_v120(self) -> tuple[np.ndarray, np.ndarray]:
+        """(raw, compared) secondary voltage of every regulator [V on the 120 V base].
+
+        compared = |V/PTratio + (R + jX)·I/CTprim| with I the current *into* the controlled winding
+        (OpenDSS RegControl's line-drop compensation; equals V/PTratio − (R + jX)·I_load/CTprim).
+        """
+        n = len(self._regs)
+        raw, comp = np.empty(n), np.empty(n)
+        for r, reg in enumerate(self._regs):
+            self._circuit.SetActiveElement(f"Transformer.{reg.transformer}")
+            el = self._circuit.ActiveCktElement
+            v, i = el.Voltages, el.Currents
+            j = (reg.winding - 1) * reg.n_conductors + reg.pt_phase
+            jn = (reg.winding - 1) * reg.n_conductors + reg.n_conductors - 1  # neutral of a wye winding
+            vc = complex(v[2 * j], v[2 * j + 1])
+            if reg.n_conductors > 1 and jn != j:
+                vc -= complex(v[2 * jn], v[2 * jn + 1])
+            ic = complex(i[2 * j], i[2 * j + 1])
+            v_sec = vc / reg.pt_ratio
+            raw[r] = abs(v_sec)
+            comp[r] = abs(v_sec + complex(reg.ldc_r_v, reg.ldc_x_v) * ic / reg.ct_primary_a)
+        return raw, comp
+
+    # ------------------------------------------------------------------ oracle
+    def perturbation_sensitivities(self, dq_kvar: float = 100.0) -> tuple[np.ndarray, np.ndarray]:
+        """Voltage sensitivities by perturbation from the present state (the case-A oracle).
+
+        Each plant's Q is moved by ``dq_kvar`` (upwards, or downwards when the headroom is short), and
+        each regulator by one tap (up, or down at the top tap), one at a time; each is solved and
+        differenced against the present solution, then undone. The state (Q set points, taps,
+        voltages) is restored and checked.
+
+        Returns
+        -------
+        dv_dq : (n_nodes, K) [pu/kvar]; a column is NaN when the plant has less than 1 kvar of headroom.
+        dv_dtap : (n_nodes, R) [pu/step].
+        """
+        self.solve()
+        v0 = self.node_voltages_pu()
+        p0, q0 = self.pv_setpoints()
+        t0 = self.taps()
+        headroom = np.sqrt(np.maximum(self.pv_kva**2 - p0**2, 0.0))
+        dv_dq = np.full((len(v0), len(q0)), np.nan)
+        for k in range(len(q0)):
+            up, down = headroom[k] - q0[k], headroom[k] + q0[k]
+            dq = min(dq_kvar, up) if up >= down else -min(dq_kvar, down)
+            if abs(dq) < 1.0:
+                continue
+            q = q0.copy()
+            q[k] += dq
+            applied = self.set_pv(p0, q)
+            self.solve()
+            dv_dq[:, k] = (self.node_voltages_pu() - v0) / (applied[k] - q0[k])
+        self.set_pv(p0, q0)
+        dv_dtap = np.zeros((len(v0), len(t0)))
+        for r in range(len(t0)):
+            step = 1 if t0[r] < self.reg_tap_max[r] else -1
+            t = t0.copy()
+            t[r] += step
+            self.set_taps(t)
+            self.solve()
+            dv_dtap[:, r] = (self.node_voltages_pu() - v0) / step
+        self.set_taps(t0)
+        self.solve()
+        drift = float(np.max(np.abs(self.node_voltages_pu() - v0))) if len(v0) else 0.0
+        p1, q1 = self.pv_setpoints()
+        if not (np.array_equal(self.taps(), t0) and np.array_equal(q1, q0) and drift < 100 * self.tolerance):
+            raise EngineError(f"perturbation_sensitivities: state not restored (voltage drift {drift:.2e} pu)")
+        return dv_dq, dv_dtap
+
+    # ------------------------------------------------------------------ bench support
+    def bare_steps_s(self, load_kw: np.ndarray, pv_kw: np.ndarray) -> float:
+        """Wall time of bare OpenDSS steps [s]: per row, set loads and PV output, solve; nothing else.
+
+        The reference for the QSTS overhead ratio (``bench.py``). Leaves the last row applied.
+        """
+        import time
+
+        pv = self._dss.PVsystems
+        solve = self._dss.Solution.Solve
+        t = time.perf_counter()
+        for row, pv_row in zip(load_kw, pv_kw, strict=True):
+            self.set_loads_kw(row)
+            for k, name in enumerate(self._pv_names):
+                pv.Name(name)
+                pv.Irradiance(pv_row[k] / self.pv_pmpp_kw[k])
+            solve()
+        return time.perf_counter() - t
+
+    def close(self) -> None:
+        """Release the load batch handle (the context itself is freed with the object)."""
+        if getattr(self, "_load_batch_ptr", None) is not None and self._load_batch_ptr[0] != self._ffi.NULL:
+            self._lib.Batch_Dispose(self._load_batch_ptr[0])
+            self._load_batch_ptr = None
+
+
+@dataclass(frozen=True)
+class OpenDssSnapshot:
+    """OpenDSS's own solution of a plain model (its own controls on), for golden comparisons.
+
+    Attributes
+    ----------
+    node_names : OpenDSS ``AllNodeNames``, lower case.
+    v_pu : (n_nodes,) node voltage magnitudes [pu of each bus's L-N base].
+    taps : {regcontrol name (lower case): tap position} after OpenDSS's control iterations.
+    """
+
+    node_names: tuple[str, ...]
+    v_pu: np.ndarray
+    taps: dict[str, int]
+
+
+def opendss_snapshot(master: str | Path, *, tolerance: float = 1e-8) -> OpenDssSnapshot:
+    """Compile ``master`` as it is, solve one snapshot with OpenDSS's own (static) controls, and read it.
+
+    Raises
+    ------
+    EngineError
+        The model does not compile or the snapshot does not converge.
+    """
+    ctx = dss.NewContext()
+    cwd = os.getcwd()
+    try:
+        ctx.Text.Command(f'compile "{Path(master).resolve()}"')
+        ctx.Text.Command(f"set tolerance={tolerance:.3g}")
+        ctx.Text.Command("set maxcontroliter=100")
+        ctx.Text.Command("set maxiterations=100")
+        ctx.Solution.Solve()
+    except dss.DSSException as e:
+        raise EngineError(f"{master}: OpenDSS snapshot failed: {e}") from e
+    finally:
+        os.chdir(cwd)
+    if not ctx.Solution.Converged():
+        raise EngineError(f"{master}: OpenDSS snapshot did not converge")
+    taps = {}
+    i = ctx.RegControls.First()
+    while i > 0:
+        taps[ctx.RegControls.Name().lower()] = int(ctx.RegControls.TapNumber())
+        i = ctx.RegControls.Next()
+    return OpenDssSnapshot(
+        node_names=tuple(n.lower() for n in ctx.Circuit.AllNodeNames()),
+        v_pu=np.asarray(ctx.Circuit.AllBusMagPu(), dtype=float),
+        taps=taps,
+    )
