@@ -1,1 +1,1 @@
-
+"""Messages, key expressions, configuration types and the bus layer shared by every cvvc-edge process."""

@@ -1,0 +1,448 @@
+"""The bus layer: Zenoh sessions configured safely, typed publishers, and typed, counted inboxes.
+
+- ``BusConfig`` + ``zenoh_config``: multicast scouting always off, explicit ``tcp/127.0.0.1`` endpoints by
+  default; a JSON5 config file or ``--listen`` / ``--connect`` override. ``add_bus_arguments`` gives every
+  program the same flags.
+- ``TypedPublisher``: refuses non-finite numbers at the sender, encodes with msgspec, puts bytes.
+- ``Inbox``: Zenoh callbacks only check size, decode with the typed decoder of the key's message type and
+  enqueue into one bounded queue; a bad payload is rejected with a reason, counted per topic and kind, and
+  logged once per kind. Nothing raises out of a callback, and the consumer thread does the real work.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import math
+import queue
+import re
+import socket
+import threading
+import time
+from collections import Counter
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from typing import Any, Generic, Literal, TypeVar
+
+import msgspec
+import zenoh
+
+from schemas.errors import CvvcError
+from schemas.keys import message_type_for_key
+
+__all__ = [
+    "BadMessage",
+    "BusConfig",
+    "BusError",
+    "Codec",
+    "Inbox",
+    "LivelinessWatcher",
+    "NonFiniteError",
+    "Received",
+    "RejectCounter",
+    "TypedPublisher",
+    "add_bus_arguments",
+    "bus_config_from_args",
+    "check_finite",
+    "codec_for",
+    "free_port",
+    "open_session",
+    "wait_for",
+    "zenoh_config",
+]
+
+log = logging.getLogger(__name__)
+
+T = TypeVar("T", bound=msgspec.Struct)
+Mode = Literal["peer", "router", "client"]
+MAX_PAYLOAD_BYTES = 1 << 20  # 1 MiB: the largest frame (8500-node truth) is ~200 kB
+_LOOPBACK = "127.0.0.1"
+
+
+class BusError(CvvcError):
+    """A bus that cannot be configured or opened."""
+
+
+class NonFiniteError(CvvcError, ValueError):
+    """A message with NaN or infinite numbers: refused at the sender (JSON would carry null)."""
+
+
+# ------------------------------------------------------------------------------------ configuration
+class BusConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """How a program joins the bus. Endpoints are Zenoh locators such as ``tcp/127.0.0.1:7447``."""
+
+    mode: Mode = "peer"
+    listen: tuple[str, ...] = ()
+    connect: tuple[str, ...] = ()
+    config_file: str | None = None
+    connect_timeout_ms: int = 5000
+    exit_on_failure: bool = True
+
+
+def zenoh_config(bus: BusConfig) -> zenoh.Config:
+    """Build a ``zenoh.Config``: the file (if any), then mode and endpoints, and always no multicast scouting.
+
+    A peer or router with no listen endpoint listens on an ephemeral port of 127.0.0.1, never on every
+    interface (Zenoh's default). Peers must listen: two peers that reach each other through a router
+    only exchange data once gossip has connected them directly.
+    """
+    if bus.config_file:
+        try:
+            conf = zenoh.Config.from_file(bus.config_file)
+        except Exception as e:  # zenoh raises ZError, a plain Exception subclass
+            raise BusError(f"{bus.config_file}: cannot read Zenoh config: {e}") from e
+    else:
+        conf = zenoh.Config()
+    listen = list(bus.listen)
+    if not listen and bus.mode != "client":
+        listen = [f"tcp/{_LOOPBACK}:0"]
+    try:
+        conf.insert_json5("mode", _j(bus.mode))
+        conf.insert_json5("scouting/multicast/enabled", "false")
+        conf.insert_json5("scouting/gossip/enabled", "false" if bus.mode == "client" else "true")
+        if listen or not bus.config_file:
+            conf.insert_json5("listen/endpoints", _j(listen))
+        if bus.connect or not bus.config_file:
+            conf.insert_json5("connect/endpoints", _j(list(bus.connect)))
+        if bus.connect:
+            conf.insert_json5("connect/timeout_ms", _j(bus.connect_timeout_ms))
+            conf.insert_json5("connect/exit_on_failure", _j(bus.exit_on_failure))
+    except Exception as e:
+        raise BusError(f"invalid Zenoh setting: {e}") from e
+    return conf
+
+
+def _j(value: Any) -> str:
+    return msgspec.json.encode(value).decode()
+
+
+def open_session(bus: BusConfig) -> zenoh.Session:
+    """Open a session; use it as ``with open_session(bus) as session:`` so it is always closed."""
+    try:
+        return zenoh.open(zenoh_config(bus))
+    except BusError:
+        raise
+    except Exception as e:
+        where = ", ".join(bus.listen + bus.connect) or "an ephemeral loopback port"
+        raise BusError(f"cannot open a Zenoh session on {where}: {e}") from e
+
+
+def add_bus_arguments(parser: argparse.ArgumentParser) -> None:
+    """The Zenoh flags every program takes, the same way everywhere."""
+    g = parser.add_argument_group("bus (Zenoh)")
+    g.add_argument("--listen", action="append", default=[], metavar="ENDPOINT",
+                   help="listen on this endpoint, e.g. tcp/127.0.0.1:7447 (repeatable)")
+    g.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
+                   help="connect to this endpoint, e.g. tcp/127.0.0.1:7447 (repeatable)")
+    g.add_argument("--zenoh-config", metavar="FILE", default=None,
+                   help="a Zenoh JSON5 config file (multicast scouting is still forced off)")
+    g.add_argument("--zenoh-mode", choices=["peer", "router", "client"], default=None,
+                   help="session mode (default: peer, or router when only listening)")
+
+
+def bus_config_from_args(args: argparse.Namespace, *, default_mode: Mode = "peer") -> BusConfig:
+    mode = args.zenoh_mode or default_mode
+    return BusConfig(
+        mode=mode,
+        listen=tuple(args.listen),
+        connect=tuple(args.connect),
+        config_file=args.zenoh_config,
+    )
+
+
+def free_port() -> int:
+    """A TCP port on 127.0.0.1 that is free now (for tests and the launcher)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind((_LOOPBACK, 0))
+        return int(s.getsockname()[1])
+
+
+# ---------------------------------------------------------------------------------------- encoding
+def check_finite(msg: Any, path: str = "") -> None:
+    """Raise ``NonFiniteError`` naming the first NaN or infinite number anywhere in ``msg``."""
+    if isinstance(msg, float):
+        if not math.isfinite(msg):
+            raise NonFiniteError(f"non-finite value {msg!r} at {path or 'message'}; refusing to publish")
+    elif isinstance(msg, msgspec.Struct):
+        for name in msg.__struct_fields__:
+            check_finite(getattr(msg, name), f"{path}.{name}" if path else name)
+    elif isinstance(msg, list | tuple):
+        for i, v in enumerate(msg):
+            check_finite(v, f"{path}[{i}]")
+    elif isinstance(msg, dict):
+        for k, v in msg.items():
+            check_finite(v, f"{path}[{k!r}]")
+
+
+class BadMessage(CvvcError):
+    """A payload that did not decode into its message type. ``kind`` is a short counter label."""
+
+    def __init__(self, kind: str, detail: str) -> None:
+        super().__init__(f"{kind}: {detail}")
+        self.kind = kind
+        self.detail = detail
+
+
+_KINDS = (
+    (re.compile(r"unknown field"), "unknown_field"),
+    (re.compile(r"missing required field"), "missing_field"),
+    (re.compile(r"Number out of range|Expected `[^`]*` (>=|<=|>|<) |length (>=|<=)|Expected `str` matching"),
+     "out_of_range"),
+    (re.compile(r"Expected `"), "wrong_type"),
+)
+
+
+class Codec(Generic[T]):
+    """A typed JSON encoder/decoder for one message type, built once and reused."""
+
+    def __init__(self, msg_type: type[T], *, max_bytes: int = MAX_PAYLOAD_BYTES) -> None:
+        self.msg_type = msg_type
+        self.max_bytes = max_bytes
+        self._decoder = msgspec.json.Decoder(msg_type)
+        self._encoder = msgspec.json.Encoder()
+
+    def encode(self, msg: T) -> bytes:
+        check_finite(msg)
+        return self._encoder.encode(msg)
+
+    def decode(self, data: bytes) -> T:
+        """Decode or raise ``BadMessage`` with kind oversize / malformed / unknown_field / missing_field /
+        wrong_type / out_of_range / non_finite.
+        """
+        if len(data) > self.max_bytes:
+            raise BadMessage("oversize", f"{len(data)} bytes > {self.max_bytes}")
+        try:
+            msg = self._decoder.decode(data)
+        except msgspec.ValidationError as e:
+            text = str(e)
+            kind = next((k for rx, k in _KINDS if rx.search(text)), "invalid")
+            raise BadMessage(kind, text) from None
+        except msgspec.DecodeError as e:
+            raise BadMessage("malformed", str(e)) from None
+        try:
+            check_finite(msg)
+        except NonFiniteError as e:
+            raise BadMessage("non_finite", str(e)) from None
+        return msg
+
+
+_CODECS: dict[type, Codec[Any]] = {}
+_CODECS_LOCK = threading.Lock()
+
+
+def codec_for(msg_type: type[T]) -> Codec[T]:
+    """The shared codec of a message type (built on first use)."""
+    with _CODECS_LOCK:
+        codec = _CODECS.get(msg_type)
+        if codec is None:
+            codec = _CODECS[msg_type] = Codec(msg_type)
+        return codec
+
+
+# --------------------------------------------------------------------------------------- publishing
+class TypedPublisher(Generic[T]):
+    """A Zenoh publisher of one message type on one key.
+
+    Measurements use congestion control DROP (the newest frame matters); commands and decisions use
+    BLOCK at a high priority (they must not be lost).
+    """
+
+    def __init__(self, session: zenoh.Session, key: str, msg_type: type[T], *, reliable: bool = False) -> None:
+        self.key = key
+        self.codec = codec_for(msg_type)
+        self._pub = session.declare_publisher(
+            key,
+            encoding=zenoh.Encoding.APPLICATION_JSON,
+            congestion_control=zenoh.CongestionControl.BLOCK if reliable else zenoh.CongestionControl.DROP,
+            priority=zenoh.Priority.REAL_TIME if reliable else zenoh.Priority.DATA,
+            express=reliable,
+        )
+
+    def put(self, msg: T) -> bytes:
+        """Publish ``msg``; raises ``NonFiniteError`` (nothing is sent) if it holds NaN or inf."""
+        data = self.codec.encode(msg)
+        self._pub.put(data)
+        return data
+
+    @property
+    def matched(self) -> bool:
+        return bool(self._pub.matching_status.matching)  # type: ignore[attr-defined]  # stub says bool
+
+    def wait_matched(self, timeout_s: float) -> bool:
+        """Wait until a subscriber exists (a put right after a remote declaration is often lost)."""
+        return wait_for(lambda: self.matched, timeout_s)
+
+    def undeclare(self) -> None:
+        self._pub.undeclare()
+
+
+# ---------------------------------------------------------------------------------------- receiving
+class RejectCounter:
+    """Thread-safe counts of rejected messages per (topic, kind); logs the first of each kind per topic."""
+
+    def __init__(self, name: str = "bus") -> None:
+        self._lock = threading.Lock()
+        self._counts: Counter[tuple[str, str]] = Counter()
+        self._log = logging.getLogger(f"{__name__}.{name}")
+
+    def reject(self, topic: str, kind: str, detail: str) -> None:
+        with self._lock:
+            self._counts[(topic, kind)] += 1
+            first = self._counts[(topic, kind)] == 1
+        if first:
+            self._log.warning("rejected message on %s (%s): %s; further ones of this kind are only counted",
+                              topic, kind, detail[:300])
+
+    def total(self, kind: str | None = None) -> int:
+        with self._lock:
+            return sum(n for (_, k), n in self._counts.items() if kind is None or k == kind)
+
+    def by_kind(self) -> dict[str, int]:
+        with self._lock:
+            out: Counter[str] = Counter()
+            for (_, k), n in self._counts.items():
+                out[k] += n
+            return dict(out)
+
+    def by_topic(self) -> dict[str, dict[str, int]]:
+        with self._lock:
+            out: dict[str, dict[str, int]] = {}
+            for (t, k), n in self._counts.items():
+                out.setdefault(t, {})[k] = n
+            return out
+
+
+@dataclass(frozen=True)
+class Received:
+    """One accepted message: its key, the decoded message, receive wall time [ns] and the raw bytes."""
+
+    key: str
+    msg: Any
+    recv_wall_ns: int
+    raw: bytes
+
+
+class Inbox:
+    """One bounded queue fed by any number of typed subscriptions.
+
+    The Zenoh callback decodes (about a microsecond) and enqueues; when the queue is full the *oldest*
+    item is dropped and counted as ``queue_full`` (the newest measurement matters more). A ``validate``
+    hook may reject decoded messages with a reason (wrong feeder, unknown device, ...).
+    """
+
+    def __init__(self, *, maxsize: int = 4096, counter: RejectCounter | None = None) -> None:
+        self.queue: queue.Queue[Received] = queue.Queue(maxsize=maxsize)
+        self.rejects = counter or RejectCounter("inbox")
+        self.accepted = 0
+        self._subs: list[Any] = []
+        self._lock = threading.Lock()
+
+    def subscribe(
+        self,
+        session: zenoh.Session,
+        key_expr: str,
+        msg_type: type[msgspec.Struct] | None = None,
+        *,
+        validate: Callable[[str, Any], str | None] | None = None,
+    ) -> None:
+        """Subscribe ``key_expr``; decode as ``msg_type`` or, if None, the type the concrete key carries."""
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            key = str(sample.key_expr)
+            try:
+                raw = sample.payload.to_bytes()
+                mtype = msg_type or message_type_for_key(key)
+                if mtype is None:
+                    self.rejects.reject(key, "unknown_key", f"no message type for key {key!r}")
+                    return
+                msg = codec_for(mtype).decode(raw)
+                if validate is not None:
+                    why = validate(key, msg)
+                    if why:
+                        self.rejects.reject(key, "rejected", why)
+                        return
+                self._put(Received(key, msg, time.time_ns(), raw))
+            except BadMessage as e:
+                self.rejects.reject(key, e.kind, e.detail)
+            except Exception as e:  # never let anything escape into Zenoh's thread
+                self.rejects.reject(key, "internal", repr(e))
+
+        self._subs.append(session.declare_subscriber(key_expr, on_sample))
+
+    def _put(self, item: Received) -> None:
+        with self._lock:
+            while True:
+                try:
+                    self.queue.put_nowait(item)
+                    self.accepted += 1
+                    return
+                except queue.Full:
+                    try:
+                        dropped = self.queue.get_nowait()
+                        self.rejects.reject(dropped.key, "queue_full", "consumer too slow; oldest dropped")
+                    except queue.Empty:
+                        pass
+
+    def get(self, timeout_s: float | None = None) -> Received | None:
+        """The next message, or None after ``timeout_s``."""
+        try:
+            return self.queue.get(timeout=timeout_s)
+        except queue.Empty:
+            return None
+
+    def drain(self) -> Iterator[Received]:
+        while True:
+            try:
+                yield self.queue.get_nowait()
+            except queue.Empty:
+                return
+
+    def undeclare(self) -> None:
+        for s in self._subs:
+            s.undeclare()
+        self._subs.clear()
+
+
+class LivelinessWatcher:
+    """Tracks which liveliness tokens under a key expression are alive (history included)."""
+
+    def __init__(self, session: zenoh.Session, key_expr: str,
+                 on_change: Callable[[str, bool], None] | None = None) -> None:
+        self._alive: set[str] = set()
+        self._lock = threading.Lock()
+        self._on_change = on_change
+
+        def cb(sample: zenoh.Sample) -> None:
+            key = str(sample.key_expr)
+            up = sample.kind == zenoh.SampleKind.PUT
+            with self._lock:
+                (self._alive.add if up else self._alive.discard)(key)
+            if self._on_change is not None:
+                try:
+                    self._on_change(key, up)
+                except Exception:
+                    log.exception("liveliness callback failed for %s", key)
+
+        self._sub = session.liveliness().declare_subscriber(key_expr, cb, history=True)
+
+    def alive(self) -> set[str]:
+        with self._lock:
+            return set(self._alive)
+
+    def is_alive(self, key: str) -> bool:
+        with self._lock:
+            return key in self._alive
+
+    def undeclare(self) -> None:
+        self._sub.undeclare()
+
+
+def wait_for(predicate: Callable[[], bool], timeout_s: float, poll_s: float = 0.005) -> bool:
+    """Poll ``predicate`` until true or the deadline passes; returns its last value. Bounded, never sleeps long."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        if predicate():
+            return True
+        if time.monotonic() >= deadline:
+            return False
+        time.sleep(poll_s)

@@ -1,0 +1,153 @@
+"""Zenoh key expressions of the cvvc bus, and which message type each key carries.
+
+Layout, for a feeder id ``F`` and a device id ``D``::
+
+    cvvc/F/meas/head            HeadFrame        feeder-head meter
+    cvvc/F/meas/pv/D            PvFrame          PV plant inverter
+    cvvc/F/meas/vr/D            RegFrame         regulator controller
+    cvvc/F/cmd/pv/D             PvCommand        agent -> inverter
+    cvvc/F/cmd/vr/D             RegCommand       agent -> regulator controller
+    cvvc/F/ack/pv/D, ack/vr/D   Ack              device -> agent
+    cvvc/F/agent/decision       Decision
+    cvvc/F/agent/status         AgentStatus
+    cvvc/F/sim/truth            TruthFrame       simulation only
+    cvvc/F/sim/metrics          MetricsFrame     simulation only
+    cvvc/F/sim/status           BridgeStatus     simulation only
+    cvvc/F/sim/oracle           OracleRequest -> OracleReply (queryable, case A)
+    cvvc/F/alive/<role>/<id>    liveliness tokens (role: agent, head, pv, vr, bridge, recorder)
+"""
+
+from __future__ import annotations
+
+import re
+from typing import Literal
+
+import msgspec
+
+from schemas import messages as m
+from schemas.errors import CvvcError
+
+__all__ = [
+    "KeyError_",
+    "Role",
+    "ack",
+    "agent_decision",
+    "agent_status",
+    "alive",
+    "alive_all",
+    "cmd",
+    "feeder_all",
+    "meas_head",
+    "meas_pv",
+    "meas_vr",
+    "message_type_for_key",
+    "parse_device_key",
+    "sim_metrics",
+    "sim_oracle",
+    "sim_status",
+    "sim_truth",
+]
+
+ROOT = "cvvc"
+_ID = re.compile(r"^[A-Za-z0-9_.\-]{1,64}$")
+DeviceKind = Literal["pv", "vr"]
+Role = Literal["agent", "head", "pv", "vr", "bridge", "recorder"]
+
+
+class KeyError_(CvvcError):
+    """An id that cannot be part of a key expression (empty, too long, or with '/', '*', '$', ...)."""
+
+
+def _id(value: str) -> str:
+    if not _ID.match(value):
+        raise KeyError_(f"{value!r} is not a valid id: use 1-64 of A-Z a-z 0-9 _ . -")
+    return value
+
+
+def feeder_all(feeder: str) -> str:
+    return f"{ROOT}/{_id(feeder)}/**"
+
+
+def meas_head(feeder: str) -> str:
+    return f"{ROOT}/{_id(feeder)}/meas/head"
+
+
+def meas_pv(feeder: str, plant: str = "*") -> str:
+    return f"{ROOT}/{_id(feeder)}/meas/pv/{plant if plant == '*' else _id(plant)}"
+
+
+def meas_vr(feeder: str, regulator: str = "*") -> str:
+    return f"{ROOT}/{_id(feeder)}/meas/vr/{regulator if regulator == '*' else _id(regulator)}"
+
+
+def cmd(feeder: str, kind: DeviceKind, device: str = "*") -> str:
+    return f"{ROOT}/{_id(feeder)}/cmd/{kind}/{device if device == '*' else _id(device)}"
+
+
+def ack(feeder: str, kind: DeviceKind, device: str = "*") -> str:
+    return f"{ROOT}/{_id(feeder)}/ack/{kind}/{device if device == '*' else _id(device)}"
+
+
+def agent_decision(feeder: str) -> str:
+    return f"{ROOT}/{_id(feeder)}/agent/decision"
+
+
+def agent_status(feeder: str) -> str:
+    return f"{ROOT}/{_id(feeder)}/agent/status"
+
+
+def sim_truth(feeder: str) -> str:
+    return f"{ROOT}/{_id(feeder)}/sim/truth"
+
+
+def sim_metrics(feeder: str) -> str:
+    return f"{ROOT}/{_id(feeder)}/sim/metrics"
+
+
+def sim_status(feeder: str) -> str:
+    return f"{ROOT}/{_id(feeder)}/sim/status"
+
+
+def sim_oracle(feeder: str) -> str:
+    return f"{ROOT}/{_id(feeder)}/sim/oracle"
+
+
+def alive(feeder: str, role: Role, ident: str) -> str:
+    return f"{ROOT}/{_id(feeder)}/alive/{role}/{_id(ident)}"
+
+
+def alive_all(feeder: str) -> str:
+    return f"{ROOT}/{_id(feeder)}/alive/**"
+
+
+def parse_device_key(key: str) -> tuple[str, str, str, str] | None:
+    """Split ``cvvc/F/<group>/<kind>/<id>`` into (feeder, group, kind, id); None if not of that shape."""
+    parts = key.split("/")
+    if len(parts) == 5 and parts[0] == ROOT:
+        return parts[1], parts[2], parts[3], parts[4]
+    return None
+
+
+_BY_SUFFIX: dict[tuple[str, ...], type[msgspec.Struct]] = {
+    ("meas", "head"): m.HeadFrame,
+    ("meas", "pv"): m.PvFrame,
+    ("meas", "vr"): m.RegFrame,
+    ("cmd", "pv"): m.PvCommand,
+    ("cmd", "vr"): m.RegCommand,
+    ("ack", "pv"): m.Ack,
+    ("ack", "vr"): m.Ack,
+    ("agent", "decision"): m.Decision,
+    ("agent", "status"): m.AgentStatus,
+    ("sim", "truth"): m.TruthFrame,
+    ("sim", "metrics"): m.MetricsFrame,
+    ("sim", "status"): m.BridgeStatus,
+    ("sim", "oracle"): m.OracleReply,
+}
+
+
+def message_type_for_key(key: str) -> type[msgspec.Struct] | None:
+    """The message type a concrete key carries, or None for keys outside the cvvc layout."""
+    parts = key.split("/")
+    if len(parts) < 4 or parts[0] != ROOT:
+        return None
+    return _BY_SUFFIX.get((parts[2], parts[3]))

@@ -1,0 +1,323 @@
+"""Every message on the cvvc bus, as frozen msgspec Structs.
+
+Conventions (docs/conventions.md): generator convention for device output (``q_kvar > 0`` injects
+reactive power into the grid); the feeder-head meter reports power flowing *into* the feeder; voltages
+``_v`` are line-to-neutral volts, ``_v120`` volts on the 120 V base, ``_pu`` per unit of the node's
+nominal line-to-neutral voltage; time ``t_ns`` is integer nanoseconds since the Unix epoch (UTC), the
+*measurement* time, never the wall clock of the receiver.
+
+Every field with a number has bounds (``Meta``): msgspec checks them on decode, so out-of-range and
+infinite values (JSON ``1e999``) are rejected at the door. JSON cannot carry NaN; senders refuse non-finite
+numbers (``schemas.bus.check_finite``). Schemas evolve append-only, with defaults.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+import msgspec
+from msgspec import Meta
+
+__all__ = [
+    "MESSAGE_TYPES",
+    "Ack",
+    "AgentStatus",
+    "BridgeStatus",
+    "Command",
+    "Decision",
+    "DecisionCommand",
+    "HeadFrame",
+    "HeadPhase",
+    "Message",
+    "MetricsFrame",
+    "NodeEstimate",
+    "OracleReply",
+    "OracleRequest",
+    "Phase",
+    "PvCommand",
+    "PvFrame",
+    "PvPhase",
+    "QualityFlag",
+    "RegCommand",
+    "RegFrame",
+    "RegPhase",
+    "SetpointAction",
+    "SolverStats",
+    "TapAction",
+    "Timings",
+    "TruthFrame",
+]
+
+# ---------------------------------------------------------------------------------------------- scalars
+TimeNs = Annotated[int, Meta(ge=0, le=2**63 - 1, description="integer ns since the Unix epoch (UTC)")]
+Seq = Annotated[int, Meta(ge=0, le=2**63 - 1)]
+Ident = Annotated[str, Meta(pattern=r"^[A-Za-z0-9_.\-]{1,64}$")]
+Reason = Annotated[str, Meta(max_length=500)]
+Phase = Literal["a", "b", "c"]
+VoltsLN = Annotated[float, Meta(ge=0.0, le=1e6)]
+Amps = Annotated[float, Meta(ge=0.0, le=1e6)]
+AngleDeg = Annotated[float, Meta(ge=-360.0, le=360.0)]
+Kw = Annotated[float, Meta(ge=-1e6, le=1e6)]
+Kvar = Annotated[float, Meta(ge=-1e6, le=1e6)]
+Kva = Annotated[float, Meta(ge=0.0, le=1e6)]
+V120 = Annotated[float, Meta(ge=0.0, le=200.0)]
+Band120 = Annotated[float, Meta(gt=0.0, le=12.0)]
+Pu = Annotated[float, Meta(ge=0.0, le=3.0)]
+Tap = Annotated[int, Meta(ge=-16, le=16)]
+Cost = Annotated[float, Meta(ge=0.0, le=1e12)]
+Count = Annotated[int, Meta(ge=0, le=2**53)]
+Seconds = Annotated[float, Meta(ge=0.0, le=1e6)]
+Sens = Annotated[float, Meta(ge=-1.0, le=1.0)]
+
+QualityFlag = Literal["invalid", "questionable", "substituted", "old_data", "test", "noisy"]
+
+
+class Message(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """Common header: measurement time, per-source sequence number, and who sent it."""
+
+    t_ns: TimeNs
+    seq: Seq
+    source: Ident
+
+
+class Command(Message, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """Header of every command: its id, the measurement seq it answers, and when it expires."""
+
+    cmd_id: Annotated[str, Meta(pattern=r"^[A-Za-z0-9_.:\-]{1,96}$")]
+    in_reply_to: Seq
+    valid_until_t_ns: TimeNs
+
+
+# ------------------------------------------------------------------------------------- measurements
+class HeadPhase(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    phase: Phase
+    v_mag_v: VoltsLN
+    v_ang_deg: AngleDeg
+    i_mag_a: Amps
+    i_ang_deg: AngleDeg
+    p_kw: Kw
+    q_kvar: Kvar
+
+
+class HeadFrame(Message, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """Feeder-head meter (PMU-style): per-phase phasors and power into the feeder."""
+
+    feeder_id: Ident
+    phases: Annotated[list[HeadPhase], Meta(min_length=1, max_length=3)]
+    p_kw: Kw
+    q_kvar: Kvar
+    quality: list[QualityFlag] = []
+
+
+class PvPhase(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    phase: Phase
+    p_kw: Kw
+    q_kvar: Kvar
+    v_mag_v: VoltsLN
+
+
+class PvFrame(Message, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """A PV plant inverter: output (generator convention), rating and its present reactive set point."""
+
+    plant_id: Ident
+    phases: Annotated[list[PvPhase], Meta(min_length=1, max_length=3)]
+    p_kw: Kw
+    q_kvar: Kvar
+    s_rated_kva: Kva
+    q_available_kvar: Kva  # headroom sqrt(S^2 - P^2) at this P
+    q_setpoint_kvar: Kvar | None = None  # None: on its local default
+    local_mode: Literal["unity_pf", "volt_var"] = "unity_pf"
+    quality: list[QualityFlag] = []
+
+
+class RegPhase(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    phase: Phase
+    v_120: V120  # raw secondary voltage on the 120 V base (PT secondary)
+
+
+class RegFrame(Message, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """A regulator controller (one tap changer): secondary voltage, tap and its present settings."""
+
+    regulator_id: Ident
+    phases: Annotated[list[RegPhase], Meta(min_length=1, max_length=3)]
+    v_compared_120: V120  # what the controller compares with its band (line-drop compensation included)
+    tap: Tap
+    setpoint_v120: V120
+    band_v120: Band120
+    mode: Literal["local", "locked"]
+    quality: list[QualityFlag] = []
+
+
+# ------------------------------------------------------------------------------------------ commands
+class PvCommand(Command, frozen=True, kw_only=True, forbid_unknown_fields=True, tag="pv"):
+    """Reactive power set point for one PV plant [kvar], generator convention."""
+
+    plant_id: Ident
+    q_kvar: Kvar
+
+
+class TapAction(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True, tag="tap"):
+    """Lock the tap changer at a position (cases A/B)."""
+
+    tap: Tap
+
+
+class SetpointAction(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True, tag="setpoint"):
+    """Local control around a voltage set point and band on the 120 V base (cases C/D, paper eq. 8)."""
+
+    setpoint_v120: Annotated[float, Meta(ge=100.0, le=140.0)]
+    band_v120: Band120
+
+
+class RegCommand(Command, frozen=True, kw_only=True, forbid_unknown_fields=True, tag="vr"):
+    regulator_id: Ident
+    action: TapAction | SetpointAction
+
+
+DecisionCommand = PvCommand | RegCommand
+
+
+class Ack(Message, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """A device's answer to one command. ``applied_value`` is kvar (PV), a tap, or volts (set point)."""
+
+    cmd_id: Annotated[str, Meta(max_length=96)]
+    device_id: Ident
+    status: Literal["accepted", "clipped", "rejected", "expired"]
+    applied_value: Annotated[float, Meta(ge=-1e6, le=1e6)] | None = None
+    reason: Reason = ""
+
+
+# ------------------------------------------------------------------------------------------ decisions
+class NodeEstimate(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    node: Annotated[str, Meta(max_length=128)]
+    v_pu: Pu
+    v_predicted_pu: Pu  # after the decided actions (linear model)
+
+
+class SolverStats(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    status: Annotated[str, Meta(max_length=64)]
+    iterations: Count = 0
+    objective: Annotated[float, Meta(ge=-1e12, le=1e12)] = 0.0
+    soft: bool = False
+
+
+class Timings(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """Wall time spent in each stage [s]. Not part of the decision's content (replay ignores it)."""
+
+    align_s: Seconds = 0.0
+    estimate_s: Seconds = 0.0
+    solve_s: Seconds = 0.0
+    round_s: Seconds = 0.0
+    total_s: Seconds = 0.0
+
+
+class Decision(Message, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """One per control step: what the agent decided, from what, and how long it took.
+
+    ``status``: ``optimal`` (hard limits met), ``soft`` (soft form: some violation predicted), ``hold`` (no
+    new commands; devices keep their last valid commands or local control; ``reason`` says why).
+    """
+
+    feeder_id: Ident
+    step_t_ns: TimeNs  # t_ns of the frames this decision answers
+    in_reply_to: Seq  # seq of the feeder-head frame it answers
+    status: Literal["optimal", "soft", "hold"]
+    reason: Reason = ""
+    commands: list[DecisionCommand] = []
+    estimates: list[NodeEstimate] = []
+    dv_dq_pu_per_kvar: list[list[Sens]] = []  # [node][plant]
+    dv_dtap_pu: list[list[Sens]] = []  # [node][regulator]
+    solver: SolverStats | None = None
+    timings: Timings = Timings()
+    corrected: bool = False
+    missing: list[Ident] = []  # devices whose frames were missing, stale or invalid
+
+
+class AgentStatus(Message, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """Agent health, published on a wall-clock period: staleness and rejected-input counts."""
+
+    feeder_id: Ident
+    state: Literal["ok", "stale", "holding", "starting"]
+    last_frame_t_ns: TimeNs = 0
+    seconds_since_frame: Seconds = 0.0
+    decisions: Count = 0
+    rejected: dict[str, Count] = {}
+
+
+# ----------------------------------------------------------------------------------- simulation only
+class TruthFrame(Message, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """Every node's true voltage [pu] (simulation only). ``node_names`` is sent on the first frame."""
+
+    feeder_id: Ident
+    v_pu: list[Pu]
+    v_min_pu: Pu
+    v_max_pu: Pu
+    node_names: list[str] | None = None
+    taps: list[Tap] = []
+    pv_q_kvar: list[Kvar] = []
+
+
+class MetricsFrame(Message, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """Paper IV.F metrics from the truth, since ``start_t_ns`` (cumulative). ``final`` on shutdown."""
+
+    feeder_id: Ident
+    start_t_ns: TimeNs
+    steps: Count
+    mvvm_pu: Annotated[float, Meta(ge=0.0, le=3.0)]
+    nvv: Count
+    minutes_in_violation: Count
+    ntc: Count
+    q_cost: Cost
+    t_cost: Cost
+    total_cost: Cost
+    v_min_pu: Pu
+    v_max_pu: Pu
+    taps_changes: dict[str, Count] = {}
+    q_mvar_intervals: dict[str, Annotated[float, Meta(ge=0.0, le=1e12)]] = {}
+    final: bool = False
+
+
+class BridgeStatus(Message, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """Bridge health: where the simulation is, lockstep misses, and rejected-command counts."""
+
+    feeder_id: Ident
+    step: Count
+    steps_total: Count
+    clock: Literal["lockstep", "realtime"]
+    lockstep_misses: Count = 0
+    agent_alive: bool = False
+    rejected: dict[str, Count] = {}
+    done: bool = False
+
+
+class OracleRequest(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """Case A: ask the bridge for true voltages and perturbation sensitivities at its present state."""
+
+    t_ns: TimeNs
+    include_sensitivities: bool = True
+
+
+class OracleReply(Message, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    feeder_id: Ident
+    node_names: list[str]
+    v_pu: list[Pu]
+    dv_dq_pu_per_kvar: list[list[Sens]] = []  # [node][plant]
+    dv_dtap_pu: list[list[Sens]] = []  # [node][regulator]
+    taps: list[Tap] = []
+
+
+MESSAGE_TYPES: tuple[type[msgspec.Struct], ...] = (
+    HeadFrame,
+    PvFrame,
+    RegFrame,
+    PvCommand,
+    RegCommand,
+    Ack,
+    Decision,
+    AgentStatus,
+    TruthFrame,
+    MetricsFrame,
+    BridgeStatus,
+    OracleRequest,
+    OracleReply,
+)

@@ -1,0 +1,120 @@
+"""Round trip of every message type, and a table of bad payloads per type."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import msgspec
+import pytest
+
+from schemas import messages as m
+from schemas.bus import BadMessage, NonFiniteError, codec_for
+from schemas.examples import examples
+from schemas.jsonschema import export_schemas, json_schema
+from schemas.messages import MESSAGE_TYPES
+
+EXAMPLES = examples()
+
+
+@pytest.mark.parametrize("msg_type", MESSAGE_TYPES, ids=lambda t: t.__name__)
+def test_round_trip(msg_type):
+    msg = EXAMPLES[msg_type]
+    codec = codec_for(msg_type)
+    assert codec.decode(codec.encode(msg)) == msg
+
+
+@pytest.mark.parametrize("msg_type", MESSAGE_TYPES, ids=lambda t: t.__name__)
+def test_structs_are_frozen_kw_only_strict(msg_type):
+    cfg = msg_type.__struct_config__
+    assert cfg.frozen and cfg.forbid_unknown_fields
+    values = msgspec.structs.astuple(EXAMPLES[msg_type])
+    with pytest.raises(TypeError):
+        msg_type(*values)  # kw_only: positional construction is refused
+    with pytest.raises(AttributeError):
+        EXAMPLES[msg_type].t_ns = 0  # frozen
+
+
+def _mutations(msg_type) -> list[tuple[str, bytes, str]]:
+    """(label, payload, expected kind) for one type, derived from its valid example."""
+    good = json.loads(msgspec.json.encode(EXAMPLES[msg_type]))
+    cases = [
+        ("not json", b"{not json", "malformed"),
+        ("empty", b"", "malformed"),
+        ("array", b"[1,2,3]", "wrong_type"),
+        ("unknown field", json.dumps({**good, "surprise": 1}).encode(), "unknown_field"),
+        ("missing t_ns", json.dumps({k: v for k, v in good.items() if k != "t_ns"}).encode(), "missing_field"),
+        ("t_ns as string", json.dumps({**good, "t_ns": "soon"}).encode(), "wrong_type"),
+        ("negative t_ns", json.dumps({**good, "t_ns": -1}).encode(), "out_of_range"),
+        ("oversize", b"{" + b" " * (2 << 20) + b"}", "oversize"),
+    ]
+    floats = [k for k, v in good.items() if isinstance(v, float)]
+    if floats:
+        cases.append(("infinite float", json.dumps({**good, floats[0]: 1}).encode()
+                      .replace(b'"' + floats[0].encode() + b'": 1', b'"' + floats[0].encode() + b'": 1e999'),
+                      "out_of_range"))
+        cases.append(("NaN literal", json.dumps({**good, floats[0]: math.nan}).encode(), "malformed"))
+    if "source" in good:
+        cases.append(("bad source id", json.dumps({**good, "source": "a/b*"}).encode(), "out_of_range"))
+    return cases
+
+
+BAD = [(t, label, payload, kind) for t in MESSAGE_TYPES for (label, payload, kind) in _mutations(t)]
+
+
+@pytest.mark.parametrize(("msg_type", "label", "payload", "kind"), BAD,
+                         ids=[f"{t.__name__}-{label}" for t, label, _, _ in BAD])
+def test_bad_payload_is_rejected_with_kind(msg_type, label, payload, kind):
+    with pytest.raises(BadMessage) as e:
+        codec_for(msg_type).decode(payload)
+    assert e.value.kind == kind, str(e.value)
+
+
+@pytest.mark.parametrize(
+    ("field", "value"),
+    [("p_kw", 2e6), ("q_kvar", -2e6)],
+)
+def test_out_of_range_power_rejected(field, value):
+    good = json.loads(msgspec.json.encode(EXAMPLES[m.HeadFrame]))
+    with pytest.raises(BadMessage, match="out_of_range"):
+        codec_for(m.HeadFrame).decode(json.dumps({**good, field: value}).encode())
+
+
+def test_sender_refuses_non_finite():
+    bad = msgspec.structs.replace(EXAMPLES[m.PvCommand], q_kvar=math.nan)
+    with pytest.raises(NonFiniteError, match="q_kvar"):
+        codec_for(m.PvCommand).encode(bad)
+    nested = msgspec.structs.replace(
+        EXAMPLES[m.Decision], dv_dq_pu_per_kvar=[[1e-5, math.inf]])
+    with pytest.raises(NonFiniteError, match=r"dv_dq_pu_per_kvar\[0\]\[1\]"):
+        codec_for(m.Decision).encode(nested)
+
+
+def test_tagged_unions_dispatch():
+    d = codec_for(m.Decision).decode(codec_for(m.Decision).encode(EXAMPLES[m.Decision]))
+    kinds = []
+    for c in d.commands:
+        match c:
+            case m.PvCommand(q_kvar=q):
+                kinds.append(("pv", q))
+            case m.RegCommand(action=m.TapAction(tap=t)):
+                kinds.append(("tap", t))
+    assert kinds == [("pv", -120.0), ("tap", 4)]
+
+
+def test_exported_schemas_are_top_level_objects(tmp_path):
+    paths = export_schemas(tmp_path)
+    assert len(paths) == len(MESSAGE_TYPES)
+    for p in paths:
+        schema = json.loads(p.read_text())
+        assert schema["type"] == "object"
+        assert "$ref" not in schema
+        assert schema["additionalProperties"] is False
+
+
+def test_schema_validates_example_with_jsonschema_semantics():
+    """Every required property of the schema is present in the encoded example."""
+    for t in MESSAGE_TYPES:
+        schema = json_schema(t)
+        doc = json.loads(msgspec.json.encode(EXAMPLES[t]))
+        assert set(schema.get("required", [])) <= set(doc), t
