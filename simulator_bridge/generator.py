@@ -406,7 +406,9 @@ def _insert_regulator(buses: list[_Bus], at: int, reg_id: str) -> int:
     parent = b.parent
     new = _add(buses, _Bus(parent, b.phase, 0.0, "", b.x_m, b.y_m, b.u, b.kind, b.lateral, b.heading_rad))
     buses[new].reg = reg_id
-    buses[parent].children.remove(at)
+    siblings = buses[parent].children
+    siblings.remove(new)  # _add appended it; it takes the place of ``at`` instead
+    siblings[siblings.index(at)] = new
     b.parent = new
     buses[new].children.append(at)
     # place the regulator a few metres past its primary pole on the drawing
