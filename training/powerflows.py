@@ -185,18 +185,18 @@ def settle_taps(engine, *, max_rounds: int = 64) -> np.ndarray:
 
     Each round solves, then moves every regulator whose compared voltage is outside its band
     (``reg_default_setpoint_v120 +/- reg_default_band_v120 / 2``) one step towards it. Stops when all are
-    in band, when a tap limit (+/-16) is hit, or when a state repeats (band narrower than a step).
+    in band, when a tap limit is hit, or when a state repeats (band narrower than a step).
     """
+    from simulator_bridge.qsts import tap_direction
+
     seen: set[tuple[int, ...]] = set()
     for _ in range(max_rounds):
         engine.solve()
         r = engine.readings()
         taps = np.asarray(r.reg_tap, int)
         seen.add(tuple(taps))
-        lo = engine.reg_default_setpoint_v120 - engine.reg_default_band_v120 / 2
-        hi = engine.reg_default_setpoint_v120 + engine.reg_default_band_v120 / 2
-        move = np.where(r.reg_v120_compared < lo, 1, np.where(r.reg_v120_compared > hi, -1, 0))
-        new = np.clip(taps + move, -16, 16)
+        move = tap_direction(r.reg_v120_compared, engine.reg_default_setpoint_v120, engine.reg_default_band_v120)
+        new = np.clip(taps + move, -engine.reg_tap_max, engine.reg_tap_max)
         if np.array_equal(new, taps) or tuple(new) in seen:
             return taps
         engine.set_taps(new)

@@ -67,6 +67,8 @@ class YearSummary:
     pv_kw: np.ndarray  # sum of available PV power [kW]
     d_load_ohm: np.ndarray  # eq. (1) [ohm]
     d_pv_ohm: np.ndarray  # eq. (2) [ohm]
+    mean_load_kw: np.ndarray | None = None  # (n_loads,) year mean of each load [kW]
+    mean_pv_kw: np.ndarray | None = None  # (K,) year mean of each plant's available power [kW]
 
 
 def summarize_year(
@@ -74,14 +76,25 @@ def summarize_year(
 ) -> YearSummary:
     """Eq. (1)-(2) for every step of ``profiles`` (a ``YearProfiles``), read in chunks of ``chunk`` steps."""
     parts: list[tuple[np.ndarray, ...]] = []
+    load_sum = np.zeros(profiles.n_loads)
+    pv_sum = np.zeros(profiles.n_pv)
     for start in range(0, profiles.n_steps, chunk):
         stop = min(start + chunk, profiles.n_steps)
         load = profiles.load_kw(start, stop)
         pv = profiles.pv_kw(start, stop)
+        load_sum += load.sum(axis=0)
+        pv_sum += pv.sum(axis=0)
         d_load = center_ohm(load, load_distance_ohm)
         parts.append((load.sum(axis=1), pv.sum(axis=1), d_load, center_ohm(pv, pv_distance_ohm)))
     cols = [np.concatenate(c) for c in zip(*parts, strict=True)]
-    return YearSummary(load_kw=cols[0], pv_kw=cols[1], d_load_ohm=cols[2], d_pv_ohm=cols[3])
+    return YearSummary(
+        load_kw=cols[0],
+        pv_kw=cols[1],
+        d_load_ohm=cols[2],
+        d_pv_ohm=cols[3],
+        mean_load_kw=load_sum / profiles.n_steps,
+        mean_pv_kw=pv_sum / profiles.n_steps,
+    )
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,288 @@
+"""Accuracy report: the trained estimator against OpenDSS over a month at 1-minute resolution.
+
+Simulates one month of a year (usually another seed than training: out of sample) with regulator local
+control (``simulator_bridge.qsts.Qsts``, PV at unity power factor), then estimates every critical node of
+each model with paper eq. (5) and with the correction of eq. (6)-(7), and compares with OpenDSS's
+voltages. At sampled minutes it also compares the eq. (3) sensitivities with perturbation truth
+(``FeederEngine.perturbation_sensitivities``). Writes a PNG like the paper's Fig. 8.
+"""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import msgspec
+import numpy as np
+
+from training._estimate import estimate_v_pu, eval_sensitivities, sensitivity_arrays
+from training.errors import TrainingError
+from training.model import CvvcModel, ModelArrays, features, read_model
+
+__all__ = ["AccuracyReport", "ErrorStats", "MonthTruth", "accuracy_report", "error_stats", "simulate_month"]
+
+WITHIN_PU = 0.01
+
+
+class ErrorStats(msgspec.Struct, frozen=True, kw_only=True):
+    """Estimation error (estimate - truth) over all (minute, critical node) samples [pu]."""
+
+    label: str
+    samples: int
+    mean_pu: float
+    rmse_pu: float
+    p1_pu: float
+    p99_pu: float
+    max_abs_pu: float
+    within_001: float  # share of samples with |error| <= 0.01 pu
+
+
+class SensitivityStats(msgspec.Struct, frozen=True, kw_only=True):
+    """Eq. (3) estimates vs perturbation truth over significant (node, plant) pairs at sampled minutes."""
+
+    label: str
+    minutes: int
+    pairs: int
+    median_rel_err: float
+    p90_rel_err: float
+
+
+class AccuracyReport(msgspec.Struct, frozen=True, kw_only=True):
+    feeder: str
+    month: int
+    year_seed: int
+    minutes: int
+    errors: list[ErrorStats]
+    sensitivities: list[SensitivityStats]
+    extreme_capture: dict[str, float]  # per model: share of minutes whose true max and min node are critical
+    png: str | None = None
+
+
+def error_stats(label: str, err_pu: np.ndarray) -> ErrorStats:
+    """Summary statistics of an error array (any shape) [pu]."""
+    e = np.asarray(err_pu, float).ravel()
+    if e.size == 0:
+        raise TrainingError("no samples to summarise; simulate at least one minute")
+    return ErrorStats(
+        label=label,
+        samples=int(e.size),
+        mean_pu=float(e.mean()),
+        rmse_pu=float(np.sqrt(np.mean(e**2))),
+        p1_pu=float(np.percentile(e, 1)),
+        p99_pu=float(np.percentile(e, 99)),
+        max_abs_pu=float(np.max(np.abs(e))),
+        within_001=float(np.mean(np.abs(e) <= WITHIN_PU)),
+    )
+
+
+@dataclass(frozen=True)
+class MonthTruth:
+    """What the month simulation recorded (T minutes)."""
+
+    steps: np.ndarray  # (T,)
+    features: np.ndarray  # (T, M)
+    q_head_kvar: np.ndarray  # (T,)
+    taps: np.ndarray  # (T, R)
+    reg_v120: np.ndarray  # (T, R) raw secondary voltage [V on 120 V base]
+    v_pu: np.ndarray  # (T, len(nodes)) truth at the requested nodes
+    nodes: np.ndarray  # node indices of v_pu's columns
+    argmax: np.ndarray  # (T,) node of the highest voltage (phases 1-3)
+    argmin: np.ndarray  # (T,) node of the lowest voltage
+    sens_steps: np.ndarray  # (S,) minutes (row index into steps) where sensitivities were perturbed
+    sens_q_pu_per_kvar: np.ndarray  # (S, len(nodes), K) perturbation truth
+
+
+def simulate_month(
+    engine,
+    profiles,
+    steps: range | Sequence[int],
+    nodes: np.ndarray,
+    *,
+    sens_minutes: int = 24,
+    progress: bool = True,
+) -> MonthTruth:
+    """Run QSTS over ``steps`` (consecutive) and record features, taps and truth at ``nodes``."""
+    from tqdm import tqdm
+
+    from simulator_bridge.qsts import Qsts
+
+    steps = list(steps)
+    phases = np.asarray([n.rpartition(".")[2] for n in engine.node_names])
+    eligible = np.isin(phases, ["1", "2", "3"])
+    qsts = Qsts(engine, profiles, start_step=steps[0])
+    sens_at = set(np.linspace(0, len(steps) - 1, min(sens_minutes, len(steps))).round().astype(int).tolist())
+    feats, qh, taps, v120, vv, amax, amin, s_rows, s_vals = [], [], [], [], [], [], [], [], []
+    bar = tqdm(steps, desc="month", unit="min", file=sys.stderr, disable=not (progress and sys.stderr.isatty()))
+    for i, _ in enumerate(bar):
+        res = qsts.step()
+        r = res.readings
+        feats.append(features(r.head_p_kw, r.head_q_kvar, r.pv_p_kw.sum(axis=1), r.pv_q_kvar.sum(axis=1)))
+        qh.append(float(np.sum(r.head_q_kvar)))
+        taps.append(res.taps)
+        v120.append(r.reg_v120)
+        vv.append(res.v_pu[nodes])
+        v_el = np.where(eligible & (res.v_pu > 0.5), res.v_pu, np.nan)
+        amax.append(int(np.nanargmax(v_el)))
+        amin.append(int(np.nanargmin(v_el)))
+        if i in sens_at:
+            dv_dq, _ = engine.perturbation_sensitivities()
+            s_rows.append(i)
+            s_vals.append(dv_dq[nodes])
+    bar.close()
+    k = len(engine.pv_ids)
+    return MonthTruth(
+        steps=np.asarray(steps, int),
+        features=np.asarray(feats),
+        q_head_kvar=np.asarray(qh),
+        taps=np.asarray(taps, float),
+        reg_v120=np.asarray(v120),
+        v_pu=np.asarray(vv),
+        nodes=np.asarray(nodes, int),
+        argmax=np.asarray(amax, int),
+        argmin=np.asarray(amin, int),
+        sens_steps=np.asarray(s_rows, int),
+        sens_q_pu_per_kvar=np.asarray(s_vals).reshape(len(s_rows), len(nodes), k),
+    )
+
+
+def _label(model: CvvcModel, path: Path, labels: list[str]) -> str:
+    base = model.settings.selection
+    return base if base not in labels else f"{base} ({path.name})"
+
+
+def _sens_stats(label: str, pred: np.ndarray, truth: np.ndarray) -> SensitivityStats:
+    """Relative error over pairs whose median |dV/dQ| is >= 10 % of the node's largest plant's."""
+    med = np.nanmedian(np.abs(truth), axis=0)  # (N, K)
+    sig = med >= 0.1 * np.nanmax(med, axis=1, keepdims=True)
+    t = truth[:, sig]
+    p = pred[:, sig]
+    ok = np.isfinite(t) & (np.abs(t) > 0)
+    rel = np.abs(p[ok] - t[ok]) / np.abs(t[ok])
+    if rel.size == 0:
+        return SensitivityStats(label=label, minutes=int(truth.shape[0]), pairs=0, median_rel_err=0.0, p90_rel_err=0.0)
+    return SensitivityStats(
+        label=label,
+        minutes=int(truth.shape[0]),
+        pairs=int(sig.sum()),
+        median_rel_err=float(np.median(rel)),
+        p90_rel_err=float(np.percentile(rel, 90)),
+    )
+
+
+def accuracy_report(
+    model_path: str | Path | Sequence[str | Path],
+    device_map_path: str | Path,
+    month: int,
+    year_seed: int,
+    *,
+    png_path: str | Path | None = None,
+    max_minutes: int | None = None,
+    sens_minutes: int = 24,
+    cache_dir: str | Path | None = ".cvvc-cache",
+    progress: bool = True,
+) -> AccuracyReport:
+    """Estimation error of one or more models over a month (paper IV.D-E, Fig. 8).
+
+    Parameters
+    ----------
+    model_path : one model file or several (e.g. guided and random selection) of the same feeder.
+    device_map_path : the feeder's device map.
+    month : 1..12.
+    year_seed : seed of the simulated year (use another than training's for out of sample).
+    png_path : where to write the figure (None: no figure).
+    max_minutes : simulate only the first minutes of the month (tests, quick looks).
+    sens_minutes : minutes at which eq. (3) is compared with perturbation truth.
+    """
+    from schemas.devicemap import load_device_map
+    from simulator_bridge.engine import FeederEngine
+    from simulator_bridge.profiles import month_steps
+    from training.train import load_profiles
+
+    paths = [Path(model_path)] if isinstance(model_path, (str, Path)) else [Path(p) for p in model_path]
+    if not paths:
+        raise TrainingError("no model given; pass --model MODEL")
+    dm = load_device_map(device_map_path)
+    fp = dm.fingerprint()
+    models = [read_model(p, expect_fingerprint=fp) for p in paths]
+    if not 1 <= month <= 12:
+        raise TrainingError(f"month {month} is not in 1..12")
+    engine = FeederEngine(dm, tolerance=1e-8)
+    names = {n: i for i, n in enumerate(engine.node_names)}
+    model_nodes = [np.asarray([names[c.name] for c in m.critical_nodes], int) for m in models]
+    nodes = np.unique(np.concatenate(model_nodes))
+    col = {int(n): j for j, n in enumerate(nodes)}
+    profiles = load_profiles(dm, engine, seed=year_seed, cache_dir=cache_dir)
+    steps = month_steps(profiles, month)
+    if max_minutes is not None:
+        steps = steps[: max(1, int(max_minutes))]
+    truth = simulate_month(engine, profiles, steps, nodes, sens_minutes=sens_minutes, progress=progress)
+
+    errors: list[ErrorStats] = []
+    sens: list[SensitivityStats] = []
+    capture: dict[str, float] = {}
+    curves: dict[str, np.ndarray] = {}
+    labels: list[str] = []
+    for m, path, mn in zip(models, paths, model_nodes, strict=True):
+        label = _label(m, path, labels)
+        labels.append(label)
+        arrays = ModelArrays.of(m)
+        cols = [col[int(n)] for n in mn]
+        v_true = truth.v_pu[:, cols]
+        plain = estimate_v_pu(arrays, truth.features, truth.taps) - v_true
+        corr = estimate_v_pu(arrays, truth.features, truth.taps, truth.reg_v120) - v_true
+        errors.append(error_stats(f"{label}, no correction", plain))
+        errors.append(error_stats(f"{label}, with correction", corr))
+        curves[f"{label}, no correction"] = plain.ravel()
+        curves[f"{label}, with correction"] = corr.ravel()
+        crit = set(mn.tolist())
+        capture[label] = float(
+            np.mean([a in crit and b in crit for a, b in zip(truth.argmax, truth.argmin, strict=True)])
+        )
+        if truth.sens_steps.size:
+            pred = eval_sensitivities(sensitivity_arrays(m.sens_q), truth.q_head_kvar[truth.sens_steps])
+            sens.append(_sens_stats(label, pred, truth.sens_q_pu_per_kvar[:, cols, :]))
+    png = None
+    if png_path is not None:
+        png = str(_plot(curves, labels, Path(png_path), dm.feeder.name, month))
+    return AccuracyReport(
+        feeder=dm.feeder.name,
+        month=month,
+        year_seed=year_seed,
+        minutes=len(truth.steps),
+        errors=errors,
+        sensitivities=sens,
+        extreme_capture=capture,
+        png=png,
+    )
+
+
+def _plot(curves: dict[str, np.ndarray], labels: list[str], path: Path, feeder: str, month: int) -> Path:
+    """Two panels like the paper's Fig. 8: (a) models with correction, (b) first model with/without."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4), sharey=False)
+    lim = max(0.012, float(np.percentile(np.abs(np.concatenate(list(curves.values()))), 99.9)))
+    bins = np.linspace(-lim, lim, 81)
+    for label in labels:
+        axes[0].hist(curves[f"{label}, with correction"], bins=bins, histtype="step", density=True, label=label)
+    axes[0].set_title(f"(a) selection, with correction - {feeder}, month {month}")
+    first = labels[0]
+    for suffix in ("no correction", "with correction"):
+        axes[1].hist(curves[f"{first}, {suffix}"], bins=bins, histtype="step", density=True, label=suffix)
+    axes[1].set_title(f"(b) correction ({first} selection)")
+    for ax in axes:
+        ax.axvline(-WITHIN_PU, color="grey", lw=0.8, ls="--")
+        ax.axvline(WITHIN_PU, color="grey", lw=0.8, ls="--")
+        ax.set_xlabel("voltage estimation error [pu]")
+        ax.set_ylabel("density")
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path

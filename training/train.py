@@ -1,0 +1,439 @@
+"""Training pipeline: scenarios (II.A), power flows (II.B, Algorithm 1), critical nodes (II.C), fits (II.D).
+
+``train(device_map_path, ...)`` returns a ``TrainResult`` holding the model (``training.model.CvvcModel``)
+and a summary of what was done. It drives OpenDSS only through ``simulator_bridge.engine.FeederEngine``.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import msgspec
+import numpy as np
+
+from training.critical import extreme_nodes, node_phase, select_critical, upstream_regulators
+from training.errors import TrainingError
+from training.fits import (
+    choose_c_kvar,
+    fit_sensitivity,
+    fit_voltage_regression,
+    sensitivity_samples,
+    tap_sensitivities,
+)
+from training.model import (
+    CriticalNode,
+    CvvcModel,
+    FitStats,
+    PvInfo,
+    RegulatorInfo,
+    SensitivityFit,
+    TrainingSettings,
+    feature_names,
+)
+from training.powerflows import (
+    COMBINED,
+    PowerFlowSet,
+    ScenarioInput,
+    run_power_flows,
+    settle_taps,
+)
+from training.scenarios import ScenarioSet, select_scenarios, summarize_year
+
+__all__ = ["DEFAULT_Q_STEPS_PCT", "TrainResult", "TrainSummary", "load_profiles", "train"]
+
+DEFAULT_Q_STEPS_PCT = tuple(float(p) for p in range(-100, 101, 20))
+DEFAULT_COMBINED_PCT = (-100.0, -50.0, 50.0, 100.0)
+_HOLDOUT_EVERY = 5  # every 5th scenario is held out to choose eq. (3)'s form and to report validation error
+
+
+class TrainSummary(msgspec.Struct, frozen=True, kw_only=True):
+    """What ``cvvc train --json`` prints. Voltages [pu], Q [kvar], times [s]."""
+
+    feeder: str
+    selection: str
+    year_seed: int
+    blocks: tuple[int, int]
+    non_empty_blocks: int
+    scenarios: int
+    power_flows: int
+    failed_power_flows: int
+    critical_nodes: int
+    node_count: int
+    critical_share: float
+    seconds: float
+    seconds_power_flows: float
+    workers: int
+    tap0: list[int]
+    q_head_range_kvar: tuple[float, float]
+    c_kvar: float
+    condition_number: float
+    voltage_rmse_pu: float
+    voltage_max_abs_pu: float
+    validation_rmse_pu: float
+    validation_max_abs_pu: float
+    sensitivity_median_rel_err: float
+    sensitivity_forms: dict[str, int]
+    power_fits_with_negative_b: int
+
+
+@dataclass(frozen=True)
+class TrainResult:
+    """The trained model and the summary of the run."""
+
+    model: CvvcModel
+    summary: TrainSummary
+
+
+def load_profiles(device_map, engine, *, seed: int, cache_dir: str | Path | None):
+    """The feeder's year profiles for ``seed``, cached as ``.npz`` in ``cache_dir`` (None: no cache).
+
+    The cache key is the device map's fingerprint and the seed, so a changed feeder regenerates.
+    """
+    from simulator_bridge.profiles import YearProfiles, make_profiles
+
+    path = None
+    if cache_dir is not None:
+        path = Path(cache_dir) / f"profiles-{device_map.feeder.name}-{device_map.fingerprint()}-{seed}.npz"
+        if path.is_file():
+            return YearProfiles.load(path)
+    lags = np.asarray([p.profile_lag_min for p in device_map.pv], float)
+    profiles = make_profiles(
+        seed=seed,
+        load_kw_nominal=engine.load_kw_nominal,
+        pv_pmpp_kw=engine.pv_pmpp_kw,
+        load_distance_ohm=engine.load_distance_ohm,
+        pv_lag_min=lags if np.any(lags > 0) else None,
+    )
+    if path is not None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        profiles.save(path)
+    return profiles
+
+
+def _check_device_map(dm) -> None:
+    if not dm.pv:
+        raise TrainingError(
+            f"feeder {dm.feeder.name!r}: the device map has no PV plant; add at least one [[pv]] entry "
+            "(the estimator regresses on PV plant measurements)"
+        )
+    if not dm.regulator:
+        raise TrainingError(
+            f"feeder {dm.feeder.name!r}: the device map has no regulator; add at least one [[regulator]] "
+            "entry (the correction of eq. (6)-(7) needs a regulator secondary measurement)"
+        )
+
+
+def _inputs(profiles, steps: np.ndarray) -> list[ScenarioInput]:
+    return [
+        ScenarioInput(
+            index=i,
+            load_kw=profiles.load_kw(int(s), int(s) + 1)[0].astype(float),
+            pv_kw=profiles.pv_kw(int(s), int(s) + 1)[0].astype(float),
+        )
+        for i, s in enumerate(steps)
+    ]
+
+
+def _tap_perturbation(engine, first: ScenarioInput, tap0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Algorithm 1 lines 2-6 and eq. (4): +1 tap of each regulator on the first scenario, Q = 0."""
+    engine.set_loads_kw(first.load_kw)
+    engine.set_pv(first.pv_kw, np.zeros(len(first.pv_kw)))
+    engine.set_taps(tap0)
+    engine.solve()
+    v0 = engine.node_voltages_pu()
+    v_tap = np.empty((len(tap0), v0.size))
+    for r in range(len(tap0)):
+        step = 1 if tap0[r] < engine.reg_tap_max[r] else -1  # at the top tap, step down and divide by -1
+        t = tap0.copy()
+        t[r] += step
+        engine.set_taps(t)
+        engine.solve()
+        v_tap[r] = v0 + (engine.node_voltages_pu() - v0) / step
+    engine.set_taps(tap0)
+    engine.solve()
+    return v0, tap_sensitivities(v0, v_tap)
+
+
+def _critical(engine, dm, flows: PowerFlowSet, dv_dtap_all: np.ndarray):
+    names = engine.node_names
+    phases = np.asarray([node_phase(n) for n in names])
+    v_ref = np.median(flows.v_pu, axis=0)
+    eligible = (phases >= 1) & (phases <= 3) & (v_ref > 0.5)  # real phases of energised nodes
+    src = dm.feeder.source_bus.lower()
+    head = np.asarray([i for i, n in enumerate(names) if n.split(".")[0] == src and eligible[i]], int)
+    pv_nodes = np.asarray(sorted({i for idx in engine.pv_node_index for i in idx}), int)
+    required = {
+        "head": head,
+        "reg_primary": np.asarray(engine.reg_primary_node, int),
+        "reg_secondary": np.asarray(engine.reg_secondary_node, int),
+        "pv": pv_nodes[eligible[pv_nodes]] if pv_nodes.size else pv_nodes,
+    }
+    crit = select_critical(required, extreme_nodes(flows.v_pu, eligible=eligible))
+    upstream = upstream_regulators(dv_dtap_all, engine.reg_secondary_node)
+    return crit, upstream, phases
+
+
+def train(
+    device_map_path: str | Path,
+    *,
+    year_seed: int = 1,
+    selection: Literal["guided", "random"] = "guided",
+    blocks: tuple[int, int] = (5, 5),
+    workers: int | None = None,
+    q_steps_pct: tuple[float, ...] = DEFAULT_Q_STEPS_PCT,
+    combined_pct: tuple[float, ...] = DEFAULT_COMBINED_PCT,
+    tolerance: float = 1e-8,
+    rcond: float = 1e-6,
+    cache_dir: str | Path | None = ".cvvc-cache",
+    profiles=None,
+    progress: bool = True,
+) -> TrainResult:
+    """Train the estimator of one feeder (paper II.A-II.D).
+
+    Parameters
+    ----------
+    device_map_path : the feeder's device map TOML.
+    year_seed : seed of the training year's profiles.
+    selection : "guided" (paper II.A) or "random" (6 random minutes per block, the paper's Fig. 8a).
+    blocks : bins on the (load, PV) axes.
+    workers : power-flow processes; None: one per core; 1: in this process.
+    q_steps_pct : PV Q steps [% of kVA] (Algorithm 1 line 9).
+    combined_pct : extra flows with all plants at this share of their headroom at once ([] to disable).
+    tolerance : OpenDSS solve tolerance for training (1e-8: finite differences need it, trap 5).
+    rcond : truncation of the eq. (5) regression (``fits.fit_voltage_regression``).
+    cache_dir : where to cache the year profiles (None: no cache).
+    profiles : use these ``YearProfiles`` instead of generating them (tests).
+    progress : progress bar on stderr when it is a terminal.
+
+    Raises
+    ------
+    TrainingError
+        No PV plant or regulator in the map, no usable scenario, a singular regression.
+    """
+    from schemas.devicemap import load_device_map
+    from simulator_bridge.engine import FeederEngine
+
+    t_start = time.perf_counter()
+    device_map_path = Path(device_map_path)
+    dm = load_device_map(device_map_path)
+    _check_device_map(dm)
+    engine = FeederEngine(dm, tolerance=tolerance)
+    for what, d in (("load", engine.load_distance_ohm), ("PV plant", engine.pv_distance_ohm)):
+        if not np.all(np.isfinite(d)):
+            raise TrainingError(
+                f"feeder {dm.feeder.name!r}: a {what} is not connected to source bus "
+                f"{dm.feeder.source_bus!r}; check feeder.source_bus in the device map"
+            )
+    if profiles is None:
+        profiles = load_profiles(dm, engine, seed=year_seed, cache_dir=cache_dir)
+    if profiles.n_loads != len(engine.load_kw_nominal) or profiles.n_pv != len(engine.pv_kva):
+        raise TrainingError(
+            f"profiles have {profiles.n_loads} loads / {profiles.n_pv} plants, the feeder "
+            f"{len(engine.load_kw_nominal)} / {len(engine.pv_kva)}; delete the profile cache"
+        )
+
+    # II.A: representative scenarios
+    summary = summarize_year(profiles, engine.load_distance_ohm, engine.pv_distance_ohm)
+    scen: ScenarioSet = select_scenarios(summary, blocks=blocks, selection=selection, seed=year_seed)
+    inputs = _inputs(profiles, scen.steps)
+
+    # tap0: local control at rest at the year's mean load and mean PV
+    engine.set_loads_kw(summary.mean_load_kw)
+    engine.set_pv(summary.mean_pv_kw, np.zeros(len(engine.pv_kva)))
+    engine.set_taps(np.zeros(len(engine.regulator_ids), int))
+    tap0 = settle_taps(engine)
+
+    # Algorithm 1 lines 2-6 (eq. 4), then the Q sweeps
+    _, dv_dtap_all = _tap_perturbation(engine, inputs[0], tap0)
+    t_pf = time.perf_counter()
+    n_workers = max(1, min((os.cpu_count() or 1) if workers is None else workers, len(inputs)))
+    flows = run_power_flows(
+        engine,
+        inputs,
+        device_map_path=str(device_map_path),
+        tolerance=tolerance,
+        q_steps_pct=q_steps_pct,
+        combined_pct=combined_pct,
+        workers=n_workers,
+        progress=progress,
+    )
+    seconds_pf = time.perf_counter() - t_pf
+    if flows.n == 0:
+        raise TrainingError(f"feeder {dm.feeder.name!r}: no training power flow converged; check the feeder")
+
+    # II.C: critical nodes
+    crit, upstream_all, phases = _critical(engine, dm, flows, dv_dtap_all)
+    nodes = crit.nodes
+    pos = {int(n): i for i, n in enumerate(nodes)}
+
+    # II.D: eq. (5), held-out validation first, then the fit on everything
+    holdout = (flows.scenario % _HOLDOUT_EVERY) == _HOLDOUT_EVERY - 1
+    v_crit = flows.v_pu[:, nodes]
+    val_rmse, val_max = float("nan"), float("nan")
+    if holdout.any() and (~holdout).sum() > flows.features.shape[1] + 1:
+        part = fit_voltage_regression(flows.features[~holdout], v_crit[~holdout], rcond=rcond)
+        err = flows.features[holdout] @ part.alpha[:, :-1].T + part.alpha[:, -1] - v_crit[holdout]
+        val_rmse, val_max = float(np.sqrt(np.mean(err**2))), float(np.max(np.abs(err)))
+    vfit = fit_voltage_regression(flows.features, v_crit, rcond=rcond)
+
+    # eq. (3): samples from single-plant sweeps, form chosen on held-out scenarios
+    samples = sensitivity_samples(flows.scenario, flows.plant, flows.pv_q_kvar, flows.q_head_kvar, v_crit)
+    q_range = (float(flows.q_head_kvar.min()), float(flows.q_head_kvar.max()))
+    c_kvar = choose_c_kvar(*q_range)
+    s_hold = (samples.scenario % _HOLDOUT_EVERY) == _HOLDOUT_EVERY - 1
+    sens: list[list[SensitivityFit]] = []
+    rel_errs: list[np.ndarray] = []
+    forms = {"constant": 0, "linear": 0, "power": 0}
+    neg_b = 0
+    from training._estimate import eval_sensitivities, sensitivity_arrays
+
+    for i in range(nodes.size):
+        row = []
+        for k in range(len(engine.pv_kva)):
+            m = samples.plant == k
+            if not m.any():
+                raise TrainingError(
+                    f"PV plant {engine.pv_ids[k]!r} has no Q sweep (no reactive headroom at "
+                    "any scenario); raise its kva above pmpp_kw in the device map"
+                )
+            fit, _ = fit_sensitivity(
+                samples.q_head_kvar[m],
+                samples.dv_dq_pu_per_kvar[m, i],
+                c_kvar=c_kvar,
+                q_range_kvar=q_range,
+                holdout=s_hold[m],
+            )
+            row.append(fit)
+            forms[fit.form] += 1
+            neg_b += int(fit.form == "power" and fit.b < 0)
+        sens.append(row)
+    params = sensitivity_arrays(sens)
+    pred = eval_sensitivities(params, samples.q_head_kvar)[np.arange(samples.plant.size), :, samples.plant]
+    truth = samples.dv_dq_pu_per_kvar
+    # relative error over significant pairs: median |dV/dQ| of the pair at least 10 % of the node's largest
+    for k in range(len(engine.pv_kva)):
+        m = samples.plant == k
+        med = np.median(np.abs(truth[m]), axis=0)
+        node_max = np.max(
+            [np.median(np.abs(truth[samples.plant == j]), axis=0) for j in range(len(engine.pv_kva))], axis=0
+        )
+        sig = med >= 0.1 * node_max
+        if sig.any():
+            t_k, p_k = truth[m][:, sig], pred[m][:, sig]
+            ok = np.abs(t_k) > 0
+            rel_errs.append(np.abs(p_k[ok] - t_k[ok]) / np.abs(t_k[ok]))
+    sens_rel = float(np.median(np.concatenate(rel_errs))) if rel_errs else float("nan")
+
+    # the model file
+    crit_nodes = [
+        CriticalNode(
+            name=engine.node_names[int(n)],
+            phase=int(phases[int(n)]),  # type: ignore[arg-type]
+            kinds=list(crit.kinds[i]),  # type: ignore[arg-type]
+            upstream_regulator=None if upstream_all[int(n)] < 0 else int(upstream_all[int(n)]),
+        )
+        for i, n in enumerate(nodes)
+    ]
+    regs = []
+    for r, spec in enumerate(dm.regulator):
+        sec = int(engine.reg_secondary_node[r])
+        step_v120 = float(dv_dtap_all[sec, r] / engine.reg_pu_per_v120[r])
+        regs.append(
+            RegulatorInfo(
+                id=spec.id,
+                secondary_node=pos[sec],
+                pu_per_v120=float(engine.reg_pu_per_v120[r]),
+                tap_min=-int(engine.reg_tap_max[r]),
+                tap_max=int(engine.reg_tap_max[r]),
+                step_v120=round(step_v120, 4) if 0.1 < step_v120 < 5 else 0.75,
+                cost_per_tap=spec.cost_per_tap,
+                max_taps_per_interval=spec.max_taps_per_interval,
+                default_setpoint_v120=float(engine.reg_default_setpoint_v120[r]),
+                default_band_v120=float(engine.reg_default_band_v120[r]),
+            )
+        )
+    pvs = [PvInfo(id=p.id, kva=p.kva, pmpp_kw=p.pmpp_kw, cost_per_kvar=p.cost_per_kvar, phases=p.phases) for p in dm.pv]
+    seconds = time.perf_counter() - t_start
+    from cvvc import __version__
+
+    fit_stats = FitStats(
+        voltage_rmse_pu=float(np.sqrt(np.mean(vfit.rmse_pu**2))),
+        voltage_max_abs_pu=vfit.max_abs_pu,
+        sensitivity_median_rel_err=sens_rel if np.isfinite(sens_rel) else 0.0,
+        per_node_rmse_pu=[float(x) for x in vfit.rmse_pu],
+    )
+    model = CvvcModel(
+        feeder_name=dm.feeder.name,
+        fingerprint=dm.fingerprint(),
+        cvvc_version=__version__,
+        settings=TrainingSettings(
+            year_seed=year_seed,
+            selection=selection,
+            blocks=tuple(blocks),
+            q_steps_pct=list(q_steps_pct),
+            scenarios=len(scen.steps),
+            power_flows=flows.n,
+            seconds=round(seconds, 3),
+        ),
+        feature_names=feature_names(len(dm.pv)),
+        critical_nodes=crit_nodes,
+        regulators=regs,
+        pv=pvs,
+        alpha=vfit.alpha.tolist(),
+        tap0=[int(t) for t in tap0],
+        dv_dtap_pu=dv_dtap_all[nodes].tolist(),
+        sens_q=sens,
+        optimization_limits_pu=dm.feeder.optimization_limits_pu,
+        judged_limits_pu=dm.feeder.judged_limits_pu,
+        control_period_s=dm.feeder.control_period_s,
+        node_count=len(engine.node_names),
+        fit=fit_stats,
+    )
+    _check_finite(model)
+    summ = TrainSummary(
+        feeder=dm.feeder.name,
+        selection=selection,
+        year_seed=year_seed,
+        blocks=tuple(blocks),
+        non_empty_blocks=scen.non_empty_blocks,
+        scenarios=len(scen.steps),
+        power_flows=flows.n,
+        failed_power_flows=flows.failed,
+        critical_nodes=int(nodes.size),
+        node_count=len(engine.node_names),
+        critical_share=float(nodes.size / len(engine.node_names)),
+        seconds=round(seconds, 3),
+        seconds_power_flows=round(seconds_pf, 3),
+        workers=n_workers,
+        tap0=model.tap0,
+        q_head_range_kvar=q_range,
+        c_kvar=c_kvar,
+        condition_number=vfit.condition_number,
+        voltage_rmse_pu=fit_stats.voltage_rmse_pu,
+        voltage_max_abs_pu=fit_stats.voltage_max_abs_pu,
+        validation_rmse_pu=val_rmse,
+        validation_max_abs_pu=val_max,
+        sensitivity_median_rel_err=fit_stats.sensitivity_median_rel_err,
+        sensitivity_forms=forms,
+        power_fits_with_negative_b=neg_b,
+    )
+    return TrainResult(model=model, summary=summ)
+
+
+def _check_finite(model: CvvcModel) -> None:
+    bad = []
+    if not np.all(np.isfinite(np.asarray(model.alpha, float))):
+        bad.append("alpha")
+    if not np.all(np.isfinite(np.asarray(model.dv_dtap_pu, float))):
+        bad.append("dv_dtap_pu")
+    if not all(np.isfinite([f.a, f.b, f.c]).all() for row in model.sens_q for f in row):
+        bad.append("sens_q")
+    if bad:
+        raise TrainingError(
+            f"training produced non-finite {', '.join(bad)}; use more scenarios (--blocks) "
+            "or check the feeder for non-converging power flows"
+        )
