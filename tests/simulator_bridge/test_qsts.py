@@ -1,0 +1,208 @@
+"""Qsts device physics on real OpenDSS solves of IEEE 123 (and the pure curves it uses)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from schemas.devicemap import DeviceMap, load_device_map
+from simulator_bridge.engine import FeederEngine
+from simulator_bridge.qsts import Qsts, QstsError, tap_direction, volt_var_q_pu
+
+MAPS = Path(__file__).resolve().parents[2] / "feeders"
+
+
+class ArrayProfiles:
+    """A tiny stand-in for YearProfiles: the same methods over explicit arrays (1-minute steps)."""
+
+    def __init__(self, load_kw: np.ndarray, pv_kw: np.ndarray, *, start_t_ns: int = 1_700_000_000 * 10**9):
+        self._load, self._pv = np.asarray(load_kw, float), np.asarray(pv_kw, float)
+        self.n_steps, self.n_loads = self._load.shape
+        self.n_pv = self._pv.shape[1]
+        self.step_s = 60
+        self.start_t_ns = start_t_ns
+
+    def t_ns(self, step: int) -> int:
+        return self.start_t_ns + step * self.step_s * 10**9
+
+    def load_kw(self, start: int, stop: int) -> np.ndarray:
+        return self._load[start:stop]
+
+    def pv_kw(self, start: int, stop: int) -> np.ndarray:
+        return self._pv[start:stop]
+
+
+def constant(engine: FeederEngine, n: int, load_frac: float, pv_frac: float) -> ArrayProfiles:
+    return ArrayProfiles(np.tile(engine.load_kw_nominal * load_frac, (n, 1)),
+                         np.tile(engine.pv_pmpp_kw * pv_frac, (n, 1)))
+
+
+@pytest.fixture(scope="module")
+def map123() -> DeviceMap:
+    return load_device_map(MAPS / "ieee123.toml")
+
+
+@pytest.fixture
+def eng(map123: DeviceMap) -> FeederEngine:
+    return FeederEngine(map123, tolerance=1e-6)
+
+
+# --------------------------------------------------------------------------- pure curves
+@pytest.mark.parametrize(
+    ("v_pu", "q_pu"),
+    [
+        (0.90, 0.44),   # below V1: saturated at Q1
+        (0.92, 0.44),   # V1
+        (0.95, 0.22),   # halfway V1..V2
+        (0.98, 0.0),    # V2: dead band starts
+        (1.00, 0.0),    # inside the dead band
+        (1.02, 0.0),    # V3
+        (1.05, -0.22),  # halfway V3..V4
+        (1.08, -0.44),  # V4
+        (1.20, -0.44),  # above V4: saturated at Q4
+    ],
+)
+def test_ieee1547_cat_b_volt_var(v_pu: float, q_pu: float) -> None:
+    assert volt_var_q_pu(np.array([v_pu]))[0] == pytest.approx(q_pu, abs=1e-12)
+
+
+def test_tap_direction() -> None:
+    d = tap_direction(np.array([118.9, 119.1, 120.0, 120.9, 121.1]), np.full(5, 120.0), np.full(5, 2.0))
+    np.testing.assert_array_equal(d, [1, 0, 0, 0, -1])
+
+
+# --------------------------------------------------------------------------- regulators
+def test_local_control_ends_inside_band(eng: FeederEngine) -> None:
+    """From tap 0 at nominal load creg1a compares ~115 V (band 119-121): it must end inside its band."""
+    q = Qsts(eng, constant(eng, 5, 1.0, 0.0), start_step=0, max_taps_per_step=16)
+    first = q.step()
+    assert first.tap_changes.sum() > 0
+    for _ in range(4):
+        last = q.step()
+    r = last.readings
+    half = eng.reg_default_band_v120 / 2
+    assert np.all(np.abs(r.reg_v120_compared - eng.reg_default_setpoint_v120) <= half + 1e-9)
+    assert last.tap_changes.sum() == 0  # settled
+    np.testing.assert_array_equal(last.taps, eng.taps())
+    np.testing.assert_array_equal(r.reg_tap, last.taps)
+
+
+def test_tap_changes_counted_and_limited_per_step(eng: FeederEngine) -> None:
+    q = Qsts(eng, constant(eng, 10, 1.0, 0.0), start_step=0, max_taps_per_step=2)
+    t0 = eng.taps()
+    results = [q.step() for _ in range(10)]
+    changes = np.array([r.tap_changes for r in results])
+    assert changes.max() <= 2
+    assert changes[0, 0] == 2  # creg1a is ~5 V low: two taps in the first minute, not more
+    # every tap move is counted: downstream regulators move back when creg1a raises their input, so
+    # the count is at least the net move and differs from it by pairs of up/down moves
+    net = np.abs(results[-1].taps - t0)
+    assert np.all(changes.sum(axis=0) >= net)
+    np.testing.assert_array_equal((changes.sum(axis=0) - net) % 2, 0)
+    assert changes.sum(axis=0)[0] == net[0]  # creg1a itself only rises
+
+
+def test_delay_steps(eng: FeederEngine) -> None:
+    """delay_steps=3: out of band at steps 0, 1, 2 -> first move at step 2 (the third consecutive one)."""
+    q = Qsts(eng, constant(eng, 4, 1.0, 0.0), start_step=0, delay_steps=3)
+    changes = [q.step().tap_changes.sum() for _ in range(4)]
+    assert changes[0] == 0 and changes[1] == 0 and changes[2] > 0
+
+
+def test_locked_tap_stays_then_unlocks(eng: FeederEngine) -> None:
+    q = Qsts(eng, constant(eng, 6, 1.0, 0.0), start_step=0)
+    assert q.command_tap(0, 40) == 16  # clipped to the regulator's range
+    assert q.command_tap(0, -3) == -3
+    first = q.step()
+    assert first.taps[0] == -3 and first.tap_changes[0] == 3  # commanded move counted
+    for _ in range(2):
+        res = q.step()
+        assert res.taps[0] == -3 and res.tap_changes[0] == 0
+    # creg1a is far below its band at tap -3; unlocked, local control takes it back up
+    assert res.readings.reg_v120_compared[0] < 119.0
+    q.command_tap(0, None)
+    res = q.step()
+    assert res.taps[0] > -3 and res.tap_changes[0] > 0
+
+
+def test_commanded_setpoint_and_band(eng: FeederEngine) -> None:
+    q = Qsts(eng, constant(eng, 4, 0.8, 0.0), start_step=0, max_taps_per_step=16)
+    q.command_setpoint(0, 123.0, 1.5)
+    for _ in range(3):
+        res = q.step()
+    assert abs(res.readings.reg_v120_compared[0] - 123.0) <= 0.75
+    q.command_setpoint(0, None, None)
+    for _ in range(1):
+        res = q.step()
+    assert abs(res.readings.reg_v120_compared[0] - 120.0) <= 1.0
+
+
+# --------------------------------------------------------------------------- PV
+def test_pv_command_clipped_and_night(eng: FeederEngine) -> None:
+    n = 4
+    pv = np.tile(eng.pv_pmpp_kw, (n, 1))
+    pv[2:] = 0.0  # sunset after two steps
+    q = Qsts(eng, ArrayProfiles(np.tile(eng.load_kw_nominal * 0.5, (n, 1)), pv), start_step=0)
+    q.command_pv_q(0, 2000.0)
+    q.command_pv_q(1, -100.0)
+    res = q.step()
+    headroom = np.sqrt(eng.pv_kva**2 - eng.pv_pmpp_kw**2)
+    np.testing.assert_allclose(res.pv_q_kvar, [headroom[0], -100.0, 0.0])  # plant 2: unity by default
+    np.testing.assert_allclose(res.readings.pv_q_kvar.sum(axis=1), res.pv_q_kvar, atol=1e-2)
+    np.testing.assert_allclose(res.pv_p_kw, eng.pv_pmpp_kw)
+    q.step()
+    night = q.step()
+    np.testing.assert_array_equal(night.pv_q_kvar, 0.0)  # no Q at night
+    np.testing.assert_allclose(night.readings.pv_q_kvar, 0.0, atol=1e-3)
+    np.testing.assert_allclose(night.readings.pv_p_kw, 0.0, atol=1e-3)
+    assert q.command_pv_q(0, 500.0) == 0.0  # what would apply now: nothing at night
+
+
+def test_pv_q_at_night_when_asked(eng: FeederEngine) -> None:
+    q = Qsts(eng, constant(eng, 2, 0.5, 0.0), start_step=0, pv_q_at_night=True)
+    assert q.command_pv_q(1, -5000.0) == pytest.approx(-eng.pv_kva[1])  # full kVA available with P = 0
+    res = q.step()
+    assert res.pv_q_kvar[1] == pytest.approx(-eng.pv_kva[1])
+    assert res.readings.pv_q_kvar[1].sum() == pytest.approx(-eng.pv_kva[1], abs=1e-2)
+
+
+def test_volt_var_uses_previous_step_voltage(eng: FeederEngine) -> None:
+    """Light load and full sun raise the plants' voltages; volt-var absorbs Q = curve(V of step k-1)·kVA."""
+    q = Qsts(eng, constant(eng, 6, 0.2, 1.0), start_step=0, pv_local="volt_var")
+    prev = q.step()
+    for _ in range(3):
+        res = q.step()
+        v_prev = np.array([prev.v_pu[list(ix)].mean() for ix in eng.pv_node_index])
+        headroom = np.sqrt(eng.pv_kva**2 - res.pv_p_kw**2)
+        expected = np.clip(volt_var_q_pu(v_prev) * eng.pv_kva, -headroom, headroom)
+        np.testing.assert_allclose(res.pv_q_kvar, expected, rtol=1e-12)
+        prev = res
+    assert np.all(res.pv_q_kvar < 0)  # above 1.02 pu: absorbing
+    # a command overrides the curve; None returns to it
+    q.command_pv_q(2, 50.0)
+    assert q.step().pv_q_kvar[2] == 50.0
+    q.command_pv_q(2, None)
+    assert q.step().pv_q_kvar[2] < 0
+
+
+def test_step_result_shapes_and_time(eng: FeederEngine) -> None:
+    prof = constant(eng, 3, 0.7, 0.3)
+    q = Qsts(eng, prof, start_step=1)
+    res = q.step()
+    assert res.step == 1 and res.t_ns == prof.t_ns(1) and q.next_step == 2
+    assert res.v_pu.shape == (len(eng.node_names),)
+    assert res.taps.shape == res.tap_changes.shape == (7,)
+    assert res.pv_q_kvar.shape == res.pv_p_kw.shape == (3,)
+    assert res.readings.pv_p_kw.shape == (3, 3)
+    q.step()
+    with pytest.raises(QstsError, match="past the end"):
+        q.step()
+
+
+def test_profiles_that_do_not_fit(eng: FeederEngine) -> None:
+    with pytest.raises(QstsError, match="91 and 3"):
+        Qsts(eng, ArrayProfiles(np.ones((2, 5)), np.ones((2, 3))), start_step=0)
+    with pytest.raises(QstsError, match="start_step"):
+        Qsts(eng, constant(eng, 2, 1.0, 0.0), start_step=2)
