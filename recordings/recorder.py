@@ -1,0 +1,335 @@
+"""The recorder: every sample on the bus, bytes unchanged, into an MCAP file.
+
+File layout (docs/recordings.md):
+
+- one channel per concrete Zenoh key (the topic is the key, e.g. ``cvvc/rural/meas/pv/pv1``), message
+  encoding ``json``, with the JSON Schema of the key's message type (schema encoding ``jsonschema``, name
+  ``cvvc.<Type>``, top-level ``"type": "object"`` so Foxglove can plot it). A key outside the cvvc layout
+  gets a channel with no schema (schema id 0), message encoding ``json`` if its first payload is JSON,
+  else ``application/octet-stream``;
+- each message: ``log_time`` = the message's own ``t_ns`` (measurement time; the receive time when the
+  payload has no valid ``t_ns``, counted), ``publish_time`` = receive wall time [ns], ``sequence`` = the
+  message's ``seq`` modulo 2**32 (MCAP sequences are 32-bit);
+- a metadata record ``cvvc.recording`` at the start (project version, feeder fingerprint, model path, bus
+  config, keys) and ``cvvc.recorder_stats`` at the end (written only when the file is finished cleanly);
+- zstd chunks, closed and flushed to the OS every ``flush_period_s``: a recorder killed hard loses at
+  most the last period, and ``cvvc recordings recover`` rebuilds the index of what was flushed.
+
+Threads: the Zenoh callback only appends ``(bytes, key, receive wall ns)`` to a bounded deque (drops are
+counted, never blocking Zenoh); one writer thread owns the ``mcap`` writer (it is not thread safe).
+"""
+
+from __future__ import annotations
+
+import collections
+import json
+import logging
+import signal
+import threading
+import time
+from pathlib import Path
+from types import FrameType, TracebackType
+from typing import IO, Any
+
+import msgspec
+import zenoh
+from mcap.writer import LIBRARY_IDENTIFIER, CompressionType, Writer
+
+from recordings.errors import RecordingError
+from schemas.bus import BusConfig, open_session
+from schemas.jsonschema import schema_bytes, schema_name
+from schemas.keys import message_type_for_key
+
+__all__ = ["METADATA_NAME", "STATS_METADATA_NAME", "Recorder", "RecorderConfig", "RecorderStats", "main"]
+
+log = logging.getLogger(__name__)
+
+METADATA_NAME = "cvvc.recording"
+STATS_METADATA_NAME = "cvvc.recorder_stats"
+_U32 = 0xFFFFFFFF
+_U64_MAX = 2**64 - 1
+
+
+class RecorderConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """What to record and where.
+
+    ``flush_period_s`` [s]: how often the open chunk is closed and written to the OS (the most a hard
+    kill can lose). ``queue_size``: samples waiting for the writer before new ones are dropped (counted).
+    ``duration_s`` [s]: stop after this long (``main`` only); None records until stopped.
+    """
+
+    out_path: str
+    keys: tuple[str, ...] = ("cvvc/**",)
+    bus: BusConfig = BusConfig()
+    flush_period_s: float = 1.0
+    queue_size: int = 200_000
+    chunk_size_bytes: int = 1 << 20
+    feeder_fingerprint: str = ""
+    model_path: str = ""
+    duration_s: float | None = None
+
+
+class RecorderStats(msgspec.Struct, frozen=True, kw_only=True):
+    """Counts of one recording: written messages, drops, and ``t_ns`` fallbacks."""
+
+    messages: int
+    payload_bytes: int
+    channels: int
+    dropped_queue_full: int
+    log_time_fallbacks: int  # payloads without a valid integer t_ns: log_time = receive time
+    callback_errors: int
+    flushes: int
+
+
+class _Header(msgspec.Struct):
+    """The two header fields the recorder reads; everything else in the payload is skipped unparsed."""
+
+    t_ns: int = -1
+    seq: int = 0
+
+
+class Recorder:
+    """Records ``config.keys`` from ``session`` into ``config.out_path`` while used as a context manager.
+
+    The file is always finished (summary and index written) on leaving the ``with`` block, whatever the
+    reason: normal exit, exception, ``KeyboardInterrupt``. The caller owns ``session``.
+    """
+
+    def __init__(self, session: zenoh.Session, config: RecorderConfig) -> None:
+        if config.flush_period_s <= 0:
+            raise RecordingError(f"flush_period_s must be > 0, got {config.flush_period_s}")
+        self.config = config
+        self._session = session
+        self._queue: collections.deque[tuple[bytes, str, int]] = collections.deque()
+        self._maxsize = config.queue_size
+        self._drop_lock = threading.Lock()
+        self._dropped = 0
+        self._callback_errors = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="mcap-writer", daemon=True)
+        self._subs: list[Any] = []
+        self._file: IO[bytes] | None = None
+        self._writer: Writer | None = None
+        self._writer_error: BaseException | None = None
+        self._channels: dict[str, int] = {}
+        self._schemas: dict[type, int] = {}
+        self._header_decoder = msgspec.json.Decoder(_Header)
+        self._messages = 0
+        self._payload_bytes = 0
+        self._fallbacks = 0
+        self._flushes = 0
+        self._closed = False
+
+    # ------------------------------------------------------------------------------------ lifecycle
+    def __enter__(self) -> Recorder:
+        self.start()
+        return self
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        self.close()
+
+    def start(self) -> None:
+        """Open the file, write the header and metadata, start the writer and subscribe."""
+        try:
+            path = Path(self.config.out_path)
+            self._file = open(path, "wb")  # noqa: SIM115  # closed in close()
+            self._writer = Writer(self._file, chunk_size=self.config.chunk_size_bytes,
+                                  compression=CompressionType.ZSTD)
+            self._writer.start(profile="", library=f"cvvc-edge {_version()}; {LIBRARY_IDENTIFIER}")
+            self._writer.add_metadata(METADATA_NAME, _recording_metadata(self.config))
+            self._writer.flush()
+            self._thread.start()
+            for key in self.config.keys:
+                self._subs.append(self._session.declare_subscriber(key, self._on_sample))
+        except OSError as e:
+            self.close()
+            raise RecordingError(f"cannot write {self.config.out_path}: {e}; check the directory exists "
+                                 "and is writable") from e
+        except BaseException:
+            self.close()
+            raise
+
+    def close(self) -> RecorderStats:
+        """Unsubscribe, write everything queued, finish the file. Safe to call more than once."""
+        if self._closed:
+            return self.stats()
+        self._closed = True
+        for sub in self._subs:
+            try:
+                sub.undeclare()
+            except Exception as e:  # zenoh raises plain Exception subclasses; keep finishing the file
+                log.warning("could not undeclare a recorder subscriber: %s", e)
+        self._subs.clear()
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join()
+        try:
+            if self._writer is not None:
+                if self._writer_error is None:
+                    self._drain()  # anything the thread did not get to (it was never started, or it died)
+                stats = self.stats()
+                self._writer.add_metadata(STATS_METADATA_NAME, {
+                    k: str(v) for k, v in msgspec.structs.asdict(stats).items()
+                } | {"stopped_wall_ns": str(time.time_ns())})
+                self._writer.finish()
+        except OSError as e:
+            self._writer_error = self._writer_error or e
+        finally:
+            if self._file is not None:
+                self._file.close()
+        if self._writer_error is not None:
+            raise RecordingError(f"writing {self.config.out_path} failed: {self._writer_error}; the file was "
+                                 "finished with what was written before") from self._writer_error
+        return self.stats()
+
+    def stats(self) -> RecorderStats:
+        return RecorderStats(messages=self._messages, payload_bytes=self._payload_bytes,
+                             channels=len(self._channels), dropped_queue_full=self._dropped,
+                             log_time_fallbacks=self._fallbacks, callback_errors=self._callback_errors,
+                             flushes=self._flushes)
+
+    @property
+    def pending(self) -> int:
+        """Samples received but not yet handed to the MCAP writer."""
+        return len(self._queue)
+
+    # ------------------------------------------------------------------------------- zenoh callback
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        """Runs on a Zenoh thread: enqueue only (or count a drop). Never raises."""
+        try:
+            if len(self._queue) >= self._maxsize:
+                with self._drop_lock:
+                    self._dropped += 1
+                return
+            self._queue.append((sample.payload.to_bytes(), str(sample.key_expr), time.time_ns()))
+        except Exception:  # nothing may escape into Zenoh's thread
+            with self._drop_lock:
+                self._callback_errors += 1
+
+    # -------------------------------------------------------------------------------- writer thread
+    def _run(self) -> None:
+        period = self.config.flush_period_s
+        next_flush = time.monotonic() + period
+        try:
+            while True:
+                stopping = self._stop.is_set()  # read before draining: nothing is enqueued after stop
+                wrote = self._drain()
+                now = time.monotonic()
+                if now >= next_flush:
+                    self._flush()
+                    next_flush = now + period
+                if stopping:
+                    return
+                if not wrote:
+                    self._stop.wait(min(0.005, max(0.0, next_flush - now)))
+        except Exception as e:  # disk full, ...: reported by close(), which finishes the file
+            log.error("MCAP writer failed: %s", e)
+            self._writer_error = e
+
+    def _drain(self) -> int:
+        n = 0
+        pop = self._queue.popleft
+        while True:
+            try:
+                raw, key, recv_ns = pop()
+            except IndexError:
+                return n
+            self._write(raw, key, recv_ns)
+            n += 1
+
+    def _write(self, raw: bytes, key: str, recv_ns: int) -> None:
+        channel_id = self._channels.get(key)
+        if channel_id is None:
+            channel_id = self._register_channel(key, raw)
+        try:
+            header = self._header_decoder.decode(raw)
+            log_time, seq = header.t_ns, header.seq
+        except msgspec.DecodeError:  # not a JSON object, or t_ns/seq not integers
+            log_time, seq = -1, 0
+        if not 0 <= log_time <= _U64_MAX:
+            log_time = recv_ns
+            self._fallbacks += 1
+        self._mcap().add_message(channel_id, log_time=log_time, data=raw, publish_time=recv_ns,
+                                 sequence=seq & _U32)
+        self._messages += 1
+        self._payload_bytes += len(raw)
+
+    def _flush(self) -> None:
+        self._mcap().flush()
+        self._flushes += 1
+
+    def _mcap(self) -> Writer:
+        if self._writer is None:
+            raise RecordingError("the recorder was not started: use it as `with Recorder(...) as rec:`")
+        return self._writer
+
+    def _register_channel(self, key: str, first_payload: bytes) -> int:
+        writer = self._mcap()
+        msg_type = message_type_for_key(key)
+        if msg_type is None:
+            schema_id = 0
+            try:
+                msgspec.json.decode(first_payload)
+                encoding = "json"
+            except msgspec.DecodeError:
+                encoding = "application/octet-stream"
+            metadata = {"cvvc_message_type": ""}
+        else:
+            schema_id = self._schemas.get(msg_type, 0)
+            if not schema_id:
+                schema_id = writer.register_schema(schema_name(msg_type), "jsonschema",
+                                                         schema_bytes(msg_type))
+                self._schemas[msg_type] = schema_id
+            encoding = "json"
+            metadata = {"cvvc_message_type": msg_type.__name__}
+        channel_id = writer.register_channel(key, encoding, schema_id, metadata)
+        self._channels[key] = channel_id
+        return channel_id
+
+
+def _version() -> str:
+    from cvvc import __version__
+
+    return __version__
+
+
+def _recording_metadata(config: RecorderConfig) -> dict[str, str]:
+    return {
+        "project_version": _version(),
+        "feeder_fingerprint": config.feeder_fingerprint,
+        "model_path": config.model_path,
+        "bus_config": msgspec.json.encode(config.bus).decode(),
+        "keys": json.dumps(list(config.keys)),
+        "flush_period_s": repr(config.flush_period_s),
+        "started_wall_ns": str(time.time_ns()),
+        "log_time": "message t_ns (receive wall time when absent)",
+        "publish_time": "receive wall time",
+    }
+
+
+def main(config: RecorderConfig, stop: threading.Event | None = None) -> RecorderStats:
+    """Record until ``stop`` is set, ``config.duration_s`` has passed, or SIGINT/SIGTERM; return the counts.
+
+    Signal handlers are installed only when called from the main thread (and restored afterwards).
+    """
+    stop = stop or threading.Event()
+    previous: dict[int, Any] = {}
+    if threading.current_thread() is threading.main_thread():
+        def on_signal(signum: int, frame: FrameType | None) -> None:
+            stop.set()
+
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            previous[sig] = signal.signal(sig, on_signal)
+    try:
+        with open_session(config.bus) as session, Recorder(session, config) as recorder:
+            deadline = None if config.duration_s is None else time.monotonic() + config.duration_s
+            while not stop.is_set():
+                timeout = 0.5 if deadline is None else min(0.5, deadline - time.monotonic())
+                if timeout <= 0:
+                    break
+                stop.wait(timeout)
+        return recorder.stats()
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
