@@ -255,3 +255,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     info.add_argument("--json", action="store_true", help="print JSON instead of text")
     info.set_defaults(func=_guarded(_info))
+
+    from simulator_bridge.bridge_cli import register_bridge  # the `bridge` verb (issue 4)
+
+    register_bridge(subparsers)

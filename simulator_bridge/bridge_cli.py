@@ -1,0 +1,99 @@
+"""``cvvc bridge``: run the simulated feeder's field devices on the bus (lockstep or real time).
+
+Registered by ``simulator_bridge.cli.register``. Nothing heavy is imported at module level; the handler
+only parses arguments into a :class:`~simulator_bridge.bridge.BridgeConfig` and calls ``run_bridge``.
+SIGINT / SIGTERM end the run cleanly (final metrics, tokens withdrawn, session closed, exit 0).
+"""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+import threading
+
+__all__ = ["register_bridge"]
+
+
+def _bridge(args: argparse.Namespace) -> int:
+    import msgspec
+
+    from schemas.bus import bus_config_from_args
+    from schemas.errors import CvvcError
+    from simulator_bridge.bridge import BridgeConfig, run_bridge
+    from simulator_bridge.cli import DEFAULT_CACHE_ROOT, ensure_default_feeder, resolve_device_map_path
+
+    try:
+        path = (ensure_default_feeder(DEFAULT_CACHE_ROOT) if args.feeder is None
+                else resolve_device_map_path(args.feeder))
+        if args.steps is not None:
+            steps = args.steps
+        else:
+            steps = int(round(args.days * 1440))  # profiles are 1-minute steps
+        config = BridgeConfig(
+            device_map_path=str(path), feeder_id=args.feeder_id, start=args.start, steps=steps,
+            clock="realtime" if args.realtime else "lockstep", timeout_s=args.timeout_s, speed=args.speed,
+            wait_agent_s=args.wait_agent_s, year_seed=args.year_seed, pv_local=args.pv_local,
+            truth_every=args.truth_every, noise_pmu_pct=args.noise_pmu_pct, noise_scada_pct=args.noise_scada_pct,
+            drop_prob=args.drop_prob, latency_s=args.latency_s, noise_seed=args.noise_seed,
+            cache_dir=None if args.cache_dir == "" else args.cache_dir,
+        )
+        default_mode = "router" if args.listen and not args.connect else "peer"
+        bus = bus_config_from_args(args, default_mode=default_mode)
+        stop = threading.Event()
+        previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)}
+        try:
+            summary = run_bridge(config, bus, stop=stop)
+        finally:
+            for s, h in previous.items():
+                signal.signal(s, h)
+    except CvvcError as e:
+        print(f"cvvc bridge: error: {e}", file=sys.stderr)
+        return 2
+    if args.json:
+        print(msgspec.json.format(msgspec.json.encode(summary), indent=2).decode())
+    else:
+        rt = ("" if summary.round_trip_p50_s is None
+              else f", decision round trip p50 {1e3 * summary.round_trip_p50_s:.2f} ms")
+        print(f"bridge {summary.feeder_id} ({summary.clock}): {summary.steps}/{summary.steps_total} steps in "
+              f"{summary.wall_s:.2f} s ({summary.steps_per_s:.1f} steps/s), {summary.decisions} decisions, "
+              f"{summary.lockstep_misses} lockstep misses{rt}")
+    return 0
+
+
+def register_bridge(subparsers: argparse._SubParsersAction) -> None:
+    """Add the ``bridge`` verb."""
+    from schemas.bus import add_bus_arguments
+
+    p = subparsers.add_parser("bridge", help="run the simulated feeder's field devices on the bus")
+    p.add_argument("--feeder", default=None,
+                   help="device map TOML or a folder with devicemap.toml (default: the embedded rural feeder)")
+    p.add_argument("--feeder-id", default=None, help="feeder id in the key space (default: the map's name)")
+    when = p.add_argument_group("what to simulate")
+    when.add_argument("--start", default="2023-07-01",
+                      help="first instant, YYYY-MM-DD[THH:MM] local standard time (UTC-5) in the profile year")
+    n = when.add_mutually_exclusive_group()
+    n.add_argument("--days", type=float, default=1.0, help="simulated days (default 1)")
+    n.add_argument("--steps", type=int, default=None, help="simulated 1-minute steps (overrides --days)")
+    when.add_argument("--year-seed", type=int, default=1, help="profile seed (default 1)")
+    when.add_argument("--pv-local", choices=["unity", "volt_var"], default="unity",
+                      help="PV local default without a valid command (default unity power factor)")
+    when.add_argument("--cache-dir", default=".cvvc-cache", help="profile cache folder ('' for none)")
+    clock = p.add_argument_group("clock")
+    mode = clock.add_mutually_exclusive_group()
+    mode.add_argument("--lockstep", action="store_true", help="wait for the agent each control step (default)")
+    mode.add_argument("--realtime", action="store_true", help="step on the wall clock times --speed")
+    clock.add_argument("--timeout-s", type=float, default=5.0, help="lockstep wait per control step [s]")
+    clock.add_argument("--speed", type=float, default=1.0, help="real-time speed factor (default 1)")
+    clock.add_argument("--wait-agent-s", type=float, default=0.0,
+                       help="before the first step, wait this long for an agent liveliness token [s]")
+    out = p.add_argument_group("simulation topics and measurement realism (off by default)")
+    out.add_argument("--truth-every", type=int, default=1, help="TruthFrame every N steps (0: none)")
+    out.add_argument("--noise-pmu-pct", type=float, default=0.0, help="PMU-class noise, e.g. 0.1 [%%]")
+    out.add_argument("--noise-scada-pct", type=float, default=0.0, help="SCADA-class noise, e.g. 1 [%%]")
+    out.add_argument("--drop-prob", type=float, default=0.0, help="probability that a frame is dropped")
+    out.add_argument("--latency-s", type=float, default=0.0, help="fixed frame latency [s of wall time]")
+    out.add_argument("--noise-seed", type=int, default=0, help="seed of noise and drops")
+    p.add_argument("--json", action="store_true", help="print the run summary as JSON")
+    add_bus_arguments(p)
+    p.set_defaults(func=_bridge)

@@ -1,0 +1,423 @@
+"""Simulated field devices, without a bus: command checks, watchdogs, replay protection, acks, measurements.
+
+This module is the device *logic* of the bridge (``bridge.py`` is the only module that knows Zenoh and
+clocks). Everything here is a pure function or a small state holder, so it is tested without a bus.
+
+Command handling, the same for every device (:class:`CommandGuard`):
+
+1. **Checks**, in this order, each a :data:`RejectReason`: the payload names the device the key names
+   (``wrong_device``); the value is finite (``non_finite``); the command is not already expired at the
+   device's present simulation time (``expired``: ``valid_until_t_ns <= now_t_ns``); its ``seq`` is
+   greater than the last applied one from the same ``source`` (``replay``); the value is within the
+   device's own range (``out_of_range``). ``unknown_device`` and ``wrong_feeder`` are decided by the
+   bridge, which owns the key space. A rejected command changes nothing.
+2. **Apply**: the command becomes the device's active command until ``valid_until_t_ns``.
+3. **Watchdog**: before a step at simulation time ``t_ns`` is simulated, an active command with
+   ``valid_until_t_ns < t_ns`` expires; the device returns to its local default and answers an
+   ``expired`` ack for that command. A command is therefore in force for every step with
+   ``t_ns <= valid_until_t_ns``.
+
+Device limits (beyond the schema bounds checked at decode):
+
+* PV inverter: a reactive power set point beyond the headroom ``sqrt(S² − P²)`` at the present available
+  power is **clipped, not rejected**; the ack says ``clipped`` and carries the applied kvar.
+* Regulator controller: a tap outside the regulator's own range (``±tap_max``, 16 for a 32-step
+  regulator) is rejected; a set point outside :data:`SETPOINT_RANGE_V120` or a band outside
+  :data:`BAND_RANGE_V120` is rejected.
+
+Measurement realism (:class:`MeasurementNoise`): Gaussian noise per measurement class, off by default.
+PMU class (feeder head): magnitudes get relative noise ``σ = pct/100 · |x|``; angles ``σ = pct/100`` rad
+(the angle error that gives the same total vector error); P and Q ``σ = pct/100 · |S|`` of the phase.
+SCADA class (PV plants, regulators): voltages relative; P and Q ``σ = pct/100 · S_rated``. Taps and set
+points are exact. Noise never makes a magnitude negative (clipped at 0).
+"""
+
+from __future__ import annotations
+
+import heapq
+import math
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+
+from schemas import messages as m
+from schemas.errors import CvvcError
+
+__all__ = [
+    "BAND_RANGE_V120",
+    "REJECT_REASONS",
+    "SETPOINT_RANGE_V120",
+    "ActiveCommand",
+    "CommandGuard",
+    "DeviceError",
+    "FrameDropper",
+    "MeasurementNoise",
+    "PvInverter",
+    "RegulatorController",
+    "RejectReason",
+    "DelayLine",
+    "Verdict",
+    "head_frame",
+    "make_ack",
+    "pv_frame",
+    "pv_verdict",
+    "reg_frame",
+    "reject",
+]
+
+RejectReason = Literal[
+    "unknown_device", "wrong_feeder", "wrong_device", "non_finite", "expired", "replay", "out_of_range"
+]
+REJECT_REASONS: tuple[str, ...] = (
+    "unknown_device", "wrong_feeder", "wrong_device", "non_finite", "expired", "replay", "out_of_range",
+)
+SETPOINT_RANGE_V120 = (108.0, 132.0)
+"""Set points a regulator controller accepts [V on the 120 V base]: ±10 % of 120 V."""
+BAND_RANGE_V120 = (1.0, 8.0)
+"""Bandwidths a regulator controller accepts [V on the 120 V base] (the paper's case C uses 4 V)."""
+_CLIP_TOL_KVAR = 1e-6
+
+
+class DeviceError(CvvcError):
+    """A device asked to do something impossible (a programming error in the bridge, not bad input)."""
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """The outcome of one command at a device: what the ack says and why.
+
+    ``status`` is ``accepted`` / ``clipped`` / ``rejected`` / ``expired``; ``applied_value`` is kvar (PV),
+    a tap, or volts (set point), None when nothing was applied; ``reason`` is a
+    :data:`RejectReason` for rejections (``reason_kind``) plus a sentence for people (``reason``).
+    """
+
+    status: Literal["accepted", "clipped", "rejected", "expired"]
+    applied_value: float | None = None
+    reason: str = ""
+    reason_kind: str = ""
+
+
+def reject(kind: RejectReason, why: str) -> Verdict:
+    """A rejection verdict of reason ``kind`` with a human sentence ``why``."""
+    return Verdict(status="rejected", reason=f"{kind}: {why}", reason_kind=kind)
+
+
+@dataclass(frozen=True)
+class ActiveCommand:
+    """The command a device obeys now: its id, who sent it, until when [ns of simulation time]."""
+
+    cmd_id: str
+    source: str
+    seq: int
+    valid_until_t_ns: int
+    value: float
+
+
+class CommandGuard:
+    """Replay protection and the watchdog of one device.
+
+    Keeps the last applied ``seq`` per source and the active command. Not thread safe: the bridge's
+    stepping thread is its only user.
+    """
+
+    def __init__(self, device_id: str) -> None:
+        self.device_id = device_id
+        self.active: ActiveCommand | None = None
+        self._last_seq: dict[str, int] = {}
+
+    def check(self, cmd: m.Command, payload_device_id: str, value: float, *, now_t_ns: int) -> Verdict | None:
+        """The rejection of ``cmd`` by the generic checks (see the module docstring), or None if it passes."""
+        if payload_device_id != self.device_id:
+            return reject("wrong_device", f"command names device {payload_device_id!r} but was sent to "
+                          f"{self.device_id!r}; publish on the key of the device it is for")
+        if not math.isfinite(value):
+            return reject("non_finite", f"value {value!r} is not a finite number")
+        if cmd.valid_until_t_ns <= now_t_ns:
+            return reject("expired", f"valid_until_t_ns {cmd.valid_until_t_ns} is not after the device's "
+                          f"present time {now_t_ns}; send commands valid past the frame they answer")
+        last = self._last_seq.get(cmd.source)
+        if last is not None and cmd.seq <= last:
+            return reject("replay", f"seq {cmd.seq} from {cmd.source!r} is not greater than the last "
+                          f"applied {last}; every command needs a new, increasing seq")
+        return None
+
+    def apply(self, cmd: m.Command, value: float) -> None:
+        """Record ``cmd`` as applied: it becomes the active command and its seq the last from its source."""
+        self._last_seq[cmd.source] = cmd.seq
+        self.active = ActiveCommand(cmd_id=cmd.cmd_id, source=cmd.source, seq=cmd.seq,
+                                    valid_until_t_ns=cmd.valid_until_t_ns, value=float(value))
+
+    def expire(self, t_ns: int) -> ActiveCommand | None:
+        """Before simulating time ``t_ns``: drop and return the active command if it has expired."""
+        if self.active is not None and self.active.valid_until_t_ns < t_ns:
+            gone, self.active = self.active, None
+            return gone
+        return None
+
+
+def pv_verdict(requested_kvar: float, applied_kvar: float, headroom_kvar: float) -> Verdict:
+    """Accepted when the inverter applies the requested Q, clipped (with the applied value) otherwise.
+
+    Parameters
+    ----------
+    requested_kvar, applied_kvar : commanded and applied reactive power [kvar, + injects].
+    headroom_kvar : ``sqrt(S² − P²)`` at the present available power [kvar] (0 at night).
+    """
+    if abs(applied_kvar - requested_kvar) <= _CLIP_TOL_KVAR:
+        return Verdict(status="accepted", applied_value=float(applied_kvar))
+    return Verdict(status="clipped", applied_value=float(applied_kvar),
+                   reason=f"{requested_kvar:.3f} kvar is beyond the headroom {headroom_kvar:.3f} kvar at the "
+                          "present active power; applied the clipped value")
+
+
+class PvInverter:
+    """A PV plant's inverter: its reactive power command, guarded; local default when none is active.
+
+    Parameters
+    ----------
+    plant_id : device id (key and ``plant_id``). index : column in the engine's PV arrays.
+    s_rated_kva : inverter rating [kVA]. local_mode : its local default.
+    """
+
+    def __init__(self, plant_id: str, index: int, s_rated_kva: float,
+                 local_mode: Literal["unity_pf", "volt_var"]) -> None:
+        self.plant_id = plant_id
+        self.index = index
+        self.s_rated_kva = float(s_rated_kva)
+        self.local_mode = local_mode
+        self.guard = CommandGuard(plant_id)
+
+    def check(self, cmd: m.PvCommand, *, now_t_ns: int) -> Verdict | None:
+        """Reject ``cmd`` (see the module docstring) or None: then apply it and build its verdict."""
+        return self.guard.check(cmd, cmd.plant_id, cmd.q_kvar, now_t_ns=now_t_ns)
+
+    @property
+    def q_setpoint_kvar(self) -> float | None:
+        """The commanded Q [kvar] in force, None on the local default."""
+        return None if self.guard.active is None else self.guard.active.value
+
+
+class RegulatorController:
+    """A regulator's controller: locked at a commanded tap, or local control around a set point and band.
+
+    Parameters
+    ----------
+    regulator_id : device id. index : position in the engine's regulator arrays.
+    tap_max : the tap range is ``-tap_max..tap_max``.
+    default_setpoint_v120, default_band_v120 : the local default from the device map / model [V, 120 V base].
+    """
+
+    def __init__(self, regulator_id: str, index: int, tap_max: int,
+                 default_setpoint_v120: float, default_band_v120: float) -> None:
+        self.regulator_id = regulator_id
+        self.index = index
+        self.tap_max = int(tap_max)
+        self.default_setpoint_v120 = float(default_setpoint_v120)
+        self.default_band_v120 = float(default_band_v120)
+        self.guard = CommandGuard(regulator_id)
+        self.action: m.TapAction | m.SetpointAction | None = None
+
+    def check(self, cmd: m.RegCommand, *, now_t_ns: int) -> Verdict | None:
+        """Reject ``cmd`` by the generic checks or the device's range, or None (then :meth:`apply` it)."""
+        a = cmd.action
+        value = float(a.tap) if isinstance(a, m.TapAction) else float(a.setpoint_v120)
+        band = 1.0 if isinstance(a, m.TapAction) else float(a.band_v120)
+        generic = self.guard.check(cmd, cmd.regulator_id, value if math.isfinite(band) else band,
+                                   now_t_ns=now_t_ns)
+        if generic is not None:
+            return generic
+        match a:
+            case m.TapAction(tap=tap) if abs(tap) > self.tap_max:
+                return reject("out_of_range", f"tap {tap} outside this regulator's -{self.tap_max}.."
+                              f"{self.tap_max}")
+            case m.SetpointAction(setpoint_v120=sp, band_v120=bw) if not (
+                SETPOINT_RANGE_V120[0] <= sp <= SETPOINT_RANGE_V120[1]
+                and BAND_RANGE_V120[0] <= bw <= BAND_RANGE_V120[1]
+            ):
+                return reject("out_of_range", f"set point {sp} V / band {bw} V outside the controller's "
+                              f"{SETPOINT_RANGE_V120} V / {BAND_RANGE_V120} V (120 V base)")
+        return None
+
+    def apply(self, cmd: m.RegCommand) -> Verdict:
+        """Record an accepted command; returns its verdict (applied tap or set point)."""
+        a = cmd.action
+        value = float(a.tap) if isinstance(a, m.TapAction) else float(a.setpoint_v120)
+        self.guard.apply(cmd, value)
+        self.action = a
+        return Verdict(status="accepted", applied_value=value)
+
+    def expire(self, t_ns: int) -> ActiveCommand | None:
+        """Watchdog: the expired command (then the controller is back on its default), or None."""
+        gone = self.guard.expire(t_ns)
+        if gone is not None:
+            self.action = None
+        return gone
+
+    @property
+    def mode(self) -> Literal["local", "locked"]:
+        return "locked" if isinstance(self.action, m.TapAction) else "local"
+
+    @property
+    def setpoint_v120(self) -> float:
+        """The set point in force [V on the 120 V base]."""
+        return self.action.setpoint_v120 if isinstance(self.action, m.SetpointAction) \
+            else self.default_setpoint_v120
+
+    @property
+    def band_v120(self) -> float:
+        """The band in force [V on the 120 V base]."""
+        return self.action.band_v120 if isinstance(self.action, m.SetpointAction) else self.default_band_v120
+
+
+def make_ack(*, device_id: str, source: str, cmd_id: str, verdict: Verdict, t_ns: int, seq: int) -> m.Ack:
+    """The ack of one command (``cmd_id`` is truncated to the schema's 96 characters)."""
+    return m.Ack(t_ns=int(t_ns), seq=int(seq), source=source, cmd_id=cmd_id[:96], device_id=device_id,
+                 status=verdict.status, applied_value=verdict.applied_value, reason=verdict.reason[:500])
+
+
+# ----------------------------------------------------------------------------------- measurement model
+class MeasurementNoise:
+    """Seeded Gaussian measurement noise per class (see the module docstring). Zero percent: exact copies.
+
+    Parameters
+    ----------
+    pmu_pct : PMU class (feeder head) [% of the reading]. scada_pct : SCADA class (PV plants, regulators) [%].
+    seed : seed of the noise stream.
+    """
+
+    def __init__(self, *, pmu_pct: float, scada_pct: float, seed: int) -> None:
+        if not (0.0 <= pmu_pct <= 100.0 and 0.0 <= scada_pct <= 100.0):
+            raise DeviceError(f"noise percentages must be within 0..100, got {pmu_pct}, {scada_pct}")
+        self.pmu = pmu_pct / 100.0
+        self.scada = scada_pct / 100.0
+        self._rng = np.random.default_rng([seed, 0x5EED])
+
+    def _gauss(self, shape: tuple[int, ...], sigma: float) -> np.ndarray:
+        return self._rng.standard_normal(shape) * sigma if sigma > 0 else np.zeros(shape)
+
+    def head(self, v_mag_v: np.ndarray, v_ang_deg: np.ndarray, i_mag_a: np.ndarray, i_ang_deg: np.ndarray,
+             p_kw: np.ndarray, q_kvar: np.ndarray) -> tuple[np.ndarray, ...]:
+        """Noisy feeder-head phasors and powers, each (3,); PMU class. Returns new arrays."""
+        e = self.pmu
+        s_kva = np.hypot(p_kw, q_kvar)
+        ang = math.degrees(e)
+        return (
+            np.maximum(v_mag_v * (1 + self._gauss(v_mag_v.shape, e)), 0.0),
+            v_ang_deg + self._gauss(v_ang_deg.shape, ang),
+            np.maximum(i_mag_a * (1 + self._gauss(i_mag_a.shape, e)), 0.0),
+            i_ang_deg + self._gauss(i_ang_deg.shape, ang),
+            p_kw + s_kva * self._gauss(p_kw.shape, e),
+            q_kvar + s_kva * self._gauss(q_kvar.shape, e),
+        )
+
+    def pv(self, p_kw: np.ndarray, q_kvar: np.ndarray, v_v: np.ndarray, s_rated_kva: float
+           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Noisy per-phase P [kW], Q [kvar] and voltage [V] of one plant; SCADA class."""
+        e = self.scada
+        per_phase_kva = s_rated_kva / max(int(np.count_nonzero(v_v)), 1)
+        return (
+            p_kw + per_phase_kva * self._gauss(p_kw.shape, e),
+            q_kvar + per_phase_kva * self._gauss(q_kvar.shape, e),
+            np.maximum(v_v * (1 + self._gauss(v_v.shape, e)), 0.0),
+        )
+
+    def regulator(self, v120: float, v_compared_120: float) -> tuple[float, float]:
+        """Noisy raw and compared secondary voltages [V on the 120 V base]; SCADA class."""
+        n = self._gauss((2,), self.scada)
+        return max(v120 * (1 + n[0]), 0.0), max(v_compared_120 * (1 + n[1]), 0.0)
+
+
+class FrameDropper:
+    """Drops each frame independently with probability ``p`` (seeded)."""
+
+    def __init__(self, *, p: float, seed: int) -> None:
+        if not 0.0 <= p <= 1.0:
+            raise DeviceError(f"drop probability must be within 0..1, got {p}")
+        self.p = float(p)
+        self._rng = np.random.default_rng([seed, 0xD50])
+
+    def drop(self) -> bool:
+        return self.p > 0.0 and bool(self._rng.random() < self.p)
+
+
+class DelayLine:
+    """Fixed latency: items put at wall time ``now_s`` come out at ``now_s + latency_s``, in order.
+
+    Times are the caller's monotonic clock [s]; with ``latency_s = 0`` every item is due at once.
+    """
+
+    def __init__(self, latency_s: float) -> None:
+        if not (math.isfinite(latency_s) and 0.0 <= latency_s <= 3600.0):
+            raise DeviceError(f"latency must be within 0..3600 s, got {latency_s}")
+        self.latency_s = float(latency_s)
+        self._heap: list[tuple[float, int, object]] = []
+        self._n = 0
+
+    def put(self, item: object, now_s: float) -> None:
+        self._n += 1
+        heapq.heappush(self._heap, (now_s + self.latency_s, self._n, item))
+
+    def due(self, now_s: float) -> list[object]:
+        """Remove and return every item due at ``now_s``, oldest first."""
+        out = []
+        while self._heap and self._heap[0][0] <= now_s:
+            out.append(heapq.heappop(self._heap)[2])
+        return out
+
+    def next_due_s(self) -> float | None:
+        """When the next item is due [s, caller's clock], None when empty."""
+        return self._heap[0][0] if self._heap else None
+
+    def __len__(self) -> int:
+        return len(self._heap)
+
+
+# ---------------------------------------------------------------------------------------- frames
+_PHASE_NAMES = ("a", "b", "c")
+
+
+def head_frame(*, feeder_id: str, t_ns: int, seq: int, v_mag_v: np.ndarray, v_ang_deg: np.ndarray,
+               i_mag_a: np.ndarray, i_ang_deg: np.ndarray, p_kw: np.ndarray, q_kvar: np.ndarray) -> m.HeadFrame:
+    """The feeder-head meter's frame from its per-phase readings, each (3,); absent phases (V = 0) left out.
+
+    Powers are into the feeder [kW], [kvar]; the totals are the sums over the phases present.
+    """
+    present = [ph for ph in range(3) if v_mag_v[ph] > 0.0] or [0, 1, 2]
+    phases = [m.HeadPhase(phase=_PHASE_NAMES[ph], v_mag_v=float(v_mag_v[ph]), v_ang_deg=_wrap(v_ang_deg[ph]),
+                          i_mag_a=float(i_mag_a[ph]), i_ang_deg=_wrap(i_ang_deg[ph]), p_kw=float(p_kw[ph]),
+                          q_kvar=float(q_kvar[ph])) for ph in present]
+    return m.HeadFrame(t_ns=t_ns, seq=seq, source="head", feeder_id=feeder_id, phases=phases,
+                       p_kw=float(sum(p.p_kw for p in phases)), q_kvar=float(sum(p.q_kvar for p in phases)))
+
+
+def pv_frame(*, plant: PvInverter, t_ns: int, seq: int, p_kw: np.ndarray, q_kvar: np.ndarray,
+             v_v: np.ndarray, available_p_kw: float) -> m.PvFrame:
+    """A PV inverter's frame from its per-phase output (generator convention) and voltages, each (3,).
+
+    ``q_available_kvar`` is the headroom ``sqrt(S² − P²)`` at the available active power [kvar].
+    """
+    present = [ph for ph in range(3) if v_v[ph] > 0.0] or [0, 1, 2]
+    phases = [m.PvPhase(phase=_PHASE_NAMES[ph], p_kw=float(p_kw[ph]), q_kvar=float(q_kvar[ph]),
+                        v_mag_v=float(v_v[ph])) for ph in present]
+    p_avail = min(max(float(available_p_kw), 0.0), plant.s_rated_kva)
+    return m.PvFrame(t_ns=t_ns, seq=seq, source=plant.plant_id, plant_id=plant.plant_id, phases=phases,
+                     p_kw=float(sum(p.p_kw for p in phases)), q_kvar=float(sum(p.q_kvar for p in phases)),
+                     s_rated_kva=plant.s_rated_kva,
+                     q_available_kvar=math.sqrt(max(plant.s_rated_kva**2 - p_avail**2, 0.0)),
+                     q_setpoint_kvar=plant.q_setpoint_kvar, local_mode=plant.local_mode)
+
+
+def reg_frame(*, reg: RegulatorController, t_ns: int, seq: int, phase: str, v120: float,
+              v_compared_120: float, tap: int) -> m.RegFrame:
+    """A regulator controller's frame: raw and compared secondary voltage [V, 120 V base], tap, settings."""
+    return m.RegFrame(t_ns=t_ns, seq=seq, source=reg.regulator_id, regulator_id=reg.regulator_id,
+                      phases=[m.RegPhase(phase=phase, v_120=float(v120))],  # type: ignore[arg-type]
+                      v_compared_120=float(v_compared_120), tap=int(tap), setpoint_v120=reg.setpoint_v120,
+                      band_v120=reg.band_v120, mode=reg.mode)
+
+
+def _wrap(angle_deg: float) -> float:
+    """An angle in (-180, 180] [deg] (noise may push a reading past ±180)."""
+    a = (float(angle_deg) + 180.0) % 360.0 - 180.0
+    return 180.0 if a == -180.0 else a
