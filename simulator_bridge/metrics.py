@@ -1,0 +1,536 @@
+"""Evaluation metrics of the paper (IV.F), from the ground truth: MVVM, NVV, NTC, Q, T and total cost.
+
+Pure numpy. ``metrics_from_series`` computes them for whole arrays at once; ``MetricsAccumulator``
+computes the same numbers step by step with bounded memory (a ring buffer of ``window_steps`` x nodes),
+so a month of QSTS never has to be held. ``Metrics.combine`` adds runs (for example months) together.
+
+Our reading of IV.F (the paper gives names, not formulas), also in ``docs/profiles-and-metrics.md``:
+
+* Rolling average: causal, over the last ``window_steps`` steps of each node (10 x 60 s = 10 minutes),
+  ``v_avg[t] = mean(v[t - w + 1 .. t])``. It exists from the ``w``-th step of a run on; the first
+  ``w - 1`` steps of every run are not judged.
+* Violation magnitude of a sample: ``max(v_avg - v_max, v_min - v_avg, 0)`` [pu] against the judged
+  limits ``(v_min, v_max)`` = (0.965, 1.05) pu; magnitudes up to ``VIOLATION_TOLERANCE_PU`` (1e-9 pu)
+  are rounding and count as 0.
+* MVVM: the largest violation magnitude over every node and judged step [pu].
+* NVV: the number of (node, step) samples of the rolling average strictly outside the limits. At 1-minute
+  steps that is node-minutes; a node above the limit for 8 minutes counts 8.
+* Minutes in violation: judged steps in which any node's rolling average is outside, x ``step_s`` / 60.
+* NTC: tap steps moved, summed over regulators and steps. T cost = sum_r cost_per_tap_r x NTC_r (eq. 14).
+* Q cost (eq. 15): the paper charges ``c_k (Q_k^+ + Q_k^-)`` per kvar of set point per 5-minute control
+  interval. We charge every step its share of an interval: ``sum_t sum_k c_k |Q_k[t]| step_s /
+  control_period_s``, so a set point held for one interval costs exactly ``c_k |Q_k|``.
+* Reactive energy per plant: ``sum_t |Q_k[t]| step_s / 3600`` [kvarh], and the paper's Table IV unit,
+  ``sum_t |Q_k[t]| / 1000 x step_s / control_period_s`` [Mvar x control intervals].
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Sequence
+from typing import Annotated
+
+import msgspec
+import numpy as np
+from msgspec import Meta
+
+from schemas.errors import CvvcError
+
+__all__ = [
+    "JUDGED_LIMITS_PU",
+    "Metrics",
+    "MetricsAccumulator",
+    "MetricsError",
+    "VIOLATION_TOLERANCE_PU",
+    "combine_metrics",
+    "metrics_from_series",
+    "q_cost_per_plant",
+    "rolling_mean_pu",
+    "tap_cost_per_regulator",
+    "violation_pu",
+]
+
+JUDGED_LIMITS_PU = (0.965, 1.05)
+"""The paper's judged voltage limits (IV) [pu of each node's nominal]."""
+
+VIOLATION_TOLERANCE_PU = 1e-9
+"""Violations no larger than this are floating-point rounding and are not counted [pu]."""
+
+NonNegInt = Annotated[int, Meta(ge=0)]
+NonNegFloat = Annotated[float, Meta(ge=0.0)]
+
+
+class MetricsError(CvvcError):
+    """Inputs to the metrics that do not fit (shapes, NaN voltages, negative counts, mixed runs)."""
+
+
+class Metrics(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """The paper's IV.F metrics of one run (or of several, after :meth:`combine`).
+
+    Voltages are in pu of each node's own nominal; costs in the device map's currency units.
+    ``v_*`` fields are ``None`` when there is nothing to report (no step, or no judged step).
+    """
+
+    n_steps: NonNegInt
+    n_steps_judged: NonNegInt
+    step_s: Annotated[int, Meta(gt=0)]
+    window_steps: Annotated[int, Meta(gt=0)]
+    control_period_s: Annotated[int, Meta(gt=0)]
+    limits_pu: tuple[float, float]
+    mvvm_pu: NonNegFloat
+    mvvm_node: int  # node index of the MVVM sample; -1 without violation
+    nvv: NonNegInt
+    steps_in_violation: NonNegInt
+    minutes_in_violation: NonNegFloat
+    v_min_pu: float | None
+    v_max_pu: float | None
+    v_avg_min_pu: float | None
+    v_avg_max_pu: float | None
+    ntc: NonNegInt
+    t_cost: NonNegFloat
+    q_cost: NonNegFloat
+    total_cost: NonNegFloat
+    regulator_ids: tuple[str, ...]
+    tap_changes_per_regulator: tuple[NonNegInt, ...]
+    pv_ids: tuple[str, ...]
+    q_kvarh_per_plant: tuple[NonNegFloat, ...]
+    q_mvar_intervals_per_plant: tuple[NonNegFloat, ...]
+    q_cost_per_plant: tuple[NonNegFloat, ...]
+
+    def combine(self, other: Metrics) -> Metrics:
+        """The metrics of this run and ``other`` together (counts and costs add, extremes combine).
+
+        Both must have the same devices, limits and timing; each run keeps its own rolling windows.
+        """
+        for name in ("step_s", "window_steps", "control_period_s", "limits_pu", "regulator_ids", "pv_ids"):
+            if getattr(self, name) != getattr(other, name):
+                raise MetricsError(
+                    f"cannot combine metrics with different {name}: {getattr(self, name)!r} vs "
+                    f"{getattr(other, name)!r}; combine runs of the same feeder and settings only"
+                )
+        worst = self if self.mvvm_pu >= other.mvvm_pu else other
+        return msgspec.structs.replace(
+            self,
+            n_steps=self.n_steps + other.n_steps,
+            n_steps_judged=self.n_steps_judged + other.n_steps_judged,
+            mvvm_pu=worst.mvvm_pu,
+            mvvm_node=worst.mvvm_node,
+            nvv=self.nvv + other.nvv,
+            steps_in_violation=self.steps_in_violation + other.steps_in_violation,
+            minutes_in_violation=self.minutes_in_violation + other.minutes_in_violation,
+            v_min_pu=_opt(min, self.v_min_pu, other.v_min_pu),
+            v_max_pu=_opt(max, self.v_max_pu, other.v_max_pu),
+            v_avg_min_pu=_opt(min, self.v_avg_min_pu, other.v_avg_min_pu),
+            v_avg_max_pu=_opt(max, self.v_avg_max_pu, other.v_avg_max_pu),
+            ntc=self.ntc + other.ntc,
+            t_cost=self.t_cost + other.t_cost,
+            q_cost=self.q_cost + other.q_cost,
+            total_cost=self.total_cost + other.total_cost,
+            tap_changes_per_regulator=_add(self.tap_changes_per_regulator, other.tap_changes_per_regulator),
+            q_kvarh_per_plant=_add(self.q_kvarh_per_plant, other.q_kvarh_per_plant),
+            q_mvar_intervals_per_plant=_add(self.q_mvar_intervals_per_plant, other.q_mvar_intervals_per_plant),
+            q_cost_per_plant=_add(self.q_cost_per_plant, other.q_cost_per_plant),
+        )
+
+
+def combine_metrics(items: Iterable[Metrics]) -> Metrics:
+    """Combine several runs' metrics (for example the four season months) with :meth:`Metrics.combine`."""
+    items = list(items)
+    if not items:
+        raise MetricsError("combine_metrics needs at least one Metrics")
+    out = items[0]
+    for m in items[1:]:
+        out = out.combine(m)
+    return out
+
+
+# ---------------------------------------------------------------------------------------------------
+# Pure functions
+# ---------------------------------------------------------------------------------------------------
+
+
+def rolling_mean_pu(v_pu: np.ndarray, window_steps: int) -> np.ndarray:
+    """Causal rolling mean over ``window_steps`` rows of ``v_pu`` (T, N) [pu]; NaN where not yet full.
+
+    Row ``t`` is ``mean(v_pu[t - window_steps + 1 : t + 1])`` for ``t >= window_steps - 1``.
+    """
+    v = np.asarray(v_pu, dtype=float)
+    out = np.full(v.shape, np.nan)
+    w = int(window_steps)
+    if w < 1:
+        raise MetricsError(f"window_steps = {w}; must be at least 1")
+    if v.shape[0] >= w:
+        c = np.cumsum(np.concatenate([np.zeros((1,) + v.shape[1:]), v]), axis=0)
+        out[w - 1 :] = (c[w:] - c[:-w]) / w
+    return out
+
+
+def violation_pu(v_pu: np.ndarray, limits_pu: tuple[float, float]) -> np.ndarray:
+    """Violation magnitude ``max(v - v_max, v_min - v, 0)`` of every sample [pu]; 0 inside the limits.
+
+    Magnitudes up to ``VIOLATION_TOLERANCE_PU`` count as 0: averaging ten samples of exactly 1.05 gives
+    1.0500000000000002, which is rounding, not a violation.
+    """
+    lo, hi = limits_pu
+    v = np.asarray(v_pu, dtype=float)
+    m = np.maximum(v - hi, lo - v)
+    return np.where(m > VIOLATION_TOLERANCE_PU, m, 0.0)
+
+
+def tap_cost_per_regulator(tap_changes: np.ndarray, cost_per_tap: np.ndarray) -> np.ndarray:
+    """T cost of each regulator, paper eq. (14): ``cost_per_tap_r x`` taps moved (summed over rows)."""
+    taps = np.asarray(tap_changes, dtype=float)
+    return np.asarray(cost_per_tap, dtype=float) * taps.reshape(-1, taps.shape[-1]).sum(axis=0)
+
+
+def q_cost_per_plant(
+    q_kvar: np.ndarray, cost_per_kvar: np.ndarray, *, step_s: float, control_period_s: float
+) -> np.ndarray:
+    """Q cost of each plant, paper eq. (15) per control interval, integrated over steps.
+
+    ``sum_t cost_per_kvar_k |q_kvar[t, k]| step_s / control_period_s``; ``q_kvar`` is (T, K) [kvar].
+    """
+    q = np.abs(np.asarray(q_kvar, dtype=float))
+    q = q.reshape(-1, q.shape[-1])
+    return np.asarray(cost_per_kvar, dtype=float) * q.sum(axis=0) * (step_s / control_period_s)
+
+
+def metrics_from_series(
+    v_pu: np.ndarray,
+    tap_changes: np.ndarray,
+    pv_q_kvar: np.ndarray,
+    *,
+    regulator_ids: Sequence[str],
+    pv_ids: Sequence[str],
+    cost_per_tap: float | Sequence[float],
+    cost_per_kvar: float | Sequence[float],
+    limits_pu: tuple[float, float] = JUDGED_LIMITS_PU,
+    window_steps: int = 10,
+    step_s: int = 60,
+    control_period_s: int = 300,
+) -> Metrics:
+    """The metrics of one run given as whole arrays.
+
+    Parameters
+    ----------
+    v_pu : ndarray, shape (T, n_nodes)
+        Every node's voltage at every step [pu].
+    tap_changes : ndarray of int, shape (T, R)
+        Tap steps moved by each regulator during each step (>= 0).
+    pv_q_kvar : ndarray, shape (T, K)
+        Each plant's reactive power [kvar] (either sign).
+    regulator_ids, pv_ids, cost_per_tap, cost_per_kvar, limits_pu, window_steps, step_s, control_period_s
+        As for :class:`MetricsAccumulator`.
+    """
+    if np.ndim(v_pu) != 2:
+        raise MetricsError(f"v_pu has shape {np.shape(v_pu)}; expected (n_steps, n_nodes)")
+    cfg = _Config.make(
+        n_nodes=np.shape(v_pu)[1],
+        regulator_ids=regulator_ids,
+        pv_ids=pv_ids,
+        cost_per_tap=cost_per_tap,
+        cost_per_kvar=cost_per_kvar,
+        limits_pu=limits_pu,
+        window_steps=window_steps,
+        step_s=step_s,
+        control_period_s=control_period_s,
+    )
+    n_steps = int(np.shape(v_pu)[0])
+    v, taps, q = cfg.check(v_pu, tap_changes, pv_q_kvar, rows=(n_steps,))
+    avg = rolling_mean_pu(v, cfg.window_steps)[cfg.window_steps - 1 :]
+    viol = violation_pu(avg, cfg.limits_pu)
+    outside = viol > 0.0
+    worst = int(np.argmax(viol)) if viol.size else 0
+    mvvm = float(viol.flat[worst]) if viol.size else 0.0
+    return cfg.result(
+        n_steps=n_steps,
+        n_steps_judged=avg.shape[0],
+        mvvm_pu=mvvm,
+        mvvm_node=worst % cfg.n_nodes if mvvm > 0 else -1,
+        nvv=int(outside.sum()),
+        steps_in_violation=int(outside.any(axis=1).sum()),
+        v_min_max=(float(v.min()), float(v.max())) if n_steps else None,
+        v_avg_min_max=(float(avg.min()), float(avg.max())) if avg.size else None,
+        taps=taps.astype(np.int64).sum(axis=0),
+        abs_q_kvar_steps=np.abs(q).sum(axis=0),
+    )
+
+
+# ---------------------------------------------------------------------------------------------------
+# Streaming
+# ---------------------------------------------------------------------------------------------------
+
+
+class MetricsAccumulator:
+    """Streaming IV.F metrics: feed one step at a time with :meth:`update`, read :meth:`result`.
+
+    Memory is bounded: a ring buffer of ``window_steps`` x ``n_nodes`` voltages and a few sums.
+
+    Parameters
+    ----------
+    n_nodes : int
+        Number of nodes in every ``v_pu`` row.
+    regulator_ids, pv_ids : sequence of str
+        Names of the regulators (columns of ``tap_changes``) and plants (entries of ``pv_q_kvar``).
+    cost_per_tap : float or sequence of float
+        Cost of one tap step, per regulator or one for all (the paper's ratio: 0.14).
+    cost_per_kvar : float or sequence of float
+        Cost of one kvar of set point per control interval, per plant or one for all.
+    limits_pu : (float, float)
+        Judged limits (v_min, v_max) [pu].
+    window_steps : int
+        Length of the rolling average [steps] (10 steps of 60 s = 10 minutes).
+    step_s : int
+        Step length [s].
+    control_period_s : int
+        Control interval the Q cost is charged per [s].
+    """
+
+    def __init__(
+        self,
+        *,
+        n_nodes: int,
+        regulator_ids: Sequence[str],
+        pv_ids: Sequence[str],
+        cost_per_tap: float | Sequence[float],
+        cost_per_kvar: float | Sequence[float],
+        limits_pu: tuple[float, float] = JUDGED_LIMITS_PU,
+        window_steps: int = 10,
+        step_s: int = 60,
+        control_period_s: int = 300,
+    ) -> None:
+        self._cfg = _Config.make(
+            n_nodes=n_nodes,
+            regulator_ids=regulator_ids,
+            pv_ids=pv_ids,
+            cost_per_tap=cost_per_tap,
+            cost_per_kvar=cost_per_kvar,
+            limits_pu=limits_pu,
+            window_steps=window_steps,
+            step_s=step_s,
+            control_period_s=control_period_s,
+        )
+        cfg = self._cfg
+        self._ring = np.zeros((cfg.window_steps, cfg.n_nodes))
+        self._n_steps = 0
+        self._n_judged = 0
+        self._mvvm = 0.0
+        self._mvvm_node = -1
+        self._nvv = 0
+        self._steps_in_violation = 0
+        self._v_min = np.inf
+        self._v_max = -np.inf
+        self._avg_min = np.inf
+        self._avg_max = -np.inf
+        self._taps = np.zeros(cfg.n_regs, dtype=np.int64)
+        self._abs_q = np.zeros(cfg.n_pv)
+
+    @property
+    def n_steps(self) -> int:
+        """Steps accumulated so far."""
+        return self._n_steps
+
+    def update(self, v_pu: np.ndarray, tap_changes: np.ndarray, pv_q_kvar: np.ndarray) -> None:
+        """Add one step.
+
+        Parameters
+        ----------
+        v_pu : ndarray, shape (n_nodes,)
+            Every node's voltage [pu].
+        tap_changes : ndarray of int, shape (R,)
+            Tap steps each regulator moved during the step (>= 0).
+        pv_q_kvar : ndarray, shape (K,)
+            Each plant's reactive power during the step [kvar] (either sign).
+        """
+        cfg = self._cfg
+        v, taps, q = cfg.check(v_pu, tap_changes, pv_q_kvar)
+        self._ring[self._n_steps % cfg.window_steps] = v
+        self._n_steps += 1
+        self._v_min = min(self._v_min, float(v.min()))
+        self._v_max = max(self._v_max, float(v.max()))
+        self._taps += taps
+        self._abs_q += np.abs(q)
+        if self._n_steps < cfg.window_steps:
+            return
+        avg = self._ring.mean(axis=0)
+        viol = violation_pu(avg, cfg.limits_pu)
+        self._n_judged += 1
+        self._avg_min = min(self._avg_min, float(avg.min()))
+        self._avg_max = max(self._avg_max, float(avg.max()))
+        n_out = int(np.count_nonzero(viol > 0.0))
+        if n_out:
+            self._nvv += n_out
+            self._steps_in_violation += 1
+            worst = int(np.argmax(viol))
+            if viol[worst] > self._mvvm:
+                self._mvvm, self._mvvm_node = float(viol[worst]), worst
+
+    def result(self) -> Metrics:
+        """The metrics of every step so far (the accumulator can go on afterwards)."""
+        return self._cfg.result(
+            n_steps=self._n_steps,
+            n_steps_judged=self._n_judged,
+            mvvm_pu=self._mvvm,
+            mvvm_node=self._mvvm_node,
+            nvv=self._nvv,
+            steps_in_violation=self._steps_in_violation,
+            v_min_max=(self._v_min, self._v_max) if self._n_steps else None,
+            v_avg_min_max=(self._avg_min, self._avg_max) if self._n_judged else None,
+            taps=self._taps,
+            abs_q_kvar_steps=self._abs_q,
+        )
+
+
+# ---------------------------------------------------------------------------------------------------
+# Shared configuration and checks
+# ---------------------------------------------------------------------------------------------------
+
+
+class _Config(msgspec.Struct, frozen=True, kw_only=True):
+    n_nodes: int
+    regulator_ids: tuple[str, ...]
+    pv_ids: tuple[str, ...]
+    cost_per_tap: tuple[float, ...]
+    cost_per_kvar: tuple[float, ...]
+    limits_pu: tuple[float, float]
+    window_steps: int
+    step_s: int
+    control_period_s: int
+
+    @property
+    def n_regs(self) -> int:
+        return len(self.regulator_ids)
+
+    @property
+    def n_pv(self) -> int:
+        return len(self.pv_ids)
+
+    @classmethod
+    def make(
+        cls,
+        *,
+        n_nodes: int,
+        regulator_ids: Sequence[str],
+        pv_ids: Sequence[str],
+        cost_per_tap: float | Sequence[float],
+        cost_per_kvar: float | Sequence[float],
+        limits_pu: tuple[float, float],
+        window_steps: int,
+        step_s: int,
+        control_period_s: int,
+    ) -> _Config:
+        if int(n_nodes) < 1:
+            raise MetricsError(f"n_nodes = {n_nodes}; voltages must be (n_steps, n_nodes) with n_nodes >= 1")
+        regs, pvs = tuple(str(r) for r in regulator_ids), tuple(str(p) for p in pv_ids)
+        lo, hi = (float(x) for x in limits_pu)
+        if not (np.isfinite(lo) and np.isfinite(hi) and 0.0 < lo < hi):
+            raise MetricsError(f"limits_pu = {limits_pu}; need 0 < v_min < v_max")
+        for name, value in (("window_steps", window_steps), ("step_s", step_s), ("control_period_s", control_period_s)):
+            if int(value) != value or value < 1:
+                raise MetricsError(f"{name} = {value}; must be a positive whole number")
+        return cls(
+            n_nodes=int(n_nodes),
+            regulator_ids=regs,
+            pv_ids=pvs,
+            cost_per_tap=_costs(cost_per_tap, len(regs), "cost_per_tap", "regulator"),
+            cost_per_kvar=_costs(cost_per_kvar, len(pvs), "cost_per_kvar", "PV plant"),
+            limits_pu=(lo, hi),
+            window_steps=int(window_steps),
+            step_s=int(step_s),
+            control_period_s=int(control_period_s),
+        )
+
+    def check(
+        self, v_pu: np.ndarray, tap_changes: np.ndarray, pv_q_kvar: np.ndarray, rows: tuple[int, ...] = ()
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Validate one step (``rows = ()``) or ``rows = (T,)`` steps; return float, int64, float arrays."""
+        v = np.asarray(v_pu, dtype=float)
+        taps = np.asarray(tap_changes)
+        q = np.asarray(pv_q_kvar, dtype=float)
+        if v.shape != rows + (self.n_nodes,):
+            raise MetricsError(f"v_pu has shape {v.shape}; expected {rows + (self.n_nodes,)}, one voltage per node")
+        if not np.all(np.isfinite(v)) or np.any(v <= 0.0):
+            raise MetricsError("v_pu has NaN, infinite or non-positive voltages; the solve that made them failed")
+        if taps.shape != rows + (self.n_regs,):
+            raise MetricsError(
+                f"tap_changes has shape {taps.shape}; expected {rows + (self.n_regs,)}, one per regulator"
+            )
+        if taps.size and (not np.all(np.isfinite(taps)) or np.any(taps != np.round(taps)) or taps.min() < 0):
+            raise MetricsError("tap_changes must be whole numbers >= 0 (tap steps moved), got " + repr(taps.tolist()))
+        if q.shape != rows + (self.n_pv,):
+            raise MetricsError(f"pv_q_kvar has shape {q.shape}; expected {rows + (self.n_pv,)}, one per PV plant")
+        if not np.all(np.isfinite(q)):
+            raise MetricsError("pv_q_kvar has NaN or infinite values")
+        return v, taps.astype(np.int64), q
+
+    def result(
+        self,
+        *,
+        n_steps: int,
+        n_steps_judged: int,
+        mvvm_pu: float,
+        mvvm_node: int,
+        nvv: int,
+        steps_in_violation: int,
+        v_min_max: tuple[float, float] | None,
+        v_avg_min_max: tuple[float, float] | None,
+        taps: np.ndarray,
+        abs_q_kvar_steps: np.ndarray,
+    ) -> Metrics:
+        t_cost = tap_cost_per_regulator(taps[None, :], np.array(self.cost_per_tap))
+        q_cost = q_cost_per_plant(
+            abs_q_kvar_steps[None, :],
+            np.array(self.cost_per_kvar),
+            step_s=self.step_s,
+            control_period_s=self.control_period_s,
+        )
+        intervals = self.step_s / self.control_period_s
+        return Metrics(
+            n_steps=n_steps,
+            n_steps_judged=n_steps_judged,
+            step_s=self.step_s,
+            window_steps=self.window_steps,
+            control_period_s=self.control_period_s,
+            limits_pu=self.limits_pu,
+            mvvm_pu=mvvm_pu,
+            mvvm_node=mvvm_node,
+            nvv=nvv,
+            steps_in_violation=steps_in_violation,
+            minutes_in_violation=steps_in_violation * self.step_s / 60.0,
+            v_min_pu=None if v_min_max is None else v_min_max[0],
+            v_max_pu=None if v_min_max is None else v_min_max[1],
+            v_avg_min_pu=None if v_avg_min_max is None else v_avg_min_max[0],
+            v_avg_max_pu=None if v_avg_min_max is None else v_avg_min_max[1],
+            ntc=int(taps.sum()),
+            t_cost=float(t_cost.sum()),
+            q_cost=float(q_cost.sum()),
+            total_cost=float(t_cost.sum() + q_cost.sum()),
+            regulator_ids=self.regulator_ids,
+            tap_changes_per_regulator=tuple(int(t) for t in taps),
+            pv_ids=self.pv_ids,
+            q_kvarh_per_plant=tuple(float(x) for x in abs_q_kvar_steps * self.step_s / 3600.0),
+            q_mvar_intervals_per_plant=tuple(float(x) for x in abs_q_kvar_steps / 1000.0 * intervals),
+            q_cost_per_plant=tuple(float(x) for x in q_cost),
+        )
+
+
+def _costs(value: float | Sequence[float], n: int, name: str, what: str) -> tuple[float, ...]:
+    c = np.asarray(value, dtype=float)
+    if c.ndim == 0:
+        c = np.full(n, float(c))
+    if c.shape != (n,):
+        raise MetricsError(f"{name} has {c.size} values for {n} {what}s; give one per {what} or one for all")
+    if not np.all(np.isfinite(c)) or (c.size and c.min() < 0):
+        raise MetricsError(f"{name} {c.tolist()} must be finite and >= 0")
+    return tuple(float(x) for x in c)
+
+
+def _opt(f, a: float | None, b: float | None) -> float | None:
+    if a is None:
+        return b
+    if b is None:
+        return a
+    return f(a, b)
+
+
+def _add(a: tuple, b: tuple) -> tuple:
+    return tuple(x + y for x, y in zip(a, b, strict=True))
