@@ -53,6 +53,7 @@ from recordings.errors import NotMcapError, RecordingError, UnreadableError
 
 __all__ = [
     "MCAP_MAGIC",
+    "MCAP_READ_ERRORS",
     "ChannelInfo",
     "CorruptChunk",
     "RecordingInfo",
@@ -69,7 +70,7 @@ _RECORDS: dict[int, type[McapRecord]] = {
     0x0D: MetadataIndex, 0x0E: SummaryOffset, 0x0F: DataEnd,
 }
 # What the mcap library raises on bad bytes: its own errors, short reads, bad UTF-8, bad zstd data, CRCs.
-_BAD_BYTES = (McapError, struct.error, ValueError, EOFError, IndexError, zstandard.ZstdError)
+MCAP_READ_ERRORS = (McapError, struct.error, ValueError, EOFError, IndexError, zstandard.ZstdError)
 
 
 # ----------------------------------------------------------------------------------------- results
@@ -202,7 +203,7 @@ def _scan(f: IO[bytes], state: _ScanState) -> Iterator[tuple[int, McapRecord]]:
         try:
             stream = ReadDataStream(io.BytesIO(body))
             record = cls.read(stream, length) if cls is Message else cls.read(stream)  # type: ignore[call-arg]
-        except _BAD_BYTES as e:
+        except MCAP_READ_ERRORS as e:
             state.stop_reason = f"a {cls.__name__} record at byte {pos} is corrupt ({_why(e)}): unreadable from here"
             return
         pos += 9 + length
@@ -222,7 +223,7 @@ def _why(e: BaseException) -> str:
 def _chunk_records(offset: int, chunk: Chunk) -> tuple[list[McapRecord], CorruptChunk | None]:
     try:
         return breakup_chunk(chunk, validate_crc=True), None
-    except _BAD_BYTES as e:
+    except MCAP_READ_ERRORS as e:
         return [], CorruptChunk(offset=offset, length_bytes=len(chunk.data),
                                 message_start_time_ns=chunk.message_start_time,
                                 message_end_time_ns=chunk.message_end_time, reason=_why(e))
@@ -262,7 +263,7 @@ def recording_info(path: str | Path) -> RecordingInfo:
         return _info_from_summary(path, size)
     except _SummaryUnavailable as e:
         problems.append(str(e))
-    except _BAD_BYTES as e:
+    except MCAP_READ_ERRORS as e:
         problems.append(f"the summary section is unreadable ({_why(e)}); scanned the file linearly instead")
     return _info_from_scan(path, size, problems)
 

@@ -40,7 +40,7 @@ from schemas.bus import BusConfig, open_session
 from schemas.jsonschema import schema_bytes, schema_name
 from schemas.keys import message_type_for_key
 
-__all__ = ["METADATA_NAME", "STATS_METADATA_NAME", "Recorder", "RecorderConfig", "RecorderStats", "main"]
+__all__ = ["METADATA_NAME", "STATS_METADATA_NAME", "McapSink", "Recorder", "RecorderConfig", "RecorderStats", "main"]
 
 log = logging.getLogger(__name__)
 
@@ -66,6 +66,7 @@ class RecorderConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_f
     chunk_size_bytes: int = 1 << 20
     feeder_fingerprint: str = ""
     model_path: str = ""
+    agent_settings_json: str = ""  # the agent's settings, for the offline re-run (empty: unknown)
     duration_s: float | None = None
 
 
@@ -86,6 +87,83 @@ class _Header(msgspec.Struct):
 
     t_ns: int = -1
     seq: int = 0
+
+
+class McapSink:
+    """The file layout of a recording, on an open binary file: one channel per key, schemas, times.
+
+    Not thread safe (neither is the ``mcap`` writer): one thread owns it. ``Recorder`` feeds it from its
+    writer thread; tests and benchmarks may use it directly to write recordings without a bus.
+    """
+
+    def __init__(self, file: IO[bytes], *, metadata: dict[str, str] | None = None,
+                 chunk_size_bytes: int = 1 << 20) -> None:
+        self._writer = Writer(file, chunk_size=chunk_size_bytes, compression=CompressionType.ZSTD)
+        self._writer.start(profile="", library=f"cvvc-edge {_version()}; {LIBRARY_IDENTIFIER}")
+        if metadata is not None:
+            self._writer.add_metadata(METADATA_NAME, metadata)
+        self._channels: dict[str, int] = {}
+        self._schemas: dict[type, int] = {}
+        self._header_decoder = msgspec.json.Decoder(_Header)
+        self.messages = 0
+        self.payload_bytes = 0
+        self.log_time_fallbacks = 0
+        self.flushes = 0
+
+    @property
+    def channels(self) -> int:
+        return len(self._channels)
+
+    def write(self, raw: bytes, key: str, recv_ns: int) -> None:
+        """Add one sample: ``log_time`` from its ``t_ns`` (else ``recv_ns``), ``publish_time`` = ``recv_ns``."""
+        channel_id = self._channels.get(key)
+        if channel_id is None:
+            channel_id = self._register_channel(key, raw)
+        try:
+            header = self._header_decoder.decode(raw)
+            log_time, seq = header.t_ns, header.seq
+        except msgspec.DecodeError:  # not a JSON object, or t_ns/seq not integers
+            log_time, seq = -1, 0
+        if not 0 <= log_time <= _U64_MAX:
+            log_time = recv_ns
+            self.log_time_fallbacks += 1
+        self._writer.add_message(channel_id, log_time=log_time, data=raw, publish_time=recv_ns,
+                                 sequence=seq & _U32)
+        self.messages += 1
+        self.payload_bytes += len(raw)
+
+    def flush(self) -> None:
+        """Close the open chunk and hand everything to the OS (survives the process being killed)."""
+        self._writer.flush()
+        self.flushes += 1
+
+    def finish(self, stats: dict[str, str] | None = None) -> None:
+        """Write the ``cvvc.recorder_stats`` metadata (if given), the summary and the index."""
+        if stats is not None:
+            self._writer.add_metadata(STATS_METADATA_NAME, stats)
+        self._writer.finish()
+
+    def _register_channel(self, key: str, first_payload: bytes) -> int:
+        msg_type = message_type_for_key(key)
+        if msg_type is None:
+            schema_id = 0
+            try:
+                msgspec.json.decode(first_payload)
+                encoding = "json"
+            except msgspec.DecodeError:
+                encoding = "application/octet-stream"
+            metadata = {"cvvc_message_type": ""}
+        else:
+            schema_id = self._schemas.get(msg_type, 0)
+            if not schema_id:
+                schema_id = self._writer.register_schema(schema_name(msg_type), "jsonschema",
+                                                         schema_bytes(msg_type))
+                self._schemas[msg_type] = schema_id
+            encoding = "json"
+            metadata = {"cvvc_message_type": msg_type.__name__}
+        channel_id = self._writer.register_channel(key, encoding, schema_id, metadata)
+        self._channels[key] = channel_id
+        return channel_id
 
 
 class Recorder:
@@ -109,15 +187,8 @@ class Recorder:
         self._thread = threading.Thread(target=self._run, name="mcap-writer", daemon=True)
         self._subs: list[Any] = []
         self._file: IO[bytes] | None = None
-        self._writer: Writer | None = None
+        self._sink: McapSink | None = None
         self._writer_error: BaseException | None = None
-        self._channels: dict[str, int] = {}
-        self._schemas: dict[type, int] = {}
-        self._header_decoder = msgspec.json.Decoder(_Header)
-        self._messages = 0
-        self._payload_bytes = 0
-        self._fallbacks = 0
-        self._flushes = 0
         self._closed = False
 
     # ------------------------------------------------------------------------------------ lifecycle
@@ -132,13 +203,10 @@ class Recorder:
     def start(self) -> None:
         """Open the file, write the header and metadata, start the writer and subscribe."""
         try:
-            path = Path(self.config.out_path)
-            self._file = open(path, "wb")  # noqa: SIM115  # closed in close()
-            self._writer = Writer(self._file, chunk_size=self.config.chunk_size_bytes,
-                                  compression=CompressionType.ZSTD)
-            self._writer.start(profile="", library=f"cvvc-edge {_version()}; {LIBRARY_IDENTIFIER}")
-            self._writer.add_metadata(METADATA_NAME, _recording_metadata(self.config))
-            self._writer.flush()
+            self._file = open(Path(self.config.out_path), "wb")  # noqa: SIM115  # closed in close()
+            self._sink = McapSink(self._file, metadata=_recording_metadata(self.config),
+                                  chunk_size_bytes=self.config.chunk_size_bytes)
+            self._sink.flush()
             self._thread.start()
             for key in self.config.keys:
                 self._subs.append(self._session.declare_subscriber(key, self._on_sample))
@@ -165,14 +233,11 @@ class Recorder:
         if self._thread.is_alive():
             self._thread.join()
         try:
-            if self._writer is not None:
+            if self._sink is not None:
                 if self._writer_error is None:
-                    self._drain()  # anything the thread did not get to (it was never started, or it died)
-                stats = self.stats()
-                self._writer.add_metadata(STATS_METADATA_NAME, {
-                    k: str(v) for k, v in msgspec.structs.asdict(stats).items()
-                } | {"stopped_wall_ns": str(time.time_ns())})
-                self._writer.finish()
+                    self._drain(self._sink)  # anything the thread did not get to
+                stats = {k: str(v) for k, v in msgspec.structs.asdict(self.stats()).items()}
+                self._sink.finish(stats | {"stopped_wall_ns": str(time.time_ns())})
         except OSError as e:
             self._writer_error = self._writer_error or e
         finally:
@@ -184,10 +249,11 @@ class Recorder:
         return self.stats()
 
     def stats(self) -> RecorderStats:
-        return RecorderStats(messages=self._messages, payload_bytes=self._payload_bytes,
-                             channels=len(self._channels), dropped_queue_full=self._dropped,
-                             log_time_fallbacks=self._fallbacks, callback_errors=self._callback_errors,
-                             flushes=self._flushes)
+        sink = self._sink
+        return RecorderStats(messages=sink.messages if sink else 0, payload_bytes=sink.payload_bytes if sink else 0,
+                             channels=sink.channels if sink else 0, dropped_queue_full=self._dropped,
+                             log_time_fallbacks=sink.log_time_fallbacks if sink else 0,
+                             callback_errors=self._callback_errors, flushes=sink.flushes if sink else 0)
 
     @property
     def pending(self) -> int:
@@ -209,15 +275,18 @@ class Recorder:
 
     # -------------------------------------------------------------------------------- writer thread
     def _run(self) -> None:
+        sink = self._sink
+        if sink is None:
+            return
         period = self.config.flush_period_s
         next_flush = time.monotonic() + period
         try:
             while True:
                 stopping = self._stop.is_set()  # read before draining: nothing is enqueued after stop
-                wrote = self._drain()
+                wrote = self._drain(sink)
                 now = time.monotonic()
                 if now >= next_flush:
-                    self._flush()
+                    sink.flush()
                     next_flush = now + period
                 if stopping:
                     return
@@ -227,65 +296,17 @@ class Recorder:
             log.error("MCAP writer failed: %s", e)
             self._writer_error = e
 
-    def _drain(self) -> int:
+    def _drain(self, sink: McapSink) -> int:
         n = 0
         pop = self._queue.popleft
+        write = sink.write
         while True:
             try:
                 raw, key, recv_ns = pop()
             except IndexError:
                 return n
-            self._write(raw, key, recv_ns)
+            write(raw, key, recv_ns)
             n += 1
-
-    def _write(self, raw: bytes, key: str, recv_ns: int) -> None:
-        channel_id = self._channels.get(key)
-        if channel_id is None:
-            channel_id = self._register_channel(key, raw)
-        try:
-            header = self._header_decoder.decode(raw)
-            log_time, seq = header.t_ns, header.seq
-        except msgspec.DecodeError:  # not a JSON object, or t_ns/seq not integers
-            log_time, seq = -1, 0
-        if not 0 <= log_time <= _U64_MAX:
-            log_time = recv_ns
-            self._fallbacks += 1
-        self._mcap().add_message(channel_id, log_time=log_time, data=raw, publish_time=recv_ns,
-                                 sequence=seq & _U32)
-        self._messages += 1
-        self._payload_bytes += len(raw)
-
-    def _flush(self) -> None:
-        self._mcap().flush()
-        self._flushes += 1
-
-    def _mcap(self) -> Writer:
-        if self._writer is None:
-            raise RecordingError("the recorder was not started: use it as `with Recorder(...) as rec:`")
-        return self._writer
-
-    def _register_channel(self, key: str, first_payload: bytes) -> int:
-        writer = self._mcap()
-        msg_type = message_type_for_key(key)
-        if msg_type is None:
-            schema_id = 0
-            try:
-                msgspec.json.decode(first_payload)
-                encoding = "json"
-            except msgspec.DecodeError:
-                encoding = "application/octet-stream"
-            metadata = {"cvvc_message_type": ""}
-        else:
-            schema_id = self._schemas.get(msg_type, 0)
-            if not schema_id:
-                schema_id = writer.register_schema(schema_name(msg_type), "jsonschema",
-                                                         schema_bytes(msg_type))
-                self._schemas[msg_type] = schema_id
-            encoding = "json"
-            metadata = {"cvvc_message_type": msg_type.__name__}
-        channel_id = writer.register_channel(key, encoding, schema_id, metadata)
-        self._channels[key] = channel_id
-        return channel_id
 
 
 def _version() -> str:
@@ -299,6 +320,7 @@ def _recording_metadata(config: RecorderConfig) -> dict[str, str]:
         "project_version": _version(),
         "feeder_fingerprint": config.feeder_fingerprint,
         "model_path": config.model_path,
+        "agent_settings": config.agent_settings_json,
         "bus_config": msgspec.json.encode(config.bus).decode(),
         "keys": json.dumps(list(config.keys)),
         "flush_period_s": repr(config.flush_period_s),
