@@ -1,0 +1,94 @@
+"""QSTS speed: steps per second of :class:`Qsts` against bare OpenDSS solves of the same steps.
+
+``bench_qsts`` builds the feeder and a profile year, settles the regulators with a few untimed QSTS
+steps (the first minutes from tap 0 are dominated by tap moves), then times, in the same process and
+on the same rows:
+
+* **qsts**: ``Qsts.step()`` — set loads and PV (Q per the local default), solve, read every field
+  device and every node voltage, regulator local control (extra solves after tap moves);
+* **bare**: ``FeederEngine.bare_steps_s`` — per row set loads and PV output, set the taps the QSTS
+  ended that step with (replayed, so both pay OpenDSS's costly re-factorisation after a tap change),
+  solve; nothing else. The QSTS also solves once more per tap-move round, which bare does not.
+
+``ratio = qsts time / bare time``; the goal is under 1.3. Profile generation is timed separately.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+
+from schemas.devicemap import load_device_map
+from simulator_bridge.engine import FeederEngine
+from simulator_bridge.profiles import make_profiles, month_steps
+from simulator_bridge.qsts import Qsts
+
+__all__ = ["bench_qsts"]
+
+
+def bench_qsts(device_map_path: str | Path, steps: int, *, seed: int = 1, month: int = 7,
+               start_hour: float = 6.0, warmup_steps: int = 10) -> dict:
+    """Measure QSTS steps/s for one feeder and the ratio to bare OpenDSS solves of the same steps.
+
+    Parameters
+    ----------
+    device_map_path : the feeder's device map (TOML).
+    steps : timed steps (1 minute each).
+    seed : profile seed. month, start_hour : where in the year the timed window starts [local time].
+    warmup_steps : untimed QSTS steps before the window (regulators settle from tap 0).
+
+    Returns
+    -------
+    dict with ``feeder``, ``n_nodes``, ``steps``, ``qsts_steps_per_s``, ``bare_steps_per_s``,
+    ``ratio`` (qsts time / bare time), ``tap_changes`` (in the timed window), ``compile_s``,
+    ``profiles_s``.
+    """
+    dm = load_device_map(device_map_path)
+    t = time.perf_counter()
+    engine = FeederEngine(dm)
+    compile_s = time.perf_counter() - t
+    t = time.perf_counter()
+    profiles = make_profiles(seed=seed, load_kw_nominal=engine.load_kw_nominal, pv_pmpp_kw=engine.pv_pmpp_kw)
+    profiles_s = time.perf_counter() - t
+    start = month_steps(profiles, month).start + int(start_hour * 3600 // profiles.step_s)
+    stop = min(start + warmup_steps + steps, profiles.n_steps)
+    qsts = Qsts(engine, profiles, start_step=start, chunk_steps=stop - start)
+    for _ in range(warmup_steps):
+        qsts.step()
+    window = range(start + warmup_steps, stop)
+
+    taps0 = engine.taps()
+    taps = np.empty((len(window), len(taps0)), dtype=int)
+    tap_changes = 0
+    t = time.perf_counter()
+    for j in range(len(window)):
+        res = qsts.step()
+        taps[j] = res.taps
+        tap_changes += int(res.tap_changes.sum())
+    qsts_s = time.perf_counter() - t
+
+    load_kw = np.asarray(profiles.load_kw(window.start, window.stop), dtype=float)
+    pv_kw = np.clip(np.asarray(profiles.pv_kw(window.start, window.stop), dtype=float), 0.0, engine.pv_pmpp_kw)
+    engine.set_taps(taps0)
+    bare_s = engine.bare_steps_s(load_kw, pv_kw, taps)
+    engine.close()
+    n = len(window)
+    return {
+        "feeder": dm.feeder.name,
+        "n_nodes": len(engine.node_names),
+        "steps": n,
+        "qsts_steps_per_s": n / qsts_s,
+        "bare_steps_per_s": n / bare_s,
+        "ratio": qsts_s / bare_s,
+        "tap_changes": tap_changes,
+        "compile_s": compile_s,
+        "profiles_s": profiles_s,
+    }
+
+
+if __name__ == "__main__":  # pragma: no cover - manual use: python -m simulator_bridge.bench MAP STEPS
+    import sys
+
+    print(bench_qsts(sys.argv[1], int(sys.argv[2])))
