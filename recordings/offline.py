@@ -31,7 +31,7 @@ import msgspec
 from recordings.errors import OfflineError
 from recordings.info import recording_info
 from recordings.recorder import METADATA_NAME
-from recordings.replay import MEASUREMENT_KEYS, iter_recorded
+from recordings.replay import MEASUREMENT_KEYS, RecordedMessages
 from schemas import messages as m
 from schemas.bus import BadMessage, Received, codec_for
 from schemas.keys import message_type_for_key
@@ -111,8 +111,12 @@ def recorded_frames(path: str | Path, keys: tuple[str, ...] = MEASUREMENT_KEYS,
     Undecodable frames (or keys outside the layout) are skipped; a line per frame is appended to
     ``rejected`` when given.
     """
-    _, messages = iter_recorded(path, keys)
-    for rec in messages:
+    with RecordedMessages(path, keys) as recorded:
+        yield from _decoded(recorded, rejected)
+
+
+def _decoded(recorded: RecordedMessages, rejected: list[str] | None) -> Iterator[Received]:
+    for rec in recorded:
         msg_type = message_type_for_key(rec.topic)
         if msg_type is None:
             if rejected is not None:

@@ -30,9 +30,9 @@ from schemas.bus import BusConfig, open_session
 __all__ = [
     "MEASUREMENT_KEYS",
     "RecordedMessage",
+    "RecordedMessages",
     "ReplayConfig",
     "ReplayResult",
-    "iter_recorded",
     "main",
     "parse_time_ns",
     "replay",
@@ -112,46 +112,59 @@ def select_topics(topics: list[str], key_exprs: tuple[str, ...]) -> list[str]:
     return out
 
 
-def iter_recorded(path: str | Path, key_exprs: tuple[str, ...], *, start_ns: int | None = None,
-                  end_ns: int | None = None) -> tuple[list[str], Iterator[RecordedMessage]]:
-    """The selected topics and their messages in ``log_time`` order, ``start_ns <= log_time < end_ns``.
+class RecordedMessages:
+    """The selected topics of a finished recording and their messages in ``log_time`` order.
 
-    Needs a finished (indexed) file: ``UnreadableError`` tells to ``recover`` one that was cut short.
+    Use as ``with RecordedMessages(path, keys) as rec: for msg in rec: ...`` (the file is closed on leaving).
+    Only ``start_ns <= log_time < end_ns`` when given. Needs a finished (indexed) file: ``UnreadableError``
+    says to ``recover`` one that was cut short.
     """
-    from mcap.reader import make_reader
 
-    check_mcap_file(path)
-    if start_ns is not None and end_ns is not None and start_ns > end_ns:
-        raise ReplayError(f"--start ({start_ns}) is after --end ({end_ns})")
-    f = open(path, "rb")  # noqa: SIM115  # closed when the generator ends
-    try:
-        reader = make_reader(f)
-        summary = reader.get_summary()
-        if summary is None or not summary.chunk_indexes:
-            raise UnreadableError(f"{path} has no index; run `cvvc recordings recover {path} OUT.mcap` first")
-        topics = select_topics(sorted({c.topic for c in summary.channels.values()}), key_exprs)
-    except MCAP_READ_ERRORS as e:
-        f.close()
-        raise UnreadableError(f"{path} cannot be read by index ({e}); run `cvvc recordings recover {path} "
-                              "OUT.mcap` and replay OUT.mcap") from e
-    except BaseException:
-        f.close()
-        raise
+    def __init__(self, path: str | Path, key_exprs: tuple[str, ...], *, start_ns: int | None = None,
+                 end_ns: int | None = None) -> None:
+        from mcap.reader import make_reader
 
-    def messages() -> Iterator[RecordedMessage]:
-        with f:
-            if not topics:
-                return
-            try:
-                for _, channel, message in reader.iter_messages(topics=topics, start_time=start_ns,
-                                                                end_time=end_ns, log_time_order=True):
-                    yield RecordedMessage(topic=channel.topic, log_time_ns=message.log_time,
-                                          publish_time_ns=message.publish_time, data=bytes(message.data))
-            except MCAP_READ_ERRORS as e:
-                raise UnreadableError(f"{path}: a chunk cannot be read ({e}); run `cvvc recordings recover` "
-                                      "to skip corrupt chunks") from e
+        check_mcap_file(path)
+        if start_ns is not None and end_ns is not None and start_ns > end_ns:
+            raise ReplayError(f"--start ({start_ns}) is after --end ({end_ns})")
+        self.path = str(path)
+        self._start_ns = start_ns
+        self._end_ns = end_ns
+        self._file = open(path, "rb")  # noqa: SIM115  # closed by close()
+        try:
+            self._reader = make_reader(self._file)
+            summary = self._reader.get_summary()
+            if summary is None or not summary.chunk_indexes:
+                raise UnreadableError(f"{path} has no index; run `cvvc recordings recover {path} OUT.mcap` first")
+            self.topics = select_topics(sorted({c.topic for c in summary.channels.values()}), key_exprs)
+        except MCAP_READ_ERRORS as e:
+            self._file.close()
+            raise UnreadableError(f"{path} cannot be read by index ({e}); run `cvvc recordings recover {path} "
+                                  "OUT.mcap` and use OUT.mcap") from e
+        except BaseException:
+            self._file.close()
+            raise
 
-    return topics, messages()
+    def __enter__(self) -> RecordedMessages:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        self._file.close()
+
+    def __iter__(self) -> Iterator[RecordedMessage]:
+        if not self.topics:
+            return
+        try:
+            for _, channel, message in self._reader.iter_messages(topics=self.topics, starting_at=self._start_ns,
+                                                                  ending_before=self._end_ns, log_time_order=True):
+                yield RecordedMessage(topic=channel.topic, log_time_ns=message.log_time,
+                                      publish_time_ns=message.publish_time, data=bytes(message.data))
+        except MCAP_READ_ERRORS as e:
+            raise UnreadableError(f"{self.path}: a chunk cannot be read ({e}); run `cvvc recordings recover` "
+                                  "to skip corrupt chunks") from e
 
 
 def replay(session: zenoh.Session, config: ReplayConfig, stop: threading.Event | None = None) -> ReplayResult:
@@ -159,9 +172,15 @@ def replay(session: zenoh.Session, config: ReplayConfig, stop: threading.Event |
     if config.speed is not None and not config.speed > 0:
         raise ReplayError(f"speed must be > 0 (or as fast as possible), got {config.speed}")
     stop = stop or threading.Event()
-    topics, messages = iter_recorded(config.path, config.keys, start_ns=config.start_ns, end_ns=config.end_ns)
-    if not topics:
-        raise ReplayError(f"{config.path} has no topic matching {list(config.keys)}; see `cvvc recordings info`")
+    with RecordedMessages(config.path, config.keys, start_ns=config.start_ns, end_ns=config.end_ns) as rec:
+        if not rec.topics:
+            raise ReplayError(f"{config.path} has no topic matching {list(config.keys)}; see `cvvc recordings info`")
+        return _replay_topics(session, config, rec, stop)
+
+
+def _replay_topics(session: zenoh.Session, config: ReplayConfig, rec: RecordedMessages,
+                   stop: threading.Event) -> ReplayResult:
+    topics = rec.topics
     pubs = {t: session.declare_publisher(t, encoding=zenoh.Encoding.APPLICATION_JSON,
                                          congestion_control=zenoh.CongestionControl.BLOCK) for t in topics}
     try:
@@ -172,7 +191,7 @@ def replay(session: zenoh.Session, config: ReplayConfig, stop: threading.Event |
         if unmatched and config.wait_subscriber_s > 0:
             log.warning("no subscriber for %d of %d topics (e.g. %s); replaying anyway", len(unmatched),
                         len(topics), unmatched[0])
-        return _publish(pubs, messages, config.speed, stop, unmatched)
+        return _publish(pubs, iter(rec), config.speed, stop, unmatched)
     finally:
         for p in pubs.values():
             p.undeclare()
