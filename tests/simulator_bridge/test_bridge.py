@@ -1,0 +1,440 @@
+"""The bridge on real Zenoh (loopback router) and real OpenDSS (IEEE 13 device map).
+
+The test client is plain ``zenoh`` + ``msgspec`` with the message structs of ``schemas.messages``: it
+subscribes to every device, plays the agent by hand (liveliness token, commands, decisions) and checks
+acks and their effect on the next frames. Runs that must exit cleanly are subprocesses of
+``python -m cvvc bridge``; the others run ``run_bridge`` in a thread.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import queue
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import msgspec
+import pytest
+import zenoh
+
+from schemas import messages as m
+from schemas.bus import BusConfig
+from schemas.devicemap import load_device_map
+
+FEEDER = "ieee13"
+T0 = "2023-07-01T12:00"  # noon: PV has headroom limits, so clipping shows
+STEP_NS = 60 * 1_000_000_000
+_TYPES: dict[tuple[str, str], type] = {
+    ("meas", "head"): m.HeadFrame, ("meas", "pv"): m.PvFrame, ("meas", "vr"): m.RegFrame,
+    ("ack", "pv"): m.Ack, ("ack", "vr"): m.Ack, ("sim", "truth"): m.TruthFrame,
+    ("sim", "metrics"): m.MetricsFrame, ("sim", "status"): m.BridgeStatus,
+}
+
+
+@pytest.fixture(scope="module")
+def device_map_path(repo_root_module: Path) -> Path:
+    return repo_root_module / "feeders" / "ieee13.toml"
+
+
+@pytest.fixture(scope="module")
+def repo_root_module() -> Path:
+    return Path(__file__).resolve().parents[2]
+
+
+@pytest.fixture(scope="module")
+def cache_dir(tmp_path_factory: pytest.TempPathFactory, device_map_path: Path) -> Path:
+    """Profiles of IEEE 13 generated once for the module (about 5 s), then loaded from .npz by every run."""
+    from simulator_bridge.bridge import cached_profiles
+    from simulator_bridge.engine import FeederEngine
+
+    d = tmp_path_factory.mktemp("cvvc-cache")
+    dm = load_device_map(device_map_path)
+    engine = FeederEngine(dm)
+    try:
+        cached_profiles(dm, engine, seed=1, cache_dir=d)
+    finally:
+        engine.close()
+    assert len(list(d.glob("profiles-ieee13-*-1.npz"))) == 1
+    return d
+
+
+# ------------------------------------------------------------------------------------ the test client
+class Client:
+    """A plain-zenoh peer that sees every cvvc/ieee13 sample and can play the agent."""
+
+    def __init__(self, endpoint: str) -> None:
+        conf = zenoh.Config()
+        conf.insert_json5("mode", '"peer"')
+        conf.insert_json5("scouting/multicast/enabled", "false")
+        conf.insert_json5("listen/endpoints", '["tcp/127.0.0.1:0"]')
+        conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
+        self.session = zenoh.open(conf)
+        self.q: queue.Queue[tuple[str, bytes, float]] = queue.Queue()
+        self.seen: list[tuple[str, Any, float]] = []
+        self.sub = self.session.declare_subscriber(
+            f"cvvc/{FEEDER}/**", lambda s: self.q.put((str(s.key_expr), s.payload.to_bytes(), time.monotonic())))
+        self.other_sub = self.session.declare_subscriber(
+            "cvvc/otherfeeder/ack/**",
+            lambda s: self.q.put((str(s.key_expr), s.payload.to_bytes(), time.monotonic())))
+        self.token: Any = None
+        self.seq = 0
+
+    def close(self) -> None:
+        if self.token is not None:
+            self.token.undeclare()
+        self.sub.undeclare()
+        self.other_sub.undeclare()
+        self.session.close()
+
+    def be_agent(self) -> None:
+        self.token = self.session.liveliness().declare_token(f"cvvc/{FEEDER}/alive/agent/test")
+
+    def next(self, pred: Callable[[str, Any], bool], timeout_s: float = 15.0) -> Any:
+        """The first sample seen so far, or the next one to arrive, for which ``pred(key, msg)`` holds."""
+        for key, msg, _ in self.seen:
+            if pred(key, msg):
+                return msg
+        deadline = time.monotonic() + timeout_s
+        while True:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                raise AssertionError("no matching sample within the deadline")
+            try:
+                key, raw, t = self.q.get(timeout=remaining)
+            except queue.Empty:
+                continue
+            parts = key.split("/")
+            mtype = _TYPES.get((parts[2], parts[3])) if len(parts) >= 4 else None
+            if mtype is None:
+                continue
+            msg = msgspec.json.decode(raw, type=mtype)
+            self.seen.append((key, msg, t))
+            if pred(key, msg):
+                return msg
+
+    def head(self, t_ns: int | None = None) -> m.HeadFrame:
+        return self.next(lambda k, x: isinstance(x, m.HeadFrame) and (t_ns is None or x.t_ns == t_ns))
+
+    def ack(self, cmd_id: str, status: str | None = None) -> m.Ack:
+        return self.next(lambda k, x: isinstance(x, m.Ack) and x.cmd_id == cmd_id
+                         and (status is None or x.status == status))
+
+    def put(self, key: str, payload: bytes | msgspec.Struct) -> None:
+        data = payload if isinstance(payload, bytes) else msgspec.json.encode(payload)
+        self.session.put(key, data, congestion_control=zenoh.CongestionControl.BLOCK)
+
+    def pv_cmd(self, plant: str, q_kvar: float, now_t_ns: int, *, valid_s: float = 3600, seq: int | None = None,
+               key_plant: str | None = None, feeder: str = FEEDER, plant_id: str | None = None) -> m.PvCommand:
+        self.seq += 1
+        c = m.PvCommand(t_ns=now_t_ns, seq=self.seq if seq is None else seq, source="test-agent",
+                        cmd_id=f"c{self.seq}-{plant}", in_reply_to=0,
+                        valid_until_t_ns=now_t_ns + int(valid_s * 1e9), plant_id=plant_id or plant, q_kvar=q_kvar)
+        self.put(f"cvvc/{feeder}/cmd/pv/{key_plant or plant}", c)
+        return c
+
+    def reg_cmd(self, reg: str, action: m.TapAction | m.SetpointAction, now_t_ns: int, *,
+                valid_s: float = 3600) -> m.RegCommand:
+        self.seq += 1
+        c = m.RegCommand(t_ns=now_t_ns, seq=self.seq, source="test-agent", cmd_id=f"c{self.seq}-{reg}",
+                         in_reply_to=0, valid_until_t_ns=now_t_ns + int(valid_s * 1e9), regulator_id=reg,
+                         action=action)
+        self.put(f"cvvc/{FEEDER}/cmd/vr/{reg}", c)
+        return c
+
+    def decide(self, t_ns: int, commands: list[Any] | None = None) -> None:
+        self.seq += 1
+        self.put(f"cvvc/{FEEDER}/agent/decision", m.Decision(
+            t_ns=t_ns, seq=self.seq, source="test-agent", feeder_id=FEEDER, step_t_ns=t_ns, in_reply_to=0,
+            status="optimal" if commands else "hold", commands=commands or []))
+
+
+@pytest.fixture
+def client(router_endpoint: str) -> Iterator[Client]:
+    c = Client(router_endpoint)
+    try:
+        yield c
+    finally:
+        c.close()
+
+
+def _bridge_thread(config: Any, endpoint: str) -> tuple[threading.Thread, threading.Event, list[Any]]:
+    from simulator_bridge.bridge import run_bridge
+
+    stop, out = threading.Event(), []
+
+    def target() -> None:
+        try:
+            out.append(run_bridge(config, BusConfig(mode="peer", connect=(endpoint,)), stop=stop))
+        except Exception as e:  # surfaced by the test through ``out``
+            out.append(e)
+
+    th = threading.Thread(target=target, daemon=True)
+    th.start()
+    return th, stop, out
+
+
+def _finish(th: threading.Thread, stop: threading.Event, out: list[Any], *, stop_now: bool = False) -> Any:
+    if stop_now:
+        stop.set()
+    th.join(timeout=30)
+    assert not th.is_alive(), "bridge thread did not finish"
+    assert out and not isinstance(out[0], BaseException), out
+    return out[0]
+
+
+def _config(device_map_path: Path, cache_dir: Path, **kw: Any) -> Any:
+    from simulator_bridge.bridge import BridgeConfig
+
+    base = dict(device_map_path=str(device_map_path), start=T0, steps=10, clock="lockstep", timeout_s=10.0,
+                wait_agent_s=10.0, cache_dir=str(cache_dir), truth_every=0)
+    base.update(kw)
+    return BridgeConfig(**base)
+
+
+# ------------------------------------------------------------------------------------ tests
+def test_commands_are_acked_and_show_in_the_next_frames(client: Client, router_endpoint: str,
+                                                        device_map_path: Path, cache_dir: Path) -> None:
+    client.be_agent()
+    th, stop, out = _bridge_thread(_config(device_map_path, cache_dir, steps=11), router_endpoint)
+    try:
+        h0 = client.head()
+        t0 = h0.t_ns
+        # every device publishes a frame per step, all with the step's t_ns
+        frames = {(type(x).__name__, getattr(x, "plant_id", getattr(x, "regulator_id", ""))) for _, x, _ in
+                  client.seen if getattr(x, "t_ns", None) == t0}
+        pv0 = client.next(lambda k, x: isinstance(x, m.PvFrame) and x.plant_id == "pv680" and x.t_ns == t0)
+        rg0 = client.next(lambda k, x: isinstance(x, m.RegFrame) and x.regulator_id == "reg3" and x.t_ns == t0)
+        frames |= {(type(x).__name__, getattr(x, "plant_id", getattr(x, "regulator_id", ""))) for _, x, _ in
+                   client.seen if getattr(x, "t_ns", None) == t0}
+        assert frames >= {("HeadFrame", ""), ("PvFrame", "pv675"), ("PvFrame", "pv680"), ("PvFrame", "pv633"),
+                          ("RegFrame", "reg1"), ("RegFrame", "reg2"), ("RegFrame", "reg3")}
+        assert pv0.q_setpoint_kvar is None and pv0.local_mode == "unity_pf" and pv0.p_kw > 0
+        assert rg0.mode == "local" and rg0.setpoint_v120 == pytest.approx(122.0)
+
+        q_big = pv0.q_available_kvar + 500.0
+        c_pv = client.pv_cmd("pv675", 200.0, t0)
+        c_clip = client.pv_cmd("pv680", q_big, t0)
+        c_tap = client.reg_cmd("reg1", m.TapAction(tap=5), t0)
+        c_sp = client.reg_cmd("reg2", m.SetpointAction(setpoint_v120=124.0, band_v120=2.0), t0, valid_s=60)
+        c_exp = client.pv_cmd("pv633", -150.0, t0, valid_s=120)
+        client.decide(t0, [c_pv, c_clip, c_tap, c_sp, c_exp])
+        a = client.ack(c_pv.cmd_id)
+        assert (a.status, a.applied_value, a.device_id, a.source) == ("accepted", 200.0, "pv675", "pv675")
+        a = client.ack(c_clip.cmd_id)
+        assert a.status == "clipped" and a.applied_value == pytest.approx(pv0.q_available_kvar, rel=0.05)
+        assert "headroom" in a.reason
+        assert client.ack(c_tap.cmd_id).status == "accepted"
+        a = client.ack(c_sp.cmd_id)
+        assert (a.status, a.applied_value) == ("accepted", 124.0)
+
+        # the next step shows them
+        t1 = t0 + STEP_NS
+        pv1 = client.next(lambda k, x: isinstance(x, m.PvFrame) and x.plant_id == "pv675" and x.t_ns == t1)
+        assert pv1.q_setpoint_kvar == 200.0 and pv1.q_kvar == pytest.approx(200.0, abs=1.0)
+        r1 = client.next(lambda k, x: isinstance(x, m.RegFrame) and x.regulator_id == "reg1" and x.t_ns == t1)
+        assert (r1.tap, r1.mode) == (5, "locked")
+        r2 = client.next(lambda k, x: isinstance(x, m.RegFrame) and x.regulator_id == "reg2" and x.t_ns == t1)
+        assert (r2.setpoint_v120, r2.band_v120, r2.mode) == (124.0, 2.0, "local")
+        p3 = client.next(lambda k, x: isinstance(x, m.PvFrame) and x.plant_id == "pv633" and x.t_ns == t1)
+        assert p3.q_setpoint_kvar == -150.0 and p3.q_kvar == pytest.approx(-150.0, abs=1.0)
+
+        # watchdogs: reg2's set point was valid until t0 + 60 s, so it expires before t0 + 120 s
+        a = client.ack(c_sp.cmd_id, "expired")
+        assert a.applied_value == pytest.approx(122.0) and a.t_ns == t1
+        r2 = client.next(lambda k, x: isinstance(x, m.RegFrame) and x.regulator_id == "reg2"
+                         and x.t_ns == t0 + 2 * STEP_NS)
+        assert (r2.setpoint_v120, r2.band_v120, r2.mode) == (122.0, 2.0, "local")
+        a = client.ack(c_exp.cmd_id, "expired")  # pv633 valid until t0 + 120 s: in force at t0 + 120 s, gone at + 180 s
+        assert a.t_ns == t0 + 2 * STEP_NS and "unity_pf" in a.reason
+        p3 = client.next(lambda k, x: isinstance(x, m.PvFrame) and x.plant_id == "pv633"
+                         and x.t_ns == t0 + 3 * STEP_NS)
+        assert p3.q_setpoint_kvar is None and abs(p3.q_kvar) < 1.0
+
+        # second control step (t0 + 5 min): answer with an empty decision; the lock still holds
+        t5 = t0 + 5 * STEP_NS
+        client.head(t5)
+        client.decide(t5)
+        r = client.next(lambda k, x: isinstance(x, m.RegFrame) and x.regulator_id == "reg1"
+                        and x.t_ns == t0 + 6 * STEP_NS)
+        assert r.tap == 5
+        t10 = t0 + 10 * STEP_NS
+        client.head(t10)
+        client.decide(t10)
+        summary = _finish(th, stop, out)
+    finally:
+        stop.set()
+        th.join(timeout=30)
+    assert summary.steps == 11 and summary.control_steps == 3 and summary.decisions == 3
+    assert summary.lockstep_misses == 0 and summary.lockstep_skipped == 0
+    assert summary.acks == {"accepted": 4, "clipped": 1, "expired": 2}
+    assert summary.round_trip_p50_s is not None and summary.round_trip_p50_s > 0
+    # frames carry one t_ns per step and increasing seq per source
+    heads = [x for _, x, _ in client.seen if isinstance(x, m.HeadFrame)]
+    assert [h.seq for h in heads] == sorted({h.seq for h in heads})
+    assert all(b.t_ns - a.t_ns == STEP_NS for a, b in zip(heads, heads[1:], strict=False))
+
+
+def test_every_bad_command_is_rejected_with_a_reason_and_counted(
+        client: Client, router_endpoint: str, device_map_path: Path, cache_dir: Path) -> None:
+    client.be_agent()
+    th, stop, out = _bridge_thread(_config(device_map_path, cache_dir, steps=6), router_endpoint)
+    try:
+        t0 = client.head().t_ns
+        good = client.pv_cmd("pv675", 50.0, t0)
+        assert client.ack(good.cmd_id).status == "accepted"
+        bad = {
+            "unknown_device": client.pv_cmd("nope", 10.0, t0),
+            "wrong_feeder": client.pv_cmd("pv675", 10.0, t0, feeder="otherfeeder"),
+            "wrong_device": client.pv_cmd("pv675", 10.0, t0, plant_id="pv680"),
+            "replay": client.pv_cmd("pv675", 60.0, t0, seq=good.seq),
+            "expired": client.pv_cmd("pv675", 10.0, t0, valid_s=0),
+            "out_of_range": client.reg_cmd("reg1", m.SetpointAction(setpoint_v120=139.0, band_v120=2.0), t0),
+        }
+        band = client.reg_cmd("reg2", m.SetpointAction(setpoint_v120=122.0, band_v120=11.0), t0)
+        for reason, cmd in bad.items():
+            a = client.ack(cmd.cmd_id)
+            assert a.status == "rejected" and a.reason.startswith(reason), (reason, a)
+        assert client.ack(band.cmd_id).reason.startswith("out_of_range")
+        # payloads that do not decode cannot be acked: counted by kind
+        base = msgspec.json.decode(msgspec.json.encode(good))
+        inf = json.dumps({**base, "q_kvar": 12345.0, "seq": 99}).replace("12345.0", "1e999")  # JSON for +inf
+        client.put(f"cvvc/{FEEDER}/cmd/pv/pv675", inf.encode())
+        client.put(f"cvvc/{FEEDER}/cmd/pv/pv675", b"{not json")
+        client.put(f"cvvc/{FEEDER}/cmd/vr/reg1", json.dumps({**base, "seq": 98}).encode())  # a PV command
+        client.decide(t0, [good])
+        # the simulation is unaffected: pv675 holds the good command's 50 kvar
+        p = client.next(lambda k, x: isinstance(x, m.PvFrame) and x.plant_id == "pv675" and x.t_ns == t0 + STEP_NS)
+        assert p.q_setpoint_kvar == 50.0
+        t5 = t0 + 5 * STEP_NS
+        client.head(t5)
+        client.decide(t5)
+        summary = _finish(th, stop, out)
+        status = client.next(lambda k, x: isinstance(x, m.BridgeStatus) and x.done)
+    finally:
+        stop.set()
+        th.join(timeout=30)
+    r = summary.rejected
+    for reason in ("unknown_device", "wrong_feeder", "wrong_device", "replay", "expired"):
+        assert r[reason] == 1, (reason, r)
+    assert r["out_of_range"] == 2
+    assert r.get("decode_out_of_range", 0) + r.get("decode_non_finite", 0) == 1, r
+    assert r["decode_malformed"] == 1
+    assert sum(n for k, n in r.items() if k.startswith("decode_")) == 3, r
+    assert status.rejected == r and summary.lockstep_misses == 0
+
+
+def test_oracle_answers_from_the_stepping_thread(client: Client, router_endpoint: str, device_map_path: Path,
+                                                 cache_dir: Path) -> None:
+    client.be_agent()
+    th, stop, out = _bridge_thread(_config(device_map_path, cache_dir, steps=1), router_endpoint)
+    try:
+        t0 = client.head().t_ns
+        replies = list(client.session.get(f"cvvc/{FEEDER}/sim/oracle",
+                                          payload=msgspec.json.encode(m.OracleRequest(t_ns=t0)), timeout=10.0))
+        client.decide(t0)
+        summary = _finish(th, stop, out)
+    finally:
+        stop.set()
+        th.join(timeout=30)
+    assert len(replies) == 1 and replies[0].ok is not None
+    rep = msgspec.json.decode(replies[0].ok.payload.to_bytes(), type=m.OracleReply)
+    n = len(rep.node_names)
+    assert rep.t_ns == t0 and n == len(rep.v_pu) == 41
+    assert len(rep.dv_dq_pu_per_kvar) == n and all(len(row) == 3 for row in rep.dv_dq_pu_per_kvar)
+    assert len(rep.dv_dtap_pu) == n and all(len(row) == 3 for row in rep.dv_dtap_pu)
+    for k, bus in enumerate(("675", "680", "633")):  # injecting Q raises the plant's own voltage
+        at_plant = [rep.dv_dq_pu_per_kvar[i][k] for i, name in enumerate(rep.node_names) if name.startswith(bus + ".")]
+        assert at_plant and min(at_plant) > 0
+    assert summary.oracle_replies == 1 and summary.lockstep_misses == 0
+
+
+def _bridge_cmd(endpoint: str, device_map_path: Path, cache_dir: Path, *extra: str) -> list[str]:
+    return [sys.executable, "-m", "cvvc", "bridge", "--feeder", str(device_map_path), "--connect", endpoint,
+            "--cache-dir", str(cache_dir), "--start", T0, "--json", *extra]
+
+
+def test_lockstep_with_a_silent_agent_times_out_and_goes_on(client: Client, router_endpoint: str,
+                                                            device_map_path: Path, cache_dir: Path,
+                                                            repo_root_module: Path) -> None:
+    client.be_agent()
+    alive: list[tuple[str, bool]] = []
+    watch = client.session.liveliness().declare_subscriber(
+        f"cvvc/{FEEDER}/alive/**", lambda s: alive.append((str(s.key_expr), s.kind == zenoh.SampleKind.PUT)),
+        history=True)
+    try:
+        t = time.monotonic()
+        proc = subprocess.run(
+            _bridge_cmd(router_endpoint, device_map_path, cache_dir, "--steps", "11", "--lockstep",
+                        "--timeout-s", "0.2", "--wait-agent-s", "10", "--truth-every", "5"),
+            cwd=repo_root_module, capture_output=True, text=True, timeout=60)
+        wall = time.monotonic() - t
+        assert proc.returncode == 0, proc.stderr
+        summary = json.loads(proc.stdout)
+        assert summary["lockstep_misses"] == 3 and summary["control_steps"] == 3 and summary["steps"] == 11
+        assert summary["agent_alive"] is True and summary["truth_frames"] == 3
+        assert wall < 30
+        assert "lockstep miss" in proc.stderr
+        status = client.next(lambda k, x: isinstance(x, m.BridgeStatus) and x.done)
+        assert status.lockstep_misses == 3 and status.agent_alive and status.clock == "lockstep"
+        final = client.next(lambda k, x: isinstance(x, m.MetricsFrame) and x.final)
+        assert final.steps == 11
+        truth = [x for _, x, _ in client.seen if isinstance(x, m.TruthFrame)]
+        assert truth[0].node_names is not None and len(truth[0].node_names) == len(truth[0].v_pu) == 41
+        # every token was declared and withdrawn again
+        ups = {k for k, up in alive if up and "/agent/" not in k}
+        downs = {k for k, up in alive if not up}
+        assert len(ups) == 1 + 1 + 3 + 3 and ups <= downs
+    finally:
+        watch.undeclare()
+
+
+def test_realtime_keeps_its_clock(client: Client, router_endpoint: str, device_map_path: Path,
+                                  cache_dir: Path) -> None:
+    # 1-minute steps at speed 1200: 20 steps per wall second, no agent needed (real time never waits)
+    th, stop, out = _bridge_thread(_config(device_map_path, cache_dir, steps=41, clock="realtime", speed=1200.0,
+                                           wait_agent_s=0.0), router_endpoint)
+    summary = _finish(th, stop, out)
+    heads = [t for _, x, t in client.seen if isinstance(x, m.HeadFrame)]
+    while True:
+        try:
+            key, raw, t = client.q.get_nowait()
+        except queue.Empty:
+            break
+        if key.endswith("/meas/head"):
+            heads.append(t)
+    assert summary.steps == 41 and summary.clock == "realtime"
+    assert summary.steps_per_s == pytest.approx(20.0, rel=0.15)
+    assert len(heads) >= 38  # DROP congestion control may lose one or two under load
+    rate = (len(heads) - 1) / (heads[-1] - heads[0])
+    assert rate == pytest.approx(20.0, rel=0.15)
+
+
+def test_sigterm_ends_the_run_cleanly(client: Client, router_endpoint: str, device_map_path: Path,
+                                      cache_dir: Path, repo_root_module: Path) -> None:
+    proc = subprocess.Popen(
+        _bridge_cmd(router_endpoint, device_map_path, cache_dir, "--steps", "100000", "--realtime",
+                    "--speed", "600", "--noise-pmu-pct", "0.1", "--noise-scada-pct", "1", "--drop-prob", "0.1",
+                    "--latency-s", "0.05"),
+        cwd=repo_root_module, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    try:
+        client.next(lambda k, x: isinstance(x, m.HeadFrame) and x.seq >= 3)  # seq counts dropped frames too
+        proc.send_signal(signal.SIGTERM)
+        stdout, stderr = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 0, stderr
+    summary = json.loads(stdout)
+    assert summary["stopped_early"] is True and 3 <= summary["steps"] < 100000
+    assert summary["frames_dropped"] > 0
+    final = client.next(lambda k, x: isinstance(x, m.MetricsFrame) and x.final)
+    assert final.steps == summary["steps"]
