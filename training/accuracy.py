@@ -57,6 +57,8 @@ class AccuracyReport(msgspec.Struct, frozen=True, kw_only=True):
     errors: list[ErrorStats]
     sensitivities: list[SensitivityStats]
     extreme_capture: dict[str, float]  # per model: share of minutes whose true max and min node are critical
+    extreme_gap_max_pu: dict[str, float]  # per model: worst (true feeder extreme - critical-node extreme)
+    extreme_gap_p99_pu: dict[str, float]
     png: str | None = None
 
 
@@ -90,6 +92,8 @@ class MonthTruth:
     nodes: np.ndarray  # node indices of v_pu's columns
     argmax: np.ndarray  # (T,) node of the highest voltage (phases 1-3)
     argmin: np.ndarray  # (T,) node of the lowest voltage
+    v_max_pu: np.ndarray  # (T,) highest node voltage (phases 1-3)
+    v_min_pu: np.ndarray  # (T,) lowest node voltage
     sens_steps: np.ndarray  # (S,) minutes (row index into steps) where sensitivities were perturbed
     sens_q_pu_per_kvar: np.ndarray  # (S, len(nodes), K) perturbation truth
 
@@ -113,7 +117,7 @@ def simulate_month(
     eligible = np.isin(phases, ["1", "2", "3"])
     qsts = Qsts(engine, profiles, start_step=steps[0])
     sens_at = set(np.linspace(0, len(steps) - 1, min(sens_minutes, len(steps))).round().astype(int).tolist())
-    feats, qh, taps, v120, vv, amax, amin, s_rows, s_vals = [], [], [], [], [], [], [], [], []
+    feats, qh, taps, v120, vv, amax, amin, s_rows, s_vals, vext = [], [], [], [], [], [], [], [], [], []
     bar = tqdm(steps, desc="month", unit="min", file=sys.stderr, disable=not (progress and sys.stderr.isatty()))
     for i, _ in enumerate(bar):
         res = qsts.step()
@@ -126,6 +130,7 @@ def simulate_month(
         v_el = np.where(eligible & (res.v_pu > 0.5), res.v_pu, np.nan)
         amax.append(int(np.nanargmax(v_el)))
         amin.append(int(np.nanargmin(v_el)))
+        vext.append((float(v_el[amax[-1]]), float(v_el[amin[-1]])))
         if i in sens_at:
             dv_dq, _ = engine.perturbation_sensitivities()
             s_rows.append(i)
@@ -142,6 +147,8 @@ def simulate_month(
         nodes=np.asarray(nodes, int),
         argmax=np.asarray(amax, int),
         argmin=np.asarray(amin, int),
+        v_max_pu=np.asarray([x[0] for x in vext]),
+        v_min_pu=np.asarray([x[1] for x in vext]),
         sens_steps=np.asarray(s_rows, int),
         sens_q_pu_per_kvar=np.asarray(s_vals).reshape(len(s_rows), len(nodes), k),
     )
@@ -222,6 +229,8 @@ def accuracy_report(
     errors: list[ErrorStats] = []
     sens: list[SensitivityStats] = []
     capture: dict[str, float] = {}
+    gap_max: dict[str, float] = {}
+    gap_p99: dict[str, float] = {}
     curves: dict[str, np.ndarray] = {}
     labels: list[str] = []
     for m, path, mn in zip(models, paths, model_nodes, strict=True):
@@ -240,6 +249,9 @@ def accuracy_report(
         capture[label] = float(
             np.mean([a in crit and b in crit for a, b in zip(truth.argmax, truth.argmin, strict=True)])
         )
+        gap = np.maximum(truth.v_max_pu - v_true.max(axis=1), v_true.min(axis=1) - truth.v_min_pu)
+        gap_max[label] = float(gap.max())
+        gap_p99[label] = float(np.percentile(gap, 99))
         if truth.sens_steps.size:
             pred = eval_sensitivities(sensitivity_arrays(m.sens_q), truth.q_head_kvar[truth.sens_steps])
             sens.append(_sens_stats(label, pred, truth.sens_q_pu_per_kvar[:, cols, :]))
@@ -254,6 +266,8 @@ def accuracy_report(
         errors=errors,
         sensitivities=sens,
         extreme_capture=capture,
+        extreme_gap_max_pu=gap_max,
+        extreme_gap_p99_pu=gap_p99,
         png=png,
     )
 

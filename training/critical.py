@@ -49,9 +49,7 @@ def extreme_nodes(v_pu: np.ndarray, *, eligible: np.ndarray | None = None) -> np
     return np.unique(np.concatenate([hi, lo]))
 
 
-def upstream_regulators(
-    dv_dtap_pu: np.ndarray, reg_secondary_node: np.ndarray, *, share: float = 0.5
-) -> np.ndarray:
+def upstream_regulators(dv_dtap_pu: np.ndarray, reg_secondary_node: np.ndarray, *, share: float = 0.5) -> np.ndarray:
     """Nearest upstream regulator of every node, from tap sensitivities (eq. (4)).
 
     Parameters

@@ -18,9 +18,10 @@ from __future__ import annotations
 import multiprocessing
 import os
 import sys
-from collections.abc import Callable, Sequence
+import time
+from collections.abc import Sequence
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -64,6 +65,7 @@ class PowerFlowSet:
     pv_q_kvar: np.ndarray  # (F, K) applied plant Q [kvar], generator convention
     v_pu: np.ndarray  # (F, n_nodes) every node voltage [pu]
     failed: int  # power flows that did not converge (skipped)
+    workers: int = 1  # processes that ran them
 
     @property
     def n(self) -> int:
@@ -233,9 +235,14 @@ def run_power_flows(
     combined_pct: Sequence[float] = (),
     workers: int | None = None,
     progress: bool = True,
-    on_chunk: Callable[[int], None] | None = None,
+    parallel_min_s: float = 20.0,
 ) -> PowerFlowSet:
-    """All scenarios' flows; in ``workers`` spawned processes (one engine each) when more than one.
+    """All scenarios' flows; in ``workers`` spawned processes (one engine each) when it pays.
+
+    The first scenario runs in this process and is timed. The rest go to a pool of spawned workers only
+    when more than one worker is allowed and the estimated serial time of the rest exceeds
+    ``parallel_min_s``: starting a worker (imports, compiling the feeder) costs a few seconds, more than
+    all of IEEE 123's power flows (about 1 s).
 
     Parameters
     ----------
@@ -244,15 +251,16 @@ def run_power_flows(
     device_map_path : for the workers to build their own engine.
     tolerance : OpenDSS solve tolerance of the workers' engines.
     q_steps_pct, combined_pct : see ``q_plan``.
-    workers : process count; None: ``min(os.cpu_count(), len(chunks))``; 1: in this process.
+    workers : process count; None: ``os.cpu_count()``; 1: in this process.
     progress : show a tqdm bar on stderr (only when stderr is a terminal).
+    parallel_min_s : estimated serial seconds above which the worker pool is used.
     """
     from tqdm import tqdm
 
     if not scenarios:
         raise TrainingError("no scenarios to run; the training year selected nothing")
     n_cpu = os.cpu_count() or 1
-    workers = max(1, min(n_cpu if workers is None else workers, len(scenarios)))
+    workers = max(1, min(n_cpu if workers is None else workers, len(scenarios) - 1))
     per_scenario = len(q_plan(scenarios[0].pv_kw, engine.pv_kva, q_steps_pct, combined_pct))
     bar = tqdm(
         total=len(scenarios) * per_scenario,
@@ -263,14 +271,18 @@ def run_power_flows(
     )
     parts: list[PowerFlowSet] = []
     try:
-        if workers == 1:
-            for s in scenarios:
+        t0 = time.perf_counter()
+        parts.append(solve_scenario(engine, scenarios[0], engine.pv_kva, q_steps_pct, combined_pct))
+        bar.update(parts[0].n + parts[0].failed)
+        rest = list(scenarios[1:])
+        if workers == 1 or (time.perf_counter() - t0) * len(rest) < parallel_min_s:
+            for s in rest:
                 part = solve_scenario(engine, s, engine.pv_kva, q_steps_pct, combined_pct)
                 parts.append(part)
                 bar.update(part.n + part.failed)
             return PowerFlowSet.concat(parts)
-        n_chunks = min(len(scenarios), 4 * workers)
-        chunks = [list(c) for c in np.array_split(np.asarray(scenarios, dtype=object), n_chunks)]
+        n_chunks = min(len(rest), 4 * workers)
+        chunks = [list(c) for c in np.array_split(np.asarray(rest, dtype=object), n_chunks)]
         ctx = multiprocessing.get_context("spawn")
         with ProcessPoolExecutor(
             max_workers=workers,
@@ -283,6 +295,6 @@ def run_power_flows(
                 part = f.result()
                 parts.append(part)
                 bar.update(part.n + part.failed)
-        return PowerFlowSet.concat(parts)
+        return replace(PowerFlowSet.concat(parts), workers=workers)
     finally:
         bar.close()

@@ -35,7 +35,6 @@ from training.model import (
     feature_names,
 )
 from training.powerflows import (
-    COMBINED,
     PowerFlowSet,
     ScenarioInput,
     run_power_flows,
@@ -408,7 +407,7 @@ def train(
         critical_share=float(nodes.size / len(engine.node_names)),
         seconds=round(seconds, 3),
         seconds_power_flows=round(seconds_pf, 3),
-        workers=n_workers,
+        workers=flows.workers,
         tap0=model.tap0,
         q_head_range_kvar=q_range,
         c_kvar=c_kvar,

@@ -1,0 +1,23 @@
+"""Fixtures of the training tests: one IEEE 123 model trained once per session (3x3 blocks, ~2 s)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[2]
+IEEE123 = REPO / "feeders" / "ieee123.toml"
+
+
+@pytest.fixture(scope="session")
+def profile_cache(tmp_path_factory) -> Path:
+    return tmp_path_factory.mktemp("profiles")
+
+
+@pytest.fixture(scope="session")
+def trained_123(profile_cache):
+    from training.train import train
+
+    return train(IEEE123, year_seed=1, selection="guided", blocks=(3, 3), workers=1, cache_dir=profile_cache,
+                 progress=False)

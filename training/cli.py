@@ -1,0 +1,150 @@
+"""``cvvc train`` and ``cvvc report-accuracy`` (the launcher wires ``cvvc report accuracy`` to
+``training.accuracy.accuracy_report``).
+
+Verbs::
+
+    cvvc train [--feeder FEEDER] --out MODEL [--year-seed S] [--selection guided|random]
+               [--blocks NL NPV] [--workers N] [--no-combined] [--json]
+    cvvc report-accuracy --model MODEL [--model MODEL2] [--feeder FEEDER] --month M [--year-seed S]
+               [--png PATH] [--max-minutes N] [--json]
+
+FEEDER is a device map TOML or a folder with ``devicemap.toml``; default: the embedded rural feeder.
+Nothing heavy is imported at module level.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Callable
+from pathlib import Path
+
+from schemas.errors import CvvcError
+
+__all__ = ["register"]
+
+
+def _feeder_path(feeder: str | None) -> Path:
+    from simulator_bridge.cli import DEFAULT_CACHE_ROOT, ensure_default_feeder, resolve_device_map_path
+
+    if feeder is None:
+        return ensure_default_feeder(DEFAULT_CACHE_ROOT)
+    return resolve_device_map_path(feeder)
+
+
+def _guarded(verb: str, handler: Callable[[argparse.Namespace], int]) -> Callable[[argparse.Namespace], int]:
+    def run(args: argparse.Namespace) -> int:
+        try:
+            return handler(args)
+        except CvvcError as e:
+            print(f"cvvc {verb}: error: {e}", file=sys.stderr)
+            return 2
+
+    return run
+
+
+def _train(args: argparse.Namespace) -> int:
+    import msgspec
+
+    from training.model import write_model
+    from training.train import DEFAULT_COMBINED_PCT, train
+
+    result = train(
+        _feeder_path(args.feeder),
+        year_seed=args.year_seed,
+        selection=args.selection,
+        blocks=(args.blocks[0], args.blocks[1]),
+        workers=args.workers,
+        combined_pct=() if args.no_combined else DEFAULT_COMBINED_PCT,
+        progress=not args.json,
+    )
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    write_model(result.model, out)
+    s = result.summary
+    if args.json:
+        print(msgspec.json.encode(s).decode())
+        return 0
+    print(f"model written to {out} (feeder {s.feeder}, {s.selection} selection, year seed {s.year_seed})")
+    print(f"  scenarios:       {s.scenarios} from {s.non_empty_blocks} non-empty of {s.blocks[0]}x{s.blocks[1]} blocks")
+    print(
+        f"  power flows:     {s.power_flows} ({s.failed_power_flows} failed) on {s.workers} process(es), "
+        f"{s.seconds_power_flows:.1f} s"
+    )
+    print(f"  critical nodes:  {s.critical_nodes} of {s.node_count} ({100 * s.critical_share:.1f} %)")
+    print(
+        f"  fit residuals:   rmse {s.voltage_rmse_pu:.5f} pu, max {s.voltage_max_abs_pu:.5f} pu; held-out "
+        f"rmse {s.validation_rmse_pu:.5f}, max {s.validation_max_abs_pu:.5f} pu"
+    )
+    print(
+        f"  sensitivities:   median rel. error {100 * s.sensitivity_median_rel_err:.1f} %, forms "
+        f"{s.sensitivity_forms}; c = {s.c_kvar:.0f} kvar"
+    )
+    print(f"  seconds:         {s.seconds:.1f}")
+    return 0
+
+
+def _accuracy(args: argparse.Namespace) -> int:
+    import msgspec
+
+    from training.accuracy import accuracy_report
+
+    report = accuracy_report(
+        args.model,
+        _feeder_path(args.feeder),
+        args.month,
+        args.year_seed,
+        png_path=args.png,
+        max_minutes=args.max_minutes,
+        progress=not args.json,
+    )
+    if args.json:
+        print(msgspec.json.encode(report).decode())
+        return 0
+    print(f"feeder {report.feeder}, month {report.month}, year seed {report.year_seed}, {report.minutes} minutes")
+    print(f"{'estimator':44s} {'mean':>9s} {'rmse':>8s} {'p1':>9s} {'p99':>9s} {'max|e|':>8s} {'±0.01':>8s}")
+    for e in report.errors:
+        print(
+            f"{e.label:44s} {e.mean_pu:+9.5f} {e.rmse_pu:8.5f} {e.p1_pu:+9.5f} {e.p99_pu:+9.5f} "
+            f"{e.max_abs_pu:8.5f} {100 * e.within_001:7.3f}%"
+        )
+    for s in report.sensitivities:
+        print(
+            f"sensitivity {s.label}: median rel. error {100 * s.median_rel_err:.1f} % (p90 "
+            f"{100 * s.p90_rel_err:.1f} %) over {s.pairs} pairs at {s.minutes} minutes"
+        )
+    for label, share in report.extreme_capture.items():
+        print(
+            f"true max and min node critical ({label}): {100 * share:.2f} % of minutes; worst gap between "
+            f"the feeder's and the critical nodes' extremes {report.extreme_gap_max_pu[label]:.5f} pu "
+            f"(p99 {report.extreme_gap_p99_pu[label]:.5f})"
+        )
+    if report.png:
+        print(f"figure: {report.png}")
+    return 0
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    """Add ``train`` and ``report-accuracy`` to the ``cvvc`` command."""
+    p = subparsers.add_parser("train", help="train the estimator of a feeder (scenarios, power flows, fits)")
+    p.add_argument("--feeder", help="device map TOML or folder with devicemap.toml (default: rural feeder)")
+    p.add_argument("--out", required=True, help="model file to write (JSON)")
+    p.add_argument("--year-seed", type=int, default=1, help="seed of the training year (default 1)")
+    p.add_argument("--selection", choices=("guided", "random"), default="guided", help="scenario selection")
+    p.add_argument(
+        "--blocks", type=int, nargs=2, default=(5, 5), metavar=("NL", "NPV"), help="load x PV blocks (default 5 5)"
+    )
+    p.add_argument("--workers", type=int, default=None, help="power-flow processes (default: one per core)")
+    p.add_argument("--no-combined", action="store_true", help="only the paper's one-plant-at-a-time Q perturbations")
+    p.add_argument("--json", action="store_true", help="print the summary as JSON (no progress bar)")
+    p.set_defaults(func=_guarded("train", _train))
+
+    a = subparsers.add_parser("report-accuracy", help="estimation error of a model over a simulated month")
+    a.add_argument("--model", action="append", required=True, help="model file (repeat for guided and random)")
+    a.add_argument("--feeder", help="device map TOML or folder with devicemap.toml (default: rural feeder)")
+    a.add_argument("--month", type=int, required=True, help="month 1..12")
+    a.add_argument("--year-seed", type=int, default=2, help="seed of the simulated year (default 2)")
+    a.add_argument("--png", help="write a figure like the paper's Fig. 8 here")
+    a.add_argument("--max-minutes", type=int, default=None, help="only the first N minutes of the month")
+    a.add_argument("--json", action="store_true", help="print the report as JSON")
+    a.set_defaults(func=_guarded("report-accuracy", _accuracy))
