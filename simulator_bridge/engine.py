@@ -84,14 +84,14 @@ class FieldReadings:
 class _Terminal:
     """Where to find one terminal of one measured element in the per-step read-outs.
 
-    Indices are into the node voltage vector and into the batch current vector, both extended with a
-    trailing 0 so that index -1 (absent phase, grounded neutral) reads 0.
+    Indices are into the batch vectors of conductor voltages and currents (every conductor of every
+    measured element, in batch order), extended with a trailing 0 so that index -1 reads 0.
     """
 
     element: str
-    node: tuple[int, int, int]  # per phase a, b, c: node index, -1 if absent
-    neutral_node: int  # node of an ungrounded neutral conductor, -1 if grounded
-    current: tuple[int, int, int]  # per phase a, b, c: index into the batch currents, -1 if absent
+    node: tuple[int, int, int]  # per phase a, b, c: node index into node_names, -1 if absent
+    conductor: tuple[int, int, int]  # per phase a, b, c: index into the batch vectors, -1 if absent
+    neutral: int  # index of the terminal's neutral conductor in the batch vectors, -1 if none
 
 
 @dataclass(frozen=True)
@@ -352,15 +352,12 @@ class FeederEngine:
         self._ce_result = ffi.new("double**")
         self._ce_dims = ffi.new("int32_t[4]")
         head, pvs, regs = terms[0], terms[1:1 + len(self._pv_names)], terms[1 + len(self._pv_names):]
-        self._head_node, self._head_neutral = np.array(head.node), head.neutral_node
-        self._head_current = np.array(head.current)
-        self._pv_node = np.array([t.node for t in pvs], dtype=int).reshape(-1, 3)
-        self._pv_neutral = np.array([t.neutral_node for t in pvs], dtype=int)
-        self._pv_current = np.array([t.current for t in pvs], dtype=int).reshape(-1, 3)
+        self._head_cond, self._head_neutral = np.array(head.conductor), head.neutral
+        self._pv_cond = np.array([t.conductor for t in pvs], dtype=int).reshape(-1, 3)
+        self._pv_neutral = np.array([t.neutral for t in pvs], dtype=int)
         ph = np.array([r.pt_phase - 1 for r in self._regs], dtype=int)
-        self._reg_node = np.array([t.node[p] for t, p in zip(regs, ph, strict=True)], dtype=int)
-        self._reg_neutral = np.array([t.neutral_node for t in regs], dtype=int)
-        self._reg_current = np.array([t.current[p] for t, p in zip(regs, ph, strict=True)], dtype=int)
+        self._reg_cond = np.array([t.conductor[p] for t, p in zip(regs, ph, strict=True)], dtype=int)
+        self._reg_neutral = np.array([t.neutral for t in regs], dtype=int)
         self._reg_ratio = np.array([r.pt_ratio for r in self._regs], dtype=float)
         self._reg_ldc = np.array([complex(r.ldc_r_v, r.ldc_x_v) / r.ct_primary_a for r in self._regs])
 
@@ -374,15 +371,14 @@ class FeederEngine:
         n_term = int(d.CktElement.NumTerminals())
         bus = d.CktElement.BusNames()[terminal - 1].split(".")[0].lower()
         order = list(d.CktElement.NodeOrder())[(terminal - 1) * n_cond: terminal * n_cond]
-        node, current = [-1, -1, -1], [-1, -1, -1]
+        node, conductor = [-1, -1, -1], [-1, -1, -1]
+        first = offset + (terminal - 1) * n_cond
         for c, ph in enumerate(order[:n_phases]):
             if ph in _PHASES:
                 node[ph - 1] = self._node_index[f"{bus}.{ph}"]
-                current[ph - 1] = offset + (terminal - 1) * n_cond + c
-        neutral = -1
-        if n_cond > n_phases and order[n_phases] != 0:
-            neutral = self._node_index[f"{bus}.{order[n_phases]}"]
-        return _Terminal(d.CktElement.Name(), tuple(node), neutral, tuple(current)), n_term * n_cond
+                conductor[ph - 1] = first + c
+        neutral = first + n_phases if n_cond > n_phases else -1
+        return _Terminal(d.CktElement.Name(), tuple(node), tuple(conductor), neutral), n_term * n_cond
 
     def _bus_distance_ohm(self) -> dict[str, float]:
         """Electrical distance of every bus from ``source_bus`` [ohm, referred to the source bus voltage].
@@ -531,19 +527,14 @@ class FeederEngine:
         """(n_nodes,) voltage magnitude of every node, in ``node_names`` order [pu of its bus's L-N base]."""
         return np.array(self._circuit.AllBusVmagPu, dtype=float)
 
-    def _currents_a(self) -> np.ndarray:
-        """Currents into every conductor of every measured element, one call, plus a trailing 0 [A]."""
-        self._lib.Alt_CEBatch_Get_Currents(self._ce_result, self._ce_dims, self._ce_handles, self._n_ce)
+    def _batch_read(self, func) -> np.ndarray:
+        """One batch read (voltages [V] or currents into the element [A]) of every conductor of every
+        measured element, as complex, plus a trailing 0.
+        """
+        func(self._ce_result, self._ce_dims, self._ce_handles, self._n_ce)
         n = int(self._ce_dims[0])
         raw = np.frombuffer(self._ffi.buffer(self._ce_result[0], n * 8), dtype=float)
         out = np.zeros(n // 2 + 1, dtype=complex)
-        out[:-1] = raw[0::2] + 1j * raw[1::2]
-        return out
-
-    def _node_volts(self) -> np.ndarray:
-        """Complex voltage of every node to ground, plus a trailing 0 [V]."""
-        raw = np.asarray(self._circuit.AllBusVolts, dtype=float)
-        out = np.zeros(raw.size // 2 + 1, dtype=complex)
         out[:-1] = raw[0::2] + 1j * raw[1::2]
         return out
 
@@ -553,14 +544,15 @@ class FeederEngine:
         Powers are ``V·conj(I)`` per conductor with ``I`` into the element (OpenDSS's convention): into
         the feeder at the head, negated at PV plants (generator convention).
         """
-        v, i = self._node_volts(), self._currents_a()
-        hv = np.where(self._head_node >= 0, v[self._head_node] - v[self._head_neutral], 0)
-        hi = i[self._head_current]
+        v = self._batch_read(self._lib.Alt_CEBatch_Get_Voltages)
+        i = self._batch_read(self._lib.Alt_CEBatch_Get_Currents)
+        hv = np.where(self._head_cond >= 0, v[self._head_cond] - v[self._head_neutral], 0)
+        hi = i[self._head_cond]
         hs = hv * np.conj(hi) / 1000.0
-        pv_v = np.where(self._pv_node >= 0, v[self._pv_node] - v[self._pv_neutral][:, None], 0)
-        pv_s = -pv_v * np.conj(i[self._pv_current]) / 1000.0
-        v_sec = (v[self._reg_node] - v[self._reg_neutral]) / self._reg_ratio
-        compared = np.abs(v_sec + self._reg_ldc * i[self._reg_current])
+        pv_v = np.where(self._pv_cond >= 0, v[self._pv_cond] - v[self._pv_neutral][:, None], 0)
+        pv_s = -pv_v * np.conj(i[self._pv_cond]) / 1000.0
+        v_sec = (v[self._reg_cond] - v[self._reg_neutral]) / self._reg_ratio
+        compared = np.abs(v_sec + self._reg_ldc * i[self._reg_cond])
         return FieldReadings(
             head_v_mag_v=np.abs(hv), head_v_ang_deg=np.degrees(np.angle(hv)),
             head_i_mag_a=np.abs(hi), head_i_ang_deg=np.degrees(np.angle(hi)),

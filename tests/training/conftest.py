@@ -19,5 +19,6 @@ def profile_cache(tmp_path_factory) -> Path:
 def trained_123(profile_cache):
     from training.train import train
 
-    return train(IEEE123, year_seed=1, selection="guided", blocks=(3, 3), workers=1, cache_dir=profile_cache,
-                 progress=False)
+    return train(
+        IEEE123, year_seed=1, selection="guided", blocks=(3, 3), workers=1, cache_dir=profile_cache, progress=False
+    )

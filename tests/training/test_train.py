@@ -101,8 +101,17 @@ def test_accuracy_report_on_a_short_window(trained_123, profile_cache, tmp_path)
 
     path = tmp_path / "m.json"
     write_model(trained_123.model, path)
-    rep = accuracy_report(path, IEEE123, 7, 2, png_path=tmp_path / "fig8.png", max_minutes=90, sens_minutes=3,
-                          cache_dir=profile_cache, progress=False)
+    rep = accuracy_report(
+        path,
+        IEEE123,
+        7,
+        2,
+        png_path=tmp_path / "fig8.png",
+        max_minutes=90,
+        sens_minutes=3,
+        cache_dir=profile_cache,
+        progress=False,
+    )
     assert rep.minutes == 90
     assert [e.label for e in rep.errors] == ["guided, no correction", "guided, with correction"]
     for e in rep.errors:
