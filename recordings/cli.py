@@ -193,4 +193,6 @@ def _offline(args: argparse.Namespace) -> int:
               f"extra {d.extra}")
         for q, c in d.largest_change.items():
             print(f"  largest change {q}: {c.recorded} -> {c.rerun} at {_iso(c.step_t_ns)}")
+        for q, n in d.appeared_or_vanished.items():
+            print(f"  {q}: present on one side only in {n} decisions")
     return 0 if res.diff.all_identical else 1

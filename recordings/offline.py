@@ -20,8 +20,8 @@ are compared per device and quantity (``pv/<id>/q_kvar``, ``vr/<id>/tap``, ``vr/
 
 from __future__ import annotations
 
-import math
 import time
+from collections import Counter
 from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from typing import Any
@@ -56,20 +56,21 @@ _MAX_LISTED_STEPS = 20
 
 
 class CommandChange(msgspec.Struct, frozen=True, kw_only=True):
-    """One command quantity at one step: recorded and re-run values (None: command absent) and |change|."""
+    """One command quantity at one step: recorded and re-run values and the absolute change."""
 
     quantity: str  # pv/<id>/q_kvar [kvar], vr/<id>/tap [steps], vr/<id>/setpoint_v120 [V], vr/<id>/band_v120 [V]
     step_t_ns: int
-    recorded: float | None
-    rerun: float | None
-    abs_change: float  # inf when the command exists on one side only
+    recorded: float
+    rerun: float
+    abs_change: float
 
 
 class DiffReport(msgspec.Struct, frozen=True, kw_only=True):
     """Recorded vs re-run decisions.
 
     ``missing``: recorded decisions the re-run did not make; ``extra``: re-run decisions with no recorded
-    counterpart. ``largest_change``: per command quantity, the pair where it changed most.
+    counterpart. ``largest_change``: per command quantity, the pair where its value changed most;
+    ``appeared_or_vanished``: per quantity, the changed pairs where only one side has that command.
     """
 
     recorded: int
@@ -82,6 +83,7 @@ class DiffReport(msgspec.Struct, frozen=True, kw_only=True):
     status_changed: int
     duplicate_recorded: int
     largest_change: dict[str, CommandChange]
+    appeared_or_vanished: dict[str, int]
     changed_steps_ns: list[int]  # the first few, in step order
     missing_steps_ns: list[int]
 
@@ -175,6 +177,7 @@ def diff_decisions(recorded: Iterable[m.Decision], rerun: Iterable[m.Decision]) 
         rec_by_step[key] = d
     identical = changed = identity_only = extra = status_changed = n_rerun = 0
     largest: dict[str, CommandChange] = {}
+    presence: Counter[str] = Counter()
     changed_steps: list[int] = []
     seen: set[tuple[str, int]] = set()
     for new in rerun:
@@ -194,26 +197,28 @@ def diff_decisions(recorded: Iterable[m.Decision], rerun: Iterable[m.Decision]) 
             identity_only += 1
         if old.status != new.status:
             status_changed += 1
-        _track_largest(largest, old, new)
+        _track_largest(largest, presence, old, new)
     missing_steps = sorted(k[1] for k in rec_by_step if k not in seen)
     return DiffReport(recorded=n_recorded, rerun=n_rerun, identical=identical, changed=changed,
                       changed_identity_only=identity_only, missing=len(missing_steps), extra=extra,
                       status_changed=status_changed, duplicate_recorded=duplicates,
                       largest_change=dict(sorted(largest.items())),
+                      appeared_or_vanished=dict(sorted(presence.items())),
                       changed_steps_ns=sorted(changed_steps)[:_MAX_LISTED_STEPS],
                       missing_steps_ns=missing_steps[:_MAX_LISTED_STEPS])
 
 
-def _track_largest(largest: dict[str, CommandChange], old: m.Decision, new: m.Decision) -> None:
+def _track_largest(largest: dict[str, CommandChange], presence: Counter[str], old: m.Decision,
+                   new: m.Decision) -> None:
     a, b = command_values(old), command_values(new)
     for q in sorted(a.keys() | b.keys()):
         va, vb = a.get(q), b.get(q)
-        if va is not None and vb is not None:
-            delta = abs(vb - va)
-            if delta == 0.0:
-                continue
-        else:
-            delta = math.inf
+        if va is None or vb is None:
+            presence[q] += 1
+            continue
+        delta = abs(vb - va)
+        if delta == 0.0:
+            continue
         best = largest.get(q)
         if best is None or delta > best.abs_change:
             largest[q] = CommandChange(quantity=q, step_t_ns=new.step_t_ns, recorded=va, rerun=vb, abs_change=delta)
