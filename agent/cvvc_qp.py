@@ -1,0 +1,368 @@
+"""The CVVC optimization problem, paper eq. (9)-(17), built as a scaled QP (pure code, no solver call).
+
+Decision variables (paper section III), in this order:
+
+- ``dT+_r, dT-_r`` (R each): tap steps up and down per single-phase regulator [steps];
+- ``Q+_k, Q-_k`` (K each): reactive power injected and absorbed by each plant, as a fraction of the plant's
+  rating ``q_rating_kvar`` (so 1.0 = rating);
+- soft form only: ``w_i`` (N): signed voltage violation of each critical node [% of its base voltage].
+
+Constraints (``lower <= A x <= upper``, one block each):
+
+- eq. (13)/(16)-(17), voltage [%]: ``v0 + sum_k (Q+_k - Q-_k - Q0_k) dQ_ik + sum_r (dT+_r - dT-_r) dVR_ir``
+  within the optimization limits; the soft form subtracts ``w_i`` (one row per node: ``w_i`` is free and
+  its square is penalised, so ``|w_i|`` is exactly the paper's ``V_i^vio`` of the violated side);
+- eq. (11)-(12) as variable bounds: ``0 <= dT+ <= min(max_taps, tap_max - T)``,
+  ``0 <= dT- <= min(max_taps, T - tap_min)`` (room clipped at 0, so a tap outside its limits is never forced
+  to move). The net change ``dT+ - dT-`` then always meets eq. (11) and ``|dT| <= max_taps`` (eq. 12 for the
+  net change; with positive costs and the proximal term, the optimum never has both parts non-zero);
+- eq. (10) as variable bounds: ``max(q_min, 0) <= Q+ <= max(q_max, 0)``, ``max(-q_max, 0) <= Q- <= max(-q_min,
+  0)`` (a fraction of the rating), which gives ``q_min <= Q+ - Q- <= q_max`` in every case.
+
+Dropping the paper's separate rows (10)-(12) removes redundant, degenerate constraints that slow ADMM down.
+
+Objective: eq. (9) with eq. (14)-(15), ``sum_r c_r (dT+ + dT-) + sum_k c_k (Q+ + Q-)`` [cost units, ``c_k`` per
+kvar of the new set point], divided by the largest cost coefficient so it is O(1). The soft form is eq.
+(17): ``alpha * cost + beta * sum_i V_vio_i^2`` with ``beta`` in cost units per pu^2.
+
+Deviations from the paper, for the solver's sake (see docs/optimizer.md):
+
+- scaling: voltages in %, Q in fractions of the rating, cost normalised; every coefficient is then O(0.1..10);
+- a proximal term ``(PROX_WEIGHT / 2) * ||x_taps, x_q||^2`` on the scaled tap and Q variables makes the QP
+  strongly convex: OSQP (ADMM) converges much faster on it than on the pure LP, and ties between equally
+  cheap actions are broken towards the smallest actions, deterministically. It only adds pressure in the
+  direction the (non-negative) costs already push; the MILP reference measures the cost it adds.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import qpsolvers
+import scipy.sparse as sp
+
+from agent.errors import AgentInputError
+
+__all__ = [
+    "DEFAULT_SOFT_ALPHA",
+    "DEFAULT_SOFT_BETA_PER_PU2",
+    "PROX_WEIGHT",
+    "CvvcInputs",
+    "CvvcQp",
+    "VariableLayout",
+    "build_cvvc_qp",
+]
+
+#: Weight of the proximal term on the scaled tap and Q variables (normalised cost units per unit^2).
+PROX_WEIGHT = 1e-2
+#: Eq. (17)'s alpha: weight of the action cost in the soft form.
+DEFAULT_SOFT_ALPHA = 1.0
+#: Eq. (17)'s beta [cost units per pu^2]: a 0.001 pu violation at one node weighs as 1 cost unit (about 7 taps
+#: at 0.14 per tap), so the soft form spends actions freely to shrink violations.
+DEFAULT_SOFT_BETA_PER_PU2 = 1e6
+
+_PCT_PER_PU = 100.0
+
+
+def _vec(name: str, value, n: int, dtype=float) -> np.ndarray:
+    a = np.array(value, dtype=float)
+    if a.shape != (n,):
+        raise AgentInputError(f"CvvcInputs.{name} has shape {a.shape}, expected ({n},)")
+    if not np.all(np.isfinite(a)):
+        raise AgentInputError(f"CvvcInputs.{name} is not finite: reject the measurement that produced it")
+    if dtype is int:
+        if not np.all(a == np.round(a)):
+            raise AgentInputError(f"CvvcInputs.{name} must hold integers, got {a}")
+        a = a.astype(int)
+    a.flags.writeable = False
+    return a
+
+
+def _mat(name: str, value, shape: tuple[int, int]) -> np.ndarray:
+    a = np.array(value, dtype=float).reshape(shape) if np.size(value) == shape[0] * shape[1] else None
+    if a is None:
+        raise AgentInputError(f"CvvcInputs.{name} has {np.size(value)} entries, expected shape {shape}")
+    if not np.all(np.isfinite(a)):
+        raise AgentInputError(f"CvvcInputs.{name} is not finite: check the model's sensitivity fits")
+    a.flags.writeable = False
+    return a
+
+
+@dataclass(frozen=True)
+class CvvcInputs:
+    """Everything one CVVC solve needs. Arrays are copied, checked and made read-only on construction.
+
+    Attributes
+    ----------
+    v0_pu : (N,) estimated critical-node voltages now [pu].
+    dv_dq_pu_per_kvar : (N, K) sensitivity to each plant's Q, eq. (3) [pu/kvar].
+    dv_dtap_pu : (N, R) sensitivity to each regulator's tap, eq. (4) [pu/step].
+    q0_kvar : (K,) present Q set point of each plant [kvar], generator convention.
+    q_min_kvar, q_max_kvar : (K,) limits of the new Q set point, eq. (10) [kvar]; equal to fix a plant.
+    q_rating_kvar : (K,) plant rating used to scale Q [kvar] (its kVA), > 0.
+    taps : (R,) present tap positions [steps].
+    tap_min, tap_max : (R,) tap limits, eq. (11) [steps].
+    max_taps_per_interval : (R,) eq. (12) [steps]; 0 freezes a regulator.
+    cost_per_tap : (R,) eq. (14) [cost units/step], >= 0.
+    cost_per_kvar : (K,) eq. (15) [cost units/kvar], >= 0.
+    v_min_pu, v_max_pu : optimization voltage limits, eq. (13) [pu].
+    soft_alpha : eq. (17)'s alpha (weight of the action cost) [-].
+    soft_beta_per_pu2 : eq. (17)'s beta [cost units/pu^2].
+    """
+
+    v0_pu: np.ndarray
+    dv_dq_pu_per_kvar: np.ndarray
+    dv_dtap_pu: np.ndarray
+    q0_kvar: np.ndarray
+    q_min_kvar: np.ndarray
+    q_max_kvar: np.ndarray
+    q_rating_kvar: np.ndarray
+    taps: np.ndarray
+    tap_min: np.ndarray
+    tap_max: np.ndarray
+    max_taps_per_interval: np.ndarray
+    cost_per_tap: np.ndarray
+    cost_per_kvar: np.ndarray
+    v_min_pu: float
+    v_max_pu: float
+    soft_alpha: float = DEFAULT_SOFT_ALPHA
+    soft_beta_per_pu2: float = DEFAULT_SOFT_BETA_PER_PU2
+
+    def __post_init__(self) -> None:
+        n = np.size(self.v0_pu)
+        k = np.size(self.q0_kvar)
+        r = np.size(self.taps)
+        put = object.__setattr__
+        put(self, "v0_pu", _vec("v0_pu", self.v0_pu, n))
+        put(self, "dv_dq_pu_per_kvar", _mat("dv_dq_pu_per_kvar", self.dv_dq_pu_per_kvar, (n, k)))
+        put(self, "dv_dtap_pu", _mat("dv_dtap_pu", self.dv_dtap_pu, (n, r)))
+        for name in ("q0_kvar", "q_min_kvar", "q_max_kvar", "q_rating_kvar", "cost_per_kvar"):
+            put(self, name, _vec(name, getattr(self, name), k))
+        for name in ("taps", "tap_min", "tap_max", "max_taps_per_interval"):
+            put(self, name, _vec(name, getattr(self, name), r, int))
+        put(self, "cost_per_tap", _vec("cost_per_tap", self.cost_per_tap, r))
+        for name in ("v_min_pu", "v_max_pu", "soft_alpha", "soft_beta_per_pu2"):
+            value = float(getattr(self, name))
+            if not np.isfinite(value):
+                raise AgentInputError(f"CvvcInputs.{name} is not finite")
+            put(self, name, value)
+        if np.any(self.q_min_kvar > self.q_max_kvar):
+            raise AgentInputError("CvvcInputs.q_min_kvar exceeds q_max_kvar for some plant; pass q_min <= q_max")
+        if np.any(self.q_rating_kvar <= 0):
+            raise AgentInputError("CvvcInputs.q_rating_kvar must be positive (the plant's kVA rating)")
+        if np.any(self.tap_min > self.tap_max) or np.any(self.max_taps_per_interval < 0):
+            raise AgentInputError("tap limits must satisfy tap_min <= tap_max and max_taps_per_interval >= 0")
+        if np.any(self.cost_per_tap < 0) or np.any(self.cost_per_kvar < 0):
+            raise AgentInputError("costs must be non-negative")
+        if not self.v_min_pu < self.v_max_pu:
+            raise AgentInputError(f"v_min_pu {self.v_min_pu} must be below v_max_pu {self.v_max_pu}")
+        if self.soft_alpha < 0 or self.soft_beta_per_pu2 <= 0:
+            raise AgentInputError("soft_alpha must be >= 0 and soft_beta_per_pu2 > 0")
+
+    @property
+    def n_nodes(self) -> int:
+        return int(self.v0_pu.shape[0])
+
+    @property
+    def n_pv(self) -> int:
+        return int(self.q0_kvar.shape[0])
+
+    @property
+    def n_reg(self) -> int:
+        return int(self.taps.shape[0])
+
+    def predict_v_pu(self, d_tap: np.ndarray, q_new_kvar: np.ndarray) -> np.ndarray:
+        """Linear model of eq. (13): voltages after tap changes ``d_tap`` and new Q set points [pu]."""
+        return (
+            self.v0_pu
+            + self.dv_dq_pu_per_kvar @ (np.asarray(q_new_kvar, float) - self.q0_kvar)
+            + self.dv_dtap_pu @ np.asarray(d_tap, float)
+        )
+
+    def cost(self, d_tap: np.ndarray, q_new_kvar: np.ndarray) -> float:
+        """Eq. (9) with (14)-(15): flat cost per tap change plus per kvar of the new set point [cost units]."""
+        return float(self.cost_per_tap @ np.abs(d_tap) + self.cost_per_kvar @ np.abs(q_new_kvar))
+
+
+@dataclass(frozen=True)
+class VariableLayout:
+    """Where each variable group sits in the QP's ``x``; ``None`` for groups the problem does not have."""
+
+    n: int
+    tap_up: slice | None
+    tap_down: slice | None
+    q_inj: slice
+    q_abs: slice
+    vio: slice | None
+
+
+@dataclass(frozen=True)
+class CvvcQp:
+    """A scaled CVVC problem in OSQP form: minimise ``x'Px/2 + c'x`` subject to ``lower <= A x <= upper``.
+
+    ``P`` is diagonal (upper triangle = whole matrix), ``A`` CSC. ``fixed_d_tap`` is set for the Q re-solve
+    with integer taps (then the problem has no tap variables). Use ``to_qpsolvers`` to cross-check with any
+    solver that ``qpsolvers`` knows, and ``d_tap``/``q_kvar``/``vio_pu`` to read a solution in physical units.
+    """
+
+    soft: bool
+    layout: VariableLayout
+    P: sp.csc_matrix
+    c: np.ndarray
+    A: sp.csc_matrix
+    lower: np.ndarray
+    upper: np.ndarray
+    q_rating_kvar: np.ndarray
+    cost_scale: float
+    dv_dtap_pct: np.ndarray  # (N, R) voltage-row coefficient of a tap step [%/step]
+    fixed_d_tap: np.ndarray | None = None
+
+    @property
+    def voltage_rows(self) -> slice:
+        """Rows of ``A`` holding the voltage constraints (eq. 13 / 17), one per critical node, first."""
+        return slice(0, self.dv_dtap_pct.shape[0])
+
+    def bounds_with_d_tap(self, d_tap: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(lower, upper)`` of this tap-fixed problem re-fixed at ``d_tap`` (same ``A``, ``P``, ``c``)."""
+        if self.fixed_d_tap is None:
+            raise AgentInputError("bounds_with_d_tap is for problems built with fixed_d_tap")
+        shift = self.dv_dtap_pct @ (np.asarray(d_tap, float) - self.fixed_d_tap)
+        rows = self.voltage_rows
+        lo, hi = self.lower.copy(), self.upper.copy()
+        lo[rows] -= shift
+        hi[rows] -= shift
+        return lo, hi
+
+    def d_tap(self, x: np.ndarray) -> np.ndarray:
+        """(R,) net tap change of a solution [steps] (fractional for the relaxation)."""
+        lay = self.layout
+        if lay.tap_up is None or lay.tap_down is None:
+            return np.array(self.fixed_d_tap, float)
+        return x[lay.tap_up] - x[lay.tap_down]
+
+    def q_kvar(self, x: np.ndarray) -> np.ndarray:
+        """(K,) new Q set point of a solution [kvar]."""
+        return (x[self.layout.q_inj] - x[self.layout.q_abs]) * self.q_rating_kvar
+
+    def objective(self, x: np.ndarray) -> float:
+        """Objective of ``x`` in unscaled cost units (including the proximal and violation terms)."""
+        return float((0.5 * x @ (self.P @ x) + self.c @ x) * self.cost_scale)
+
+    def to_qpsolvers(self) -> qpsolvers.Problem:
+        """The same problem as a ``qpsolvers.Problem`` (``Gx <= h``, ``Ax = b``, no variable bounds)."""
+        eq = self.lower == self.upper
+        upper = ~eq & np.isfinite(self.upper)
+        lower = ~eq & np.isfinite(self.lower)
+        a = self.A.tocsr()
+        g = sp.vstack([a[upper], -a[lower]]).tocsc()
+        h = np.concatenate([self.upper[upper], -self.lower[lower]])
+        a_eq = a[eq].tocsc() if eq.any() else None
+        b_eq = self.upper[eq] if eq.any() else None
+        return qpsolvers.Problem(self.P, self.c, g, h, a_eq, b_eq)
+
+
+def _dense_to_csc(a: np.ndarray) -> sp.csc_matrix:
+    """CSC of a small dense matrix without scipy's generic conversion path (a few microseconds)."""
+    at = a.T
+    nz = at != 0.0
+    indptr = np.concatenate([[0], np.cumsum(nz.sum(axis=1))]).astype(np.int32)
+    indices = np.nonzero(nz)[1].astype(np.int32)
+    return sp.csc_matrix((at[nz], indices, indptr), shape=a.shape)
+
+
+def _diag_csc(d: np.ndarray) -> sp.csc_matrix:
+    n = d.shape[0]
+    index = np.arange(n + 1, dtype=np.int32)
+    return sp.csc_matrix((d.astype(float), index[:n], index), shape=(n, n))
+
+
+def build_cvvc_qp(inputs: CvvcInputs, *, soft: bool, fixed_d_tap: np.ndarray | None = None) -> CvvcQp:
+    """Build the scaled CVVC QP, paper eq. (9)-(15) (``soft=False``) or (16)-(17) (``soft=True``).
+
+    Parameters
+    ----------
+    inputs : the problem data.
+    soft : use eq. (17)'s squared-violation form instead of hard voltage limits.
+    fixed_d_tap : (R,) integer tap changes to hold fixed; the problem then has only Q (and violation)
+        variables: the "re-solve Q with taps fixed" step after rounding.
+
+    Returns
+    -------
+    The problem; its matrices depend on ``inputs`` and ``soft`` only (not on ``fixed_d_tap``), so one
+    solver set-up serves every rounding candidate by updating ``lower`` and ``upper``.
+    """
+    n, k, r = inputs.n_nodes, inputs.n_pv, inputs.n_reg
+    rating = inputs.q_rating_kvar
+    with_taps = fixed_d_tap is None
+    n_tap = 2 * r if with_taps else 0
+    n_vio = n if soft else 0
+    n_var = n_tap + 2 * k + n_vio
+    tap_up = slice(0, r) if with_taps else None
+    tap_down = slice(r, 2 * r) if with_taps else None
+    q_inj = slice(n_tap, n_tap + k)
+    q_abs = slice(n_tap + k, n_tap + 2 * k)
+    vio = slice(n_tap + 2 * k, n_var) if soft else None
+    layout = VariableLayout(n=n_var, tap_up=tap_up, tap_down=tap_down, q_inj=q_inj, q_abs=q_abs, vio=vio)
+
+    # Objective: normalised linear cost, proximal term, squared violations (eq. 17).
+    q_cost = inputs.cost_per_kvar * rating
+    cost_scale = float(max(np.max(inputs.cost_per_tap, initial=0.0), np.max(q_cost, initial=0.0), 1e-9))
+    alpha = inputs.soft_alpha if soft else 1.0
+    c = np.zeros(n_var)
+    p_diag = np.zeros(n_var)
+    if with_taps:
+        c[tap_up] = c[tap_down] = alpha * inputs.cost_per_tap / cost_scale
+        p_diag[:n_tap] = PROX_WEIGHT
+    c[q_inj] = c[q_abs] = alpha * q_cost / cost_scale
+    p_diag[q_inj] = p_diag[q_abs] = PROX_WEIGHT
+    if soft:
+        # beta * (w_pct / 100)^2 in cost units, normalised: P entry = 2 beta / (cost_scale * 1e4).
+        p_diag[vio] = 2.0 * inputs.soft_beta_per_pu2 / (cost_scale * _PCT_PER_PU**2)
+
+    # Voltage rows (eq. 13 / 17) in %.
+    s_q = _PCT_PER_PU * inputs.dv_dq_pu_per_kvar * rating  # (N, K) % per rating
+    s_t = _PCT_PER_PU * inputs.dv_dtap_pu  # (N, R) % per step
+    blocks = []
+    if with_taps:
+        blocks += [s_t, -s_t]
+    blocks += [s_q, -s_q]
+    if soft:
+        blocks.append(-np.eye(n))
+    a_volt = np.hstack(blocks)
+    v_base = _PCT_PER_PU * inputs.v0_pu - s_q @ (inputs.q0_kvar / rating)
+    if not with_taps:
+        v_base = v_base + s_t @ np.asarray(fixed_d_tap, float)
+    v_lo = _PCT_PER_PU * inputs.v_min_pu - v_base
+    v_hi = _PCT_PER_PU * inputs.v_max_pu - v_base
+
+    # Variable bounds, one identity row each. They carry eq. (10)-(12) exactly for the *net* actions
+    # dT = dT+ - dT- and Q = Q+ - Q- (0 <= dT+ <= min(max, room up) gives dT <= room up and |dT| <= max,
+    # and so on), so the paper's rows (10)-(12) would be redundant (and degenerate: bad for ADMM).
+    lo = [v_lo]
+    hi = [v_hi]
+    if with_taps:
+        max_t = inputs.max_taps_per_interval.astype(float)
+        room_up = np.maximum(inputs.tap_max - inputs.taps, 0).astype(float)
+        room_down = np.maximum(inputs.taps - inputs.tap_min, 0).astype(float)
+        lo.append(np.zeros(2 * r))
+        hi.append(np.concatenate([np.minimum(max_t, room_up), np.minimum(max_t, room_down)]))
+    q_min, q_max = inputs.q_min_kvar / rating, inputs.q_max_kvar / rating
+    lo.append(np.concatenate([np.maximum(q_min, 0.0), np.maximum(-q_max, 0.0)]))
+    hi.append(np.concatenate([np.maximum(q_max, 0.0), np.maximum(-q_min, 0.0)]))
+    n_bounded = n_tap + 2 * k
+    bounds = np.hstack([np.eye(n_bounded), np.zeros((n_bounded, n_vio))])
+
+    return CvvcQp(
+        soft=soft,
+        layout=layout,
+        P=_diag_csc(p_diag),
+        c=c,
+        A=_dense_to_csc(np.vstack([a_volt, bounds])),
+        lower=np.concatenate(lo),
+        upper=np.concatenate(hi),
+        q_rating_kvar=rating,
+        cost_scale=cost_scale,
+        dv_dtap_pct=s_t,
+        fixed_d_tap=None if with_taps else np.array(fixed_d_tap, float),
+    )

@@ -1,0 +1,182 @@
+"""Online voltage and sensitivity estimation: paper eq. (5)-(7) and the evaluation of eq. (3)-(4) fits.
+
+Pure functions of arrays: no I/O, no state, inputs are never modified. Index conventions are those of
+``training.model`` (``n`` critical node, ``k`` PV plant, ``r`` regulator, ``m`` feature).
+All voltages are per unit of each critical node's own base (``_pu``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from agent.errors import AgentInputError
+from training.model import ModelArrays, SensitivityFit
+
+__all__ = [
+    "SensitivityTable",
+    "apply_correction",
+    "correction_pu",
+    "dv_dq_pu_per_kvar",
+    "estimate_voltages_pu",
+]
+
+#: Smallest ``c + q_head_kvar`` [kvar] the power form of eq. (3) is evaluated at (guard against a fit whose
+#: ``c`` does not keep the base positive over its clipped range; training is meant to prevent that).
+POWER_BASE_FLOOR_KVAR = 1.0
+
+_FORM_CODE = {"constant": 0, "linear": 1, "power": 2}
+
+
+def estimate_voltages_pu(arrays: ModelArrays, features: np.ndarray, taps: np.ndarray) -> np.ndarray:
+    """Critical-node voltages from measurements and tap positions, paper eq. (5).
+
+    ``v_hat = alpha[:, :-1] @ M + alpha[:, -1] + dv_dtap_pu @ (T - T0)``.
+
+    Parameters
+    ----------
+    arrays : model arrays (``alpha`` (N, M+1) with trailing intercept, ``dv_dtap_pu`` (N, R), ``tap0`` (R,)).
+    features : (..., M) regression features in ``training.model.feature_names`` order [kW, kvar].
+    taps : (..., R) present tap positions [steps].
+
+    Returns
+    -------
+    (..., N) estimated voltages [pu].
+    """
+    m = np.asarray(features, float)
+    t = np.asarray(taps, float)
+    if m.shape[-1] != arrays.alpha.shape[1] - 1:
+        raise AgentInputError(
+            f"features have {m.shape[-1]} columns but the model expects {arrays.alpha.shape[1] - 1}; "
+            "build them with training.model.features()"
+        )
+    if t.shape[-1] != arrays.tap0.shape[0]:
+        raise AgentInputError(f"taps have {t.shape[-1]} entries but the model has {arrays.tap0.shape[0]} regulators")
+    return m @ arrays.alpha[:, :-1].T + arrays.alpha[:, -1] + (t - arrays.tap0) @ arrays.dv_dtap_pu.T
+
+
+def correction_pu(
+    v_hat_pu: np.ndarray,
+    reg_secondary_node: np.ndarray,
+    measured_secondary_pu: np.ndarray,
+    *,
+    valid: np.ndarray | None = None,
+) -> np.ndarray:
+    """Per-regulator correction ``eps_r = V_r - V_hat_r``, paper eq. (6).
+
+    Parameters
+    ----------
+    v_hat_pu : (N,) uncorrected estimate of eq. (5) [pu].
+    reg_secondary_node : (R,) index of each regulator's secondary node into the critical nodes.
+    measured_secondary_pu : (R,) measured secondary voltage [pu of the secondary node's base]: the raw
+        reading (no line-drop compensation) times ``pu_per_v120``.
+    valid : (R,) bool, optional. Regulators without a usable measurement (``False``, or a non-finite
+        reading) get ``eps_r = 0``: no correction from them (our rule; the paper assumes every reading).
+
+    Returns
+    -------
+    (R,) correction [pu], always finite.
+    """
+    v_hat = np.asarray(v_hat_pu, float)
+    measured = np.asarray(measured_secondary_pu, float)
+    ok = np.isfinite(measured)
+    if valid is not None:
+        ok &= np.asarray(valid, bool)
+    eps = measured - v_hat[np.asarray(reg_secondary_node, int)]
+    return np.where(ok & np.isfinite(eps), eps, 0.0)
+
+
+def apply_correction(v_hat_pu: np.ndarray, eps_pu: np.ndarray, upstream_regulator: np.ndarray) -> np.ndarray:
+    """Corrected estimate ``V_hat_i + eps_{r_i}``, paper eq. (7).
+
+    ``r_i`` is the nearest regulator upstream of node ``i`` on its phase (``upstream_regulator[i]``).
+    Nodes with no upstream regulator (``-1``, e.g. the feeder head side of the first regulator) get no
+    correction: the paper defines ``eps`` only from regulator secondaries and says nothing about them.
+
+    Parameters
+    ----------
+    v_hat_pu : (N,) estimate of eq. (5) [pu].
+    eps_pu : (R,) corrections of eq. (6) [pu].
+    upstream_regulator : (N,) int, index into regulators or -1.
+
+    Returns
+    -------
+    (N,) corrected estimate [pu] (a new array).
+    """
+    v_hat = np.asarray(v_hat_pu, float)
+    up = np.asarray(upstream_regulator, int)
+    eps = np.asarray(eps_pu, float)
+    has = up >= 0
+    out = v_hat.copy()
+    out[has] += eps[up[has]]
+    return out
+
+
+@dataclass(frozen=True)
+class SensitivityTable:
+    """The (N, K) ``SensitivityFit`` grid of a model as arrays, for vectorised evaluation of eq. (3).
+
+    ``form`` codes: 0 constant, 1 linear, 2 power. Build once per model with ``SensitivityTable.of``.
+    """
+
+    form: np.ndarray  # (N, K) int
+    a: np.ndarray  # (N, K)
+    b: np.ndarray  # (N, K)
+    c: np.ndarray  # (N, K) [kvar]
+    q_min_kvar: np.ndarray  # (N, K)
+    q_max_kvar: np.ndarray  # (N, K)
+
+    @classmethod
+    def of(cls, fits: Sequence[Sequence[SensitivityFit]]) -> SensitivityTable:
+        """Arrays of a nested ``sens_q[n][k]`` list of fits."""
+        n = len(fits)
+        k = len(fits[0]) if n else 0
+        if any(len(row) != k for row in fits):
+            raise AgentInputError("sensitivity fits are not a rectangular (nodes x plants) grid; retrain the model")
+
+        def grid(get):
+            return np.array([[get(f) for f in row] for row in fits], float).reshape(n, k)
+
+        return cls(
+            form=grid(lambda f: _FORM_CODE[f.form]).astype(int),
+            a=grid(lambda f: f.a),
+            b=grid(lambda f: f.b),
+            c=grid(lambda f: f.c),
+            q_min_kvar=grid(lambda f: f.q_min_kvar),
+            q_max_kvar=grid(lambda f: f.q_max_kvar),
+        )
+
+
+def dv_dq_pu_per_kvar(
+    fits: SensitivityTable | Sequence[Sequence[SensitivityFit]], q_head_kvar: float
+) -> np.ndarray:
+    """Voltage sensitivity of each critical node to each plant's reactive power, paper eq. (3).
+
+    Each fit is evaluated at the feeder-head reactive power clipped to the fit's training range
+    ``[q_min_kvar, q_max_kvar]`` (no extrapolation). Forms: ``power`` ``a / (c + q) ** b`` (eq. 3, with
+    ``c + q`` floored at ``POWER_BASE_FLOOR_KVAR`` so the power is always defined), ``linear`` ``a + b q``,
+    ``constant`` ``a``.
+
+    Parameters
+    ----------
+    fits : a ``SensitivityTable`` (fast) or the model's ``sens_q`` grid (N x K ``SensitivityFit``).
+    q_head_kvar : total feeder-head reactive power [kvar], into the feeder.
+
+    Returns
+    -------
+    (N, K) sensitivities [pu/kvar].
+    """
+    table = fits if isinstance(fits, SensitivityTable) else SensitivityTable.of(fits)
+    q_head = float(q_head_kvar)
+    if not np.isfinite(q_head):
+        raise AgentInputError("feeder-head reactive power is not finite; reject the head frame before estimating")
+    q = np.clip(q_head, table.q_min_kvar, table.q_max_kvar)
+    out = table.a.copy()
+    lin = table.form == 1
+    out[lin] += table.b[lin] * q[lin]
+    pw = table.form == 2
+    base = np.maximum(table.c[pw] + q[pw], POWER_BASE_FLOOR_KVAR)
+    out[pw] = table.a[pw] / base ** table.b[pw]
+    return out

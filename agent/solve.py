@@ -1,0 +1,554 @@
+"""Solve the CVVC problem: OSQP relaxation, tap rounding, Q re-solve, soft fallback; MILP reference.
+
+The one module that calls a solver (STYLE.md rule 11). ``solve_cvvc`` never raises on numeric trouble and
+never returns NaN: any failure is a ``CvvcSolution`` with ``status="hold"`` (keep taps and Q as they are)
+and a reason. Stages, paper section III and DESIGN.md section 4:
+
+1. relaxation with hard voltage limits (eq. 9-15), continuous taps;
+2. if OSQP proves it primal infeasible, or cannot solve it, the soft form (eq. 16-17) instead;
+3. rounding: the relaxed net tap changes are rounded; every floor/ceil combination of the (at most
+   ``MAX_ENUMERATED_FRACTIONAL``) most fractional taps is a candidate, the other taps rounded to nearest;
+4. for each candidate the continuous Q is re-solved with the taps fixed (same form); in the hard form, the
+   cheapest candidate whose re-solve is feasible wins (ties: candidate order, nearest rounding first). If
+   no candidate meets the hard limits, the nearest rounding is re-solved in the soft form (``status="soft"``).
+
+Determinism: a fresh OSQP object per stage, fixed settings (fixed rho, iteration limit, no wall-clock time
+limit), warm start only from the ``warm_start`` argument. Same inputs -> bit-identical solution (timings aside).
+"""
+
+from __future__ import annotations
+
+import itertools
+import time
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+import osqp
+import scipy.optimize
+import scipy.sparse as sp
+
+from agent.cvvc_qp import PROX_WEIGHT, CvvcInputs, CvvcQp, build_cvvc_qp
+
+__all__ = [
+    "MAX_ENUMERATED_FRACTIONAL",
+    "OSQP_SETTINGS",
+
+    "CvvcSolution",
+    "MilpReference",
+    "StageSeconds",
+    "solve_cvvc",
+    "solve_milp_reference",
+]
+
+#: Fixed OSQP settings (units of the scaled problem: voltages in %, Q in fractions of rating, taps in steps).
+#: ``adaptive_rho=0`` and a fixed ``rho``: ADMM's path depends only on the data. OSQP's own polishing is
+#: replaced by ours after every chunk of ``max_iter`` iterations (see ``_osqp_run``); no wall-clock limit.
+OSQP_SETTINGS: dict[str, object] = {
+    "verbose": False,
+    "eps_abs": 1e-6,
+    "eps_rel": 1e-6,
+    "eps_prim_inf": 1e-6,
+    "eps_dual_inf": 1e-6,
+    "rho": 1.0,
+    "adaptive_rho": 0,
+    "sigma": 1e-6,
+    "alpha": 1.6,
+    "max_iter": 25,  # first chunk; see FIRST_CHUNK_ITER
+    "check_termination": 5,
+    "polishing": False,
+    "scaling": 10,
+    "warm_starting": True,
+}
+#: Iteration budget of one rounding candidate's Q re-solve; a candidate not solved within it is skipped.
+MAX_ITER_RESOLVE = 800
+#: ADMM iterations before the first polish attempt; each later chunk is twice as long.
+FIRST_CHUNK_ITER = 25
+#: Iteration budget of one solve (all chunks) [ADMM iterations].
+MAX_ITER = 4000
+#: Regularisation of the polish system (keeps it solvable with dependent active rows).
+POLISH_REG = 1e-10
+#: Tolerance of the KKT optimality check in scaled units (% of voltage, fraction of rating, steps).
+KKT_TOL = 1e-6
+#: Up to this many fractional taps, every floor/ceil combination is tried (2**3 = 8 Q re-solves).
+MAX_ENUMERATED_FRACTIONAL = 3
+#: A relaxed tap change this close to an integer counts as integer [steps].
+FRACTIONAL_TOL_STEPS = 0.02
+#: A relaxed tap change this close to an integer is taken as integral: its Q needs no re-solve [steps].
+INTEGRAL_TOL_STEPS = 1e-6
+#: Stop trying rounding candidates once one scores within this fraction of the relaxed objective.
+ROUNDING_GAP_REL = 0.01
+#: Voltage-limit tolerance when checking a solution against the linear model [pu].
+V_TOL_PU = 1e-5
+
+Status = Literal["optimal", "soft", "hold"]
+
+
+@dataclass(frozen=True)
+class StageSeconds:
+    """Wall-clock time of each stage [s]. Diagnostics only: not part of the deterministic result."""
+
+    build_s: float = 0.0
+    relaxed_s: float = 0.0
+    rounding_s: float = 0.0
+    total_s: float = 0.0
+
+
+@dataclass(frozen=True)
+class CvvcSolution:
+    """Result of ``solve_cvvc``.
+
+    Attributes
+    ----------
+    status : ``optimal`` (hard limits met), ``soft`` (eq. 17 form used), ``hold`` (no action; see ``reason``).
+    reason : why ``soft`` or ``hold``; empty when optimal.
+    taps_new : (R,) int tap positions to apply [steps] (= present taps on hold).
+    q_new_kvar : (K,) Q set points to apply [kvar] (= present set points on hold).
+    v_pred_pu : (N,) voltages the linear model predicts after the actions [pu].
+    cost : eq. (9) value of the actions [cost units].
+    max_violation_pu : largest predicted excursion beyond the optimization limits [pu], >= 0.
+    iterations : OSQP iterations over all stages.
+    relaxed_d_tap : (R,) relaxed (continuous) tap changes [steps].
+    relaxed_q_kvar : (K,) relaxed Q set points [kvar].
+    relaxed_form : ``hard`` or ``soft``: which relaxation was solved (``none`` on early hold).
+    relaxed_x, relaxed_y : primal and dual of the relaxation in scaled units (for warm starts).
+    candidates_tried : rounding candidates re-solved.
+    seconds : stage timings (not deterministic).
+    """
+
+    status: Status
+    reason: str
+    taps_new: np.ndarray
+    q_new_kvar: np.ndarray
+    v_pred_pu: np.ndarray
+    cost: float
+    max_violation_pu: float
+    iterations: int
+    relaxed_d_tap: np.ndarray
+    relaxed_q_kvar: np.ndarray
+    relaxed_form: Literal["hard", "soft", "none"]
+    relaxed_x: np.ndarray
+    relaxed_y: np.ndarray
+    candidates_tried: int
+    seconds: StageSeconds
+
+
+@dataclass(frozen=True)
+class MilpReference:
+    """Exact optimum of the hard-limit problem with integer taps (``scipy.optimize.milp``, HiGHS)."""
+
+    status: Literal["optimal", "infeasible", "failed"]
+    taps_new: np.ndarray
+    q_new_kvar: np.ndarray
+    cost: float
+
+
+@dataclass(frozen=True)
+class _Run:
+    ok: bool
+    infeasible: bool
+    status: str
+    x: np.ndarray
+    y: np.ndarray
+    iterations: int
+
+
+def _setup(qp: CvvcQp) -> osqp.OSQP | None:
+    """An OSQP solver set up on ``qp`` with the fixed settings, or ``None`` if OSQP refuses the data."""
+    solver = osqp.OSQP(algebra="builtin")  # naming it skips a slow probe of optional algebras
+    try:
+        solver.setup(qp.P, qp.c, qp.A, qp.lower, qp.upper, **OSQP_SETTINGS)
+    except (ValueError, osqp.OSQPException):
+        return None
+    return solver
+
+
+def _osqp(qp: CvvcQp, x0: np.ndarray | None, y0: np.ndarray | None) -> _Run:
+    """Set up and solve ``qp``."""
+    solver = _setup(qp)
+    if solver is None:
+        return _Run(False, False, "OSQP setup refused the problem", np.zeros(qp.layout.n), np.zeros(qp.A.shape[0]), 0)
+    return _osqp_run(solver, qp, qp.lower, qp.upper, x0, y0)
+
+
+def _osqp_run(
+    solver: osqp.OSQP,
+    qp: CvvcQp,
+    lo: np.ndarray,
+    hi: np.ndarray,
+    x0: np.ndarray | None,
+    y0: np.ndarray | None,
+    max_iter: int = MAX_ITER,
+) -> _Run:
+    """ADMM in chunks (25, 50, 100, ... iterations), each followed by an active-set polish checked by KKT.
+
+    OSQP polishes only once its tolerances are met, which on this nearly linear problem can take thousands
+    of iterations although the active set is right after a few dozen. After every chunk we guess the
+    active set from the iterate, solve the equality-constrained QP on it, and accept the result when it
+    satisfies the KKT conditions (a certificate of optimality, not a heuristic). The next chunk continues
+    the ADMM iterates where the last one stopped. Deterministic: no clock, fixed chunk and iteration limits.
+    """
+    n, m = qp.layout.n, qp.A.shape[0]
+    a_dense = qp.A.toarray()
+    p_diag = qp.P.diagonal()
+    try:
+        solver.warm_start(
+            x=np.zeros(n) if x0 is None or x0.shape != (n,) else x0,
+            y=np.zeros(m) if y0 is None or y0.shape != (m,) else y0,
+        )
+    except (ValueError, osqp.OSQPException) as e:
+        return _Run(False, False, f"warm start failed: {e}", np.zeros(n), np.zeros(m), 0)
+    total = 0
+    chunk = FIRST_CHUNK_ITER
+    status_name = "OSQP_UNSOLVED"
+    while total < max_iter:
+        try:
+            solver.update_settings(max_iter=min(chunk, max_iter - total))
+            res = solver.solve(raise_error=False)
+        except (ValueError, osqp.OSQPException) as e:
+            return _Run(False, False, f"solve failed: {e}", np.zeros(n), np.zeros(m), total)
+        total += int(res.info.iter)
+        status = osqp.SolverStatus(res.info.status_val)
+        status_name = status.name
+        if status in (osqp.SolverStatus.OSQP_PRIMAL_INFEASIBLE, osqp.SolverStatus.OSQP_PRIMAL_INFEASIBLE_INACCURATE):
+            return _Run(False, True, status_name, np.zeros(n), np.zeros(m), total)
+        x = np.asarray(res.x, float)
+        y = np.asarray(res.y, float)
+        if not (x.shape == (n,) and np.all(np.isfinite(x)) and np.all(np.isfinite(y))):
+            return _Run(False, False, f"{status_name} with non-finite iterate", np.zeros(n), np.zeros(m), total)
+        if _kkt_ok(a_dense, p_diag, qp.c, lo, hi, x, y):
+            return _Run(True, False, status_name, x, y, total)
+        polished = _polish(a_dense, p_diag, qp.c, lo, hi, x, y)
+        if polished is not None and _kkt_ok(a_dense, p_diag, qp.c, lo, hi, *polished):
+            return _Run(True, False, status_name + "+polish", polished[0], polished[1], total)
+        if status not in (osqp.SolverStatus.OSQP_MAX_ITER_REACHED, osqp.SolverStatus.OSQP_SOLVED,
+                          osqp.SolverStatus.OSQP_SOLVED_INACCURATE):
+            break
+        if status == osqp.SolverStatus.OSQP_SOLVED:
+            # Converged to the tight tolerance: accept the iterate (within eps of the optimum).
+            return _Run(True, False, status_name, x, y, total)
+        chunk *= 2
+    return _Run(False, False, f"{status_name} after {total} iterations", np.zeros(n), np.zeros(m), total)
+
+
+def _polish(
+    a: np.ndarray, p_diag: np.ndarray, c: np.ndarray, lo: np.ndarray, hi: np.ndarray, x: np.ndarray, y: np.ndarray
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """Solve the QP with the rows guessed active from an ADMM iterate held at their bounds.
+
+    OSQP's polishing rule: a row is lower-active if ``Ax - lo < -y``, upper-active if ``hi - Ax < y``
+    (equality rows always). A tiny regularisation keeps the system solvable when active rows are dependent.
+    The caller accepts the result only if it passes the KKT check.
+    """
+    n = x.shape[0]
+    z = a @ x
+    lower = (lo == hi) | (z - lo < -y)
+    upper = ~lower & (hi - z < y)
+    act = np.flatnonzero(lower | upper)
+    k = act.shape[0]
+    kkt = np.zeros((n + k, n + k))
+    kkt[:n, :n] = np.diag(p_diag)
+    kkt[:n, n:] = a[act].T
+    kkt[n:, :n] = a[act]
+    kkt[n:, n:] = -POLISH_REG * np.eye(k)
+    rhs = np.concatenate([-c, np.where(lower[act], lo[act], hi[act])])
+    try:
+        sol = np.linalg.solve(kkt, rhs)
+    except np.linalg.LinAlgError:
+        return None
+    if not np.all(np.isfinite(sol)):
+        return None
+    y_full = np.zeros(a.shape[0])
+    y_full[act] = sol[n:]
+    return sol[:n], y_full
+
+
+def _kkt_ok(
+    a: np.ndarray, p_diag: np.ndarray, c: np.ndarray, lo: np.ndarray, hi: np.ndarray, x: np.ndarray, y: np.ndarray
+) -> bool:
+    """KKT conditions of ``min x'Px/2 + c'x, lo <= Ax <= hi`` hold within ``KKT_TOL`` (so ``x`` is optimal)."""
+    ax = a @ x
+    if np.max(np.abs(p_diag * x + c + a.T @ y), initial=0.0) > KKT_TOL:
+        return False
+    if np.any(ax < lo - KKT_TOL) or np.any(ax > hi + KKT_TOL):
+        return False
+    return not (np.any((y > KKT_TOL) & (ax < hi - KKT_TOL)) or np.any((y < -KKT_TOL) & (ax > lo + KKT_TOL)))
+
+
+def _violation_pu(inputs: CvvcInputs, v_pu: np.ndarray) -> np.ndarray:
+    """(N,) excursion of each voltage beyond the optimization limits [pu], >= 0."""
+    return np.maximum(np.maximum(inputs.v_min_pu - v_pu, v_pu - inputs.v_max_pu), 0.0)
+
+
+def _candidates(d_rel: np.ndarray) -> list[np.ndarray]:
+    """Integer tap-change candidates around the relaxed ``d_rel``, nearest rounding first.
+
+    Every floor/ceil combination of the ``MAX_ENUMERATED_FRACTIONAL`` most fractional taps (closest to a
+    half step; ties by regulator index); any other fractional tap is rounded to nearest.
+    """
+    nearest = np.round(d_rel)
+    dist = np.abs(d_rel - nearest)
+    frac = np.flatnonzero(dist > FRACTIONAL_TOL_STEPS)
+    frac = frac[np.argsort(-dist[frac], kind="stable")][:MAX_ENUMERATED_FRACTIONAL]
+    out = []
+    for bits in itertools.product((0, 1), repeat=frac.size):  # (0, ..., 0) = nearest rounding
+        cand = nearest.copy()
+        for i, flip in zip(frac, bits, strict=True):
+            if flip:
+                cand[i] = np.floor(d_rel[i]) if nearest[i] > d_rel[i] else np.ceil(d_rel[i])
+        out.append(cand)
+    return out
+
+
+def _hold(inputs: CvvcInputs, reason: str, iterations: int, seconds: StageSeconds) -> CvvcSolution:
+    """No action: taps and Q set points as they are, the present voltages as the prediction."""
+    v = inputs.v0_pu.copy()
+    return CvvcSolution(
+        status="hold",
+        reason=reason,
+        taps_new=inputs.taps.copy(),
+        q_new_kvar=inputs.q0_kvar.copy(),
+        v_pred_pu=v,
+        cost=inputs.cost(np.zeros(inputs.n_reg), inputs.q0_kvar),
+        max_violation_pu=float(np.max(_violation_pu(inputs, v), initial=0.0)),
+        iterations=iterations,
+        relaxed_d_tap=np.zeros(inputs.n_reg),
+        relaxed_q_kvar=inputs.q0_kvar.copy(),
+        relaxed_form="none",
+        relaxed_x=np.zeros(0),
+        relaxed_y=np.zeros(0),
+        candidates_tried=0,
+        seconds=seconds,
+    )
+
+
+def _warm_vectors(qp: CvvcQp, warm: CvvcSolution | None, form: str) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """Warm start from the previous solution's relaxation when it had the same form and size.
+
+    Tap changes are relative to the present taps, so the previous tap *changes* are not a good guess: they
+    start at zero; Q (absolute set points) and the duals are reused.
+    """
+    if warm is None or warm.relaxed_form != form or warm.relaxed_x.shape != (qp.layout.n,):
+        return None, None
+    x0 = warm.relaxed_x.copy()
+    if qp.layout.tap_up is not None and qp.layout.tap_down is not None:
+        x0[qp.layout.tap_up] = 0.0
+        x0[qp.layout.tap_down] = 0.0
+    y0 = warm.relaxed_y if warm.relaxed_y.shape == (qp.A.shape[0],) else None
+    return x0, y0
+
+
+def _unreachable_rows(qp: CvvcQp) -> np.ndarray:
+    """Voltage rows that no point of the variable box can satisfy: the hard form is infeasible for sure.
+
+    Interval arithmetic over the bound rows (a sufficient test, exact for one node out of resources).
+    """
+    lo, hi = _row_ranges(qp)
+    rows = qp.voltage_rows
+    return np.flatnonzero((hi < qp.lower[rows] - 1e-9) | (lo > qp.upper[rows] + 1e-9))
+
+
+def _zero_is_feasible(qp: CvvcQp) -> bool:
+    """No action at all (taps kept, every Q set point 0) meets every constraint: it is then optimal."""
+    return bool(np.all(qp.lower <= 0.0) and np.all(qp.upper >= 0.0))
+
+
+def solve_cvvc(inputs: CvvcInputs, *, warm_start: CvvcSolution | None = None) -> CvvcSolution:
+    """Solve one CVVC interval: relaxation, rounding, Q re-solve, soft fallback (paper eq. 9-17).
+
+    Parameters
+    ----------
+    inputs : the problem (validated on construction: finite, consistent shapes).
+    warm_start : the previous interval's solution, or ``None`` (cold start).
+
+    Returns
+    -------
+    A ``CvvcSolution``; ``status="hold"`` with a reason when the solver fails. Never raises on numeric
+    trouble, never contains NaN.
+    """
+    t_start = time.perf_counter()
+    iterations = 0
+    hard = build_cvvc_qp(inputs, soft=False)
+    t_built = time.perf_counter()
+
+    # Relaxation: hard limits (eq. 9-15), else the soft form (eq. 16-17).
+    qp, form, reason = hard, "hard", ""
+    unreachable = _unreachable_rows(hard)
+    if unreachable.size:
+        run = _Run(False, True, "presolve: unreachable limits", np.zeros(0), np.zeros(0), 0)
+        reason = (
+            f"{unreachable.size} critical node(s) cannot reach the limits with the actions available "
+            f"(first: node {unreachable[0]}): soft form (eq. 17) used"
+        )
+    elif _zero_is_feasible(hard):
+        # Every cost is >= 0 and every variable >= 0, so x = 0 minimises the objective: nothing to solve.
+        run = _Run(True, False, "presolve: no action needed", np.zeros(hard.layout.n), np.zeros(hard.A.shape[0]), 0)
+    else:
+        x0, y0 = _warm_vectors(hard, warm_start, "hard")
+        run = _osqp(hard, x0, y0)
+        iterations += run.iterations
+        if not run.ok:
+            reason = (
+                "hard voltage limits infeasible: soft form (eq. 17) used"
+                if run.infeasible
+                else f"hard relaxation not solved ({run.status}): soft form (eq. 17) used"
+            )
+    if not run.ok:
+        qp, form = build_cvvc_qp(inputs, soft=True), "soft"
+        x0, y0 = _warm_vectors(qp, warm_start, "soft")
+        run = _osqp(qp, x0, y0)
+        iterations += run.iterations
+    t_relaxed = time.perf_counter()
+    if not run.ok:
+        return _hold(
+            inputs,
+            f"soft relaxation not solved ({run.status}); holding taps and Q",
+            iterations,
+            StageSeconds(t_built - t_start, t_relaxed - t_built, 0.0, t_relaxed - t_start),
+        )
+    d_rel = qp.d_tap(run.x)
+    q_rel = qp.q_kvar(run.x)
+
+    # Rounding, then Q re-solved with the taps fixed, in the relaxation's form; cheapest feasible wins.
+    # Scores include the tap proximal term, so the relaxed objective is a lower bound on every candidate's
+    # score: stop as soon as a candidate is within ROUNDING_GAP_REL of it.
+    candidates = _candidates(d_rel)
+    bound = qp.objective(run.x)
+    best = None  # (score, d_int, q_new_kvar)
+    fixed = build_cvvc_qp(inputs, soft=form == "soft", fixed_d_tap=candidates[0])
+    x_q0, y_q0 = _q_start(fixed, qp, run.x, run.y)
+    row_lo, row_hi = _row_ranges(fixed)
+    rows = fixed.voltage_rows
+    solver = None
+    tried = 0
+    for d_int in candidates:
+        tap_prox = 0.5 * PROX_WEIGHT * fixed.cost_scale * float(d_int @ d_int)
+        tap_cost = float(inputs.cost_per_tap @ np.abs(d_int)) + tap_prox
+        if best is not None and (tap_cost >= best[0] or best[0] <= bound + ROUNDING_GAP_REL * abs(bound)):
+            continue  # cannot beat the best so far, or the best is already close enough to the bound
+        if np.max(np.abs(d_int - d_rel), initial=0.0) <= INTEGRAL_TOL_STEPS:
+            q_new = np.clip(q_rel, inputs.q_min_kvar, inputs.q_max_kvar)  # relaxed optimum is integral
+            x_q = x_q0
+        else:
+            lo, hi = fixed.bounds_with_d_tap(d_int)
+            if form == "hard" and np.any((row_hi < lo[rows] - 1e-9) | (row_lo > hi[rows] + 1e-9)):
+                continue  # some node cannot meet its limits with these taps, whatever Q does
+            if solver is None:
+                solver = _setup(fixed)
+                if solver is None:
+                    break
+            solver.update(l=lo, u=hi)
+            res = _osqp_run(solver, fixed, lo, hi, x_q0, y_q0, MAX_ITER_RESOLVE)
+            iterations += res.iterations
+            tried += 1
+            if not res.ok:
+                continue
+            q_new = np.clip(fixed.q_kvar(res.x), inputs.q_min_kvar, inputs.q_max_kvar)
+            x_q = res.x
+        v_new = inputs.predict_v_pu(d_int, q_new)
+        if form == "hard" and np.max(_violation_pu(inputs, v_new), initial=0.0) > V_TOL_PU:
+            continue
+        score = fixed.objective(x_q) + tap_cost
+        if best is None or score < best[0]:
+            best = (score, d_int, q_new)
+
+    status: Literal["optimal", "soft"] = "optimal" if form == "hard" else "soft"
+    if best is None and form == "hard":
+        # No re-solve succeeded within its budget: take the first candidate that meets the limits with the
+        # relaxed Q unchanged (feasible, not re-optimised).
+        q_keep = np.clip(q_rel, inputs.q_min_kvar, inputs.q_max_kvar)
+        for d_int in candidates:
+            if np.max(_violation_pu(inputs, inputs.predict_v_pu(d_int, q_keep)), initial=0.0) <= V_TOL_PU:
+                best = (0.0, d_int, q_keep)
+                break
+    if best is None and form == "hard":
+        # No integer point within one tap of the relaxation meets the hard limits: soft Q re-solve at the
+        # nearest rounding.
+        reason = "no rounding of the relaxed taps meets the hard limits: Q re-solved in soft form (eq. 17)"
+        status = "soft"
+        soft_fixed = build_cvvc_qp(inputs, soft=True, fixed_d_tap=candidates[0])
+        res = _osqp(soft_fixed, None, None)
+        iterations += res.iterations
+        tried += 1
+        if res.ok:
+            best = (0.0, candidates[0], np.clip(soft_fixed.q_kvar(res.x), inputs.q_min_kvar, inputs.q_max_kvar))
+    if best is None:
+        # Every Q re-solve failed within its budget: nearest rounding with the relaxed Q, as the soft form.
+        reason = (reason + "; " if reason else "") + "Q re-solve not solved: relaxed Q kept at the nearest taps"
+        status = "soft"
+        best = (0.0, candidates[0], np.clip(q_rel, inputs.q_min_kvar, inputs.q_max_kvar))
+    t_rounded = time.perf_counter()
+    seconds = StageSeconds(t_built - t_start, t_relaxed - t_built, t_rounded - t_relaxed, t_rounded - t_start)
+    _, d_int, q_new = best
+    v_pred = inputs.predict_v_pu(d_int, q_new)
+    return CvvcSolution(
+        status=status,
+        reason=reason,
+        taps_new=(inputs.taps + d_int.astype(int)).astype(int),
+        q_new_kvar=q_new,
+        v_pred_pu=v_pred,
+        cost=inputs.cost(d_int, q_new),
+        max_violation_pu=float(np.max(_violation_pu(inputs, v_pred), initial=0.0)),
+        iterations=iterations,
+        relaxed_d_tap=d_rel,
+        relaxed_q_kvar=q_rel,
+        relaxed_form=form,
+        relaxed_x=run.x,
+        relaxed_y=run.y,
+        candidates_tried=tried,
+        seconds=seconds,
+    )
+
+
+def _q_start(
+    fixed: CvvcQp, relaxed: CvvcQp, x_rel: np.ndarray, y_rel: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Start the Q re-solve from the relaxation's Q, violations and the duals of the rows they share."""
+    x0 = np.zeros(fixed.layout.n)
+    x0[fixed.layout.q_inj] = x_rel[relaxed.layout.q_inj]
+    x0[fixed.layout.q_abs] = x_rel[relaxed.layout.q_abs]
+    if fixed.layout.vio is not None and relaxed.layout.vio is not None:
+        x0[fixed.layout.vio] = x_rel[relaxed.layout.vio]
+    n = fixed.voltage_rows.stop
+    n_tap_rows = relaxed.A.shape[0] - fixed.A.shape[0]  # the tap bound rows sit between voltage and Q rows
+    y0 = np.concatenate([y_rel[:n], y_rel[n + n_tap_rows :]]) if y_rel.size == relaxed.A.shape[0] else None
+    return x0, y0
+
+
+def _row_ranges(qp: CvvcQp) -> tuple[np.ndarray, np.ndarray]:
+    """Lowest and highest value each voltage row can take over the variable box (bound rows)."""
+    rows = qp.voltage_rows
+    nb = qp.A.shape[0] - rows.stop  # one identity bound row per tap/Q variable, in variable order
+    dense = qp.A[rows].toarray()[:, :nb]
+    lb, ub = qp.lower[rows.stop :], qp.upper[rows.stop :]
+    return np.minimum(dense * lb, dense * ub).sum(axis=1), np.maximum(dense * lb, dense * ub).sum(axis=1)
+
+
+def solve_milp_reference(inputs: CvvcInputs) -> MilpReference:
+    """Exact optimum of eq. (9)-(15) with integer taps and hard limits, for tests and benchmarks.
+
+    Same scaled constraints as the relaxation, no proximal term, ``scipy.optimize.milp`` (HiGHS).
+    """
+    qp = build_cvvc_qp(inputs, soft=False)
+    lay = qp.layout
+    integrality = np.zeros(lay.n)
+    integrality[: 2 * inputs.n_reg] = 1
+    lo = np.where(np.isfinite(qp.lower), qp.lower, -np.inf)
+    hi = np.where(np.isfinite(qp.upper), qp.upper, np.inf)
+    res = scipy.optimize.milp(
+        qp.c,
+        integrality=integrality,
+        bounds=scipy.optimize.Bounds(-np.inf, np.inf),
+        constraints=scipy.optimize.LinearConstraint(sp.csr_matrix(qp.A), lo, hi),
+        options={"mip_rel_gap": 1e-9},
+    )
+    if res.status == 2:
+        return MilpReference(status="infeasible", taps_new=inputs.taps.copy(), q_new_kvar=inputs.q0_kvar.copy(),
+                             cost=float("inf"))
+    if res.x is None or res.status != 0:
+        return MilpReference(status="failed", taps_new=inputs.taps.copy(), q_new_kvar=inputs.q0_kvar.copy(),
+                             cost=float("inf"))
+    d = np.round(qp.d_tap(res.x))
+    q = qp.q_kvar(res.x)
+    return MilpReference(status="optimal", taps_new=(inputs.taps + d.astype(int)).astype(int), q_new_kvar=q,
+                         cost=inputs.cost(d, q))
