@@ -416,7 +416,10 @@ def make_profiles(
         Seed of the weather (temperature, cloud day types and transients) and of the per-day load
         variation. A different seed gives an out-of-sample year of the same feeder.
     load_kw_nominal : ndarray, shape (n_loads,)
-        Each load's nominal power [kW]; its yearly peak comes out at about this value.
+        Each load's nominal power [kW], as allocated in the feeder model. Profiles are scaled the way load
+        allocation works (paper ref. [13]): the feeder's *coincident* yearly peak equals the sum of the
+        nominal powers, and the loads share it in proportion to their nominal power. Because customers
+        do not peak together, each load's own yearly peak is above its nominal kW (about 1.7x).
     pv_pmpp_kw : ndarray, shape (n_pv,)
         Each plant's rating [kW]; its available AC power never exceeds it.
     latitude_deg, longitude_deg : float
@@ -475,18 +478,45 @@ def make_profiles(
         day_type=day_type,
     )
     peak = _peak_pu(unscaled)
+    per_load = _with_scale(unscaled, nominal / peak)
+    coincidence = _total_peak_kw(per_load) / float(nominal.sum())
     return YearProfiles(
         seed=seed,
         start_t_ns=start_t_ns,
         archetype_pu=unscaled.archetype_pu,
         load_archetype=load_archetype,
         load_shift_steps=shift,
-        load_scale_kw=nominal / peak,
+        load_scale_kw=nominal / peak / coincidence,
         load_noise_sigma=sigma,
         pv_kw=unscaled.pv_kw_year,
         pv_pmpp_kw=pmpp,
         day_type=day_type,
     )
+
+
+def _with_scale(p: YearProfiles, scale_kw: np.ndarray) -> YearProfiles:
+    """The same profiles with another per-load scale [kW]."""
+    return YearProfiles(
+        seed=p.seed,
+        start_t_ns=p.start_t_ns,
+        archetype_pu=p.archetype_pu,
+        load_archetype=p.load_archetype,
+        load_shift_steps=p.load_shift_steps,
+        load_scale_kw=scale_kw,
+        load_noise_sigma=p.load_noise_sigma,
+        pv_kw=p.pv_kw_year,
+        pv_pmpp_kw=p.pv_pmpp_kw,
+        day_type=p.day_type,
+    )
+
+
+def _total_peak_kw(p: YearProfiles) -> float:
+    """The feeder's coincident yearly peak [kW] (one pass over the year's days)."""
+    peak = 0.0
+    for d in range(p.day_type.size):
+        day = p.load_kw(d * _STEPS_PER_DAY, (d + 1) * _STEPS_PER_DAY)
+        peak = max(peak, float(day.sum(axis=1, dtype=np.float64).max()))
+    return peak
 
 
 def _peak_pu(unscaled: YearProfiles) -> np.ndarray:

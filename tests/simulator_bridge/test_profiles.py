@@ -79,10 +79,14 @@ def test_leap_year_has_366_days(feeder):
     assert len(month_steps(p, 2)) == 29 * 1440
 
 
-def test_each_load_peaks_at_its_nominal_kw(year1, year1_loads, feeder):
+def test_feeder_coincident_peak_is_the_sum_of_nominal_kw(year1, year1_loads, feeder):
+    # Load allocation: the feeder's yearly peak is the model's peak load, shared in proportion to kW.
     nominal = feeder[0]
-    peak = year1_loads.max(axis=0)
-    np.testing.assert_allclose(peak, nominal, rtol=1e-4)
+    total = year1_loads.sum(axis=1, dtype=np.float64)
+    assert total.max() == pytest.approx(nominal.sum(), rel=1e-4)
+    ratio = year1_loads.max(axis=0) / nominal
+    assert np.all(ratio > 1.0)  # every customer peaks above its allocated share: diversity
+    assert 1.3 < np.median(ratio) < 2.5
 
 
 def test_load_factors(year1_loads):
