@@ -23,6 +23,7 @@ guide; in short:
 
 from __future__ import annotations
 
+import dataclasses
 import datetime as dt
 import logging
 import math
@@ -39,7 +40,16 @@ import zenoh
 
 from schemas import keys
 from schemas import messages as m
-from schemas.bus import BusConfig, Inbox, LivelinessWatcher, Received, TypedPublisher, codec_for, open_session
+from schemas.bus import (
+    BusConfig,
+    Inbox,
+    LivelinessWatcher,
+    Received,
+    TypedPublisher,
+    codec_for,
+    open_session,
+    wait_for,
+)
 from schemas.devicemap import DeviceMap, load_device_map
 from schemas.errors import CvvcError
 from simulator_bridge import devices as dv
@@ -196,6 +206,39 @@ def _check_config(c: BridgeConfig) -> None:
         raise BridgeError(f"--wait-agent-s must be within 0..3600 s, got {c.wait_agent_s}")
 
 
+class _FramePublisher:
+    """Publisher of frames built from arrays that :func:`_check_finite_step` has already checked.
+
+    ``TypedPublisher`` walks every field of every message for NaN (about 60 µs a frame, more than a power
+    flow of IEEE 13); frames here come from one vectorised check per step instead. Same Zenoh settings.
+    """
+
+    def __init__(self, session: zenoh.Session, key: str, *, reliable: bool = False) -> None:
+        self.key = key
+        self._enc = msgspec.json.Encoder()
+        self._pub = session.declare_publisher(
+            key, encoding=zenoh.Encoding.APPLICATION_JSON,
+            congestion_control=zenoh.CongestionControl.BLOCK if reliable else zenoh.CongestionControl.DROP,
+            priority=zenoh.Priority.REAL_TIME if reliable else zenoh.Priority.DATA, express=reliable)
+
+    def put(self, msg: msgspec.Struct) -> None:
+        self._pub.put(self._enc.encode(msg))
+
+    def wait_matched(self, timeout_s: float) -> bool:
+        """Wait until a subscriber exists (a put right after a remote declaration is often lost)."""
+        return wait_for(lambda: bool(self._pub.matching_status.matching), timeout_s)
+
+
+def _check_finite_step(res: Any) -> None:
+    """Raise ``BridgeError`` if a step's readings or truth hold NaN or inf (a power flow gone wrong)."""
+    rd = res.readings
+    arrays = [getattr(rd, f.name) for f in dataclasses.fields(rd)] + [res.v_pu, res.pv_q_kvar, res.pv_p_kw]
+    for a in arrays:
+        if not np.all(np.isfinite(np.asarray(a, dtype=float))):
+            raise BridgeError(f"step at t_ns={res.t_ns}: the power flow produced non-finite values; the "
+                              "feeder or its profiles are broken (check `cvvc feeder info`)")
+
+
 @dataclass(frozen=True)
 class _OracleQuery:
     query: zenoh.Query
@@ -263,12 +306,12 @@ class _Runtime:
                        lv.declare_token(keys.alive(f, "head", "head"))]
         self.tokens += [lv.declare_token(keys.alive(f, "pv", p)) for p in self.pvs]
         self.tokens += [lv.declare_token(keys.alive(f, "vr", r)) for r in self.regs]
-        self.pub_head = TypedPublisher(s, keys.meas_head(f), m.HeadFrame)
-        self.pub_pv = {p: TypedPublisher(s, keys.meas_pv(f, p), m.PvFrame) for p in self.pvs}
-        self.pub_vr = {r: TypedPublisher(s, keys.meas_vr(f, r), m.RegFrame) for r in self.regs}
+        self.pub_head = _FramePublisher(s, keys.meas_head(f))
+        self.pub_pv = {p: _FramePublisher(s, keys.meas_pv(f, p)) for p in self.pvs}
+        self.pub_vr = {r: _FramePublisher(s, keys.meas_vr(f, r)) for r in self.regs}
         self.ack_pv = {p: TypedPublisher(s, keys.ack(f, "pv", p), m.Ack, reliable=True) for p in self.pvs}
         self.ack_vr = {r: TypedPublisher(s, keys.ack(f, "vr", r), m.Ack, reliable=True) for r in self.regs}
-        self.pub_truth = TypedPublisher(s, keys.sim_truth(f), m.TruthFrame, reliable=True)
+        self.pub_truth = _FramePublisher(s, keys.sim_truth(f), reliable=True)
         self.pub_metrics = TypedPublisher(s, keys.sim_metrics(f), m.MetricsFrame, reliable=True)
         self.pub_status = TypedPublisher(s, keys.sim_status(f), m.BridgeStatus, reliable=True)
         self.inbox = Inbox(maxsize=4096)
@@ -492,17 +535,17 @@ class _Runtime:
     # ---------------------------------------------------------------- frames
     def _flush(self, now_s: float) -> None:
         for pub, msg in self.delay.due(now_s):  # type: ignore[misc]
-            pub.put(msg)
-            self.frames_published += 1
             if isinstance(msg, m.HeadFrame) and self.is_control_step(self._step_of(msg.t_ns)):
-                self._ctrl_pub_wall_ns[msg.t_ns] = time.time_ns()
+                self._ctrl_pub_wall_ns[msg.t_ns] = time.time_ns()  # before put: the answer may beat put's return
                 while len(self._ctrl_pub_wall_ns) > 64:  # decisions that never came
                     self._ctrl_pub_wall_ns.pop(next(iter(self._ctrl_pub_wall_ns)))
+            pub.put(msg)
+            self.frames_published += 1
 
     def _step_of(self, t_ns: int) -> int:
         return (t_ns - int(self.profiles.start_t_ns)) // (self.step_s * _NS)
 
-    def _send(self, pub: TypedPublisher, msg: msgspec.Struct, now_s: float) -> None:
+    def _send(self, pub: _FramePublisher, msg: msgspec.Struct, now_s: float) -> None:
         if self.dropper.drop():
             self.frames_dropped += 1
             return
@@ -586,6 +629,7 @@ class _Runtime:
         t_next = int(self.profiles.t_ns(self.qsts.next_step))
         self.run_watchdogs(t_next)
         res = self.qsts.step()
+        _check_finite_step(res)
         self.now_t_ns = int(res.t_ns)
         self.pv_p_kw = np.asarray(res.pv_p_kw, float)
         self.metrics.update(res.v_pu, res.tap_changes, res.pv_q_kvar)
