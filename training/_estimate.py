@@ -1,17 +1,26 @@
-"""Private evaluation of a trained model: paper eq. (5)-(7) and eq. (3).
+"""Batch evaluation of a trained model over many minutes, on top of ``agent.estimator``.
 
-Used by training (fit statistics) and the accuracy report. ``agent/estimator.py`` owns the online
-version (``estimate_voltages_pu``); once it exists, the report should call that instead of this module so
-there is one estimator in the project.
+The estimation math (paper eq. (5)-(7) and the evaluation of eq. (3)) lives in one place,
+``agent/estimator.py``, which the online agent uses. This module only applies it to (T, ...) batches for
+training statistics, tests and the accuracy report.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 
+from agent.estimator import (
+    SensitivityTable,
+    apply_correction,
+    correction_pu,
+    dv_dq_pu_per_kvar,
+    estimate_voltages_pu,
+)
 from training.model import ModelArrays, SensitivityFit
 
-__all__ = ["estimate_v_pu", "sensitivity_arrays", "eval_sensitivities"]
+__all__ = ["estimate_v_pu", "eval_sensitivities", "sensitivity_arrays"]
 
 
 def estimate_v_pu(
@@ -27,57 +36,39 @@ def estimate_v_pu(
     arrays : the model's arrays.
     features : (T, M) feature vectors (``training.model.features``) [kW, kvar].
     taps : (T, R) present tap positions [steps].
-    reg_v120 : (T, R) measured regulator secondary voltages [V on the 120 V base], or None.
+    reg_v120 : (T, R) measured raw regulator secondary voltages [V on the 120 V base], or None.
 
     Returns
     -------
     (T, N) estimated voltages [pu of each node's base].
     """
-    x = np.atleast_2d(np.asarray(features, float))
-    t = np.atleast_2d(np.asarray(taps, float))
-    v = x @ arrays.alpha[:, :-1].T + arrays.alpha[:, -1]
-    if arrays.tap0.size:
-        v = v + (t - arrays.tap0) @ arrays.dv_dtap_pu.T  # eq. (5), second term
+    v = estimate_voltages_pu(arrays, np.atleast_2d(features), np.atleast_2d(taps))
     if reg_v120 is None or arrays.tap0.size == 0:
         return v
     measured = np.atleast_2d(np.asarray(reg_v120, float)) * arrays.reg_pu_per_v120
-    eps = measured - v[:, arrays.reg_secondary_node]  # eq. (6)
-    has = arrays.upstream_regulator >= 0
-    v = v.copy()
-    v[:, has] += eps[:, arrays.upstream_regulator[has]]  # eq. (7)
-    return v
+    # the agent's functions index nodes / regulators on axis 0: pass (N, T) and (R, T)
+    eps = correction_pu(v.T, arrays.reg_secondary_node, measured.T)
+    return apply_correction(v.T, eps, arrays.upstream_regulator).T
 
 
-def sensitivity_arrays(fits: list[list[SensitivityFit]]) -> dict[str, np.ndarray]:
-    """Collect the (N, K) parameter arrays of the eq. (3) fits.
-
-    Keys: form code (0 constant, 1 linear, 2 power), a, b, c, q_min, q_max.
-    """
-    code = {"constant": 0, "linear": 1, "power": 2}
-    return {
-        "form": np.asarray([[code[f.form] for f in row] for row in fits], int),
-        "a": np.asarray([[f.a for f in row] for row in fits], float),
-        "b": np.asarray([[f.b for f in row] for row in fits], float),
-        "c": np.asarray([[f.c for f in row] for row in fits], float),
-        "q_min": np.asarray([[f.q_min_kvar for f in row] for row in fits], float),
-        "q_max": np.asarray([[f.q_max_kvar for f in row] for row in fits], float),
-    }
+def sensitivity_arrays(fits: Sequence[Sequence[SensitivityFit]]) -> SensitivityTable:
+    """The (N, K) eq. (3) fits of a model as the agent's ``SensitivityTable``."""
+    return SensitivityTable.of(fits)
 
 
-def eval_sensitivities(params: dict[str, np.ndarray], q_head_kvar: np.ndarray) -> np.ndarray:
-    """dV_n/dQ_k at head Q, paper eq. (3) and our linear/constant forms.
+def eval_sensitivities(table: SensitivityTable, q_head_kvar: np.ndarray) -> np.ndarray:
+    """dV_n/dQ_k at each head Q, paper eq. (3) (``agent.estimator.dv_dq_pu_per_kvar``).
 
     Parameters
     ----------
-    params : ``sensitivity_arrays`` output, arrays (N, K).
-    q_head_kvar : (T,) feeder-head Q, sum of phases [kvar]; clipped to each fit's training range.
+    table : ``sensitivity_arrays`` of the model.
+    q_head_kvar : (T,) feeder-head Q, sum of phases [kvar].
 
     Returns
     -------
     (T, N, K) [pu/kvar].
     """
-    q = np.clip(np.asarray(q_head_kvar, float)[:, None, None], params["q_min"], params["q_max"])
-    a, b, c = params["a"], params["b"], params["c"]
-    power = a / np.where(params["form"] == 2, c + q, 1.0) ** np.where(params["form"] == 2, b, 0.0)
-    linear = a + b * q
-    return np.where(params["form"] == 2, power, np.where(params["form"] == 1, linear, a + 0.0 * q))
+    q = np.asarray(q_head_kvar, float).ravel()
+    if q.size == 0:
+        return np.zeros((0, *table.a.shape))
+    return np.stack([dv_dq_pu_per_kvar(table, float(x)) for x in q])
