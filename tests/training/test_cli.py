@@ -1,0 +1,34 @@
+"""``cvvc train`` and ``cvvc report-accuracy`` through the real command line (IEEE 13, real OpenDSS)."""
+
+import json
+
+from tests.training.conftest import REPO
+from tests.training.test_train import _map
+
+
+def test_train_json_then_accuracy(tmp_path, monkeypatch, capsys):
+    from cvvc.cli import main
+
+    monkeypatch.chdir(tmp_path)  # the profile cache goes to ./.cvvc-cache
+    feeder = REPO / "feeders" / "ieee13.toml"
+    out = tmp_path / "m13.json"
+    assert main(["train", "--feeder", str(feeder), "--out", str(out), "--blocks", "2", "2", "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    for key in ("scenarios", "power_flows", "critical_nodes", "critical_share", "seconds", "voltage_rmse_pu"):
+        assert key in summary
+    assert summary["scenarios"] >= 4 and summary["power_flows"] > summary["scenarios"]
+    assert out.is_file()
+    argv = ["report-accuracy", "--model", str(out), "--feeder", str(feeder), "--month", "4", "--max-minutes", "30"]
+    assert main([*argv, "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["minutes"] == 30 and len(report["errors"]) == 2
+    assert all(e["max_abs_pu"] < 0.01 for e in report["errors"])
+
+
+def test_train_error_is_one_line_with_status_2(tmp_path, capsys):
+    from cvvc.cli import main
+
+    path = _map(tmp_path, pv=False, regulator=True)
+    assert main(["train", "--feeder", str(path), "--out", str(tmp_path / "m.json")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("cvvc train: error:") and "no PV plant" in err and "\n" not in err
