@@ -1,0 +1,403 @@
+"""``cvvc run``: the main job. Feeder, model, one router, then bridge, agent and recorder as processes.
+
+What it does, in order:
+
+1. the feeder: the embedded rural feeder (generated once into the cache) or ``--feeder``;
+2. the model: ``--model``, or the cached model of that feeder and training seed (trained once);
+3. a router-mode Zenoh session in this process on a free ``tcp/127.0.0.1`` port;
+4. the recorder, the agent (not for the ``none`` / ``local`` baselines) and the bridge as separate
+   processes (``subprocess``: a fresh interpreter each, never a fork), connected to the router;
+5. progress from the bridge's status frames; the final metrics frame when the bridge finishes;
+6. stop the agent and recorder (SIGINT, then SIGKILL after a deadline), every one by its pid;
+7. the no-control baseline of the same days, simulated in this process (no bus, the same physics);
+8. a summary (printed, ``summary.json``, ``report.md``) with where the MCAP and the model are.
+
+A child that dies early stops everything: the others are stopped, the recording finished, exit 1.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import msgspec
+
+from schemas.errors import CvvcError
+
+__all__ = ["CASES", "LaunchError", "RunConfig", "RunSummary", "case_agent_args", "run"]
+
+Case = Literal["A", "B", "C", "D", "none", "local"]
+CASES: tuple[Case, ...] = ("A", "B", "C", "D", "none", "local")
+DEFAULT_CACHE = Path(".cvvc-cache")
+
+
+class LaunchError(CvvcError):
+    """A run that cannot start or whose processes failed; the message says which and why."""
+
+
+class RunConfig(msgspec.Struct, frozen=True, kw_only=True):
+    """Everything ``cvvc run`` needs; built from the command line."""
+
+    feeder: str | None = None  # device map TOML or folder; None: embedded rural feeder
+    model: str | None = None
+    days: float = 1.0
+    start: str = "2023-01-16"  # a winter weekday
+    case: Case = "D"
+    realtime: bool = False
+    speed: float = 60.0
+    out: str | None = None
+    train_seed: int = 1
+    year_seed: int = 2  # out of sample: not the training year
+    bandwidth_v120: float = 4.0
+    lockstep_timeout_s: float = 10.0
+    cache: str = str(DEFAULT_CACHE)
+    record: bool = True
+    baseline: bool = True
+    progress: bool = True
+    noise_pmu_pct: float = 0.0
+    noise_scada_pct: float = 0.0
+    drop_prob: float = 0.0
+    truth_every: int = 0
+
+
+class RunSummary(msgspec.Struct, frozen=True, kw_only=True):
+    feeder: str
+    feeder_id: str
+    case: str
+    start: str
+    days: float
+    steps: int
+    wall_s: float
+    metrics: dict[str, object]
+    baseline: dict[str, object] | None
+    lockstep_misses: int
+    decisions: int
+    out_dir: str
+    recording: str | None
+    model: str | None
+
+
+def case_agent_args(case: Case, bandwidth_v120: float) -> list[str] | None:
+    """The ``cvvc agent`` flags of a case (paper Table I), or None when the case runs no agent."""
+    match case:
+        case "A":
+            return ["--mode", "taps", "--correction", "off", "--full-visibility"]
+        case "B":
+            return ["--mode", "taps", "--correction", "off"]
+        case "C":
+            return ["--mode", "setpoints", "--correction", "off", "--bandwidth-v", str(bandwidth_v120)]
+        case "D":
+            return ["--mode", "setpoints", "--correction", "on", "--bandwidth-v", str(bandwidth_v120)]
+        case _:
+            return None
+
+
+def _log(msg: str) -> None:
+    print(f"[cvvc run] {msg}", file=sys.stderr, flush=True)
+
+
+def prepare_feeder_and_model(config: RunConfig) -> tuple[Path, Path]:
+    """Resolve (generating or training once, cached) the device map and the model."""
+    from schemas.devicemap import load_device_map
+    from simulator_bridge.cli import ensure_default_feeder, resolve_device_map_path
+
+    cache = Path(config.cache)
+    dm_path = resolve_device_map_path(config.feeder) if config.feeder else ensure_default_feeder(cache)
+    dm = load_device_map(dm_path)
+    if config.model:
+        return dm_path, Path(config.model)
+    model_path = cache / "models" / f"{dm.feeder.name}-{dm.fingerprint()}-y{config.train_seed}.json"
+    if not model_path.is_file():
+        from training.model import write_model
+        from training.train import train
+
+        _log(f"training a model for {dm.feeder.name} (year seed {config.train_seed}); cached afterwards")
+        t0 = time.monotonic()
+        result = train(dm_path, year_seed=config.train_seed, selection="guided",
+                       cache_dir=cache / "profiles", progress=config.progress)
+        model_path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = model_path.with_suffix(".tmp")
+        write_model(result.model, tmp)
+        os.replace(tmp, model_path)
+        _log(f"model trained in {time.monotonic() - t0:.1f} s: {model_path}")
+    return dm_path, model_path
+
+
+@dataclass
+class _Child:
+    name: str
+    proc: subprocess.Popen[bytes]
+    essential: bool
+
+
+def _spawn(name: str, args: list[str], log_dir: Path, *, essential: bool = True) -> _Child:
+    log = open(log_dir / f"{name}.log", "wb")  # noqa: SIM115  (closed with the process)
+    proc = subprocess.Popen([sys.executable, "-m", "cvvc", *args], stdout=log, stderr=subprocess.STDOUT,
+                            stdin=subprocess.DEVNULL)
+    log.close()
+    return _Child(name, proc, essential)
+
+
+def _stop(child: _Child, timeout_s: float = 15.0) -> int:
+    """Stop one child by its pid: SIGINT, then SIGKILL after ``timeout_s``. Returns its exit status."""
+    if child.proc.poll() is None:
+        try:
+            child.proc.send_signal(signal.SIGINT)
+        except ProcessLookupError:
+            pass
+        try:
+            child.proc.wait(timeout=timeout_s)
+        except subprocess.TimeoutExpired:
+            _log(f"{child.name} (pid {child.proc.pid}) did not stop in {timeout_s:.0f} s: killing it")
+            child.proc.kill()
+            child.proc.wait(timeout=10)
+    return int(child.proc.returncode)
+
+
+def _tail(path: Path, n: int = 15) -> str:
+    try:
+        return "\n".join(path.read_text(errors="replace").splitlines()[-n:])
+    except OSError:
+        return ""
+
+
+def run(config: RunConfig) -> RunSummary:
+    """Run one case end to end; see the module docstring."""
+    from schemas import keys
+    from schemas import messages as m
+    from schemas.bus import BusConfig, Inbox, free_port, open_session, wait_for
+    from schemas.devicemap import load_device_map
+
+    if config.case not in CASES:
+        raise LaunchError(f"unknown case {config.case!r}; choose one of {', '.join(CASES)}")
+    try:
+        start = dt.date.fromisoformat(config.start)
+    except ValueError as e:
+        raise LaunchError(f"--start {config.start!r} is not a date (YYYY-MM-DD)") from e
+    if not 0 < config.days <= 366:
+        raise LaunchError(f"--days {config.days} must be in (0, 366]")
+
+    t_wall0 = time.monotonic()
+    dm_path, model_path = prepare_feeder_and_model(config)
+    dm = load_device_map(dm_path)
+    feeder_id = dm.feeder.name
+    fingerprint = dm.fingerprint()
+    agent_args = case_agent_args(config.case, config.bandwidth_v120)
+    if agent_args is not None:
+        from training.model import read_model
+
+        read_model(model_path, expect_fingerprint=fingerprint)  # refuse a model of another feeder early
+
+    stamp = dt.datetime.now().strftime("%Y%m%d-%H%M%S")
+    out = Path(config.out) if config.out else Path("runs") / f"{feeder_id}-{config.case}-{stamp}"
+    out.mkdir(parents=True, exist_ok=True)
+    kept_model = out / "model.json"
+    if agent_args is not None:
+        shutil.copyfile(model_path, kept_model)
+    mcap_path = out / "session.mcap"
+    steps = int(round(config.days * 1440))
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    connect = ["--connect", endpoint]
+    children: list[_Child] = []
+    final: m.MetricsFrame | None = None
+    status: m.BridgeStatus | None = None
+    decisions = 0
+    try:
+        with open_session(BusConfig(mode="router", listen=(endpoint,))) as session:
+            inbox = Inbox(maxsize=100_000)
+            inbox.subscribe(session, keys.sim_metrics(feeder_id), m.MetricsFrame)
+            inbox.subscribe(session, keys.sim_status(feeder_id), m.BridgeStatus)
+            inbox.subscribe(session, keys.agent_decision(feeder_id), m.Decision)
+            if config.record:
+                children.append(_spawn("recorder", [
+                    "record", "--out", str(mcap_path), "--keys", f"cvvc/{feeder_id}/**",
+                    "--feeder-fingerprint", fingerprint,
+                    *(["--model", str(kept_model)] if agent_args is not None else []), *connect], out))
+                probe = session.declare_publisher(keys.sim_status(feeder_id))
+                if not wait_for(lambda: bool(probe.matching_status.matching), 30.0):  # type: ignore[attr-defined]
+                    raise LaunchError(f"the recorder did not subscribe within 30 s:\n{_tail(out / 'recorder.log')}")
+                probe.undeclare()
+            if agent_args is not None:
+                children.append(_spawn("agent", [
+                    "agent", "--model", str(kept_model), "--feeder-id", feeder_id, *agent_args, *connect], out))
+                agent_alive = _liveliness_waiter(session, keys.alive(feeder_id, "agent", "agent"))
+                if not agent_alive.wait(60.0):
+                    raise LaunchError(f"the agent did not come up within 60 s:\n{_tail(out / 'agent.log')}")
+            clock = (["--realtime", "--speed", str(config.speed)] if config.realtime
+                     else ["--lockstep", "--timeout-s", str(config.lockstep_timeout_s)])
+            realism = []
+            if config.noise_pmu_pct:
+                realism += ["--noise-pmu-pct", str(config.noise_pmu_pct)]
+            if config.noise_scada_pct:
+                realism += ["--noise-scada-pct", str(config.noise_scada_pct)]
+            if config.drop_prob:
+                realism += ["--drop-prob", str(config.drop_prob)]
+            if config.truth_every:
+                realism += ["--truth-every", str(config.truth_every)]
+            bridge = _spawn("bridge", [
+                "bridge", "--feeder", str(dm_path), "--feeder-id", feeder_id, "--start", start.isoformat(),
+                "--steps", str(steps), "--year-seed", str(config.year_seed),
+                "--pv-local", "volt_var" if config.case == "local" else "unity", *clock, *realism, *connect], out)
+            children.append(bridge)
+
+            bar = _progress(steps, config.progress)
+            while True:
+                for child in children:
+                    code = child.proc.poll()
+                    if code is not None and child is not bridge and child.essential:
+                        raise LaunchError(f"{child.name} (pid {child.proc.pid}) exited with {code}:\n"
+                                          f"{_tail(out / f'{child.name}.log')}")
+                item = inbox.get(timeout_s=0.2)
+                while item is not None:
+                    match item.msg:
+                        case m.MetricsFrame() as mf:
+                            if mf.final:
+                                final = mf
+                        case m.BridgeStatus() as st:
+                            status = st
+                            if bar is not None:
+                                bar.n = st.step
+                                bar.refresh()
+                        case m.Decision():
+                            decisions += 1
+                    item = inbox.get(timeout_s=0.0)
+                if bridge.proc.poll() is not None:
+                    # the bridge is done: collect what it published last (bounded)
+                    if final is None:
+                        wait_for(lambda: not inbox.queue.empty(), 5.0)
+                    for item in inbox.drain():
+                        if isinstance(item.msg, m.MetricsFrame) and item.msg.final:
+                            final = item.msg
+                        elif isinstance(item.msg, m.Decision):
+                            decisions += 1
+                    break
+            if bar is not None:
+                bar.close()
+            if bridge.proc.returncode != 0:
+                raise LaunchError(f"the bridge exited with {bridge.proc.returncode}:\n{_tail(out / 'bridge.log')}")
+            if final is None:
+                raise LaunchError("the bridge finished without publishing its final metrics frame")
+            for child in children:
+                if child is not bridge:
+                    _stop(child)
+    finally:
+        for child in children:
+            _stop(child)
+    wall_s = time.monotonic() - t_wall0
+
+    baseline = None
+    if config.baseline and config.case != "none":
+        _log("simulating the no-control baseline of the same days")
+        baseline = _metrics_dict(no_control_baseline(dm_path, start, steps, config.year_seed, Path(config.cache)))
+    summary = RunSummary(
+        feeder=str(dm_path), feeder_id=feeder_id, case=config.case, start=start.isoformat(), days=config.days,
+        steps=steps, wall_s=round(wall_s, 2), metrics=_metrics_frame_dict(final), baseline=baseline,
+        lockstep_misses=status.lockstep_misses if status else 0, decisions=decisions, out_dir=str(out),
+        recording=str(mcap_path) if config.record else None,
+        model=str(kept_model) if agent_args is not None else None)
+    (out / "summary.json").write_bytes(msgspec.json.format(msgspec.json.encode(summary), indent=2))
+    (out / "report.md").write_text(render_summary(summary))
+    return summary
+
+
+class _LiveWaiter:
+    def __init__(self) -> None:
+        self.event = threading.Event()
+
+    def wait(self, timeout_s: float) -> bool:
+        return self.event.wait(timeout_s)
+
+
+def _liveliness_waiter(session, key: str) -> _LiveWaiter:
+    import zenoh
+
+    waiter = _LiveWaiter()
+
+    def cb(sample: zenoh.Sample) -> None:
+        if sample.kind == zenoh.SampleKind.PUT:
+            waiter.event.set()
+
+    waiter.sub = session.liveliness().declare_subscriber(key, cb, history=True)  # type: ignore[attr-defined]
+    return waiter
+
+
+def _progress(total: int, enabled: bool):
+    if not enabled:
+        return None
+    from tqdm import tqdm
+
+    return tqdm(total=total, unit="min", desc="simulated", file=sys.stderr, dynamic_ncols=True,
+                disable=not sys.stderr.isatty())
+
+
+def no_control_baseline(dm_path: Path, start: dt.date, steps: int, year_seed: int, cache: Path):
+    """The same days with no central control (regulators local, PV unity PF), simulated in-process."""
+    from schemas.devicemap import load_device_map
+    from simulator_bridge.engine import FeederEngine
+    from simulator_bridge.metrics import MetricsAccumulator
+    from simulator_bridge.qsts import Qsts
+    from training.train import load_profiles
+
+    dm = load_device_map(dm_path)
+    engine = FeederEngine(dm)
+    profiles = load_profiles(dm, engine, seed=year_seed, cache_dir=cache / "profiles")
+    first = (dt.datetime.combine(start, dt.time()) - dt.datetime(start.year, 1, 1)).days * 1440
+    sim = Qsts(engine, profiles, start_step=first, pv_local="unity")
+    acc = MetricsAccumulator(
+        n_nodes=len(engine.node_names), regulator_ids=list(engine.regulator_ids), pv_ids=list(engine.pv_ids),
+        cost_per_tap=[r.cost_per_tap for r in dm.regulator], cost_per_kvar=[p.cost_per_kvar for p in dm.pv],
+        limits_pu=dm.feeder.judged_limits_pu, step_s=dm.feeder.step_s, control_period_s=dm.feeder.control_period_s)
+    for _ in range(steps):
+        r = sim.step()
+        acc.update(r.v_pu, r.tap_changes, r.pv_q_kvar)
+    return acc.result()
+
+
+def _metrics_dict(metrics) -> dict[str, object]:
+    return msgspec.to_builtins(metrics)
+
+
+def _metrics_frame_dict(frame) -> dict[str, object]:
+    d = msgspec.to_builtins(frame)
+    for k in ("t_ns", "seq", "source", "final"):
+        d.pop(k, None)
+    return d
+
+
+def render_summary(s: RunSummary) -> str:
+    """The run's summary as a short markdown report."""
+    mt = s.metrics
+    rows = [("MVVM [pu]", "mvvm_pu"), ("NVV", "nvv"), ("minutes in violation", "minutes_in_violation"),
+            ("NTC (tap changes)", "ntc"), ("Q cost", "q_cost"), ("T cost", "t_cost"), ("total cost", "total_cost"),
+            ("V min [pu]", "v_min_pu"), ("V max [pu]", "v_max_pu")]
+    base = s.baseline or {}
+    lines = [f"# cvvc run: case {s.case} on {s.feeder_id}, {s.start}, {s.days:g} day(s)", "",
+             f"| metric | case {s.case} | no control |", "|---|---|---|"]
+    for label, key in rows:
+        b = base.get(key, "")
+        lines.append(f"| {label} | {_fmt(mt.get(key))} | {_fmt(b) if b != '' else ''} |")
+    lines += ["", f"- decisions: {s.decisions}; lockstep misses: {s.lockstep_misses}; wall time {s.wall_s:.1f} s",
+              f"- recording: `{s.recording}`" if s.recording else "- recording: off",
+              f"- model: `{s.model}`" if s.model else "- model: none (baseline case)", ""]
+    return "\n".join(lines)
+
+
+def _fmt(v: object) -> str:
+    if isinstance(v, float):
+        return f"{v:.4f}" if abs(v) < 10 else f"{v:.2f}"
+    return str(v)
+
+
+def summary_json(s: RunSummary) -> str:
+    return json.dumps(msgspec.to_builtins(s), indent=2)

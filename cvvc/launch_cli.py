@@ -1,0 +1,49 @@
+"""``cvvc run`` (and later ``evaluate``, ``report``): the launchers' command line."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+__all__ = ["register"]
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("run", help="the main job: bridge + agent + recorder on one simulated day (case D)",
+                       description="Generate or reuse the feeder and model, then run bridge, agent and recorder "
+                                   "as separate processes on loopback and print a summary.")
+    p.add_argument("--feeder", default=None, help="device map TOML or folder (default: embedded rural feeder)")
+    p.add_argument("--model", default=None, help="model file (default: train once and cache)")
+    p.add_argument("--days", type=float, default=1.0, help="simulated days (default 1; 1/24 = one hour)")
+    p.add_argument("--start", default="2023-01-16", help="first simulated day, YYYY-MM-DD (default 2023-01-16)")
+    p.add_argument("--case", default="D", choices=["A", "B", "C", "D", "none", "local"],
+                   help="paper case A-D, or a baseline: none (no central control), local (+ IEEE 1547 volt-var)")
+    p.add_argument("--realtime", action="store_true", help="step on the wall clock instead of lockstep")
+    p.add_argument("--speed", type=float, default=60.0, help="with --realtime: simulated s per wall s")
+    p.add_argument("--out", default=None, help="output folder (default runs/<feeder>-<case>-<time>)")
+    p.add_argument("--year-seed", type=int, default=2, help="profile year of the run (default 2: out of sample)")
+    p.add_argument("--train-seed", type=int, default=1, help="profile year used for training (default 1)")
+    p.add_argument("--bandwidth-v", type=float, default=4.0, help="regulator band on 120 V in cases C/D")
+    p.add_argument("--no-record", action="store_true", help="do not record the session to MCAP")
+    p.add_argument("--no-baseline", action="store_true", help="skip the no-control baseline")
+    p.add_argument("--cache", default=".cvvc-cache", help="cache of feeders, profiles and models")
+    p.add_argument("--json", action="store_true", help="print the summary as JSON")
+    p.set_defaults(func=_run)
+
+
+def _run(args: argparse.Namespace) -> int:
+    import msgspec
+
+    from cvvc.launch import RunConfig, render_summary, run
+
+    config = RunConfig(feeder=args.feeder, model=args.model, days=args.days, start=args.start, case=args.case,
+                       realtime=args.realtime, speed=args.speed, out=args.out, train_seed=args.train_seed,
+                       year_seed=args.year_seed, bandwidth_v120=args.bandwidth_v, record=not args.no_record,
+                       baseline=not args.no_baseline, cache=args.cache, progress=not args.json)
+    summary = run(config)
+    if args.json:
+        sys.stdout.write(msgspec.json.format(msgspec.json.encode(summary), indent=2).decode() + "\n")
+    else:
+        print(render_summary(summary))
+        print(f"output: {summary.out_dir} (summary.json, report.md{', session.mcap' if summary.recording else ''})")
+    return 0
