@@ -78,6 +78,8 @@ FRACTIONAL_TOL_STEPS = 0.02
 INTEGRAL_TOL_STEPS = 1e-6
 #: Stop trying rounding candidates once one scores within this fraction of the relaxed objective.
 ROUNDING_GAP_REL = 0.01
+#: Q set points are rounded to this many decimals of a kvar.
+Q_DECIMALS = 3
 #: Voltage-limit tolerance when checking a solution against the linear model [pu].
 V_TOL_PU = 1e-5
 
@@ -480,6 +482,8 @@ def solve_cvvc(inputs: CvvcInputs, *, warm_start: CvvcSolution | None = None) ->
     t_rounded = time.perf_counter()
     seconds = StageSeconds(t_built - t_start, t_relaxed - t_built, t_rounded - t_relaxed, t_rounded - t_start)
     _, d_int, q_new = best
+    # Commands to 1 var resolution (ADMM leaves 1e-7 kvar dust); moves voltages by < 1e-7 pu.
+    q_new = np.clip(np.round(q_new, Q_DECIMALS), inputs.q_min_kvar, inputs.q_max_kvar) + 0.0
     v_pred = inputs.predict_v_pu(d_int, q_new)
     return CvvcSolution(
         status=status,

@@ -1,0 +1,392 @@
+"""The stateful CVVC controller: one aligned measurement snapshot in, one decision out (paper II.E, III).
+
+It holds the model, the configuration, the last known value of every device and the previous solution
+(for the solver's warm start), and nothing else; it knows no clock, bus or file (the runtime does).
+
+Hold rule (what happens when frames are missing or invalid; a frame flagged valid but holding a non-finite
+or impossible value is treated as invalid and listed in ``Decision.missing``):
+
+- feeder-head frame missing/invalid -> ``hold``: no commands at all (devices keep their last valid commands
+  until those expire, then local control);
+- PV plant frame missing/invalid -> the plant's last known P and Q stand in for the estimate, its Q is fixed
+  at that last known value in the optimization and it gets no command; never seen yet -> ``hold``;
+- regulator frame missing/invalid -> its last known tap stands in for the estimate, it is not moved
+  (``max_taps_per_interval`` 0), gives no correction (eq. 6) and gets no command; never seen yet -> ``hold``.
+
+Determinism: same snapshots in the same order give bit-identical decisions (``Decision.same_content``),
+timings aside. The solver is warm-started only from the previous decision's solution and has fixed
+settings and iteration limits (``agent.solve``).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, fields
+from typing import Literal
+
+import numpy as np
+
+from agent.cvvc_qp import CvvcInputs
+from agent.errors import AgentInputError
+from agent.estimator import (
+    SensitivityTable,
+    apply_correction,
+    correction_pu,
+    dv_dq_pu_per_kvar,
+    estimate_voltages_pu,
+)
+from agent.setpoints import expected_compared_v120, setpoint_for_tap_change
+from agent.solve import CvvcSolution, solve_cvvc
+from training.model import CvvcModel, ModelArrays, features
+
+__all__ = ["CvvcController", "Decision", "DecisionTimings", "MeasurementSnapshot"]
+
+#: Plausible ranges; a value outside makes its frame invalid (the schemas bound the wire values already).
+_V120_RANGE = (60.0, 180.0)
+_POWER_LIMIT_KW = 1e6
+
+
+@dataclass(frozen=True)
+class MeasurementSnapshot:
+    """The aligned measurements of one control step, as arrays (index order = the model's).
+
+    Attributes
+    ----------
+    t_ns : measurement time [ns since epoch].
+    head_p_kw, head_q_kvar : (3,) feeder-head power per phase a, b, c, into the feeder [kW], [kvar].
+    pv_p_kw, pv_q_kvar : (K,) plant output, generator convention [kW], [kvar].
+    pv_kva_available : (K,) apparent power the plant can deliver now [kVA]; Q headroom is
+        ``sqrt(kva^2 - p^2)``.
+    pv_q_setpoint_kvar : (K,) present Q set point [kvar], NaN when the plant is on its local default.
+        Informational: eq. (13) uses the measured Q, which is what the estimate reflects.
+    reg_v120 : (R,) raw secondary voltage [V on 120 V base] (for the correction, eq. 6).
+    reg_v120_compared : (R,) voltage the controller compares with its band (line-drop compensation
+        included) [V on 120 V base] (for eq. 8).
+    reg_tap : (R,) present tap [steps].
+    head_valid : the head frame arrived and passed the runtime's checks.
+    pv_valid : (K,) bool, same per plant.
+    reg_valid : (R,) bool, same per regulator.
+    """
+
+    t_ns: int
+    head_p_kw: np.ndarray
+    head_q_kvar: np.ndarray
+    pv_p_kw: np.ndarray
+    pv_q_kvar: np.ndarray
+    pv_kva_available: np.ndarray
+    pv_q_setpoint_kvar: np.ndarray
+    reg_v120: np.ndarray
+    reg_v120_compared: np.ndarray
+    reg_tap: np.ndarray
+    head_valid: bool
+    pv_valid: np.ndarray
+    reg_valid: np.ndarray
+
+
+@dataclass(frozen=True)
+class DecisionTimings:
+    """Wall time per stage [s]. Diagnostics only: excluded from ``Decision.same_content``."""
+
+    estimate_s: float = 0.0
+    solve_s: float = 0.0
+    round_s: float = 0.0
+    total_s: float = 0.0
+
+
+@dataclass(frozen=True)
+class Decision:
+    """What the controller decided for one snapshot.
+
+    Attributes
+    ----------
+    t_ns : the snapshot's time [ns].
+    status : ``optimal`` / ``soft`` / ``hold`` (no commands; see ``reason``).
+    reason : why ``soft`` or ``hold`` (empty when optimal).
+    pv_q_kvar : (K,) new Q set points [kvar], or None on hold.
+    pv_command : (K,) bool, plants to command (False for missing plants and on hold).
+    reg_tap : (R,) int, taps the decision aims at [steps], or None on hold. In ``taps`` mode these are
+        the commands; in ``setpoints`` mode the set points below are.
+    reg_setpoint_v120, reg_band_v120 : (R,) eq. (8) set points and bands [V on 120 V base] in
+        ``setpoints`` mode; None in ``taps`` mode and on hold.
+    reg_command : (R,) bool, regulators to command.
+    v_pu : (N,) critical-node voltage estimates [pu] (corrected when ``corrected``), None without a head frame.
+    v_pred_pu : (N,) predicted voltages after the actions (linear model) [pu], None on hold.
+    corrected : eq. (7) correction applied (from at least one regulator).
+    dv_dq_pu_per_kvar : (N, K) sensitivities used [pu/kvar], None without a head frame.
+    missing : ids of devices whose frame was missing or invalid.
+    iterations, objective : solver iterations and eq. (9) cost of the actions [cost units].
+    solver_status : the solver's status (``optimal``/``soft``/``hold``), ``not run`` when it was not called.
+    timings : per-stage wall time (not deterministic).
+    """
+
+    t_ns: int
+    status: Literal["optimal", "soft", "hold"]
+    reason: str
+    pv_q_kvar: np.ndarray | None
+    pv_command: np.ndarray
+    reg_tap: np.ndarray | None
+    reg_setpoint_v120: np.ndarray | None
+    reg_band_v120: np.ndarray | None
+    reg_command: np.ndarray
+    v_pu: np.ndarray | None
+    v_pred_pu: np.ndarray | None
+    corrected: bool
+    dv_dq_pu_per_kvar: np.ndarray | None
+    missing: tuple[str, ...]
+    iterations: int
+    objective: float
+    solver_status: str
+    timings: DecisionTimings
+
+    def same_content(self, other: Decision) -> bool:
+        """Bit-identical in every field but ``timings`` (what replay compares)."""
+        for f in fields(self):
+            if f.name == "timings":
+                continue
+            a, b = getattr(self, f.name), getattr(other, f.name)
+            if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
+                if not (isinstance(a, np.ndarray) and isinstance(b, np.ndarray)):
+                    return False
+                if a.shape != b.shape or a.dtype != b.dtype or a.tobytes() != b.tobytes():
+                    return False
+            elif a != b:
+                return False
+        return True
+
+
+def _finite(*arrays: np.ndarray) -> bool:
+    return all(bool(np.all(np.isfinite(a))) for a in arrays)
+
+
+class CvvcController:
+    """Estimation (eq. 5-7), sensitivities (eq. 3-4), CVVC (eq. 9-17) and eq. (8), with the hold rule.
+
+    Parameters
+    ----------
+    model : the trained model.
+    mode : ``taps`` (command tap positions: cases A/B) or ``setpoints`` (command eq. 8 set points and
+        bands: cases C/D).
+    correction : apply the eq. (6)-(7) correction from regulator secondary voltages.
+    bandwidth_v120 : regulator bandwidth ``B`` sent with set points [V on 120 V base] (paper case C: 4 V).
+    """
+
+    def __init__(
+        self,
+        model: CvvcModel,
+        *,
+        mode: Literal["taps", "setpoints"],
+        correction: bool,
+        bandwidth_v120: float,
+    ) -> None:
+        if mode not in ("taps", "setpoints"):
+            raise AgentInputError(f"mode must be 'taps' or 'setpoints', not {mode!r}")
+        steps = np.array([r.step_v120 for r in model.regulators], float)
+        if mode == "setpoints" and not (np.isfinite(bandwidth_v120) and np.all(bandwidth_v120 > steps)):
+            raise AgentInputError(
+                f"bandwidth {bandwidth_v120} V must exceed one tap step ({steps.max(initial=0.0)} V); use e.g. 4"
+            )
+        self.model = model
+        self.mode = mode
+        self.correction = correction
+        self.bandwidth_v120 = float(bandwidth_v120)
+        self._arrays = ModelArrays.of(model)
+        self._sens = SensitivityTable.of(model.sens_q)
+        self._pv_ids = tuple(p.id for p in model.pv)
+        self._reg_ids = tuple(r.id for r in model.regulators)
+        self._pv_rating_kva = np.array([p.kva for p in model.pv], float)
+        self._pv_cost = np.array([p.cost_per_kvar for p in model.pv], float)
+        regs = model.regulators
+        self._tap_min = np.array([r.tap_min for r in regs], int)
+        self._tap_max = np.array([r.tap_max for r in regs], int)
+        self._max_taps = np.array([r.max_taps_per_interval for r in regs], int)
+        self._tap_cost = np.array([r.cost_per_tap for r in regs], float)
+        self._step_v120 = steps
+        # Last known values (None until first seen) and the previous solution.
+        n_pv, n_reg = len(model.pv), len(regs)
+        self._pv_last_p_kw: list[float | None] = [None] * n_pv
+        self._pv_last_q_kvar: list[float | None] = [None] * n_pv
+        self._reg_last_tap: list[int | None] = [None] * n_reg
+        self._previous: CvvcSolution | None = None
+
+    # ------------------------------------------------------------------------------------------ helpers
+    def _hold(self, snap: MeasurementSnapshot, reason: str, missing: tuple[str, ...], t0: float, **extra) -> Decision:
+        n_pv, n_reg = len(self._pv_ids), len(self._reg_ids)
+        return Decision(
+            t_ns=int(snap.t_ns),
+            status="hold",
+            reason=reason,
+            pv_q_kvar=None,
+            pv_command=np.zeros(n_pv, bool),
+            reg_tap=None,
+            reg_setpoint_v120=None,
+            reg_band_v120=None,
+            reg_command=np.zeros(n_reg, bool),
+            v_pu=extra.get("v_pu"),
+            v_pred_pu=None,
+            corrected=bool(extra.get("corrected", False)),
+            dv_dq_pu_per_kvar=extra.get("dv_dq"),
+            missing=missing,
+            iterations=int(extra.get("iterations", 0)),
+            objective=0.0,
+            solver_status=str(extra.get("solver_status", "not run")),
+            timings=DecisionTimings(
+                estimate_s=float(extra.get("estimate_s", 0.0)),
+                solve_s=float(extra.get("solve_s", 0.0)),
+                round_s=float(extra.get("round_s", 0.0)),
+                total_s=time.perf_counter() - t0,
+            ),
+        )
+
+    def _usable(self, snap: MeasurementSnapshot) -> tuple[bool, np.ndarray, np.ndarray]:
+        """Which frames are usable: valid flag set and values finite and plausible."""
+        head_ok = bool(snap.head_valid) and _finite(snap.head_p_kw, snap.head_q_kvar)
+        head_ok = head_ok and bool(np.all(np.abs(snap.head_p_kw) < _POWER_LIMIT_KW))
+        head_ok = head_ok and bool(np.all(np.abs(snap.head_q_kvar) < _POWER_LIMIT_KW))
+        pv_ok = np.asarray(snap.pv_valid, bool).copy()
+        for k in range(len(self._pv_ids)):
+            vals = (snap.pv_p_kw[k], snap.pv_q_kvar[k], snap.pv_kva_available[k])
+            pv_ok[k] = pv_ok[k] and _finite(np.array(vals)) and snap.pv_kva_available[k] >= 0.0
+            pv_ok[k] = pv_ok[k] and abs(snap.pv_p_kw[k]) < _POWER_LIMIT_KW and abs(snap.pv_q_kvar[k]) < _POWER_LIMIT_KW
+        reg_ok = np.asarray(snap.reg_valid, bool).copy()
+        lo, hi = _V120_RANGE
+        for r in range(len(self._reg_ids)):
+            vals = np.array([snap.reg_v120[r], snap.reg_v120_compared[r], snap.reg_tap[r]], float)
+            reg_ok[r] = (
+                reg_ok[r]
+                and _finite(vals)
+                and lo < snap.reg_v120[r] < hi
+                and lo < snap.reg_v120_compared[r] < hi
+                and float(snap.reg_tap[r]) == round(float(snap.reg_tap[r]))
+                and self._tap_min[r] - 1 <= snap.reg_tap[r] <= self._tap_max[r] + 1
+            )
+        return head_ok, pv_ok, reg_ok
+
+    # ------------------------------------------------------------------------------------------- decide
+    def decide(self, snap: MeasurementSnapshot) -> Decision:
+        """Decide the actions for one snapshot (see the module docstring for the hold rule)."""
+        t0 = time.perf_counter()
+        n_pv, n_reg = len(self._pv_ids), len(self._reg_ids)
+        shapes = {
+            "head_p_kw": (snap.head_p_kw, 3), "head_q_kvar": (snap.head_q_kvar, 3),
+            "pv_p_kw": (snap.pv_p_kw, n_pv), "pv_q_kvar": (snap.pv_q_kvar, n_pv),
+            "pv_kva_available": (snap.pv_kva_available, n_pv), "pv_valid": (snap.pv_valid, n_pv),
+            "reg_v120": (snap.reg_v120, n_reg), "reg_v120_compared": (snap.reg_v120_compared, n_reg),
+            "reg_tap": (snap.reg_tap, n_reg), "reg_valid": (snap.reg_valid, n_reg),
+        }  # fmt: skip
+        for name, (arr, size) in shapes.items():
+            if np.shape(arr) != (size,):
+                return self._hold(snap, f"snapshot.{name} has shape {np.shape(arr)}, expected ({size},)", (), t0)
+
+        head_ok, pv_ok, reg_ok = self._usable(snap)
+        missing = tuple(
+            (["head"] if not head_ok else [])
+            + [self._pv_ids[k] for k in range(n_pv) if not pv_ok[k]]
+            + [self._reg_ids[r] for r in range(n_reg) if not reg_ok[r]]
+        )
+        # Remember what is usable now (before any hold: last known values are facts, not decisions).
+        for k in np.flatnonzero(pv_ok):
+            self._pv_last_p_kw[k] = float(snap.pv_p_kw[k])
+            self._pv_last_q_kvar[k] = float(snap.pv_q_kvar[k])
+        for r in np.flatnonzero(reg_ok):
+            self._reg_last_tap[r] = int(snap.reg_tap[r])
+        if not head_ok:
+            return self._hold(snap, "no valid feeder-head frame: holding (no commands)", missing, t0)
+        never_pv = [self._pv_ids[k] for k in range(n_pv) if self._pv_last_p_kw[k] is None]
+        never_reg = [self._reg_ids[r] for r in range(n_reg) if self._reg_last_tap[r] is None]
+        if never_pv or never_reg:
+            return self._hold(
+                snap, f"no valid frame yet from {', '.join(never_pv + never_reg)}: holding", missing, t0
+            )
+
+        # Estimation, eq. (5)-(7), and sensitivities, eq. (3).
+        pv_p = np.array(self._pv_last_p_kw, float)  # equals the snapshot where usable
+        pv_q = np.array(self._pv_last_q_kvar, float)
+        taps = np.array(self._reg_last_tap, int)
+        m = features(snap.head_p_kw, snap.head_q_kvar, pv_p, pv_q)
+        v_hat = estimate_voltages_pu(self._arrays, m, taps)
+        corrected = False
+        if self.correction:
+            measured = np.asarray(snap.reg_v120, float) * self._arrays.reg_pu_per_v120
+            eps = correction_pu(v_hat, self._arrays.reg_secondary_node, measured, valid=reg_ok)
+            v_hat = apply_correction(v_hat, eps, self._arrays.upstream_regulator)
+            corrected = bool(np.any(reg_ok))
+        dv_dq = dv_dq_pu_per_kvar(self._sens, float(np.sum(snap.head_q_kvar)))
+        t_est = time.perf_counter()
+        if not (_finite(v_hat, dv_dq)):
+            return self._hold(snap, "estimate is not finite: check the model", missing, t0,
+                              estimate_s=t_est - t0)
+
+        # The CVVC problem: missing plants fixed at their last Q, missing regulators frozen.
+        headroom = np.sqrt(np.maximum(np.asarray(snap.pv_kva_available, float) ** 2 - pv_p**2, 0.0))
+        q_min = np.where(pv_ok, -headroom, pv_q)
+        q_max = np.where(pv_ok, headroom, pv_q)
+        lo_pu, hi_pu = self.model.optimization_limits_pu
+        try:
+            inputs = CvvcInputs(
+                v0_pu=v_hat,
+                dv_dq_pu_per_kvar=dv_dq,
+                dv_dtap_pu=self._arrays.dv_dtap_pu,
+                q0_kvar=pv_q,
+                q_min_kvar=q_min,
+                q_max_kvar=q_max,
+                q_rating_kvar=np.maximum(self._pv_rating_kva, 1.0),
+                taps=taps,
+                tap_min=self._tap_min,
+                tap_max=self._tap_max,
+                max_taps_per_interval=np.where(reg_ok, self._max_taps, 0),
+                cost_per_tap=self._tap_cost,
+                cost_per_kvar=self._pv_cost,
+                v_min_pu=lo_pu,
+                v_max_pu=hi_pu,
+            )
+        except AgentInputError as e:
+            return self._hold(snap, f"unusable optimization inputs: {e}", missing, t0, v_pu=v_hat,
+                              corrected=corrected, dv_dq=dv_dq, estimate_s=t_est - t0)
+        solution = solve_cvvc(inputs, warm_start=self._previous)
+        sec = solution.seconds
+        if solution.status == "hold":
+            return self._hold(snap, solution.reason, missing, t0, v_pu=v_hat, corrected=corrected, dv_dq=dv_dq,
+                              iterations=solution.iterations, solver_status=solution.status,
+                              estimate_s=t_est - t0, solve_s=sec.build_s + sec.relaxed_s, round_s=sec.rounding_s)
+        self._previous = solution
+
+        # Commands.
+        setpoints = bands = None
+        if self.mode == "setpoints":
+            sec_node = self._arrays.reg_secondary_node
+            dv_sec = solution.v_pred_pu[sec_node] - v_hat[sec_node]
+            v_s1 = expected_compared_v120(snap.reg_v120_compared, dv_sec, self._arrays.reg_pu_per_v120)
+            d_tap = solution.taps_new - taps
+            setpoints = np.array(
+                [
+                    setpoint_for_tap_change(float(v_s1[r]), int(d_tap[r]), self.bandwidth_v120, float(self._step_v120[r]))
+                    for r in range(n_reg)
+                ],
+                float,
+            )
+            bands = np.full(n_reg, self.bandwidth_v120)
+        return Decision(
+            t_ns=int(snap.t_ns),
+            status=solution.status,
+            reason=solution.reason,
+            pv_q_kvar=solution.q_new_kvar.copy(),
+            pv_command=pv_ok.copy(),
+            reg_tap=solution.taps_new.copy(),
+            reg_setpoint_v120=setpoints,
+            reg_band_v120=bands,
+            reg_command=reg_ok.copy(),
+            v_pu=v_hat,
+            v_pred_pu=solution.v_pred_pu.copy(),
+            corrected=corrected,
+            dv_dq_pu_per_kvar=dv_dq,
+            missing=missing,
+            iterations=solution.iterations,
+            objective=solution.cost,
+            solver_status=solution.status,
+            timings=DecisionTimings(
+                estimate_s=t_est - t0,
+                solve_s=sec.build_s + sec.relaxed_s,
+                round_s=sec.rounding_s,
+                total_s=time.perf_counter() - t0,
+            ),
+        )
