@@ -357,12 +357,9 @@ class CvvcController:
             dv_sec = solution.v_pred_pu[sec_node] - v_hat[sec_node]
             v_s1 = expected_compared_v120(snap.reg_v120_compared, dv_sec, self._arrays.reg_pu_per_v120)
             d_tap = solution.taps_new - taps
+            band, step = self.bandwidth_v120, self._step_v120
             setpoints = np.array(
-                [
-                    setpoint_for_tap_change(float(v_s1[r]), int(d_tap[r]), self.bandwidth_v120, float(self._step_v120[r]))
-                    for r in range(n_reg)
-                ],
-                float,
+                [setpoint_for_tap_change(float(v_s1[r]), int(d_tap[r]), band, float(step[r])) for r in range(n_reg)]
             )
             bands = np.full(n_reg, self.bandwidth_v120)
         return Decision(
