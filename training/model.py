@@ -120,6 +120,10 @@ class TrainingSettings(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown
     scenarios: int
     power_flows: int
     seconds: float
+    # added by training (additive, with defaults): the rest of what produced the model
+    combined_pct: list[float] = []  # all-plant Q perturbations [% of each plant's headroom]
+    rcond: float = 0.0  # truncation of the eq. (5) least squares (0: not recorded)
+    tolerance: float = 0.0  # OpenDSS solve tolerance of the training flows (0: not recorded)
 
 
 class FitStats(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
@@ -129,6 +133,10 @@ class FitStats(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=
     voltage_max_abs_pu: float
     sensitivity_median_rel_err: float
     per_node_rmse_pu: list[float] = []
+    # added by training (additive, with defaults): error on held-out scenarios, conditioning
+    validation_rmse_pu: float = 0.0  # eq. (5) fitted on 4 of 5 scenarios, error on the 5th
+    validation_max_abs_pu: float = 0.0
+    condition_number: float = 0.0  # of the standardised eq. (5) design matrix
 
 
 class CvvcModel(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):

@@ -364,6 +364,9 @@ def train(
         voltage_max_abs_pu=vfit.max_abs_pu,
         sensitivity_median_rel_err=sens_rel if np.isfinite(sens_rel) else 0.0,
         per_node_rmse_pu=[float(x) for x in vfit.rmse_pu],
+        validation_rmse_pu=val_rmse if np.isfinite(val_rmse) else 0.0,
+        validation_max_abs_pu=val_max if np.isfinite(val_max) else 0.0,
+        condition_number=vfit.condition_number if np.isfinite(vfit.condition_number) else 0.0,
     )
     model = CvvcModel(
         feeder_name=dm.feeder.name,
@@ -377,6 +380,9 @@ def train(
             scenarios=len(scen.steps),
             power_flows=flows.n,
             seconds=round(seconds, 3),
+            combined_pct=list(combined_pct),
+            rcond=rcond,
+            tolerance=tolerance,
         ),
         feature_names=feature_names(len(dm.pv)),
         critical_nodes=crit_nodes,

@@ -139,3 +139,21 @@ def test_feeder_without_pv_or_regulator_is_refused(tmp_path, pv, regulator, what
 
     with pytest.raises(TrainingError, match=what):
         train(_map(tmp_path, pv=pv, regulator=regulator), cache_dir=None)
+
+
+def test_model_records_settings_and_held_out_error(trained_123):
+    m = trained_123.model
+    assert m.settings.combined_pct == [-100.0, -50.0, 50.0, 100.0]
+    assert m.settings.tolerance == 1e-8 and m.settings.rcond == 1e-6
+    assert 0 < m.fit.validation_rmse_pu < 0.002 and m.fit.condition_number > 1
+
+
+def test_non_finite_model_is_refused(trained_123):
+    import msgspec
+
+    from training.train import _check_finite
+
+    m = trained_123.model
+    bad = msgspec.structs.replace(m, alpha=[[float("nan")] * len(row) for row in m.alpha])
+    with pytest.raises(TrainingError, match="non-finite alpha"):
+        _check_finite(bad)
