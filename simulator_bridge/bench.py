@@ -55,7 +55,8 @@ def bench_qsts(device_map_path: str | Path, steps: int, *, seed: int = 1, month:
     engine = FeederEngine(dm)
     compile_s = time.perf_counter() - t
     t = time.perf_counter()
-    profiles = make_profiles(seed=seed, load_kw_nominal=engine.load_kw_nominal, pv_pmpp_kw=engine.pv_pmpp_kw)
+    profiles = make_profiles(seed=seed, load_kw_nominal=engine.load_kw_nominal, pv_pmpp_kw=engine.pv_pmpp_kw,
+                             load_distance_ohm=engine.load_distance_ohm)
     profiles_s = time.perf_counter() - t
     start = month_steps(profiles, month).start + int(start_hour * 3600 // profiles.step_s)
     stop = min(start + warmup_steps + steps, profiles.n_steps)

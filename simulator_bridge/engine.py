@@ -471,6 +471,8 @@ class FeederEngine:
         q = np.clip(np.asarray(q_kvar, dtype=float), -headroom, headroom)
         if p.shape != self.pv_kva.shape or q.shape != self.pv_kva.shape or not np.all(np.isfinite(q)):
             raise EngineError(f"set_pv: expected {len(self.pv_ids)} finite values, got {p_kw!r}, {q_kvar!r}")
+        # Through the PVSystems interface: a property edit (text or batch) rebuilds the PV's Yprim and
+        # makes the next solve ~5x slower on IEEE 8500.
         pv = self._dss.PVsystems
         for k, name in enumerate(self._pv_names):
             pv.Name(name)
@@ -546,10 +548,10 @@ class FeederEngine:
         """
         v = self._batch_read(self._lib.Alt_CEBatch_Get_Voltages)
         i = self._batch_read(self._lib.Alt_CEBatch_Get_Currents)
-        hv = np.where(self._head_cond >= 0, v[self._head_cond] - v[self._head_neutral], 0)
+        hv = v[self._head_cond] - v[self._head_neutral]  # index -1 reads the trailing 0
         hi = i[self._head_cond]
         hs = hv * np.conj(hi) / 1000.0
-        pv_v = np.where(self._pv_cond >= 0, v[self._pv_cond] - v[self._pv_neutral][:, None], 0)
+        pv_v = np.where(self._pv_cond >= 0, v[self._pv_cond] - v[self._pv_neutral][:, None], 0)  # absent: 0
         pv_s = -pv_v * np.conj(i[self._pv_cond]) / 1000.0
         v_sec = (v[self._reg_cond] - v[self._reg_neutral]) / self._reg_ratio
         compared = np.abs(v_sec + self._reg_ldc * i[self._reg_cond])

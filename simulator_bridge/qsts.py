@@ -163,9 +163,12 @@ class Qsts:
         self._band_v120 = engine.reg_default_band_v120.copy()
         self._out_of_band_steps = np.zeros(n_reg, dtype=int)
         self._taps = engine.taps()
+        # plant voltage = mean of its nodes' voltages: flat node indices and segment starts
+        self._pv_nodes = np.array([i for ix in engine.pv_node_index for i in ix], dtype=int)
+        self._pv_counts = np.array([len(ix) for ix in engine.pv_node_index], dtype=float)
+        self._pv_starts = np.concatenate([[0], np.cumsum(self._pv_counts)[:-1]]).astype(int)
         engine.solve()
-        v = engine.node_voltages_pu()
-        self._pv_v_pu = np.array([v[list(ix)].mean() for ix in engine.pv_node_index])
+        self._pv_v_pu = self._plant_v_pu(engine.node_voltages_pu())
         self._pv_p_kw = engine.pv_setpoints()[0]
 
     @property
@@ -212,6 +215,12 @@ class Qsts:
         self._band_v120[r] = self.engine.reg_default_band_v120[r] if band_v120 is None else float(band_v120)
 
     # ------------------------------------------------------------------ stepping
+    def _plant_v_pu(self, v_pu: np.ndarray) -> np.ndarray:
+        """(K,) each plant's measured voltage: the mean of its nodes' voltages [pu]."""
+        if not len(self._pv_nodes):
+            return np.zeros(0)
+        return np.add.reduceat(v_pu[self._pv_nodes], self._pv_starts) / self._pv_counts
+
     def _rows(self, step: int) -> tuple[np.ndarray, np.ndarray]:
         if not self._chunk_start <= step < self._chunk_start + len(self._chunk_load):
             stop = min(step + self._chunk_steps, self.profiles.n_steps)
@@ -272,7 +281,7 @@ class Qsts:
         self._out_of_band_steps = np.where(want != 0, self._out_of_band_steps, 0)
 
         v = e.node_voltages_pu()
-        self._pv_v_pu = np.array([v[list(ix)].mean() for ix in e.pv_node_index])
+        self._pv_v_pu = self._plant_v_pu(v)
         self._pv_p_kw = p
         self._taps = taps
         self._step = s + 1
