@@ -28,6 +28,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="Zenoh key expression to record (repeatable; default cvvc/**)")
     r.add_argument("--feeder-fingerprint", default="", metavar="X", help="stored in the file's metadata")
     r.add_argument("--model", default="", metavar="PATH", help="the agent's model file, stored in the metadata")
+    r.add_argument("--agent-settings", default="", metavar="JSON",
+                   help="the agent's settings as JSON, stored in the metadata for `cvvc replay --offline`")
     r.add_argument("--duration-s", type=float, default=None, metavar="S", help="stop after S seconds")
     r.add_argument("--flush-period-s", type=float, default=1.0, metavar="S",
                    help="close and write the open chunk every S seconds (the most a crash can lose)")
@@ -63,7 +65,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     y.add_argument("--offline", action="store_true", help="re-run the agent on the frames, no bus")
     y.add_argument("--model", default=None, metavar="MODEL",
                    help="model file for --offline (default: the one named in the recording's metadata)")
-    y.add_argument("--json", action="store_true", help="print JSON (--offline)")
+    y.add_argument("--agent-settings", default=None, metavar="JSON",
+                   help="agent settings for --offline (default: the ones recorded in the metadata)")
+    y.add_argument("--json", action="store_true", help="print JSON")
     add_bus_arguments(y)
     y.set_defaults(func=_guarded("replay", _replay))
 
@@ -103,7 +107,7 @@ def _record(args: argparse.Namespace) -> int:
     config = RecorderConfig(out_path=args.out, keys=tuple(args.keys or ("cvvc/**",)),
                             bus=bus_config_from_args(args), flush_period_s=args.flush_period_s,
                             feeder_fingerprint=args.feeder_fingerprint, model_path=args.model,
-                            duration_s=args.duration_s)
+                            agent_settings_json=args.agent_settings, duration_s=args.duration_s)
     stats = main(config)
     print(f"recorded {stats.messages} messages on {stats.channels} channels into {args.out} "
           f"(dropped {stats.dropped_queue_full}, t_ns fallbacks {stats.log_time_fallbacks})", file=sys.stderr)
@@ -180,7 +184,7 @@ def _replay(args: argparse.Namespace) -> int:
 def _offline(args: argparse.Namespace) -> int:
     from recordings.offline import run_offline
 
-    res = run_offline(args.file, model_path=args.model)
+    res = run_offline(args.file, model_path=args.model, settings_json=args.agent_settings)
     if args.json:
         print(_json(res))
     else:
