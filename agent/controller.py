@@ -294,9 +294,7 @@ class CvvcController:
         never_pv = [self._pv_ids[k] for k in range(n_pv) if self._pv_last_p_kw[k] is None]
         never_reg = [self._reg_ids[r] for r in range(n_reg) if self._reg_last_tap[r] is None]
         if never_pv or never_reg:
-            return self._hold(
-                snap, f"no valid frame yet from {', '.join(never_pv + never_reg)}: holding", missing, t0
-            )
+            return self._hold(snap, f"no valid frame yet from {', '.join(never_pv + never_reg)}: holding", missing, t0)
 
         # Estimation, eq. (5)-(7), and sensitivities, eq. (3).
         pv_p = np.array(self._pv_last_p_kw, float)  # equals the snapshot where usable
@@ -313,8 +311,7 @@ class CvvcController:
         dv_dq = dv_dq_pu_per_kvar(self._sens, float(np.sum(snap.head_q_kvar)))
         t_est = time.perf_counter()
         if not (_finite(v_hat, dv_dq)):
-            return self._hold(snap, "estimate is not finite: check the model", missing, t0,
-                              estimate_s=t_est - t0)
+            return self._hold(snap, "estimate is not finite: check the model", missing, t0, estimate_s=t_est - t0)
 
         # The CVVC problem: missing plants fixed at their last Q, missing regulators frozen.
         headroom = np.sqrt(np.maximum(np.asarray(snap.pv_kva_available, float) ** 2 - pv_p**2, 0.0))
@@ -340,14 +337,33 @@ class CvvcController:
                 v_max_pu=hi_pu,
             )
         except AgentInputError as e:
-            return self._hold(snap, f"unusable optimization inputs: {e}", missing, t0, v_pu=v_hat,
-                              corrected=corrected, dv_dq=dv_dq, estimate_s=t_est - t0)
+            return self._hold(
+                snap,
+                f"unusable optimization inputs: {e}",
+                missing,
+                t0,
+                v_pu=v_hat,
+                corrected=corrected,
+                dv_dq=dv_dq,
+                estimate_s=t_est - t0,
+            )
         solution = solve_cvvc(inputs, warm_start=self._previous)
         sec = solution.seconds
         if solution.status == "hold":
-            return self._hold(snap, solution.reason, missing, t0, v_pu=v_hat, corrected=corrected, dv_dq=dv_dq,
-                              iterations=solution.iterations, solver_status=solution.status,
-                              estimate_s=t_est - t0, solve_s=sec.build_s + sec.relaxed_s, round_s=sec.rounding_s)
+            return self._hold(
+                snap,
+                solution.reason,
+                missing,
+                t0,
+                v_pu=v_hat,
+                corrected=corrected,
+                dv_dq=dv_dq,
+                iterations=solution.iterations,
+                solver_status=solution.status,
+                estimate_s=t_est - t0,
+                solve_s=sec.build_s + sec.relaxed_s,
+                round_s=sec.rounding_s,
+            )
         self._previous = solution
 
         # Commands.

@@ -149,9 +149,7 @@ class SensitivityTable:
         )
 
 
-def dv_dq_pu_per_kvar(
-    fits: SensitivityTable | Sequence[Sequence[SensitivityFit]], q_head_kvar: float
-) -> np.ndarray:
+def dv_dq_pu_per_kvar(fits: SensitivityTable | Sequence[Sequence[SensitivityFit]], q_head_kvar: float) -> np.ndarray:
     """Voltage sensitivity of each critical node to each plant's reactive power, paper eq. (3).
 
     Each fit is evaluated at the feeder-head reactive power clipped to the fit's training range

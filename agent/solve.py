@@ -33,7 +33,6 @@ from agent.cvvc_qp import PROX_WEIGHT, CvvcInputs, CvvcQp, build_cvvc_qp
 __all__ = [
     "MAX_ENUMERATED_FRACTIONAL",
     "OSQP_SETTINGS",
-
     "CvvcSolution",
     "MilpReference",
     "StageSeconds",
@@ -61,7 +60,7 @@ OSQP_SETTINGS: dict[str, object] = {
     "warm_starting": True,
 }
 #: Iteration budget of one rounding candidate's Q re-solve; a candidate not solved within it is skipped.
-MAX_ITER_RESOLVE = 800
+MAX_ITER_RESOLVE = 4000
 #: ADMM iterations before the first polish attempt; each later chunk is twice as long.
 FIRST_CHUNK_ITER = 25
 #: Iteration budget of one solve (all chunks) [ADMM iterations].
@@ -73,7 +72,7 @@ KKT_TOL = 1e-6
 #: Up to this many fractional taps, every floor/ceil combination is tried (2**3 = 8 Q re-solves).
 MAX_ENUMERATED_FRACTIONAL = 3
 #: A relaxed tap change this close to an integer counts as integer [steps].
-FRACTIONAL_TOL_STEPS = 0.02
+FRACTIONAL_TOL_STEPS = 1e-4
 #: A relaxed tap change this close to an integer is taken as integral: its Q needs no re-solve [steps].
 INTEGRAL_TOL_STEPS = 1e-6
 #: Stop trying rounding candidates once one scores within this fraction of the relaxed objective.
@@ -223,8 +222,11 @@ def _osqp_run(
         polished = _polish(a_dense, p_diag, qp.c, lo, hi, x, y)
         if polished is not None and _kkt_ok(a_dense, p_diag, qp.c, lo, hi, *polished):
             return _Run(True, False, status_name + "+polish", polished[0], polished[1], total)
-        if status not in (osqp.SolverStatus.OSQP_MAX_ITER_REACHED, osqp.SolverStatus.OSQP_SOLVED,
-                          osqp.SolverStatus.OSQP_SOLVED_INACCURATE):
+        if status not in (
+            osqp.SolverStatus.OSQP_MAX_ITER_REACHED,
+            osqp.SolverStatus.OSQP_SOLVED,
+            osqp.SolverStatus.OSQP_SOLVED_INACCURATE,
+        ):
             break
         if status == osqp.SolverStatus.OSQP_SOLVED:
             # Converged to the tight tolerance: accept the iterate (within eps of the optimum).
@@ -504,9 +506,7 @@ def solve_cvvc(inputs: CvvcInputs, *, warm_start: CvvcSolution | None = None) ->
     )
 
 
-def _q_start(
-    fixed: CvvcQp, relaxed: CvvcQp, x_rel: np.ndarray, y_rel: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
+def _q_start(fixed: CvvcQp, relaxed: CvvcQp, x_rel: np.ndarray, y_rel: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Start the Q re-solve from the relaxation's Q, violations and the duals of the rows they share."""
     x0 = np.zeros(fixed.layout.n)
     x0[fixed.layout.q_inj] = x_rel[relaxed.layout.q_inj]
@@ -547,12 +547,15 @@ def solve_milp_reference(inputs: CvvcInputs) -> MilpReference:
         options={"mip_rel_gap": 1e-9},
     )
     if res.status == 2:
-        return MilpReference(status="infeasible", taps_new=inputs.taps.copy(), q_new_kvar=inputs.q0_kvar.copy(),
-                             cost=float("inf"))
+        return MilpReference(
+            status="infeasible", taps_new=inputs.taps.copy(), q_new_kvar=inputs.q0_kvar.copy(), cost=float("inf")
+        )
     if res.x is None or res.status != 0:
-        return MilpReference(status="failed", taps_new=inputs.taps.copy(), q_new_kvar=inputs.q0_kvar.copy(),
-                             cost=float("inf"))
+        return MilpReference(
+            status="failed", taps_new=inputs.taps.copy(), q_new_kvar=inputs.q0_kvar.copy(), cost=float("inf")
+        )
     d = np.round(qp.d_tap(res.x))
     q = qp.q_kvar(res.x)
-    return MilpReference(status="optimal", taps_new=(inputs.taps + d.astype(int)).astype(int), q_new_kvar=q,
-                         cost=inputs.cost(d, q))
+    return MilpReference(
+        status="optimal", taps_new=(inputs.taps + d.astype(int)).astype(int), q_new_kvar=q, cost=inputs.cost(d, q)
+    )

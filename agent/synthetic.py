@@ -138,14 +138,17 @@ def synthetic_model(seed: int = 0, *, n_nodes: int = 47, n_pv: int = 3) -> CvvcM
         fingerprint="synthetic47-" + str(seed),
         cvvc_version="test",
         settings=TrainingSettings(
-            year_seed=seed, selection="random", blocks=(5, 5), q_steps_pct=[-50.0, 50.0], scenarios=0,
-            power_flows=0, seconds=0.0,
+            year_seed=seed,
+            selection="random",
+            blocks=(5, 5),
+            q_steps_pct=[-50.0, 50.0],
+            scenarios=0,
+            power_flows=0,
+            seconds=0.0,
         ),
         feature_names=feature_names(n_pv),
         critical_nodes=nodes,
-        regulators=[
-            RegulatorInfo(id=f"vr{r}", secondary_node=secondary[r], pu_per_v120=1.0 / 120.0) for r in range(8)
-        ],
+        regulators=[RegulatorInfo(id=f"vr{r}", secondary_node=secondary[r], pu_per_v120=1.0 / 120.0) for r in range(8)],
         pv=[PvInfo(id=f"pv{k}", kva=1200.0, pmpp_kw=1080.0, cost_per_kvar=0.001) for k in range(n_pv)],
         alpha=alpha.tolist(),
         tap0=[0] * 8,

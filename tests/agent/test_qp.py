@@ -1,0 +1,204 @@
+"""The CVVC problem (paper eq. 9-17) and its solution: known optima, a second solver, soft fallback, rounding."""
+
+import itertools
+
+import numpy as np
+import pytest
+import qpsolvers
+import scipy.optimize
+
+from agent.cvvc_qp import CvvcInputs, build_cvvc_qp
+from agent.errors import AgentInputError
+from agent.solve import V_TOL_PU, solve_cvvc, solve_milp_reference
+from agent.synthetic import random_cvvc_inputs
+
+
+def _tiny(v0, *, cost_per_kvar=1e-4, cost_per_tap=1.0, dv_dq=(2e-5, 1e-5), q0=0.0) -> CvvcInputs:
+    """2 nodes, 1 plant (1000 kVA, +/-1000 kvar), 1 regulator (0.625 %/step at both nodes, 4 steps/interval)."""
+    return CvvcInputs(
+        v0_pu=np.array(v0, float),
+        dv_dq_pu_per_kvar=np.array(dv_dq, float).reshape(2, 1),
+        dv_dtap_pu=np.array([[0.00625], [0.00625]]),
+        q0_kvar=np.array([q0]),
+        q_min_kvar=np.array([-1000.0]),
+        q_max_kvar=np.array([1000.0]),
+        q_rating_kvar=np.array([1000.0]),
+        taps=np.array([0]),
+        tap_min=np.array([-16]),
+        tap_max=np.array([16]),
+        max_taps_per_interval=np.array([4]),
+        cost_per_tap=np.array([cost_per_tap]),
+        cost_per_kvar=np.array([cost_per_kvar]),
+        v_min_pu=0.975,
+        v_max_pu=1.04,
+    )
+
+
+# Hand-computed optima. Node 0 is 0.005 pu over 1.04 unless stated.
+# A: Q costs 1e-4/kvar: absorbing 250 kvar (0.005 / 2e-5) costs 0.025, a tap step 1.0 -> Q only.
+# B: Q costs 1e-2/kvar (250 kvar = 2.5): relaxed 0.8 tap (0.005 / 0.00625); rounded to 1 tap, cost 1.0.
+# C: node 0 is 0.0081 over: 1 tap leaves 0.00185 pu = 92.5 kvar (0.925): 1.925 beats 2 taps (2.0).
+CASES = {
+    "A_q_only": (dict(v0=[1.045, 1.03]), 0, -250.0, 0.025),
+    "B_one_tap": (dict(v0=[1.045, 1.03], cost_per_kvar=1e-2), -1, 0.0, 1.0),
+    "C_tap_and_q": (dict(v0=[1.0481, 1.0], cost_per_kvar=1e-2), -1, -92.5, 1.925),
+}
+
+
+@pytest.mark.parametrize("name", CASES)
+def test_known_optima(name):
+    kwargs, d_tap, q_kvar, cost = CASES[name]
+    inputs = _tiny(**kwargs)
+    sol = solve_cvvc(inputs)
+    assert sol.status == "optimal", sol.reason
+    assert sol.taps_new.tolist() == [d_tap]
+    np.testing.assert_allclose(sol.q_new_kvar, [q_kvar], atol=0.01)
+    assert sol.cost == pytest.approx(cost, abs=1e-4)
+    assert sol.max_violation_pu <= V_TOL_PU
+    milp = solve_milp_reference(inputs)
+    assert milp.status == "optimal"
+    assert milp.taps_new.tolist() == [d_tap]
+    assert milp.cost == pytest.approx(cost, abs=1e-6)
+
+
+@pytest.mark.parametrize("soft", [False, True])
+@pytest.mark.parametrize("name", CASES)
+def test_relaxation_matches_a_second_solver(name, soft):
+    """The problem object solved by OSQP and by Clarabel (interior point) through qpsolvers agrees."""
+    problem = build_cvvc_qp(_tiny(**CASES[name][0]), soft=soft).to_qpsolvers()
+    a = qpsolvers.solve_problem(problem, solver="osqp", eps_abs=1e-9, eps_rel=1e-9, max_iter=100000, raise_error=False)
+    b = qpsolvers.solve_problem(problem, solver="clarabel")
+    assert a.found and b.found
+    np.testing.assert_allclose(a.x, b.x, atol=1e-4)
+    qp = build_cvvc_qp(_tiny(**CASES[name][0]), soft=soft)
+    assert qp.objective(a.x) == pytest.approx(qp.objective(b.x), abs=1e-6)
+
+
+def test_relaxed_optimum_by_hand():
+    # Case B relaxed: 0.8 tap down, no Q; objective 0.8 plus the proximal term 0.5 * w * 0.8^2 (scaled).
+    inputs = _tiny(v0=[1.045, 1.03], cost_per_kvar=1e-2)
+    qp = build_cvvc_qp(inputs, soft=False)
+    x = qpsolvers.solve_problem(qp.to_qpsolvers(), solver="clarabel").x
+    np.testing.assert_allclose(qp.d_tap(x), [-0.8], atol=1e-6)
+    np.testing.assert_allclose(qp.q_kvar(x), [0.0], atol=1e-3)
+    assert solve_cvvc(inputs).relaxed_d_tap == pytest.approx([-0.8], abs=1e-5)
+
+
+def test_infeasible_falls_back_to_soft_form():
+    # Node 0 is 0.01 over, node 1 0.005 under, and every action moves both the same way: no hard solution.
+    # Eq. (17) with a large beta balances the two violations: shift down 0.0025 pu -> 0.0075 pu each,
+    # done with Q (10 cost units/pu) rather than taps (160/pu): 250 kvar absorbed, no tap.
+    inputs = _tiny(v0=[1.05, 0.97], dv_dq=(1e-5, 1e-5))
+    sol = solve_cvvc(inputs)
+    assert sol.status == "soft"
+    assert "infeasible" in sol.reason
+    assert sol.relaxed_form == "soft"
+    assert sol.taps_new.tolist() == [0]
+    np.testing.assert_allclose(sol.q_new_kvar, [-250.0], atol=1.0)
+    over, under = sol.v_pred_pu[0] - 1.04, 0.975 - sol.v_pred_pu[1]
+    assert over == pytest.approx(0.0075, abs=2e-5) and under == pytest.approx(0.0075, abs=2e-5)
+    assert sol.max_violation_pu == pytest.approx(0.0075, abs=2e-5)
+    assert solve_milp_reference(inputs).status == "infeasible"
+
+
+def test_node_out_of_reach_goes_soft_without_osqp_detection():
+    inputs = _tiny(v0=[1.10, 1.0])  # 0.06 over; 4 taps + full Q only reach 0.045
+    sol = solve_cvvc(inputs)
+    assert sol.status == "soft" and "cannot reach" in sol.reason
+    assert sol.taps_new.tolist() == [-4]  # every resource used
+    np.testing.assert_allclose(sol.q_new_kvar, [-1000.0], atol=0.01)
+
+
+def test_no_action_needed_is_exactly_zero():
+    sol = solve_cvvc(_tiny(v0=[1.0, 1.01], q0=120.0))
+    assert sol.status == "optimal" and sol.iterations == 0
+    assert sol.taps_new.tolist() == [0] and sol.q_new_kvar.tolist() == [0.0]  # set point back to 0 saves cost
+
+
+def test_fixed_plant_and_frozen_regulator_are_respected():
+    base = _tiny(v0=[1.045, 1.03])
+    inputs = CvvcInputs(**{**base.__dict__, "q_min_kvar": np.array([50.0]), "q_max_kvar": np.array([50.0]),
+                           "max_taps_per_interval": np.array([0])})  # fmt: skip
+    sol = solve_cvvc(inputs)
+    assert sol.taps_new.tolist() == [0]
+    np.testing.assert_allclose(sol.q_new_kvar, [50.0], atol=1e-3)
+    assert sol.status == "soft"  # the only remaining freedom cannot fix node 0
+
+
+def _feasible_with_taps_fixed(inputs: CvvcInputs, d_tap: np.ndarray) -> bool:
+    """Exact LP feasibility of the hard limits over Q with the taps fixed (scipy HiGHS)."""
+    v_base = inputs.v0_pu - inputs.dv_dq_pu_per_kvar @ inputs.q0_kvar + inputs.dv_dtap_pu @ d_tap
+    a = inputs.dv_dq_pu_per_kvar
+    res = scipy.optimize.linprog(
+        np.zeros(inputs.n_pv),
+        A_ub=np.vstack([a, -a]),
+        b_ub=np.concatenate([inputs.v_max_pu - v_base, v_base - inputs.v_min_pu]),
+        bounds=list(zip(inputs.q_min_kvar, inputs.q_max_kvar, strict=True)),
+        method="highs",
+    )
+    return res.status == 0
+
+
+def test_rounding_keeps_hard_limits_when_an_integer_point_within_one_tap_exists():
+    rng = np.random.default_rng(11)
+    checked = 0
+    for _ in range(60):
+        inputs = random_cvvc_inputs(rng)
+        sol = solve_cvvc(inputs)
+        if sol.relaxed_form != "hard":
+            continue
+        d = sol.relaxed_d_tap
+        choices = [sorted({np.floor(x + 1e-6), np.ceil(x - 1e-6)}) for x in d]
+        if not any(_feasible_with_taps_fixed(inputs, np.array(c)) for c in itertools.product(*choices)):
+            continue
+        checked += 1
+        assert sol.status == "optimal", sol.reason
+        assert sol.max_violation_pu <= V_TOL_PU
+        assert np.all(np.abs(sol.taps_new - inputs.taps - d) < 1.0 + 1e-6)  # within one tap of the relaxation
+    assert checked >= 30
+
+
+def test_rounding_gap_to_the_exact_milp_is_small():
+    rng = np.random.default_rng(12)
+    gaps = []
+    for _ in range(40):
+        inputs = random_cvvc_inputs(rng)
+        sol, milp = solve_cvvc(inputs), solve_milp_reference(inputs)
+        if milp.status != "optimal" or sol.status != "optimal":
+            continue
+        assert sol.cost >= milp.cost - 1e-6  # the MILP is exact: nothing feasible beats it
+        gaps.append((sol.cost - milp.cost) / max(milp.cost, 1e-9))
+    assert len(gaps) >= 25
+    assert np.mean(gaps) < 0.02  # the issue's goal for the mean rounding gap
+
+
+def test_solutions_are_finite_deterministic_and_within_device_limits():
+    rng = np.random.default_rng(13)
+    for _ in range(25):
+        inputs = random_cvvc_inputs(rng)
+        a, b = solve_cvvc(inputs), solve_cvvc(inputs)
+        for name in ("taps_new", "q_new_kvar", "v_pred_pu", "relaxed_x", "relaxed_y"):
+            assert getattr(a, name).tobytes() == getattr(b, name).tobytes()
+            assert np.all(np.isfinite(getattr(a, name)))
+        assert a.status != "hold", a.reason
+        assert np.all((a.q_new_kvar >= inputs.q_min_kvar) & (a.q_new_kvar <= inputs.q_max_kvar))
+        assert np.all(np.abs(a.taps_new - inputs.taps) <= inputs.max_taps_per_interval)
+        assert np.all((a.taps_new >= inputs.tap_min) & (a.taps_new <= inputs.tap_max))
+        warm = solve_cvvc(inputs, warm_start=a)
+        assert warm.status == a.status and np.array_equal(warm.taps_new, a.taps_new)
+
+
+@pytest.mark.parametrize(
+    ("change", "match"),
+    [
+        ({"v0_pu": np.array([np.nan, 1.0])}, "not finite"),
+        ({"dv_dq_pu_per_kvar": np.ones((3, 1))}, "expected shape"),
+        ({"q_min_kvar": np.array([2000.0])}, "q_min_kvar exceeds"),
+        ({"taps": np.array([0.5])}, "integers"),
+        ({"v_min_pu": 1.05}, "below"),
+    ],
+)
+def test_inputs_are_validated(change, match):
+    base = _tiny(v0=[1.0, 1.0])
+    with pytest.raises(AgentInputError, match=match):
+        CvvcInputs(**{**base.__dict__, **change})
