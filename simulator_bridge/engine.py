@@ -285,6 +285,9 @@ class FeederEngine:
             pt_ratio, ct = float(d.RegControls.PTRatio()), float(d.RegControls.CTPrimary())
             r_v, x_v = float(d.RegControls.ForwardR()), float(d.RegControls.ForwardX())
             vreg, bandw = float(d.RegControls.ForwardVreg()), float(d.RegControls.ForwardBand())
+            if d.RegControls.MonitoredBus().strip():
+                raise DeviceMapError(f"{self._where}: regulator {spec.id!r}: RegControl {spec.regcontrol!r} "
+                                     "senses a remote bus (MonitoredBus); only local sensing is supported")
             pt_phase = self._command(f"? regcontrol.{spec.regcontrol}.ptphase", what=f"regulator {spec.id!r}")
             if not pt_phase.strip().isdigit():
                 raise DeviceMapError(f"{self._where}: regulator {spec.id!r}: RegControl {spec.regcontrol!r} "

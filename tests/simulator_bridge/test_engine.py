@@ -182,6 +182,22 @@ def test_perturbation_sensitivities_and_restoration(eng123: FeederEngine) -> Non
     np.testing.assert_allclose(dv, dv_dq[:, 1] * 200.0, atol=0.05 * np.max(np.abs(dv)))
 
 
+def test_single_phase_plant(map123: DeviceMap) -> None:
+    """A 1-phase plant on node 114.1: kV is line-to-neutral, readings only on phase a."""
+    extra = msgspec.convert({"id": "pv114", "bus": "114.1", "phases": 1, "kv_ll": 4.16, "kva": 50.0,
+                             "pmpp_kw": 45.0}, type=type(map123.pv[0]))
+    e = FeederEngine(_edit(map123, pv=[*map123.pv, extra]), tolerance=1e-8)
+    assert [e.node_names[i] for i in e.pv_node_index[3]] == ["114.1"]
+    q = e.set_pv(np.array([0.0, 0.0, 0.0, 45.0]), np.array([0.0, 0.0, 0.0, 30.0]))
+    assert q[3] == pytest.approx(np.sqrt(50.0**2 - 45.0**2))  # 21.8 kvar headroom
+    e.solve()
+    r = e.readings()
+    np.testing.assert_allclose(r.pv_p_kw[3], [45.0, 0.0, 0.0], atol=1e-3)
+    np.testing.assert_allclose(r.pv_q_kvar[3], [q[3], 0.0, 0.0], atol=1e-3)
+    v114 = e.node_voltages_pu()[e.pv_node_index[3][0]] * 4160 / np.sqrt(3)
+    assert r.pv_v_v[3, 0] == pytest.approx(v114, rel=1e-4) and r.pv_v_v[3, 1] == 0.0
+
+
 def test_set_taps_rejects_out_of_range(eng123: FeederEngine) -> None:
     with pytest.raises(EngineError, match="integer taps"):
         eng123.set_taps(np.array([17, 0, 0, 0, 0, 0, 0]))
