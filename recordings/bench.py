@@ -31,7 +31,7 @@ def _messages(n: int) -> list[tuple[str, bytes]]:
     from schemas.bus import codec_for
     from schemas.examples import T0_NS, examples
 
-    key_of = {
+    key_of: dict[Any, str] = {
         m.HeadFrame: keys.meas_head("rural"), m.PvFrame: keys.meas_pv("rural", "pv1"),
         m.RegFrame: keys.meas_vr("rural", "vr1a"), m.PvCommand: keys.cmd("rural", "pv", "pv1"),
         m.RegCommand: keys.cmd("rural", "vr", "vr1a"), m.Ack: keys.ack("rural", "pv", "pv1"),
@@ -82,7 +82,7 @@ def _publisher_process(endpoint: str, n: int, go: Any) -> None:
     with open_session(BusConfig(mode="peer", connect=(endpoint,))) as session:
         pubs = {key: session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK)
                 for key in dict(msgs)}
-        wait_for(lambda: all(p.matching_status.matching for p in pubs.values()), 20.0)
+        wait_for(lambda: all(p.matching_status.matching for p in pubs.values()), 20.0)  # type: ignore[attr-defined]
         go.set()
         for key, raw in msgs:
             pubs[key].put(raw)
@@ -146,7 +146,7 @@ def bench_recording(n: int = 20_000) -> dict[str, Any]:
 
 def _offline_speed() -> float | None:
     try:
-        from agent import runtime
+        from agent import runtime  # type: ignore[attr-defined]
     except ImportError:
         return None
     if not hasattr(runtime, "decide_offline"):

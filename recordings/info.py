@@ -202,7 +202,7 @@ def _scan(f: IO[bytes], state: _ScanState) -> Iterator[tuple[int, McapRecord]]:
         body = f.read(length)
         try:
             stream = ReadDataStream(io.BytesIO(body))
-            record = cls.read(stream, length) if cls is Message else cls.read(stream)  # type: ignore[call-arg]
+            record = cls.read(stream, length) if cls is Message else cls.read(stream)  # type: ignore[attr-defined]
         except MCAP_READ_ERRORS as e:
             state.stop_reason = f"a {cls.__name__} record at byte {pos} is corrupt ({_why(e)}): unreadable from here"
             return

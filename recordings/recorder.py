@@ -336,7 +336,7 @@ def main(config: RecorderConfig, stop: threading.Event | None = None) -> Recorde
     Signal handlers are installed only when called from the main thread (and restored afterwards).
     """
     stop = stop or threading.Event()
-    previous: dict[int, Any] = {}
+    previous: dict[signal.Signals, Any] = {}
     if threading.current_thread() is threading.main_thread():
         def on_signal(signum: int, frame: FrameType | None) -> None:
             stop.set()

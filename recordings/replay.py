@@ -200,7 +200,7 @@ def _replay_topics(session: zenoh.Session, config: ReplayConfig, rec: RecordedMe
 def _wait_matched(pubs: dict[str, zenoh.Publisher], timeout_s: float) -> list[str]:
     deadline = time.monotonic() + timeout_s
     while True:
-        unmatched = [t for t, p in pubs.items() if not p.matching_status.matching]
+        unmatched = [t for t, p in pubs.items() if not p.matching_status.matching]  # type: ignore[attr-defined]
         if not unmatched or time.monotonic() >= deadline:
             return unmatched
         time.sleep(0.01)
