@@ -27,6 +27,7 @@ import dataclasses
 import datetime as dt
 import logging
 import math
+import queue
 import threading
 import time
 from collections import Counter, deque
@@ -53,6 +54,7 @@ from schemas.bus import (
 from schemas.devicemap import DeviceMap, load_device_map
 from schemas.errors import CvvcError
 from simulator_bridge import devices as dv
+from simulator_bridge.engine import FieldReadings
 
 __all__ = [
     "BridgeConfig",
@@ -69,6 +71,7 @@ _NS = 1_000_000_000
 _LOCAL_TZ = dt.timezone(dt.timedelta(hours=-5))  # the profiles' fixed local standard time (UTC-5)
 _POLL_S = 0.05  # longest a wait goes without checking the stop event [s]
 _HANDLED_MEMORY = 10_000  # cmd_ids remembered for matching decisions
+_DRAIN_MAX = 1000  # queued items handled in one go before the clock and the stop event are looked at again
 
 
 class BridgeError(CvvcError):
@@ -206,6 +209,9 @@ def _check_config(c: BridgeConfig) -> None:
         raise BridgeError(f"--wait-agent-s must be within 0..3600 s, got {c.wait_agent_s}")
 
 
+_READING_FIELDS = tuple(f.name for f in dataclasses.fields(FieldReadings))
+
+
 class _FramePublisher:
     """Publisher of frames built from arrays that :func:`_check_finite_step` has already checked.
 
@@ -230,13 +236,16 @@ class _FramePublisher:
 
 
 def _check_finite_step(res: Any) -> None:
-    """Raise ``BridgeError`` if a step's readings or truth hold NaN or inf (a power flow gone wrong)."""
+    """Raise ``BridgeError`` if a step's readings or truth hold NaN or inf (a power flow gone wrong).
+
+    One sum per array: NaN and inf propagate through a sum, and these magnitudes cannot overflow it.
+    """
     rd = res.readings
-    arrays = [getattr(rd, f.name) for f in dataclasses.fields(rd)] + [res.v_pu, res.pv_q_kvar, res.pv_p_kw]
-    for a in arrays:
-        if not np.all(np.isfinite(np.asarray(a, dtype=float))):
-            raise BridgeError(f"step at t_ns={res.t_ns}: the power flow produced non-finite values; the "
-                              "feeder or its profiles are broken (check `cvvc feeder info`)")
+    total = sum(float(np.sum(getattr(rd, name))) for name in _READING_FIELDS)
+    total += float(np.sum(res.v_pu)) + float(np.sum(res.pv_q_kvar)) + float(np.sum(res.pv_p_kw))
+    if not math.isfinite(total):
+        raise BridgeError(f"step at t_ns={res.t_ns}: the power flow produced non-finite values; the "
+                          "feeder or its profiles are broken (check `cvvc feeder info`)")
 
 
 @dataclass(frozen=True)
@@ -363,11 +372,18 @@ class _Runtime:
 
     def serve(self, deadline_s: float, stop: threading.Event, done: Any = None) -> bool:
         """Handle queued items and due frames until ``done()`` is true (returns True) or ``deadline_s``
-        of ``time.monotonic()`` passes or ``stop`` is set (returns False).
+        of ``time.monotonic()`` passes or ``stop`` is set (returns False). What is already queued is
+        always handled, even with a deadline in the past.
         """
         while True:
             now = time.monotonic()
             self._flush(now)
+            for _ in range(_DRAIN_MAX):
+                try:
+                    item = self.inbox.queue.get_nowait()
+                except queue.Empty:
+                    break
+                self._handle(item)
             if done is not None and done():
                 return True
             if now >= deadline_s or stop.is_set():
@@ -377,9 +393,8 @@ class _Runtime:
             if nxt is not None:
                 wait = min(wait, max(nxt - now, 0.0))
             item = self.inbox.get(timeout_s=max(wait, 0.0))
-            while item is not None:
+            if item is not None:
                 self._handle(item)
-                item = self.inbox.get(timeout_s=0) if not self.inbox.queue.empty() else None
 
     def _handle(self, item: Received) -> None:
         msg = item.msg

@@ -395,25 +395,43 @@ def test_lockstep_with_a_silent_agent_times_out_and_goes_on(client: Client, rout
         watch.undeclare()
 
 
-def test_realtime_keeps_its_clock(client: Client, router_endpoint: str, device_map_path: Path,
-                                  cache_dir: Path) -> None:
-    # 1-minute steps at speed 1200: 20 steps per wall second, no agent needed (real time never waits)
+def test_realtime_keeps_its_clock_and_serves_commands_without_an_agent(
+        client: Client, router_endpoint: str, device_map_path: Path, cache_dir: Path) -> None:
+    # 1-minute steps at speed 1200: 20 steps per wall second; real time never waits for anyone
     th, stop, out = _bridge_thread(_config(device_map_path, cache_dir, steps=41, clock="realtime", speed=1200.0,
                                            wait_agent_s=0.0), router_endpoint)
-    summary = _finish(th, stop, out)
-    heads = [t for _, x, t in client.seen if isinstance(x, m.HeadFrame)]
+    try:
+        t0 = client.head().t_ns
+        c = client.pv_cmd("pv680", -100.0, t0)
+        a = client.ack(c.cmd_id)
+        frame = client.next(lambda k, x: isinstance(x, m.PvFrame) and x.plant_id == "pv680" and x.t_ns > a.t_ns)
+        summary = _finish(th, stop, out)
+    finally:
+        stop.set()
+        th.join(timeout=30)
+    assert a.status == "accepted" and frame.q_setpoint_kvar == -100.0
+    heads = sorted(t for _, x, t in client.seen if isinstance(x, m.HeadFrame))
     while True:
         try:
-            key, raw, t = client.q.get_nowait()
+            key, _, t = client.q.get_nowait()
         except queue.Empty:
             break
         if key.endswith("/meas/head"):
             heads.append(t)
-    assert summary.steps == 41 and summary.clock == "realtime"
+    assert summary.steps == 41 and summary.clock == "realtime" and summary.lockstep_misses == 0
     assert summary.steps_per_s == pytest.approx(20.0, rel=0.15)
     assert len(heads) >= 38  # DROP congestion control may lose one or two under load
     rate = (len(heads) - 1) / (heads[-1] - heads[0])
     assert rate == pytest.approx(20.0, rel=0.15)
+
+
+def test_lockstep_without_an_agent_token_does_not_wait(client: Client, router_endpoint: str,
+                                                       device_map_path: Path, cache_dir: Path) -> None:
+    th, stop, out = _bridge_thread(_config(device_map_path, cache_dir, steps=20, wait_agent_s=0.0,
+                                           timeout_s=30.0), router_endpoint)
+    summary = _finish(th, stop, out)
+    assert summary.steps == 20 and summary.lockstep_skipped == 4 and summary.lockstep_misses == 0
+    assert summary.wall_s < 30 and not summary.agent_alive
 
 
 def test_sigterm_ends_the_run_cleanly(client: Client, router_endpoint: str, device_map_path: Path,
