@@ -105,6 +105,7 @@ class McapSink:
         self._channels: dict[str, int] = {}
         self._schemas: dict[type, int] = {}
         self._header_decoder = msgspec.json.Decoder(_Header)
+        self._add = self._writer.add_message
         self.messages = 0
         self.payload_bytes = 0
         self.log_time_fallbacks = 0
@@ -127,8 +128,7 @@ class McapSink:
         if not 0 <= log_time <= _U64_MAX:
             log_time = recv_ns
             self.log_time_fallbacks += 1
-        self._writer.add_message(channel_id, log_time=log_time, data=raw, publish_time=recv_ns,
-                                 sequence=seq & _U32)
+        self._add(channel_id, log_time, raw, recv_ns, seq & _U32)  # positional: (channel, log, data, pub, seq)
         self.messages += 1
         self.payload_bytes += len(raw)
 
