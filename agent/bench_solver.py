@@ -1,0 +1,85 @@
+"""Benchmark of the CVVC solver at the paper's size (47 critical nodes, 3 plants, 8 regulators).
+
+``python -m agent.bench_solver [--problems N] [--days D] [--seed S]`` prints, for independent random problems
+(cold start) and for closed-loop synthetic days (5-minute steps, warm start from the previous solution, the
+way the agent runs): solve time p50/p99/max, OSQP iterations, statuses, and the rounding's cost gap to the
+exact MILP (``scipy.optimize.milp``). Times are wall clock on this machine: read them with its load.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+from collections import Counter
+
+import numpy as np
+
+from agent.solve import solve_cvvc, solve_milp_reference
+from agent.synthetic import cvvc_day_sequence, random_cvvc_inputs
+
+__all__ = ["main"]
+
+
+def _summary(name: str, seconds: list[float], iterations: list[int], statuses: Counter, gaps: list[float]) -> str:
+    ms = np.array(seconds) * 1e3
+    it = np.array(iterations)
+    g = np.array(gaps) if gaps else np.array([np.nan])
+    return (
+        f"{name}: n={ms.size} time p50 {np.percentile(ms, 50):.3f} ms, p99 {np.percentile(ms, 99):.3f} ms, "
+        f"max {ms.max():.3f} ms; iterations p50 {np.percentile(it, 50):.0f}, p99 {np.percentile(it, 99):.0f}; "
+        f"statuses {dict(statuses)}; MILP gap (n={len(gaps)}) mean {100 * np.nanmean(g):.2f} %, "
+        f"max {100 * np.nanmax(g):.2f} %"
+    )
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the benchmark and print one line per scenario."""
+    parser = argparse.ArgumentParser(prog="python -m agent.bench_solver", description=__doc__)
+    parser.add_argument("--problems", type=int, default=300, help="independent random problems (cold start)")
+    parser.add_argument("--days", type=int, default=2, help="closed-loop synthetic days of 288 steps (warm start)")
+    parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--gap-every", type=int, default=3, help="compare with the MILP every N-th problem")
+    args = parser.parse_args(argv)
+    rng = np.random.default_rng(args.seed)
+
+    secs, its, stats, gaps = [], [], Counter(), []
+    for i in range(args.problems):
+        inputs = random_cvvc_inputs(rng)
+        sol = solve_cvvc(inputs)
+        secs.append(sol.seconds.total_s)
+        its.append(sol.iterations)
+        stats[sol.status] += 1
+        if i % args.gap_every == 0:
+            milp = solve_milp_reference(inputs)
+            if milp.status == "optimal" and sol.status == "optimal":
+                gaps.append((sol.cost - milp.cost) / max(milp.cost, 1e-9))
+            elif milp.status == "optimal":
+                stats["soft_where_milp_feasible"] += 1
+    print(_summary("random problems, cold start", secs, its, stats, gaps))
+
+    secs, its, stats, gaps = [], [], Counter(), []
+    for _ in range(args.days):
+        days = cvvc_day_sequence(rng)
+        inputs, previous, step = next(days), None, 0
+        while True:
+            sol = solve_cvvc(inputs, warm_start=previous)
+            previous = sol
+            secs.append(sol.seconds.total_s)
+            its.append(sol.iterations)
+            stats[sol.status] += 1
+            if step % args.gap_every == 0:
+                milp = solve_milp_reference(inputs)
+                if milp.status == "optimal" and sol.status == "optimal":
+                    gaps.append((sol.cost - milp.cost) / max(milp.cost, 1e-9))
+            step += 1
+            try:
+                inputs = days.send((sol.taps_new, sol.q_new_kvar))
+            except StopIteration:
+                break
+    print(_summary("closed-loop days, warm start", secs, its, stats, gaps))
+    print(f"load average during the run: {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
