@@ -183,6 +183,7 @@ class Qsts:
         Returns the value that would be applied at the present available power (clipped to the
         headroom; 0 at night unless ``pv_q_at_night``). The next step re-clips at its own P.
         """
+        self._check_index(k, len(self._pv_cmd), "PV plant")
         if q_kvar is not None and not np.isfinite(q_kvar):
             raise QstsError(f"command_pv_q: plant {k}: non-finite set point {q_kvar!r}")
         self._pv_cmd[k] = None if q_kvar is None else float(q_kvar)
@@ -194,6 +195,7 @@ class Qsts:
 
         Returns the tap it will hold (its present tap when unlocked).
         """
+        self._check_index(r, len(self._tap_lock), "regulator")
         if tap is None:
             self._tap_lock[r] = None
             self._out_of_band_steps[r] = 0
@@ -207,12 +209,18 @@ class Qsts:
 
         A locked regulator keeps its tap; the set point applies once it is unlocked.
         """
+        self._check_index(r, len(self._tap_lock), "regulator")
         for name, value in (("setpoint_v120", setpoint_v120), ("band_v120", band_v120)):
             if value is not None and not (np.isfinite(value) and value > 0):
                 raise QstsError(f"command_setpoint: regulator {r}: {name} {value!r} must be positive")
         self._setpoint_v120[r] = (self.engine.reg_default_setpoint_v120[r] if setpoint_v120 is None
                                   else float(setpoint_v120))
         self._band_v120[r] = self.engine.reg_default_band_v120[r] if band_v120 is None else float(band_v120)
+
+    @staticmethod
+    def _check_index(i: int, n: int, what: str) -> None:
+        if not (isinstance(i, int | np.integer) and 0 <= i < n):
+            raise QstsError(f"no {what} {i!r}: this feeder has {n} (indices 0..{n - 1})")
 
     # ------------------------------------------------------------------ stepping
     def _plant_v_pu(self, v_pu: np.ndarray) -> np.ndarray:

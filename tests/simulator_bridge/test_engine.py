@@ -198,6 +198,18 @@ def test_single_phase_plant(map123: DeviceMap) -> None:
     assert r.pv_v_v[3, 0] == pytest.approx(v114, rel=1e-4) and r.pv_v_v[3, 1] == 0.0
 
 
+def test_engines_are_independent(map13: DeviceMap, map123: DeviceMap) -> None:
+    """Each engine has its own OpenDSS context: changing one does not move the other."""
+    a, b = FeederEngine(map13), FeederEngine(map123)
+    vb = b.node_voltages_pu()
+    a.set_loads_kw(2.0 * a.load_kw_nominal)
+    a.set_taps(-a.taps() - 1)
+    a.solve()
+    b.solve()
+    np.testing.assert_allclose(b.node_voltages_pu(), vb, atol=1e-9)
+    assert len(a.readings().reg_tap) == 3 and len(b.readings().reg_tap) == 7
+
+
 def test_set_taps_rejects_out_of_range(eng123: FeederEngine) -> None:
     with pytest.raises(EngineError, match="integer taps"):
         eng123.set_taps(np.array([17, 0, 0, 0, 0, 0, 0]))

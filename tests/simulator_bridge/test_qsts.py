@@ -206,3 +206,13 @@ def test_profiles_that_do_not_fit(eng: FeederEngine) -> None:
         Qsts(eng, ArrayProfiles(np.ones((2, 5)), np.ones((2, 3))), start_step=0)
     with pytest.raises(QstsError, match="start_step"):
         Qsts(eng, constant(eng, 2, 1.0, 0.0), start_step=2)
+
+
+def test_commands_reject_unknown_devices(eng: FeederEngine) -> None:
+    q = Qsts(eng, constant(eng, 2, 1.0, 0.0), start_step=0)
+    with pytest.raises(QstsError, match="no PV plant 3"):
+        q.command_pv_q(3, 10.0)
+    with pytest.raises(QstsError, match="no regulator 7"):
+        q.command_tap(7, 1)
+    with pytest.raises(QstsError, match="must be positive"):
+        q.command_setpoint(0, float("nan"), None)
