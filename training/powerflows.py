@@ -21,6 +21,7 @@ import sys
 import time
 from collections.abc import Sequence
 from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -64,6 +65,7 @@ class PowerFlowSet:
     q_head_kvar: np.ndarray  # (F,) feeder-head Q, sum of phases [kvar]
     pv_q_kvar: np.ndarray  # (F, K) applied plant Q [kvar], generator convention
     v_pu: np.ndarray  # (F, n_nodes) every node voltage [pu]
+    taps: np.ndarray  # (F, R) tap positions of each flow
     failed: int  # power flows that did not converge (skipped)
     workers: int = 1  # processes that ran them
 
@@ -82,6 +84,7 @@ class PowerFlowSet:
             q_head_kvar=np.concatenate([p.q_head_kvar for p in parts]),
             pv_q_kvar=np.concatenate([p.pv_q_kvar for p in parts]),
             v_pu=np.concatenate([p.v_pu for p in parts]),
+            taps=np.concatenate([p.taps for p in parts]),
             failed=sum(p.failed for p in parts),
         )
 
@@ -130,8 +133,9 @@ def solve_scenario(
     q_steps_pct: Sequence[float],
     combined_pct: Sequence[float],
 ) -> PowerFlowSet:
-    """Run one scenario's flows on ``engine`` (taps already set) and record them."""
+    """Run one scenario's flows on ``engine`` at its present taps and record them."""
     engine.set_loads_kw(scenario.load_kw)
+    taps = np.asarray(engine.taps(), int)
     plan = q_plan(scenario.pv_kw, kva, q_steps_pct, combined_pct)
     rows: list[tuple] = []
     failed = 0
@@ -142,7 +146,7 @@ def solve_scenario(
         except CvvcError:
             failed += 1
             if plant == BASE:  # no base flow: the sweeps have no reference, drop the scenario
-                return _empty(len(kva), len(engine.node_names), failed=len(plan))
+                return _empty(len(kva), len(engine.node_names), len(taps), failed=len(plan))
             continue
         r = engine.readings()
         feat = features(r.head_p_kw, r.head_q_kvar, r.pv_p_kw.sum(axis=1), r.pv_q_kvar.sum(axis=1))
@@ -165,11 +169,12 @@ def solve_scenario(
         q_head_kvar=np.asarray([r[3] for r in rows], float),
         pv_q_kvar=np.asarray([r[4] for r in rows], float).reshape(len(rows), len(kva)),
         v_pu=np.asarray([r[5] for r in rows], float).reshape(len(rows), len(engine.node_names)),
+        taps=np.tile(taps, (len(rows), 1)),
         failed=failed,
     )
 
 
-def _empty(n_pv: int, n_nodes: int, *, failed: int = 0) -> PowerFlowSet:
+def _empty(n_pv: int, n_nodes: int, n_reg: int, *, failed: int = 0) -> PowerFlowSet:
     return PowerFlowSet(
         scenario=np.zeros(0, int),
         plant=np.zeros(0, int),
@@ -178,6 +183,7 @@ def _empty(n_pv: int, n_nodes: int, *, failed: int = 0) -> PowerFlowSet:
         q_head_kvar=np.zeros(0),
         pv_q_kvar=np.zeros((0, n_pv)),
         v_pu=np.zeros((0, n_nodes)),
+        taps=np.zeros((0, n_reg), int),
         failed=failed,
     )
 
@@ -269,10 +275,19 @@ def run_power_flows(
         file=sys.stderr,
         disable=not (progress and sys.stderr.isatty()),
     )
+    tap0 = np.asarray(engine.taps(), int)
     parts: list[PowerFlowSet] = []
     try:
         t0 = time.perf_counter()
-        parts.append(solve_scenario(engine, scenarios[0], engine.pv_kva, q_steps_pct, combined_pct))
+        parts.append(
+            solve_scenario(
+                engine,
+                scenarios[0],
+                engine.pv_kva,
+                q_steps_pct,
+                combined_pct,
+            )
+        )
         bar.update(parts[0].n + parts[0].failed)
         rest = list(scenarios[1:])
         if workers == 1 or (time.perf_counter() - t0) * len(rest) < parallel_min_s:
@@ -288,13 +303,20 @@ def run_power_flows(
             max_workers=workers,
             mp_context=ctx,
             initializer=_init_worker,
-            initargs=(str(device_map_path), tolerance, [int(t) for t in engine.taps()]),
+            initargs=(str(device_map_path), tolerance, [int(t) for t in tap0]),
         ) as pool:
             futures = [pool.submit(_run_chunk, c, list(q_steps_pct), list(combined_pct)) for c in chunks]
             for f in futures:
-                part = f.result()
+                try:
+                    part = f.result()
+                except BrokenProcessPool as e:
+                    raise TrainingError(
+                        "a power-flow worker process died (out of memory, or a script without an "
+                        "`if __name__ == '__main__':` guard); retry with --workers 1"
+                    ) from e
                 parts.append(part)
                 bar.update(part.n + part.failed)
         return replace(PowerFlowSet.concat(parts), workers=workers)
     finally:
         bar.close()
+        engine.set_taps(tap0)

@@ -271,7 +271,8 @@ def train(
 
     # II.D: eq. (5), held-out validation first, then the fit on everything
     holdout = (flows.scenario % _HOLDOUT_EVERY) == _HOLDOUT_EVERY - 1
-    v_crit = flows.v_pu[:, nodes]
+    # eq. (5) target: the voltage the model would see at tap0 (identity when the flows ran at tap0)
+    v_crit = flows.v_pu[:, nodes] - (flows.taps - tap0) @ dv_dtap_all[nodes].T
     val_rmse, val_max = float("nan"), float("nan")
     if holdout.any() and (~holdout).sum() > flows.features.shape[1] + 1:
         part = fit_voltage_regression(flows.features[~holdout], v_crit[~holdout], rcond=rcond)
