@@ -43,11 +43,14 @@ __all__ = [
 #: Fixed OSQP settings (units of the scaled problem: voltages in %, Q in fractions of rating, taps in steps).
 #: ``adaptive_rho=0`` and a fixed ``rho``: ADMM's path depends only on the data. OSQP's own polishing is
 #: replaced by ours after every chunk of ``max_iter`` iterations (see ``_osqp_run``); no wall-clock limit.
+#: ``eps_prim_inf`` is loose: proving a rounding candidate infeasible took up to 4000 iterations at 1e-6 and
+#: about 10x fewer at 1e-3; a false "infeasible" could only cost optimality (a candidate skipped, or the
+#: soft form), and none was seen on the benchmark problems.
 OSQP_SETTINGS: dict[str, object] = {
     "verbose": False,
     "eps_abs": 1e-6,
     "eps_rel": 1e-6,
-    "eps_prim_inf": 1e-6,
+    "eps_prim_inf": 1e-3,
     "eps_dual_inf": 1e-6,
     "rho": 1.0,
     "adaptive_rho": 0,
@@ -59,14 +62,17 @@ OSQP_SETTINGS: dict[str, object] = {
     "scaling": 10,
     "warm_starting": True,
 }
-#: Iteration budget of one rounding candidate's Q re-solve; a candidate not solved within it is skipped.
-MAX_ITER_RESOLVE = 4000
+#: Iteration budget of a rounding candidate's Q re-solve once a feasible candidate is known (before that,
+#: ``MAX_ITER``); a candidate not solved within it is skipped: it could only have improved the cost.
+MAX_ITER_RESOLVE = 400
 #: ADMM iterations before the first polish attempt; each later chunk is twice as long.
 FIRST_CHUNK_ITER = 25
 #: Iteration budget of one solve (all chunks) [ADMM iterations].
 MAX_ITER = 4000
 #: Regularisation of the polish system (keeps it solvable with dependent active rows).
 POLISH_REG = 1e-10
+#: Active-set repair steps per polish (each: one small dense solve).
+REPAIR_STEPS = 6
 #: Tolerance of the KKT optimality check in scaled units (% of voltage, fraction of rating, steps).
 KKT_TOL = 1e-6
 #: Up to this many fractional taps, every floor/ceil combination is tried (2**3 = 8 Q re-solves).
@@ -165,11 +171,33 @@ def _setup(qp: CvvcQp) -> osqp.OSQP | None:
 
 
 def _osqp(qp: CvvcQp, x0: np.ndarray | None, y0: np.ndarray | None) -> _Run:
-    """Set up and solve ``qp``."""
+    """Solve ``qp``: first the warm start's active set (no ADMM at all), else set up OSQP and iterate."""
+    warm = _warm_polish(qp, qp.lower, qp.upper, x0, y0)
+    if warm is not None:
+        return warm
     solver = _setup(qp)
     if solver is None:
         return _Run(False, False, "OSQP setup refused the problem", np.zeros(qp.layout.n), np.zeros(qp.A.shape[0]), 0)
     return _osqp_run(solver, qp, qp.lower, qp.upper, x0, y0)
+
+
+def _warm_polish(
+    qp: CvvcQp, lo: np.ndarray, hi: np.ndarray, x0: np.ndarray | None, y0: np.ndarray | None
+) -> _Run | None:
+    """The optimum if the warm start's active set is still the optimal one (KKT-checked), else None.
+
+    Between rounding candidates, and between consecutive intervals, the binding constraints rarely change:
+    then one small linear solve replaces the whole ADMM run.
+    """
+    n, m = qp.layout.n, qp.A.shape[0]
+    if x0 is None or y0 is None or x0.shape != (n,) or y0.shape != (m,) or not np.any(y0):
+        return None
+    a_dense = qp.A.toarray()
+    p_diag = qp.P.diagonal()
+    polished = _polish(a_dense, p_diag, qp.c, lo, hi, x0, y0)
+    if polished is not None and _kkt_ok(a_dense, p_diag, qp.c, lo, hi, *polished):
+        return _Run(True, False, "warm active set", polished[0], polished[1], 0)
+    return None
 
 
 def _osqp_run(
@@ -235,36 +263,65 @@ def _osqp_run(
     return _Run(False, False, f"{status_name} after {total} iterations", np.zeros(n), np.zeros(m), total)
 
 
-def _polish(
-    a: np.ndarray, p_diag: np.ndarray, c: np.ndarray, lo: np.ndarray, hi: np.ndarray, x: np.ndarray, y: np.ndarray
+def _equality_qp(
+    a: np.ndarray, p_diag: np.ndarray, c: np.ndarray, bound: np.ndarray, act: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray] | None:
-    """Solve the QP with the rows guessed active from an ADMM iterate held at their bounds.
-
-    OSQP's polishing rule: a row is lower-active if ``Ax - lo < -y``, upper-active if ``hi - Ax < y``
-    (equality rows always). A tiny regularisation keeps the system solvable when active rows are dependent.
-    The caller accepts the result only if it passes the KKT check.
-    """
-    n = x.shape[0]
-    z = a @ x
-    lower = (lo == hi) | (z - lo < -y)
-    upper = ~lower & (hi - z < y)
-    act = np.flatnonzero(lower | upper)
-    k = act.shape[0]
+    """Minimise ``x'Px/2 + c'x`` with rows ``act`` held at ``bound[act]``: ``(x, y on act)`` or None."""
+    n, k = a.shape[1], act.shape[0]
     kkt = np.zeros((n + k, n + k))
     kkt[:n, :n] = np.diag(p_diag)
     kkt[:n, n:] = a[act].T
     kkt[n:, :n] = a[act]
-    kkt[n:, n:] = -POLISH_REG * np.eye(k)
-    rhs = np.concatenate([-c, np.where(lower[act], lo[act], hi[act])])
+    kkt[n:, n:] = -POLISH_REG * np.eye(k)  # keeps the system solvable when active rows are dependent
     try:
-        sol = np.linalg.solve(kkt, rhs)
+        sol = np.linalg.solve(kkt, np.concatenate([-c, bound[act]]))
     except np.linalg.LinAlgError:
         return None
     if not np.all(np.isfinite(sol)):
         return None
-    y_full = np.zeros(a.shape[0])
-    y_full[act] = sol[n:]
-    return sol[:n], y_full
+    return sol[:n], sol[n:]
+
+
+def _polish(
+    a: np.ndarray, p_diag: np.ndarray, c: np.ndarray, lo: np.ndarray, hi: np.ndarray, x: np.ndarray, y: np.ndarray
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """Active-set polish from an iterate ``(x, y)``: guess, then repair the active set a few times.
+
+    The guess is OSQP's polishing rule: a row is lower-active if ``Ax - lo < -y``, upper-active if
+    ``hi - Ax < y`` (equality rows always). Each repair step solves the QP with the active rows at their
+    bounds, then drops the active row whose multiplier has the wrong sign the most, or else adds the most
+    violated row. The caller accepts the result only if it passes the KKT check.
+    """
+    z = a @ x
+    eq = lo == hi
+    lower = eq | (z - lo < -y)
+    upper = ~lower & (hi - z < y)
+    sol: tuple[np.ndarray, np.ndarray] | None = None
+    for _ in range(REPAIR_STEPS):
+        act = np.flatnonzero(lower | upper)
+        out = _equality_qp(a, p_diag, c, np.where(lower, lo, hi), act)
+        if out is None:
+            return None
+        x_new, y_act = out
+        y_full = np.zeros(a.shape[0])
+        y_full[act] = y_act
+        sol = (x_new, y_full)
+        # multipliers must be <= 0 on lower-active rows and >= 0 on upper-active rows (OSQP's sign)
+        wrong = np.where(lower & ~eq, y_full, 0.0) + np.where(upper, -y_full, 0.0)
+        if wrong.max(initial=0.0) > KKT_TOL:
+            i = int(np.argmax(wrong))
+            lower[i] = upper[i] = False
+            continue
+        ax = a @ x_new
+        viol = np.maximum(lo - ax, ax - hi)
+        viol[lower | upper] = 0.0
+        if viol.max(initial=0.0) > KKT_TOL:
+            i = int(np.argmax(viol))
+            lower[i] = ax[i] < lo[i]
+            upper[i] = not lower[i]
+            continue
+        break
+    return sol
 
 
 def _kkt_ok(
@@ -417,6 +474,16 @@ def solve_cvvc(inputs: CvvcInputs, *, warm_start: CvvcSolution | None = None) ->
     # Scores include the tap proximal term, so the relaxed objective is a lower bound on every candidate's
     # score: stop as soon as a candidate is within ROUNDING_GAP_REL of it.
     candidates = _candidates(d_rel)
+    if form == "hard":
+        # Candidates that already meet the limits with the relaxed Q first (stable: nearest first within
+        # each group): the first re-solve then finds a feasible point fast, and later ones get a small budget.
+        q_keep = np.clip(q_rel, inputs.q_min_kvar, inputs.q_max_kvar)
+        ok = [
+            np.max(_violation_pu(inputs, inputs.predict_v_pu(d, q_keep)), initial=0.0) <= V_TOL_PU for d in candidates
+        ]
+        candidates = [d for d, good in zip(candidates, ok, strict=True) if good] + [
+            d for d, good in zip(candidates, ok, strict=True) if not good
+        ]
     bound = qp.objective(run.x)
     best = None  # (score, d_int, q_new_kvar)
     fixed = build_cvvc_qp(inputs, soft=form == "soft", fixed_d_tap=candidates[0])
@@ -437,12 +504,14 @@ def solve_cvvc(inputs: CvvcInputs, *, warm_start: CvvcSolution | None = None) ->
             lo, hi = fixed.bounds_with_d_tap(d_int)
             if form == "hard" and np.any((row_hi < lo[rows] - 1e-9) | (row_lo > hi[rows] + 1e-9)):
                 continue  # some node cannot meet its limits with these taps, whatever Q does
-            if solver is None:
-                solver = _setup(fixed)
+            res = _warm_polish(fixed, lo, hi, x_q0, y_q0)
+            if res is None:
                 if solver is None:
-                    break
-            solver.update(l=lo, u=hi)
-            res = _osqp_run(solver, fixed, lo, hi, x_q0, y_q0, MAX_ITER_RESOLVE)
+                    solver = _setup(fixed)
+                    if solver is None:
+                        break
+                solver.update(l=lo, u=hi)
+                res = _osqp_run(solver, fixed, lo, hi, x_q0, y_q0, MAX_ITER if best is None else MAX_ITER_RESOLVE)
             iterations += res.iterations
             tried += 1
             if not res.ok:
