@@ -469,16 +469,17 @@ class FeederEngine:
         -------
         (K,) the reactive power actually applied [kvar].
         """
-        p = np.clip(np.asarray(p_kw, dtype=float), 0.0, self.pv_pmpp_kw)
+        # np.minimum/np.maximum rather than np.clip: the same result, a few µs less per call
+        p = np.minimum(np.maximum(np.asarray(p_kw, dtype=float), 0.0), self.pv_pmpp_kw)
         headroom = np.sqrt(np.maximum(self.pv_kva**2 - p**2, 0.0))
-        q = np.clip(np.asarray(q_kvar, dtype=float), -headroom, headroom)
+        q = np.minimum(np.maximum(np.asarray(q_kvar, dtype=float), -headroom), headroom)
         if p.shape != self.pv_kva.shape or q.shape != self.pv_kva.shape or not np.all(np.isfinite(q)):
             raise EngineError(f"set_pv: expected {len(self.pv_ids)} finite values, got {p_kw!r}, {q_kvar!r}")
         # Through the PVSystems interface: a property edit (text or batch) rebuilds the PV's Yprim and
         # makes the next solve ~5x slower on IEEE 8500.
         pv = self._dss.PVsystems
-        for k, name in enumerate(self._pv_names):
-            pv.Name(name)
+        for k in np.flatnonzero((p != self._pv_p_kw) | (q != self._pv_q_kvar)):
+            pv.Name(self._pv_names[k])
             pv.Irradiance(p[k] / self.pv_pmpp_kw[k])
             pv.kvar(q[k])
         self._pv_p_kw, self._pv_q_kvar = p, q
@@ -538,9 +539,8 @@ class FeederEngine:
         """
         func(self._ce_result, self._ce_dims, self._ce_handles, self._n_ce)
         n = int(self._ce_dims[0])
-        raw = np.frombuffer(self._ffi.buffer(self._ce_result[0], n * 8), dtype=float)
         out = np.zeros(n // 2 + 1, dtype=complex)
-        out[:-1] = raw[0::2] + 1j * raw[1::2]
+        out[:-1] = np.frombuffer(self._ffi.buffer(self._ce_result[0], n * 8), dtype=complex)  # (re, im) pairs
         return out
 
     def readings(self) -> FieldReadings:
@@ -629,6 +629,7 @@ class FeederEngine:
         prev = tap_rows[0].copy()
         self.set_taps(prev)
         t = time.perf_counter()
+        pv_kw = np.clip(np.asarray(pv_kw, dtype=float), 0.0, self.pv_pmpp_kw)
         for row, pv_row, tap_row in zip(load_kw, pv_kw, tap_rows, strict=True):
             self.set_loads_kw(row)
             for k, name in enumerate(self._pv_names):
@@ -638,7 +639,10 @@ class FeederEngine:
                 self._set_tap(r, int(tap_row[r]))
             prev = tap_row
             solve()
-        return time.perf_counter() - t
+        elapsed = time.perf_counter() - t
+        if len(pv_kw):
+            self._pv_p_kw = pv_kw[-1].copy()  # keep set_pv's record of what OpenDSS holds
+        return elapsed
 
     def close(self) -> None:
         """Release the load batch handle (the context itself is freed with the object)."""

@@ -246,7 +246,7 @@ class Qsts:
         if not self.pv_q_at_night:
             q = np.where(p_kw > 0.0, q, 0.0)
         headroom = np.sqrt(np.maximum(e.pv_kva**2 - np.minimum(p_kw, e.pv_pmpp_kw) ** 2, 0.0))
-        return np.clip(q, -headroom, headroom)
+        return np.minimum(np.maximum(q, -headroom), headroom)
 
     def step(self) -> StepResult:
         """Advance one profile step: set loads and PV, apply locked taps, solve, run regulator control."""
@@ -254,7 +254,7 @@ class Qsts:
         if s >= self.profiles.n_steps:
             raise QstsError(f"step {s} is past the end of the profiles ({self.profiles.n_steps} steps)")
         load_kw, pv_kw = self._rows(s)
-        p = np.clip(pv_kw, 0.0, e.pv_pmpp_kw)
+        p = np.minimum(np.maximum(pv_kw, 0.0), e.pv_pmpp_kw)
         q = e.set_pv(p, self._pv_q_target(p, self._pv_v_pu))
         e.set_loads_kw(load_kw)
 
