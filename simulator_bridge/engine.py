@@ -27,6 +27,7 @@ OpenDSS's own controls are off (``set controlmode=off``); regulator behaviour is
 from __future__ import annotations
 
 import os
+import time
 from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
@@ -125,6 +126,21 @@ class FeederEngine:
         The master file or an ``extra_commands`` entry does not compile, or the base case does not solve.
     DeviceMapError
         The map names a bus, element or RegControl that the model does not have.
+
+    Attributes
+    ----------
+    node_names : OpenDSS ``AllNodeNames``, lower case ``"bus.phase"``; the order of every node vector.
+    node_distance_ohm : (n_nodes,) electrical distance from ``feeder.source_bus`` [ohm] (see
+        ``docs/simulation.md``).
+    load_names, load_kw_nominal, load_distance_ohm : every load, its model kW [kW] and distance [ohm].
+    pv_ids, pv_node_index, pv_distance_ohm, pv_kva, pv_pmpp_kw : the map's PV plants, their nodes
+        (indices into ``node_names``), distance [ohm], ratings [kVA], [kW].
+    regulator_ids, reg_primary_node, reg_secondary_node : the map's regulators and the nodes of their PT
+        phase on each side.
+    reg_pu_per_v120 : (R,) pu of the secondary node per volt on the 120 V base (``ptratio / V_base``).
+    reg_default_setpoint_v120, reg_default_band_v120 : (R,) local-control defaults: the map's, else the
+        model's ``vreg`` and ``band`` [V on the 120 V base].
+    reg_tap_max : (R,) highest tap position (taps run ``-reg_tap_max..reg_tap_max``).
     """
 
     def __init__(self, device_map: DeviceMap, *, tolerance: float = 1e-6) -> None:
@@ -500,7 +516,7 @@ class FeederEngine:
 
     def _set_tap(self, r: int, tap: int) -> None:
         # Through the transformer, not RegControls.TapNumber: that setter makes OpenDSS reprocess the
-        # whole bus list (~4x slower solve after it on IEEE 8500); the voltages are the same.
+        # whole bus list (~2.5x slower solve after it on IEEE 8500); the voltages are the same.
         reg = self._regs[r]
         xf = self._dss.Transformers
         xf.Name(reg.transformer)
@@ -621,15 +637,13 @@ class FeederEngine:
         a tap sequence: a row's taps are set before its solve when they differ from the previous row's.
         Leaves the last row applied.
         """
-        import time
-
         pv = self._dss.PVsystems
         solve = self._dss.Solution.Solve
         tap_rows = np.asarray(taps, dtype=int) if taps is not None else np.tile(self._taps, (len(load_kw), 1))
         prev = tap_rows[0].copy()
         self.set_taps(prev)
-        t = time.perf_counter()
         pv_kw = np.clip(np.asarray(pv_kw, dtype=float), 0.0, self.pv_pmpp_kw)
+        t = time.perf_counter()
         for row, pv_row, tap_row in zip(load_kw, pv_kw, tap_rows, strict=True):
             self.set_loads_kw(row)
             for k, name in enumerate(self._pv_names):
