@@ -13,7 +13,8 @@ Each step (one profile row, 1 minute by default):
    *compared* voltage (line-drop compensation included) is outside ``set point ± band/2`` counts one more
    consecutive step out of band (the count resets when it is inside). Once the count reaches
    ``delay_steps`` it moves one tap toward the band, the feeder is re-solved, and it keeps moving one tap
-   per solve while still outside, up to ``max_taps_per_step`` taps in this step. ``delay_steps=1``
+   per solve while still outside, up to ``max_taps_per_step`` taps in this step, never reversing
+   direction within the step (a band narrower than one tap would otherwise hunt). ``delay_steps=1``
    models a time delay shorter than one step (the regulator acts in the minute it sees the violation);
    ``delay_steps=n`` a delay between ``n−1`` and ``n`` steps. Every tap moved is counted in
    ``StepResult.tap_changes``, commanded moves included.
@@ -162,7 +163,6 @@ class Qsts:
         self._setpoint_v120 = engine.reg_default_setpoint_v120.copy()
         self._band_v120 = engine.reg_default_band_v120.copy()
         self._out_of_band_steps = np.zeros(n_reg, dtype=int)
-        self._taps = engine.taps()
         # plant voltage = mean of its nodes' voltages: flat node indices and segment starts
         self._pv_nodes = np.array([i for ix in engine.pv_node_index for i in ix], dtype=int)
         self._pv_counts = np.array([len(ix) for ix in engine.pv_node_index], dtype=float)
@@ -199,7 +199,7 @@ class Qsts:
         if tap is None:
             self._tap_lock[r] = None
             self._out_of_band_steps[r] = 0
-            return int(self._taps[r])
+            return int(self.engine.taps()[r])
         t = int(np.clip(int(tap), -self.engine.reg_tap_max[r], self.engine.reg_tap_max[r]))
         self._tap_lock[r] = t
         return t
@@ -258,7 +258,7 @@ class Qsts:
         q = e.set_pv(p, self._pv_q_target(p, self._pv_v_pu))
         e.set_loads_kw(load_kw)
 
-        taps0 = self._taps.copy()
+        taps0 = e.taps()  # the engine's, in case its owner moved them between steps
         taps = taps0.copy()
         locked = np.array([lk is not None for lk in self._tap_lock], dtype=bool)
         for r, lk in enumerate(self._tap_lock):
@@ -274,11 +274,15 @@ class Qsts:
                                                  self._band_v120))
         self._out_of_band_steps = np.where(want != 0, self._out_of_band_steps + 1, 0)
         moving = self._out_of_band_steps >= self.delay_steps
+        first_move = np.zeros_like(want)
         for _ in range(self.max_taps_per_step):
+            # a regulator never reverses within one step (no hunting when the band is under one tap)
+            moving &= (first_move == 0) | (want == first_move)
             move = np.where(moving, want, 0)
             move = np.where(np.abs(taps + move) <= e.reg_tap_max, move, 0)
             if not move.any():
                 break
+            first_move = np.where(first_move == 0, move, first_move)
             taps = taps + move
             changes += np.abs(move)
             e.set_taps(taps)
@@ -291,7 +295,6 @@ class Qsts:
         v = e.node_voltages_pu()
         self._pv_v_pu = self._plant_v_pu(v)
         self._pv_p_kw = p
-        self._taps = taps
         self._step = s + 1
         return StepResult(
             step=s, t_ns=int(self.profiles.t_ns(s)), readings=readings, v_pu=v, taps=taps.copy(),

@@ -104,6 +104,18 @@ def test_tap_changes_counted_and_limited_per_step(eng: FeederEngine) -> None:
     assert changes.sum(axis=0)[0] == net[0]  # creg1a itself only rises
 
 
+def test_no_hunting_within_a_step(eng: FeederEngine) -> None:
+    """A band narrower than one tap (0.3 V < 0.75 V): within one step a regulator never reverses."""
+    q = Qsts(eng, constant(eng, 6, 1.0, 0.0), start_step=0, max_taps_per_step=16)
+    for r in range(7):
+        q.command_setpoint(r, None, 0.3)
+    prev = eng.taps()
+    for _ in range(6):
+        res = q.step()
+        np.testing.assert_array_equal(res.tap_changes, np.abs(res.taps - prev))
+        prev = res.taps
+
+
 def test_delay_steps(eng: FeederEngine) -> None:
     """delay_steps=3: out of band at steps 0, 1, 2 -> first move at step 2 (the third consecutive one)."""
     q = Qsts(eng, constant(eng, 4, 1.0, 0.0), start_step=0, delay_steps=3)
