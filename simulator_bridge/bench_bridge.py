@@ -2,21 +2,22 @@
 
 ``bench_bridge`` runs, on the same feeder, start and number of 1-minute steps:
 
-* **bare**: ``Qsts.step()`` in a loop (no bus), the reference (best of two runs);
+* **bare**: ``Qsts.step()`` in a loop (no bus), the reference;
 * **lockstep**: ``run_bridge`` in lockstep behind an in-process Zenoh router, with a *trivial responder* in a
   separate process (spawned, plain ``zenoh``): it holds an agent liveliness token and answers every
   control step's head frame, from its subscriber callback, with an empty ``hold`` Decision.
 
 It reports both rates, ``overhead = bare rate / lockstep rate − 1`` (goal: under 20 % on the rural feeder),
 and the round trip from the publication of a control step's head frame to the reception of the decision
-(p50, p99, measured by the bridge). Run ``python -m simulator_bridge.bench_bridge [STEPS]`` for IEEE 123 and
-the rural feeder.
+(p50, p99, measured by the bridge). The two are timed alternately, ``repeats`` times, and medians compared.
+Run ``python -m simulator_bridge.bench_bridge [STEPS]`` for IEEE 123 and the rural feeder.
 """
 
 from __future__ import annotations
 
 import json
 import multiprocessing as mp
+import statistics
 import sys
 import time
 from pathlib import Path
@@ -66,47 +67,36 @@ def _responder(endpoint: str, feeder_id: str, control_period_s: int, ready: Any,
         pub.undeclare()
 
 
-def bench_bridge(device_map: str | Path, steps: int, *, seed: int = 1, truth_every: int = 1,
+def bench_bridge(device_map: str | Path, steps: int, *, seed: int = 1, truth_every: int = 1, repeats: int = 3,
                  cache_dir: str | None = ".cvvc-cache") -> dict:
     """Lockstep bridge vs bare QSTS on ``steps`` 1-minute steps of one feeder.
+
+    The two are timed alternately ``repeats`` times (bare, bridge, bare, bridge, ...) on fresh engines from the
+    same start, and the medians are compared: the machine is shared and its speed drifts by tens of percent.
 
     Parameters
     ----------
     device_map : the feeder's device map TOML. steps : steps to time (the same for both).
     seed : profile seed. truth_every : the bridge's truth frame decimation (1: every step, as in a run).
-    cache_dir : profile cache.
+    repeats : alternations. cache_dir : profile cache.
 
     Returns
     -------
-    dict with ``feeder``, ``n_nodes``, ``steps``, ``bare_steps_per_s``, ``lockstep_steps_per_s``,
-    ``overhead`` (bare rate / lockstep rate − 1), ``round_trip_p50_ms``, ``round_trip_p99_ms``,
-    ``control_steps``, ``lockstep_misses``.
+    dict with ``feeder``, ``n_nodes``, ``steps``, ``bare_steps_per_s``, ``lockstep_steps_per_s`` (medians),
+    ``overhead`` (median bare rate / median lockstep rate − 1), ``overheads`` (per alternation),
+    ``overhead_cpu`` (median CPU time of the bridge process's loop / median bare CPU time − 1; the in-process
+    router's CPU counts against the bridge, the responder's does not),
+    ``round_trip_p50_ms``, ``round_trip_p99_ms`` (medians over the runs), ``control_steps``,
+    ``lockstep_misses`` (total).
     """
     from schemas.bus import BusConfig, free_port, open_session
     from schemas.devicemap import load_device_map
-    from simulator_bridge.bridge import BridgeConfig, cached_profiles, run_bridge, start_step_of
-    from simulator_bridge.engine import FeederEngine
-    from simulator_bridge.qsts import Qsts
 
     dm = load_device_map(device_map)
-    bare_s = []
-    for _ in range(2):  # best of two, each on a fresh engine from the same start (machine noise is large)
-        engine = FeederEngine(dm)
-        try:
-            profiles = cached_profiles(dm, engine, seed=seed, cache_dir=cache_dir)
-            start = start_step_of(_START, profiles.start_t_ns, profiles.n_steps, profiles.step_s)
-            qsts = Qsts(engine, profiles, start_step=start)
-            t = time.perf_counter()
-            for _ in range(steps):
-                qsts.step()
-            bare_s.append(time.perf_counter() - t)
-            n_nodes = len(engine.node_names)
-        finally:
-            engine.close()
-
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     ctx = mp.get_context("spawn")
     ready, stop = ctx.Event(), ctx.Event()
+    bare, bare_cpu, runs = [], [], []
     with open_session(BusConfig(mode="router", listen=(endpoint,))):
         proc = ctx.Process(target=_responder, args=(endpoint, dm.feeder.name, dm.feeder.control_period_s,
                                                     ready, stop), daemon=True)
@@ -114,31 +104,67 @@ def bench_bridge(device_map: str | Path, steps: int, *, seed: int = 1, truth_eve
         try:
             if not ready.wait(60):
                 raise RuntimeError("bench responder did not start within 60 s")
-            config = BridgeConfig(device_map_path=str(device_map), start=_START, steps=steps, clock="lockstep",
-                                  timeout_s=5.0, wait_agent_s=10.0, year_seed=seed, truth_every=truth_every,
-                                  cache_dir=cache_dir)
-            summary = run_bridge(config, BusConfig(mode="peer", connect=(endpoint,)))
+            for _ in range(repeats):
+                wall, cpu, n_nodes = _bare_times(dm, steps, seed=seed, cache_dir=cache_dir)
+                bare.append(steps / wall)
+                bare_cpu.append(cpu)
+                runs.append(_bridge_run(device_map, endpoint, steps, seed=seed, truth_every=truth_every,
+                                        cache_dir=cache_dir))
         finally:
             stop.set()
             proc.join(10)
             if proc.is_alive():
                 proc.terminate()
                 proc.join(5)
-    bare_rate = steps / min(bare_s)
+    lock = [r.steps_per_s for r in runs]
+    p50 = [r.round_trip_p50_s for r in runs if r.round_trip_p50_s is not None]
+    p99 = [r.round_trip_p99_s for r in runs if r.round_trip_p99_s is not None]
     return {
         "feeder": dm.feeder.name,
         "n_nodes": n_nodes,
         "steps": steps,
-        "bare_steps_per_s": round(bare_rate, 1),
-        "lockstep_steps_per_s": round(summary.steps_per_s, 1),
-        "overhead": round(bare_rate / summary.steps_per_s - 1.0, 3),
-        "round_trip_p50_ms": None if summary.round_trip_p50_s is None else round(1e3 * summary.round_trip_p50_s, 3),
-        "round_trip_p99_ms": None if summary.round_trip_p99_s is None else round(1e3 * summary.round_trip_p99_s, 3),
-        "control_steps": summary.control_steps,
-        "decisions": summary.decisions,
-        "lockstep_misses": summary.lockstep_misses,
+        "bare_steps_per_s": round(statistics.median(bare), 1),
+        "lockstep_steps_per_s": round(statistics.median(lock), 1),
+        "overhead": round(statistics.median(bare) / statistics.median(lock) - 1.0, 3),
+        "overheads": [round(b / x - 1.0, 3) for b, x in zip(bare, lock, strict=True)],
+        "overhead_cpu": round(statistics.median(r.cpu_s for r in runs) / statistics.median(bare_cpu) - 1.0, 3),
+        "round_trip_p50_ms": round(1e3 * statistics.median(p50), 3) if p50 else None,
+        "round_trip_p99_ms": round(1e3 * statistics.median(p99), 3) if p99 else None,
+        "control_steps": runs[0].control_steps,
+        "decisions": sum(r.decisions for r in runs),
+        "lockstep_misses": sum(r.lockstep_misses for r in runs),
         "truth_every": truth_every,
     }
+
+
+def _bare_times(dm: Any, steps: int, *, seed: int, cache_dir: str | None) -> tuple[float, float, int]:
+    """Wall and CPU time [s] of ``steps`` ``Qsts.step()`` alone on a fresh engine, and the feeder's node count."""
+    from simulator_bridge.bridge import cached_profiles, start_step_of
+    from simulator_bridge.engine import FeederEngine
+    from simulator_bridge.qsts import Qsts
+
+    engine = FeederEngine(dm)
+    try:
+        profiles = cached_profiles(dm, engine, seed=seed, cache_dir=cache_dir)
+        start = start_step_of(_START, profiles.start_t_ns, profiles.n_steps, profiles.step_s)
+        qsts = Qsts(engine, profiles, start_step=start)
+        t, cpu = time.perf_counter(), time.process_time()
+        for _ in range(steps):
+            qsts.step()
+        return time.perf_counter() - t, time.process_time() - cpu, len(engine.node_names)
+    finally:
+        engine.close()
+
+
+def _bridge_run(device_map: str | Path, endpoint: str, steps: int, *, seed: int, truth_every: int,
+                cache_dir: str | None) -> Any:
+    from schemas.bus import BusConfig
+    from simulator_bridge.bridge import BridgeConfig, run_bridge
+
+    config = BridgeConfig(device_map_path=str(device_map), start=_START, steps=steps, clock="lockstep",
+                          timeout_s=5.0, wait_agent_s=10.0, year_seed=seed, truth_every=truth_every,
+                          cache_dir=cache_dir)
+    return run_bridge(config, BusConfig(mode="peer", connect=(endpoint,)))
 
 
 def main(argv: list[str] | None = None) -> int:

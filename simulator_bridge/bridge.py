@@ -119,7 +119,8 @@ class BridgeConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fie
 class BridgeSummary(msgspec.Struct, frozen=True, kw_only=True):
     """What a bridge run did (printed as JSON by ``cvvc bridge --json``).
 
-    Wall times in seconds; ``round_trip_*_s`` is from the publication of a control step's head frame to
+    Wall times in seconds (``wall_s``: the stepping loop; ``cpu_s``: CPU time of every thread of the process
+    during the loop, Zenoh's included); ``round_trip_*_s`` is from the publication of a control step's head frame to
     the reception of the agent's decision for it; ``rejected`` counts rejected commands per reason
     (device reasons, and ``decode_<kind>`` for payloads that did not decode).
     """
@@ -133,6 +134,7 @@ class BridgeSummary(msgspec.Struct, frozen=True, kw_only=True):
     control_steps: int
     wall_s: float
     steps_per_s: float
+    cpu_s: float
     lockstep_misses: int
     lockstep_skipped: int
     decisions: int
@@ -584,7 +586,8 @@ class _Runtime:
                 p, q, v = self.noise.pv(p, q, v, pv.s_rated_kva)
             self.seqs[pid] += 1
             self._send(self.pub_pv[pid], dv.pv_frame(plant=pv, t_ns=t, seq=self.seqs[pid], p_kw=p, q_kvar=q, v_v=v,
-                                                     available_p_kw=float(res.pv_p_kw[k])), now_s)
+                                                     available_p_kw=float(res.pv_p_kw[k]),
+                                                     q_at_night=self.qsts.pv_q_at_night), now_s)
         for rid, reg in self.regs.items():
             r = reg.index
             v120, vc = float(rd.reg_v120[r]), float(rd.reg_v120_compared[r])
@@ -708,10 +711,9 @@ def _loop(rt: _Runtime, stop: threading.Event, on_ready: Any) -> BridgeSummary:
     if on_ready is not None:
         on_ready()
     rt.pub_status.put(rt.status(done=False))
-    t0 = time.monotonic()
+    t0, cpu0 = time.monotonic(), time.process_time()
     period_s = rt.step_s / c.speed
-    i = 0
-    for i in range(c.steps):  # noqa: B007  (i is read after the loop)
+    for i in range(c.steps):
         if stop.is_set():
             break
         if c.clock == "realtime":
@@ -730,9 +732,7 @@ def _loop(rt: _Runtime, stop: threading.Event, on_ready: Any) -> BridgeSummary:
                 _await_decision(rt, int(res.t_ns), stop)
             rt.pub_metrics.put(rt.metrics_frame(final=False))
             rt.pub_status.put(rt.status(done=False))
-    else:
-        i = c.steps
-    wall_s = time.monotonic() - t0
+    wall_s, cpu_s = time.monotonic() - t0, time.process_time() - cpu0
     rt.serve(time.monotonic() + c.latency_s, stop if stop.is_set() else threading.Event(),
              lambda: len(rt.delay) == 0)  # frames still in the delay line go out
     final = rt.metrics_frame(final=True)
@@ -740,13 +740,13 @@ def _loop(rt: _Runtime, stop: threading.Event, on_ready: Any) -> BridgeSummary:
     rt.pub_status.put(rt.status(done=True))
     return BridgeSummary(
         feeder_id=rt.fid, clock=c.clock, start_t_ns=int(rt.profiles.t_ns(rt.start_step)), end_t_ns=max(rt.now_t_ns, 0),
-        steps=rt.steps, steps_total=c.steps, control_steps=rt.control_steps, wall_s=wall_s,
+        steps=rt.steps, steps_total=c.steps, control_steps=rt.control_steps, wall_s=wall_s, cpu_s=cpu_s,
         steps_per_s=rt.steps / wall_s if wall_s > 0 else 0.0, lockstep_misses=rt.misses,
         lockstep_skipped=rt.skipped, decisions=rt.decisions, acks=dict(rt.acks), rejected=rt.all_rejected(),
         frames_published=rt.frames_published, frames_dropped=rt.frames_dropped, truth_frames=rt.truth_frames,
         oracle_replies=rt.oracle_replies, oracle_rejected=rt.oracle_rejected, realtime_late_steps=rt.late_steps,
         round_trip_p50_s=_percentile(rt.round_trips, 50), round_trip_p99_s=_percentile(rt.round_trips, 99),
-        agent_alive=rt.agent_alive, stopped_early=i < c.steps, metrics=final)
+        agent_alive=rt.agent_alive, stopped_early=rt.steps < c.steps, metrics=final)
 
 
 def _await_decision(rt: _Runtime, t_ns: int, stop: threading.Event) -> None:

@@ -392,10 +392,11 @@ def head_frame(*, feeder_id: str, t_ns: int, seq: int, v_mag_v: np.ndarray, v_an
 
 
 def pv_frame(*, plant: PvInverter, t_ns: int, seq: int, p_kw: np.ndarray, q_kvar: np.ndarray,
-             v_v: np.ndarray, available_p_kw: float) -> m.PvFrame:
+             v_v: np.ndarray, available_p_kw: float, q_at_night: bool = False) -> m.PvFrame:
     """A PV inverter's frame from its per-phase output (generator convention) and voltages, each (3,).
 
-    ``q_available_kvar`` is the headroom ``sqrt(S² − P²)`` at the available active power [kvar].
+    ``q_available_kvar`` is the headroom ``sqrt(S² − P²)`` at the available active power [kvar]; 0 when there
+    is no active power and the inverter gives no reactive power at night (``q_at_night`` false).
     """
     present = [ph for ph in range(3) if v_v[ph] > 0.0] or [0, 1, 2]
     phases = [m.PvPhase(phase=_PHASE_NAMES[ph], p_kw=float(p_kw[ph]), q_kvar=float(q_kvar[ph]),
@@ -404,7 +405,8 @@ def pv_frame(*, plant: PvInverter, t_ns: int, seq: int, p_kw: np.ndarray, q_kvar
     return m.PvFrame(t_ns=t_ns, seq=seq, source=plant.plant_id, plant_id=plant.plant_id, phases=phases,
                      p_kw=float(sum(p.p_kw for p in phases)), q_kvar=float(sum(p.q_kvar for p in phases)),
                      s_rated_kva=plant.s_rated_kva,
-                     q_available_kvar=math.sqrt(max(plant.s_rated_kva**2 - p_avail**2, 0.0)),
+                     q_available_kvar=(math.sqrt(max(plant.s_rated_kva**2 - p_avail**2, 0.0))
+                                       if p_avail > 0.0 or q_at_night else 0.0),
                      q_setpoint_kvar=plant.q_setpoint_kvar, local_mode=plant.local_mode)
 
 
