@@ -18,6 +18,7 @@ import numpy as np
 from training.critical import extreme_nodes, node_phase, select_critical, upstream_regulators
 from training.errors import TrainingError
 from training.fits import (
+    SensitivitySamples,
     choose_c_kvar,
     fit_sensitivity,
     fit_voltage_regression,
@@ -269,64 +270,17 @@ def train(
     nodes = crit.nodes
     pos = {int(n): i for i, n in enumerate(nodes)}
 
-    # II.D: eq. (5), held-out validation first, then the fit on everything
-    holdout = (flows.scenario % _HOLDOUT_EVERY) == _HOLDOUT_EVERY - 1
-    # eq. (5) target: the voltage the model would see at tap0 (identity when the flows ran at tap0)
+    # II.D: eq. (5) on the critical nodes (the target is the voltage at tap0: identity for frozen-tap flows)
     v_crit = flows.v_pu[:, nodes] - (flows.taps - tap0) @ dv_dtap_all[nodes].T
-    val_rmse, val_max = float("nan"), float("nan")
-    if holdout.any() and (~holdout).sum() > flows.features.shape[1] + 1:
-        part = fit_voltage_regression(flows.features[~holdout], v_crit[~holdout], rcond=rcond)
-        err = flows.features[holdout] @ part.alpha[:, :-1].T + part.alpha[:, -1] - v_crit[holdout]
-        val_rmse, val_max = float(np.sqrt(np.mean(err**2))), float(np.max(np.abs(err)))
-    vfit = fit_voltage_regression(flows.features, v_crit, rcond=rcond)
-
+    vfit, val_rmse, val_max = _fit_voltages(flows, v_crit, rcond)
     # eq. (3): samples from single-plant sweeps, form chosen on held-out scenarios
     samples = sensitivity_samples(flows.scenario, flows.plant, flows.pv_q_kvar, flows.q_head_kvar, v_crit)
     q_range = (float(flows.q_head_kvar.min()), float(flows.q_head_kvar.max()))
     c_kvar = choose_c_kvar(*q_range)
-    s_hold = (samples.scenario % _HOLDOUT_EVERY) == _HOLDOUT_EVERY - 1
-    sens: list[list[SensitivityFit]] = []
-    rel_errs: list[np.ndarray] = []
-    forms = {"constant": 0, "linear": 0, "power": 0}
-    neg_b = 0
-    from training._estimate import eval_sensitivities, sensitivity_arrays
-
-    for i in range(nodes.size):
-        row = []
-        for k in range(len(engine.pv_kva)):
-            m = samples.plant == k
-            if not m.any():
-                raise TrainingError(
-                    f"PV plant {engine.pv_ids[k]!r} has no Q sweep (no reactive headroom at "
-                    "any scenario); raise its kva above pmpp_kw in the device map"
-                )
-            fit, _ = fit_sensitivity(
-                samples.q_head_kvar[m],
-                samples.dv_dq_pu_per_kvar[m, i],
-                c_kvar=c_kvar,
-                q_range_kvar=q_range,
-                holdout=s_hold[m],
-            )
-            row.append(fit)
-            forms[fit.form] += 1
-            neg_b += int(fit.form == "power" and fit.b < 0)
-        sens.append(row)
-    params = sensitivity_arrays(sens)
-    pred = eval_sensitivities(params, samples.q_head_kvar)[np.arange(samples.plant.size), :, samples.plant]
-    truth = samples.dv_dq_pu_per_kvar
-    # relative error over significant pairs: median |dV/dQ| of the pair at least 10 % of the node's largest
-    for k in range(len(engine.pv_kva)):
-        m = samples.plant == k
-        med = np.median(np.abs(truth[m]), axis=0)
-        node_max = np.max(
-            [np.median(np.abs(truth[samples.plant == j]), axis=0) for j in range(len(engine.pv_kva))], axis=0
-        )
-        sig = med >= 0.1 * node_max
-        if sig.any():
-            t_k, p_k = truth[m][:, sig], pred[m][:, sig]
-            ok = np.abs(t_k) > 0
-            rel_errs.append(np.abs(p_k[ok] - t_k[ok]) / np.abs(t_k[ok]))
-    sens_rel = float(np.median(np.concatenate(rel_errs))) if rel_errs else float("nan")
+    sens = _fit_sensitivities(samples, nodes.size, engine.pv_ids, c_kvar, q_range)
+    sens_rel = _sensitivity_rel_err(sens, samples)
+    forms = {f: sum(x.form == f for row in sens for x in row) for f in ("constant", "linear", "power")}
+    neg_b = sum(x.form == "power" and x.b < 0 for row in sens for x in row)
 
     # the model file
     crit_nodes = [
@@ -428,6 +382,68 @@ def train(
         power_fits_with_negative_b=neg_b,
     )
     return TrainResult(model=model, summary=summ)
+
+
+def _fit_voltages(flows: PowerFlowSet, v_crit: np.ndarray, rcond: float):
+    """Eq. (5) fit on every flow, plus its error on held-out scenarios (fitted on the others)."""
+    holdout = (flows.scenario % _HOLDOUT_EVERY) == _HOLDOUT_EVERY - 1
+    val_rmse, val_max = float("nan"), float("nan")
+    if holdout.any() and (~holdout).sum() > flows.features.shape[1] + 1:
+        part = fit_voltage_regression(flows.features[~holdout], v_crit[~holdout], rcond=rcond)
+        err = flows.features[holdout] @ part.alpha[:, :-1].T + part.alpha[:, -1] - v_crit[holdout]
+        val_rmse, val_max = float(np.sqrt(np.mean(err**2))), float(np.max(np.abs(err)))
+    return fit_voltage_regression(flows.features, v_crit, rcond=rcond), val_rmse, val_max
+
+
+def _fit_sensitivities(
+    samples: SensitivitySamples, n_nodes: int, pv_ids, c_kvar: float, q_range: tuple[float, float]
+) -> list[list[SensitivityFit]]:
+    """Eq. (3) fit of every (critical node, plant) pair; the form is chosen on held-out scenarios."""
+    s_hold = (samples.scenario % _HOLDOUT_EVERY) == _HOLDOUT_EVERY - 1
+    for k, pv_id in enumerate(pv_ids):
+        if not np.any(samples.plant == k):
+            raise TrainingError(
+                f"PV plant {pv_id!r} has no Q sweep (no reactive headroom at any scenario); raise its kva "
+                "above pmpp_kw in the device map"
+            )
+    sens = []
+    for i in range(n_nodes):
+        row = []
+        for k in range(len(pv_ids)):
+            m = samples.plant == k
+            fit, _ = fit_sensitivity(
+                samples.q_head_kvar[m],
+                samples.dv_dq_pu_per_kvar[m, i],
+                c_kvar=c_kvar,
+                q_range_kvar=q_range,
+                holdout=s_hold[m],
+            )
+            row.append(fit)
+        sens.append(row)
+    return sens
+
+
+def _sensitivity_rel_err(sens: list[list[SensitivityFit]], samples: SensitivitySamples) -> float:
+    """Median relative error of the fits on their samples, over significant pairs.
+
+    A (node, plant) pair is significant when its median |dV/dQ| is at least 10 % of the node's largest.
+    """
+    from training._estimate import eval_sensitivities, sensitivity_arrays
+
+    n_pv = len(sens[0]) if sens else 0
+    pred = eval_sensitivities(sensitivity_arrays(sens), samples.q_head_kvar)
+    pred = pred[np.arange(samples.plant.size), :, samples.plant]  # (S, N): each sample's own plant
+    truth = samples.dv_dq_pu_per_kvar
+    med = np.stack([np.median(np.abs(truth[samples.plant == k]), axis=0) for k in range(n_pv)])  # (K, N)
+    rel = []
+    for k in range(n_pv):
+        sig = med[k] >= 0.1 * med.max(axis=0)
+        m = samples.plant == k
+        t, p = truth[m][:, sig], pred[m][:, sig]
+        ok = np.abs(t) > 0
+        rel.append(np.abs(p[ok] - t[ok]) / np.abs(t[ok]))
+    rel_all = np.concatenate(rel) if rel else np.zeros(0)
+    return float(np.median(rel_all)) if rel_all.size else float("nan")
 
 
 def _check_finite(model: CvvcModel) -> None:
