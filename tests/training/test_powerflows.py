@@ -25,3 +25,25 @@ def test_q_plan_perturbs_one_plant_at_a_time_and_combined_all():
     ]
     combined = [q.tolist() for k, _, q in plan if k == COMBINED]
     assert combined == [[50.0, 200.0]]  # half of each plant's own headroom, all at once
+
+
+def test_worker_processes_give_the_same_flows_as_one_process():
+    from schemas.devicemap import load_device_map
+    from simulator_bridge.engine import FeederEngine
+    from tests.training.conftest import REPO
+    from training.powerflows import ScenarioInput, run_power_flows
+
+    path = REPO / "feeders" / "ieee13.toml"
+    engine = FeederEngine(load_device_map(path), tolerance=1e-8)
+    rng = np.random.default_rng(0)
+    scenarios = [
+        ScenarioInput(index=i, load_kw=engine.load_kw_nominal * rng.uniform(0.3, 1.0), pv_kw=engine.pv_pmpp_kw * f)
+        for i, f in enumerate((0.0, 0.3, 0.6, 0.9))
+    ]
+    kw = dict(device_map_path=str(path), tolerance=1e-8, q_steps_pct=[-100.0, -50.0, 50.0, 100.0], progress=False)
+    serial = run_power_flows(engine, scenarios, workers=1, **kw)
+    parallel = run_power_flows(engine, scenarios, workers=2, parallel_min_s=0.0, **kw)
+    assert serial.workers == 1 and parallel.workers == 2
+    assert parallel.scenario.tolist() == serial.scenario.tolist()
+    np.testing.assert_allclose(parallel.v_pu, serial.v_pu, atol=1e-9)
+    np.testing.assert_allclose(parallel.features, serial.features, atol=1e-6)
