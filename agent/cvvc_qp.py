@@ -216,6 +216,8 @@ class CvvcQp:
     q_rating_kvar: np.ndarray
     cost_scale: float
     dv_dtap_pct: np.ndarray  # (N, R) voltage-row coefficient of a tap step [%/step]
+    a_dense: np.ndarray  # ``A`` as a dense array (small), for the active-set polish
+    p_diag: np.ndarray  # diagonal of ``P``
     fixed_d_tap: np.ndarray | None = None
 
     @property
@@ -353,16 +355,21 @@ def build_cvvc_qp(inputs: CvvcInputs, *, soft: bool, fixed_d_tap: np.ndarray | N
     n_bounded = n_tap + 2 * k
     bounds = np.hstack([np.eye(n_bounded), np.zeros((n_bounded, n_vio))])
 
+    a_dense = np.vstack([a_volt, bounds])
+    a_dense.flags.writeable = False
+    p_diag.flags.writeable = False
     return CvvcQp(
         soft=soft,
         layout=layout,
         P=_diag_csc(p_diag),
         c=c,
-        A=_dense_to_csc(np.vstack([a_volt, bounds])),
+        A=_dense_to_csc(a_dense),
         lower=np.concatenate(lo),
         upper=np.concatenate(hi),
         q_rating_kvar=rating,
         cost_scale=cost_scale,
         dv_dtap_pct=s_t,
+        a_dense=a_dense,
+        p_diag=p_diag,
         fixed_d_tap=None if with_taps else np.array(fixed_d_tap, float),
     )

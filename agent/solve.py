@@ -71,8 +71,10 @@ FIRST_CHUNK_ITER = 25
 MAX_ITER = 4000
 #: Regularisation of the polish system (keeps it solvable with dependent active rows).
 POLISH_REG = 1e-10
-#: Active-set repair steps per polish (each: one small dense solve).
-REPAIR_STEPS = 6
+#: Active-set repair steps per polish after an ADMM chunk, and from a warm start (each: one small dense
+#: solve, about 25 us); from a warm start the active set is usually one or two rows away.
+REPAIR_STEPS = 3
+WARM_REPAIR_STEPS = 6
 #: Tolerance of the KKT optimality check in scaled units (% of voltage, fraction of rating, steps).
 KKT_TOL = 1e-6
 #: Up to this many fractional taps, every floor/ceil combination is tried (2**3 = 8 Q re-solves).
@@ -192,9 +194,8 @@ def _warm_polish(
     n, m = qp.layout.n, qp.A.shape[0]
     if x0 is None or y0 is None or x0.shape != (n,) or y0.shape != (m,) or not np.any(y0):
         return None
-    a_dense = qp.A.toarray()
-    p_diag = qp.P.diagonal()
-    polished = _polish(a_dense, p_diag, qp.c, lo, hi, x0, y0)
+    a_dense, p_diag = qp.a_dense, qp.p_diag
+    polished = _polish(a_dense, p_diag, qp.c, lo, hi, x0, y0, WARM_REPAIR_STEPS)
     if polished is not None and _kkt_ok(a_dense, p_diag, qp.c, lo, hi, *polished):
         return _Run(True, False, "warm active set", polished[0], polished[1], 0)
     return None
@@ -218,8 +219,7 @@ def _osqp_run(
     the ADMM iterates where the last one stopped. Deterministic: no clock, fixed chunk and iteration limits.
     """
     n, m = qp.layout.n, qp.A.shape[0]
-    a_dense = qp.A.toarray()
-    p_diag = qp.P.diagonal()
+    a_dense, p_diag = qp.a_dense, qp.p_diag
     try:
         solver.warm_start(
             x=np.zeros(n) if x0 is None or x0.shape != (n,) else x0,
@@ -266,24 +266,35 @@ def _osqp_run(
 def _equality_qp(
     a: np.ndarray, p_diag: np.ndarray, c: np.ndarray, bound: np.ndarray, act: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray] | None:
-    """Minimise ``x'Px/2 + c'x`` with rows ``act`` held at ``bound[act]``: ``(x, y on act)`` or None."""
-    n, k = a.shape[1], act.shape[0]
-    kkt = np.zeros((n + k, n + k))
-    kkt[:n, :n] = np.diag(p_diag)
-    kkt[:n, n:] = a[act].T
-    kkt[n:, :n] = a[act]
-    kkt[n:, n:] = -POLISH_REG * np.eye(k)  # keeps the system solvable when active rows are dependent
+    """Minimise ``x'Px/2 + c'x`` with rows ``act`` held at ``bound[act]``: ``(x, y on act)`` or None.
+
+    ``P`` is a positive diagonal, so the KKT system reduces to ``(A P^-1 A' + reg I) y = -(b + A P^-1 c)``
+    on the active rows (the small regularisation keeps it solvable when active rows are dependent), then
+    ``x = -P^-1 (c + A'y)``.
+    """
+    a_act = a[act]
+    scaled = a_act / p_diag
+    m = scaled @ a_act.T
+    m[np.diag_indices_from(m)] += POLISH_REG
     try:
-        sol = np.linalg.solve(kkt, np.concatenate([-c, bound[act]]))
+        y = np.linalg.solve(m, -(bound[act] + scaled @ c)) if act.size else np.zeros(0)
     except np.linalg.LinAlgError:
         return None
-    if not np.all(np.isfinite(sol)):
+    x = -(c + a_act.T @ y) / p_diag
+    if not (np.all(np.isfinite(x)) and np.all(np.isfinite(y))):
         return None
-    return sol[:n], sol[n:]
+    return x, y
 
 
 def _polish(
-    a: np.ndarray, p_diag: np.ndarray, c: np.ndarray, lo: np.ndarray, hi: np.ndarray, x: np.ndarray, y: np.ndarray
+    a: np.ndarray,
+    p_diag: np.ndarray,
+    c: np.ndarray,
+    lo: np.ndarray,
+    hi: np.ndarray,
+    x: np.ndarray,
+    y: np.ndarray,
+    steps: int = REPAIR_STEPS,
 ) -> tuple[np.ndarray, np.ndarray] | None:
     """Active-set polish from an iterate ``(x, y)``: guess, then repair the active set a few times.
 
@@ -297,7 +308,7 @@ def _polish(
     lower = eq | (z - lo < -y)
     upper = ~lower & (hi - z < y)
     sol: tuple[np.ndarray, np.ndarray] | None = None
-    for _ in range(REPAIR_STEPS):
+    for _ in range(steps):
         act = np.flatnonzero(lower | upper)
         out = _equality_qp(a, p_diag, c, np.where(lower, lo, hi), act)
         if out is None:
@@ -470,38 +481,36 @@ def solve_cvvc(inputs: CvvcInputs, *, warm_start: CvvcSolution | None = None) ->
     d_rel = qp.d_tap(run.x)
     q_rel = qp.q_kvar(run.x)
 
-    # Rounding, then Q re-solved with the taps fixed, in the relaxation's form; cheapest feasible wins.
-    # Scores include the tap proximal term, so the relaxed objective is a lower bound on every candidate's
-    # score: stop as soon as a candidate is within ROUNDING_GAP_REL of it.
+    # Rounding, then Q re-solved with the taps fixed, in the relaxation's form: a small best-first branch
+    # and bound over the candidates. Each candidate's score (eq. 9 cost plus the proximal terms, which the
+    # relaxation also minimises) has two cheap lower bounds: the relaxed objective (for all of them) and
+    # the Lagrangian dual function at the relaxation's multipliers (per candidate). Candidates are tried in
+    # order of their bound; the search stops once the best score is within ROUNDING_GAP_REL of the relaxed
+    # objective or below the next candidate's bound.
     candidates = _candidates(d_rel)
-    if form == "hard":
-        # Candidates that already meet the limits with the relaxed Q first (stable: nearest first within
-        # each group): the first re-solve then finds a feasible point fast, and later ones get a small budget.
-        q_keep = np.clip(q_rel, inputs.q_min_kvar, inputs.q_max_kvar)
-        ok = [
-            np.max(_violation_pu(inputs, inputs.predict_v_pu(d, q_keep)), initial=0.0) <= V_TOL_PU for d in candidates
-        ]
-        candidates = [d for d, good in zip(candidates, ok, strict=True) if good] + [
-            d for d, good in zip(candidates, ok, strict=True) if not good
-        ]
     bound = qp.objective(run.x)
-    best = None  # (score, d_int, q_new_kvar)
     fixed = build_cvvc_qp(inputs, soft=form == "soft", fixed_d_tap=candidates[0])
     x_q0, y_q0 = _q_start(fixed, qp, run.x, run.y)
     row_lo, row_hi = _row_ranges(fixed)
     rows = fixed.voltage_rows
-    solver = None
-    tried = 0
-    for d_int in candidates:
+    plan = []
+    for index, d_int in enumerate(candidates):
         tap_prox = 0.5 * PROX_WEIGHT * fixed.cost_scale * float(d_int @ d_int)
         tap_cost = float(inputs.cost_per_tap @ np.abs(d_int)) + tap_prox
-        if best is not None and (tap_cost >= best[0] or best[0] <= bound + ROUNDING_GAP_REL * abs(bound)):
-            continue  # cannot beat the best so far, or the best is already close enough to the bound
+        lo, hi = fixed.bounds_with_d_tap(d_int)
+        lower_bound = tap_cost + _dual_bound(fixed, lo, hi, y_q0)
+        plan.append((lower_bound, index, d_int, tap_cost, lo, hi))
+    plan.sort(key=lambda item: (item[0], item[1]))
+    best = None  # (score, d_int, q_new_kvar)
+    solver = None
+    tried = 0
+    for lower_bound, _, d_int, tap_cost, lo, hi in plan:
+        if best is not None and (best[0] <= lower_bound or best[0] <= bound + ROUNDING_GAP_REL * abs(bound)):
+            break  # no remaining candidate can beat the best by more than the tolerance
         if np.max(np.abs(d_int - d_rel), initial=0.0) <= INTEGRAL_TOL_STEPS:
             q_new = np.clip(q_rel, inputs.q_min_kvar, inputs.q_max_kvar)  # relaxed optimum is integral
             x_q = x_q0
         else:
-            lo, hi = fixed.bounds_with_d_tap(d_int)
             if form == "hard" and np.any((row_hi < lo[rows] - 1e-9) | (row_lo > hi[rows] + 1e-9)):
                 continue  # some node cannot meet its limits with these taps, whatever Q does
             res = _warm_polish(fixed, lo, hi, x_q0, y_q0)
@@ -575,6 +584,19 @@ def solve_cvvc(inputs: CvvcInputs, *, warm_start: CvvcSolution | None = None) ->
     )
 
 
+def _dual_bound(qp: CvvcQp, lo: np.ndarray, hi: np.ndarray, y: np.ndarray | None) -> float:
+    """Lagrangian dual function of ``qp`` (bounds ``lo``, ``hi``) at multipliers ``y`` [cost units].
+
+    ``g(y) = min_x x'Px/2 + c'x + y'Ax - max_{lo<=z<=hi} y'z``, in closed form since ``P`` is a positive
+    diagonal. By weak duality it is a lower bound on the optimum for any ``y``; ``-inf`` without ``y``.
+    """
+    if y is None or y.shape != lo.shape:
+        return -np.inf
+    grad = qp.c + qp.a_dense.T @ y
+    support = np.where(y > 0.0, y * hi, 0.0) + np.where(y < 0.0, y * lo, 0.0)
+    return float(qp.cost_scale * (-0.5 * np.sum(grad**2 / qp.p_diag) - np.sum(support)))
+
+
 def _q_start(fixed: CvvcQp, relaxed: CvvcQp, x_rel: np.ndarray, y_rel: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Start the Q re-solve from the relaxation's Q, violations and the duals of the rows they share."""
     x0 = np.zeros(fixed.layout.n)
@@ -592,7 +614,7 @@ def _row_ranges(qp: CvvcQp) -> tuple[np.ndarray, np.ndarray]:
     """Lowest and highest value each voltage row can take over the variable box (bound rows)."""
     rows = qp.voltage_rows
     nb = qp.A.shape[0] - rows.stop  # one identity bound row per tap/Q variable, in variable order
-    dense = qp.A[rows].toarray()[:, :nb]
+    dense = qp.a_dense[rows, :nb]
     lb, ub = qp.lower[rows.stop :], qp.upper[rows.stop :]
     return np.minimum(dense * lb, dense * ub).sum(axis=1), np.maximum(dense * lb, dense * ub).sum(axis=1)
 
