@@ -67,7 +67,7 @@ class RunConfig(msgspec.Struct, frozen=True, kw_only=True):
     noise_pmu_pct: float = 0.0
     noise_scada_pct: float = 0.0
     drop_prob: float = 0.0
-    truth_every: int = 0
+    truth_every: int = 1  # the recording keeps the truth, so metrics can be recomputed from it
 
 
 class RunSummary(msgspec.Struct, frozen=True, kw_only=True):
@@ -85,6 +85,18 @@ class RunSummary(msgspec.Struct, frozen=True, kw_only=True):
     out_dir: str
     recording: str | None
     model: str | None
+
+
+def case_agent_settings(case: Case, feeder_id: str, bandwidth_v120: float):
+    """The agent's settings of a case, as ``case_agent_args`` makes the agent build them (for the recording)."""
+    from agent.runtime import AgentSettings
+
+    args = case_agent_args(case, bandwidth_v120)
+    if args is None:
+        return None
+    return AgentSettings(feeder_id=feeder_id, mode="taps" if "taps" in args else "setpoints",
+                         correction="on" in args, bandwidth_v120=bandwidth_v120,
+                         full_visibility="--full-visibility" in args)
 
 
 def case_agent_args(case: Case, bandwidth_v120: float) -> list[str] | None:
@@ -222,8 +234,9 @@ def run(config: RunConfig) -> RunSummary:
             if config.record:
                 children.append(_spawn("recorder", [
                     "record", "--out", str(mcap_path), "--keys", f"cvvc/{feeder_id}/**",
-                    "--feeder-fingerprint", fingerprint,
-                    *(["--model", str(kept_model)] if agent_args is not None else []), *connect], out))
+                    "--feeder-fingerprint", fingerprint, *_recorder_agent_args(config.case, feeder_id,
+                                                                              config.bandwidth_v120, kept_model),
+                    *connect], out))
                 probe = session.declare_publisher(keys.sim_status(feeder_id))
                 if not wait_for(lambda: bool(probe.matching_status.matching), 30.0):  # type: ignore[attr-defined]
                     raise LaunchError(f"the recorder did not subscribe within 30 s:\n{_tail(out / 'recorder.log')}")
@@ -243,8 +256,7 @@ def run(config: RunConfig) -> RunSummary:
                 realism += ["--noise-scada-pct", str(config.noise_scada_pct)]
             if config.drop_prob:
                 realism += ["--drop-prob", str(config.drop_prob)]
-            if config.truth_every:
-                realism += ["--truth-every", str(config.truth_every)]
+            realism += ["--truth-every", str(config.truth_every), "--cache-dir", str(Path(config.cache) / "profiles")]
             bridge = _spawn("bridge", [
                 "bridge", "--feeder", str(dm_path), "--feeder-id", feeder_id, "--start", start.isoformat(),
                 "--steps", str(steps), "--year-seed", str(config.year_seed),
@@ -309,6 +321,13 @@ def run(config: RunConfig) -> RunSummary:
     (out / "summary.json").write_bytes(msgspec.json.format(msgspec.json.encode(summary), indent=2))
     (out / "report.md").write_text(render_summary(summary))
     return summary
+
+
+def _recorder_agent_args(case: Case, feeder_id: str, bandwidth_v120: float, model: Path) -> list[str]:
+    settings = case_agent_settings(case, feeder_id, bandwidth_v120)
+    if settings is None:
+        return []
+    return ["--model", str(model), "--agent-settings", msgspec.json.encode(settings).decode()]
 
 
 class _LiveWaiter:

@@ -1,0 +1,64 @@
+"""``cvvc agent``: the volt-var control agent as a process on the bus."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+__all__ = ["register"]
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    from schemas.bus import add_bus_arguments
+
+    p = sub.add_parser("agent", help="run the CVVC agent on the bus",
+                       description="Subscribe to the feeder's measurement frames, decide every control step "
+                                   "and publish PV Q set points and regulator commands.")
+    p.add_argument("--model", required=True, help="model file from `cvvc train`")
+    p.add_argument("--feeder-id", required=True, help="feeder id of the keys (cvvc/<ID>/...)")
+    p.add_argument("--feeder", default=None,
+                   help="device map of the feeder: refuse the model if its fingerprint differs")
+    p.add_argument("--mode", choices=["taps", "setpoints"], default="setpoints",
+                   help="command tap positions (cases A/B) or eq. 8 voltage set points (cases C/D)")
+    p.add_argument("--correction", choices=["on", "off"], default="on", help="eq. 6-7 correction (case D)")
+    p.add_argument("--bandwidth-v", type=float, default=4.0, help="regulator band sent with set points [V on 120 V]")
+    p.add_argument("--full-visibility", action="store_true",
+                   help="case A: true voltages and sensitivities of every node from the bridge's oracle")
+    p.add_argument("--agent-id", default="agent")
+    p.add_argument("--stale-after-s", type=float, default=10.0)
+    p.add_argument("--json", action="store_true", help="print a JSON summary at exit")
+    add_bus_arguments(p)
+    p.set_defaults(func=_agent)
+
+
+def settings_from_args(args: argparse.Namespace):
+    from agent.runtime import AgentSettings
+
+    return AgentSettings(feeder_id=args.feeder_id, agent_id=args.agent_id, mode=args.mode,
+                         correction=args.correction == "on", bandwidth_v120=args.bandwidth_v,
+                         full_visibility=args.full_visibility, stale_after_s=args.stale_after_s)
+
+
+def _agent(args: argparse.Namespace) -> int:
+    import logging
+
+    import msgspec
+
+    from agent.runtime import run_agent
+    from schemas.bus import bus_config_from_args
+    from training.model import read_model
+
+    expect = None
+    if args.feeder:
+        from schemas.devicemap import load_device_map
+        from simulator_bridge.cli import resolve_device_map_path
+
+        expect = load_device_map(resolve_device_map_path(args.feeder)).fingerprint()
+    model = read_model(args.model, expect_fingerprint=expect)
+    if args.mode == "taps" and args.correction == "on" and not args.full_visibility:
+        logging.getLogger("agent").info("taps mode with correction: not one of the paper's cases, allowed")
+    settings = settings_from_args(args)
+    summary = run_agent(model, settings, bus_config_from_args(args))
+    if args.json:
+        print(json.dumps(msgspec.to_builtins(summary)))
+    return 0

@@ -1,0 +1,313 @@
+"""The agent process: the only agent module that knows Zenoh and clocks.
+
+Layers (STYLE.md): ``aligner`` groups frames by timestamp, ``controller`` decides, and this module turns
+frames into snapshots and decisions into bus messages (``DecisionMaker``, no I/O), then runs that on the
+bus (``run_agent``) or on recorded frames (``decide_offline``). The same ``DecisionMaker`` serves both, so
+a replay of the recorded frames reproduces the live decisions exactly.
+
+Live loop: a Zenoh callback decodes and enqueues (``schemas.bus.Inbox``); this thread takes frames from the
+queue, feeds the aligner, and on each control step publishes the commands (reliable, high priority) and
+then the ``Decision`` that lists them. An incomplete step is decided after a short wall-clock window for
+late frames. A wall-clock watchdog publishes ``AgentStatus`` every second and says ``stale`` when no frame
+has come for ``stale_after_s``; the agent never sends commands without fresh frames.
+"""
+
+from __future__ import annotations
+
+import logging
+import signal
+import threading
+import time
+from collections import Counter
+from collections.abc import Iterable, Iterator
+from typing import Any, Literal
+
+import msgspec
+import numpy as np
+
+from agent.aligner import AlignedFrames, FrameAligner
+from agent.controller import CvvcController, MeasurementSnapshot
+from agent.controller import Decision as ControllerDecision
+from schemas import keys
+from schemas import messages as m
+from training.model import CvvcModel
+
+__all__ = ["AgentSettings", "AgentSummary", "DecisionMaker", "decide_offline", "run_agent", "snapshot_from"]
+
+log = logging.getLogger(__name__)
+_PHASE_INDEX = {"a": 0, "b": 1, "c": 2}
+
+
+class AgentSettings(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """Everything that shapes the agent's decisions (recorded with a session for the offline re-run)."""
+
+    feeder_id: str = "rural-s1"
+    agent_id: str = "agent"
+    mode: Literal["taps", "setpoints"] = "setpoints"
+    correction: bool = True
+    bandwidth_v120: float = 4.0
+    full_visibility: bool = False
+    valid_intervals: float = 2.0  # commands expire this many control periods after their step
+    late_window_s: float = 0.5  # live only: how long an incomplete step waits for late frames [s]
+    stale_after_s: float = 10.0  # live only: no frame for this long -> "stale" [s]
+    oracle_timeout_s: float = 30.0  # case A: how long to wait for the bridge's oracle [s]
+
+
+class AgentSummary(msgspec.Struct, frozen=True, kw_only=True):
+    decisions: int
+    holds: int
+    commands: int
+    acks: dict[str, int]
+    rejected: dict[str, int]
+
+
+def snapshot_from(aligned: AlignedFrames, model: CvvcModel) -> MeasurementSnapshot:
+    """The controller's snapshot of one aligned step, in the model's device order."""
+    n_pv, n_reg = len(model.pv), len(model.regulators)
+    head_p = np.zeros(3)
+    head_q = np.zeros(3)
+    if aligned.head is not None:
+        for ph in aligned.head.phases:
+            head_p[_PHASE_INDEX[ph.phase]] = ph.p_kw
+            head_q[_PHASE_INDEX[ph.phase]] = ph.q_kvar
+    pv_p, pv_q, pv_kva, pv_sp = (np.zeros(n_pv) for _ in range(4))
+    pv_ok = np.zeros(n_pv, bool)
+    for k, plant in enumerate(model.pv):
+        f = aligned.pv.get(plant.id)
+        if f is None:
+            pv_sp[k] = np.nan
+            continue
+        pv_p[k], pv_q[k], pv_kva[k] = f.p_kw, f.q_kvar, f.s_rated_kva
+        pv_sp[k] = np.nan if f.q_setpoint_kvar is None else f.q_setpoint_kvar
+        pv_ok[k] = True
+    reg_v, reg_vc, reg_tap = np.full(n_reg, 120.0), np.full(n_reg, 120.0), np.zeros(n_reg, int)
+    reg_ok = np.zeros(n_reg, bool)
+    for r, reg in enumerate(model.regulators):
+        f = aligned.vr.get(reg.id)
+        if f is None:
+            continue
+        reg_v[r] = f.phases[0].v_120
+        reg_vc[r] = f.v_compared_120
+        reg_tap[r] = f.tap
+        reg_ok[r] = True
+    return MeasurementSnapshot(
+        t_ns=aligned.t_ns, head_p_kw=head_p, head_q_kvar=head_q, pv_p_kw=pv_p, pv_q_kvar=pv_q,
+        pv_kva_available=pv_kva, pv_q_setpoint_kvar=pv_sp, reg_v120=reg_v, reg_v120_compared=reg_vc,
+        reg_tap=reg_tap, head_valid=aligned.head is not None, pv_valid=pv_ok, reg_valid=reg_ok)
+
+
+def _round(x: float, digits: int = 9) -> float:
+    return float(round(float(x), digits))
+
+
+class DecisionMaker:
+    """Frames in, decision messages out: aligner + controller + message construction. No I/O, no clock.
+
+    Command ids are ``<agent>:<step t_ns>:<device>``, the ``seq`` of every message of one decision is the
+    decision counter, and commands expire ``valid_intervals`` control periods after their step.
+    """
+
+    def __init__(self, model: CvvcModel, settings: AgentSettings) -> None:
+        self.model = model
+        self.settings = settings
+        self.period_ns = int(model.control_period_s) * 1_000_000_000
+        self.aligner = FrameAligner(feeder_id=settings.feeder_id, pv_ids=tuple(p.id for p in model.pv),
+                                    regulator_ids=tuple(r.id for r in model.regulators),
+                                    control_period_ns=self.period_ns)
+        self.controller = CvvcController(model, mode=settings.mode, correction=settings.correction,
+                                         bandwidth_v120=settings.bandwidth_v120)
+        self.seq = 0
+        self.holds = 0
+        self.commands_sent = 0
+
+    def on_frame(self, key: str, msg: Any) -> list[tuple[AlignedFrames, ControllerDecision]]:
+        return [(a, self.controller.decide(snapshot_from(a, self.model))) for a in self.aligner.add(key, msg)]
+
+    def close_pending(self) -> list[tuple[AlignedFrames, ControllerDecision]]:
+        return [(a, self.controller.decide(snapshot_from(a, self.model))) for a in self.aligner.close_pending()]
+
+    def to_message(self, aligned: AlignedFrames, d: ControllerDecision, *, align_s: float = 0.0) -> m.Decision:
+        """The bus message of one controller decision, with the commands it sends."""
+        s = self.settings
+        self.seq += 1
+        seq = self.seq
+        t = aligned.t_ns
+        valid_until = t + int(s.valid_intervals * self.period_ns)
+        in_reply_to = aligned.head.seq if aligned.head is not None else 0
+        common = dict(t_ns=t, seq=seq, source=s.agent_id, in_reply_to=in_reply_to, valid_until_t_ns=valid_until)
+        commands: list[m.DecisionCommand] = []
+        if d.status != "hold":
+            for k, plant in enumerate(self.model.pv):
+                if d.pv_command[k] and d.pv_q_kvar is not None:
+                    commands.append(m.PvCommand(cmd_id=f"{s.agent_id}:{t}:{plant.id}", plant_id=plant.id,
+                                                q_kvar=_round(d.pv_q_kvar[k], 3), **common))
+            for r, reg in enumerate(self.model.regulators):
+                if not d.reg_command[r]:
+                    continue
+                action: m.TapAction | m.SetpointAction
+                if s.mode == "setpoints" and d.reg_setpoint_v120 is not None and d.reg_band_v120 is not None:
+                    action = m.SetpointAction(setpoint_v120=_round(d.reg_setpoint_v120[r], 4),
+                                              band_v120=_round(d.reg_band_v120[r], 4))
+                elif d.reg_tap is not None:
+                    action = m.TapAction(tap=int(d.reg_tap[r]))
+                else:
+                    continue
+                commands.append(m.RegCommand(cmd_id=f"{s.agent_id}:{t}:{reg.id}", regulator_id=reg.id,
+                                             action=action, **common))
+        else:
+            self.holds += 1
+        self.commands_sent += len(commands)
+        estimates = []
+        if d.v_pu is not None:
+            pred = d.v_pred_pu if d.v_pred_pu is not None else d.v_pu
+            estimates = [m.NodeEstimate(node=c.name, v_pu=_round(v), v_predicted_pu=_round(p))
+                         for c, v, p in zip(self.model.critical_nodes, d.v_pu, pred, strict=True)]
+        dv_dq = [] if d.dv_dq_pu_per_kvar is None else [[_round(x, 12) for x in row] for row in d.dv_dq_pu_per_kvar]
+        tm = d.timings
+        return m.Decision(
+            t_ns=t, seq=seq, source=s.agent_id, feeder_id=s.feeder_id, step_t_ns=t, in_reply_to=in_reply_to,
+            status=d.status, reason=d.reason[:500], commands=commands, estimates=estimates,
+            dv_dq_pu_per_kvar=dv_dq,
+            dv_dtap_pu=[[_round(x, 12) for x in row] for row in self.model.dv_dtap_pu],
+            solver=m.SolverStats(status=d.solver_status, iterations=d.iterations, objective=_round(d.objective),
+                                 soft=d.status == "soft"),
+            timings=m.Timings(align_s=align_s, estimate_s=tm.estimate_s, solve_s=tm.solve_s, round_s=tm.round_s,
+                              total_s=tm.total_s + align_s),
+            corrected=d.corrected, missing=list(aligned.missing) + [x for x in d.missing if x not in aligned.missing],
+        )
+
+
+_FRAME_TYPES = (m.HeadFrame, m.PvFrame, m.RegFrame)
+
+
+def decide_offline(model: CvvcModel, settings: AgentSettings | None,
+                   frames: Iterable[Any]) -> Iterator[m.Decision]:
+    """Re-run the agent's decision code on recorded frames (no bus, no clock), in the order given.
+
+    ``frames`` yields objects with ``key`` and ``msg`` (``schemas.bus.Received`` or the recordings
+    reader's items) or ``(key, msg)`` pairs. Steps still open at the end are decided as the live agent
+    decides them after its late-frame window.
+    """
+    settings = settings or AgentSettings()
+    if settings.full_visibility:
+        raise ValueError("case A (full visibility) needs the live bridge's oracle; it cannot be re-run offline")
+    maker = DecisionMaker(model, settings)
+    for item in frames:
+        key, msg = (item.key, item.msg) if hasattr(item, "key") else item
+        if isinstance(msg, _FRAME_TYPES):
+            for aligned, d in maker.on_frame(key, msg):
+                yield maker.to_message(aligned, d)
+    for aligned, d in maker.close_pending():
+        yield maker.to_message(aligned, d)
+
+
+# ------------------------------------------------------------------------------------------- live
+def run_agent(model: CvvcModel, settings: AgentSettings, bus, *, stop: threading.Event | None = None,
+              install_signals: bool = True) -> AgentSummary:
+    """Run the agent on the bus until ``stop`` is set (or SIGINT/SIGTERM when ``install_signals``)."""
+    from schemas.bus import Inbox, LivelinessWatcher, TypedPublisher, open_session
+
+    stop = stop or threading.Event()
+    if install_signals and threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, lambda *_: stop.set())
+    maker = DecisionMaker(model, settings)
+    f = settings.feeder_id
+    acks: Counter[str] = Counter()
+    with open_session(bus) as session:
+        token = session.liveliness().declare_token(keys.alive(f, "agent", settings.agent_id))
+        devices = LivelinessWatcher(session, keys.alive_all(f),
+                                    on_change=lambda k, up: log.info("device %s %s", k, "up" if up else "down"))
+        inbox = Inbox(maxsize=8192)
+        inbox.subscribe(session, keys.meas_head(f), m.HeadFrame)
+        inbox.subscribe(session, keys.meas_pv(f), m.PvFrame)
+        inbox.subscribe(session, keys.meas_vr(f), m.RegFrame)
+        inbox.subscribe(session, f"cvvc/{f}/ack/**", m.Ack)
+        decision_pub = TypedPublisher(session, keys.agent_decision(f), m.Decision, reliable=True)
+        status_pub = TypedPublisher(session, keys.agent_status(f), m.AgentStatus, reliable=True)
+        cmd_pubs: dict[str, TypedPublisher[Any]] = {}
+        for p in model.pv:
+            cmd_pubs[p.id] = TypedPublisher(session, keys.cmd(f, "pv", p.id), m.PvCommand, reliable=True)
+        for r in model.regulators:
+            cmd_pubs[r.id] = TypedPublisher(session, keys.cmd(f, "vr", r.id), m.RegCommand, reliable=True)
+        oracle = _Oracle(session, f, settings.oracle_timeout_s) if settings.full_visibility else None
+
+        last_frame_wall = time.monotonic()
+        last_frame_t_ns = 0
+        pending_since: float | None = None
+        next_status = time.monotonic()
+        status_seq = 0
+
+        def publish(pairs: list[tuple[AlignedFrames, ControllerDecision]], t_recv: float) -> None:
+            for aligned, d in pairs:
+                if oracle is not None:
+                    d = oracle.decide(maker, aligned, d)
+                msg = maker.to_message(aligned, d, align_s=max(0.0, time.monotonic() - t_recv - d.timings.total_s))
+                for c in msg.commands:
+                    device = c.plant_id if isinstance(c, m.PvCommand) else c.regulator_id
+                    cmd_pubs[device].put(c)
+                decision_pub.put(msg)
+
+        try:
+            while not stop.is_set():
+                item = inbox.get(timeout_s=0.02)
+                now = time.monotonic()
+                if item is not None:
+                    msg = item.msg
+                    if isinstance(msg, m.Ack):
+                        acks[msg.status] += 1
+                        if msg.status == "rejected":
+                            log.warning("command %s rejected by %s: %s", msg.cmd_id, msg.device_id, msg.reason)
+                    else:
+                        last_frame_wall, last_frame_t_ns = now, msg.t_ns
+                        publish(maker.on_frame(item.key, msg), now)
+                        pending_since = (pending_since or now) if maker.aligner.pending else None
+                if pending_since is not None and now - pending_since > settings.late_window_s:
+                    publish(maker.close_pending(), now)
+                    pending_since = None
+                if now >= next_status:
+                    next_status = now + 1.0
+                    status_seq += 1
+                    since = now - last_frame_wall
+                    state = "stale" if since > settings.stale_after_s else ("starting" if not last_frame_t_ns else "ok")
+                    rejected = dict(inbox.rejects.by_kind())
+                    for k, n in maker.aligner.rejected.items():
+                        rejected[k] = rejected.get(k, 0) + n
+                    status_pub.put(m.AgentStatus(
+                        t_ns=last_frame_t_ns, seq=status_seq, source=settings.agent_id, feeder_id=f, state=state,
+                        last_frame_t_ns=last_frame_t_ns, seconds_since_frame=min(since, 1e6),
+                        decisions=maker.seq, rejected=rejected))
+                    if state == "stale" and status_seq % 10 == 1:
+                        log.warning("no frames for %.0f s: inputs stale, sending nothing", since)
+        finally:
+            devices.undeclare()
+            inbox.undeclare()
+            token.undeclare()
+    rejected = dict(inbox.rejects.by_kind())
+    for k, n in maker.aligner.rejected.items():
+        rejected[k] = rejected.get(k, 0) + n
+    return AgentSummary(decisions=maker.seq, holds=maker.holds, commands=maker.commands_sent, acks=dict(acks),
+                        rejected=rejected)
+
+
+class _Oracle:
+    """Case A: true voltages of every node and perturbation sensitivities, asked of the bridge."""
+
+    def __init__(self, session, feeder_id: str, timeout_s: float) -> None:
+        self._session = session
+        self._key = keys.sim_oracle(feeder_id)
+        self._timeout_s = timeout_s
+
+    def decide(self, maker: DecisionMaker, aligned: AlignedFrames, d: ControllerDecision) -> ControllerDecision:
+        from agent.full_visibility import decide_full_visibility
+        from schemas.bus import BadMessage, codec_for
+
+        request = codec_for(m.OracleRequest).encode(m.OracleRequest(t_ns=aligned.t_ns))
+        reply = None
+        for r in self._session.get(self._key, payload=request, timeout=self._timeout_s):
+            if r.ok is not None:
+                try:
+                    reply = codec_for(m.OracleReply).decode(r.ok.payload.to_bytes())
+                except BadMessage as e:
+                    log.warning("bad oracle reply: %s", e)
+        return decide_full_visibility(maker.controller, snapshot_from(aligned, maker.model), d, reply)
