@@ -159,7 +159,8 @@ class Qsts:
         self._step = int(start_step)
         n_pv, n_reg = len(engine.pv_ids), len(engine.regulator_ids)
         self._pv_cmd: list[float | None] = [None] * n_pv
-        self._tap_lock: list[int | None] = [None] * n_reg
+        self._locked = np.zeros(n_reg, dtype=bool)  # regulator r held at self._lock_tap[r]
+        self._lock_tap = np.zeros(n_reg, dtype=int)
         self._setpoint_v120 = engine.reg_default_setpoint_v120.copy()
         self._band_v120 = engine.reg_default_band_v120.copy()
         self._out_of_band_steps = np.zeros(n_reg, dtype=int)
@@ -195,13 +196,13 @@ class Qsts:
 
         Returns the tap it will hold (its present tap when unlocked).
         """
-        self._check_index(r, len(self._tap_lock), "regulator")
+        self._check_index(r, len(self._locked), "regulator")
         if tap is None:
-            self._tap_lock[r] = None
+            self._locked[r] = False
             self._out_of_band_steps[r] = 0
             return int(self.engine.taps()[r])
         t = int(np.clip(int(tap), -self.engine.reg_tap_max[r], self.engine.reg_tap_max[r]))
-        self._tap_lock[r] = t
+        self._locked[r], self._lock_tap[r] = True, t
         return t
 
     def command_setpoint(self, r: int, setpoint_v120: float | None, band_v120: float | None) -> None:
@@ -209,7 +210,7 @@ class Qsts:
 
         A locked regulator keeps its tap; the set point applies once it is unlocked.
         """
-        self._check_index(r, len(self._tap_lock), "regulator")
+        self._check_index(r, len(self._locked), "regulator")
         for name, value in (("setpoint_v120", setpoint_v120), ("band_v120", band_v120)):
             if value is not None and not (np.isfinite(value) and value > 0):
                 raise QstsError(f"command_setpoint: regulator {r}: {name} {value!r} must be positive")
@@ -259,19 +260,16 @@ class Qsts:
         e.set_loads_kw(load_kw)
 
         taps0 = e.taps()  # the engine's, in case its owner moved them between steps
-        taps = taps0.copy()
-        locked = np.array([lk is not None for lk in self._tap_lock], dtype=bool)
-        for r, lk in enumerate(self._tap_lock):
-            if lk is not None:
-                taps[r] = lk
+        locked = self._locked
+        taps = np.where(locked, self._lock_tap, taps0)
         changes = np.abs(taps - taps0)
         if changes.any():
             e.set_taps(taps)
         e.solve()
         readings = e.readings()
 
-        want = np.where(locked, 0, tap_direction(readings.reg_v120_compared, self._setpoint_v120,
-                                                 self._band_v120))
+        want = tap_direction(readings.reg_v120_compared, self._setpoint_v120, self._band_v120)
+        want[locked] = 0
         self._out_of_band_steps = np.where(want != 0, self._out_of_band_steps + 1, 0)
         moving = self._out_of_band_steps >= self.delay_steps
         first_move = np.zeros_like(want)
@@ -288,8 +286,8 @@ class Qsts:
             e.set_taps(taps)
             e.solve()
             readings = e.readings()
-            want = np.where(locked, 0, tap_direction(readings.reg_v120_compared, self._setpoint_v120,
-                                                     self._band_v120))
+            want = tap_direction(readings.reg_v120_compared, self._setpoint_v120, self._band_v120)
+            want[locked] = 0
         self._out_of_band_steps = np.where(want != 0, self._out_of_band_steps, 0)
 
         v = e.node_voltages_pu()
