@@ -253,6 +253,12 @@ def test_feeder_that_does_not_compile(tmp_path: Path) -> None:
     assert Path.cwd() == cwd  # OpenDSS's compile changes the working directory; the engine restores it
 
 
+def test_extra_commands_apply_before_setup(map123: DeviceMap) -> None:
+    feeder = msgspec.structs.replace(map123.feeder, extra_commands=["Edit RegControl.creg1a vreg=122 band=3"])
+    e = FeederEngine(_edit(map123, feeder=feeder))
+    assert e.reg_default_setpoint_v120[0] == 122.0 and e.reg_default_band_v120[0] == 3.0
+
+
 def test_bad_extra_command(map13: DeviceMap) -> None:
     feeder = msgspec.structs.replace(map13.feeder, extra_commands=["New Bogus.thing x=1"])
     with pytest.raises(EngineError, match="extra command"):

@@ -199,6 +199,17 @@ def test_volt_var_uses_previous_step_voltage(eng: FeederEngine) -> None:
     assert q.step().pv_q_kvar[2] < 0
 
 
+def test_volt_var_silent_at_night(eng: FeederEngine) -> None:
+    """At night volt-var makes no Q even where the curve asks for it (low load: high voltage)."""
+    q = Qsts(eng, constant(eng, 3, 0.1, 0.0), start_step=0, pv_local="volt_var")
+    q.command_tap(0, 8)  # creg1a high: every plant above 1.02 pu, where the curve absorbs
+    for _ in range(3):
+        res = q.step()
+    v_pv = np.array([res.v_pu[list(ix)].mean() for ix in eng.pv_node_index])
+    assert np.all(volt_var_q_pu(v_pv) < 0)
+    np.testing.assert_array_equal(res.pv_q_kvar, 0.0)
+
+
 def test_step_result_shapes_and_time(eng: FeederEngine) -> None:
     prof = constant(eng, 3, 0.7, 0.3)
     q = Qsts(eng, prof, start_step=1)
