@@ -29,6 +29,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--cache", default=".cvvc-cache", help="cache of feeders, profiles and models")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     p.set_defaults(func=_run)
+    register_report(sub)
 
 
 def _run(args: argparse.Namespace) -> int:
@@ -47,3 +48,11 @@ def _run(args: argparse.Namespace) -> int:
         print(render_summary(summary))
         print(f"output: {summary.out_dir} (summary.json, report.md{', session.mcap' if summary.recording else ''})")
     return 0
+
+
+def register_report(sub: argparse._SubParsersAction) -> None:
+    from training.cli import register_accuracy
+
+    p = sub.add_parser("report", help="reports: estimation accuracy, plots of a run or an evaluation")
+    rsub = p.add_subparsers(dest="report_verb", metavar="SUBVERB")
+    register_accuracy(rsub)

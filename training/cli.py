@@ -1,11 +1,10 @@
-"""``cvvc train`` and ``cvvc report-accuracy`` (the launcher wires ``cvvc report accuracy`` to
-``training.accuracy.accuracy_report``).
+"""``cvvc train`` and ``cvvc report accuracy`` (registered under the launcher's ``report`` verb).
 
 Verbs::
 
     cvvc train [--feeder FEEDER] --out MODEL [--year-seed S] [--selection guided|random]
                [--blocks NL NPV] [--workers N] [--no-combined] [--json]
-    cvvc report-accuracy --model MODEL [--model MODEL2] [--feeder FEEDER] --month M [--year-seed S]
+    cvvc report accuracy --model MODEL [--model MODEL2] [--feeder FEEDER] --month M [--year-seed S]
                [--png PATH] [--max-minutes N] [--json]
 
 FEEDER is a device map TOML or a folder with ``devicemap.toml``; default: the embedded rural feeder.
@@ -21,7 +20,7 @@ from pathlib import Path
 
 from schemas.errors import CvvcError
 
-__all__ = ["register"]
+__all__ = ["register", "register_accuracy"]
 
 
 def _feeder_path(feeder: str | None) -> Path:
@@ -125,7 +124,7 @@ def _accuracy(args: argparse.Namespace) -> int:
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    """Add ``train`` and ``report-accuracy`` to the ``cvvc`` command."""
+    """Add ``train`` to the ``cvvc`` command (``report accuracy`` comes through ``register_accuracy``)."""
     p = subparsers.add_parser("train", help="train the estimator of a feeder (scenarios, power flows, fits)")
     p.add_argument("--feeder", help="device map TOML or folder with devicemap.toml (default: rural feeder)")
     p.add_argument("--out", required=True, help="model file to write (JSON)")
@@ -139,7 +138,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--json", action="store_true", help="print the summary as JSON (no progress bar)")
     p.set_defaults(func=_guarded("train", _train))
 
-    a = subparsers.add_parser("report-accuracy", help="estimation error of a model over a simulated month")
+
+
+def register_accuracy(report_subparsers: argparse._SubParsersAction) -> None:
+    """Add ``accuracy`` under ``cvvc report`` (the launcher's ``report`` verb calls this)."""
+    a = report_subparsers.add_parser("accuracy", help="estimation error of a model over a simulated month")
     a.add_argument("--model", action="append", required=True, help="model file (repeat for guided and random)")
     a.add_argument("--feeder", help="device map TOML or folder with devicemap.toml (default: rural feeder)")
     a.add_argument("--month", type=int, required=True, help="month 1..12")
@@ -147,4 +150,4 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     a.add_argument("--png", help="write a figure like the paper's Fig. 8 here")
     a.add_argument("--max-minutes", type=int, default=None, help="only the first N minutes of the month")
     a.add_argument("--json", action="store_true", help="print the report as JSON")
-    a.set_defaults(func=_guarded("report-accuracy", _accuracy))
+    a.set_defaults(func=_guarded("report accuracy", _accuracy))

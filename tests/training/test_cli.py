@@ -1,4 +1,4 @@
-"""``cvvc train`` and ``cvvc report-accuracy`` through the real command line (IEEE 13, real OpenDSS)."""
+"""``cvvc train`` and ``cvvc report accuracy`` through the real command line (IEEE 13, real OpenDSS)."""
 
 import json
 
@@ -18,7 +18,7 @@ def test_train_json_then_accuracy(tmp_path, monkeypatch, capsys):
         assert key in summary
     assert summary["scenarios"] >= 4 and summary["power_flows"] > summary["scenarios"]
     assert out.is_file()
-    argv = ["report-accuracy", "--model", str(out), "--feeder", str(feeder), "--month", "4", "--max-minutes", "30"]
+    argv = ["report", "accuracy", "--model", str(out), "--feeder", str(feeder), "--month", "4", "--max-minutes", "30"]
     assert main([*argv, "--json"]) == 0
     report = json.loads(capsys.readouterr().out)
     assert report["minutes"] == 30 and len(report["errors"]) == 2
