@@ -49,7 +49,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     rng = np.random.default_rng(args.seed)
 
-    secs, cpu, its, stats, gaps = [], [], [], Counter(), []
+    secs, cpu, its, gaps = [], [], [], []
+    stats: Counter[str] = Counter()
     for i in range(args.problems):
         inputs = random_cvvc_inputs(rng)
         t_cpu = time.thread_time()
@@ -66,7 +67,8 @@ def main(argv: list[str] | None = None) -> int:
                 stats["soft_where_milp_feasible"] += 1
     print(_summary("random problems, cold start", secs, cpu, its, stats, gaps))
 
-    secs, cpu, its, stats, gaps = [], [], [], Counter(), []
+    secs, cpu, its, gaps = [], [], [], []
+    stats = Counter()
     for _ in range(args.days):
         days = cvvc_day_sequence(rng)
         inputs, previous, step = next(days), None, 0

@@ -244,8 +244,8 @@ class CvvcController:
         head_ok = head_ok and bool(np.all(np.abs(snap.head_q_kvar) < _POWER_LIMIT_KW))
         pv_ok = np.asarray(snap.pv_valid, bool).copy()
         for k in range(len(self._pv_ids)):
-            vals = (snap.pv_p_kw[k], snap.pv_q_kvar[k], snap.pv_kva_available[k])
-            pv_ok[k] = pv_ok[k] and _finite(np.array(vals)) and snap.pv_kva_available[k] >= 0.0
+            pv_vals = np.array([snap.pv_p_kw[k], snap.pv_q_kvar[k], snap.pv_kva_available[k]], float)
+            pv_ok[k] = pv_ok[k] and _finite(pv_vals) and snap.pv_kva_available[k] >= 0.0
             pv_ok[k] = pv_ok[k] and abs(snap.pv_p_kw[k]) < _POWER_LIMIT_KW and abs(snap.pv_q_kvar[k]) < _POWER_LIMIT_KW
         reg_ok = np.asarray(snap.reg_valid, bool).copy()
         lo, hi = _V120_RANGE
@@ -257,7 +257,7 @@ class CvvcController:
                 and lo < snap.reg_v120[r] < hi
                 and lo < snap.reg_v120_compared[r] < hi
                 and float(snap.reg_tap[r]) == round(float(snap.reg_tap[r]))
-                and self._tap_min[r] - 1 <= snap.reg_tap[r] <= self._tap_max[r] + 1
+                and self._tap_min[r] <= snap.reg_tap[r] <= self._tap_max[r]
             )
         return head_ok, pv_ok, reg_ok
 

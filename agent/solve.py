@@ -444,7 +444,8 @@ def solve_cvvc(inputs: CvvcInputs, *, warm_start: CvvcSolution | None = None) ->
     t_built = time.perf_counter()
 
     # Relaxation: hard limits (eq. 9-15), else the soft form (eq. 16-17).
-    qp, form, reason = hard, "hard", ""
+    qp, reason = hard, ""
+    form: Literal["hard", "soft"] = "hard"
     unreachable = _unreachable_rows(hard)
     if unreachable.size:
         run = _Run(False, True, "presolve: unreachable limits", np.zeros(0), np.zeros(0), 0)
@@ -466,7 +467,8 @@ def solve_cvvc(inputs: CvvcInputs, *, warm_start: CvvcSolution | None = None) ->
                 else f"hard relaxation not solved ({run.status}): soft form (eq. 17) used"
             )
     if not run.ok:
-        qp, form = build_cvvc_qp(inputs, soft=True), "soft"
+        qp = build_cvvc_qp(inputs, soft=True)
+        form = "soft"
         x0, y0 = _warm_vectors(qp, warm_start, "soft")
         run = _osqp(qp, x0, y0)
         iterations += run.iterations
@@ -597,7 +599,9 @@ def _dual_bound(qp: CvvcQp, lo: np.ndarray, hi: np.ndarray, y: np.ndarray | None
     return float(qp.cost_scale * (-0.5 * np.sum(grad**2 / qp.p_diag) - np.sum(support)))
 
 
-def _q_start(fixed: CvvcQp, relaxed: CvvcQp, x_rel: np.ndarray, y_rel: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _q_start(
+    fixed: CvvcQp, relaxed: CvvcQp, x_rel: np.ndarray, y_rel: np.ndarray
+) -> tuple[np.ndarray, np.ndarray | None]:
     """Start the Q re-solve from the relaxation's Q, violations and the duals of the rows they share."""
     x0 = np.zeros(fixed.layout.n)
     x0[fixed.layout.q_inj] = x_rel[relaxed.layout.q_inj]

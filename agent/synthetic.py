@@ -9,10 +9,21 @@ by the running agent.
 
 from __future__ import annotations
 
+from typing import Literal
+
 import numpy as np
 
 from agent.cvvc_qp import CvvcInputs
-from training.model import CriticalNode, CvvcModel, PvInfo, RegulatorInfo, SensitivityFit, TrainingSettings
+from training.model import (
+    CriticalNode,
+    CvvcModel,
+    NodeKind,
+    PvInfo,
+    RegulatorInfo,
+    SensitivityFit,
+    TrainingSettings,
+    feature_names,
+)
 
 __all__ = ["cvvc_day_sequence", "random_cvvc_inputs", "synthetic_model"]
 
@@ -122,17 +133,16 @@ def synthetic_model(seed: int = 0, *, n_nodes: int = 47, n_pv: int = 3) -> CvvcM
         sens.append(row)
     nodes = []
     for i in range(n_nodes):
-        kinds = ["reg_secondary"] if i in secondary else (["head"] if i == 0 else ["extreme"])
+        kinds: list[NodeKind] = ["reg_secondary"] if i in secondary else (["head"] if i == 0 else ["extreme"])
+        ph: Literal[1, 2, 3] = (1, 2, 3)[int(phase[i])]
         nodes.append(
             CriticalNode(
-                name=f"n{i}.{phase[i] + 1}",
-                phase=int(phase[i] + 1),
+                name=f"n{i}.{ph}",
+                phase=ph,
                 kinds=kinds,
                 upstream_regulator=None if upstream[i] < 0 else int(upstream[i]),
             )
         )
-    from training.model import feature_names
-
     return CvvcModel(
         feeder_name="synthetic47",
         fingerprint="synthetic47-" + str(seed),
