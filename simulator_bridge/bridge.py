@@ -552,12 +552,15 @@ class _Runtime:
     # ---------------------------------------------------------------- frames
     def _flush(self, now_s: float) -> None:
         for pub, msg in self.delay.due(now_s):  # type: ignore[misc]
-            if isinstance(msg, m.HeadFrame) and self.is_control_step(self._step_of(msg.t_ns)):
-                self._ctrl_pub_wall_ns[msg.t_ns] = time.time_ns()  # before put: the answer may beat put's return
-                while len(self._ctrl_pub_wall_ns) > 64:  # decisions that never came
-                    self._ctrl_pub_wall_ns.pop(next(iter(self._ctrl_pub_wall_ns)))
-            pub.put(msg)
-            self.frames_published += 1
+            self._publish(pub, msg)
+
+    def _publish(self, pub: _FramePublisher, msg: msgspec.Struct) -> None:
+        if isinstance(msg, m.HeadFrame) and self.is_control_step(self._step_of(msg.t_ns)):
+            self._ctrl_pub_wall_ns[msg.t_ns] = time.time_ns()  # before put: the answer may beat put's return
+            while len(self._ctrl_pub_wall_ns) > 64:  # decisions that never came
+                self._ctrl_pub_wall_ns.pop(next(iter(self._ctrl_pub_wall_ns)))
+        pub.put(msg)
+        self.frames_published += 1
 
     def _step_of(self, t_ns: int) -> int:
         return (t_ns - int(self.profiles.start_t_ns)) // (self.step_s * _NS)
@@ -565,8 +568,10 @@ class _Runtime:
     def _send(self, pub: _FramePublisher, msg: msgspec.Struct, now_s: float) -> None:
         if self.dropper.drop():
             self.frames_dropped += 1
-            return
-        self.delay.put((pub, msg), now_s)
+        elif self.delay.latency_s > 0.0:
+            self.delay.put((pub, msg), now_s)
+        else:
+            self._publish(pub, msg)
 
     def publish_frames(self, res: Any, now_s: float) -> None:
         """Schedule the frames of one step (noise, drops, latency applied)."""
@@ -643,16 +648,20 @@ class _Runtime:
 
     # ---------------------------------------------------------------- one step
     def step(self) -> Any:
-        """Watchdogs, one QSTS step, metrics, frames and truth; returns the StepResult."""
+        """Watchdogs, one QSTS step, frames, then metrics and truth; returns the StepResult.
+
+        The device frames go out first, so that on a control step the agent works while the bridge
+        updates the metrics and publishes the truth.
+        """
         t_next = int(self.profiles.t_ns(self.qsts.next_step))
         self.run_watchdogs(t_next)
         res = self.qsts.step()
         _check_finite_step(res)
         self.now_t_ns = int(res.t_ns)
         self.pv_p_kw = np.asarray(res.pv_p_kw, float)
-        self.metrics.update(res.v_pu, res.tap_changes, res.pv_q_kvar)
         self.steps += 1
         self.publish_frames(res, time.monotonic())
+        self.metrics.update(res.v_pu, res.tap_changes, res.pv_q_kvar)
         self.publish_truth(res)
         return res
 
