@@ -5,7 +5,8 @@ Decision variables (paper section III), in this order:
 - ``dT+_r, dT-_r`` (R each): tap steps up and down per single-phase regulator [steps];
 - ``Q+_k, Q-_k`` (K each): reactive power injected and absorbed by each plant, as a fraction of the plant's
   rating ``q_rating_kvar`` (so 1.0 = rating);
-- soft form only: ``w_i`` (N): signed voltage violation of each critical node [% of its base voltage].
+- soft form only: ``w_i``: signed voltage violation of each soft critical node (all nodes, or only those
+  no action can bring within the limits) [% of its base voltage].
 
 Constraints (``lower <= A x <= upper``, one block each):
 
@@ -206,7 +207,7 @@ class CvvcQp:
     solver that ``qpsolvers`` knows, and ``d_tap``/``q_kvar``/``vio_pu`` to read a solution in physical units.
     """
 
-    soft: bool
+    soft_nodes: np.ndarray  # (N,) bool: nodes with a violation variable (eq. 16-17); the others are hard
     layout: VariableLayout
     P: sp.csc_matrix
     c: np.ndarray
@@ -219,6 +220,11 @@ class CvvcQp:
     a_dense: np.ndarray  # ``A`` as a dense array (small), for the active-set polish
     p_diag: np.ndarray  # diagonal of ``P``
     fixed_d_tap: np.ndarray | None = None
+
+    @property
+    def soft(self) -> bool:
+        """Some node has a violation variable (eq. 16-17 form, fully or partly)."""
+        return bool(self.soft_nodes.any())
 
     @property
     def voltage_rows(self) -> slice:
@@ -279,13 +285,15 @@ def _diag_csc(d: np.ndarray) -> sp.csc_matrix:
     return sp.csc_matrix((d.astype(float), index[:n], index), shape=(n, n))
 
 
-def build_cvvc_qp(inputs: CvvcInputs, *, soft: bool, fixed_d_tap: np.ndarray | None = None) -> CvvcQp:
+def build_cvvc_qp(inputs: CvvcInputs, *, soft: bool | np.ndarray, fixed_d_tap: np.ndarray | None = None) -> CvvcQp:
     """Build the scaled CVVC QP, paper eq. (9)-(15) (``soft=False``) or (16)-(17) (``soft=True``).
 
     Parameters
     ----------
     inputs : the problem data.
-    soft : use eq. (17)'s squared-violation form instead of hard voltage limits.
+    soft : ``True``: eq. (17)'s squared-violation form at every node; ``False``: hard limits everywhere;
+        an (N,) bool mask: violation variables at those nodes only, hard limits at the others (used for
+        nodes that no action can bring within the limits, e.g. a feeder head above 1.04 pu).
     fixed_d_tap : (R,) integer tap changes to hold fixed; the problem then has only Q (and violation)
         variables: the "re-solve Q with taps fixed" step after rounding.
 
@@ -298,19 +306,22 @@ def build_cvvc_qp(inputs: CvvcInputs, *, soft: bool, fixed_d_tap: np.ndarray | N
     rating = inputs.q_rating_kvar
     with_taps = fixed_d_tap is None
     n_tap = 2 * r if with_taps else 0
-    n_vio = n if soft else 0
+    soft_nodes = np.broadcast_to(np.asarray(soft, bool), (n,)).copy()
+    soft_nodes.flags.writeable = False
+    soft_idx = np.flatnonzero(soft_nodes)
+    n_vio = soft_idx.size
     n_var = n_tap + 2 * k + n_vio
     tap_up = slice(0, r) if with_taps else None
     tap_down = slice(r, 2 * r) if with_taps else None
     q_inj = slice(n_tap, n_tap + k)
     q_abs = slice(n_tap + k, n_tap + 2 * k)
-    vio = slice(n_tap + 2 * k, n_var) if soft else None
+    vio = slice(n_tap + 2 * k, n_var) if n_vio else None
     layout = VariableLayout(n=n_var, tap_up=tap_up, tap_down=tap_down, q_inj=q_inj, q_abs=q_abs, vio=vio)
 
     # Objective: normalised linear cost, proximal term, squared violations (eq. 17).
     q_cost = inputs.cost_per_kvar * rating
     cost_scale = float(max(np.max(inputs.cost_per_tap, initial=0.0), np.max(q_cost, initial=0.0), 1e-9))
-    alpha = inputs.soft_alpha if soft else 1.0
+    alpha = inputs.soft_alpha if n_vio else 1.0
     c = np.zeros(n_var)
     p_diag = np.zeros(n_var)
     if with_taps:
@@ -318,7 +329,7 @@ def build_cvvc_qp(inputs: CvvcInputs, *, soft: bool, fixed_d_tap: np.ndarray | N
         p_diag[:n_tap] = PROX_WEIGHT
     c[q_inj] = c[q_abs] = alpha * q_cost / cost_scale
     p_diag[q_inj] = p_diag[q_abs] = PROX_WEIGHT
-    if soft:
+    if vio is not None:
         # beta * (w_pct / 100)^2 in cost units, normalised: P entry = 2 beta / (cost_scale * 1e4).
         p_diag[vio] = 2.0 * inputs.soft_beta_per_pu2 / (cost_scale * _PCT_PER_PU**2)
 
@@ -329,8 +340,8 @@ def build_cvvc_qp(inputs: CvvcInputs, *, soft: bool, fixed_d_tap: np.ndarray | N
     if with_taps:
         blocks += [s_t, -s_t]
     blocks += [s_q, -s_q]
-    if soft:
-        blocks.append(-np.eye(n))
+    if n_vio:
+        blocks.append(-np.eye(n)[:, soft_idx])
     a_volt = np.hstack(blocks)
     v_base = _PCT_PER_PU * inputs.v0_pu - s_q @ (inputs.q0_kvar / rating)
     if not with_taps:
@@ -359,7 +370,7 @@ def build_cvvc_qp(inputs: CvvcInputs, *, soft: bool, fixed_d_tap: np.ndarray | N
     a_dense.flags.writeable = False
     p_diag.flags.writeable = False
     return CvvcQp(
-        soft=soft,
+        soft_nodes=soft_nodes,
         layout=layout,
         P=_diag_csc(p_diag),
         c=c,

@@ -443,16 +443,25 @@ def solve_cvvc(inputs: CvvcInputs, *, warm_start: CvvcSolution | None = None) ->
     hard = build_cvvc_qp(inputs, soft=False)
     t_built = time.perf_counter()
 
-    # Relaxation: hard limits (eq. 9-15), else the soft form (eq. 16-17).
+    # Relaxation: hard limits (eq. 9-15); violation variables (eq. 16-17) at the nodes no action can bring
+    # within the limits (e.g. a feeder head above 1.04 pu), hard limits at the others; if that is still
+    # infeasible or unsolved, the soft form at every node.
     qp, reason = hard, ""
-    form: Literal["hard", "soft"] = "hard"
     unreachable = _unreachable_rows(hard)
     if unreachable.size:
-        run = _Run(False, True, "presolve: unreachable limits", np.zeros(0), np.zeros(0), 0)
+        names = ", ".join(str(i) for i in unreachable[:5]) + (", ..." if unreachable.size > 5 else "")
         reason = (
-            f"{unreachable.size} critical node(s) cannot reach the limits with the actions available "
-            f"(first: node {unreachable[0]}): soft form (eq. 17) used"
+            f"{unreachable.size} critical node(s) cannot reach the limits with the actions available (index "
+            f"{names}): their violation is minimised (eq. 17), hard limits elsewhere"
         )
+        mask = np.zeros(inputs.n_nodes, bool)
+        mask[unreachable] = True
+        qp = build_cvvc_qp(inputs, soft=mask)
+        x0, y0 = _warm_vectors(qp, warm_start, "soft")
+        run = _osqp(qp, x0, y0)
+        iterations += run.iterations
+        if not run.ok:
+            reason += "; the remaining hard limits are infeasible too: soft form at every node"
     elif _zero_is_feasible(hard):
         # Every cost is >= 0 and every variable >= 0, so x = 0 minimises the objective: nothing to solve.
         run = _Run(True, False, "presolve: no action needed", np.zeros(hard.layout.n), np.zeros(hard.A.shape[0]), 0)
@@ -468,10 +477,10 @@ def solve_cvvc(inputs: CvvcInputs, *, warm_start: CvvcSolution | None = None) ->
             )
     if not run.ok:
         qp = build_cvvc_qp(inputs, soft=True)
-        form = "soft"
         x0, y0 = _warm_vectors(qp, warm_start, "soft")
         run = _osqp(qp, x0, y0)
         iterations += run.iterations
+    form: Literal["hard", "soft"] = "soft" if qp.soft else "hard"
     t_relaxed = time.perf_counter()
     if not run.ok:
         return _hold(
@@ -491,7 +500,8 @@ def solve_cvvc(inputs: CvvcInputs, *, warm_start: CvvcSolution | None = None) ->
     # objective or below the next candidate's bound.
     candidates = _candidates(d_rel)
     bound = qp.objective(run.x)
-    fixed = build_cvvc_qp(inputs, soft=form == "soft", fixed_d_tap=candidates[0])
+    fixed = build_cvvc_qp(inputs, soft=qp.soft_nodes, fixed_d_tap=candidates[0])
+    hard_nodes = ~qp.soft_nodes
     x_q0, y_q0 = _q_start(fixed, qp, run.x, run.y)
     row_lo, row_hi = _row_ranges(fixed)
     rows = fixed.voltage_rows
@@ -513,8 +523,9 @@ def solve_cvvc(inputs: CvvcInputs, *, warm_start: CvvcSolution | None = None) ->
             q_new = np.clip(q_rel, inputs.q_min_kvar, inputs.q_max_kvar)  # relaxed optimum is integral
             x_q = x_q0
         else:
-            if form == "hard" and np.any((row_hi < lo[rows] - 1e-9) | (row_lo > hi[rows] + 1e-9)):
-                continue  # some node cannot meet its limits with these taps, whatever Q does
+            out_of_reach = (row_hi < lo[rows] - 1e-9) | (row_lo > hi[rows] + 1e-9)
+            if np.any(out_of_reach & hard_nodes):
+                continue  # some hard node cannot meet its limits with these taps, whatever Q does
             res = _warm_polish(fixed, lo, hi, x_q0, y_q0)
             if res is None:
                 if solver is None:
@@ -530,22 +541,23 @@ def solve_cvvc(inputs: CvvcInputs, *, warm_start: CvvcSolution | None = None) ->
             q_new = np.clip(fixed.q_kvar(res.x), inputs.q_min_kvar, inputs.q_max_kvar)
             x_q = res.x
         v_new = inputs.predict_v_pu(d_int, q_new)
-        if form == "hard" and np.max(_violation_pu(inputs, v_new), initial=0.0) > V_TOL_PU:
+        if np.max(_violation_pu(inputs, v_new)[hard_nodes], initial=0.0) > V_TOL_PU:
             continue
         score = fixed.objective(x_q) + tap_cost
         if best is None or score < best[0]:
             best = (score, d_int, q_new)
 
     status: Literal["optimal", "soft"] = "optimal" if form == "hard" else "soft"
-    if best is None and form == "hard":
-        # No re-solve succeeded within its budget: take the first candidate that meets the limits with the
-        # relaxed Q unchanged (feasible, not re-optimised).
+    if best is None and hard_nodes.any():
+        # No re-solve succeeded within its budget: take the first candidate that meets the hard limits with
+        # the relaxed Q unchanged (feasible, not re-optimised).
         q_keep = np.clip(q_rel, inputs.q_min_kvar, inputs.q_max_kvar)
         for d_int in candidates:
-            if np.max(_violation_pu(inputs, inputs.predict_v_pu(d_int, q_keep)), initial=0.0) <= V_TOL_PU:
+            violation = _violation_pu(inputs, inputs.predict_v_pu(d_int, q_keep))
+            if np.max(violation[hard_nodes], initial=0.0) <= V_TOL_PU:
                 best = (0.0, d_int, q_keep)
                 break
-    if best is None and form == "hard":
+    if best is None and hard_nodes.any():
         # No integer point within one tap of the relaxation meets the hard limits: soft Q re-solve at the
         # nearest rounding.
         reason = "no rounding of the relaxed taps meets the hard limits: Q re-solved in soft form (eq. 17)"

@@ -101,12 +101,35 @@ def test_infeasible_falls_back_to_soft_form():
     assert solve_milp_reference(inputs).status == "infeasible"
 
 
-def test_node_out_of_reach_goes_soft_without_osqp_detection():
-    inputs = _tiny(v0=[1.10, 1.0])  # 0.06 over; 4 taps + full Q only reach 0.045
+def test_node_out_of_reach_is_soft_while_the_others_stay_hard():
+    # Node 0 is 0.06 over: 4 taps + full Q only reach 0.045, so it gets a violation variable; node 1 keeps
+    # its hard limit. Q moves node 0 twice as much as node 1 (2e-5 vs 1e-5 pu/kvar), taps move both alike:
+    # full absorption (-1000 kvar: -0.02 / -0.01), then taps until node 1 reaches 0.975 (2.4 relaxed,
+    # 3 would break node 1's limit, so 2): node 0 ends 0.0275 over, node 1 inside.
+    inputs = _tiny(v0=[1.10, 1.0])
     sol = solve_cvvc(inputs)
-    assert sol.status == "soft" and "cannot reach" in sol.reason
-    assert sol.taps_new.tolist() == [-4]  # every resource used
+    assert sol.status == "soft" and "cannot reach" in sol.reason and "hard limits elsewhere" in sol.reason
+    assert sol.relaxed_d_tap == pytest.approx([-2.4], abs=1e-4)
+    assert sol.taps_new.tolist() == [-2]
     np.testing.assert_allclose(sol.q_new_kvar, [-1000.0], atol=0.01)
+    assert sol.v_pred_pu[1] >= 0.975 - V_TOL_PU
+    assert sol.max_violation_pu == pytest.approx(0.0275, abs=1e-5)
+
+
+def test_fully_soft_when_the_reachable_nodes_conflict():
+    # Node 0 cannot reach its limit and nodes 1 and 2 pull in opposite directions with equal sensitivities:
+    # the partly hard problem is infeasible, so every node gets a violation variable.
+    inputs = CvvcInputs(
+        **{
+            **_tiny(v0=[1.10, 1.0]).__dict__,
+            "v0_pu": np.array([1.10, 1.05, 0.97]),
+            "dv_dq_pu_per_kvar": np.array([[2e-5], [1e-5], [1e-5]]),
+            "dv_dtap_pu": np.array([[0.00625], [0.00625], [0.00625]]),
+        }
+    )
+    sol = solve_cvvc(inputs)
+    assert sol.status == "soft" and "soft form at every node" in sol.reason
+    assert np.all(np.isfinite(sol.v_pred_pu)) and sol.max_violation_pu > 0.0
 
 
 def test_no_action_needed_is_exactly_zero():
