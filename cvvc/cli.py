@@ -13,6 +13,7 @@ import logging
 import sys
 
 from cvvc import __version__
+from schemas.errors import CvvcError
 
 __all__ = ["main", "build_parser", "CliError"]
 
@@ -27,8 +28,8 @@ _VERB_MODULES = (
 )
 
 
-class CliError(Exception):
-    """A user-facing error: printed as one line, exit status 2, never a traceback."""
+class CliError(CvvcError):
+    """A user-facing error of the command line itself."""
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -64,7 +65,7 @@ def main(argv: list[str] | None = None) -> int:
         return int(args.func(args) or 0)
     except KeyboardInterrupt:
         return 130
-    except CliError as e:
+    except CvvcError as e:  # every project error: one line, exit status 2, never a traceback
         print(f"cvvc {args.verb}: error: {e}", file=sys.stderr)
         return 2
 

@@ -51,7 +51,7 @@ class RunConfig(msgspec.Struct, frozen=True, kw_only=True):
     feeder: str | None = None  # device map TOML or folder; None: embedded rural feeder
     model: str | None = None
     days: float = 1.0
-    start: str = "2023-01-16"  # a winter weekday
+    start: str = "2023-01-16"  # a winter weekday; YYYY-MM-DD[THH:MM] local standard time (UTC-5)
     case: Case = "D"
     realtime: bool = False
     speed: float = 60.0
@@ -68,6 +68,10 @@ class RunConfig(msgspec.Struct, frozen=True, kw_only=True):
     noise_scada_pct: float = 0.0
     drop_prob: float = 0.0
     truth_every: int = 1  # the recording keeps the truth, so metrics can be recomputed from it
+    progress_label: str = "simulated"  # the progress bar's label (``cvvc evaluate`` names the run)
+    # False only for the model-error study (``cvvc evaluate --robustness``): the simulated feeder is deliberately
+    # not the one the model was trained on, so its fingerprint differs from the model's.
+    check_model_fingerprint: bool = True
 
 
 class RunSummary(msgspec.Struct, frozen=True, kw_only=True):
@@ -193,9 +197,10 @@ def run(config: RunConfig) -> RunSummary:
     if config.case not in CASES:
         raise LaunchError(f"unknown case {config.case!r}; choose one of {', '.join(CASES)}")
     try:
-        start = dt.date.fromisoformat(config.start)
+        start = dt.datetime.fromisoformat(config.start)
+        start_text = start.isoformat(timespec="minutes")
     except ValueError as e:
-        raise LaunchError(f"--start {config.start!r} is not a date (YYYY-MM-DD)") from e
+        raise LaunchError(f"--start {config.start!r} is not a date (YYYY-MM-DD or YYYY-MM-DDTHH:MM)") from e
     if not 0 < config.days <= 366:
         raise LaunchError(f"--days {config.days} must be in (0, 366]")
 
@@ -205,7 +210,7 @@ def run(config: RunConfig) -> RunSummary:
     feeder_id = dm.feeder.name
     fingerprint = dm.fingerprint()
     agent_args = case_agent_args(config.case, config.bandwidth_v120)
-    if agent_args is not None:
+    if agent_args is not None and config.check_model_fingerprint:
         from training.model import read_model
 
         read_model(model_path, expect_fingerprint=fingerprint)  # refuse a model of another feeder early
@@ -258,12 +263,12 @@ def run(config: RunConfig) -> RunSummary:
                 realism += ["--drop-prob", str(config.drop_prob)]
             realism += ["--truth-every", str(config.truth_every), "--cache-dir", str(Path(config.cache) / "profiles")]
             bridge = _spawn("bridge", [
-                "bridge", "--feeder", str(dm_path), "--feeder-id", feeder_id, "--start", start.isoformat(),
+                "bridge", "--feeder", str(dm_path), "--feeder-id", feeder_id, "--start", start_text,
                 "--steps", str(steps), "--year-seed", str(config.year_seed),
                 "--pv-local", "volt_var" if config.case == "local" else "unity", *clock, *realism, *connect], out)
             children.append(bridge)
 
-            bar = _progress(steps, config.progress)
+            bar = _progress(steps, config.progress, config.progress_label)
             while True:
                 for child in children:
                     code = child.proc.poll()
@@ -313,7 +318,7 @@ def run(config: RunConfig) -> RunSummary:
         _log("simulating the no-control baseline of the same days")
         baseline = _metrics_dict(no_control_baseline(dm_path, start, steps, config.year_seed, Path(config.cache)))
     summary = RunSummary(
-        feeder=str(dm_path), feeder_id=feeder_id, case=config.case, start=start.isoformat(), days=config.days,
+        feeder=str(dm_path), feeder_id=feeder_id, case=config.case, start=start_text, days=config.days,
         steps=steps, wall_s=round(wall_s, 2), metrics=_metrics_frame_dict(final), baseline=baseline,
         lockstep_misses=status.lockstep_misses if status else 0, decisions=decisions, out_dir=str(out),
         recording=str(mcap_path) if config.record else None,
@@ -351,16 +356,16 @@ def _liveliness_waiter(session, key: str) -> _LiveWaiter:
     return waiter
 
 
-def _progress(total: int, enabled: bool):
+def _progress(total: int, enabled: bool, label: str = "simulated"):
     if not enabled:
         return None
     from tqdm import tqdm
 
-    return tqdm(total=total, unit="min", desc="simulated", file=sys.stderr, dynamic_ncols=True,
+    return tqdm(total=total, unit="min", desc=label, file=sys.stderr, dynamic_ncols=True,
                 disable=not sys.stderr.isatty())
 
 
-def no_control_baseline(dm_path: Path, start: dt.date, steps: int, year_seed: int, cache: Path):
+def no_control_baseline(dm_path: Path, start: dt.datetime, steps: int, year_seed: int, cache: Path):
     """The same days with no central control (regulators local, PV unity PF), simulated in-process."""
     from schemas.devicemap import load_device_map
     from simulator_bridge.engine import FeederEngine
@@ -371,7 +376,7 @@ def no_control_baseline(dm_path: Path, start: dt.date, steps: int, year_seed: in
     dm = load_device_map(dm_path)
     engine = FeederEngine(dm)
     profiles = load_profiles(dm, engine, seed=year_seed, cache_dir=cache / "profiles")
-    first = (dt.datetime.combine(start, dt.time()) - dt.datetime(start.year, 1, 1)).days * 1440
+    first = int((start - dt.datetime(start.year, 1, 1)).total_seconds()) // dm.feeder.step_s
     sim = Qsts(engine, profiles, start_step=first, pv_local="unity")
     acc = MetricsAccumulator(
         n_nodes=len(engine.node_names), regulator_ids=list(engine.regulator_ids), pv_ids=list(engine.pv_ids),

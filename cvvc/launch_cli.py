@@ -15,7 +15,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--feeder", default=None, help="device map TOML or folder (default: embedded rural feeder)")
     p.add_argument("--model", default=None, help="model file (default: train once and cache)")
     p.add_argument("--days", type=float, default=1.0, help="simulated days (default 1; 1/24 = one hour)")
-    p.add_argument("--start", default="2023-01-16", help="first simulated day, YYYY-MM-DD (default 2023-01-16)")
+    p.add_argument("--start", default="2023-01-16",
+                   help="first simulated instant, YYYY-MM-DD[THH:MM], local standard time (default 2023-01-16)")
     p.add_argument("--case", default="D", choices=["A", "B", "C", "D", "none", "local"],
                    help="paper case A-D, or a baseline: none (no central control), local (+ IEEE 1547 volt-var)")
     p.add_argument("--realtime", action="store_true", help="step on the wall clock instead of lockstep")

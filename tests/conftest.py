@@ -29,3 +29,22 @@ def repo_root() -> Path:
 @pytest.fixture
 def shared_feeders() -> Path:
     return SHARED_FEEDERS
+
+
+@pytest.fixture(scope="session")
+def ieee13_model(tmp_path_factory) -> Path:
+    """A model trained on IEEE 13 (real OpenDSS power flows, ~4 s), once per test session."""
+    from training.model import write_model
+    from training.train import train
+
+    out = tmp_path_factory.mktemp("ieee13-model") / "model.json"
+    result = train(REPO / "feeders" / "ieee13.toml", year_seed=1, blocks=(3, 3),
+                   cache_dir=tmp_path_factory.getbasetemp() / "profiles", progress=False)
+    write_model(result.model, out)
+    return out
+
+
+@pytest.fixture(scope="session")
+def profile_cache(tmp_path_factory) -> Path:
+    """One profile cache for the whole session (profiles of a feeder and seed take seconds to make)."""
+    return tmp_path_factory.getbasetemp() / "profiles"
