@@ -58,7 +58,7 @@ def _agent(args: argparse.Namespace) -> int:
     if args.mode == "taps" and args.correction == "on" and not args.full_visibility:
         logging.getLogger("agent").info("taps mode with correction: not one of the paper's cases, allowed")
     settings = settings_from_args(args)
-    summary = run_agent(model, settings, bus_config_from_args(args))
+    summary = run_agent(model, settings, bus_config_from_args(args, role="agent"))
     if args.json:
         print(json.dumps(msgspec.to_builtins(summary)))
     return 0

@@ -105,7 +105,7 @@ def _record(args: argparse.Namespace) -> int:
     from schemas.bus import bus_config_from_args
 
     config = RecorderConfig(out_path=args.out, keys=tuple(args.keys or ("cvvc/**",)),
-                            bus=bus_config_from_args(args), flush_period_s=args.flush_period_s,
+                            bus=bus_config_from_args(args, role="recorder"), flush_period_s=args.flush_period_s,
                             feeder_fingerprint=args.feeder_fingerprint, model_path=args.model,
                             agent_settings_json=args.agent_settings, duration_s=args.duration_s)
     stats = main(config)
@@ -170,7 +170,8 @@ def _replay(args: argparse.Namespace) -> int:
                           speed=None if args.fast else args.speed,
                           start_ns=parse_time_ns(args.start) if args.start else None,
                           end_ns=parse_time_ns(args.end) if args.end else None,
-                          bus=bus_config_from_args(args), wait_subscriber_s=args.wait_s)
+                          bus=bus_config_from_args(args, role="devices"),  # replays device frames
+                          wait_subscriber_s=args.wait_s)
     res = main(config)
     if args.json:
         print(_json(res))

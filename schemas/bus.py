@@ -77,6 +77,8 @@ class BusConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields
     config_file: str | None = None
     connect_timeout_ms: int = 5000
     exit_on_failure: bool = True
+    tls_dir: str | None = None  # security state directory (``cvvc security init``): mTLS + access control
+    role: str | None = None  # the certificate this program presents: agent, devices, recorder or router
 
 
 def zenoh_config(bus: BusConfig) -> zenoh.Config:
@@ -85,6 +87,11 @@ def zenoh_config(bus: BusConfig) -> zenoh.Config:
     A peer or router with no listen endpoint listens on an ephemeral port of 127.0.0.1, never on every
     interface (Zenoh's default). Peers must listen: two peers that reach each other through a router
     only exchange data once gossip has connected them directly.
+
+    With ``tls_dir`` (the security profile, ``schemas.security``): every ``tcp/`` endpoint becomes
+    ``tls/``, the session presents the certificate of ``role`` and requires mTLS; the router also gets
+    the access-control policy. A peer then joins as a *client*: it never listens and talks only to the
+    router, so nothing bypasses the router's policy through a direct peer-to-peer link.
     """
     if bus.config_file:
         try:
@@ -93,23 +100,50 @@ def zenoh_config(bus: BusConfig) -> zenoh.Config:
             raise BusError(f"{bus.config_file}: cannot read Zenoh config: {e}") from e
     else:
         conf = zenoh.Config()
+    secure = bus.tls_dir is not None
+    mode = "client" if secure and bus.mode == "peer" else bus.mode
     listen = list(bus.listen)
-    if not listen and bus.mode != "client":
+    if not listen and mode != "client":
         listen = [f"tcp/{_LOOPBACK}:0"]
+    connect = list(bus.connect)
+    if secure:
+        listen, connect = _to_tls(listen), _to_tls(connect)
     try:
-        conf.insert_json5("mode", _j(bus.mode))
+        conf.insert_json5("mode", _j(mode))
         conf.insert_json5("scouting/multicast/enabled", "false")
-        conf.insert_json5("scouting/gossip/enabled", "false" if bus.mode == "client" else "true")
+        conf.insert_json5("scouting/gossip/enabled", "false" if mode == "client" or secure else "true")
         if listen or not bus.config_file:
             conf.insert_json5("listen/endpoints", _j(listen))
-        if bus.connect or not bus.config_file:
-            conf.insert_json5("connect/endpoints", _j(list(bus.connect)))
+        if connect or not bus.config_file:
+            conf.insert_json5("connect/endpoints", _j(connect))
         if bus.connect:
             conf.insert_json5("connect/timeout_ms", _j(bus.connect_timeout_ms))
             conf.insert_json5("connect/exit_on_failure", _j(bus.exit_on_failure))
     except Exception as e:
         raise BusError(f"invalid Zenoh setting: {e}") from e
+    if secure:
+        _insert_security(conf, bus)
     return conf
+
+
+def _to_tls(endpoints: list[str]) -> list[str]:
+    return [f"tls/{e[len('tcp/'):]}" if e.startswith("tcp/") else e for e in endpoints]
+
+
+def _insert_security(conf: zenoh.Config, bus: BusConfig) -> None:
+    from schemas.security import SecurityError, zenoh_security_settings
+
+    if bus.role is None:
+        raise BusError("a secure session needs a role (agent, devices, recorder or router)")
+    try:
+        settings = zenoh_security_settings(bus.tls_dir or "", bus.role)
+    except SecurityError as e:
+        raise BusError(str(e)) from e
+    for key, value in settings.items():
+        try:
+            conf.insert_json5(key, _j(value))
+        except Exception as e:  # zenoh raises ZError, a plain Exception subclass
+            raise BusError(f"invalid Zenoh security setting {key}: {e}") from e
 
 
 def _j(value: Any) -> str:
@@ -138,15 +172,22 @@ def add_bus_arguments(parser: argparse.ArgumentParser) -> None:
                    help="a Zenoh JSON5 config file (multicast scouting is still forced off)")
     g.add_argument("--zenoh-mode", choices=["peer", "router", "client"], default=None,
                    help="session mode (default: peer, or router when only listening)")
+    g.add_argument("--secure-dir", metavar="DIR", default=None,
+                   help="security profile: mTLS with this program's certificate from DIR (made by "
+                        "`cvvc security init --dir DIR`); tcp/ endpoints become tls/, peers join as clients")
 
 
-def bus_config_from_args(args: argparse.Namespace, *, default_mode: Mode = "peer") -> BusConfig:
+def bus_config_from_args(args: argparse.Namespace, *, default_mode: Mode = "peer",
+                         role: str | None = None) -> BusConfig:
+    """The ``BusConfig`` of the parsed flags; ``role`` is the certificate the program presents when secure."""
     mode = args.zenoh_mode or default_mode
     return BusConfig(
         mode=mode,
         listen=tuple(args.listen),
         connect=tuple(args.connect),
         config_file=args.zenoh_config,
+        tls_dir=getattr(args, "secure_dir", None),
+        role=role,
     )
 
 

@@ -39,7 +39,7 @@ def _bridge(args: argparse.Namespace) -> int:
             cache_dir=None if args.cache_dir == "" else args.cache_dir,
         )
         default_mode = "router" if args.listen and not args.connect else "peer"
-        bus = bus_config_from_args(args, default_mode=default_mode)
+        bus = bus_config_from_args(args, default_mode=default_mode, role="devices")
         stop = threading.Event()
         previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)}
         try:

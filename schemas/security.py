@@ -1,0 +1,257 @@
+"""The security profile of the bus: a local CA, one certificate per role, mTLS and the router's access policy.
+
+``init_security_dir(DIR)`` (``cvvc security init --dir DIR``) writes, once::
+
+    DIR/ca.pem, DIR/ca.key                 the local certificate authority (EC P-256, 10 years)
+    DIR/<role>.pem, DIR/<role>.key         one certificate per role, CN = role name,
+                                           SAN 127.0.0.1 / localhost, server + client use
+
+for the roles ``agent``, ``devices`` (the bridge: head meter, PV plants, regulators), ``recorder`` and
+``router`` (the launcher). Private keys are 0600. Running it again keeps what is there (idempotent).
+
+``zenoh_security_settings(DIR, role)`` gives the Zenoh config entries of a role: TLS certificate and key for
+both listening and connecting, the CA, ``enable_mtls`` and, for the router, an ``access_control`` policy with
+``default_permission: deny`` whose subjects are the common names of the peers' certificates. Zenoh applies
+the policy on the router, per link, by the certificate of the session at the other end of that link; the
+other programs join as clients (they never listen), so every message crosses the router and its policy.
+See ``docs/security.md``.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import ipaddress
+import os
+from pathlib import Path
+from typing import Any, Literal
+
+from schemas.errors import CvvcError
+
+__all__ = [
+    "ROLES",
+    "SecurityError",
+    "SecurityRole",
+    "access_control_policy",
+    "init_security_dir",
+    "role_paths",
+    "zenoh_security_settings",
+]
+
+SecurityRole = Literal["agent", "devices", "recorder", "router"]
+ROLES: tuple[SecurityRole, ...] = ("agent", "devices", "recorder", "router")
+_CA_DAYS = 3650
+_CERT_DAYS = 825
+_ROOT = "cvvc"
+
+
+class SecurityError(CvvcError):
+    """A security state directory that cannot be created or used."""
+
+
+# ---------------------------------------------------------------------------------- certificates
+def role_paths(state_dir: str | Path, role: str) -> tuple[Path, Path]:
+    """(certificate, private key) paths of ``role`` in ``state_dir``; ``role`` may also be ``"ca"``."""
+    d = Path(state_dir)
+    return d / f"{role}.pem", d / f"{role}.key"
+
+
+def init_security_dir(state_dir: str | Path) -> list[Path]:
+    """Create the CA and every role's certificate in ``state_dir`` unless they exist; returns the files written.
+
+    Idempotent: an existing CA and existing role certificates are kept (a missing role certificate is
+    issued by the existing CA). Private keys are written 0600, the directory is 0700.
+    """
+    d = Path(state_dir)
+    try:
+        d.mkdir(parents=True, exist_ok=True)
+        os.chmod(d, 0o700)
+    except OSError as e:
+        raise SecurityError(f"cannot create the security directory {d}: {e}") from e
+    written: list[Path] = []
+    ca_cert_path, ca_key_path = role_paths(d, "ca")
+    if ca_cert_path.is_file() and ca_key_path.is_file():
+        ca_cert, ca_key = _load(ca_cert_path, ca_key_path)
+    else:
+        ca_cert, ca_key = _make_ca()
+        written += _write(ca_cert_path, ca_key_path, ca_cert, ca_key)
+    for role in ROLES:
+        cert_path, key_path = role_paths(d, role)
+        if cert_path.is_file() and key_path.is_file():
+            continue
+        cert, key = _make_leaf(role, ca_cert, ca_key)
+        written += _write(cert_path, key_path, cert, key)
+    return written
+
+
+def _make_ca():
+    from cryptography import x509
+    from cryptography.hazmat.primitives import hashes
+    from cryptography.hazmat.primitives.asymmetric import ec
+    from cryptography.x509.oid import NameOID
+
+    key = ec.generate_private_key(ec.SECP256R1())
+    name = x509.Name([x509.NameAttribute(NameOID.ORGANIZATION_NAME, "cvvc-edge"),
+                      x509.NameAttribute(NameOID.COMMON_NAME, "cvvc-edge local CA")])
+    now = dt.datetime.now(dt.UTC)
+    cert = (x509.CertificateBuilder()
+            .subject_name(name).issuer_name(name).public_key(key.public_key())
+            .serial_number(x509.random_serial_number())
+            .not_valid_before(now - dt.timedelta(minutes=5)).not_valid_after(now + dt.timedelta(days=_CA_DAYS))
+            .add_extension(x509.BasicConstraints(ca=True, path_length=0), critical=True)
+            .add_extension(x509.KeyUsage(digital_signature=True, key_cert_sign=True, crl_sign=True,
+                                         content_commitment=False, key_encipherment=False,
+                                         data_encipherment=False, key_agreement=False, encipher_only=False,
+                                         decipher_only=False), critical=True)
+            .add_extension(x509.SubjectKeyIdentifier.from_public_key(key.public_key()), critical=False)
+            .sign(key, hashes.SHA256()))
+    return cert, key
+
+
+def _make_leaf(role: str, ca_cert, ca_key):
+    from cryptography import x509
+    from cryptography.hazmat.primitives import hashes
+    from cryptography.hazmat.primitives.asymmetric import ec
+    from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
+
+    key = ec.generate_private_key(ec.SECP256R1())
+    now = dt.datetime.now(dt.UTC)
+    san = x509.SubjectAlternativeName([x509.DNSName("localhost"),
+                                       x509.IPAddress(ipaddress.IPv4Address("127.0.0.1"))])
+    cert = (x509.CertificateBuilder()
+            .subject_name(x509.Name([x509.NameAttribute(NameOID.ORGANIZATION_NAME, "cvvc-edge"),
+                                     x509.NameAttribute(NameOID.COMMON_NAME, role)]))
+            .issuer_name(ca_cert.subject).public_key(key.public_key())
+            .serial_number(x509.random_serial_number())
+            .not_valid_before(now - dt.timedelta(minutes=5)).not_valid_after(now + dt.timedelta(days=_CERT_DAYS))
+            .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True)
+            .add_extension(x509.KeyUsage(digital_signature=True, key_cert_sign=False, crl_sign=False,
+                                         content_commitment=False, key_encipherment=False,
+                                         data_encipherment=False, key_agreement=False, encipher_only=False,
+                                         decipher_only=False), critical=True)
+            .add_extension(x509.ExtendedKeyUsage([ExtendedKeyUsageOID.SERVER_AUTH,
+                                                  ExtendedKeyUsageOID.CLIENT_AUTH]), critical=False)
+            .add_extension(san, critical=False)
+            .add_extension(x509.AuthorityKeyIdentifier.from_issuer_public_key(ca_key.public_key()),
+                           critical=False)
+            .sign(ca_key, hashes.SHA256()))
+    return cert, key
+
+
+def _write(cert_path: Path, key_path: Path, cert, key) -> list[Path]:
+    from cryptography.hazmat.primitives import serialization
+
+    key_pem = key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8,
+                                serialization.NoEncryption())
+    try:
+        fd = os.open(key_path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+        with os.fdopen(fd, "wb") as f:
+            f.write(key_pem)
+        os.chmod(key_path, 0o600)
+        cert_path.write_bytes(cert.public_bytes(serialization.Encoding.PEM))
+    except OSError as e:
+        raise SecurityError(f"cannot write {cert_path} / {key_path}: {e}") from e
+    return [cert_path, key_path]
+
+
+def _load(cert_path: Path, key_path: Path):
+    from cryptography import x509
+    from cryptography.hazmat.primitives import serialization
+
+    try:
+        cert = x509.load_pem_x509_certificate(cert_path.read_bytes())
+        key = serialization.load_pem_private_key(key_path.read_bytes(), password=None)
+    except (OSError, ValueError) as e:
+        raise SecurityError(f"cannot read the CA in {cert_path.parent}: {e}; remove the directory and run "
+                            "`cvvc security init` again") from e
+    return cert, key
+
+
+# ---------------------------------------------------------------------------------- zenoh settings
+def zenoh_security_settings(state_dir: str | Path, role: str) -> dict[str, Any]:
+    """Zenoh config entries (path -> value) for ``role``: mTLS with the role's certificate, and for the
+    router the access-control policy. Raises ``SecurityError`` if the files are missing.
+    """
+    if role not in ROLES:
+        raise SecurityError(f"unknown security role {role!r}; use one of {', '.join(ROLES)}")
+    ca, _ = role_paths(state_dir, "ca")
+    cert, key = role_paths(state_dir, role)
+    missing = [str(p) for p in (ca, cert, key) if not p.is_file()]
+    if missing:
+        raise SecurityError(f"missing {', '.join(missing)}; run `cvvc security init --dir {state_dir}` first")
+    tls = "transport/link/tls"
+    out: dict[str, Any] = {
+        "transport/link/protocols": ["tls"],
+        f"{tls}/root_ca_certificate": str(ca.resolve()),
+        f"{tls}/listen_certificate": str(cert.resolve()),
+        f"{tls}/listen_private_key": str(key.resolve()),
+        f"{tls}/connect_certificate": str(cert.resolve()),
+        f"{tls}/connect_private_key": str(key.resolve()),
+        f"{tls}/enable_mtls": True,
+        f"{tls}/verify_name_on_connect": True,
+    }
+    if role == "router":
+        out["access_control"] = access_control_policy()
+    return out
+
+
+_ALL_MESSAGES = ("put", "delete", "declare_subscriber", "query", "reply", "declare_queryable",
+                 "liveliness_token", "liveliness_query", "declare_liveliness_subscriber")
+
+
+def _rule(rule_id: str, messages: tuple[str, ...] | list[str], flows: list[str], key_exprs: list[str]) -> dict:
+    return {"id": rule_id, "permission": "allow", "messages": list(messages), "flows": flows,
+            "key_exprs": key_exprs}
+
+
+def access_control_policy() -> dict[str, Any]:
+    """The router's ``access_control`` section: deny by default; subjects by certificate common name.
+
+    Flows are seen from the router: ``ingress`` is what a role sends to the router, ``egress`` what the
+    router forwards to that role. A message reaches its destination only if the sender's ingress *and*
+    the receiver's egress are allowed. Every rule here is written for all feeders (``cvvc/*/...``).
+    """
+    r = _ROOT
+    alive = f"{r}/*/alive/**"
+    rules = [
+        # agent: commands, decisions and status out; frames and acks in; the oracle (case A)
+        _rule("agent-send", ["put"], ["ingress"],
+              [f"{r}/*/cmd/**", f"{r}/*/agent/decision", f"{r}/*/agent/status"]),
+        _rule("agent-subscribe", ["declare_subscriber"], ["ingress"],
+              [f"{r}/*/meas/**", f"{r}/*/ack/**"]),
+        _rule("agent-receive", ["put"], ["egress"], [f"{r}/*/meas/**", f"{r}/*/ack/**"]),
+        _rule("agent-oracle", ["query"], ["ingress"], [f"{r}/*/sim/oracle"]),
+        _rule("agent-oracle-reply", ["reply"], ["egress"], [f"{r}/*/sim/oracle"]),
+        _rule("agent-alive", ["liveliness_token"], ["ingress"], [f"{r}/*/alive/agent/*"]),
+        _rule("agent-alive-watch", ["declare_liveliness_subscriber", "liveliness_query"], ["ingress"], [alive]),
+        _rule("agent-alive-see", ["liveliness_token"], ["egress"], [alive]),
+        # devices (the bridge): frames, acks, simulation frames and oracle replies out; commands in
+        _rule("devices-send", ["put"], ["ingress"],
+              [f"{r}/*/meas/**", f"{r}/*/ack/**", f"{r}/*/sim/**"]),
+        _rule("devices-subscribe", ["declare_subscriber"], ["ingress"],
+              [f"{r}/*/cmd/**", f"{r}/*/agent/decision"]),
+        _rule("devices-receive", ["put"], ["egress"], [f"{r}/*/cmd/**", f"{r}/*/agent/decision"]),
+        _rule("devices-oracle", ["declare_queryable", "reply"], ["ingress"], [f"{r}/*/sim/oracle"]),
+        _rule("devices-oracle-query", ["query"], ["egress"], [f"{r}/*/sim/oracle"]),
+        _rule("devices-alive", ["liveliness_token"], ["ingress"],
+              [f"{r}/*/alive/bridge/*", f"{r}/*/alive/head/*", f"{r}/*/alive/pv/*", f"{r}/*/alive/vr/*"]),
+        _rule("devices-alive-watch", ["declare_liveliness_subscriber", "liveliness_query"], ["ingress"], [alive]),
+        _rule("devices-alive-see", ["liveliness_token"], ["egress"], [alive]),
+        # recorder: subscribe to everything, send nothing
+        _rule("recorder-subscribe", ["declare_subscriber", "declare_liveliness_subscriber", "liveliness_query"],
+              ["ingress"], [f"{r}/**"]),
+        _rule("recorder-receive", ["put", "liveliness_token"], ["egress"], [f"{r}/**"]),
+        _rule("recorder-alive", ["liveliness_token"], ["ingress"], [f"{r}/*/alive/recorder/*"]),
+        # every role's subscriptions and queryables are declared to the others (the router forwards them)
+        _rule("declarations-to-senders", ["declare_subscriber", "declare_queryable"], ["egress"], [f"{r}/**"]),
+    ]
+    subjects = [{"id": role, "cert_common_names": [role]} for role in ("agent", "devices", "recorder")]
+    policies = [
+        {"id": "agent", "subjects": ["agent"], "rules": [x["id"] for x in rules if x["id"].startswith("agent")]},
+        {"id": "devices", "subjects": ["devices"],
+         "rules": [x["id"] for x in rules if x["id"].startswith("devices")]},
+        {"id": "recorder", "subjects": ["recorder"],
+         "rules": [x["id"] for x in rules if x["id"].startswith("recorder")]},
+        {"id": "declarations", "subjects": ["agent", "devices", "recorder"], "rules": ["declarations-to-senders"]},
+    ]
+    return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects,
+            "policies": policies}
