@@ -1,19 +1,20 @@
 """Solve the CVVC problem: OSQP relaxation, tap rounding, Q re-solve, soft fallback; MILP reference.
 
 The one module that calls a solver (STYLE.md rule 11). ``solve_cvvc`` never raises on numeric trouble and
-never returns NaN: any failure is a ``CvvcSolution`` with ``status="hold"`` (keep taps and Q as they are)
-and a reason. Stages, paper section III and DESIGN.md section 4:
+never returns NaN: a failed relaxation is a ``CvvcSolution`` with ``status="hold"`` (keep taps and Q as they
+are) and a reason. Stages, paper section III and DESIGN.md section 4 (details in docs/optimizer.md):
 
-1. relaxation with hard voltage limits (eq. 9-15), continuous taps;
-2. if OSQP proves it primal infeasible, or cannot solve it, the soft form (eq. 16-17) instead;
-3. rounding: the relaxed net tap changes are rounded; every floor/ceil combination of the (at most
-   ``MAX_ENUMERATED_FRACTIONAL``) most fractional taps is a candidate, the other taps rounded to nearest;
-4. for each candidate the continuous Q is re-solved with the taps fixed (same form); in the hard form, the
-   cheapest candidate whose re-solve is feasible wins (ties: candidate order, nearest rounding first). If
-   no candidate meets the hard limits, the nearest rounding is re-solved in the soft form (``status="soft"``).
+1. presolve: nodes that no action can bring within the limits get violation variables (eq. 16-17), the
+   others keep hard limits; if "no action" meets every limit it is the optimum;
+2. relaxation (continuous taps) by OSQP; if infeasible or unsolved, the soft form at every node;
+3. rounding: every floor/ceil combination of the (at most ``MAX_ENUMERATED_FRACTIONAL``) most fractional
+   relaxed tap changes is a candidate, the other taps rounded to nearest;
+4. Q re-solved with each candidate's taps fixed (same form), best-first by a dual lower bound; the cheapest
+   candidate meeting the hard limits wins. If none does, the nearest rounding is re-solved in the soft form.
 
-Determinism: a fresh OSQP object per stage, fixed settings (fixed rho, iteration limit, no wall-clock time
-limit), warm start only from the ``warm_start`` argument. Same inputs -> bit-identical solution (timings aside).
+OSQP runs in chunks with a KKT-checked active-set polish after each (``_osqp_run``). Determinism: a fresh
+OSQP object per stage, fixed settings (fixed rho, iteration limits, no wall-clock limit), warm start only
+from the ``warm_start`` argument. Same inputs -> bit-identical solution (timings aside).
 """
 
 from __future__ import annotations
