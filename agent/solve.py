@@ -21,7 +21,9 @@ from __future__ import annotations
 
 import itertools
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass
+from types import MappingProxyType
 from typing import Literal
 
 import numpy as np
@@ -47,22 +49,24 @@ __all__ = [
 #: ``eps_prim_inf`` is loose: proving a rounding candidate infeasible took up to 4000 iterations at 1e-6 and
 #: about 10x fewer at 1e-3; a false "infeasible" could only cost optimality (a candidate skipped, or the
 #: soft form), and none was seen on the benchmark problems.
-OSQP_SETTINGS: dict[str, object] = {
-    "verbose": False,
-    "eps_abs": 1e-6,
-    "eps_rel": 1e-6,
-    "eps_prim_inf": 1e-3,
-    "eps_dual_inf": 1e-6,
-    "rho": 1.0,
-    "adaptive_rho": 0,
-    "sigma": 1e-6,
-    "alpha": 1.6,
-    "max_iter": 25,  # first chunk; see FIRST_CHUNK_ITER
-    "check_termination": 5,
-    "polishing": False,
-    "scaling": 10,
-    "warm_starting": True,
-}
+OSQP_SETTINGS: Mapping[str, object] = MappingProxyType(
+    {
+        "verbose": False,
+        "eps_abs": 1e-6,
+        "eps_rel": 1e-6,
+        "eps_prim_inf": 1e-3,
+        "eps_dual_inf": 1e-6,
+        "rho": 1.0,
+        "adaptive_rho": 0,
+        "sigma": 1e-6,
+        "alpha": 1.6,
+        "max_iter": 25,  # first chunk; see FIRST_CHUNK_ITER
+        "check_termination": 5,
+        "polishing": False,
+        "scaling": 10,
+        "warm_starting": True,
+    }
+)
 #: Iteration budget of a rounding candidate's Q re-solve once a feasible candidate is known (before that,
 #: ``MAX_ITER``); a candidate not solved within it is skipped: it could only have improved the cost.
 MAX_ITER_RESOLVE = 400
