@@ -68,6 +68,7 @@ class RunConfig(msgspec.Struct, frozen=True, kw_only=True):
     noise_scada_pct: float = 0.0
     drop_prob: float = 0.0
     truth_every: int = 1  # the recording keeps the truth, so metrics can be recomputed from it
+    secure: bool = False  # security profile: mTLS + access control, certificates in <cache>/security
     progress_label: str = "simulated"  # the progress bar's label (``cvvc evaluate`` names the run)
     # False only for the model-error study (``cvvc evaluate --robustness``): the simulated feeder is deliberately
     # not the one the model was trained on, so its fingerprint differs from the model's.
@@ -226,12 +227,20 @@ def run(config: RunConfig) -> RunSummary:
 
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     connect = ["--connect", endpoint]
+    security_dir: str | None = None
+    if config.secure:  # every child presents its role's certificate; the router enforces the policy
+        from schemas.security import init_security_dir
+
+        security_dir = str(Path(config.cache) / "security")
+        init_security_dir(security_dir)
+        connect += ["--secure-dir", security_dir]
     children: list[_Child] = []
     final: m.MetricsFrame | None = None
     status: m.BridgeStatus | None = None
     decisions = 0
     try:
-        with open_session(BusConfig(mode="router", listen=(endpoint,))) as session:
+        with open_session(BusConfig(mode="router", listen=(endpoint,), tls_dir=security_dir,
+                                    role="router" if security_dir else None)) as session:
             inbox = Inbox(maxsize=100_000)
             inbox.subscribe(session, keys.sim_metrics(feeder_id), m.MetricsFrame)
             inbox.subscribe(session, keys.sim_status(feeder_id), m.BridgeStatus)

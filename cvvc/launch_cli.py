@@ -29,8 +29,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-baseline", action="store_true", help="skip the no-control baseline")
     p.add_argument("--cache", default=".cvvc-cache", help="cache of feeders, profiles and models")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
+    p.add_argument("--secure", action="store_true",
+                   help="security profile: mTLS with per-role certificates (made once in <cache>/security) "
+                        "and the router's access-control policy; see docs/security.md")
     p.set_defaults(func=_run)
     register_report(sub)
+    from cvvc.evaluate_cli import register_evaluate
+
+    register_evaluate(sub)
 
 
 def _run(args: argparse.Namespace) -> int:
@@ -41,7 +47,8 @@ def _run(args: argparse.Namespace) -> int:
     config = RunConfig(feeder=args.feeder, model=args.model, days=args.days, start=args.start, case=args.case,
                        realtime=args.realtime, speed=args.speed, out=args.out, train_seed=args.train_seed,
                        year_seed=args.year_seed, bandwidth_v120=args.bandwidth_v, record=not args.no_record,
-                       baseline=not args.no_baseline, cache=args.cache, progress=not args.json)
+                       baseline=not args.no_baseline, cache=args.cache, progress=not args.json,
+                       secure=args.secure)
     summary = run(config)
     if args.json:
         sys.stdout.write(msgspec.json.format(msgspec.json.encode(summary), indent=2).decode() + "\n")
@@ -57,3 +64,6 @@ def register_report(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("report", help="reports: estimation accuracy, plots of a run or an evaluation")
     rsub = p.add_subparsers(dest="report_verb", metavar="SUBVERB")
     register_accuracy(rsub)
+    from cvvc.evaluate_cli import register_report_plots
+
+    register_report_plots(rsub)
