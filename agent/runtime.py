@@ -77,7 +77,10 @@ def snapshot_from(aligned: AlignedFrames, model: CvvcModel) -> MeasurementSnapsh
         if f is None:
             pv_sp[k] = np.nan
             continue
-        pv_p[k], pv_q[k], pv_kva[k] = f.p_kw, f.q_kvar, f.s_rated_kva
+        # The apparent power available now: the plant's Q headroom is what the inverter says it is
+        # (``q_available_kvar``: 0 at night, when it gives no reactive power).
+        pv_p[k], pv_q[k] = f.p_kw, f.q_kvar
+        pv_kva[k] = min(float(np.hypot(f.p_kw, f.q_available_kvar)), f.s_rated_kva)
         pv_sp[k] = np.nan if f.q_setpoint_kvar is None else f.q_setpoint_kvar
         pv_ok[k] = True
     reg_v, reg_vc, reg_tap = np.full(n_reg, 120.0), np.full(n_reg, 120.0), np.zeros(n_reg, int)

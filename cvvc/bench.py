@@ -1,0 +1,145 @@
+"""``make bench``: every benchmark of the project, each with a baseline measured in the same run.
+
+``python -m cvvc.bench [--only NAME ...] [--quick] [--json FILE]`` prints one block per benchmark:
+
+- ``qsts``: QSTS steps/s on the rural feeder, IEEE 123 and IEEE 8500 vs bare OpenDSS solves (goal < 1.3x);
+- ``bridge``: lockstep steps/s through Zenoh with a trivial responder vs the bare QSTS (goal overhead < 20 %),
+  and the frame -> decision round trip p50/p99;
+- ``training``: training time on the rural feeder (goal < 60 s), IEEE 123 and IEEE 8500 (goal < 10 min);
+- ``solver``: the CVVC solver at the paper's size, cold and warm, and the rounding gap to the exact MILP;
+- ``decision``: the agent's decision time (aligned frames in -> commands out) vs case A's per-interval
+  cost (perturbation power flows + all-node problem) on the rural feeder and IEEE 8500 (goal >= 50x);
+- ``recording``: messages/s through Zenoh into MCAP vs the bare MCAP writer (goal > 50 %), offline replay speed;
+- ``soak``: a simulated month in lockstep: memory growth of every process (goal < 10 %), dropped/late frames.
+
+The machine is shared and small (2 cores): every ratio compares runs made side by side in this process.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+REPO = Path(__file__).resolve().parents[1]
+FEEDERS = REPO / "feeders"
+CACHE = Path(".cvvc-cache")
+
+__all__ = ["main"]
+
+
+def _rural() -> Path:
+    from simulator_bridge.cli import ensure_default_feeder
+
+    return ensure_default_feeder(CACHE)
+
+
+def bench_qsts_all(quick: bool) -> dict[str, Any]:
+    from simulator_bridge.bench import bench_qsts
+
+    steps = 240 if quick else 1440
+    out = {}
+    feeders = (("rural", _rural()), ("ieee123", FEEDERS / "ieee123.toml"), ("ieee8500", FEEDERS / "ieee8500.toml"))
+    for name, path in feeders:
+        out[name] = bench_qsts(path, steps if name != "ieee8500" else steps // 4)
+    return out
+
+
+def bench_bridge_all(quick: bool) -> dict[str, Any]:
+    from simulator_bridge.bench_bridge import bench_bridge
+
+    steps = 240 if quick else 1440
+    return {name: bench_bridge(path, steps, cache_dir=str(CACHE / "profiles"))
+            for name, path in (("rural", _rural()), ("ieee123", FEEDERS / "ieee123.toml"))}
+
+
+def bench_training(quick: bool) -> dict[str, Any]:
+    from training.train import train
+
+    out = {}
+    feeders = [("rural", _rural()), ("ieee123", FEEDERS / "ieee123.toml")]
+    if not quick:
+        feeders.append(("ieee8500", FEEDERS / "ieee8500.toml"))
+    for name, path in feeders:
+        train(path, year_seed=1, cache_dir=CACHE / "profiles", progress=False)  # profiles cached: not timed
+        t0 = time.perf_counter()
+        result = train(path, year_seed=1, cache_dir=CACHE / "profiles", progress=False)
+        out[name] = {"seconds": round(time.perf_counter() - t0, 2), "scenarios": result.summary.scenarios,
+                     "power_flows": result.summary.power_flows, "critical_nodes": result.summary.critical_nodes,
+                     "goal_s": 60 if name != "ieee8500" else 600}
+    return out
+
+
+def bench_solver(quick: bool) -> dict[str, Any]:
+    from agent import bench_solver
+
+    argv = ["--problems", "50" if quick else "300", "--days", "1" if quick else "3"]
+    t0 = time.perf_counter()
+    code = bench_solver.main(argv)
+    return {"exit": code, "seconds": round(time.perf_counter() - t0, 1)}
+
+
+def bench_decision(quick: bool) -> dict[str, Any]:
+    from cvvc.bench_decision import bench_decision as run
+
+    out = {"rural": run(_rural(), control_steps=12 if quick else 48, cache=CACHE)}
+    if not quick:
+        out["ieee8500"] = run(FEEDERS / "ieee8500.toml", control_steps=12, cache=CACHE)
+    return out
+
+
+def bench_recording(quick: bool) -> dict[str, Any]:
+    from recordings.bench import bench_recording as run
+
+    return run(5_000 if quick else 20_000)
+
+
+def bench_soak(quick: bool) -> dict[str, Any]:
+    from cvvc.bench_soak import bench_soak as run
+
+    return run(days=1 if quick else 30)
+
+
+BENCHES: dict[str, Callable[[bool], dict[str, Any]]] = {
+    "qsts": bench_qsts_all,
+    "bridge": bench_bridge_all,
+    "training": bench_training,
+    "solver": bench_solver,
+    "decision": bench_decision,
+    "recording": bench_recording,
+    "soak": bench_soak,
+}
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m cvvc.bench", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--only", nargs="+", choices=sorted(BENCHES), help="run only these benchmarks")
+    parser.add_argument("--quick", action="store_true", help="shorter windows (for a smoke run)")
+    parser.add_argument("--json", metavar="FILE", help="also write every figure as JSON")
+    args = parser.parse_args(argv)
+    results: dict[str, Any] = {}
+    failed = []
+    for name in args.only or list(BENCHES):
+        print(f"== {name} ==", flush=True)
+        t0 = time.perf_counter()
+        try:
+            results[name] = BENCHES[name](args.quick)
+        except Exception as e:  # one broken benchmark must not hide the others' figures
+            failed.append(name)
+            results[name] = {"error": f"{type(e).__name__}: {e}"}
+        print(json.dumps(results[name], indent=2, default=str), flush=True)
+        print(f"({name}: {time.perf_counter() - t0:.1f} s)\n", flush=True)
+    if args.json:
+        Path(args.json).write_text(json.dumps(results, indent=2, default=str))
+    if failed:
+        print(f"benchmarks that failed: {', '.join(failed)}", file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,101 @@
+"""The agent's decision time vs case A's per-interval cost, on the same states of one feeder.
+
+For ``control_steps`` control steps of a QSTS day (regulators on local control, PV at unity), it times:
+
+- **agent** (cases B-D): the step's frames, built exactly as the bridge builds them, fed one by one to the
+  agent's ``DecisionMaker`` (aligner -> estimator -> QP -> rounding -> set points -> messages): aligned frames
+  in, commands out;
+- **case A**: the bridge's oracle work (perturbation power flows of every plant and regulator from the present
+  state, restored after) plus the all-node problem solved by the same solver.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+__all__ = ["bench_decision"]
+
+
+def bench_decision(device_map_path: str | Path, *, control_steps: int = 48, cache: Path = Path(".cvvc-cache"),
+                   start_hour: float = 10.0, month: int = 7) -> dict[str, Any]:
+    from agent.full_visibility import full_visibility_inputs
+    from agent.runtime import AgentSettings, DecisionMaker, snapshot_from
+    from agent.solve import solve_cvvc
+    from schemas import keys
+    from schemas import messages as m
+    from schemas.devicemap import load_device_map
+    from simulator_bridge import devices as dv
+    from simulator_bridge.engine import FeederEngine
+    from simulator_bridge.profiles import month_steps
+    from simulator_bridge.qsts import Qsts
+    from training.model import read_model, write_model
+    from training.train import load_profiles, train
+
+    dm = load_device_map(device_map_path)
+    model_path = cache / "models" / f"{dm.feeder.name}-{dm.fingerprint()}-y1.json"
+    if not model_path.is_file():
+        model_path.parent.mkdir(parents=True, exist_ok=True)
+        write_model(train(device_map_path, year_seed=1, cache_dir=cache / "profiles", progress=False).model,
+                    model_path)
+    model = read_model(model_path, expect_fingerprint=dm.fingerprint())
+    engine = FeederEngine(dm)
+    profiles = load_profiles(dm, engine, seed=2, cache_dir=cache / "profiles")
+    start = month_steps(profiles, month).start + int(start_hour * 60)
+    sim = Qsts(engine, profiles, start_step=start)
+    fid = dm.feeder.name
+    maker = DecisionMaker(model, AgentSettings(feeder_id=fid))
+    pvs = [dv.PvInverter(p.id, k, float(engine.pv_kva[k]), "unity_pf") for k, p in enumerate(model.pv)]
+    regs = [dv.RegulatorController(r.id, i, 16, r.default_setpoint_v120, r.default_band_v120)
+            for i, r in enumerate(model.regulators)]
+    agent_s, case_a_s, oracle_s, sizes = [], [], [], []
+    seq = 0
+    for _ in range(control_steps * 5):
+        res = sim.step()
+        rd, t = res.readings, int(res.t_ns)
+        if t % maker.period_ns:
+            continue
+        seq += 1
+        frames: list[tuple[str, Any]] = [(keys.meas_head(fid), dv.head_frame(
+            feeder_id=fid, t_ns=t, seq=seq, v_mag_v=rd.head_v_mag_v, v_ang_deg=rd.head_v_ang_deg,
+            i_mag_a=rd.head_i_mag_a, i_ang_deg=rd.head_i_ang_deg, p_kw=rd.head_p_kw, q_kvar=rd.head_q_kvar))]
+        frames += [(keys.meas_pv(fid, pv.plant_id), dv.pv_frame(
+            plant=pv, t_ns=t, seq=seq, p_kw=rd.pv_p_kw[k], q_kvar=rd.pv_q_kvar[k], v_v=rd.pv_v_v[k],
+            available_p_kw=float(res.pv_p_kw[k]))) for k, pv in enumerate(pvs)]
+        frames += [(keys.meas_vr(fid, reg.regulator_id), dv.reg_frame(
+            reg=reg, t_ns=t, seq=seq, phase="a", v120=float(rd.reg_v120[r]),
+            v_compared_120=float(rd.reg_v120_compared[r]), tap=int(res.taps[r]))) for r, reg in enumerate(regs)]
+        t0 = time.perf_counter()
+        out = []
+        for key, frame in frames:
+            for aligned, d in maker.on_frame(key, frame):
+                out.append((aligned, maker.to_message(aligned, d)))
+        agent_s.append(time.perf_counter() - t0)
+        if not out:
+            continue
+        aligned = out[0][0]
+        t0 = time.perf_counter()
+        dv_dq, dv_dtap = engine.perturbation_sensitivities()
+        v = engine.node_voltages_pu()
+        t1 = time.perf_counter()
+        reply = m.OracleReply(t_ns=t, seq=seq, source="bridge", feeder_id=fid, node_names=[], v_pu=v.tolist(),
+                              dv_dq_pu_per_kvar=np.nan_to_num(dv_dq).tolist(), dv_dtap_pu=dv_dtap.tolist(),
+                              taps=[int(x) for x in engine.taps()])
+        snap = snapshot_from(aligned, model)
+        solve_cvvc(full_visibility_inputs(maker.controller, snap, reply))
+        case_a_s.append(time.perf_counter() - t0)
+        oracle_s.append(t1 - t0)
+        sizes.append(len(v))
+    a = np.array(agent_s) * 1e3
+    ca = np.array(case_a_s) * 1e3
+    return {
+        "feeder": fid, "critical_nodes": len(model.critical_nodes), "nodes": sizes[0] if sizes else 0,
+        "plants": len(model.pv), "regulators": len(model.regulators), "control_steps": len(a),
+        "agent_ms_p50": round(float(np.percentile(a, 50)), 3), "agent_ms_p99": round(float(np.percentile(a, 99)), 3),
+        "case_a_ms_mean": round(float(ca.mean()), 2), "case_a_oracle_ms_mean": round(float(np.mean(oracle_s)) * 1e3, 2),
+        "ratio_case_a_to_agent_mean": round(float(ca.mean() / a.mean()), 1),
+        "goal": "agent p99 < 2 ms at the paper's size; >= 50x faster than case A on IEEE 8500",
+    }
