@@ -118,6 +118,14 @@ def test_commands_are_applied_by_the_devices(one_hour_run):
     assert checked >= 30
 
 
+def test_violations_not_worse_than_no_control(one_hour_run):
+    out, summary = one_hour_run
+    base, ctrl = summary["baseline"], summary["metrics"]
+    assert base["n_steps"] == summary["steps"]
+    assert ctrl["nvv"] <= base["nvv"]
+    assert ctrl["mvvm_pu"] <= base["mvvm_pu"] + 1e-9
+
+
 def test_no_process_left_behind_and_outputs_written(one_hour_run):
     out, summary = one_hour_run
     assert _processes_mentioning(str(out)) == []
