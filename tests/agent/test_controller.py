@@ -186,3 +186,26 @@ def test_bad_shapes_hold_and_bad_configuration_is_refused():
         controller(mode="setpoints", bandwidth_v120=0.5)
     with pytest.raises(AgentInputError, match="mode"):
         controller(mode="tap")
+
+
+@pytest.mark.parametrize(
+    ("field", "index", "device"),
+    [
+        ("pv_p_kw", 0, "pv0"),
+        ("pv_kva_available", 2, "pv2"),
+        ("reg_v120", 4, "vr4"),
+        ("reg_v120_compared", 1, "vr1"),
+        ("reg_tap", 6, "vr6"),  # a float NaN where a tap should be
+    ],
+)
+def test_nan_in_a_valid_frame_is_rejected_before_the_solver(field, index, device):
+    c = controller()
+    c.decide(snapshot(0, reading_error_pu=HIGH))
+    snap = snapshot(1, reading_error_pu=HIGH)
+    bad = np.asarray(getattr(snap, field), float).copy()
+    bad[index] = np.nan
+    d = c.decide(dataclasses.replace(snap, **{field: bad}))
+    assert d.status != "hold", d.reason
+    assert d.missing == (device,)
+    for name in ("pv_q_kvar", "reg_tap", "v_pu", "v_pred_pu", "dv_dq_pu_per_kvar"):
+        assert np.all(np.isfinite(getattr(d, name)))
