@@ -119,10 +119,11 @@ class BridgeConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fie
 class BridgeSummary(msgspec.Struct, frozen=True, kw_only=True):
     """What a bridge run did (printed as JSON by ``cvvc bridge --json``).
 
-    Wall times in seconds (``wall_s``: the stepping loop; ``cpu_s``: CPU time of every thread of the process
-    during the loop, Zenoh's included); ``round_trip_*_s`` is from the publication of a control step's head frame to
-    the reception of the agent's decision for it; ``rejected`` counts rejected commands per reason
-    (device reasons, and ``decode_<kind>`` for payloads that did not decode).
+    Times in seconds: ``wall_s`` of the stepping loop; ``cpu_s`` CPU time of every thread of the process
+    during the loop, Zenoh's included; ``thread_cpu_s`` of the stepping thread alone. ``round_trip_*_s`` is
+    from the publication of a control step's head frame to the reception of the agent's decision for it;
+    ``rejected`` counts rejected commands per reason (device reasons, and ``decode_<kind>`` for payloads
+    that did not decode).
     """
 
     feeder_id: str
@@ -135,6 +136,7 @@ class BridgeSummary(msgspec.Struct, frozen=True, kw_only=True):
     wall_s: float
     steps_per_s: float
     cpu_s: float
+    thread_cpu_s: float
     lockstep_misses: int
     lockstep_skipped: int
     decisions: int
@@ -251,6 +253,13 @@ def _check_finite_step(res: Any) -> None:
 
 
 @dataclass(frozen=True)
+class _SenderGone:
+    """An agent's liveliness token was withdrawn: its devices forget its command sequence (stepping thread)."""
+
+    source: str
+
+
+@dataclass(frozen=True)
 class _OracleQuery:
     query: zenoh.Query
     request: m.OracleRequest
@@ -347,6 +356,11 @@ class _Runtime:
             log.info("agent liveliness token up: %s", key)
         else:
             log.warning("agent liveliness lost: %s", key)
+            # in order with its commands: a restarted agent's sequence starts again at 1 (see _forget_sender)
+            try:
+                self.inbox.queue.put_nowait(Received(key, _SenderGone(key.rsplit("/", 1)[-1]), time.time_ns(), b""))
+            except queue.Full:
+                log.warning("queue full: the devices keep the lost agent's command sequence")
 
     def _on_query(self, query: zenoh.Query) -> None:
         """Decode the request and enqueue it for the stepping thread; never compute here."""
@@ -402,6 +416,9 @@ class _Runtime:
         msg = item.msg
         if isinstance(msg, _OracleQuery):
             self._answer_oracle(msg)
+        elif isinstance(msg, _SenderGone):
+            for device in [*self.pvs.values(), *self.regs.values()]:
+                device.guard.forget_source(msg.source)
         elif isinstance(msg, m.Decision):
             self._on_decision(msg, item.recv_wall_ns)
         elif isinstance(msg, m.PvCommand | m.RegCommand):
@@ -720,7 +737,7 @@ def _loop(rt: _Runtime, stop: threading.Event, on_ready: Any) -> BridgeSummary:
     if on_ready is not None:
         on_ready()
     rt.pub_status.put(rt.status(done=False))
-    t0, cpu0 = time.monotonic(), time.process_time()
+    t0, cpu0, thread0 = time.monotonic(), time.process_time(), time.thread_time()
     period_s = rt.step_s / c.speed
     for i in range(c.steps):
         if stop.is_set():
@@ -741,7 +758,7 @@ def _loop(rt: _Runtime, stop: threading.Event, on_ready: Any) -> BridgeSummary:
                 _await_decision(rt, int(res.t_ns), stop)
             rt.pub_metrics.put(rt.metrics_frame(final=False))
             rt.pub_status.put(rt.status(done=False))
-    wall_s, cpu_s = time.monotonic() - t0, time.process_time() - cpu0
+    wall_s, cpu_s, thread_cpu_s = time.monotonic() - t0, time.process_time() - cpu0, time.thread_time() - thread0
     rt.serve(time.monotonic() + c.latency_s, stop if stop.is_set() else threading.Event(),
              lambda: len(rt.delay) == 0)  # frames still in the delay line go out
     final = rt.metrics_frame(final=True)
@@ -750,6 +767,7 @@ def _loop(rt: _Runtime, stop: threading.Event, on_ready: Any) -> BridgeSummary:
     return BridgeSummary(
         feeder_id=rt.fid, clock=c.clock, start_t_ns=int(rt.profiles.t_ns(rt.start_step)), end_t_ns=max(rt.now_t_ns, 0),
         steps=rt.steps, steps_total=c.steps, control_steps=rt.control_steps, wall_s=wall_s, cpu_s=cpu_s,
+        thread_cpu_s=thread_cpu_s,
         steps_per_s=rt.steps / wall_s if wall_s > 0 else 0.0, lockstep_misses=rt.misses,
         lockstep_skipped=rt.skipped, decisions=rt.decisions, acks=dict(rt.acks), rejected=rt.all_rejected(),
         frames_published=rt.frames_published, frames_dropped=rt.frames_dropped, truth_frames=rt.truth_frames,
