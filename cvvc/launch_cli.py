@@ -34,6 +34,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "and the router's access-control policy; see docs/security.md")
     p.set_defaults(func=_run)
     register_report(sub)
+    from cvvc.evaluate_cli import register_evaluate
+
+    register_evaluate(sub)
 
 
 def _run(args: argparse.Namespace) -> int:
@@ -61,3 +64,6 @@ def register_report(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("report", help="reports: estimation accuracy, plots of a run or an evaluation")
     rsub = p.add_subparsers(dest="report_verb", metavar="SUBVERB")
     register_accuracy(rsub)
+    from cvvc.evaluate_cli import register_report_plots
+
+    register_report_plots(rsub)

@@ -1,0 +1,385 @@
+"""``cvvc evaluate``: the paper's evaluation (section IV), reproduced through the real bus, and a robustness study.
+
+Each (case, season, bandwidth) is one :func:`cvvc.launch.run`: bridge, agent and recorder as separate processes in
+lockstep, one month per season at 1-minute resolution (paper IV: January, April, July, October, see
+``simulator_bridge.profiles.season_month``), on the evaluation year (``year_seed``, 2 by default) while the model
+was trained on another year (``train_seed``, 1). Independent runs go to a process pool (spawn context).
+
+Outputs in ``--out``: one folder per run (``summary.json``, ``session.mcap`` ...), ``results.json`` (every run's
+metrics and summary) and ``results.md`` with the paper's Table II/III layout (Season | Case | MVVM | NVV | NTC |
+Q cost | T cost | Total), Table IV (per-PV reactive energy) and Table V (per-regulator tap changes).
+
+``--robustness`` ("beyond the paper", its stated future work) runs case D under variants instead:
+measurement noise of PMU class (0.1 %) and SCADA class (1 %), dropped frames (1 %, 5 %), and model error (the
+simulated feeder's line lengths, hence impedances, and load kW each scaled by a factor drawn uniformly in
+[0.9, 1.1], while the agent keeps the model trained on the nominal feeder).
+"""
+
+from __future__ import annotations
+
+import calendar
+import concurrent.futures as cf
+import datetime as dt
+import json
+import multiprocessing
+import re
+import sys
+import time
+from pathlib import Path
+from typing import Literal
+
+import msgspec
+import numpy as np
+
+from cvvc.launch import CASES, LaunchError, RunConfig
+
+__all__ = [
+    "EVALUATION_YEAR",
+    "ROBUSTNESS_VARIANTS",
+    "SEASONS",
+    "EvaluateConfig",
+    "EvaluateError",
+    "Evaluation",
+    "RunResult",
+    "RunSpec",
+    "evaluate",
+    "parse_cases",
+    "parse_seasons",
+    "perturbed_device_map",
+    "render_results_md",
+    "season_window",
+]
+
+Season = Literal["winter", "spring", "summer", "fall"]
+SEASONS: tuple[Season, ...] = ("winter", "spring", "summer", "fall")
+EVALUATION_YEAR = 2023  # the calendar year of the generated profiles (``make_profiles`` default)
+Variant = Literal["nominal", "noise-pmu", "noise-scada", "drop-1", "drop-5", "model-error"]
+ROBUSTNESS_VARIANTS: tuple[Variant, ...] = ("nominal", "noise-pmu", "noise-scada", "drop-1", "drop-5", "model-error")
+_VARIANT_LABEL = {
+    "nominal": "nominal (no noise, no drops, exact model)",
+    "noise-pmu": "PMU-class noise, 0.1 % on every measurement",
+    "noise-scada": "SCADA-class noise, 1 % on every measurement",
+    "drop-1": "1 % of measurement frames dropped",
+    "drop-5": "5 % of measurement frames dropped",
+    "model-error": "model error: line impedances and loads x U(0.9, 1.1)",
+}
+
+
+class EvaluateError(LaunchError):
+    """An evaluation that cannot be planned or whose run failed; the message says which and what to do."""
+
+
+class EvaluateConfig(msgspec.Struct, frozen=True, kw_only=True):
+    """Everything ``cvvc evaluate`` needs; built from the command line."""
+
+    feeder: str | None = None  # None: the embedded rural feeder
+    model: str | None = None
+    cases: tuple[str, ...] = CASES
+    seasons: tuple[Season, ...] = SEASONS
+    bandwidths_v120: tuple[float, ...] = (4.0,)
+    year_seed: int = 2
+    train_seed: int = 1
+    days_per_season: float | None = None  # None: the whole month
+    jobs: int = 1
+    out: str = "runs/evaluate"
+    cache: str = ".cvvc-cache"
+    robustness: bool = False
+    perturbation_pct: float = 10.0
+    perturbation_seed: int = 7
+    progress: bool = True
+
+
+class RunSpec(msgspec.Struct, frozen=True, kw_only=True):
+    """One run of the evaluation: a case on a season's window, with a bandwidth and a robustness variant."""
+
+    case: str
+    season: Season
+    bandwidth_v120: float
+    variant: Variant = "nominal"
+    start: str  # YYYY-MM-DD, the first day of the season's month
+    days: float
+
+    @property
+    def name(self) -> str:
+        band = f"-bw{self.bandwidth_v120:g}" if self.case in ("C", "D") else ""
+        var = "" if self.variant == "nominal" else f"-{self.variant}"
+        return f"{self.season}-{self.case}{band}{var}"
+
+
+class RunResult(msgspec.Struct, frozen=True, kw_only=True):
+    """What one run measured: its spec, the final metrics frame (paper IV.F) and the run's summary."""
+
+    spec: RunSpec
+    metrics: dict[str, object]
+    wall_s: float
+    steps: int
+    decisions: int
+    lockstep_misses: int
+    out_dir: str
+    recording: str | None
+
+
+class Evaluation(msgspec.Struct, frozen=True, kw_only=True):
+    """A whole evaluation: its configuration, every run's result and the total wall time."""
+
+    config: EvaluateConfig
+    feeder_id: str
+    feeder: str
+    model: str
+    control_period_s: int
+    runs: tuple[RunResult, ...]
+    wall_s: float
+
+
+# ---------------------------------------------------------------------------------------------------
+# Planning
+# ---------------------------------------------------------------------------------------------------
+
+
+def parse_cases(text: str) -> tuple[str, ...]:
+    """``"A,B,D"`` -> ``("A", "B", "D")``; an unknown case raises :class:`EvaluateError`."""
+    cases = tuple(c.strip() for c in text.split(",") if c.strip())
+    bad = [c for c in cases if c not in CASES]
+    if bad or not cases:
+        raise EvaluateError(f"unknown case(s) {', '.join(bad) or '(none given)'}; choose from {','.join(CASES)}")
+    return cases
+
+
+def parse_seasons(text: str) -> tuple[Season, ...]:
+    """``"winter,summer"`` -> ``("winter", "summer")``; an unknown season raises :class:`EvaluateError`."""
+    seasons = tuple(s.strip().lower() for s in text.split(",") if s.strip())
+    bad = [s for s in seasons if s not in SEASONS]
+    if bad or not seasons:
+        raise EvaluateError(f"unknown season(s) {', '.join(bad) or '(none given)'}; choose from {','.join(SEASONS)}")
+    return seasons  # type: ignore[return-value]
+
+
+def season_window(season: Season, days_per_season: float | None, year: int = EVALUATION_YEAR) -> tuple[str, float]:
+    """The first day and the length [days] of a season's evaluation window: its month, or its first N days."""
+    from simulator_bridge.profiles import season_month
+
+    month = season_month(season)
+    month_days = calendar.monthrange(year, month)[1]
+    days = float(month_days) if days_per_season is None else float(days_per_season)
+    if not 0 < days <= month_days:
+        raise EvaluateError(f"--days-per-season {days:g} must be in (0, {month_days}] for {season}")
+    return dt.date(year, month, 1).isoformat(), days
+
+
+def plan_runs(config: EvaluateConfig) -> list[RunSpec]:
+    """Every run of the evaluation, in a stable order (season, case, bandwidth, variant)."""
+    specs = []
+    variants: tuple[Variant, ...] = ROBUSTNESS_VARIANTS if config.robustness else ("nominal",)
+    for season in config.seasons:
+        start, days = season_window(season, config.days_per_season)
+        for case in config.cases:
+            bands = config.bandwidths_v120 if case in ("C", "D") else config.bandwidths_v120[:1]
+            for band in bands:
+                for variant in variants:
+                    specs.append(RunSpec(case=case, season=season, bandwidth_v120=band, variant=variant,
+                                         start=start, days=days))
+    return specs
+
+
+# ---------------------------------------------------------------------------------------------------
+# Model error: a derived device map
+# ---------------------------------------------------------------------------------------------------
+
+_NEW_LINE = re.compile(r"^\s*new\s+line\.(\S+)\s.*?\blength\s*=\s*([0-9.eE+-]+)", re.IGNORECASE | re.MULTILINE)
+_NEW_LOAD = re.compile(r"^\s*new\s+load\.(\S+)\s.*?\bkw\s*=\s*([0-9.eE+-]+)", re.IGNORECASE | re.MULTILINE)
+
+
+def perturbation_commands(dss_text: str, *, pct: float, seed: int) -> list[str]:
+    """OpenDSS commands that scale every line's length (so R, X, C) and every load's kW by U(1-pct, 1+pct).
+
+    Only ``New Line.x ... length=`` and ``New Load.x ... kW=`` statements that give the value explicitly are
+    perturbed (a line without ``length`` keeps its default). Pure: the same text and seed give the same commands.
+    """
+    rng = np.random.default_rng(seed)
+    cmds = []
+    for regex, prop in ((_NEW_LINE, "length"), (_NEW_LOAD, "kW")):
+        for name, value in regex.findall(dss_text):
+            factor = 1.0 + rng.uniform(-pct, pct) / 100.0
+            cmds.append(f"{'Line' if prop == 'length' else 'Load'}.{name}.{prop}={float(value) * factor:.6g}")
+    return cmds
+
+
+def perturbed_device_map(dm_path: Path, out_dir: Path, *, pct: float, seed: int) -> Path:
+    """Write a device map whose feeder is ``dm_path``'s with line impedances and loads perturbed by ±``pct`` %.
+
+    The derived map keeps the feeder name (so the bus keys match the agent's) and points at the original
+    model files; the perturbation is its ``[feeder] extra_commands``, which the engine runs after compiling
+    the master file. Its fingerprint differs from the original's on purpose: the agent keeps the model
+    trained on the unperturbed feeder.
+    """
+    from schemas.devicemap import load_device_map
+
+    dm = load_device_map(dm_path)
+    folder = dm.master_path.parent
+    text = "\n".join(f.read_text(errors="replace") for f in sorted(folder.rglob("*.dss")))
+    cmds = perturbation_commands(text, pct=pct, seed=seed)
+    if not cmds:
+        raise EvaluateError(f"{dm_path}: found no 'New Line ... length=' or 'New Load ... kW=' to perturb")
+    f = dm.feeder
+    lines = ["[feeder]"]
+    fields = {"name": f.name, "master": str(dm.master_path), "head_element": f.head_element,
+              "source_bus": f.source_bus, "extra_commands": [*f.extra_commands, *cmds],
+              "judged_limits_pu": list(f.judged_limits_pu), "optimization_limits_pu": list(f.optimization_limits_pu),
+              "control_period_s": f.control_period_s, "step_s": f.step_s, "load_pf": f.load_pf}
+    lines += [f"{k} = {json.dumps(v)}" for k, v in fields.items()]
+    original = dm_path.read_text()
+    rest = re.split(r"^\[feeder\]\s*$", original, maxsplit=1, flags=re.MULTILINE)[1]
+    rest = rest[re.search(r"^\[", rest, flags=re.MULTILINE).start():] if re.search(r"^\[", rest, re.MULTILINE) else ""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    path = out_dir / "devicemap.toml"
+    header = f"# {f.name} with line lengths and load kW x U({1 - pct / 100:g}, {1 + pct / 100:g}), seed {seed}\n"
+    path.write_text(header + "\n".join(lines) + "\n\n" + rest)
+    load_device_map(path)  # validate what we wrote
+    return path
+
+
+# ---------------------------------------------------------------------------------------------------
+# Running
+# ---------------------------------------------------------------------------------------------------
+
+
+def _run_config(spec: RunSpec, config: EvaluateConfig, dm_path: Path, model: Path, out: Path,
+                perturbed: Path | None) -> RunConfig:
+    return RunConfig(
+        feeder=str(perturbed if spec.variant == "model-error" else dm_path), model=str(model), days=spec.days,
+        start=spec.start, case=spec.case, out=str(out / spec.name), train_seed=config.train_seed,  # type: ignore[arg-type]
+        year_seed=config.year_seed, bandwidth_v120=spec.bandwidth_v120, cache=config.cache, baseline=False,
+        progress=config.progress, progress_label=spec.name,
+        noise_pmu_pct=0.1 if spec.variant == "noise-pmu" else 0.0,
+        noise_scada_pct=1.0 if spec.variant == "noise-scada" else 0.0,
+        drop_prob={"drop-1": 0.01, "drop-5": 0.05}.get(spec.variant, 0.0),
+        check_model_fingerprint=spec.variant != "model-error")
+
+
+def _run_one(spec: RunSpec, run_config: RunConfig) -> RunResult:
+    """Worker: one run through the real bus (a fresh spawned interpreter runs this)."""
+    from cvvc.launch import run
+
+    s = run(run_config)
+    return RunResult(spec=spec, metrics=s.metrics, wall_s=s.wall_s, steps=s.steps, decisions=s.decisions,
+                     lockstep_misses=s.lockstep_misses, out_dir=s.out_dir, recording=s.recording)
+
+
+def evaluate(config: EvaluateConfig) -> Evaluation:
+    """Run every planned run (see the module docstring) and write ``results.json`` and ``results.md``."""
+    from cvvc.launch import prepare_feeder_and_model
+    from schemas.devicemap import load_device_map
+
+    for c in config.cases:
+        if c not in CASES:
+            raise EvaluateError(f"unknown case {c!r}; choose from {','.join(CASES)}")
+    for s in config.seasons:
+        if s not in SEASONS:
+            raise EvaluateError(f"unknown season {s!r}; choose from {','.join(SEASONS)}")
+    if config.jobs < 1:
+        raise EvaluateError(f"--jobs {config.jobs} must be at least 1")
+    specs = plan_runs(config)
+    t0 = time.monotonic()
+    out = Path(config.out)
+    out.mkdir(parents=True, exist_ok=True)
+    # the feeder and model once, here, so parallel runs never train the same model twice
+    dm_path, model = prepare_feeder_and_model(RunConfig(feeder=config.feeder, model=config.model,
+                                                        train_seed=config.train_seed, cache=config.cache,
+                                                        progress=config.progress))
+    dm = load_device_map(dm_path)
+    perturbed = None
+    if config.robustness:
+        perturbed = perturbed_device_map(dm_path, out / "model-error-feeder", pct=config.perturbation_pct,
+                                         seed=config.perturbation_seed)
+    _log(f"{len(specs)} run(s) of {dm.feeder.name}, {config.jobs} at a time; output in {out}")
+    results: list[RunResult] = []
+    ctx = multiprocessing.get_context("spawn")
+    with cf.ProcessPoolExecutor(max_workers=config.jobs, mp_context=ctx) as pool:
+        futures = {pool.submit(_run_one, spec, _run_config(spec, config, dm_path, model, out, perturbed)): spec
+                   for spec in specs}
+        try:
+            for fut in cf.as_completed(futures):
+                spec = futures[fut]
+                try:
+                    r = fut.result()
+                except LaunchError as e:
+                    raise EvaluateError(f"run {spec.name} failed (its logs are in {out / spec.name}): {e}") from e
+                mt = r.metrics
+                _log(f"{spec.name}: NVV {mt['nvv']}, NTC {mt['ntc']}, total cost {mt['total_cost']:.1f} "
+                     f"({r.wall_s:.0f} s)")
+                results.append(r)
+        except BaseException:
+            for f in futures:
+                f.cancel()
+            raise
+    order = {s.name: i for i, s in enumerate(specs)}
+    results.sort(key=lambda r: order[r.spec.name])
+    evaluation = Evaluation(config=config, feeder_id=dm.feeder.name, feeder=str(dm_path), model=str(model),
+                            control_period_s=dm.feeder.control_period_s, runs=tuple(results),
+                            wall_s=round(time.monotonic() - t0, 1))
+    (out / "results.json").write_bytes(msgspec.json.format(msgspec.json.encode(evaluation), indent=2))
+    (out / "results.md").write_text(render_results_md(evaluation))
+    return evaluation
+
+
+def _log(msg: str) -> None:
+    print(f"[cvvc evaluate] {msg}", file=sys.stderr, flush=True)
+
+
+# ---------------------------------------------------------------------------------------------------
+# Tables
+# ---------------------------------------------------------------------------------------------------
+
+
+def kvarh_from_mvar_intervals(q_mvar_intervals: float, control_period_s: float) -> float:
+    """Reactive energy [kvarh] from the metrics' ``sum |Q| [Mvar] x control intervals`` (paper Table IV unit)."""
+    return q_mvar_intervals * 1000.0 * control_period_s / 3600.0
+
+
+def _row_label(r: RunResult, robust: bool, bands: bool) -> list[str]:
+    case = r.spec.case
+    if bands and case in ("C", "D"):
+        case = f"{case} ({r.spec.bandwidth_v120:g} V)"
+    cells = [r.spec.season, case]
+    if robust:
+        cells.append(_VARIANT_LABEL[r.spec.variant])
+    return cells
+
+
+def render_results_md(ev: Evaluation) -> str:
+    """The evaluation as markdown: Table II/III layout, Table IV (PV reactive energy), Table V (tap changes)."""
+    robust = ev.config.robustness
+    bands = len(ev.config.bandwidths_v120) > 1
+    head = ["Season", "Case"] + (["Variant"] if robust else [])
+    days = sorted({r.spec.days for r in ev.runs})
+    lines = [f"# cvvc evaluate: {ev.feeder_id}", "",
+             f"Evaluation year seed {ev.config.year_seed}, model trained on year seed {ev.config.train_seed}; "
+             f"{', '.join(f'{d:g}' for d in days)} day(s) per season from the first of the season's month; "
+             f"{len(ev.runs)} runs in {ev.wall_s:.0f} s wall time (jobs={ev.config.jobs}).", "",
+             "## Voltage violations and costs (paper Tables II/III layout)", "",
+             "| " + " | ".join(head + ["MVVM [pu]", "NVV", "NTC", "Q Cost", "T Cost", "Total", "wall [s]"]) + " |",
+             "|" + "---|" * (len(head) + 7)]
+    for r in ev.runs:
+        mt = r.metrics
+        lines.append("| " + " | ".join(_row_label(r, robust, bands) + [
+            f"{mt['mvvm_pu']:.4f}", str(mt["nvv"]), str(mt["ntc"]), f"{mt['q_cost']:.1f}", f"{mt['t_cost']:.2f}",
+            f"{mt['total_cost']:.1f}", f"{r.wall_s:.0f}"]) + " |")
+    pv_ids = sorted({k for r in ev.runs for k in r.metrics.get("q_mvar_intervals", {})})  # type: ignore[union-attr]
+    lines += ["", "## Reactive energy per PV plant (paper Table IV)", "",
+              f"Sum of |Q| over the window in Mvar x control intervals ({ev.control_period_s} s), and in kvarh.", "",
+              "| " + " | ".join(head + [f"{p} [Mvar·int]" for p in pv_ids] + [f"{p} [kvarh]" for p in pv_ids]) + " |",
+              "|" + "---|" * (len(head) + 2 * len(pv_ids))]
+    for r in ev.runs:
+        q = r.metrics.get("q_mvar_intervals", {})
+        vals = [float(q.get(p, 0.0)) for p in pv_ids]  # type: ignore[union-attr]
+        lines.append("| " + " | ".join(_row_label(r, robust, bands) + [f"{v:.1f}" for v in vals] + [
+            f"{kvarh_from_mvar_intervals(v, ev.control_period_s):.0f}" for v in vals]) + " |")
+    reg_ids = sorted({k for r in ev.runs for k in r.metrics.get("taps_changes", {})})  # type: ignore[union-attr]
+    lines += ["", "## Tap changes per regulator (paper Table V)", "",
+              "| " + " | ".join(head + reg_ids + ["total"]) + " |", "|" + "---|" * (len(head) + len(reg_ids) + 1)]
+    for r in ev.runs:
+        t = r.metrics.get("taps_changes", {})
+        lines.append("| " + " | ".join(_row_label(r, robust, bands) + [str(t.get(g, 0)) for g in reg_ids]  # type: ignore[union-attr]
+                                       + [str(r.metrics["ntc"])]) + " |")
+    lines.append("")
+    return "\n".join(lines)

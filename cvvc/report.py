@@ -1,0 +1,353 @@
+"""``cvvc report run|evaluate``: PNG plots from the MCAP recording(s) of a run or an evaluation (paper Figs. 8-11).
+
+What is plotted (matplotlib, Agg backend, no display needed):
+
+- ``voltage_envelope.png`` (Fig. 9): every node's voltage averaged over 10-minute windows, then the max and min
+  over nodes, against time, with the judged limits;
+- ``pv_q.png`` (Fig. 10): each PV plant's reactive power (truth), 10-minute averages [kvar];
+- ``taps.png`` (Fig. 11): each regulator's tap position (truth), sampled every 10 minutes;
+- ``estimation_error.png`` (Fig. 8-like): the agent's estimate minus the true voltage at the same node and
+  ``t_ns`` [pu], over time (max/min/RMS per decision) and its histogram.
+
+The data come from ``cvvc/<F>/sim/truth`` (TruthFrame: ``v_pu`` per node, ``taps``, ``pv_q_kvar``) and
+``cvvc/<F>/agent/decision`` (Decision: ``estimates``), read with ``mcap.reader.make_reader`` and decoded with
+lean msgspec types (only the fields used). A month of truth is streamed: nothing per node and step is kept.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import msgspec
+import numpy as np
+
+from schemas.errors import CvvcError
+
+__all__ = ["ReportError", "RunTrace", "plot_evaluation", "plot_run", "read_trace", "window_envelope_pu"]
+
+WINDOW_STEPS = 10  # 10-minute averages at the 1-minute step
+
+
+class ReportError(CvvcError):
+    """A run or evaluation folder that cannot be plotted; the message says what is missing."""
+
+
+class _Truth(msgspec.Struct):
+    t_ns: int
+    v_pu: list[float]
+    node_names: list[str] | None = None
+    taps: list[int] = []
+    pv_q_kvar: list[float] = []
+
+
+class _Estimate(msgspec.Struct):
+    node: str
+    v_pu: float
+
+
+class _Decision(msgspec.Struct):
+    step_t_ns: int
+    estimates: list[_Estimate] = []
+
+
+@dataclass(frozen=True)
+class RunTrace:
+    """One run's recording reduced for plotting. Times are ``t_ns`` of the window's first step.
+
+    ``v_env_*`` are (W,) max/min over nodes of the 10-minute average voltage [pu]; ``taps`` (W, R) the tap at
+    each window's first step; ``pv_q_kvar`` (W, K) 10-minute averages; ``err_t_ns`` (D,) decision times with
+    ``err_max_pu``/``err_min_pu``/``err_rms_pu`` over the estimated nodes, and ``errors_pu`` every error.
+    """
+
+    t_ns: np.ndarray
+    v_env_max_pu: np.ndarray
+    v_env_min_pu: np.ndarray
+    taps: np.ndarray
+    pv_q_kvar: np.ndarray
+    regulator_ids: tuple[str, ...]
+    pv_ids: tuple[str, ...]
+    err_t_ns: np.ndarray
+    err_max_pu: np.ndarray
+    err_min_pu: np.ndarray
+    err_rms_pu: np.ndarray
+    errors_pu: np.ndarray
+    limits_pu: tuple[float, float]
+
+
+def window_envelope_pu(v_pu: np.ndarray, window_steps: int = WINDOW_STEPS) -> tuple[np.ndarray, np.ndarray]:
+    """Max and min over nodes of the per-node ``window_steps`` average voltage (paper Fig. 9).
+
+    Parameters
+    ----------
+    v_pu : (T, N) node voltages [pu]; a last partial window is averaged over the steps it has.
+
+    Returns
+    -------
+    (W,) max and (W,) min [pu], W = ceil(T / window_steps).
+    """
+    v = np.asarray(v_pu, dtype=float)
+    n_win = -(-v.shape[0] // window_steps)
+    means = np.stack([v[w * window_steps:(w + 1) * window_steps].mean(axis=0) for w in range(n_win)])
+    return means.max(axis=1), means.min(axis=1)
+
+
+def _topic(reader, suffix: str) -> str | None:
+    summary = reader.get_summary()
+    if summary is None:
+        return None
+    for ch in summary.channels.values():
+        if ch.topic.endswith(suffix):
+            return ch.topic
+    return None
+
+
+def read_trace(mcap_path: str | Path, *, regulator_ids: tuple[str, ...] = (), pv_ids: tuple[str, ...] = (),
+               limits_pu: tuple[float, float] = (0.965, 1.05)) -> RunTrace:
+    """Reduce one run's MCAP recording to a :class:`RunTrace` (two streaming passes: decisions, then truth)."""
+    from mcap.reader import make_reader
+
+    path = Path(mcap_path)
+    if not path.is_file():
+        raise ReportError(f"{path}: no recording there; run with recording on (cvvc run without --no-record)")
+    truth_dec = msgspec.json.Decoder(_Truth)
+    dec_dec = msgspec.json.Decoder(_Decision)
+    with open(path, "rb") as f:
+        reader = make_reader(f)
+        truth_topic, decision_topic = _topic(reader, "/sim/truth"), _topic(reader, "/agent/decision")
+        if truth_topic is None:
+            raise ReportError(f"{path}: no sim/truth channel; the bridge must publish the truth (--truth-every)")
+        estimates: dict[int, list[_Estimate]] = {}
+        if decision_topic is not None:
+            for _, _, msg in reader.iter_messages(topics=[decision_topic]):
+                d = dec_dec.decode(msg.data)
+                if d.estimates:
+                    estimates[d.step_t_ns] = d.estimates
+        node_index: dict[str, int] = {}
+        t_list, vmax, vmin, taps, pvq = [], [], [], [], []
+        err_t, err_max, err_min, err_rms, errors = [], [], [], [], []
+        acc_v = None
+        acc_q = None
+        n_acc = 0
+        for _, _, msg in reader.iter_messages(topics=[truth_topic]):
+            tr = truth_dec.decode(msg.data)
+            if tr.node_names:
+                node_index = {n: i for i, n in enumerate(tr.node_names)}
+            v = np.asarray(tr.v_pu, dtype=float)
+            q = np.asarray(tr.pv_q_kvar, dtype=float)
+            if n_acc == 0:
+                t_list.append(tr.t_ns)
+                taps.append(list(tr.taps))
+                acc_v, acc_q = v.copy(), q.copy()
+            else:
+                acc_v += v
+                acc_q += q
+            n_acc += 1
+            if n_acc == WINDOW_STEPS:
+                vmax.append(float((acc_v / n_acc).max()))
+                vmin.append(float((acc_v / n_acc).min()))
+                pvq.append(acc_q / n_acc)
+                n_acc = 0
+            est = estimates.get(tr.t_ns)
+            if est and node_index:
+                e = np.array([x.v_pu - v[node_index[x.node]] for x in est if x.node in node_index])
+                if e.size:
+                    err_t.append(tr.t_ns)
+                    err_max.append(e.max())
+                    err_min.append(e.min())
+                    err_rms.append(float(np.sqrt(np.mean(e ** 2))))
+                    errors.append(e)
+        if n_acc:
+            vmax.append(float((acc_v / n_acc).max()))
+            vmin.append(float((acc_v / n_acc).min()))
+            pvq.append(acc_q / n_acc)
+    if not t_list:
+        raise ReportError(f"{path}: the truth channel holds no frame")
+    n_pv = len(pvq[0]) if pvq else 0
+    return RunTrace(
+        t_ns=np.asarray(t_list, dtype=np.int64), v_env_max_pu=np.asarray(vmax), v_env_min_pu=np.asarray(vmin),
+        taps=np.asarray(taps, dtype=float).reshape(len(t_list), -1), pv_q_kvar=np.asarray(pvq).reshape(-1, n_pv),
+        regulator_ids=regulator_ids, pv_ids=pv_ids, err_t_ns=np.asarray(err_t, dtype=np.int64),
+        err_max_pu=np.asarray(err_max), err_min_pu=np.asarray(err_min), err_rms_pu=np.asarray(err_rms),
+        errors_pu=np.concatenate(errors) if errors else np.zeros(0), limits_pu=limits_pu)
+
+
+# ---------------------------------------------------------------------------------------------------
+# Plots
+# ---------------------------------------------------------------------------------------------------
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _days(t_ns: np.ndarray, t0_ns: int) -> np.ndarray:
+    return (np.asarray(t_ns, dtype=np.int64) - t0_ns) / 86_400e9
+
+
+def _run_meta(run_dir: Path) -> tuple[dict, tuple[str, ...], tuple[str, ...], tuple[float, float]]:
+    summary_path = run_dir / "summary.json"
+    if not summary_path.is_file():
+        raise ReportError(f"{run_dir}: no summary.json; pass a cvvc run output folder")
+    summary = json.loads(summary_path.read_text())
+    mt = summary.get("metrics", {})
+    limits = (0.965, 1.05)
+    try:
+        from schemas.devicemap import load_device_map
+
+        limits = tuple(load_device_map(summary["feeder"]).feeder.judged_limits_pu)  # type: ignore[assignment]
+    except (CvvcError, KeyError, OSError):
+        pass  # the paper's limits
+    return summary, tuple(mt.get("taps_changes", {})), tuple(mt.get("q_mvar_intervals", {})), limits
+
+
+def _trace_of(run_dir: Path) -> tuple[dict, RunTrace]:
+    summary, regs, pvs, limits = _run_meta(run_dir)
+    rec = summary.get("recording") or str(run_dir / "session.mcap")
+    path = Path(rec) if Path(rec).is_file() else run_dir / "session.mcap"
+    return summary, read_trace(path, regulator_ids=regs, pv_ids=pvs, limits_pu=limits)
+
+
+def _save(fig, path: Path) -> Path:
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    _plt().close(fig)
+    return path
+
+
+def _plot_envelopes(traces: dict[str, RunTrace], title: str, path: Path) -> Path:
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(11, 4.5))
+    t0 = min(int(tr.t_ns[0]) for tr in traces.values())
+    for i, (label, tr) in enumerate(traces.items()):
+        color = f"C{i}"
+        x = _days(tr.t_ns, t0)
+        ax.plot(x, tr.v_env_max_pu, color=color, lw=0.9, label=f"{label} max")
+        ax.plot(x, tr.v_env_min_pu, color=color, lw=0.9, ls="--", label=f"{label} min")
+    lo, hi = next(iter(traces.values())).limits_pu
+    ax.axhline(hi, color="k", lw=0.8, ls=":")
+    ax.axhline(lo, color="k", lw=0.8, ls=":")
+    ax.set_xlabel("time [days from start]")
+    ax.set_ylabel("10-min average voltage [pu]")
+    ax.set_title(title)
+    ax.legend(ncol=min(4, 2 * len(traces)), fontsize=8, loc="best")
+    ax.grid(alpha=0.3)
+    return _save(fig, path)
+
+
+def _plot_pv(traces: dict[str, RunTrace], title: str, path: Path) -> Path:
+    plt = _plt()
+    n = len(traces)
+    fig, axes = plt.subplots(n, 1, figsize=(11, 2.4 * n + 0.6), sharex=True, squeeze=False)
+    t0 = min(int(tr.t_ns[0]) for tr in traces.values())
+    for ax, (label, tr) in zip(axes[:, 0], traces.items(), strict=True):
+        x = _days(tr.t_ns, t0)
+        for k in range(tr.pv_q_kvar.shape[1]):
+            name = tr.pv_ids[k] if k < len(tr.pv_ids) else f"pv{k}"
+            ax.plot(x[: tr.pv_q_kvar.shape[0]], tr.pv_q_kvar[:, k], lw=0.8, label=name)
+        ax.set_ylabel("Q [kvar]")
+        ax.set_title(f"{label}", fontsize=9)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7, loc="upper right")
+    axes[-1, 0].set_xlabel("time [days from start]")
+    fig.suptitle(title)
+    return _save(fig, path)
+
+
+def _plot_taps(traces: dict[str, RunTrace], title: str, path: Path) -> Path:
+    plt = _plt()
+    n = len(traces)
+    fig, axes = plt.subplots(n, 1, figsize=(11, 2.4 * n + 0.6), sharex=True, squeeze=False)
+    t0 = min(int(tr.t_ns[0]) for tr in traces.values())
+    for ax, (label, tr) in zip(axes[:, 0], traces.items(), strict=True):
+        x = _days(tr.t_ns, t0)
+        for r in range(tr.taps.shape[1]):
+            name = tr.regulator_ids[r] if r < len(tr.regulator_ids) else f"reg{r}"
+            ax.step(x, tr.taps[:, r], where="post", lw=0.8, label=name)
+        ax.set_ylabel("tap")
+        ax.set_title(f"{label}", fontsize=9)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7, ncol=4, loc="upper right")
+    axes[-1, 0].set_xlabel("time [days from start]")
+    fig.suptitle(title)
+    return _save(fig, path)
+
+
+def _plot_errors(traces: dict[str, RunTrace], title: str, path: Path) -> Path | None:
+    with_est = {k: v for k, v in traces.items() if v.err_t_ns.size}
+    if not with_est:
+        return None
+    plt = _plt()
+    fig, (ax, axh) = plt.subplots(1, 2, figsize=(12, 4.2), gridspec_kw={"width_ratios": [3, 1.2]})
+    t0 = min(int(tr.t_ns[0]) for tr in traces.values())
+    for i, (label, tr) in enumerate(with_est.items()):
+        x = _days(tr.err_t_ns, t0)
+        ax.fill_between(x, tr.err_min_pu, tr.err_max_pu, color=f"C{i}", alpha=0.25, lw=0)
+        ax.plot(x, tr.err_rms_pu, color=f"C{i}", lw=0.8, label=f"{label}: RMS (band: min..max)")
+        axh.hist(tr.errors_pu, bins=60, color=f"C{i}", alpha=0.5,
+                 label=f"{label}: RMS {np.sqrt(np.mean(tr.errors_pu ** 2)):.4f}, "
+                       f"max |e| {np.abs(tr.errors_pu).max():.4f}")
+    ax.axhline(0, color="k", lw=0.6)
+    ax.set_xlabel("time [days from start]")
+    ax.set_ylabel("estimate - truth [pu]")
+    ax.set_title(title)
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3)
+    axh.set_xlabel("estimate - truth [pu]")
+    axh.set_ylabel("count")
+    axh.legend(fontsize=7)
+    return _save(fig, path)
+
+
+def _plots(traces: dict[str, RunTrace], title: str, out: Path, prefix: str = "") -> list[Path]:
+    out.mkdir(parents=True, exist_ok=True)
+    paths = [_plot_envelopes(traces, f"{title}: 10-min average voltage envelope",
+                             out / f"{prefix}voltage_envelope.png"),
+             _plot_pv(traces, f"{title}: PV reactive power (10-min average)", out / f"{prefix}pv_q.png"),
+             _plot_taps(traces, f"{title}: regulator taps", out / f"{prefix}taps.png")]
+    err = _plot_errors(traces, f"{title}: estimation error", out / f"{prefix}estimation_error.png")
+    return paths + ([err] if err else [])
+
+
+def plot_run(run_dir: str | Path, *, out: str | Path | None = None) -> list[Path]:
+    """The PNGs of one ``cvvc run`` folder (default into ``run_dir/plots``); returns their paths."""
+    d = Path(run_dir)
+    summary, trace = _trace_of(d)
+    title = f"{summary.get('feeder_id', '?')} case {summary.get('case', '?')} from {summary.get('start', '?')}"
+    return _plots({f"case {summary.get('case', '?')}": trace}, title, Path(out) if out else d / "plots")
+
+
+def plot_evaluation(eval_dir: str | Path, *, out: str | Path | None = None) -> list[Path]:
+    """The PNGs of a ``cvvc evaluate`` folder: per season (and variant), every case together; returns paths."""
+    d = Path(eval_dir)
+    results_path = d / "results.json"
+    if not results_path.is_file():
+        raise ReportError(f"{d}: no results.json; pass a cvvc evaluate output folder")
+    ev = json.loads(results_path.read_text())
+    groups: dict[str, dict[str, RunTrace]] = {}
+    for r in ev["runs"]:
+        spec = r["spec"]
+        run_dir = Path(r["out_dir"])
+        if not run_dir.is_dir():
+            run_dir = d / Path(r["out_dir"]).name
+        _, trace = _trace_of(run_dir)
+        if spec.get("variant", "nominal") == "nominal":
+            key = spec["season"]
+            label = f"case {spec['case']}"
+        else:
+            key = f"{spec['season']}-robustness"
+            label = spec["variant"]
+        if spec["case"] in ("C", "D") and len(ev["config"]["bandwidths_v120"]) > 1:
+            label += f" {spec['bandwidth_v120']:g} V"
+        groups.setdefault(key, {})[label] = trace
+    paths: list[Path] = []
+    out_dir = Path(out) if out else d / "plots"
+    for key, traces in groups.items():
+        paths += _plots(traces, f"{ev['feeder_id']} {key}", out_dir, prefix=f"{key}-")
+    return paths

@@ -1,0 +1,116 @@
+"""``cvvc evaluate`` on IEEE 13: real runs through the bus (bridge, agent, recorder), tables, bad input."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from cvvc.evaluate import (
+    EvaluateConfig,
+    EvaluateError,
+    evaluate,
+    parse_cases,
+    parse_seasons,
+    perturbation_commands,
+    perturbed_device_map,
+    season_window,
+)
+
+REPO = Path(__file__).resolve().parents[2]
+IEEE13 = REPO / "feeders" / "ieee13.toml"
+
+
+@pytest.fixture(scope="module")
+def small_evaluation(tmp_path_factory, ieee13_model, profile_cache):
+    """Cases D and none on IEEE 13, summer, the first 0.05 day (72 one-minute steps) of July."""
+    out = tmp_path_factory.mktemp("evaluate") / "out"
+    config = EvaluateConfig(feeder=str(IEEE13), model=str(ieee13_model), cases=("D", "none"), seasons=("summer",),
+                            days_per_season=0.05, out=str(out), cache=str(profile_cache.parent), progress=False)
+    return out, evaluate(config)
+
+
+def test_evaluate_writes_results_json_with_every_run(small_evaluation):
+    out, ev = small_evaluation
+    data = json.loads((out / "results.json").read_text())
+    assert [r["spec"]["case"] for r in data["runs"]] == ["D", "none"]
+    for r in data["runs"]:
+        assert r["spec"]["season"] == "summer" and r["spec"]["start"] == "2023-07-01"
+        assert r["steps"] == 72
+        assert r["metrics"]["steps"] == 72
+        assert set(r["metrics"]["taps_changes"]) == {"reg1", "reg2", "reg3"}
+        assert set(r["metrics"]["q_mvar_intervals"]) == {"pv633", "pv675", "pv680"}
+        assert Path(r["recording"]).is_file()
+        assert r["lockstep_misses"] == 0
+    d, none = data["runs"]
+    assert d["decisions"] == 15  # every 5 simulated minutes: t = 0, 5, ..., 70
+    assert none["decisions"] == 0  # the baseline runs no agent
+
+
+def test_results_md_has_the_paper_table_rows(small_evaluation):
+    out, ev = small_evaluation
+    md = (out / "results.md").read_text()
+    assert "| Season | Case | MVVM [pu] | NVV | NTC | Q Cost | T Cost | Total | wall [s] |" in md
+    for r in ev.runs:
+        mt = r.metrics
+        row = (f"| summer | {r.spec.case} | {mt['mvvm_pu']:.4f} | {mt['nvv']} | {mt['ntc']} | {mt['q_cost']:.1f} | "
+               f"{mt['t_cost']:.2f} | {mt['total_cost']:.1f} |")
+        assert row in md
+        taps = " | ".join(str(mt["taps_changes"][g]) for g in ("reg1", "reg2", "reg3"))
+        assert f"| summer | {r.spec.case} | {taps} | {mt['ntc']} |" in md
+    assert "pv633 [kvarh]" in md and "(paper Table IV)" in md and "(paper Table V)" in md
+
+
+def test_unknown_case_or_season_is_a_clear_error(tmp_path):
+    with pytest.raises(EvaluateError, match="unknown case.*E.*choose from A,B,C,D,none,local"):
+        parse_cases("D,E")
+    with pytest.raises(EvaluateError, match="unknown season.*monsoon"):
+        parse_seasons("summer,monsoon")
+    with pytest.raises(EvaluateError, match="unknown season"):
+        evaluate(EvaluateConfig(feeder=str(IEEE13), seasons=("monsoon",), out=str(tmp_path)))  # type: ignore[arg-type]
+    with pytest.raises(EvaluateError, match="days-per-season 40"):
+        season_window("winter", 40)
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    proc = subprocess.run([sys.executable, "-m", "cvvc", "evaluate", "--cases", "D,X", "--out", str(tmp_path / "x")],
+                          cwd=REPO, env=env, capture_output=True, text=True, timeout=60, check=False)
+    assert proc.returncode == 2
+    assert "unknown case(s) X" in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_season_window_is_the_month_or_its_first_days():
+    assert season_window("winter", None) == ("2023-01-01", 31.0)
+    assert season_window("spring", None) == ("2023-04-01", 30.0)
+    assert season_window("fall", 7) == ("2023-10-01", 7.0)
+
+
+def test_model_error_map_perturbs_lines_and_loads_within_ten_percent(tmp_path):
+    text = "New Line.a bus1=x bus2=y length=2.0 units=km\nnew load.L1 bus1=y kW=100 kvar=10\nNew Line.b bus1=y\n"
+    cmds = perturbation_commands(text, pct=10.0, seed=3)
+    assert len(cmds) == 2  # line b has no explicit length: left alone
+    length = float(cmds[0].split("=")[1])
+    kw = float(cmds[1].split("=")[1])
+    assert cmds[0].startswith("Line.a.length=") and 1.8 <= length <= 2.2 and length != 2.0
+    assert cmds[1].startswith("Load.L1.kW=") and 90 <= kw <= 110 and kw != 100
+    assert perturbation_commands(text, pct=10.0, seed=3) == cmds
+
+    from schemas.devicemap import load_device_map
+    from simulator_bridge.engine import FeederEngine
+
+    path = perturbed_device_map(IEEE13, tmp_path / "perturbed", pct=10.0, seed=7)
+    nominal, perturbed = load_device_map(IEEE13), load_device_map(path)
+    assert perturbed.feeder.name == nominal.feeder.name
+    assert perturbed.fingerprint() != nominal.fingerprint()
+    a, b = FeederEngine(nominal), FeederEngine(perturbed)
+    try:
+        ratio = b.load_kw_nominal / a.load_kw_nominal
+        assert np.all((ratio >= 0.9) & (ratio <= 1.1)) and np.ptp(ratio) > 0.01
+        assert a.node_names == b.node_names
+        assert 1e-4 < np.abs(a.node_voltages_pu() - b.node_voltages_pu()).max() < 0.05
+    finally:
+        a.close()
+        b.close()

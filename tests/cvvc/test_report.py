@@ -1,0 +1,95 @@
+"""``cvvc report run|evaluate``: PNGs from a short real evaluation's MCAP recordings, and the numbers behind them."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+
+from cvvc.evaluate import EvaluateConfig, evaluate
+from cvvc.report import ReportError, plot_evaluation, plot_run, read_trace, window_envelope_pu
+
+REPO = Path(__file__).resolve().parents[2]
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+
+
+@pytest.fixture(scope="module")
+def tiny_evaluation(tmp_path_factory, ieee13_model, profile_cache):
+    """Case D on IEEE 13 for the first 25 minutes of April (one recording with truth and decisions)."""
+    out = tmp_path_factory.mktemp("report") / "eval"
+    ev = evaluate(EvaluateConfig(feeder=str(REPO / "feeders" / "ieee13.toml"), model=str(ieee13_model),
+                                 cases=("D",), seasons=("spring",), days_per_season=25 / 1440, out=str(out),
+                                 cache=str(profile_cache.parent), progress=False))
+    return out, ev
+
+
+def _truth(path: Path) -> list[dict]:
+    with path.open("rb") as f:
+        return [json.loads(m.data) for _, ch, m in make_reader(f).iter_messages(log_time_order=True)
+                if ch.topic.endswith("/sim/truth")]
+
+
+def _assert_pngs(paths: list[Path], names: set[str]) -> None:
+    assert {p.name for p in paths} == names
+    for p in paths:
+        data = p.read_bytes()
+        assert data[:8] == PNG_MAGIC and len(data) > 10_000, p
+
+
+def test_report_run_writes_the_four_pngs(tiny_evaluation, tmp_path):
+    out, ev = tiny_evaluation
+    paths = plot_run(ev.runs[0].out_dir, out=tmp_path / "plots")
+    _assert_pngs(paths, {"voltage_envelope.png", "pv_q.png", "taps.png", "estimation_error.png"})
+
+
+def test_report_evaluate_groups_cases_per_season(tiny_evaluation):
+    out, ev = tiny_evaluation
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    proc = subprocess.run([sys.executable, "-m", "cvvc", "report", "evaluate", str(out)], cwd=REPO, env=env,
+                          capture_output=True, text=True, timeout=120, check=False)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    paths = [Path(line) for line in proc.stdout.split()]
+    _assert_pngs(paths, {"spring-voltage_envelope.png", "spring-pv_q.png", "spring-taps.png",
+                         "spring-estimation_error.png"})
+    assert all(p.parent == out / "plots" for p in paths)
+
+
+def test_trace_matches_the_recorded_truth(tiny_evaluation):
+    out, ev = tiny_evaluation
+    rec = Path(ev.runs[0].recording)
+    truth = _truth(rec)
+    assert len(truth) == 25
+    v = np.array([t["v_pu"] for t in truth])
+    trace = read_trace(rec)
+    vmax, vmin = window_envelope_pu(v)
+    assert trace.v_env_max_pu.shape == (3,)  # 10 + 10 + 5 minutes
+    np.testing.assert_allclose(trace.v_env_max_pu, vmax, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(trace.v_env_min_pu, vmin, rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(trace.taps, [truth[i]["taps"] for i in (0, 10, 20)])
+    q = np.array([t["pv_q_kvar"] for t in truth])
+    np.testing.assert_allclose(trace.pv_q_kvar[-1], q[20:].mean(axis=0), atol=1e-9)
+    # decisions every 5 minutes, each matched with the truth of its step
+    assert trace.err_t_ns.size == 5
+    assert trace.errors_pu.size > 0 and np.abs(trace.errors_pu).max() < 0.05
+
+
+def test_window_envelope_by_hand():
+    v = np.array([[1.0, 0.9], [1.1, 0.95], [1.2, 1.0]])
+    vmax, vmin = window_envelope_pu(v, window_steps=2)
+    np.testing.assert_allclose(vmax, [1.05, 1.2])
+    np.testing.assert_allclose(vmin, [0.925, 1.0])
+
+
+def test_missing_inputs_are_clear_errors(tmp_path):
+    with pytest.raises(ReportError, match="no summary.json"):
+        plot_run(tmp_path)
+    with pytest.raises(ReportError, match="no results.json"):
+        plot_evaluation(tmp_path)
+    with pytest.raises(ReportError, match="no recording there"):
+        read_trace(tmp_path / "missing.mcap")
