@@ -342,13 +342,22 @@ class _Runtime:
         self.queryable = s.declare_queryable(keys.sim_oracle(f), self._on_query, complete=True)
 
     def close(self) -> None:
-        """Withdraw every token and declaration (the session is closed by the caller's ``with``)."""
+        """Withdraw every token and declaration (the session is closed by the caller's ``with``); oracle
+        queries still queued are answered with an error, so their getters do not wait for their timeout.
+        """
         for undeclare in [self.queryable.undeclare, self.inbox.undeclare, self.agents.undeclare,
                           self.bridges.undeclare, *(t.undeclare for t in self.tokens)]:
             try:
                 undeclare()
             except Exception as e:  # zenoh raises plain exceptions; shutdown goes on regardless
                 log.warning("undeclare failed during shutdown: %s", e)
+        for item in self.inbox.drain():
+            if isinstance(item.msg, _OracleQuery):
+                try:
+                    item.msg.query.reply_err(b"bridge shutting down")
+                    item.msg.query.drop()
+                except Exception as e:  # the getter may be gone already
+                    log.info("could not answer an oracle query at shutdown: %s", e)
 
     # ---------------------------------------------------------------- callbacks (Zenoh threads)
     def _on_agent(self, key: str, up: bool) -> None:
