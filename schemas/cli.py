@@ -17,7 +17,17 @@ def register(sub: argparse._SubParsersAction) -> None:
     ssec = s.add_subparsers(dest="security_verb", metavar="SUBVERB")
     i = ssec.add_parser("init", help="create a local CA and one certificate per role in DIR (idempotent)")
     i.add_argument("--dir", required=True, metavar="DIR", help="the security state directory")
+    i.add_argument("--san", action="append", default=[], metavar="HOST_OR_IP",
+                   help="also valid for this host name or IP address (repeatable; for use across hosts)")
     i.set_defaults(func=_security_init)
+    c = ssec.add_parser("zenoh-config", help="print the Zenoh JSON config of a role (e.g. for zenohd -c)")
+    c.add_argument("--dir", required=True, metavar="DIR", help="the security state directory")
+    c.add_argument("--role", required=True, choices=["agent", "devices", "recorder", "router"])
+    c.add_argument("--listen", action="append", default=[], metavar="ENDPOINT",
+                   help="listen endpoint, e.g. tls/192.0.2.10:7447 (repeatable; routers)")
+    c.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
+                   help="router endpoint to connect to, e.g. tls/192.0.2.10:7447 (repeatable)")
+    c.set_defaults(func=_security_zenoh_config)
 
 
 def _export(args: argparse.Namespace) -> int:
@@ -32,9 +42,26 @@ def _export(args: argparse.Namespace) -> int:
 def _security_init(args: argparse.Namespace) -> int:
     from schemas.security import ROLES, init_security_dir
 
-    written = init_security_dir(args.dir)
+    written = init_security_dir(args.dir, extra_sans=tuple(args.san))
     for path in written:
         print(path)
     print(f"{args.dir}: CA and certificates of {', '.join(ROLES)} "
           f"({'created' if written else 'already there, kept'})")
+    return 0
+
+
+def _security_zenoh_config(args: argparse.Namespace) -> int:
+    import json
+
+    from schemas.security import nested_zenoh_config, zenoh_security_settings
+
+    settings = {
+        "mode": "router" if args.role == "router" else "client",
+        "listen/endpoints": list(args.listen),
+        "connect/endpoints": list(args.connect),
+        "scouting/multicast/enabled": False,
+        "scouting/gossip/enabled": False,
+        **zenoh_security_settings(args.dir, args.role),
+    }
+    print(json.dumps(nested_zenoh_config(settings), indent=2))
     return 0

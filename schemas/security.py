@@ -33,6 +33,7 @@ __all__ = [
     "SecurityRole",
     "access_control_policy",
     "init_security_dir",
+    "nested_zenoh_config",
     "role_paths",
     "zenoh_security_settings",
 ]
@@ -55,11 +56,13 @@ def role_paths(state_dir: str | Path, role: str) -> tuple[Path, Path]:
     return d / f"{role}.pem", d / f"{role}.key"
 
 
-def init_security_dir(state_dir: str | Path) -> list[Path]:
+def init_security_dir(state_dir: str | Path, *, extra_sans: tuple[str, ...] = ()) -> list[Path]:
     """Create the CA and every role's certificate in ``state_dir`` unless they exist; returns the files written.
 
     Idempotent: an existing CA and existing role certificates are kept (a missing role certificate is
-    issued by the existing CA). Private keys are written 0600, the directory is 0700.
+    issued by the existing CA; delete a role's two files to reissue it). Private keys are written 0600,
+    the directory is 0700. ``extra_sans`` (host names or IP addresses) are added to the subject
+    alternative names of new certificates, beside 127.0.0.1 and localhost, for use across hosts.
     """
     d = Path(state_dir)
     try:
@@ -78,7 +81,7 @@ def init_security_dir(state_dir: str | Path) -> list[Path]:
         cert_path, key_path = role_paths(d, role)
         if cert_path.is_file() and key_path.is_file():
             continue
-        cert, key = _make_leaf(role, ca_cert, ca_key)
+        cert, key = _make_leaf(role, ca_cert, ca_key, extra_sans)
         written += _write(cert_path, key_path, cert, key)
     return written
 
@@ -107,7 +110,7 @@ def _make_ca():
     return cert, key
 
 
-def _make_leaf(role: str, ca_cert, ca_key):
+def _make_leaf(role: str, ca_cert, ca_key, extra_sans: tuple[str, ...] = ()):
     from cryptography import x509
     from cryptography.hazmat.primitives import hashes
     from cryptography.hazmat.primitives.asymmetric import ec
@@ -115,8 +118,13 @@ def _make_leaf(role: str, ca_cert, ca_key):
 
     key = ec.generate_private_key(ec.SECP256R1())
     now = dt.datetime.now(dt.UTC)
-    san = x509.SubjectAlternativeName([x509.DNSName("localhost"),
-                                       x509.IPAddress(ipaddress.IPv4Address("127.0.0.1"))])
+    names: list[x509.GeneralName] = [x509.DNSName("localhost"), x509.IPAddress(ipaddress.IPv4Address("127.0.0.1"))]
+    for name in extra_sans:
+        try:
+            names.append(x509.IPAddress(ipaddress.ip_address(name)))
+        except ValueError:
+            names.append(x509.DNSName(name))
+    san = x509.SubjectAlternativeName(names)
     cert = (x509.CertificateBuilder()
             .subject_name(x509.Name([x509.NameAttribute(NameOID.ORGANIZATION_NAME, "cvvc-edge"),
                                      x509.NameAttribute(NameOID.COMMON_NAME, role)]))
@@ -255,3 +263,15 @@ def access_control_policy() -> dict[str, Any]:
     ]
     return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects,
             "policies": policies}
+
+
+def nested_zenoh_config(settings: dict[str, Any]) -> dict[str, Any]:
+    """Turn ``{"a/b/c": v}`` entries into nested JSON (``{"a": {"b": {"c": v}}}``), e.g. for ``zenohd -c``."""
+    out: dict[str, Any] = {}
+    for path, value in settings.items():
+        node = out
+        *parents, leaf = path.split("/")
+        for part in parents:
+            node = node.setdefault(part, {})
+        node[leaf] = value
+    return out

@@ -7,6 +7,7 @@ the same router: a legitimate sender's messages, sent afterwards, must all arriv
 
 from __future__ import annotations
 
+import contextlib
 import shutil
 import stat
 import threading
@@ -30,12 +31,27 @@ def security_dir(tmp_path_factory) -> Path:
     return d
 
 
-@pytest.fixture
-def secure_router(security_dir) -> Iterator[str]:
-    """A router with the policy on a free port; yields its ``tcp/`` endpoint (clients turn it into ``tls/``)."""
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    with open_session(BusConfig(mode="router", listen=(endpoint,), tls_dir=str(security_dir), role="router")):
-        yield endpoint
+@pytest.fixture(params=["bus", "exported"])
+def secure_router(request, security_dir, tmp_path) -> Iterator[str]:
+    """A router with the policy on a free port; yields its ``tcp/`` endpoint (clients turn it into ``tls/``).
+
+    ``bus``: opened by ``schemas.bus`` as ``cvvc run --secure`` does; ``exported``: from the JSON file that
+    ``cvvc security zenoh-config --role router`` prints (what a separate ``zenohd`` would load).
+    """
+    port = free_port()
+    if request.param == "bus":
+        with open_session(BusConfig(mode="router", listen=(f"tcp/127.0.0.1:{port}",), tls_dir=str(security_dir),
+                                    role="router")):
+            yield f"tcp/127.0.0.1:{port}"
+        return
+    from cvvc.cli import main
+
+    out = tmp_path / "router.json5"
+    with open(out, "w") as f, contextlib.redirect_stdout(f):
+        assert main(["security", "zenoh-config", "--dir", str(security_dir), "--role", "router",
+                     "--listen", f"tls/127.0.0.1:{port}"]) == 0
+    with zenoh.open(zenoh.Config.from_file(str(out))):
+        yield f"tcp/127.0.0.1:{port}"
 
 
 def _client(endpoint: str, state_dir: Path, role: str, *, mode: str = "client", **kw) -> zenoh.Session:
@@ -126,13 +142,13 @@ def test_certificate_of_another_ca_cannot_connect(security_dir, secure_router, t
     for src in role_paths(other, "agent"):
         shutil.copy(src, rogue / src.name)
     with pytest.raises(BusError, match="Unable to connect"):
-        _client(secure_router, rogue, "agent", connect_timeout_ms=1500)
+        _client(secure_router, rogue, "agent", connect_timeout_ms=1000)
     with pytest.raises(BusError, match="Unable to connect"):  # everything of the other CA
-        _client(secure_router, other, "agent", connect_timeout_ms=1500)
+        _client(secure_router, other, "agent", connect_timeout_ms=1000)
     tls_endpoint = secure_router.replace("tcp/", "tls/")
     with pytest.raises(BusError, match="Unable to connect"):  # plain TCP to the TLS port
-        open_session(BusConfig(mode="client", connect=(secure_router,), connect_timeout_ms=1500))
-    with _client(secure_router, security_dir, "agent", connect_timeout_ms=1500) as ok:  # control: ours does
+        open_session(BusConfig(mode="client", connect=(secure_router,), connect_timeout_ms=1000))
+    with _client(secure_router, security_dir, "agent", connect_timeout_ms=1000) as ok:  # control: ours does
         assert ok.info.routers_zid(), f"a valid agent certificate should reach the router on {tls_endpoint}"
 
 
