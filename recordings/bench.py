@@ -124,7 +124,8 @@ def _through_zenoh(n: int, path: Path) -> dict[str, Any]:
 def bench_recording(n: int = 20_000) -> dict[str, Any]:
     """Recording throughput [messages/s] bare vs through Zenoh, their ratio, and offline replay speed.
 
-    ``offline_sim_minutes_per_wall_s`` is None while ``agent.runtime.decide_offline`` does not exist.
+    ``offline_rerun``: the offline re-run of one synthetic day (``_offline_speed``), None while
+    ``agent.runtime.decide_offline`` does not exist.
     """
     msgs = _messages(n)
     with tempfile.TemporaryDirectory(prefix="cvvc-bench-rec-") as tmp:
@@ -140,18 +141,73 @@ def bench_recording(n: int = 20_000) -> dict[str, Any]:
         "dropped": zen["dropped"],
         "bytes_per_message": round(zen["bytes"] / max(1, zen["recorded"]), 1),
         "mean_payload_bytes": round(sum(len(r) for _, r in msgs) / len(msgs), 1),
-        "offline_sim_minutes_per_wall_s": _offline_speed(),
+        "offline_rerun": _offline_speed(),
     }
 
 
-def _offline_speed() -> float | None:
+def _offline_speed(steps: int = 1440) -> dict[str, Any] | None:
+    """Offline re-run speed [simulated minutes per wall second] on one recorded synthetic day.
+
+    The agent's synthetic feeder model (8 regulators, 3 PV plants): 1-minute frames of every device, the
+    decisions ``decide_offline`` makes on them recorded beside them, then ``run_offline`` timed (reading
+    the MCAP file, decoding, deciding, diffing). None while ``agent.runtime.decide_offline`` is missing.
+    """
     try:
-        from agent import runtime  # type: ignore[attr-defined]
+        from agent.runtime import AgentSettings, decide_offline  # type: ignore[attr-defined]
+        from agent.synthetic import synthetic_model
     except ImportError:
         return None
-    if not hasattr(runtime, "decide_offline"):
-        return None
-    return None  # wired up once the agent runtime and a recorded lockstep session exist
+    import math
+
+    import msgspec
+
+    from recordings.offline import run_offline
+    from recordings.recorder import McapSink
+    from schemas import keys
+    from schemas import messages as m
+    from schemas.bus import Received, codec_for
+    from schemas.examples import T0_NS, examples
+    from training.model import write_model
+
+    model = synthetic_model(seed=3)
+    settings = AgentSettings(feeder_id="rural")
+    ex = examples()
+    frames: list[tuple[str, Any]] = []
+    for i in range(steps):
+        t_ns, seq = T0_NS + i * 60_000_000_000, i + 1
+        head_kw = 600.0 + 400.0 * math.sin(math.pi * i / steps)
+        phases = [msgspec.structs.replace(p, p_kw=head_kw) for p in ex[m.HeadFrame].phases]
+        frames.append((keys.meas_head("rural"), msgspec.structs.replace(
+            ex[m.HeadFrame], t_ns=t_ns, seq=seq, phases=phases, p_kw=3 * head_kw,
+            q_kvar=sum(p.q_kvar for p in phases))))
+        for pv in model.pv:
+            frames.append((keys.meas_pv("rural", pv.id), msgspec.structs.replace(
+                ex[m.PvFrame], t_ns=t_ns, seq=seq, source=pv.id, plant_id=pv.id, s_rated_kva=pv.kva,
+                q_available_kvar=0.4 * pv.kva, p_kw=0.6 * pv.kva, q_kvar=0.0,
+                phases=[msgspec.structs.replace(p, p_kw=0.2 * pv.kva, q_kvar=0.0) for p in ex[m.PvFrame].phases])))
+        for reg in model.regulators:
+            frames.append((keys.meas_vr("rural", reg.id), msgspec.structs.replace(
+                ex[m.RegFrame], t_ns=t_ns, seq=seq, source=reg.id, regulator_id=reg.id, tap=0)))
+    decisions = list(decide_offline(model, settings, [Received(k, f, 0, b"") for k, f in frames]))
+    with tempfile.TemporaryDirectory(prefix="cvvc-bench-offline-") as tmp:
+        model_path = Path(tmp) / "model.json"
+        write_model(model, model_path)
+        rec = Path(tmp) / "day.mcap"
+        with open(rec, "wb") as f:
+            sink = McapSink(f, metadata={"model_path": str(model_path),
+                                         "agent_settings": msgspec.json.encode(settings).decode()})
+            by_step = {d.step_t_ns: d for d in decisions}
+            for key, frame in frames:
+                sink.write(codec_for(type(frame)).encode(frame), key, frame.t_ns)
+                d = by_step.pop(frame.t_ns, None) if key.endswith(model.regulators[-1].id) else None
+                if d is not None:
+                    sink.write(codec_for(m.Decision).encode(d), keys.agent_decision("rural"), frame.t_ns)
+            for d in by_step.values():
+                sink.write(codec_for(m.Decision).encode(d), keys.agent_decision("rural"), d.step_t_ns)
+            sink.finish()
+        res = run_offline(rec)
+    return {"sim_minutes_per_wall_s": round(res.sim_minutes_per_wall_s, 1), "frames": res.frames,
+            "decisions": res.diff.recorded, "identical": res.diff.identical, "wall_s": round(res.wall_s, 3)}
 
 
 if __name__ == "__main__":
