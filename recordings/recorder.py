@@ -123,7 +123,7 @@ class McapSink:
         try:
             header = self._header_decoder.decode(raw)
             log_time, seq = header.t_ns, header.seq
-        except msgspec.DecodeError:  # not a JSON object, or t_ns/seq not integers
+        except (msgspec.DecodeError, UnicodeDecodeError):  # not a JSON object, t_ns/seq not integers, bad UTF-8
             log_time, seq = -1, 0
         if not 0 <= log_time <= _U64_MAX:
             log_time = recv_ns
@@ -150,7 +150,7 @@ class McapSink:
             try:
                 msgspec.json.decode(first_payload)
                 encoding = "json"
-            except msgspec.DecodeError:
+            except (msgspec.DecodeError, UnicodeDecodeError):  # msgspec raises bad UTF-8 in a string as is
                 encoding = "application/octet-stream"
             metadata = {"cvvc_message_type": ""}
         else:

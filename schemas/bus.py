@@ -260,6 +260,10 @@ class Codec(Generic[T]):
             raise BadMessage(kind, text) from None
         except msgspec.DecodeError as e:
             raise BadMessage("malformed", str(e)) from None
+        except UnicodeDecodeError as e:  # invalid UTF-8 inside a JSON string: msgspec raises this one as is
+            raise BadMessage("malformed", f"invalid UTF-8: {e}") from None
+        except RecursionError:  # e.g. 10,000 nested objects where a tagged struct skips unknown fields
+            raise BadMessage("malformed", "JSON nested too deeply") from None
         try:
             check_finite(msg)
         except NonFiniteError as e:

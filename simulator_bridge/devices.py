@@ -148,6 +148,12 @@ class CommandGuard:
         self.active = ActiveCommand(cmd_id=cmd.cmd_id, source=cmd.source, seq=cmd.seq,
                                     valid_until_t_ns=cmd.valid_until_t_ns, value=float(value))
 
+    def forget_source(self, source: str) -> None:
+        """Forget the last applied ``seq`` of ``source``: that sender's session ended (its liveliness token
+        was withdrawn), and a restarted sender counts again from 1. Its active command stays until it expires.
+        """
+        self._last_seq.pop(source, None)
+
     def expire(self, t_ns: int) -> ActiveCommand | None:
         """Before simulating time ``t_ns``: drop and return the active command if it has expired."""
         if self.active is not None and self.active.valid_until_t_ns < t_ns:

@@ -1,0 +1,63 @@
+"""Fixtures of the reliability tests: a trained IEEE 13 model, its profiles, real processes, a bus watcher.
+
+Every process is ``python -m cvvc ...`` started with ``subprocess`` (a fresh interpreter, never a fork),
+connected to the router of the root ``router_endpoint`` fixture, logging to a file under ``tmp_path``, and
+stopped by its pid (SIGINT, then SIGKILL) when the test ends. The watcher is a plain-zenoh peer that
+decodes everything under ``cvvc/ieee13/**`` with the typed codecs; tests wait on it with deadlines.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+from relutil import FEEDER_MAP, REPO, Procs, Watcher
+
+
+@pytest.fixture(scope="session")
+def rel_cache(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """IEEE 13 profiles (year seed 1) generated once per session into a temporary cache."""
+    from schemas.devicemap import load_device_map
+    from simulator_bridge.bridge import cached_profiles
+    from simulator_bridge.engine import FeederEngine
+
+    d = tmp_path_factory.mktemp("rel-cache")
+    dm = load_device_map(FEEDER_MAP)
+    engine = FeederEngine(dm)
+    try:
+        cached_profiles(dm, engine, seed=1, cache_dir=d)
+    finally:
+        engine.close()
+    return d
+
+
+@pytest.fixture(scope="session")
+def model13(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A model of IEEE 13 trained once per session with ``cvvc train`` (about 5 s)."""
+    out = tmp_path_factory.mktemp("rel-model") / "ieee13-model.json"
+    proc = subprocess.run([sys.executable, "-m", "cvvc", "train", "--feeder", str(FEEDER_MAP), "--out", str(out),
+                           "--json", "--workers", "1"], cwd=REPO, capture_output=True, text=True, timeout=300)
+    if proc.returncode != 0 or not out.is_file():
+        raise RuntimeError(f"cvvc train failed ({proc.returncode}):\n{proc.stderr[-2000:]}")
+    return out
+
+
+@pytest.fixture
+def procs(tmp_path: Path, router_endpoint: str, model13: Path, rel_cache: Path) -> Iterator[Procs]:
+    p = Procs(tmp_path, router_endpoint, model13, rel_cache)
+    try:
+        yield p
+    finally:
+        p.close()
+
+
+@pytest.fixture
+def watcher(router_endpoint: str) -> Iterator[Watcher]:
+    w = Watcher(router_endpoint)
+    try:
+        yield w
+    finally:
+        w.close()
