@@ -245,6 +245,9 @@ def agent_decider(model_path: str | Path, settings_json: str = "") -> Decider:
             settings = msgspec.json.decode(settings_json, type=settings_type) if settings_json else settings_type()
         except msgspec.DecodeError as e:
             raise OfflineError(f"the recorded agent settings do not decode as {settings_type.__name__}: {e}") from e
+    if getattr(settings, "full_visibility", False):
+        raise OfflineError("this session ran case A (full visibility): its decisions used the live bridge's "
+                           "oracle and cannot be re-run offline")
 
     def run(frames: Iterable[Received]) -> Iterable[m.Decision]:
         return decide(model, settings, frames)

@@ -130,3 +130,17 @@ def test_cli_offline_needs_a_model(tmp_path: Path, capsys: pytest.CaptureFixture
     no_decisions = write_recording(tmp_path / "frames.mcap", [(EXAMPLE_KEYS[m.HeadFrame], head_frame(0))])
     assert cvvc_main(["replay", "--offline", str(no_decisions)]) == 2
     assert "no decodable agent decisions" in capsys.readouterr().err
+
+
+def test_cli_offline_refuses_case_a(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from agent.synthetic import synthetic_model
+    from training.model import write_model
+
+    model = tmp_path / "model.json"
+    write_model(synthetic_model(seed=3), model)
+    path = _write(tmp_path / "run.mcap", _decisions(), model_path=str(model),
+                  agent_settings='{"feeder_id": "rural", "full_visibility": true}')
+    assert cvvc_main(["replay", "--offline", str(path)]) == 2
+    assert "case A (full visibility)" in capsys.readouterr().err
+    assert cvvc_main(["replay", "--offline", "--agent-settings", '{"nonsense": 1}', str(path)]) == 2
+    assert "do not decode as AgentSettings" in capsys.readouterr().err
