@@ -5,7 +5,7 @@ What is plotted (matplotlib, Agg backend, no display needed):
 - ``voltage_envelope.png`` (Fig. 9): every node's voltage averaged over 10-minute windows, then the max and min
   over nodes, against time, with the judged limits;
 - ``pv_q.png`` (Fig. 10): each PV plant's reactive power (truth), 10-minute averages [kvar];
-- ``taps.png`` (Fig. 11): each regulator's tap position (truth), sampled every 10 minutes;
+- ``taps.png`` (Fig. 11): each regulator's tap position (truth) at every step;
 - ``estimation_error.png`` (Fig. 8-like): the agent's estimate minus the true voltage at the same node and
   ``t_ns`` [pu], over time (max/min/RMS per decision) and its histogram.
 
@@ -56,12 +56,13 @@ class _Decision(msgspec.Struct):
 class RunTrace:
     """One run's recording reduced for plotting. Times are ``t_ns`` of the window's first step.
 
-    ``v_env_*`` are (W,) max/min over nodes of the 10-minute average voltage [pu]; ``taps`` (W, R) the tap at
-    each window's first step; ``pv_q_kvar`` (W, K) 10-minute averages; ``err_t_ns`` (D,) decision times with
+    ``v_env_*`` are (W,) max/min over nodes of the 10-minute average voltage [pu]; ``taps`` (T, R) the taps at
+    every step ``step_t_ns`` (T,); ``pv_q_kvar`` (W, K) 10-minute averages; ``err_t_ns`` (D,) decision times with
     ``err_max_pu``/``err_min_pu``/``err_rms_pu`` over the estimated nodes, and ``errors_pu`` every error.
     """
 
     t_ns: np.ndarray
+    step_t_ns: np.ndarray
     v_env_max_pu: np.ndarray
     v_env_min_pu: np.ndarray
     taps: np.ndarray
@@ -125,7 +126,7 @@ def read_trace(mcap_path: str | Path, *, regulator_ids: tuple[str, ...] = (), pv
                 if d.estimates:
                     estimates[d.step_t_ns] = d.estimates
         node_index: dict[str, int] = {}
-        t_list, vmax, vmin, taps, pvq = [], [], [], [], []
+        t_list, step_t, vmax, vmin, taps, pvq = [], [], [], [], [], []
         err_t, err_max, err_min, err_rms, errors = [], [], [], [], []
         acc_v = None
         acc_q = None
@@ -136,9 +137,10 @@ def read_trace(mcap_path: str | Path, *, regulator_ids: tuple[str, ...] = (), pv
                 node_index = {n: i for i, n in enumerate(tr.node_names)}
             v = np.asarray(tr.v_pu, dtype=float)
             q = np.asarray(tr.pv_q_kvar, dtype=float)
+            step_t.append(tr.t_ns)
+            taps.append(tr.taps)
             if n_acc == 0:
                 t_list.append(tr.t_ns)
-                taps.append(list(tr.taps))
                 acc_v, acc_q = v.copy(), q.copy()
             else:
                 acc_v += v
@@ -166,8 +168,9 @@ def read_trace(mcap_path: str | Path, *, regulator_ids: tuple[str, ...] = (), pv
         raise ReportError(f"{path}: the truth channel holds no frame")
     n_pv = len(pvq[0]) if pvq else 0
     return RunTrace(
-        t_ns=np.asarray(t_list, dtype=np.int64), v_env_max_pu=np.asarray(vmax), v_env_min_pu=np.asarray(vmin),
-        taps=np.asarray(taps, dtype=float).reshape(len(t_list), -1), pv_q_kvar=np.asarray(pvq).reshape(-1, n_pv),
+        t_ns=np.asarray(t_list, dtype=np.int64), step_t_ns=np.asarray(step_t, dtype=np.int64),
+        v_env_max_pu=np.asarray(vmax), v_env_min_pu=np.asarray(vmin),
+        taps=np.asarray(taps, dtype=float).reshape(len(step_t), -1), pv_q_kvar=np.asarray(pvq).reshape(-1, n_pv),
         regulator_ids=regulator_ids, pv_ids=pv_ids, err_t_ns=np.asarray(err_t, dtype=np.int64),
         err_max_pu=np.asarray(err_max), err_min_pu=np.asarray(err_min), err_rms_pu=np.asarray(err_rms),
         errors_pu=np.concatenate(errors) if errors else np.zeros(0), limits_pu=limits_pu)
@@ -266,7 +269,7 @@ def _plot_taps(traces: dict[str, RunTrace], title: str, path: Path) -> Path:
     fig, axes = plt.subplots(n, 1, figsize=(11, 2.4 * n + 0.6), sharex=True, squeeze=False)
     t0 = min(int(tr.t_ns[0]) for tr in traces.values())
     for ax, (label, tr) in zip(axes[:, 0], traces.items(), strict=True):
-        x = _days(tr.t_ns, t0)
+        x = _days(tr.step_t_ns, t0)
         for r in range(tr.taps.shape[1]):
             name = tr.regulator_ids[r] if r < len(tr.regulator_ids) else f"reg{r}"
             ax.step(x, tr.taps[:, r], where="post", lw=0.8, label=name)
