@@ -49,20 +49,20 @@ def repo_root_module() -> Path:
 
 
 @pytest.fixture(scope="module")
-def cache_dir(tmp_path_factory: pytest.TempPathFactory, device_map_path: Path) -> Path:
-    """Profiles of IEEE 13 generated once for the module (about 5 s), then loaded from .npz by every run."""
+def cache_dir(profile_cache: Path, device_map_path: Path) -> Path:
+    """The session's profile cache (shared with training's tests: same file names), with IEEE 13's year made
+    once (about 5 s) and then loaded from .npz by every bridge run."""
     from simulator_bridge.bridge import cached_profiles
     from simulator_bridge.engine import FeederEngine
 
-    d = tmp_path_factory.mktemp("cvvc-cache")
     dm = load_device_map(device_map_path)
     engine = FeederEngine(dm)
     try:
-        cached_profiles(dm, engine, seed=1, cache_dir=d)
+        cached_profiles(dm, engine, seed=1, cache_dir=profile_cache)
     finally:
         engine.close()
-    assert len(list(d.glob("profiles-ieee13-*-1.npz"))) == 1
-    return d
+    assert len(list(profile_cache.glob("profiles-ieee13-*-1.npz"))) == 1
+    return profile_cache
 
 
 # ------------------------------------------------------------------------------------ the test client
