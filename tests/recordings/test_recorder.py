@@ -180,3 +180,26 @@ def test_sigterm_finishes_the_file(router_endpoint: str, tmp_path: Path) -> None
     info = recording_info(out)
     assert info.source == "summary" and info.complete and info.messages == 50
     assert info.metadata[METADATA_NAME]["feeder_fingerprint"] == "fp"
+
+
+def test_full_queue_drops_are_counted_not_blocking(router_endpoint: str, tmp_path: Path) -> None:
+    out = tmp_path / "full.mcap"
+    bus = BusConfig(mode="peer", connect=(router_endpoint,))
+    with open_session(bus) as rec_session, open_session(bus) as pub_session:
+        with Recorder(rec_session, RecorderConfig(out_path=str(out), queue_size=0)) as rec:
+            pub = _publisher(pub_session, "cvvc/rural/meas/head")
+            assert wait_for(lambda: pub.matching_status.matching, 10.0)
+            for i in range(20):
+                pub.put(encode(head_frame(i)))
+            assert wait_for(lambda: rec.stats().dropped_queue_full == 20, 10.0), rec.stats()
+    info = recording_info(out)
+    assert info.complete and info.messages == 0
+    assert info.metadata[STATS_METADATA_NAME]["dropped_queue_full"] == "20"
+
+
+def test_unwritable_output_is_a_clear_error(router_endpoint: str, tmp_path: Path) -> None:
+    from recordings.errors import RecordingError
+
+    with open_session(BusConfig(mode="peer", connect=(router_endpoint,))) as session:
+        with pytest.raises(RecordingError, match="cannot write .*check the directory exists"):
+            Recorder(session, RecorderConfig(out_path=str(tmp_path / "no" / "such" / "dir.mcap"))).start()
