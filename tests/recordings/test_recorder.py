@@ -96,17 +96,19 @@ def test_round_trip_every_message_type(router_endpoint: str, tmp_path: Path) -> 
     assert metadata[STATS_METADATA_NAME]["messages"] == str(n)
 
 
-def test_file_is_finished_when_the_block_raises(router_endpoint: str, tmp_path: Path) -> None:
+@pytest.mark.parametrize("exc_type", [RuntimeError, KeyboardInterrupt])
+def test_file_is_finished_when_the_block_raises(router_endpoint: str, tmp_path: Path,
+                                                exc_type: type[BaseException]) -> None:
     out = tmp_path / "raised.mcap"
     bus = BusConfig(mode="peer", connect=(router_endpoint,))
     with open_session(bus) as rec_session, open_session(bus) as pub_session:
-        with pytest.raises(RuntimeError, match="boom"), Recorder(rec_session, RecorderConfig(out_path=str(out))) as rec:
+        with pytest.raises(exc_type, match="boom"), Recorder(rec_session, RecorderConfig(out_path=str(out))) as rec:
             pub = _publisher(pub_session, "cvvc/rural/meas/head")
             assert wait_for(lambda: pub.matching_status.matching, 10.0)
             for i in range(20):
                 pub.put(encode(head_frame(i)))
             assert wait_for(lambda: rec.stats().messages == 20, 10.0)
-            raise RuntimeError("boom")
+            raise exc_type("boom")
     info = recording_info(out)
     assert info.source == "summary" and info.complete and info.messages == 20
 
