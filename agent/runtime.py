@@ -73,15 +73,15 @@ def snapshot_from(aligned: AlignedFrames, model: CvvcModel) -> MeasurementSnapsh
     pv_p, pv_q, pv_kva, pv_sp = (np.zeros(n_pv) for _ in range(4))
     pv_ok = np.zeros(n_pv, bool)
     for k, plant in enumerate(model.pv):
-        f = aligned.pv.get(plant.id)
-        if f is None:
+        pf = aligned.pv.get(plant.id)
+        if pf is None:
             pv_sp[k] = np.nan
             continue
         # The apparent power available now: the plant's Q headroom is what the inverter says it is
         # (``q_available_kvar``: 0 at night, when it gives no reactive power).
-        pv_p[k], pv_q[k] = f.p_kw, f.q_kvar
-        pv_kva[k] = min(float(np.hypot(f.p_kw, f.q_available_kvar)), f.s_rated_kva)
-        pv_sp[k] = np.nan if f.q_setpoint_kvar is None else f.q_setpoint_kvar
+        pv_p[k], pv_q[k] = pf.p_kw, pf.q_kvar
+        pv_kva[k] = min(float(np.hypot(pf.p_kw, pf.q_available_kvar)), pf.s_rated_kva)
+        pv_sp[k] = np.nan if pf.q_setpoint_kvar is None else pf.q_setpoint_kvar
         pv_ok[k] = True
     reg_v, reg_vc, reg_tap = np.full(n_reg, 120.0), np.full(n_reg, 120.0), np.zeros(n_reg, int)
     reg_ok = np.zeros(n_reg, bool)
@@ -137,13 +137,17 @@ class DecisionMaker:
         t = aligned.t_ns
         valid_until = t + int(s.valid_intervals * self.period_ns)
         in_reply_to = aligned.head.seq if aligned.head is not None else 0
-        common = dict(t_ns=t, seq=seq, source=s.agent_id, in_reply_to=in_reply_to, valid_until_t_ns=valid_until)
+
+        def header(device: str) -> dict[str, Any]:
+            return {"t_ns": t, "seq": seq, "source": s.agent_id, "in_reply_to": in_reply_to,
+                    "valid_until_t_ns": valid_until, "cmd_id": f"{s.agent_id}:{t}:{device}"}
+
         commands: list[m.DecisionCommand] = []
         if d.status != "hold":
             for k, plant in enumerate(self.model.pv):
                 if d.pv_command[k] and d.pv_q_kvar is not None:
-                    commands.append(m.PvCommand(cmd_id=f"{s.agent_id}:{t}:{plant.id}", plant_id=plant.id,
-                                                q_kvar=_round(d.pv_q_kvar[k], 3), **common))
+                    commands.append(m.PvCommand(plant_id=plant.id, q_kvar=_round(d.pv_q_kvar[k], 3),
+                                                **header(plant.id)))
             for r, reg in enumerate(self.model.regulators):
                 if not d.reg_command[r]:
                     continue
@@ -155,8 +159,7 @@ class DecisionMaker:
                     action = m.TapAction(tap=int(d.reg_tap[r]))
                 else:
                     continue
-                commands.append(m.RegCommand(cmd_id=f"{s.agent_id}:{t}:{reg.id}", regulator_id=reg.id,
-                                             action=action, **common))
+                commands.append(m.RegCommand(regulator_id=reg.id, action=action, **header(reg.id)))
         else:
             self.holds += 1
         self.commands_sent += len(commands)
@@ -272,7 +275,8 @@ def run_agent(model: CvvcModel, settings: AgentSettings, bus, *, stop: threading
                     next_status = now + 1.0
                     status_seq += 1
                     since = now - last_frame_wall
-                    state = "stale" if since > settings.stale_after_s else ("starting" if not last_frame_t_ns else "ok")
+                    state: Literal["ok", "stale", "starting"] = (
+                        "stale" if since > settings.stale_after_s else ("starting" if not last_frame_t_ns else "ok"))
                     rejected = dict(inbox.rejects.by_kind())
                     for k, n in maker.aligner.rejected.items():
                         rejected[k] = rejected.get(k, 0) + n
