@@ -64,6 +64,10 @@ DEFAULT_SOFT_ALPHA = 1.0
 DEFAULT_SOFT_BETA_PER_PU2 = 1e6
 
 _PCT_PER_PU = 100.0
+#: Largest problem kept as a dense matrix as well, for the active-set polish (whose cost grows with the
+#: number of variables times the square of the active rows): variables, and rows x variables (16 MB).
+DENSE_MAX_VARS = 200
+DENSE_LIMIT = 2_000_000
 
 
 def _vec(name: str, value, n: int, dtype=float) -> np.ndarray:
@@ -217,7 +221,7 @@ class CvvcQp:
     q_rating_kvar: np.ndarray
     cost_scale: float
     dv_dtap_pct: np.ndarray  # (N, R) voltage-row coefficient of a tap step [%/step]
-    a_dense: np.ndarray  # ``A`` as a dense array (small), for the active-set polish
+    a_dense: np.ndarray | None  # ``A`` as a dense array when small (the active-set polish needs it), else None
     p_diag: np.ndarray  # diagonal of ``P``
     fixed_d_tap: np.ndarray | None = None
 
@@ -340,9 +344,7 @@ def build_cvvc_qp(inputs: CvvcInputs, *, soft: bool | np.ndarray, fixed_d_tap: n
     if with_taps:
         blocks += [s_t, -s_t]
     blocks += [s_q, -s_q]
-    if n_vio:
-        blocks.append(-np.eye(n)[:, soft_idx])
-    a_volt = np.hstack(blocks)
+    a_act = np.hstack(blocks)  # (N, n_tap + 2K): the action columns, dense
     v_base = _PCT_PER_PU * inputs.v0_pu - s_q @ (inputs.q0_kvar / rating)
     if not with_taps:
         v_base = v_base + s_t @ np.asarray(fixed_d_tap, float)
@@ -364,17 +366,35 @@ def build_cvvc_qp(inputs: CvvcInputs, *, soft: bool | np.ndarray, fixed_d_tap: n
     lo.append(np.concatenate([np.maximum(q_min, 0.0), np.maximum(-q_max, 0.0)]))
     hi.append(np.concatenate([np.maximum(q_max, 0.0), np.maximum(-q_min, 0.0)]))
     n_bounded = n_tap + 2 * k
-    bounds = np.hstack([np.eye(n_bounded), np.zeros((n_bounded, n_vio))])
-
-    a_dense = np.vstack([a_volt, bounds])
-    a_dense.flags.writeable = False
+    m = n + n_bounded
+    if n_var <= DENSE_MAX_VARS and m * n_var <= DENSE_LIMIT:
+        # Small (the usual case): one dense matrix, kept for the active-set polish.
+        full = np.zeros((m, n_var))
+        full[:n, :n_bounded] = a_act
+        full[n + np.arange(n_bounded), np.arange(n_bounded)] = 1.0
+        if n_vio:
+            full[soft_idx, n_bounded + np.arange(n_vio)] = -1.0
+        full.flags.writeable = False
+        a_dense: np.ndarray | None = full
+        a_matrix = _dense_to_csc(full)
+    else:
+        # Large (every node of a big feeder, soft form): sparse only; a dense copy could take gigabytes.
+        a_dense = None
+        vio_block = sp.csr_matrix((-np.ones(n_vio), (soft_idx, np.arange(n_vio))), shape=(n, n_vio))
+        a_matrix = sp.vstack(
+            [
+                sp.hstack([sp.csr_matrix(a_act), vio_block]),
+                sp.hstack([sp.identity(n_bounded, format="csr"), sp.csr_matrix((n_bounded, n_vio))]),
+            ],
+            format="csc",
+        )
     p_diag.flags.writeable = False
     return CvvcQp(
         soft_nodes=soft_nodes,
         layout=layout,
         P=_diag_csc(p_diag),
         c=c,
-        A=_dense_to_csc(a_dense),
+        A=a_matrix,
         lower=np.concatenate(lo),
         upper=np.concatenate(hi),
         q_rating_kvar=rating,

@@ -67,6 +67,11 @@ OSQP_SETTINGS: Mapping[str, object] = MappingProxyType(
         "warm_starting": True,
     }
 )
+#: Problems too large for the dense active-set polish (soft form over many nodes): OSQP's own polishing,
+#: tolerance 1e-4 in scaled units (1e-6 pu of voltage).
+LARGE_OSQP_SETTINGS: Mapping[str, object] = MappingProxyType(
+    {**OSQP_SETTINGS, "polishing": True, "eps_abs": 1e-4, "eps_rel": 1e-4}
+)
 #: Iteration budget of a rounding candidate's Q re-solve once a feasible candidate is known (before that,
 #: ``MAX_ITER``); a candidate not solved within it is skipped: it could only have improved the cost.
 MAX_ITER_RESOLVE = 400
@@ -74,6 +79,8 @@ MAX_ITER_RESOLVE = 400
 FIRST_CHUNK_ITER = 25
 #: Iteration budget of one solve (all chunks) [ADMM iterations].
 MAX_ITER = 4000
+#: Largest active set the polish solves (its cost grows with the cube); larger ones are left to ADMM.
+POLISH_MAX_ACTIVE = 300
 #: Regularisation of the polish system (keeps it solvable with dependent active rows).
 POLISH_REG = 1e-10
 #: Active-set repair steps per polish after an ADMM chunk, and from a warm start (each: one small dense
@@ -170,8 +177,9 @@ class _Run:
 def _setup(qp: CvvcQp) -> osqp.OSQP | None:
     """An OSQP solver set up on ``qp`` with the fixed settings, or ``None`` if OSQP refuses the data."""
     solver = osqp.OSQP(algebra="builtin")  # naming it skips a slow probe of optional algebras
+    settings = OSQP_SETTINGS if qp.a_dense is not None else LARGE_OSQP_SETTINGS
     try:
-        solver.setup(qp.P, qp.c, qp.A, qp.lower, qp.upper, **OSQP_SETTINGS)
+        solver.setup(qp.P, qp.c, qp.A, qp.lower, qp.upper, **settings)
     except (ValueError, osqp.OSQPException):
         return None
     return solver
@@ -197,7 +205,7 @@ def _warm_polish(
     then one small linear solve replaces the whole ADMM run.
     """
     n, m = qp.layout.n, qp.A.shape[0]
-    if x0 is None or y0 is None or x0.shape != (n,) or y0.shape != (m,) or not np.any(y0):
+    if x0 is None or y0 is None or x0.shape != (n,) or y0.shape != (m,) or not np.any(y0) or qp.a_dense is None:
         return None
     a_dense, p_diag = qp.a_dense, qp.p_diag
     polished = _polish(a_dense, p_diag, qp.c, lo, hi, x0, y0, WARM_REPAIR_STEPS)
@@ -250,11 +258,12 @@ def _osqp_run(
         y = np.asarray(res.y, float)
         if not (x.shape == (n,) and np.all(np.isfinite(x)) and np.all(np.isfinite(y))):
             return _Run(False, False, f"{status_name} with non-finite iterate", np.zeros(n), np.zeros(m), total)
-        if _kkt_ok(a_dense, p_diag, qp.c, lo, hi, x, y):
-            return _Run(True, False, status_name, x, y, total)
-        polished = _polish(a_dense, p_diag, qp.c, lo, hi, x, y)
-        if polished is not None and _kkt_ok(a_dense, p_diag, qp.c, lo, hi, *polished):
-            return _Run(True, False, status_name + "+polish", polished[0], polished[1], total)
+        if a_dense is not None:
+            if _kkt_ok(a_dense, p_diag, qp.c, lo, hi, x, y):
+                return _Run(True, False, status_name, x, y, total)
+            polished = _polish(a_dense, p_diag, qp.c, lo, hi, x, y)
+            if polished is not None and _kkt_ok(a_dense, p_diag, qp.c, lo, hi, *polished):
+                return _Run(True, False, status_name + "+polish", polished[0], polished[1], total)
         if status not in (
             osqp.SolverStatus.OSQP_MAX_ITER_REACHED,
             osqp.SolverStatus.OSQP_SOLVED,
@@ -277,6 +286,8 @@ def _equality_qp(
     on the active rows (the small regularisation keeps it solvable when active rows are dependent), then
     ``x = -P^-1 (c + A'y)``.
     """
+    if act.size > POLISH_MAX_ACTIVE:
+        return None  # a large degenerate active set: the dense solve would cost more than ADMM
     a_act = a[act]
     scaled = a_act / p_diag
     m = scaled @ a_act.T
@@ -611,7 +622,7 @@ def _dual_bound(qp: CvvcQp, lo: np.ndarray, hi: np.ndarray, y: np.ndarray | None
     """
     if y is None or y.shape != lo.shape:
         return -np.inf
-    grad = qp.c + qp.a_dense.T @ y
+    grad = qp.c + (qp.a_dense.T @ y if qp.a_dense is not None else qp.A.T @ y)
     support = np.where(y > 0.0, y * hi, 0.0) + np.where(y < 0.0, y * lo, 0.0)
     return float(qp.cost_scale * (-0.5 * np.sum(grad**2 / qp.p_diag) - np.sum(support)))
 
@@ -635,7 +646,7 @@ def _row_ranges(qp: CvvcQp) -> tuple[np.ndarray, np.ndarray]:
     """Lowest and highest value each voltage row can take over the variable box (bound rows)."""
     rows = qp.voltage_rows
     nb = qp.A.shape[0] - rows.stop  # one identity bound row per tap/Q variable, in variable order
-    dense = qp.a_dense[rows, :nb]
+    dense = qp.a_dense[rows, :nb] if qp.a_dense is not None else qp.A[: rows.stop, :nb].toarray()
     lb, ub = qp.lower[rows.stop :], qp.upper[rows.stop :]
     return np.minimum(dense * lb, dense * ub).sum(axis=1), np.maximum(dense * lb, dense * ub).sum(axis=1)
 
