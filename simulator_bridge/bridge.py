@@ -71,6 +71,7 @@ _NS = 1_000_000_000
 _LOCAL_TZ = dt.timezone(dt.timedelta(hours=-5))  # the profiles' fixed local standard time (UTC-5)
 _POLL_S = 0.05  # longest a wait goes without checking the stop event [s]
 _HANDLED_MEMORY = 10_000  # cmd_ids remembered for matching decisions
+_STARTUP_PROBE_S = 1.0  # bounded look for an agent already alive, and for its subscription, at startup [s]
 _DRAIN_MAX = 1000  # queued items handled in one go before the clock and the stop event are looked at again
 
 
@@ -738,11 +739,7 @@ def run_bridge(config: BridgeConfig, bus: BusConfig, *, stop: threading.Event | 
 
 def _loop(rt: _Runtime, stop: threading.Event, on_ready: Any) -> BridgeSummary:
     c = rt.config
-    if c.wait_agent_s > 0:
-        deadline = time.monotonic() + c.wait_agent_s
-        rt.serve(deadline, stop, lambda: rt.agent_alive)
-        if rt.agent_alive:
-            rt.pub_head.wait_matched(max(deadline - time.monotonic(), 0.0))
+    _startup(rt, stop)
     if on_ready is not None:
         on_ready()
     rt.pub_status.put(rt.status(done=False))
@@ -783,6 +780,22 @@ def _loop(rt: _Runtime, stop: threading.Event, on_ready: Any) -> BridgeSummary:
         oracle_replies=rt.oracle_replies, oracle_rejected=rt.oracle_rejected, realtime_late_steps=rt.late_steps,
         round_trip_p50_s=_percentile(rt.round_trips, 50), round_trip_p99_s=_percentile(rt.round_trips, 99),
         agent_alive=rt.agent_alive, stopped_early=rt.steps < c.steps, metrics=final)
+
+
+def _startup(rt: _Runtime, stop: threading.Event) -> None:
+    """Before the first step: learn whether an agent is alive (waiting up to ``wait_agent_s`` for one), and
+    if so let its subscription of the head frames reach this session (bounded), so step 0 is not lost.
+    """
+    c = rt.config
+    deadline = time.monotonic() + c.wait_agent_s
+    if c.wait_agent_s > 0:
+        rt.serve(deadline, stop, lambda: rt.agent_alive)
+    if not rt.agent_alive:  # the watcher's history may still be on its way: ask once, bounded
+        key = f"{keys.ROOT}/{rt.fid}/alive/agent/*"
+        if any(r.ok is not None for r in rt.session.liveliness().get(key, timeout=_STARTUP_PROBE_S)):
+            wait_for(lambda: rt.agent_alive, _STARTUP_PROBE_S)
+    if rt.agent_alive:
+        rt.pub_head.wait_matched(max(deadline - time.monotonic(), _STARTUP_PROBE_S))
 
 
 def _await_decision(rt: _Runtime, t_ns: int, stop: threading.Event) -> None:

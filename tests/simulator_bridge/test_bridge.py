@@ -332,8 +332,8 @@ def test_every_bad_command_is_rejected_with_a_reason_and_counted(
 
 def test_oracle_answers_from_the_stepping_thread(client: Client, router_endpoint: str, device_map_path: Path,
                                                  cache_dir: Path) -> None:
-    client.be_agent()
-    th, stop, out = _bridge_thread(_config(device_map_path, cache_dir, steps=1), router_endpoint)
+    client.be_agent()  # alive before the bridge starts, and the bridge is not told to wait for it:
+    th, stop, out = _bridge_thread(_config(device_map_path, cache_dir, steps=1, wait_agent_s=0.0), router_endpoint)
     try:
         t0 = client.head().t_ns
         replies = list(client.session.get(f"cvvc/{FEEDER}/sim/oracle",
@@ -353,6 +353,7 @@ def test_oracle_answers_from_the_stepping_thread(client: Client, router_endpoint
         at_plant = [rep.dv_dq_pu_per_kvar[i][k] for i, name in enumerate(rep.node_names) if name.startswith(bus + ".")]
         assert at_plant and min(at_plant) > 0
     assert summary.oracle_replies == 1 and summary.lockstep_misses == 0
+    assert summary.lockstep_skipped == 0 and summary.decisions == 1  # it found the agent before step 0
 
 
 def _bridge_cmd(endpoint: str, device_map_path: Path, cache_dir: Path, *extra: str) -> list[str]:
