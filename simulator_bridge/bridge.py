@@ -243,12 +243,12 @@ class _FramePublisher:
 def _check_finite_step(res: Any) -> None:
     """Raise ``BridgeError`` if a step's readings or truth hold NaN or inf (a power flow gone wrong).
 
-    One sum per array: NaN and inf propagate through a sum, and these magnitudes cannot overflow it.
+    One vectorised pass over every array of the step (a few µs).
     """
     rd = res.readings
-    total = sum(float(np.sum(getattr(rd, name))) for name in _READING_FIELDS)
-    total += float(np.sum(res.v_pu)) + float(np.sum(res.pv_q_kvar)) + float(np.sum(res.pv_p_kw))
-    if not math.isfinite(total):
+    arrays = [np.ravel(getattr(rd, name)) for name in _READING_FIELDS]
+    arrays += [np.ravel(res.v_pu), np.ravel(res.pv_q_kvar), np.ravel(res.pv_p_kw)]
+    if not np.isfinite(np.concatenate(arrays).astype(float, copy=False)).all():
         raise BridgeError(f"step at t_ns={res.t_ns}: the power flow produced non-finite values; the "
                           "feeder or its profiles are broken (check `cvvc feeder info`)")
 
