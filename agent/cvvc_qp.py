@@ -66,7 +66,7 @@ DEFAULT_SOFT_BETA_PER_PU2 = 1e6
 _PCT_PER_PU = 100.0
 #: Largest problem kept as a dense matrix as well, for the active-set polish (whose cost grows with the
 #: number of variables times the square of the active rows): variables, and rows x variables (16 MB).
-DENSE_MAX_VARS = 200
+DENSE_MAX_VARS = 400
 DENSE_LIMIT = 2_000_000
 
 
@@ -212,6 +212,7 @@ class CvvcQp:
     """
 
     soft_nodes: np.ndarray  # (N,) bool: nodes with a violation variable (eq. 16-17); the others are hard
+    nodes: np.ndarray  # (n,) sorted indices of the critical nodes that have a voltage row, in row order
     layout: VariableLayout
     P: sp.csc_matrix
     c: np.ndarray
@@ -229,6 +230,11 @@ class CvvcQp:
     def soft(self) -> bool:
         """Some node has a violation variable (eq. 16-17 form, fully or partly)."""
         return bool(self.soft_nodes.any())
+
+    @property
+    def soft_rows(self) -> np.ndarray:
+        """(n,) bool: which voltage rows (in row order) have a violation variable."""
+        return self.soft_nodes[self.nodes]
 
     @property
     def voltage_rows(self) -> slice:
@@ -289,7 +295,13 @@ def _diag_csc(d: np.ndarray) -> sp.csc_matrix:
     return sp.csc_matrix((d.astype(float), index[:n], index), shape=(n, n))
 
 
-def build_cvvc_qp(inputs: CvvcInputs, *, soft: bool | np.ndarray, fixed_d_tap: np.ndarray | None = None) -> CvvcQp:
+def build_cvvc_qp(
+    inputs: CvvcInputs,
+    *,
+    soft: bool | np.ndarray,
+    fixed_d_tap: np.ndarray | None = None,
+    nodes: np.ndarray | None = None,
+) -> CvvcQp:
     """Build the scaled CVVC QP, paper eq. (9)-(15) (``soft=False``) or (16)-(17) (``soft=True``).
 
     Parameters
@@ -300,19 +312,24 @@ def build_cvvc_qp(inputs: CvvcInputs, *, soft: bool | np.ndarray, fixed_d_tap: n
         nodes that no action can bring within the limits, e.g. a feeder head above 1.04 pu).
     fixed_d_tap : (R,) integer tap changes to hold fixed; the problem then has only Q (and violation)
         variables: the "re-solve Q with taps fixed" step after rounding.
+    nodes : indices of the critical nodes that get a voltage row (default: all). A subset is a relaxation
+        of the full problem; ``agent.solve`` adds the rows of violated nodes until none is left.
 
     Returns
     -------
     The problem; its matrices depend on ``inputs`` and ``soft`` only (not on ``fixed_d_tap``), so one
     solver set-up serves every rounding candidate by updating ``lower`` and ``upper``.
     """
-    n, k, r = inputs.n_nodes, inputs.n_pv, inputs.n_reg
+    k, r = inputs.n_pv, inputs.n_reg
     rating = inputs.q_rating_kvar
     with_taps = fixed_d_tap is None
     n_tap = 2 * r if with_taps else 0
-    soft_nodes = np.broadcast_to(np.asarray(soft, bool), (n,)).copy()
+    soft_nodes = np.broadcast_to(np.asarray(soft, bool), (inputs.n_nodes,)).copy()
     soft_nodes.flags.writeable = False
-    soft_idx = np.flatnonzero(soft_nodes)
+    rows_of = np.arange(inputs.n_nodes) if nodes is None else np.unique(np.asarray(nodes, int))
+    rows_of.flags.writeable = False
+    n = rows_of.size  # voltage rows
+    soft_idx = np.flatnonzero(soft_nodes[rows_of])  # rows (not nodes) with a violation variable
     n_vio = soft_idx.size
     n_var = n_tap + 2 * k + n_vio
     tap_up = slice(0, r) if with_taps else None
@@ -338,14 +355,14 @@ def build_cvvc_qp(inputs: CvvcInputs, *, soft: bool | np.ndarray, fixed_d_tap: n
         p_diag[vio] = 2.0 * inputs.soft_beta_per_pu2 / (cost_scale * _PCT_PER_PU**2)
 
     # Voltage rows (eq. 13 / 17) in %.
-    s_q = _PCT_PER_PU * inputs.dv_dq_pu_per_kvar * rating  # (N, K) % per rating
-    s_t = _PCT_PER_PU * inputs.dv_dtap_pu  # (N, R) % per step
+    s_q = _PCT_PER_PU * inputs.dv_dq_pu_per_kvar[rows_of] * rating  # (n, K) % per rating
+    s_t = _PCT_PER_PU * inputs.dv_dtap_pu[rows_of]  # (n, R) % per step
     blocks = []
     if with_taps:
         blocks += [s_t, -s_t]
     blocks += [s_q, -s_q]
     a_act = np.hstack(blocks)  # (N, n_tap + 2K): the action columns, dense
-    v_base = _PCT_PER_PU * inputs.v0_pu - s_q @ (inputs.q0_kvar / rating)
+    v_base = _PCT_PER_PU * inputs.v0_pu[rows_of] - s_q @ (inputs.q0_kvar / rating)
     if not with_taps:
         v_base = v_base + s_t @ np.asarray(fixed_d_tap, float)
     v_lo = _PCT_PER_PU * inputs.v_min_pu - v_base
@@ -391,6 +408,7 @@ def build_cvvc_qp(inputs: CvvcInputs, *, soft: bool | np.ndarray, fixed_d_tap: n
     p_diag.flags.writeable = False
     return CvvcQp(
         soft_nodes=soft_nodes,
+        nodes=rows_of,
         layout=layout,
         P=_diag_csc(p_diag),
         c=c,

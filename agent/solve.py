@@ -19,6 +19,7 @@ from the ``warm_start`` argument. Same inputs -> bit-identical solution (timings
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import time
 from collections.abc import Mapping
@@ -44,8 +45,9 @@ __all__ = [
 ]
 
 #: Fixed OSQP settings (units of the scaled problem: voltages in %, Q in fractions of rating, taps in steps).
-#: ``adaptive_rho=0`` and a fixed ``rho``: ADMM's path depends only on the data. OSQP's own polishing is
-#: replaced by ours after every chunk of ``max_iter`` iterations (see ``_osqp_run``); no wall-clock limit.
+#: Rho starts at 1 and adapts on a fixed iteration interval (never the time-based rule): ADMM's path depends
+#: only on the data. OSQP's own polishing is replaced by ours after every chunk of ``max_iter`` iterations
+#: (see ``_osqp_run``); no wall-clock limit.
 #: ``eps_prim_inf`` is loose: proving a rounding candidate infeasible took up to 4000 iterations at 1e-6 and
 #: about 10x fewer at 1e-3; a false "infeasible" could only cost optimality (a candidate skipped, or the
 #: soft form), and none was seen on the benchmark problems.
@@ -57,7 +59,8 @@ OSQP_SETTINGS: Mapping[str, object] = MappingProxyType(
         "eps_prim_inf": 1e-3,
         "eps_dual_inf": 1e-6,
         "rho": 1.0,
-        "adaptive_rho": 0,
+        "adaptive_rho": 1,  # rho adapted every 50 iterations (iteration-based, hence deterministic)
+        "adaptive_rho_interval": 50,
         "sigma": 1e-6,
         "alpha": 1.6,
         "max_iter": 25,  # first chunk; see FIRST_CHUNK_ITER
@@ -87,6 +90,8 @@ POLISH_REG = 1e-10
 #: solve, about 25 us); from a warm start the active set is usually one or two rows away.
 REPAIR_STEPS = 3
 WARM_REPAIR_STEPS = 6
+#: OSQP tolerance accepted after half the iteration budget (scaled units: 1e-6 pu of voltage).
+LOOSE_EPS = 1e-4
 #: Tolerance of the KKT optimality check in scaled units (% of voltage, fraction of rating, steps).
 KKT_TOL = 1e-6
 #: Up to this many fractional taps, every floor/ceil combination is tried (2**3 = 8 Q re-solves).
@@ -97,6 +102,13 @@ FRACTIONAL_TOL_STEPS = 1e-4
 INTEGRAL_TOL_STEPS = 1e-6
 #: Stop trying rounding candidates once one scores within this fraction of the relaxed objective.
 ROUNDING_GAP_REL = 0.01
+#: Row generation for large problems (every node of a big feeder): problems up to ROWGEN_MIN_NODES critical
+#: nodes get every row at once; larger ones start with the ROWGEN_START nodes closest to a limit and add
+#: up to ROWGEN_ADD violated nodes (beyond ROWGEN_TOL_PU) per round.
+ROWGEN_MIN_NODES = 100
+ROWGEN_START = 50
+ROWGEN_ADD = 100
+ROWGEN_TOL_PU = 1e-7
 #: Q set points are rounded to this many decimals of a kvar.
 Q_DECIMALS = 3
 #: Voltage-limit tolerance when checking a solution against the linear model [pu].
@@ -133,6 +145,7 @@ class CvvcSolution:
     relaxed_q_kvar : (K,) relaxed Q set points [kvar].
     relaxed_form : ``hard`` or ``soft``: which relaxation was solved (``none`` on early hold).
     relaxed_x, relaxed_y : primal and dual of the relaxation in scaled units (for warm starts).
+    relaxed_problem : the relaxation as finally solved (its rows: see ``CvvcQp.nodes``), None on early hold.
     candidates_tried : rounding candidates re-solved.
     seconds : stage timings (not deterministic).
     """
@@ -150,6 +163,7 @@ class CvvcSolution:
     relaxed_form: Literal["hard", "soft", "none"]
     relaxed_x: np.ndarray
     relaxed_y: np.ndarray
+    relaxed_problem: CvvcQp | None
     candidates_tried: int
     seconds: StageSeconds
 
@@ -241,10 +255,16 @@ def _osqp_run(
     except (ValueError, osqp.OSQPException) as e:
         return _Run(False, False, f"warm start failed: {e}", np.zeros(n), np.zeros(m), 0)
     total = 0
+    loosened = False
     chunk = FIRST_CHUNK_ITER
     status_name = "OSQP_UNSOLVED"
     while total < max_iter:
         try:
+            if total >= max_iter // 2 and not loosened:
+                # Half the budget spent without a certified answer (degenerate or badly conditioned, e.g.
+                # a soft form over many nodes): accept OSQP's own convergence at a looser tolerance.
+                solver.update_settings(eps_abs=LOOSE_EPS, eps_rel=LOOSE_EPS)
+                loosened = True
             solver.update_settings(max_iter=min(chunk, max_iter - total))
             res = solver.solve(raise_error=False)
         except (ValueError, osqp.OSQPException) as e:
@@ -405,25 +425,29 @@ def _hold(inputs: CvvcInputs, reason: str, iterations: int, seconds: StageSecond
         relaxed_form="none",
         relaxed_x=np.zeros(0),
         relaxed_y=np.zeros(0),
+        relaxed_problem=None,
         candidates_tried=0,
         seconds=seconds,
     )
 
 
-def _warm_vectors(qp: CvvcQp, warm: CvvcSolution | None, form: str) -> tuple[np.ndarray | None, np.ndarray | None]:
-    """Warm start from the previous solution's relaxation when it had the same form and size.
+def _warm_source(warm: CvvcSolution | None, inputs: CvvcInputs) -> tuple[CvvcQp, np.ndarray, np.ndarray] | None:
+    """Warm start from the previous interval's relaxation, on the same feeder (same node count and devices).
 
     Tap changes are relative to the present taps, so the previous tap *changes* are not a good guess: they
-    start at zero; Q (absolute set points) and the duals are reused.
+    start at zero; Q (absolute set points), violations and multipliers are reused.
     """
-    if warm is None or warm.relaxed_form != form or warm.relaxed_x.shape != (qp.layout.n,):
-        return None, None
-    x0 = warm.relaxed_x.copy()
-    if qp.layout.tap_up is not None and qp.layout.tap_down is not None:
-        x0[qp.layout.tap_up] = 0.0
-        x0[qp.layout.tap_down] = 0.0
-    y0 = warm.relaxed_y if warm.relaxed_y.shape == (qp.A.shape[0],) else None
-    return x0, y0
+    if warm is None or warm.relaxed_problem is None or warm.relaxed_x.size == 0:
+        return None
+    prev = warm.relaxed_problem
+    if prev.soft_nodes.size != inputs.n_nodes or prev.q_rating_kvar.size != inputs.n_pv:
+        return None
+    if prev.layout.tap_up is None or prev.layout.tap_up.stop != inputs.n_reg:
+        return None
+    x = warm.relaxed_x.copy()
+    x[prev.layout.tap_up] = 0.0
+    x[prev.layout.tap_down] = 0.0
+    return prev, x, warm.relaxed_y
 
 
 def _unreachable_rows(qp: CvvcQp) -> np.ndarray:
@@ -464,17 +488,16 @@ def solve_cvvc(inputs: CvvcInputs, *, warm_start: CvvcSolution | None = None) ->
     # infeasible or unsolved, the soft form at every node.
     qp, reason = hard, ""
     unreachable = _unreachable_rows(hard)
+    soft_mask = np.zeros(inputs.n_nodes, bool)
+    soft_mask[unreachable] = True
+    start = _start_nodes(inputs, soft_mask, warm_start)
     if unreachable.size:
         names = ", ".join(str(i) for i in unreachable[:5]) + (", ..." if unreachable.size > 5 else "")
         reason = (
             f"{unreachable.size} critical node(s) cannot reach the limits with the actions available (index "
             f"{names}): their violation is minimised (eq. 17), hard limits elsewhere"
         )
-        mask = np.zeros(inputs.n_nodes, bool)
-        mask[unreachable] = True
-        qp = build_cvvc_qp(inputs, soft=mask)
-        x0, y0 = _warm_vectors(qp, warm_start, "soft")
-        run = _osqp(qp, x0, y0)
+        run, qp = _solve_rows(inputs, soft_mask, None, start, _warm_source(warm_start, inputs))
         iterations += run.iterations
         if not run.ok:
             reason += "; the remaining hard limits are infeasible too: soft form at every node"
@@ -482,8 +505,7 @@ def solve_cvvc(inputs: CvvcInputs, *, warm_start: CvvcSolution | None = None) ->
         # Every cost is >= 0 and every variable >= 0, so x = 0 minimises the objective: nothing to solve.
         run = _Run(True, False, "presolve: no action needed", np.zeros(hard.layout.n), np.zeros(hard.A.shape[0]), 0)
     else:
-        x0, y0 = _warm_vectors(hard, warm_start, "hard")
-        run = _osqp(hard, x0, y0)
+        run, qp = _solve_rows(inputs, soft_mask, None, start, _warm_source(warm_start, inputs))
         iterations += run.iterations
         if not run.ok:
             reason = (
@@ -492,9 +514,8 @@ def solve_cvvc(inputs: CvvcInputs, *, warm_start: CvvcSolution | None = None) ->
                 else f"hard relaxation not solved ({run.status}): soft form (eq. 17) used"
             )
     if not run.ok:
-        qp = build_cvvc_qp(inputs, soft=True)
-        x0, y0 = _warm_vectors(qp, warm_start, "soft")
-        run = _osqp(qp, x0, y0)
+        all_soft = np.ones(inputs.n_nodes, bool)
+        run, qp = _solve_rows(inputs, all_soft, None, start, _warm_source(warm_start, inputs))
         iterations += run.iterations
     form: Literal["hard", "soft"] = "soft" if qp.soft else "hard"
     t_relaxed = time.perf_counter()
@@ -516,31 +537,32 @@ def solve_cvvc(inputs: CvvcInputs, *, warm_start: CvvcSolution | None = None) ->
     # objective or below the next candidate's bound.
     candidates = _candidates(d_rel)
     bound = qp.objective(run.x)
-    fixed = build_cvvc_qp(inputs, soft=qp.soft_nodes, fixed_d_tap=candidates[0])
+    fixed = build_cvvc_qp(inputs, soft=qp.soft_nodes, fixed_d_tap=candidates[0], nodes=qp.nodes)
     hard_nodes = ~qp.soft_nodes
-    x_q0, y_q0 = _q_start(fixed, qp, run.x, run.y)
-    row_lo, row_hi = _row_ranges(fixed)
-    rows = fixed.voltage_rows
+    x_q0, y_q0 = _remap(qp, run.x, run.y, fixed)
     plan = []
     for index, d_int in enumerate(candidates):
         tap_prox = 0.5 * PROX_WEIGHT * fixed.cost_scale * float(d_int @ d_int)
         tap_cost = float(inputs.cost_per_tap @ np.abs(d_int)) + tap_prox
         lo, hi = fixed.bounds_with_d_tap(d_int)
         lower_bound = tap_cost + _dual_bound(fixed, lo, hi, y_q0)
-        plan.append((lower_bound, index, d_int, tap_cost, lo, hi))
+        plan.append((lower_bound, index, d_int, tap_cost))
     plan.sort(key=lambda item: (item[0], item[1]))
     best = None  # (score, d_int, q_new_kvar)
     solver = None
+    row_ranges = _row_ranges(fixed)
     tried = 0
-    for lower_bound, _, d_int, tap_cost, lo, hi in plan:
+    for lower_bound, _, d_int, tap_cost in plan:
         if best is not None and (best[0] <= lower_bound or best[0] <= bound + ROUNDING_GAP_REL * abs(bound)):
             break  # no remaining candidate can beat the best by more than the tolerance
         if np.max(np.abs(d_int - d_rel), initial=0.0) <= INTEGRAL_TOL_STEPS:
             q_new = np.clip(q_rel, inputs.q_min_kvar, inputs.q_max_kvar)  # relaxed optimum is integral
-            x_q = x_q0
+            score = qp.objective(run.x)
         else:
-            out_of_reach = (row_hi < lo[rows] - 1e-9) | (row_lo > hi[rows] + 1e-9)
-            if np.any(out_of_reach & hard_nodes):
+            lo, hi = fixed.bounds_with_d_tap(d_int)
+            rows = fixed.voltage_rows
+            out_of_reach = (row_ranges[1] < lo[rows] - 1e-9) | (row_ranges[0] > hi[rows] + 1e-9)
+            if np.any(out_of_reach & ~fixed.soft_rows):
                 continue  # some hard node cannot meet its limits with these taps, whatever Q does
             res = _warm_polish(fixed, lo, hi, x_q0, y_q0)
             if res is None:
@@ -554,12 +576,24 @@ def solve_cvvc(inputs: CvvcInputs, *, warm_start: CvvcSolution | None = None) ->
             tried += 1
             if not res.ok:
                 continue
+            outside = _outside_violations(inputs, fixed, d_int, fixed.q_kvar(res.x))
+            if outside.size:
+                # Nodes without a row are violated: add their rows and re-solve this candidate; the larger
+                # problem serves the following candidates too.
+                res, bigger = _solve_rows(
+                    inputs, qp.soft_nodes, d_int, np.union1d(fixed.nodes, outside), (fixed, res.x, res.y)
+                )
+                iterations += res.iterations
+                fixed, solver = bigger, None
+                row_ranges = _row_ranges(fixed)
+                x_q0, y_q0 = _remap(qp, run.x, run.y, fixed)
+                if not res.ok:
+                    continue
             q_new = np.clip(fixed.q_kvar(res.x), inputs.q_min_kvar, inputs.q_max_kvar)
-            x_q = res.x
+            score = fixed.objective(res.x) + tap_cost
         v_new = inputs.predict_v_pu(d_int, q_new)
         if np.max(_violation_pu(inputs, v_new)[hard_nodes], initial=0.0) > V_TOL_PU:
             continue
-        score = fixed.objective(x_q) + tap_cost
         if best is None or score < best[0]:
             best = (score, d_int, q_new)
 
@@ -609,6 +643,7 @@ def solve_cvvc(inputs: CvvcInputs, *, warm_start: CvvcSolution | None = None) ->
         relaxed_form=form,
         relaxed_x=run.x,
         relaxed_y=run.y,
+        relaxed_problem=qp,
         candidates_tried=tried,
         seconds=seconds,
     )
@@ -627,19 +662,97 @@ def _dual_bound(qp: CvvcQp, lo: np.ndarray, hi: np.ndarray, y: np.ndarray | None
     return float(qp.cost_scale * (-0.5 * np.sum(grad**2 / qp.p_diag) - np.sum(support)))
 
 
-def _q_start(
-    fixed: CvvcQp, relaxed: CvvcQp, x_rel: np.ndarray, y_rel: np.ndarray
-) -> tuple[np.ndarray, np.ndarray | None]:
-    """Start the Q re-solve from the relaxation's Q, violations and the duals of the rows they share."""
-    x0 = np.zeros(fixed.layout.n)
-    x0[fixed.layout.q_inj] = x_rel[relaxed.layout.q_inj]
-    x0[fixed.layout.q_abs] = x_rel[relaxed.layout.q_abs]
-    if fixed.layout.vio is not None and relaxed.layout.vio is not None:
-        x0[fixed.layout.vio] = x_rel[relaxed.layout.vio]
-    n = fixed.voltage_rows.stop
-    n_tap_rows = relaxed.A.shape[0] - fixed.A.shape[0]  # the tap bound rows sit between voltage and Q rows
-    y0 = np.concatenate([y_rel[:n], y_rel[n + n_tap_rows :]]) if y_rel.size == relaxed.A.shape[0] else None
+def _remap(src: CvvcQp, x: np.ndarray, y: np.ndarray, dst: CvvcQp) -> tuple[np.ndarray, np.ndarray | None]:
+    """Carry a solution of ``src`` over to ``dst`` as a warm start: same variables and rows by node.
+
+    Taps (when both have them) and Q by position, violation variables and voltage-row multipliers by node,
+    zeros for what ``src`` lacks. The multipliers are ``None`` when ``y`` does not fit ``src``.
+    """
+    s_lay, d_lay = src.layout, dst.layout
+    x0 = np.zeros(d_lay.n)
+    both_taps = s_lay.tap_up is not None and d_lay.tap_up is not None
+    if both_taps:
+        x0[d_lay.tap_up] = x[s_lay.tap_up]
+        x0[d_lay.tap_down] = x[s_lay.tap_down]
+    x0[d_lay.q_inj] = x[s_lay.q_inj]
+    x0[d_lay.q_abs] = x[s_lay.q_abs]
+    if s_lay.vio is not None and d_lay.vio is not None:
+        found, where = _positions(src.nodes[src.soft_rows], dst.nodes[dst.soft_rows])
+        x0[d_lay.vio][found] = x[s_lay.vio][where]
+    if y.shape != (src.A.shape[0],):
+        return x0, None
+    y0 = np.zeros(dst.A.shape[0])
+    n_src, n_dst = src.nodes.size, dst.nodes.size
+    found, where = _positions(src.nodes, dst.nodes)
+    y0[:n_dst][found] = y[:n_src][where]
+    tap_src = 0 if s_lay.tap_up is None else 2 * (s_lay.tap_up.stop - s_lay.tap_up.start)
+    tap_dst = 0 if d_lay.tap_up is None else 2 * (d_lay.tap_up.stop - d_lay.tap_up.start)
+    if both_taps:
+        y0[n_dst : n_dst + tap_dst] = y[n_src : n_src + tap_src]
+    y0[n_dst + tap_dst :] = y[n_src + tap_src :]  # the Q bound rows
     return x0, y0
+
+
+def _positions(src_ids: np.ndarray, dst_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For sorted ids: which ``dst_ids`` occur in ``src_ids`` (mask) and where (indices of those found)."""
+    pos = np.searchsorted(src_ids, dst_ids)
+    inside = pos < src_ids.size
+    found = np.zeros(dst_ids.size, bool)
+    found[inside] = src_ids[pos[inside]] == dst_ids[inside]
+    return found, pos[found]
+
+
+def _outside_violations(inputs: CvvcInputs, qp: CvvcQp, d_tap: np.ndarray, q_kvar: np.ndarray) -> np.ndarray:
+    """Nodes without a row in ``qp`` that the actions would take beyond the limits, worst first (capped)."""
+    violation = _violation_pu(inputs, inputs.predict_v_pu(d_tap, q_kvar))
+    violation[qp.nodes] = 0.0
+    worst = np.flatnonzero(violation > ROWGEN_TOL_PU)
+    return np.sort(worst[np.argsort(-violation[worst], kind="stable")][:ROWGEN_ADD])
+
+
+def _solve_rows(
+    inputs: CvvcInputs,
+    soft: np.ndarray,
+    fixed_d_tap: np.ndarray | None,
+    nodes: np.ndarray | None,
+    source: tuple[CvvcQp, np.ndarray, np.ndarray] | None,
+) -> tuple[_Run, CvvcQp]:
+    """Solve with voltage rows for ``nodes`` only (None: all), adding the rows of violated nodes until none.
+
+    A problem with fewer rows is a relaxation, so a solution that violates no other node's limit is optimal
+    for the full problem (row generation). Rows only grow, so this ends, at the latest with every node.
+    ``source`` is a solved problem to warm-start from.
+    """
+    iterations = 0
+    while True:
+        qp = build_cvvc_qp(inputs, soft=soft, fixed_d_tap=fixed_d_tap, nodes=nodes)
+        x0, y0 = _remap(*source, qp) if source is not None else (None, None)
+        run = _osqp(qp, x0, y0)
+        iterations += run.iterations
+        if not run.ok or qp.nodes.size == inputs.n_nodes:
+            break
+        outside = _outside_violations(inputs, qp, qp.d_tap(run.x), qp.q_kvar(run.x))
+        if outside.size == 0:
+            break
+        nodes = np.union1d(qp.nodes, outside)
+        source = (qp, run.x, run.y)
+    return dataclasses.replace(run, iterations=iterations), qp
+
+
+def _start_nodes(inputs: CvvcInputs, soft: np.ndarray, warm: CvvcSolution | None) -> np.ndarray | None:
+    """The first rows of a large problem, or ``None`` (every node) for problems of the paper's size.
+
+    The nodes closest to (or beyond) a limit, the soft ones, and the rows the previous interval ended with.
+    """
+    if inputs.n_nodes <= ROWGEN_MIN_NODES:
+        return None
+    margin = np.minimum(inputs.v0_pu - inputs.v_min_pu, inputs.v_max_pu - inputs.v0_pu)
+    start = np.argsort(margin, kind="stable")[:ROWGEN_START]
+    start = np.union1d(start, np.flatnonzero(soft))
+    previous = None if warm is None else warm.relaxed_problem
+    if previous is not None and previous.soft_nodes.size == inputs.n_nodes:
+        start = np.union1d(start, previous.nodes)
+    return start
 
 
 def _row_ranges(qp: CvvcQp) -> tuple[np.ndarray, np.ndarray]:
