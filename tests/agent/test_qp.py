@@ -239,3 +239,22 @@ def test_large_soft_problem_stays_sparse_and_is_solved():
     assert sol.status == "soft" and "cannot reach" in sol.reason
     assert np.all(np.isfinite(sol.v_pred_pu)) and np.all(np.isfinite(sol.q_new_kvar))
     assert 0.0 < sol.max_violation_pu < 0.045  # below the worst violation before acting (0.975 - 0.93)
+
+
+def test_row_generation_on_many_nodes_meets_every_limit():
+    # 400 critical nodes: the relaxation starts with the 50 nearest a limit and adds violated ones; an
+    # "optimal" answer must meet the hard limits at every node, with fewer rows than nodes.
+    rng = np.random.default_rng(21)
+    optimal = 0
+    for _ in range(12):
+        inputs = random_cvvc_inputs(rng, n_nodes=400)
+        sol = solve_cvvc(inputs)
+        assert np.all(np.isfinite(sol.v_pred_pu)) and sol.status != "hold", sol.reason
+        if sol.status != "optimal":
+            continue
+        optimal += 1
+        assert sol.max_violation_pu <= V_TOL_PU
+        assert sol.relaxed_problem is not None and sol.relaxed_problem.nodes.size < 400
+        milp = solve_milp_reference(inputs)
+        assert milp.status == "optimal" and sol.cost >= milp.cost * (1 - 1e-4) - 1e-6
+    assert optimal >= 2
