@@ -505,7 +505,7 @@ def solve_cvvc(inputs: CvvcInputs, *, warm_start: CvvcSolution | None = None) ->
         # Every cost is >= 0 and every variable >= 0, so x = 0 minimises the objective: nothing to solve.
         run = _Run(True, False, "presolve: no action needed", np.zeros(hard.layout.n), np.zeros(hard.A.shape[0]), 0)
     else:
-        run, qp = _solve_rows(inputs, soft_mask, None, start, _warm_source(warm_start, inputs))
+        run, qp = _solve_rows(inputs, soft_mask, None, start, _warm_source(warm_start, inputs), hard)
         iterations += run.iterations
         if not run.ok:
             reason = (
@@ -716,6 +716,7 @@ def _solve_rows(
     fixed_d_tap: np.ndarray | None,
     nodes: np.ndarray | None,
     source: tuple[CvvcQp, np.ndarray, np.ndarray] | None,
+    prebuilt: CvvcQp | None = None,
 ) -> tuple[_Run, CvvcQp]:
     """Solve with voltage rows for ``nodes`` only (None: all), adding the rows of violated nodes until none.
 
@@ -725,7 +726,10 @@ def _solve_rows(
     """
     iterations = 0
     while True:
-        qp = build_cvvc_qp(inputs, soft=soft, fixed_d_tap=fixed_d_tap, nodes=nodes)
+        if prebuilt is not None and nodes is None and fixed_d_tap is None and not soft.any():
+            qp, prebuilt = prebuilt, None  # the full hard problem the presolve already built
+        else:
+            qp = build_cvvc_qp(inputs, soft=soft, fixed_d_tap=fixed_d_tap, nodes=nodes)
         x0, y0 = _remap(*source, qp) if source is not None else (None, None)
         run = _osqp(qp, x0, y0)
         iterations += run.iterations
