@@ -103,6 +103,13 @@ def _round(x: float, digits: int = 9) -> float:
     return float(round(float(x), digits))
 
 
+def _within(x: float, lo: float, hi: float, digits: int = 9) -> float:
+    """``_round`` clipped to a schema range: a diagnostic out of its bounds (an estimate of a broken model or of
+    extreme frames) must not make the whole decision undecodable for its receivers.
+    """
+    return min(max(_round(x, digits), lo), hi)
+
+
 class DecisionMaker:
     """Frames in, decision messages out: aligner + controller + message construction. No I/O, no clock.
 
@@ -166,16 +173,18 @@ class DecisionMaker:
         estimates = []
         if d.v_pu is not None:
             pred = d.v_pred_pu if d.v_pred_pu is not None else d.v_pu
-            estimates = [m.NodeEstimate(node=c.name, v_pu=_round(v), v_predicted_pu=_round(p))
+            estimates = [m.NodeEstimate(node=c.name, v_pu=_within(v, 0.0, 3.0), v_predicted_pu=_within(p, 0.0, 3.0))
                          for c, v, p in zip(self.model.critical_nodes, d.v_pu, pred, strict=True)]
-        dv_dq = [] if d.dv_dq_pu_per_kvar is None else [[_round(x, 12) for x in row] for row in d.dv_dq_pu_per_kvar]
+        dv_dq = ([] if d.dv_dq_pu_per_kvar is None
+                 else [[_within(x, -1.0, 1.0, 12) for x in row] for row in d.dv_dq_pu_per_kvar])
         tm = d.timings
         return m.Decision(
             t_ns=t, seq=seq, source=s.agent_id, feeder_id=s.feeder_id, step_t_ns=t, in_reply_to=in_reply_to,
             status=d.status, reason=d.reason[:500], commands=commands, estimates=estimates,
             dv_dq_pu_per_kvar=dv_dq,
-            dv_dtap_pu=[[_round(x, 12) for x in row] for row in self.model.dv_dtap_pu],
-            solver=m.SolverStats(status=d.solver_status, iterations=d.iterations, objective=_round(d.objective),
+            dv_dtap_pu=[[_within(x, -1.0, 1.0, 12) for x in row] for row in self.model.dv_dtap_pu],
+            solver=m.SolverStats(status=d.solver_status, iterations=d.iterations,
+                                 objective=_within(d.objective, -1e12, 1e12),
                                  soft=d.status == "soft"),
             timings=m.Timings(align_s=align_s, estimate_s=tm.estimate_s, solve_s=tm.solve_s, round_s=tm.round_s,
                               total_s=tm.total_s + align_s),
