@@ -174,31 +174,10 @@ def start_step_of(start: str, profile_start_t_ns: int, n_steps: int, step_s: int
 
 
 def cached_profiles(device_map: DeviceMap, engine: Any, *, seed: int, cache_dir: str | Path | None) -> Any:
-    """The feeder's year profiles for ``seed``, cached as ``.npz`` keyed by the map's fingerprint and seed.
+    """The feeder's year profiles for ``seed`` (see ``simulator_bridge.profiles.feeder_profiles``)."""
+    from simulator_bridge.profiles import feeder_profiles
 
-    Same file name and arguments as training's ``load_profiles``, so the two share one cache.
-    """
-    from simulator_bridge.profiles import YearProfiles, make_profiles
-
-    path = None
-    if cache_dir is not None:
-        path = Path(cache_dir) / f"profiles-{device_map.feeder.name}-{device_map.fingerprint()}-{seed}.npz"
-        if path.is_file():
-            return YearProfiles.load(path)
-    lags = np.asarray([p.profile_lag_min for p in device_map.pv], float)
-    profiles = make_profiles(
-        seed=seed,
-        load_kw_nominal=engine.load_kw_nominal,
-        pv_pmpp_kw=engine.pv_pmpp_kw,
-        load_distance_ohm=engine.load_distance_ohm,
-        pv_lag_min=lags if np.any(lags > 0) else None,
-    )
-    if path is not None:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_suffix(f".{threading.get_ident()}.tmp.npz")
-        profiles.save(tmp)
-        tmp.replace(path)
-    return profiles
+    return feeder_profiles(device_map, engine, seed=seed, cache_dir=cache_dir)
 
 
 def _check_config(c: BridgeConfig) -> None:

@@ -19,6 +19,8 @@ from __future__ import annotations
 import calendar
 import datetime as dt
 import functools
+import os
+import threading
 from collections import OrderedDict
 from pathlib import Path
 from typing import Literal
@@ -29,6 +31,7 @@ from scipy.signal import lfilter
 from schemas.errors import CvvcError
 
 __all__ = [
+    "feeder_profiles",
     "ARCHETYPES",
     "DAY_TYPES",
     "UTC_OFFSET_H",
@@ -802,3 +805,33 @@ def _check_finite_nonneg(a: np.ndarray, name: str) -> None:
     if a.size and a.min() < 0:
         first = int(np.flatnonzero(a.ravel() < 0)[0])
         raise ProfileError(f"{name} has negative values (first at index {first}, {a.ravel()[first]})")
+
+
+def feeder_profiles(device_map, engine, *, seed: int, cache_dir: str | Path | None) -> YearProfiles:
+    """The year profiles of a feeder for ``seed``, cached as ``.npz`` in ``cache_dir`` (None: no cache).
+
+    The one place profiles of a feeder are made: training, the bridge and the launcher share the cache.
+    The key is the device map's fingerprint and the seed, so a changed feeder regenerates. Loads get
+    their electrical distance (commercial customers near the head, agricultural far out) and plants the
+    device map's lags. Written to a temporary file and renamed, so concurrent processes never read a
+    half-written cache.
+    """
+    path = None
+    if cache_dir is not None:
+        path = Path(cache_dir) / f"profiles-{device_map.feeder.name}-{device_map.fingerprint()}-{seed}.npz"
+        if path.is_file():
+            return YearProfiles.load(path)
+    lags = np.asarray([p.profile_lag_min for p in device_map.pv], float)
+    profiles = make_profiles(
+        seed=seed,
+        load_kw_nominal=engine.load_kw_nominal,
+        pv_pmpp_kw=engine.pv_pmpp_kw,
+        load_distance_ohm=engine.load_distance_ohm,
+        pv_lag_min=lags if np.any(lags > 0) else None,
+    )
+    if path is not None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(f".{path.stem}.{os.getpid()}.{threading.get_ident()}.tmp.npz")
+        profiles.save(tmp)
+        os.replace(tmp, path)
+    return profiles

@@ -89,29 +89,10 @@ class TrainResult:
 
 
 def load_profiles(device_map, engine, *, seed: int, cache_dir: str | Path | None):
-    """The feeder's year profiles for ``seed``, cached as ``.npz`` in ``cache_dir`` (None: no cache).
+    """The feeder's year profiles for ``seed`` (see ``simulator_bridge.profiles.feeder_profiles``)."""
+    from simulator_bridge.profiles import feeder_profiles
 
-    The cache key is the device map's fingerprint and the seed, so a changed feeder regenerates.
-    """
-    from simulator_bridge.profiles import YearProfiles, make_profiles
-
-    path = None
-    if cache_dir is not None:
-        path = Path(cache_dir) / f"profiles-{device_map.feeder.name}-{device_map.fingerprint()}-{seed}.npz"
-        if path.is_file():
-            return YearProfiles.load(path)
-    lags = np.asarray([p.profile_lag_min for p in device_map.pv], float)
-    profiles = make_profiles(
-        seed=seed,
-        load_kw_nominal=engine.load_kw_nominal,
-        pv_pmpp_kw=engine.pv_pmpp_kw,
-        load_distance_ohm=engine.load_distance_ohm,
-        pv_lag_min=lags if np.any(lags > 0) else None,
-    )
-    if path is not None:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        profiles.save(path)
-    return profiles
+    return feeder_profiles(device_map, engine, seed=seed, cache_dir=cache_dir)
 
 
 def _check_device_map(dm) -> None:
