@@ -33,10 +33,10 @@ def bench_decision(device_map_path: str | Path, *, control_steps: int = 48, cach
     from simulator_bridge.profiles import month_steps
     from simulator_bridge.qsts import Qsts
     from training.model import read_model, write_model
-    from training.train import load_profiles, train
+    from training.train import TRAINING_REVISION, load_profiles, train
 
     dm = load_device_map(device_map_path)
-    model_path = cache / "models" / f"{dm.feeder.name}-{dm.fingerprint()}-y1.json"
+    model_path = cache / "models" / f"{dm.feeder.name}-{dm.fingerprint()}-y1-r{TRAINING_REVISION}.json"
     if not model_path.is_file():
         model_path.parent.mkdir(parents=True, exist_ok=True)
         write_model(train(device_map_path, year_seed=1, cache_dir=cache / "profiles", progress=False).model,

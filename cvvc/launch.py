@@ -133,7 +133,10 @@ def prepare_feeder_and_model(config: RunConfig) -> tuple[Path, Path]:
     dm = load_device_map(dm_path)
     if config.model:
         return dm_path, Path(config.model)
-    model_path = cache / "models" / f"{dm.feeder.name}-{dm.fingerprint()}-y{config.train_seed}.json"
+    from training.train import TRAINING_REVISION
+
+    name = f"{dm.feeder.name}-{dm.fingerprint()}-y{config.train_seed}-r{TRAINING_REVISION}.json"
+    model_path = cache / "models" / name
     if not model_path.is_file():
         from training.model import write_model
         from training.train import train

@@ -130,6 +130,8 @@ class FeederEngine:
     Attributes
     ----------
     node_names : OpenDSS ``AllNodeNames``, lower case ``"bus.phase"``; the order of every node vector.
+    node_in_feeder : (n_nodes,) bool, the node is on the feeder side of the head meter (or at it).
+    head_node_index : (n,) int, the nodes of the bus where the feeder-head meter measures.
     node_distance_ohm : (n_nodes,) electrical distance from ``feeder.source_bus`` [ohm] (see
         ``docs/simulation.md``).
     load_names, load_kw_nominal, load_distance_ohm : every load, its model kW [kW] and distance [ohm].
@@ -170,7 +172,9 @@ class FeederEngine:
         self._init_pv()
         self._init_regulators()
         self._init_measurements()
-        bus_distance = self._bus_distance_ohm()
+        bus_distance, feeder_buses, head_bus = self._bus_distance_ohm()
+        self.node_in_feeder = np.array([n.split(".")[0] in feeder_buses for n in self.node_names])
+        self.head_node_index = np.array([i for i, n in enumerate(self.node_names) if n.split(".")[0] == head_bus])
         self.node_distance_ohm = np.array([bus_distance.get(n.split(".")[0], np.inf) for n in self.node_names])
         self.load_distance_ohm = np.array([bus_distance.get(b, np.inf) for b in self._load_buses])
         self.pv_distance_ohm = np.array([bus_distance.get(p.bus.split(".")[0].lower(), np.inf)
@@ -399,8 +403,10 @@ class FeederEngine:
         neutral = first + n_phases if n_cond > n_phases else -1
         return _Terminal(d.CktElement.Name(), tuple(node), tuple(conductor), neutral), n_term * n_cond
 
-    def _bus_distance_ohm(self) -> dict[str, float]:
-        """Electrical distance of every bus from ``source_bus`` [ohm, referred to the source bus voltage].
+    def _bus_distance_ohm(self) -> tuple[dict[str, float], set[str], str]:
+        """Electrical distance of every bus from ``source_bus`` [ohm, referred to the source bus voltage],
+        and the buses of the feeder proper: the head element's first bus and everything reached from its
+        other side without crossing it back (the transmission side of the substation is not the feeder).
 
         Breadth-first over power-delivery elements from the source bus; each line adds its positive-
         sequence series impedance ``Z1 = mean(Z_self) - mean(Z_mutual)`` (from its phase impedance
@@ -416,6 +422,7 @@ class FeederEngine:
         src = self.device_map.feeder.source_bus.lower()
         kv_src = kv_base.get(src, 0.0)
         edges: dict[str, list[tuple[str, complex]]] = {}
+        named_edges: dict[str, list[tuple[str, str]]] = {}
         line_z: dict[str, complex] = {}
         i = d.Lines.First()
         while i > 0:
@@ -439,6 +446,7 @@ class FeederEngine:
                     for b in buses:
                         if a != b:
                             edges.setdefault(a, []).append((b, z))
+                            named_edges.setdefault(a, []).append((b, name))
             i = d.PDElements.Next()
         total: dict[str, complex] = {src: 0j}
         queue = deque([src])
@@ -448,7 +456,18 @@ class FeederEngine:
                 if b not in total:
                     total[b] = total[a] + z
                     queue.append(b)
-        return {b: abs(z) for b, z in total.items()}
+        head = self.device_map.feeder.head_element.lower()
+        d.Circuit.SetActiveElement(head)
+        head_buses = [b.split(".")[0].lower() for b in d.CktElement.BusNames()]
+        feeder = {head_buses[0]}
+        queue = deque(head_buses[1:])
+        while queue:
+            a = queue.popleft()
+            if a in feeder:
+                continue
+            feeder.add(a)
+            queue.extend(b for b, name in named_edges.get(a, []) if name != head and b not in feeder)
+        return {b: abs(z) for b, z in total.items()}, feeder, head_buses[0]
 
     # ------------------------------------------------------------------ set
     def set_loads_kw(self, p_kw: np.ndarray) -> None:

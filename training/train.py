@@ -43,7 +43,10 @@ from training.powerflows import (
 )
 from training.scenarios import ScenarioSet, select_scenarios, summarize_year
 
-__all__ = ["DEFAULT_Q_STEPS_PCT", "TrainResult", "TrainSummary", "load_profiles", "train"]
+__all__ = ["DEFAULT_Q_STEPS_PCT", "TRAINING_REVISION", "TrainResult", "TrainSummary", "load_profiles", "train"]
+
+#: Bump when training changes what it produces, so cached models (``cvvc run``'s cache) are retrained.
+TRAINING_REVISION = 2
 
 DEFAULT_Q_STEPS_PCT = tuple(float(p) for p in range(-100, 101, 20))
 DEFAULT_COMBINED_PCT = (-100.0, -50.0, 50.0, 100.0)
@@ -144,8 +147,11 @@ def _critical(engine, dm, flows: PowerFlowSet, dv_dtap_all: np.ndarray):
     phases = np.asarray([node_phase(n) for n in names])
     v_ref = np.median(flows.v_pu, axis=0)
     eligible = (phases >= 1) & (phases <= 3) & (v_ref > 0.5)  # real phases of energised nodes
-    src = dm.feeder.source_bus.lower()
-    head = np.asarray([i for i, n in enumerate(names) if n.split(".")[0] == src and eligible[i]], int)
+    # Nodes upstream of the head meter (the transmission side of the substation) are not the feeder: no
+    # device of the feeder controls them, so they are never extremes to constrain (a source bus at
+    # 1.045 pu would otherwise make every optimization infeasible above its 1.04 pu limit).
+    eligible &= np.asarray(engine.node_in_feeder, bool)
+    head = np.asarray([i for i in engine.head_node_index if eligible[i]], int)  # where the head meter is
     pv_nodes = np.asarray(sorted({i for idx in engine.pv_node_index for i in idx}), int)
     required = {
         "head": head,

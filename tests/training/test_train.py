@@ -24,7 +24,7 @@ def test_summary_and_model_are_consistent(trained_123):
 def test_critical_nodes_include_the_required_set(trained_123):
     m = trained_123.model
     names = {c.name: c for c in m.critical_nodes}
-    required = {"150.1", "150.2", "150.3"}  # feeder head (source bus)
+    required = {"150r.1", "150r.2", "150r.3"}  # feeder head: the head meter's bus (Line.sw1 from 150r)
     required |= {"150r.1", "9r.1", "25r.1", "25r.3", "160r.1", "160r.2", "160r.3"}  # regulator secondaries
     required |= {"150.1", "9.1", "25.1", "25.3", "160.1", "160.2", "160.3"}  # regulator primaries
     required |= {f"{bus}.{ph}" for bus in ("66", "83", "300") for ph in (1, 2, 3)}  # PV plants
