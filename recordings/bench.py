@@ -171,7 +171,7 @@ def _offline_speed(steps: int = 1440) -> dict[str, Any] | None:
 
     model = synthetic_model(seed=3)
     settings = AgentSettings(feeder_id="rural")
-    ex = examples()
+    ex: dict[Any, Any] = dict(examples())
     frames: list[tuple[str, Any]] = []
     for i in range(steps):
         t_ns, seq = T0_NS + i * 60_000_000_000, i + 1
