@@ -65,6 +65,9 @@ def main(argv: list[str] | None = None) -> int:
         return int(args.func(args) or 0)
     except KeyboardInterrupt:
         return 130
+    except BrokenPipeError:  # output piped into `head` and closed: not an error of ours
+        sys.stderr.close()
+        return 0
     except CvvcError as e:  # every project error: one line, exit status 2, never a traceback
         print(f"cvvc {args.verb}: error: {e}", file=sys.stderr)
         return 2
