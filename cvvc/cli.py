@@ -69,8 +69,14 @@ def main(argv: list[str] | None = None) -> int:
         sys.stderr.close()
         return 0
     except CvvcError as e:  # every project error: one line, exit status 2, never a traceback
-        print(f"cvvc {args.verb}: error: {e}", file=sys.stderr)
+        print(f"cvvc {_verb_path(args)}: error: {e}", file=sys.stderr)
         return 2
+
+
+def _verb_path(args: argparse.Namespace) -> str:
+    """``feeder info``, ``recordings recover``...: the verb and the sub-verb the user typed."""
+    subs = [v for k, v in sorted(vars(args).items()) if k.endswith("_verb") and isinstance(v, str)]
+    return " ".join([args.verb, *subs])
 
 
 if __name__ == "__main__":

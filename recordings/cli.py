@@ -34,19 +34,19 @@ def register(sub: argparse._SubParsersAction) -> None:
     r.add_argument("--flush-period-s", type=float, default=1.0, metavar="S",
                    help="close and write the open chunk every S seconds (the most a crash can lose)")
     add_bus_arguments(r)
-    r.set_defaults(func=_guarded("record", _record))
+    r.set_defaults(func=_record)
 
     p = sub.add_parser("recordings", help="inspect and repair MCAP recordings")
     psub = p.add_subparsers(dest="recordings_verb", metavar="SUBVERB")
     i = psub.add_parser("info", help="topics, counts, time span, schemas and metadata of a recording")
     i.add_argument("file", metavar="FILE")
     i.add_argument("--json", action="store_true", help="print JSON")
-    i.set_defaults(func=_guarded("recordings info", _info))
+    i.set_defaults(func=_info)
     c = psub.add_parser("recover", help="rewrite a file cut short by a crash as a valid indexed MCAP")
     c.add_argument("input", metavar="IN")
     c.add_argument("output", metavar="OUT")
     c.add_argument("--json", action="store_true", help="print JSON")
-    c.set_defaults(func=_guarded("recordings recover", _recover))
+    c.set_defaults(func=_recover)
 
     y = sub.add_parser("replay", help="republish recorded frames onto the bus, or re-run the agent offline",
                        description="Republish recorded measurement frames with their original spacing scaled by "
@@ -69,22 +69,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="agent settings for --offline (default: the ones recorded in the metadata)")
     y.add_argument("--json", action="store_true", help="print JSON")
     add_bus_arguments(y)
-    y.set_defaults(func=_guarded("replay", _replay))
-
-
-def _guarded(verb: str, handler: Handler) -> Handler:
-    """Print project errors as one line (exit 2) instead of a traceback."""
-
-    def run(args: argparse.Namespace) -> int:
-        from schemas.errors import CvvcError
-
-        try:
-            return handler(args)
-        except CvvcError as e:
-            print(f"cvvc {verb}: error: {e}", file=sys.stderr)
-            return 2
-
-    return run
+    y.set_defaults(func=_replay)
 
 
 def _json(obj: Any) -> str:

@@ -15,14 +15,10 @@ from __future__ import annotations
 import argparse
 import os
 import shutil
-import sys
 import tempfile
-from collections.abc import Callable
 from pathlib import Path
 
 import msgspec
-
-from schemas.errors import CvvcError
 
 __all__ = [
     "DEFAULT_CACHE_ROOT",
@@ -221,19 +217,6 @@ def _info(args: argparse.Namespace) -> int:
     return 0
 
 
-def _guarded(handler: Callable[[argparse.Namespace], int]) -> Callable[[argparse.Namespace], int]:
-    """Wrap a handler so a project error prints as one line with exit status 2."""
-
-    def run(args: argparse.Namespace) -> int:
-        try:
-            return handler(args)
-        except CvvcError as e:
-            print(f"cvvc feeder {args.feeder_verb}: error: {e}", file=sys.stderr)
-            return 2
-
-    return run
-
-
 def register(subparsers: argparse._SubParsersAction) -> None:
     """Add the ``feeder`` verb and its sub-verbs to the ``cvvc`` command."""
     feeder = subparsers.add_parser("feeder", help="generate the embedded rural feeder; describe any feeder")
@@ -242,7 +225,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     gen = verbs.add_parser("generate", help="write the synthetic rural feeder (OpenDSS + devicemap.toml)")
     gen.add_argument("--seed", type=int, default=1, help="random seed (same seed, same bytes; default 1)")
     gen.add_argument("--out", required=True, help="output folder (created if absent)")
-    gen.set_defaults(func=_guarded(_generate))
+    gen.set_defaults(func=_generate)
 
     info = verbs.add_parser(
         "info", help="buses, nodes, loads, regulators, PV plants and peak load of a feeder"
@@ -254,7 +237,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="device map TOML, or a folder with devicemap.toml (default: the embedded rural feeder, seed 1)",
     )
     info.add_argument("--json", action="store_true", help="print JSON instead of text")
-    info.set_defaults(func=_guarded(_info))
+    info.set_defaults(func=_info)
 
     from simulator_bridge.bridge_cli import register_bridge  # the `bridge` verb (issue 4)
 

@@ -14,11 +14,7 @@ Nothing heavy is imported at module level.
 from __future__ import annotations
 
 import argparse
-import sys
-from collections.abc import Callable
 from pathlib import Path
-
-from schemas.errors import CvvcError
 
 __all__ = ["register", "register_accuracy"]
 
@@ -29,17 +25,6 @@ def _feeder_path(feeder: str | None) -> Path:
     if feeder is None:
         return ensure_default_feeder(DEFAULT_CACHE_ROOT)
     return resolve_device_map_path(feeder)
-
-
-def _guarded(verb: str, handler: Callable[[argparse.Namespace], int]) -> Callable[[argparse.Namespace], int]:
-    def run(args: argparse.Namespace) -> int:
-        try:
-            return handler(args)
-        except CvvcError as e:
-            print(f"cvvc {verb}: error: {e}", file=sys.stderr)
-            return 2
-
-    return run
 
 
 def _train(args: argparse.Namespace) -> int:
@@ -136,7 +121,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--workers", type=int, default=None, help="power-flow processes (default: one per core)")
     p.add_argument("--no-combined", action="store_true", help="only the paper's one-plant-at-a-time Q perturbations")
     p.add_argument("--json", action="store_true", help="print the summary as JSON (no progress bar)")
-    p.set_defaults(func=_guarded("train", _train))
+    p.set_defaults(func=_train)
 
 
 
@@ -150,4 +135,4 @@ def register_accuracy(report_subparsers: argparse._SubParsersAction) -> None:
     a.add_argument("--png", help="write a figure like the paper's Fig. 8 here")
     a.add_argument("--max-minutes", type=int, default=None, help="only the first N minutes of the month")
     a.add_argument("--json", action="store_true", help="print the report as JSON")
-    a.set_defaults(func=_guarded("report accuracy", _accuracy))
+    a.set_defaults(func=_accuracy)
