@@ -32,6 +32,7 @@ import msgspec
 import numpy as np
 
 from cvvc.launch import CASES, LaunchError, RunConfig
+from schemas.errors import CvvcError
 
 __all__ = [
     "EVALUATION_YEAR",
@@ -40,6 +41,7 @@ __all__ = [
     "EvaluateConfig",
     "EvaluateError",
     "Evaluation",
+    "RunFailure",
     "RunResult",
     "RunSpec",
     "evaluate",
@@ -84,6 +86,7 @@ class EvaluateConfig(msgspec.Struct, frozen=True, kw_only=True):
     out: str = "runs/evaluate"
     cache: str = ".cvvc-cache"
     robustness: bool = False
+    resume: bool = False  # reuse a run whose folder already holds a finished summary.json of the same spec
     perturbation_pct: float = 10.0
     perturbation_seed: int = 7
     progress: bool = True
@@ -119,8 +122,16 @@ class RunResult(msgspec.Struct, frozen=True, kw_only=True):
     recording: str | None
 
 
+class RunFailure(msgspec.Struct, frozen=True, kw_only=True):
+    """A run that did not finish: its spec and why (the run folder keeps the processes' logs)."""
+
+    spec: RunSpec
+    error: str
+    out_dir: str
+
+
 class Evaluation(msgspec.Struct, frozen=True, kw_only=True):
-    """A whole evaluation: its configuration, every run's result and the total wall time."""
+    """A whole evaluation: its configuration, every run's result, the failed runs and the total wall time."""
 
     config: EvaluateConfig
     feeder_id: str
@@ -129,6 +140,7 @@ class Evaluation(msgspec.Struct, frozen=True, kw_only=True):
     control_period_s: int
     runs: tuple[RunResult, ...]
     wall_s: float
+    failures: tuple[RunFailure, ...] = ()
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -265,8 +277,30 @@ def _run_one(spec: RunSpec, run_config: RunConfig) -> RunResult:
                      lockstep_misses=s.lockstep_misses, out_dir=s.out_dir, recording=s.recording)
 
 
+def _finished(spec: RunSpec, run_dir: Path) -> RunResult | None:
+    """The result of a run already finished in ``run_dir`` with the same case and window (``--resume``)."""
+    path = run_dir / "summary.json"
+    if not path.is_file():
+        return None
+    s = json.loads(path.read_text())
+    if (s.get("case"), s.get("start", "")[:10], s.get("days")) != (spec.case, spec.start, spec.days):
+        return None
+    return RunResult(spec=spec, metrics=s["metrics"], wall_s=s["wall_s"], steps=s["steps"],
+                     decisions=s["decisions"], lockstep_misses=s["lockstep_misses"], out_dir=s["out_dir"],
+                     recording=s.get("recording"))
+
+
+def _write(out: Path, ev: Evaluation) -> None:
+    (out / "results.json").write_bytes(msgspec.json.format(msgspec.json.encode(ev), indent=2))
+    (out / "results.md").write_text(render_results_md(ev))
+
+
 def evaluate(config: EvaluateConfig) -> Evaluation:
-    """Run every planned run (see the module docstring) and write ``results.json`` and ``results.md``."""
+    """Run every planned run (see the module docstring) and write ``results.json`` and ``results.md``.
+
+    A run that fails does not stop the others: the results of the finished runs are written (after every
+    run, so a long evaluation can be watched), the failures listed, and then :class:`EvaluateError` raised.
+    """
     from cvvc.launch import prepare_feeder_and_model
     from schemas.devicemap import load_device_map
 
@@ -293,32 +327,53 @@ def evaluate(config: EvaluateConfig) -> Evaluation:
                                          seed=config.perturbation_seed)
     _log(f"{len(specs)} run(s) of {dm.feeder.name}, {config.jobs} at a time; output in {out}")
     results: list[RunResult] = []
+    failures: list[RunFailure] = []
+    order = {s.name: i for i, s in enumerate(specs)}
+
+    def snapshot() -> Evaluation:
+        return Evaluation(config=config, feeder_id=dm.feeder.name, feeder=str(dm_path), model=str(model),
+                          control_period_s=dm.feeder.control_period_s,
+                          runs=tuple(sorted(results, key=lambda r: order[r.spec.name])),
+                          wall_s=round(time.monotonic() - t0, 1),
+                          failures=tuple(sorted(failures, key=lambda f: order[f.spec.name])))
+
+    todo = []
+    for spec in specs:
+        done = _finished(spec, out / spec.name) if config.resume else None
+        if done is not None:
+            _log(f"{spec.name}: reusing the finished run in {out / spec.name} (--resume)")
+            results.append(done)
+        else:
+            todo.append(spec)
     ctx = multiprocessing.get_context("spawn")
     with cf.ProcessPoolExecutor(max_workers=config.jobs, mp_context=ctx) as pool:
         futures = {pool.submit(_run_one, spec, _run_config(spec, config, dm_path, model, out, perturbed)): spec
-                   for spec in specs}
+                   for spec in todo}
         try:
             for fut in cf.as_completed(futures):
                 spec = futures[fut]
                 try:
                     r = fut.result()
-                except LaunchError as e:
-                    raise EvaluateError(f"run {spec.name} failed (its logs are in {out / spec.name}): {e}") from e
-                mt = r.metrics
-                _log(f"{spec.name}: NVV {mt['nvv']}, NTC {mt['ntc']}, total cost {mt['total_cost']:.1f} "
-                     f"({r.wall_s:.0f} s)")
-                results.append(r)
+                except CvvcError as e:
+                    _log(f"{spec.name}: FAILED (logs in {out / spec.name}): {e}")
+                    failures.append(RunFailure(spec=spec, error=str(e), out_dir=str(out / spec.name)))
+                else:
+                    mt = r.metrics
+                    _log(f"{spec.name}: NVV {mt['nvv']}, NTC {mt['ntc']}, total cost {mt['total_cost']:.1f} "
+                         f"({r.wall_s:.0f} s)")
+                    results.append(r)
+                _write(out, snapshot())
         except BaseException:
             for f in futures:
                 f.cancel()
             raise
-    order = {s.name: i for i, s in enumerate(specs)}
-    results.sort(key=lambda r: order[r.spec.name])
-    evaluation = Evaluation(config=config, feeder_id=dm.feeder.name, feeder=str(dm_path), model=str(model),
-                            control_period_s=dm.feeder.control_period_s, runs=tuple(results),
-                            wall_s=round(time.monotonic() - t0, 1))
-    (out / "results.json").write_bytes(msgspec.json.format(msgspec.json.encode(evaluation), indent=2))
-    (out / "results.md").write_text(render_results_md(evaluation))
+    evaluation = snapshot()
+    _write(out, evaluation)
+    if failures:
+        names = ", ".join(f.spec.name for f in evaluation.failures)
+        raise EvaluateError(f"{len(failures)} of {len(specs)} run(s) failed ({names}); the others are in "
+                            f"{out / 'results.md'}; see each failed run's folder for its logs, fix, then rerun "
+                            "with --resume to run only what is missing")
     return evaluation
 
 
@@ -381,5 +436,9 @@ def render_results_md(ev: Evaluation) -> str:
         t = r.metrics.get("taps_changes", {})
         lines.append("| " + " | ".join(_row_label(r, robust, bands) + [str(t.get(g, 0)) for g in reg_ids]  # type: ignore[union-attr]
                                        + [str(r.metrics["ntc"])]) + " |")
+    if ev.failures:
+        lines += ["", "## Failed runs", ""]
+        lines += [f"- {f.spec.name}: {f.error.splitlines()[0] if f.error else '?'} (logs in `{f.out_dir}`)"
+                  for f in ev.failures]
     lines.append("")
     return "\n".join(lines)

@@ -26,6 +26,8 @@ def register_evaluate(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--jobs", type=int, default=1, help="runs at a time, each in its own process (default 1)")
     p.add_argument("--robustness", action="store_true",
                    help="case D under PMU/SCADA noise, 1 %% and 5 %% dropped frames, and +-10 %% model error")
+    p.add_argument("--resume", action="store_true",
+                   help="reuse runs already finished in --out (same case and window); run only the others")
     p.add_argument("--cache", default=".cvvc-cache", help="cache of feeders, profiles and models")
     p.add_argument("--out", required=True, help="output folder")
     p.set_defaults(func=_evaluate)
@@ -45,7 +47,7 @@ def _evaluate(args: argparse.Namespace) -> int:
     config = EvaluateConfig(feeder=args.feeder, model=args.model, seasons=seasons, bandwidths_v120=bands,
                             year_seed=args.year_seed, train_seed=args.train_seed,
                             days_per_season=args.days_per_season, jobs=args.jobs, out=args.out, cache=args.cache,
-                            robustness=args.robustness, **kw)
+                            robustness=args.robustness, resume=args.resume, **kw)
     try:
         ev = evaluate(config)
     except EvaluateError as e:

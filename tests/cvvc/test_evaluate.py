@@ -114,3 +114,27 @@ def test_model_error_map_perturbs_lines_and_loads_within_ten_percent(tmp_path):
     finally:
         a.close()
         b.close()
+
+
+def test_resume_reuses_finished_runs(small_evaluation, ieee13_model, profile_cache):
+    out, ev = small_evaluation
+    stamps = {r.spec.name: (Path(r.out_dir) / "summary.json").stat().st_mtime_ns for r in ev.runs}
+    again = evaluate(EvaluateConfig(feeder=str(IEEE13), model=str(ieee13_model), cases=("D", "none"),
+                                    seasons=("summer",), days_per_season=0.05, out=str(out),
+                                    cache=str(profile_cache.parent), progress=False, resume=True))
+    assert [r.metrics for r in again.runs] == [r.metrics for r in ev.runs]
+    assert {r.spec.name: (Path(r.out_dir) / "summary.json").stat().st_mtime_ns for r in again.runs} == stamps
+
+
+def test_a_failed_run_is_listed_and_the_others_kept(tmp_path, profile_cache):
+    out = tmp_path / "out"
+    config = EvaluateConfig(feeder=str(IEEE13), model=str(tmp_path / "no-such-model.json"), cases=("D", "none"),
+                            seasons=("winter",), days_per_season=0.01, out=str(out),
+                            cache=str(profile_cache.parent), progress=False)
+    with pytest.raises(EvaluateError, match=r"1 of 2 run\(s\) failed \(winter-D-bw4\).*--resume"):
+        evaluate(config)
+    data = json.loads((out / "results.json").read_text())
+    assert [r["spec"]["case"] for r in data["runs"]] == ["none"]
+    assert [f["spec"]["case"] for f in data["failures"]] == ["D"]
+    md = (out / "results.md").read_text()
+    assert "| winter | none |" in md and "## Failed runs" in md and "winter-D-bw4" in md
