@@ -277,7 +277,9 @@ def run_agent(model: CvvcModel, settings: AgentSettings, bus, *, stop: threading
                         last_frame_wall, last_frame_t_ns = now, msg.t_ns
                         publish(maker.on_frame(item.key, msg), now)
                         pending_since = (pending_since or now) if maker.aligner.pending else None
-                if pending_since is not None and now - pending_since > settings.late_window_s:
+                # frames already received are not late: close only once the queue is drained (under a burst,
+                # closing earlier would decide an incomplete step and reject its queued frames as stale)
+                if pending_since is not None and now - pending_since > settings.late_window_s and inbox.queue.empty():
                     publish(maker.close_pending(), now)
                     pending_since = None
                 if now >= next_status:

@@ -123,7 +123,8 @@ class McapSink:
         try:
             header = self._header_decoder.decode(raw)
             log_time, seq = header.t_ns, header.seq
-        except (msgspec.DecodeError, UnicodeDecodeError):  # not a JSON object, t_ns/seq not integers, bad UTF-8
+        except (msgspec.DecodeError, UnicodeDecodeError, RecursionError):  # not a JSON object, t_ns/seq not
+            # integers, bad UTF-8, or nested too deeply: msgspec raises the last two as they are
             log_time, seq = -1, 0
         if not 0 <= log_time <= _U64_MAX:
             log_time = recv_ns
@@ -150,7 +151,7 @@ class McapSink:
             try:
                 msgspec.json.decode(first_payload)
                 encoding = "json"
-            except (msgspec.DecodeError, UnicodeDecodeError):  # msgspec raises bad UTF-8 in a string as is
+            except (msgspec.DecodeError, UnicodeDecodeError, RecursionError):  # see ``write``
                 encoding = "application/octet-stream"
             metadata = {"cvvc_message_type": ""}
         else:
