@@ -234,9 +234,10 @@ def run_agent(model: CvvcModel, settings: AgentSettings, bus, *, stop: threading
         devices = LivelinessWatcher(session, keys.alive_all(f),
                                     on_change=lambda k, up: log.info("device %s %s", k, "up" if up else "down"))
         inbox = Inbox(maxsize=8192)
-        inbox.subscribe(session, keys.meas_head(f), m.HeadFrame)
-        inbox.subscribe(session, keys.meas_pv(f), m.PvFrame)
-        inbox.subscribe(session, keys.meas_vr(f), m.RegFrame)
+        # one subscription for every frame: Zenoh runs the callbacks of separate subscribers concurrently, so
+        # frames of consecutive steps on three subscriptions were enqueued out of order (seen in lockstep: a
+        # step released early and its last frames rejected as stale); one callback keeps the arrival order
+        inbox.subscribe(session, f"{keys.ROOT}/{f}/meas/**", validate=_frame_key_problem)
         inbox.subscribe(session, f"cvvc/{f}/ack/**", m.Ack)
         decision_pub = TypedPublisher(session, keys.agent_decision(f), m.Decision, reliable=True)
         status_pub = TypedPublisher(session, keys.agent_status(f), m.AgentStatus, reliable=True)
@@ -306,6 +307,12 @@ def run_agent(model: CvvcModel, settings: AgentSettings, bus, *, stop: threading
         rejected[k] = rejected.get(k, 0) + n
     return AgentSummary(decisions=maker.seq, holds=maker.holds, commands=maker.commands_sent, acks=dict(acks),
                         rejected=rejected)
+
+
+def _frame_key_problem(key: str, msg: Any) -> str | None:
+    """Why a decoded sample under ``meas/**`` is not a device frame key of its type, or None."""
+    depth = 4 if isinstance(msg, m.HeadFrame) else 5
+    return None if key.count("/") + 1 == depth else f"{key}: not a {type(msg).__name__} key"
 
 
 class _Oracle:

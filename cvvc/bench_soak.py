@@ -1,0 +1,222 @@
+"""Soak benchmark: a simulated month in lockstep, as ``cvvc run`` runs it, watching memory and losses.
+
+``bench_soak(days=30, feeder=None)`` prepares the feeder and model as ``cvvc run`` does
+(``cvvc.launch.prepare_feeder_and_model``; the embedded rural feeder by default), opens a router in this
+process and starts the recorder, the case D agent and the lockstep bridge as ``python -m cvvc`` processes. It
+samples ``VmRSS`` and ``VmHWM`` of every process (the three children and this router process) from
+``/proc/<pid>/status`` once per simulated hour, and reports:
+
+- memory at *start* (the first sample after one simulated day, when caches, Zenoh buffers and the profiles
+  are loaded; the sample at the first hour is reported too) and at the *end* (the last sample before the
+  bridge finished), with the growth ``end / start - 1`` of ``VmRSS`` and of ``VmHWM`` (goal: < 10 %);
+- dropped or late frames (goal: 0 in lockstep): the bridge's lockstep misses and skips and dropped frames,
+  control steps without a decision, the agent's ``queue_full`` and ``stale`` rejections (and every other
+  rejection kind), the recorder's ``dropped_queue_full``.
+
+Run it with ``make bench`` (``python -m cvvc.bench --only soak``) or ``python -m cvvc.bench_soak [DAYS]``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+from schemas.errors import CvvcError
+
+__all__ = ["SoakError", "bench_soak", "proc_memory_kib"]
+
+_NS = 1_000_000_000
+_GOAL_GROWTH = 0.10
+
+
+class SoakError(CvvcError):
+    """The soak run could not start or one of its processes died; the message names it and its log."""
+
+
+def proc_memory_kib(pid: int) -> dict[str, int]:
+    """``VmRSS`` and ``VmHWM`` of process ``pid`` from ``/proc/<pid>/status`` [KiB] (empty if it is gone)."""
+    out: dict[str, int] = {}
+    try:
+        text = Path(f"/proc/{pid}/status").read_text()
+    except OSError:
+        return out
+    for line in text.splitlines():
+        key = line.split(":", 1)[0]
+        if key in ("VmRSS", "VmHWM"):
+            out[key] = int(line.split()[1])
+    return out
+
+
+def _spawn(name: str, args: list[str], log_dir: Path) -> subprocess.Popen[bytes]:
+    with open(log_dir / f"{name}.log", "wb") as log:
+        return subprocess.Popen([sys.executable, "-m", "cvvc", *args], stdout=log, stderr=subprocess.STDOUT,
+                                stdin=subprocess.DEVNULL, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+
+
+def _stop(proc: subprocess.Popen[bytes], timeout_s: float = 30.0) -> int:
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.wait(timeout=timeout_s)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(timeout=10)
+    return int(proc.returncode)
+
+
+def _growth(start: dict[str, int], end: dict[str, int], key: str) -> float | None:
+    if not start.get(key) or key not in end:
+        return None
+    return round(end[key] / start[key] - 1.0, 4)
+
+
+def bench_soak(days: float = 30.0, feeder: str | None = None, *, start: str = "2023-06-01",
+               cache: str = ".cvvc-cache", out_dir: str | None = None, lockstep_timeout_s: float = 10.0,
+               truth_every: int = 60, year_seed: int = 2) -> dict[str, Any]:
+    """Run ``days`` simulated days in lockstep (case D) and return the memory and loss figures (module doc).
+
+    Parameters
+    ----------
+    days : simulated days (1-minute steps). feeder : device map (None: the embedded rural feeder).
+    start : first simulated day (local standard time). cache : the ``cvvc run`` cache (model, profiles).
+    out_dir : where the logs and the recording go (None: a temporary directory, removed afterwards).
+    lockstep_timeout_s : the bridge's wait per control step [s]. truth_every : truth frame every N steps
+        (hourly by default: a month of every-step truth frames would be gigabytes of recording).
+    year_seed : profile seed of the simulated year (2: not the training year, as ``cvvc run``).
+    """
+    from cvvc.launch import RunConfig, case_agent_args, prepare_feeder_and_model
+    from recordings.info import recording_info
+    from schemas import keys
+    from schemas import messages as m
+    from schemas.bus import BusConfig, Inbox, free_port, open_session, wait_for
+    from schemas.devicemap import load_device_map
+
+    dm_path, model_path = prepare_feeder_and_model(RunConfig(feeder=feeder, cache=cache, progress=False))
+    dm = load_device_map(dm_path)
+    fid = dm.feeder.name
+    steps = int(round(days * 1440))
+    per_hour = 60 * 60 // dm.feeder.step_s
+    warm_step = min(24 * per_hour, max(steps // 2, 1))
+    tmp = None if out_dir else tempfile.TemporaryDirectory(prefix="cvvc-soak-")
+    out = Path(out_dir or tmp.name)  # type: ignore[union-attr]
+    out.mkdir(parents=True, exist_ok=True)
+    mcap = out / "soak.mcap"
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    procs: dict[str, subprocess.Popen[bytes]] = {}
+    samples: list[dict[str, Any]] = []
+    last_agent: m.AgentStatus | None = None
+    last_bridge: m.BridgeStatus | None = None
+    decisions = 0
+    t0 = time.monotonic()
+    try:
+        with open_session(BusConfig(mode="router", listen=(endpoint,))) as session:
+            inbox = Inbox(maxsize=100_000)
+            inbox.subscribe(session, keys.sim_status(fid), m.BridgeStatus)
+            inbox.subscribe(session, keys.agent_status(fid), m.AgentStatus)
+            inbox.subscribe(session, keys.agent_decision(fid), m.Decision)
+            procs["recorder"] = _spawn("recorder", ["record", "--out", str(mcap), "--keys", f"cvvc/{fid}/**",
+                                                    "--connect", endpoint], out)
+            probe = session.declare_publisher(keys.sim_status(fid))
+            if not wait_for(lambda: bool(probe.matching_status.matching), 60.0):  # type: ignore[attr-defined]
+                raise SoakError(f"the recorder did not subscribe within 60 s; see {out / 'recorder.log'}")
+            probe.undeclare()
+            procs["agent"] = _spawn("agent", ["agent", "--model", str(model_path), "--feeder-id", fid,
+                                              *(case_agent_args("D", 4.0) or []), "--connect", endpoint], out)
+            procs["bridge"] = _spawn("bridge", [
+                "bridge", "--feeder", str(dm_path), "--feeder-id", fid, "--start", start, "--steps", str(steps),
+                "--year-seed", str(year_seed), "--lockstep", "--timeout-s", str(lockstep_timeout_s),
+                "--wait-agent-s", "120", "--truth-every", str(truth_every),
+                "--cache-dir", str(Path(cache) / "profiles"), "--json", "--connect", endpoint], out)
+            next_sample_step = per_hour
+            while procs["bridge"].poll() is None:
+                for name in ("recorder", "agent"):
+                    if procs[name].poll() is not None:
+                        raise SoakError(f"the {name} exited with {procs[name].returncode}; see {out / name}.log")
+                item = inbox.get(timeout_s=0.5)
+                while item is not None:
+                    match item.msg:
+                        case m.BridgeStatus() as st:
+                            last_bridge = st
+                            if st.step >= next_sample_step and not st.done:
+                                samples.append({"step": st.step, "wall_s": round(time.monotonic() - t0, 1),
+                                                **{n: proc_memory_kib(p.pid) for n, p in procs.items()},
+                                                "router": proc_memory_kib(os.getpid())})
+                                next_sample_step = st.step + per_hour
+                        case m.AgentStatus() as st:
+                            last_agent = st
+                        case m.Decision():
+                            decisions += 1
+                    item = inbox.get(timeout_s=0.0)
+            wait_for(lambda: not inbox.queue.empty(), 2.0)
+            for item in inbox.drain():
+                if isinstance(item.msg, m.Decision):
+                    decisions += 1
+                elif isinstance(item.msg, m.AgentStatus):
+                    last_agent = item.msg
+                elif isinstance(item.msg, m.BridgeStatus):
+                    last_bridge = item.msg
+            wall_s = time.monotonic() - t0
+            codes = {n: _stop(p) for n, p in procs.items()}
+    finally:
+        for p in procs.values():
+            _stop(p)
+    log = (out / "bridge.log").read_text(errors="replace")
+    try:
+        summary = json.loads(log[log.rindex("\n{\n") + 1:] if not log.startswith("{") else log)
+    except ValueError as e:
+        raise SoakError(f"the bridge printed no summary (exit {codes.get('bridge')}); see {out / 'bridge.log'}") from e
+    info = recording_info(mcap)
+    rec_stats = info.metadata.get("cvvc.recorder_stats", {})
+    start_sample = next((s for s in samples if s["step"] >= warm_step), samples[0] if samples else {})
+    end_sample = samples[-1] if samples else {}
+    memory: dict[str, Any] = {}
+    for name in ("bridge", "agent", "recorder", "router"):
+        s0, s1 = start_sample.get(name, {}), end_sample.get(name, {})
+        memory[name] = {"first_hour_kib": samples[0].get(name, {}) if samples else {}, "start_kib": s0,
+                        "end_kib": s1, "rss_growth": _growth(s0, s1, "VmRSS"),
+                        "hwm_growth": _growth(s0, s1, "VmHWM")}
+    rejected = dict(last_agent.rejected) if last_agent else {}
+    losses = {
+        "lockstep_misses": summary.get("lockstep_misses"),
+        "lockstep_skipped": summary.get("lockstep_skipped"),
+        "bridge_frames_dropped": summary.get("frames_dropped"),
+        "control_steps": summary.get("control_steps"),
+        "decisions_seen": decisions,
+        "control_steps_without_decision": max(0, int(summary.get("control_steps", 0))
+                                              - int(summary.get("decisions", 0))),
+        "agent_queue_full": rejected.get("queue_full", 0),
+        "agent_stale": rejected.get("stale", 0),
+        "agent_rejected": rejected,
+        "bridge_rejected": summary.get("rejected"),
+        "recorder_dropped_queue_full": int(rec_stats.get("dropped_queue_full", -1)),
+        "recorder_messages": int(rec_stats.get("messages", info.messages)),
+    }
+    growths = [g for v in memory.values() for g in (v["rss_growth"], v["hwm_growth"]) if g is not None]
+    lost = sum(int(losses[k] or 0) for k in ("lockstep_misses", "lockstep_skipped", "bridge_frames_dropped",
+                                             "control_steps_without_decision", "agent_queue_full", "agent_stale"))
+    lost += max(losses["recorder_dropped_queue_full"], 0)
+    result = {
+        "feeder": fid, "days": days, "steps": summary.get("steps"), "start": start, "wall_s": round(wall_s, 1),
+        "steps_per_s": summary.get("steps_per_s"), "exit_codes": codes,
+        "last_status_step": last_bridge.step if last_bridge else None, "memory": memory, "losses": losses,
+        "samples": len(samples), "recording_complete": info.complete, "recording_bytes": info.size_bytes,
+        "max_growth": max(growths) if growths else None, "goal_growth": _GOAL_GROWTH,
+        "growth_goal_met": bool(growths) and max(growths) < _GOAL_GROWTH, "lost_or_late": lost,
+        "loss_goal_met": lost == 0, "out_dir": str(out) if out_dir else None,
+    }
+    if tmp is not None:
+        tmp.cleanup()
+    return result
+
+
+if __name__ == "__main__":
+    days_arg = float(sys.argv[1]) if len(sys.argv) > 1 else 30.0
+    out_arg = sys.argv[2] if len(sys.argv) > 2 else None
+    print(json.dumps(bench_soak(days_arg, out_dir=out_arg), indent=2))
