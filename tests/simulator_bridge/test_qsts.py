@@ -183,7 +183,7 @@ def test_pv_q_at_night_when_asked(eng: FeederEngine) -> None:
 def test_volt_var_uses_previous_step_voltage(eng: FeederEngine) -> None:
     """Light load and full sun raise the plants' voltages; volt-var moves Q toward curve(V of step k-1)·kVA,
     a share VOLT_VAR_RESPONSE of the way each step (first-order lag), and settles on the curve."""
-    q = Qsts(eng, constant(eng, 40, 0.2, 1.0), start_step=0, pv_local="volt_var")
+    q = Qsts(eng, constant(eng, 60, 0.2, 1.0), start_step=0, pv_local="volt_var")
     prev = q.step()
     for _ in range(3):
         res = q.step()
