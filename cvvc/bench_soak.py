@@ -198,6 +198,8 @@ def bench_soak(days: float = 30.0, feeder: str | None = None, *, start: str = "2
         "recorder_dropped_queue_full": int(rec_stats.get("dropped_queue_full", -1)),
         "recorder_messages": int(rec_stats.get("messages", info.messages)),
     }
+    per_day = [x for x in samples if x["step"] % (24 * per_hour) < per_hour]  # the first sample of every day
+    rss_by_day = {name: [x.get(name, {}).get("VmRSS") for x in per_day] for name in memory}
     growths = [g for v in memory.values() for g in (v["rss_growth"], v["hwm_growth"]) if g is not None]
     lost = sum(int(losses[k] or 0) for k in ("lockstep_misses", "lockstep_skipped", "bridge_frames_dropped",
                                              "control_steps_without_decision", "agent_queue_full", "agent_stale"))
@@ -206,7 +208,8 @@ def bench_soak(days: float = 30.0, feeder: str | None = None, *, start: str = "2
         "feeder": fid, "days": days, "steps": summary.get("steps"), "start": start, "wall_s": round(wall_s, 1),
         "steps_per_s": summary.get("steps_per_s"), "exit_codes": codes,
         "last_status_step": last_bridge.step if last_bridge else None, "memory": memory, "losses": losses,
-        "samples": len(samples), "recording_complete": info.complete, "recording_bytes": info.size_bytes,
+        "samples": len(samples), "rss_by_day_kib": rss_by_day, "recording_complete": info.complete,
+        "recording_bytes": info.size_bytes,
         "max_growth": max(growths) if growths else None, "goal_growth": _GOAL_GROWTH,
         "growth_goal_met": bool(growths) and max(growths) < _GOAL_GROWTH, "lost_or_late": lost,
         "loss_goal_met": lost == 0, "out_dir": str(out) if out_dir else None,

@@ -169,12 +169,15 @@ class Watcher:
         self.session.close()
 
 
-def plain_session(endpoint: str) -> zenoh.Session:
-    """A plain-zenoh peer session (what an attacker or a broken device would use)."""
+def plain_session(endpoint: str, mode: str = "peer") -> zenoh.Session:
+    """A plain-zenoh session (what an attacker or a broken device would use); a client routes everything
+    through the router (one link: no route change while it sends).
+    """
     conf = zenoh.Config()
-    conf.insert_json5("mode", '"peer"')
+    conf.insert_json5("mode", json.dumps(mode))
     conf.insert_json5("scouting/multicast/enabled", "false")
-    conf.insert_json5("listen/endpoints", '["tcp/127.0.0.1:0"]')
+    if mode != "client":
+        conf.insert_json5("listen/endpoints", '["tcp/127.0.0.1:0"]')
     conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
     return zenoh.open(conf)
 
