@@ -10,7 +10,8 @@ metrics and summary) and ``results.md`` with the paper's Table II/III layout (Se
 Q cost | T cost | Total), Table IV (per-PV reactive energy) and Table V (per-regulator tap changes).
 
 ``--robustness`` ("beyond the paper", its stated future work) runs case D under variants instead:
-measurement noise of PMU class (0.1 %) and SCADA class (1 %), dropped frames (1 %, 5 %), and model error (the
+measurement noise of PMU class (0.1 %, the bridge applies it to the feeder-head meter) and SCADA class (1 %, PV
+plants and regulators), dropped frames (1 %, 5 %), and model error (the
 simulated feeder's line lengths, hence impedances, and load kW each scaled by a factor drawn uniformly in
 [0.9, 1.1], while the agent keeps the model trained on the nominal feeder).
 """
@@ -59,8 +60,8 @@ Variant = Literal["nominal", "noise-pmu", "noise-scada", "drop-1", "drop-5", "mo
 ROBUSTNESS_VARIANTS: tuple[Variant, ...] = ("nominal", "noise-pmu", "noise-scada", "drop-1", "drop-5", "model-error")
 _VARIANT_LABEL = {
     "nominal": "nominal (no noise, no drops, exact model)",
-    "noise-pmu": "PMU-class noise, 0.1 % on every measurement",
-    "noise-scada": "SCADA-class noise, 1 % on every measurement",
+    "noise-pmu": "PMU-class noise 0.1 % (feeder head)",
+    "noise-scada": "SCADA-class noise 1 % (PV plants, regulators)",
     "drop-1": "1 % of measurement frames dropped",
     "drop-5": "5 % of measurement frames dropped",
     "model-error": "model error: line impedances and loads x U(0.9, 1.1)",
