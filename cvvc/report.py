@@ -226,21 +226,20 @@ def _save(fig, path: Path) -> Path:
 
 def _plot_envelopes(traces: dict[str, RunTrace], title: str, path: Path) -> Path:
     plt = _plt()
-    fig, ax = plt.subplots(figsize=(11, 4.5))
+    fig, (ax_hi, ax_lo) = plt.subplots(2, 1, figsize=(12, 6.5), sharex=True)
     t0 = min(int(tr.t_ns[0]) for tr in traces.values())
-    for i, (label, tr) in enumerate(traces.items()):
-        color = f"C{i}"
-        x = _days(tr.t_ns, t0)
-        ax.plot(x, tr.v_env_max_pu, color=color, lw=0.9, label=f"{label} max")
-        ax.plot(x, tr.v_env_min_pu, color=color, lw=0.9, ls="--", label=f"{label} min")
     lo, hi = next(iter(traces.values())).limits_pu
-    ax.axhline(hi, color="k", lw=0.8, ls=":")
-    ax.axhline(lo, color="k", lw=0.8, ls=":")
-    ax.set_xlabel("time [days from start]")
-    ax.set_ylabel("10-min average voltage [pu]")
-    ax.set_title(title)
-    ax.legend(ncol=min(4, 2 * len(traces)), fontsize=8, loc="best")
-    ax.grid(alpha=0.3)
+    for i, (label, tr) in enumerate(traces.items()):
+        x = _days(tr.t_ns, t0)
+        ax_hi.plot(x, tr.v_env_max_pu, color=f"C{i}", lw=0.9, label=label)
+        ax_lo.plot(x, tr.v_env_min_pu, color=f"C{i}", lw=0.9, label=label)
+    for ax, limit, which in ((ax_hi, hi, "max"), (ax_lo, lo, "min")):
+        ax.axhline(limit, color="k", lw=0.8, ls=":", label=f"limit {limit:g} pu")
+        ax.set_ylabel(f"{which} over nodes [pu]")
+        ax.grid(alpha=0.3)
+    ax_hi.set_title(title)
+    ax_hi.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))
+    ax_lo.set_xlabel("time [days from start]")
     return _save(fig, path)
 
 
