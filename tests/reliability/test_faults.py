@@ -218,7 +218,7 @@ def test_inbox_is_bounded_and_keeps_the_newest_when_its_consumer_is_slow(router_
 
     n, size = 5000, 100
     with open_session(BusConfig(mode="peer", connect=(router_endpoint,))) as session, \
-            plain_session(router_endpoint) as sender:
+            plain_session(router_endpoint, mode="client") as sender:
         inbox = Inbox(maxsize=size)
         inbox.subscribe(session, f"cvvc/{FEEDER}/meas/head", m.HeadFrame)
         pub = sender.declare_publisher(f"cvvc/{FEEDER}/meas/head", congestion_control=zenoh.CongestionControl.BLOCK)
@@ -260,9 +260,10 @@ def test_burst_of_frames_memory_stays_bounded_and_the_agent_keeps_deciding(procs
     ghost = msgspec_encode(example(m.PvFrame), plant_id="ghost", source="ghost")
     watcher.skip = ("/ghost",)
     rss_kib_after: list[int] = [rss_kib(agent.pid)]
-    with plain_session(router_endpoint) as sender:
+    with plain_session(router_endpoint, mode="client") as sender:
         pub = sender.declare_publisher(f"cvvc/{FEEDER}/meas/pv/ghost",
                                        congestion_control=zenoh.CongestionControl.BLOCK)
+        watcher.wait(lambda: bool(pub.matching_status.matching), 10, "the agent's frame subscriber")
         burst_start_t_ns = _last_head_t_ns(watcher)
         for b in range(bursts):
             for _ in range(n):
