@@ -6,9 +6,10 @@ process and starts the recorder, the case D agent and the lockstep bridge as ``p
 samples ``VmRSS`` and ``VmHWM`` of every process (the three children and this router process) from
 ``/proc/<pid>/status`` once per simulated hour, and reports:
 
-- memory at *start* (the first sample after one simulated day, when caches, Zenoh buffers and the profiles
-  are loaded; the sample at the first hour is reported too) and at the *end* (the last sample before the
-  bridge finished), with the growth ``end / start - 1`` of ``VmRSS`` and of ``VmHWM`` (goal: < 10 %);
+- memory at *start* (the first sample after one simulated day, or half the run when it is shorter than two
+  days, when caches, Zenoh buffers and the profiles are loaded; the sample at the first hour is reported
+  too) and at the *end* (the last sample before the bridge finished), with the growth ``end / start - 1``
+  of ``VmRSS`` and of ``VmHWM`` (goal: < 10 %);
 - dropped or late frames (goal: 0 in lockstep): the bridge's lockstep misses and skips and dropped frames,
   control steps without a decision, the agent's ``queue_full`` and ``stale`` rejections (and every other
   rejection kind), the recorder's ``dropped_queue_full``.
