@@ -48,7 +48,7 @@ class AgentSettings(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fi
     bandwidth_v120: float = 4.0
     full_visibility: bool = False
     valid_intervals: float = 2.0  # commands expire this many control periods after their step
-    late_window_s: float = 0.5  # live only: how long an incomplete step waits for late frames [s]
+    late_window_s: float = 2.0  # live only: how long an incomplete step waits for late frames [s]
     stale_after_s: float = 10.0  # live only: no frame for this long -> "stale" [s]
     oracle_timeout_s: float = 30.0  # case A: how long to wait for the bridge's oracle [s]
 
