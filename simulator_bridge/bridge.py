@@ -534,16 +534,19 @@ class _Runtime:
     def _answer_oracle(self, item: _OracleQuery) -> None:
         q = item.query
         try:
-            v = self.engine.node_voltages_pu()
+            # Only the feeder's own nodes (the head meter's side): the transmission side of the substation
+            # is no control target, and constraining it made case A trade Q and taps for an unfixable node.
+            feeder = np.flatnonzero(self.engine.node_in_feeder)
+            v = self.engine.node_voltages_pu()[feeder]
             dq: list[list[float]] = []
             dtap: list[list[float]] = []
             if item.request.include_sensitivities:
                 s_q, s_t = self.engine.perturbation_sensitivities()
-                dq = np.clip(np.nan_to_num(s_q, nan=0.0), -1.0, 1.0).tolist()
-                dtap = np.clip(np.nan_to_num(s_t, nan=0.0), -1.0, 1.0).tolist()
+                dq = np.clip(np.nan_to_num(s_q[feeder], nan=0.0), -1.0, 1.0).tolist()
+                dtap = np.clip(np.nan_to_num(s_t[feeder], nan=0.0), -1.0, 1.0).tolist()
             self.seqs["oracle"] += 1
             reply = m.OracleReply(t_ns=max(self.now_t_ns, 0), seq=self.seqs["oracle"], source="bridge",
-                                  feeder_id=self.fid, node_names=list(self.engine.node_names),
+                                  feeder_id=self.fid, node_names=[self.engine.node_names[i] for i in feeder],
                                   v_pu=np.clip(v, 0.0, 3.0).tolist(), dv_dq_pu_per_kvar=dq, dv_dtap_pu=dtap,
                                   taps=[int(t) for t in self.engine.taps()])
             q.reply(q.key_expr, codec_for(m.OracleReply).encode(reply), encoding=zenoh.Encoding.APPLICATION_JSON)
