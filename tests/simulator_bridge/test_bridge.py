@@ -346,7 +346,9 @@ def test_oracle_answers_from_the_stepping_thread(client: Client, router_endpoint
     assert len(replies) == 1 and replies[0].ok is not None
     rep = msgspec.json.decode(replies[0].ok.payload.to_bytes(), type=m.OracleReply)
     n = len(rep.node_names)
-    assert rep.t_ns == t0 and n == len(rep.v_pu) == 41
+    # the feeder's own nodes: IEEE 13's 41 less sourcebus and 650, upstream of the head meter (Line.650632)
+    assert rep.t_ns == t0 and n == len(rep.v_pu) == 35
+    assert not any(name.split(".")[0] in ("sourcebus", "650") for name in rep.node_names)
     assert len(rep.dv_dq_pu_per_kvar) == n and all(len(row) == 3 for row in rep.dv_dq_pu_per_kvar)
     assert len(rep.dv_dtap_pu) == n and all(len(row) == 3 for row in rep.dv_dtap_pu)
     for k, bus in enumerate(("675", "680", "633")):  # injecting Q raises the plant's own voltage
