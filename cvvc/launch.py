@@ -18,13 +18,11 @@ A child that dies early stops everything: the others are stopped, the recording 
 from __future__ import annotations
 
 import datetime as dt
-import json
 import os
 import shutil
 import signal
 import subprocess
 import sys
-import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -195,7 +193,7 @@ def run(config: RunConfig) -> RunSummary:
     """Run one case end to end; see the module docstring."""
     from schemas import keys
     from schemas import messages as m
-    from schemas.bus import BusConfig, Inbox, free_port, open_session, wait_for
+    from schemas.bus import BusConfig, Inbox, LivelinessWatcher, free_port, open_session, wait_for
     from schemas.devicemap import load_device_map
 
     if config.case not in CASES:
@@ -261,8 +259,9 @@ def run(config: RunConfig) -> RunSummary:
             if agent_args is not None:
                 children.append(_spawn("agent", [
                     "agent", "--model", str(kept_model), "--feeder-id", feeder_id, *agent_args, *connect], out))
-                agent_alive = _liveliness_waiter(session, keys.alive(feeder_id, "agent", "agent"))
-                if not agent_alive.wait(60.0):
+                agent_key = keys.alive(feeder_id, "agent", "agent")
+                agents = LivelinessWatcher(session, agent_key)
+                if not wait_for(lambda: agents.is_alive(agent_key), 60.0):
                     raise LaunchError(f"the agent did not come up within 60 s:\n{_tail(out / 'agent.log')}")
             clock = (["--realtime", "--speed", str(config.speed)] if config.realtime
                      else ["--lockstep", "--timeout-s", str(config.lockstep_timeout_s)])
@@ -328,7 +327,7 @@ def run(config: RunConfig) -> RunSummary:
     baseline = None
     if config.baseline and config.case != "none":
         _log("simulating the no-control baseline of the same days")
-        baseline = _metrics_dict(no_control_baseline(dm_path, start, steps, config.year_seed, Path(config.cache)))
+        baseline = msgspec.to_builtins(no_control_baseline(dm_path, start, steps, config.year_seed, Path(config.cache)))
     summary = RunSummary(
         feeder=str(dm_path), feeder_id=feeder_id, case=config.case, start=start_text, days=config.days,
         steps=steps, wall_s=round(wall_s, 2), metrics=_metrics_frame_dict(final), baseline=baseline,
@@ -345,27 +344,6 @@ def _recorder_agent_args(case: Case, feeder_id: str, bandwidth_v120: float, mode
     if settings is None:
         return []
     return ["--model", str(model), "--agent-settings", msgspec.json.encode(settings).decode()]
-
-
-class _LiveWaiter:
-    def __init__(self) -> None:
-        self.event = threading.Event()
-
-    def wait(self, timeout_s: float) -> bool:
-        return self.event.wait(timeout_s)
-
-
-def _liveliness_waiter(session, key: str) -> _LiveWaiter:
-    import zenoh
-
-    waiter = _LiveWaiter()
-
-    def cb(sample: zenoh.Sample) -> None:
-        if sample.kind == zenoh.SampleKind.PUT:
-            waiter.event.set()
-
-    waiter.sub = session.liveliness().declare_subscriber(key, cb, history=True)  # type: ignore[attr-defined]
-    return waiter
 
 
 def _progress(total: int, enabled: bool, label: str = "simulated"):
@@ -390,18 +368,11 @@ def no_control_baseline(dm_path: Path, start: dt.datetime, steps: int, year_seed
     profiles = load_profiles(dm, engine, seed=year_seed, cache_dir=cache / "profiles")
     first = int((start - dt.datetime(start.year, 1, 1)).total_seconds()) // dm.feeder.step_s
     sim = Qsts(engine, profiles, start_step=first, pv_local="unity")
-    acc = MetricsAccumulator(
-        n_nodes=len(engine.node_names), regulator_ids=list(engine.regulator_ids), pv_ids=list(engine.pv_ids),
-        cost_per_tap=[r.cost_per_tap for r in dm.regulator], cost_per_kvar=[p.cost_per_kvar for p in dm.pv],
-        limits_pu=dm.feeder.judged_limits_pu, step_s=dm.feeder.step_s, control_period_s=dm.feeder.control_period_s)
+    acc = MetricsAccumulator.for_feeder(dm, engine)
     for _ in range(steps):
         r = sim.step()
         acc.update(r.v_pu, r.tap_changes, r.pv_q_kvar)
     return acc.result()
-
-
-def _metrics_dict(metrics) -> dict[str, object]:
-    return msgspec.to_builtins(metrics)
 
 
 def _metrics_frame_dict(frame) -> dict[str, object]:
@@ -433,7 +404,3 @@ def _fmt(v: object) -> str:
     if isinstance(v, float):
         return f"{v:.4f}" if abs(v) < 10 else f"{v:.2f}"
     return str(v)
-
-
-def summary_json(s: RunSummary) -> str:
-    return json.dumps(msgspec.to_builtins(s), indent=2)

@@ -276,13 +276,7 @@ class _Runtime:
                       if c.noise_pmu_pct > 0 or c.noise_scada_pct > 0 else None)
         self.dropper = dv.FrameDropper(p=c.drop_prob, seed=c.noise_seed)
         self.delay = dv.DelayLine(c.latency_s)
-        self.metrics = MetricsAccumulator(
-            n_nodes=len(engine.node_names), regulator_ids=list(engine.regulator_ids), pv_ids=list(engine.pv_ids),
-            cost_per_tap=[r.cost_per_tap for r in dm.regulator],
-            cost_per_kvar=[p.cost_per_kvar for p in dm.pv],
-            limits_pu=tuple(dm.feeder.judged_limits_pu), step_s=self.step_s,
-            control_period_s=dm.feeder.control_period_s,
-        )
+        self.metrics = MetricsAccumulator.for_feeder(dm, engine, step_s=self.step_s)
         # counters
         self.seqs: Counter[str] = Counter()
         self.acks: Counter[str] = Counter()

@@ -364,6 +364,22 @@ class MetricsAccumulator:
             if viol[worst] > self._mvvm:
                 self._mvvm, self._mvvm_node = float(viol[worst]), worst
 
+    @classmethod
+    def for_feeder(cls, device_map, engine, *, step_s: int | None = None) -> MetricsAccumulator:
+        """The accumulator of a feeder: its nodes, devices, costs and judged limits from the device map.
+
+        ``engine`` is any object with ``node_names``, ``regulator_ids`` and ``pv_ids`` (a ``FeederEngine``);
+        ``step_s`` defaults to the device map's step.
+        """
+        f = device_map.feeder
+        return cls(
+            n_nodes=len(engine.node_names), regulator_ids=list(engine.regulator_ids), pv_ids=list(engine.pv_ids),
+            cost_per_tap=[r.cost_per_tap for r in device_map.regulator],
+            cost_per_kvar=[p.cost_per_kvar for p in device_map.pv],
+            limits_pu=tuple(f.judged_limits_pu), step_s=f.step_s if step_s is None else int(step_s),
+            control_period_s=f.control_period_s,
+        )
+
     def result(self) -> Metrics:
         """The metrics of every step so far (the accumulator can go on afterwards)."""
         return self._cfg.result(
