@@ -323,6 +323,7 @@ class MetricsAccumulator:
         self._avg_max = -np.inf
         self._taps = np.zeros(cfg.n_regs, dtype=np.int64)
         self._abs_q = np.zeros(cfg.n_pv)
+        self._avg = np.empty(cfg.n_nodes)  # the present rolling average, rewritten in place every step
 
     @property
     def n_steps(self) -> int:
@@ -342,20 +343,30 @@ class MetricsAccumulator:
             Each plant's reactive power during the step [kvar] (either sign).
         """
         cfg = self._cfg
-        v, taps, q = cfg.check(v_pu, tap_changes, pv_q_kvar)
-        self._ring[self._n_steps % cfg.window_steps] = v
+        v, taps, q, v_lo, v_hi = cfg.check_step(v_pu, tap_changes, pv_q_kvar)
+        w = cfg.window_steps
+        self._ring[self._n_steps % w] = v
         self._n_steps += 1
-        self._v_min = min(self._v_min, float(v.min()))
-        self._v_max = max(self._v_max, float(v.max()))
+        self._v_min = min(self._v_min, v_lo)
+        self._v_max = max(self._v_max, v_hi)
         self._taps += taps
         self._abs_q += np.abs(q)
-        if self._n_steps < cfg.window_steps:
+        if self._n_steps < w:
             return
-        avg = self._ring.mean(axis=0)
-        viol = violation_pu(avg, cfg.limits_pu)
+        # ``self._ring.mean(axis=0)`` without its temporaries: the same sum (rows added in ring order) and the
+        # same division, hence the same numbers.
+        avg = np.add.reduce(self._ring, axis=0, out=self._avg)
+        np.true_divide(avg, w, out=avg)
+        a_lo, a_hi = float(avg.min()), float(avg.max())
         self._n_judged += 1
-        self._avg_min = min(self._avg_min, float(avg.min()))
-        self._avg_max = max(self._avg_max, float(avg.max()))
+        self._avg_min = min(self._avg_min, a_lo)
+        self._avg_max = max(self._avg_max, a_hi)
+        lo, hi = cfg.limits_pu
+        # Rounding is monotonic, so the largest ``avg - hi`` is ``max(avg) - hi`` and the largest ``lo - avg`` is
+        # ``lo - min(avg)``: when neither exceeds the tolerance no node violates, and violation_pu is not needed.
+        if a_hi - hi <= VIOLATION_TOLERANCE_PU and lo - a_lo <= VIOLATION_TOLERANCE_PU:
+            return
+        viol = violation_pu(avg, cfg.limits_pu)
         n_out = int(np.count_nonzero(viol > 0.0))
         if n_out:
             self._nvv += n_out
@@ -454,6 +465,26 @@ class _Config(msgspec.Struct, frozen=True, kw_only=True):
             step_s=int(step_s),
             control_period_s=int(control_period_s),
         )
+
+    def check_step(
+        self, v_pu: np.ndarray, tap_changes: np.ndarray, pv_q_kvar: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, float]:
+        """:meth:`check` of one step, plus the step's lowest and highest voltage [pu].
+
+        The same checks and messages with fewer array passes: the voltages are finite and positive exactly
+        when their minimum is positive and their maximum finite (a NaN makes both NaN); whole-number and
+        finiteness checks of tap changes are needed only when they do not come as integers.
+        """
+        v = np.asarray(v_pu, dtype=float)
+        taps = np.asarray(tap_changes)
+        q = np.asarray(pv_q_kvar, dtype=float)
+        if v.shape == (self.n_nodes,) and taps.shape == (self.n_regs,) and q.shape == (self.n_pv,) \
+                and taps.dtype.kind in "iu":
+            v_lo, v_hi = float(v.min()), float(v.max())
+            if v_lo > 0.0 and v_hi < np.inf and not (taps.size and taps.min() < 0) and np.isfinite(q).all():
+                return v, taps.astype(np.int64, copy=False), q, v_lo, v_hi
+        v, taps, q = self.check(v_pu, tap_changes, pv_q_kvar)  # raises with its message, or takes float taps
+        return v, taps, q, float(v.min()), float(v.max())
 
     def check(
         self, v_pu: np.ndarray, tap_changes: np.ndarray, pv_q_kvar: np.ndarray, rows: tuple[int, ...] = ()

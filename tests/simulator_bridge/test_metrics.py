@@ -161,6 +161,26 @@ def test_stream_equals_batch_on_random_series():
         assert getattr(a, name) == pytest.approx(getattr(b, name), rel=1e-12, abs=1e-12), name
 
 
+
+def test_stream_at_the_limits_and_with_integer_or_float_taps():
+    # Averages of samples exactly at a limit round to 1.0500000000000002: within the tolerance, not violations,
+    # whether the streaming update takes its shortcut (no node near a limit) or not. Float tap changes that are
+    # whole numbers are accepted as integer ones are.
+    v = np.ones((30, 3))
+    v[:, 0] = 1.05
+    v[:, 1] = 0.965
+    v[12:20, 2] = 1.2
+    taps = np.zeros((30, 2), dtype=int)
+    taps[3, 0] = 2
+    q = np.zeros((30, 2))
+    a, b = _stream(v, taps, q), _batch(v, taps, q)
+    c = _stream(v, taps.astype(float), q)
+    assert a == c
+    assert (a.nvv, a.steps_in_violation, a.mvvm_node, a.ntc) == (b.nvv, b.steps_in_violation, b.mvvm_node, b.ntc)
+    assert a.nvv > 0 and a.mvvm_node == 2
+    assert a.v_avg_max_pu == pytest.approx(b.v_avg_max_pu, rel=1e-12)
+    assert a.mvvm_pu == pytest.approx(b.mvvm_pu, rel=1e-12)
+
 def test_combine_adds_months():
     v, taps, q = _hand_series()
     taps[5, 1] = 2
