@@ -37,6 +37,7 @@ Deviations from the paper, for the solver's sake (see docs/optimizer.md):
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -214,9 +215,8 @@ class CvvcQp:
     soft_nodes: np.ndarray  # (N,) bool: nodes with a violation variable (eq. 16-17); the others are hard
     nodes: np.ndarray  # (n,) sorted indices of the critical nodes that have a voltage row, in row order
     layout: VariableLayout
-    P: sp.csc_matrix
     c: np.ndarray
-    A: sp.csc_matrix
+    a_sparse: sp.csc_matrix | None  # ``A`` of a large problem (no dense copy), else None: see ``A``
     lower: np.ndarray
     upper: np.ndarray
     q_rating_kvar: np.ndarray
@@ -225,6 +225,25 @@ class CvvcQp:
     a_dense: np.ndarray | None  # ``A`` as a dense array when small (the active-set polish needs it), else None
     p_diag: np.ndarray  # diagonal of ``P``
     fixed_d_tap: np.ndarray | None = None
+
+    @functools.cached_property
+    def A(self) -> sp.csc_matrix:  # noqa: N802 (the QP's name for it)
+        """The constraint matrix in CSC form (built on first use: only OSQP and the cross-checks need it)."""
+        if self.a_sparse is not None:
+            return self.a_sparse
+        if self.a_dense is None:
+            raise AgentInputError("CvvcQp has neither a dense nor a sparse A: build it with build_cvvc_qp")
+        return _dense_to_csc(self.a_dense)
+
+    @functools.cached_property
+    def P(self) -> sp.csc_matrix:  # noqa: N802
+        """The diagonal quadratic cost in CSC form (built on first use)."""
+        return _diag_csc(self.p_diag)
+
+    @property
+    def n_rows(self) -> int:
+        """Rows of ``A``."""
+        return int(self.lower.shape[0])
 
     @property
     def soft(self) -> bool:
@@ -265,7 +284,7 @@ class CvvcQp:
 
     def objective(self, x: np.ndarray) -> float:
         """Objective of ``x`` in unscaled cost units (including the proximal and violation terms)."""
-        return float((0.5 * x @ (self.P @ x) + self.c @ x) * self.cost_scale)
+        return float((0.5 * x @ (self.p_diag * x) + self.c @ x) * self.cost_scale)
 
     def to_qpsolvers(self) -> qpsolvers.Problem:
         """The same problem as a ``qpsolvers.Problem`` (``Gx <= h``, ``Ax = b``, no variable bounds)."""
@@ -393,7 +412,7 @@ def build_cvvc_qp(
             full[soft_idx, n_bounded + np.arange(n_vio)] = -1.0
         full.flags.writeable = False
         a_dense: np.ndarray | None = full
-        a_matrix = _dense_to_csc(full)
+        a_matrix: sp.csc_matrix | None = None  # built on first use (CvvcQp.A)
     else:
         # Large (every node of a big feeder, soft form): sparse only; a dense copy could take gigabytes.
         a_dense = None
@@ -410,9 +429,8 @@ def build_cvvc_qp(
         soft_nodes=soft_nodes,
         nodes=rows_of,
         layout=layout,
-        P=_diag_csc(p_diag),
         c=c,
-        A=a_matrix,
+        a_sparse=a_matrix,
         lower=np.concatenate(lo),
         upper=np.concatenate(hi),
         q_rating_kvar=rating,

@@ -110,6 +110,13 @@ def _within(x: float, lo: float, hi: float, digits: int = 9) -> float:
     return min(max(_round(x, digits), lo), hi)
 
 
+def _within_array(x: np.ndarray, lo: float, hi: float, digits: int) -> list:
+    """``_within`` of every element of an array, as (nested) Python lists (vectorised: a decision carries
+    hundreds of sensitivities, and element-wise Python rounding was 40 % of its decision time).
+    """
+    return np.clip(np.round(np.asarray(x, float), digits), lo, hi).tolist()
+
+
 class DecisionMaker:
     """Frames in, decision messages out: aligner + controller + message construction. No I/O, no clock.
 
@@ -129,6 +136,7 @@ class DecisionMaker:
         self.seq = 0
         self.holds = 0
         self.commands_sent = 0
+        self._dv_dtap = _within_array(np.asarray(model.dv_dtap_pu, float), -1.0, 1.0, 12)  # a model constant
 
     def on_frame(self, key: str, msg: Any) -> list[tuple[AlignedFrames, ControllerDecision]]:
         return [(a, self.controller.decide(snapshot_from(a, self.model))) for a in self.aligner.add(key, msg)]
@@ -173,16 +181,16 @@ class DecisionMaker:
         estimates = []
         if d.v_pu is not None:
             pred = d.v_pred_pu if d.v_pred_pu is not None else d.v_pu
-            estimates = [m.NodeEstimate(node=c.name, v_pu=_within(v, 0.0, 3.0), v_predicted_pu=_within(p, 0.0, 3.0))
-                         for c, v, p in zip(self.model.critical_nodes, d.v_pu, pred, strict=True)]
-        dv_dq = ([] if d.dv_dq_pu_per_kvar is None
-                 else [[_within(x, -1.0, 1.0, 12) for x in row] for row in d.dv_dq_pu_per_kvar])
+            estimates = [m.NodeEstimate(node=c.name, v_pu=v, v_predicted_pu=p)
+                         for c, v, p in zip(self.model.critical_nodes, _within_array(d.v_pu, 0.0, 3.0, 9),
+                                            _within_array(pred, 0.0, 3.0, 9), strict=True)]
+        dv_dq = [] if d.dv_dq_pu_per_kvar is None else _within_array(d.dv_dq_pu_per_kvar, -1.0, 1.0, 12)
         tm = d.timings
         return m.Decision(
             t_ns=t, seq=seq, source=s.agent_id, feeder_id=s.feeder_id, step_t_ns=t, in_reply_to=in_reply_to,
             status=d.status, reason=d.reason[:500], commands=commands, estimates=estimates,
             dv_dq_pu_per_kvar=dv_dq,
-            dv_dtap_pu=[[_within(x, -1.0, 1.0, 12) for x in row] for row in self.model.dv_dtap_pu],
+            dv_dtap_pu=self._dv_dtap,
             solver=m.SolverStats(status=d.solver_status, iterations=d.iterations,
                                  objective=_within(d.objective, -1e12, 1e12),
                                  soft=d.status == "soft"),

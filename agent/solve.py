@@ -9,12 +9,15 @@ are) and a reason. Stages, paper section III and DESIGN.md section 4 (details in
 2. relaxation (continuous taps) by OSQP; if infeasible or unsolved, the soft form at every node;
 3. rounding: every floor/ceil combination of the (at most ``MAX_ENUMERATED_FRACTIONAL``) most fractional
    relaxed tap changes is a candidate, the other taps rounded to nearest;
-4. Q re-solved with each candidate's taps fixed (same form), best-first by a dual lower bound; the cheapest
-   candidate meeting the hard limits wins. If none does, the nearest rounding is re-solved in the soft form.
+4. Q re-solved with each candidate's taps fixed (same form), best-first by a dual lower bound, by the exact
+   dual active-set method (``agent.active_set``; OSQP if it fails); the cheapest candidate meeting the hard
+   limits wins. If none does, the nearest rounding is re-solved in the soft form.
 
-OSQP runs in chunks with a KKT-checked active-set polish after each (``_osqp_run``). Determinism: a fresh
-OSQP object per stage, fixed settings (fixed rho, iteration limits, no wall-clock limit), warm start only
-from the ``warm_start`` argument. Same inputs -> bit-identical solution (timings aside).
+OSQP runs in chunks, each followed by an exact polish: the dual active-set method started from the active
+set the iterate suggests, accepted only after a KKT check (``_osqp_run``). A warm start from the previous
+interval goes straight to that polish. Determinism: a fresh OSQP object per stage, fixed settings (iteration
+limits, no wall-clock limit), warm start only from the ``warm_start`` argument. Same inputs -> bit-identical
+solution (timings aside).
 """
 
 from __future__ import annotations
@@ -32,6 +35,7 @@ import osqp
 import scipy.optimize
 import scipy.sparse as sp
 
+from agent.active_set import solve_dense_qp
 from agent.cvvc_qp import PROX_WEIGHT, CvvcInputs, CvvcQp, build_cvvc_qp
 
 __all__ = [
@@ -84,12 +88,6 @@ FIRST_CHUNK_ITER = 25
 MAX_ITER = 4000
 #: Largest active set the polish solves (its cost grows with the cube); larger ones are left to ADMM.
 POLISH_MAX_ACTIVE = 300
-#: Regularisation of the polish system (keeps it solvable with dependent active rows).
-POLISH_REG = 1e-10
-#: Active-set repair steps per polish after an ADMM chunk, and from a warm start (each: one small dense
-#: solve, about 25 us); from a warm start the active set is usually one or two rows away.
-REPAIR_STEPS = 3
-WARM_REPAIR_STEPS = 6
 #: OSQP tolerance accepted after half the iteration budget (scaled units: 1e-6 pu of voltage).
 LOOSE_EPS = 1e-4
 #: Tolerance of the KKT optimality check in scaled units (% of voltage, fraction of rating, steps).
@@ -206,26 +204,49 @@ def _osqp(qp: CvvcQp, x0: np.ndarray | None, y0: np.ndarray | None) -> _Run:
         return warm
     solver = _setup(qp)
     if solver is None:
-        return _Run(False, False, "OSQP setup refused the problem", np.zeros(qp.layout.n), np.zeros(qp.A.shape[0]), 0)
+        return _Run(False, False, "OSQP setup refused the problem", np.zeros(qp.layout.n), np.zeros(qp.n_rows), 0)
     return _osqp_run(solver, qp, qp.lower, qp.upper, x0, y0)
+
+
+def _active_set(
+    qp: CvvcQp, lo: np.ndarray, hi: np.ndarray, x0: np.ndarray | None, y0: np.ndarray | None, status: str
+) -> _Run | None:
+    """The exact optimum by the dual active-set method started at the active set of ``(x0, y0)``, or None.
+
+    The guess is OSQP's polishing rule: a row is lower-active if ``A x - lo < -y``, upper-active if
+    ``hi - A x < y`` (equality rows always); without ``(x0, y0)`` the method starts from the unconstrained
+    minimum. Accepted only if the KKT conditions hold (a certificate of optimality); ``None`` when the problem
+    has no dense copy, the method fails (step or size limit, numerical trouble), or the check fails.
+    """
+    a_dense = qp.a_dense
+    if a_dense is None:
+        return None
+    guess = None
+    if x0 is not None and y0 is not None and x0.shape == (qp.layout.n,) and y0.shape == lo.shape:
+        z = a_dense @ x0
+        lower = (lo == hi) | (z - lo < -y0)
+        upper = ~lower & (hi - z < y0)
+        guess = upper.astype(np.int8) - lower.astype(np.int8)
+    out = solve_dense_qp(qp.p_diag, qp.c, a_dense, lo, hi, guess=guess, max_active=POLISH_MAX_ACTIVE)
+    if out.status == "infeasible":
+        return _Run(False, True, "infeasible (active set)", out.x, out.y, 0)
+    if out.status != "optimal" or not _kkt_ok(a_dense, qp.p_diag, qp.c, lo, hi, out.x, out.y):
+        return None
+    return _Run(True, False, status, out.x, out.y, 0)
 
 
 def _warm_polish(
     qp: CvvcQp, lo: np.ndarray, hi: np.ndarray, x0: np.ndarray | None, y0: np.ndarray | None
 ) -> _Run | None:
-    """The optimum if the warm start's active set is still the optimal one (KKT-checked), else None.
+    """The optimum from the warm start's active set (no ADMM at all), or None without a usable warm start.
 
-    Between rounding candidates, and between consecutive intervals, the binding constraints rarely change:
-    then one small linear solve replaces the whole ADMM run.
+    Between consecutive intervals the binding constraints rarely change: then the active-set method takes
+    zero to a few steps. A warm start with no active row (all multipliers zero) is a valid start too: the
+    method then begins at the unconstrained minimum.
     """
-    n, m = qp.layout.n, qp.A.shape[0]
-    if x0 is None or y0 is None or x0.shape != (n,) or y0.shape != (m,) or not np.any(y0) or qp.a_dense is None:
+    if x0 is None or y0 is None or y0.shape != lo.shape:
         return None
-    a_dense, p_diag = qp.a_dense, qp.p_diag
-    polished = _polish(a_dense, p_diag, qp.c, lo, hi, x0, y0, WARM_REPAIR_STEPS)
-    if polished is not None and _kkt_ok(a_dense, p_diag, qp.c, lo, hi, *polished):
-        return _Run(True, False, "warm active set", polished[0], polished[1], 0)
-    return None
+    return _active_set(qp, lo, hi, x0, y0, "warm active set")
 
 
 def _osqp_run(
@@ -245,7 +266,7 @@ def _osqp_run(
     satisfies the KKT conditions (a certificate of optimality, not a heuristic). The next chunk continues
     the ADMM iterates where the last one stopped. Deterministic: no clock, fixed chunk and iteration limits.
     """
-    n, m = qp.layout.n, qp.A.shape[0]
+    n, m = qp.layout.n, qp.n_rows
     a_dense, p_diag = qp.a_dense, qp.p_diag
     try:
         solver.warm_start(
@@ -281,9 +302,9 @@ def _osqp_run(
         if a_dense is not None:
             if _kkt_ok(a_dense, p_diag, qp.c, lo, hi, x, y):
                 return _Run(True, False, status_name, x, y, total)
-            polished = _polish(a_dense, p_diag, qp.c, lo, hi, x, y)
-            if polished is not None and _kkt_ok(a_dense, p_diag, qp.c, lo, hi, *polished):
-                return _Run(True, False, status_name + "+polish", polished[0], polished[1], total)
+            polished = _active_set(qp, lo, hi, x, y, status_name + "+polish")
+            if polished is not None:
+                return dataclasses.replace(polished, iterations=total)
         if status not in (
             osqp.SolverStatus.OSQP_MAX_ITER_REACHED,
             osqp.SolverStatus.OSQP_SOLVED,
@@ -295,80 +316,6 @@ def _osqp_run(
             return _Run(True, False, status_name, x, y, total)
         chunk *= 2
     return _Run(False, False, f"{status_name} after {total} iterations", np.zeros(n), np.zeros(m), total)
-
-
-def _equality_qp(
-    a: np.ndarray, p_diag: np.ndarray, c: np.ndarray, bound: np.ndarray, act: np.ndarray
-) -> tuple[np.ndarray, np.ndarray] | None:
-    """Minimise ``x'Px/2 + c'x`` with rows ``act`` held at ``bound[act]``: ``(x, y on act)`` or None.
-
-    ``P`` is a positive diagonal, so the KKT system reduces to ``(A P^-1 A' + reg I) y = -(b + A P^-1 c)``
-    on the active rows (the small regularisation keeps it solvable when active rows are dependent), then
-    ``x = -P^-1 (c + A'y)``.
-    """
-    if act.size > POLISH_MAX_ACTIVE:
-        return None  # a large degenerate active set: the dense solve would cost more than ADMM
-    a_act = a[act]
-    scaled = a_act / p_diag
-    m = scaled @ a_act.T
-    m[np.diag_indices_from(m)] += POLISH_REG
-    try:
-        y = np.linalg.solve(m, -(bound[act] + scaled @ c)) if act.size else np.zeros(0)
-    except np.linalg.LinAlgError:
-        return None
-    x = -(c + a_act.T @ y) / p_diag
-    if not (np.all(np.isfinite(x)) and np.all(np.isfinite(y))):
-        return None
-    return x, y
-
-
-def _polish(
-    a: np.ndarray,
-    p_diag: np.ndarray,
-    c: np.ndarray,
-    lo: np.ndarray,
-    hi: np.ndarray,
-    x: np.ndarray,
-    y: np.ndarray,
-    steps: int = REPAIR_STEPS,
-) -> tuple[np.ndarray, np.ndarray] | None:
-    """Active-set polish from an iterate ``(x, y)``: guess, then repair the active set a few times.
-
-    The guess is OSQP's polishing rule: a row is lower-active if ``Ax - lo < -y``, upper-active if
-    ``hi - Ax < y`` (equality rows always). Each repair step solves the QP with the active rows at their
-    bounds, then drops the active row whose multiplier has the wrong sign the most, or else adds the most
-    violated row. The caller accepts the result only if it passes the KKT check.
-    """
-    z = a @ x
-    eq = lo == hi
-    lower = eq | (z - lo < -y)
-    upper = ~lower & (hi - z < y)
-    sol: tuple[np.ndarray, np.ndarray] | None = None
-    for _ in range(steps):
-        act = np.flatnonzero(lower | upper)
-        out = _equality_qp(a, p_diag, c, np.where(lower, lo, hi), act)
-        if out is None:
-            return None
-        x_new, y_act = out
-        y_full = np.zeros(a.shape[0])
-        y_full[act] = y_act
-        sol = (x_new, y_full)
-        # multipliers must be <= 0 on lower-active rows and >= 0 on upper-active rows (OSQP's sign)
-        wrong = np.where(lower & ~eq, y_full, 0.0) + np.where(upper, -y_full, 0.0)
-        if wrong.max(initial=0.0) > KKT_TOL:
-            i = int(np.argmax(wrong))
-            lower[i] = upper[i] = False
-            continue
-        ax = a @ x_new
-        viol = np.maximum(lo - ax, ax - hi)
-        viol[lower | upper] = 0.0
-        if viol.max(initial=0.0) > KKT_TOL:
-            i = int(np.argmax(viol))
-            lower[i] = ax[i] < lo[i]
-            upper[i] = not lower[i]
-            continue
-        break
-    return sol
 
 
 def _kkt_ok(
@@ -503,7 +450,7 @@ def solve_cvvc(inputs: CvvcInputs, *, warm_start: CvvcSolution | None = None) ->
             reason += "; the remaining hard limits are infeasible too: soft form at every node"
     elif _zero_is_feasible(hard):
         # Every cost is >= 0 and every variable >= 0, so x = 0 minimises the objective: nothing to solve.
-        run = _Run(True, False, "presolve: no action needed", np.zeros(hard.layout.n), np.zeros(hard.A.shape[0]), 0)
+        run = _Run(True, False, "presolve: no action needed", np.zeros(hard.layout.n), np.zeros(hard.n_rows), 0)
     else:
         run, qp = _solve_rows(inputs, soft_mask, None, start, _warm_source(warm_start, inputs), hard)
         iterations += run.iterations
@@ -537,20 +484,24 @@ def solve_cvvc(inputs: CvvcInputs, *, warm_start: CvvcSolution | None = None) ->
     # objective or below the next candidate's bound.
     candidates = _candidates(d_rel)
     bound = qp.objective(run.x)
-    fixed = build_cvvc_qp(inputs, soft=qp.soft_nodes, fixed_d_tap=candidates[0], nodes=qp.nodes)
     hard_nodes = ~qp.soft_nodes
-    x_q0, y_q0 = _remap(qp, run.x, run.y, fixed)
-    plan = []
-    for index, d_int in enumerate(candidates):
-        tap_prox = 0.5 * PROX_WEIGHT * fixed.cost_scale * float(d_int @ d_int)
-        tap_cost = float(inputs.cost_per_tap @ np.abs(d_int)) + tap_prox
-        lo, hi = fixed.bounds_with_d_tap(d_int)
-        lower_bound = tap_cost + _dual_bound(fixed, lo, hi, y_q0)
-        plan.append((lower_bound, index, d_int, tap_cost))
-    plan.sort(key=lambda item: (item[0], item[1]))
+    if np.max(np.abs(candidates[0] - d_rel), initial=0.0) <= INTEGRAL_TOL_STEPS:
+        # The relaxed taps are integral (the usual case: no tap move): the relaxation is the answer.
+        plan = [(bound, 0, candidates[0], 0.0)]
+    else:
+        fixed = build_cvvc_qp(inputs, soft=qp.soft_nodes, fixed_d_tap=candidates[0], nodes=qp.nodes)
+        x_q0, y_q0 = _remap(qp, run.x, run.y, fixed)
+        plan = []
+        for index, d_int in enumerate(candidates):
+            tap_prox = 0.5 * PROX_WEIGHT * fixed.cost_scale * float(d_int @ d_int)
+            tap_cost = float(inputs.cost_per_tap @ np.abs(d_int)) + tap_prox
+            lo, hi = fixed.bounds_with_d_tap(d_int)
+            lower_bound = tap_cost + _dual_bound(fixed, lo, hi, y_q0)
+            plan.append((lower_bound, index, d_int, tap_cost))
+        plan.sort(key=lambda item: (item[0], item[1]))
+        row_ranges = _row_ranges(fixed)
     best = None  # (score, d_int, q_new_kvar)
     solver = None
-    row_ranges = _row_ranges(fixed)
     tried = 0
     for lower_bound, _, d_int, tap_cost in plan:
         if best is not None and (best[0] <= lower_bound or best[0] <= bound + ROUNDING_GAP_REL * abs(bound)):
@@ -564,7 +515,7 @@ def solve_cvvc(inputs: CvvcInputs, *, warm_start: CvvcSolution | None = None) ->
             out_of_reach = (row_ranges[1] < lo[rows] - 1e-9) | (row_ranges[0] > hi[rows] + 1e-9)
             if np.any(out_of_reach & ~fixed.soft_rows):
                 continue  # some hard node cannot meet its limits with these taps, whatever Q does
-            res = _warm_polish(fixed, lo, hi, x_q0, y_q0)
+            res = _active_set(fixed, lo, hi, None, None, "active set")  # measured: the box start is better here
             if res is None:
                 if solver is None:
                     solver = _setup(fixed)
@@ -613,7 +564,9 @@ def solve_cvvc(inputs: CvvcInputs, *, warm_start: CvvcSolution | None = None) ->
         reason = "no rounding of the relaxed taps meets the hard limits: Q re-solved in soft form (eq. 17)"
         status = "soft"
         soft_fixed = build_cvvc_qp(inputs, soft=True, fixed_d_tap=candidates[0])
-        res = _osqp(soft_fixed, None, None)
+        res = _active_set(soft_fixed, soft_fixed.lower, soft_fixed.upper, None, None, "active set") or _osqp(
+            soft_fixed, None, None
+        )
         iterations += res.iterations
         tried += 1
         if res.ok:
@@ -679,9 +632,9 @@ def _remap(src: CvvcQp, x: np.ndarray, y: np.ndarray, dst: CvvcQp) -> tuple[np.n
     if s_lay.vio is not None and d_lay.vio is not None:
         found, where = _positions(src.nodes[src.soft_rows], dst.nodes[dst.soft_rows])
         x0[d_lay.vio][found] = x[s_lay.vio][where]
-    if y.shape != (src.A.shape[0],):
+    if y.shape != (src.n_rows,):
         return x0, None
-    y0 = np.zeros(dst.A.shape[0])
+    y0 = np.zeros(dst.n_rows)
     n_src, n_dst = src.nodes.size, dst.nodes.size
     found, where = _positions(src.nodes, dst.nodes)
     y0[:n_dst][found] = y[:n_src][where]
@@ -762,7 +715,7 @@ def _start_nodes(inputs: CvvcInputs, soft: np.ndarray, warm: CvvcSolution | None
 def _row_ranges(qp: CvvcQp) -> tuple[np.ndarray, np.ndarray]:
     """Lowest and highest value each voltage row can take over the variable box (bound rows)."""
     rows = qp.voltage_rows
-    nb = qp.A.shape[0] - rows.stop  # one identity bound row per tap/Q variable, in variable order
+    nb = qp.n_rows - rows.stop  # one identity bound row per tap/Q variable, in variable order
     dense = qp.a_dense[rows, :nb] if qp.a_dense is not None else qp.A[: rows.stop, :nb].toarray()
     lb, ub = qp.lower[rows.stop :], qp.upper[rows.stop :]
     return np.minimum(dense * lb, dense * ub).sum(axis=1), np.maximum(dense * lb, dense * ub).sum(axis=1)
