@@ -86,9 +86,9 @@ def bench_solver(quick: bool) -> dict[str, Any]:
 def bench_decision(quick: bool) -> dict[str, Any]:
     from cvvc.bench_decision import bench_decision as run
 
-    out = {"rural": run(_rural(), control_steps=12 if quick else 48, cache=CACHE)}
+    out = {"rural": run(_rural(), control_steps=12 if quick else 96, cache=CACHE)}
     if not quick:
-        out["ieee8500"] = run(FEEDERS / "ieee8500.toml", control_steps=12, cache=CACHE)
+        out["ieee8500"] = run(FEEDERS / "ieee8500.toml", control_steps=24, cache=CACHE)
     return out
 
 
