@@ -197,10 +197,12 @@ _READING_FIELDS = tuple(f.name for f in dataclasses.fields(FieldReadings))
 
 
 class _FramePublisher:
-    """Publisher of frames built from arrays that :func:`_check_finite_step` has already checked.
+    """Publisher of the bridge's own messages, whose numbers are already known to be finite.
 
     ``TypedPublisher`` walks every field of every message for NaN (about 60 µs a frame, more than a power
-    flow of IEEE 13); frames here come from one vectorised check per step instead. Same Zenoh settings.
+    flow of IEEE 13). Frames and truth here come from arrays that :func:`_check_finite_step` checked in one
+    vectorised pass; metrics from the accumulator, which refuses non-finite inputs and clips what it reports;
+    the status holds no float. Same Zenoh settings and JSON as ``TypedPublisher``.
     """
 
     def __init__(self, session: zenoh.Session, key: str, *, reliable: bool = False) -> None:
@@ -219,17 +221,21 @@ class _FramePublisher:
         return wait_for(lambda: bool(self._pub.matching_status.matching), timeout_s)
 
 
-def _check_finite_step(res: Any) -> None:
-    """Raise ``BridgeError`` if a step's readings or truth hold NaN or inf (a power flow gone wrong).
+def _check_finite_step(res: Any) -> tuple[float, float]:
+    """Raise ``BridgeError`` if a step's readings or truth hold NaN or inf (a power flow gone wrong); return
+    the lowest and highest node voltage [pu].
 
-    One vectorised pass over every array of the step (a few µs).
+    The node voltages are finite exactly when their extremes are (NaN propagates through min and max); the
+    few readings are checked in one vectorised pass. A few µs.
     """
+    v_lo, v_hi = float(res.v_pu.min()), float(res.v_pu.max())
     rd = res.readings
-    arrays = [np.ravel(getattr(rd, name)) for name in _READING_FIELDS]
-    arrays += [np.ravel(res.v_pu), np.ravel(res.pv_q_kvar), np.ravel(res.pv_p_kw)]
-    if not np.isfinite(np.concatenate(arrays).astype(float, copy=False)).all():
+    small = np.concatenate([getattr(rd, name) for name in _READING_FIELDS] + [res.pv_q_kvar, res.pv_p_kw],
+                           axis=None, dtype=float)
+    if not (math.isfinite(v_lo) and math.isfinite(v_hi) and np.isfinite(small).all()):
         raise BridgeError(f"step at t_ns={res.t_ns}: the power flow produced non-finite values; the "
                           "feeder or its profiles are broken (check `cvvc feeder info`)")
+    return v_lo, v_hi
 
 
 @dataclass(frozen=True)
@@ -277,6 +283,7 @@ class _Runtime:
         self.dropper = dv.FrameDropper(p=c.drop_prob, seed=c.noise_seed)
         self.delay = dv.DelayLine(c.latency_s)
         self.metrics = MetricsAccumulator.for_feeder(dm, engine, step_s=self.step_s)
+        self._truth_v = np.empty(len(engine.node_names))  # the clipped truth voltages, rewritten every step
         # counters
         self.seqs: Counter[str] = Counter()
         self.acks: Counter[str] = Counter()
@@ -306,8 +313,8 @@ class _Runtime:
         self.ack_pv = {p: TypedPublisher(s, keys.ack(f, "pv", p), m.Ack, reliable=True) for p in self.pvs}
         self.ack_vr = {r: TypedPublisher(s, keys.ack(f, "vr", r), m.Ack, reliable=True) for r in self.regs}
         self.pub_truth = _FramePublisher(s, keys.sim_truth(f), reliable=True)
-        self.pub_metrics = TypedPublisher(s, keys.sim_metrics(f), m.MetricsFrame, reliable=True)
-        self.pub_status = TypedPublisher(s, keys.sim_status(f), m.BridgeStatus, reliable=True)
+        self.pub_metrics = _FramePublisher(s, keys.sim_metrics(f), reliable=True)
+        self.pub_status = _FramePublisher(s, keys.sim_status(f), reliable=True)
         self.inbox = Inbox(maxsize=4096)
         self.inbox.subscribe(s, f"{keys.ROOT}/*/cmd/**")  # other feeders too: see _wrong_feeder
         self.inbox.subscribe(s, keys.agent_decision(f), m.Decision)
@@ -558,7 +565,7 @@ class _Runtime:
             self._publish(pub, msg)
 
     def _publish(self, pub: _FramePublisher, msg: msgspec.Struct) -> None:
-        if isinstance(msg, m.HeadFrame) and self.is_control_step(self._step_of(msg.t_ns)):
+        if pub is self.pub_head and self.is_control_step(self._step_of(msg.t_ns)):  # type: ignore[attr-defined]
             self._ctrl_pub_wall_ns[msg.t_ns] = time.time_ns()  # before put: the answer may beat put's return
             while len(self._ctrl_pub_wall_ns) > 64:  # decisions that never came
                 self._ctrl_pub_wall_ns.pop(next(iter(self._ctrl_pub_wall_ns)))
@@ -567,6 +574,10 @@ class _Runtime:
 
     def _step_of(self, t_ns: int) -> int:
         return (t_ns - int(self.profiles.start_t_ns)) // (self.step_s * _NS)
+
+    def _send_now(self, pub: _FramePublisher, msg: msgspec.Struct, now_s: float) -> None:
+        """:meth:`_send` without drops or latency configured."""
+        self._publish(pub, msg)
 
     def _send(self, pub: _FramePublisher, msg: msgspec.Struct, now_s: float) -> None:
         if self.dropper.drop():
@@ -577,47 +588,64 @@ class _Runtime:
             self._publish(pub, msg)
 
     def publish_frames(self, res: Any, now_s: float) -> None:
-        """Schedule the frames of one step (noise, drops, latency applied)."""
-        rd, t = res.readings, int(res.t_ns)
+        """Schedule the frames of one step (noise, drops, latency applied).
+
+        The readings are turned into Python numbers once per step (``tolist``), so the frame builders index
+        lists rather than making a NumPy scalar of every value; the numbers, hence the frames, are the same.
+        """
+        rd, t, seqs, noise = res.readings, int(res.t_ns), self.seqs, self.noise
+        send = self._send if self.dropper.p > 0.0 or self.delay.latency_s > 0.0 else self._send_now
         head = (rd.head_v_mag_v, rd.head_v_ang_deg, rd.head_i_mag_a, rd.head_i_ang_deg, rd.head_p_kw,
                 rd.head_q_kvar)
-        if self.noise is not None:
-            head = self.noise.head(*head)
-        self.seqs["head"] += 1
-        self._send(self.pub_head, dv.head_frame(feeder_id=self.fid, t_ns=t, seq=self.seqs["head"], v_mag_v=head[0],
-                                                v_ang_deg=head[1], i_mag_a=head[2], i_ang_deg=head[3],
-                                                p_kw=head[4], q_kvar=head[5]), now_s)
+        if noise is not None:
+            head = noise.head(*head)
+        hv, ha, hi, hia, hp, hq = (x.tolist() for x in head)
+        seqs["head"] += 1
+        send(self.pub_head, dv.head_frame(feeder_id=self.fid, t_ns=t, seq=seqs["head"], v_mag_v=hv, v_ang_deg=ha,
+                                          i_mag_a=hi, i_ang_deg=hia, p_kw=hp, q_kvar=hq), now_s)
+        pv_p, pv_q, pv_v = rd.pv_p_kw, rd.pv_q_kvar, rd.pv_v_v
+        if noise is None:
+            pv_p, pv_q, pv_v = pv_p.tolist(), pv_q.tolist(), pv_v.tolist()
+        available, q_at_night = np.asarray(res.pv_p_kw, dtype=float).tolist(), self.qsts.pv_q_at_night
         for pid, pv in self.pvs.items():
             k = pv.index
-            p, q, v = rd.pv_p_kw[k], rd.pv_q_kvar[k], rd.pv_v_v[k]
-            if self.noise is not None:
-                p, q, v = self.noise.pv(p, q, v, pv.s_rated_kva)
-            self.seqs[pid] += 1
-            self._send(self.pub_pv[pid], dv.pv_frame(plant=pv, t_ns=t, seq=self.seqs[pid], p_kw=p, q_kvar=q, v_v=v,
-                                                     available_p_kw=float(res.pv_p_kw[k]),
-                                                     q_at_night=self.qsts.pv_q_at_night), now_s)
+            p, q, v = pv_p[k], pv_q[k], pv_v[k]
+            if noise is not None:
+                p, q, v = (x.tolist() for x in noise.pv(p, q, v, pv.s_rated_kva))
+            seqs[pid] += 1
+            send(self.pub_pv[pid], dv.pv_frame(plant=pv, t_ns=t, seq=seqs[pid], p_kw=p, q_kvar=q, v_v=v,
+                                               available_p_kw=available[k], q_at_night=q_at_night), now_s)
+        v120s = np.asarray(rd.reg_v120, dtype=float).tolist()
+        vcs = np.asarray(rd.reg_v120_compared, dtype=float).tolist()
+        taps = np.asarray(res.taps).tolist()
         for rid, reg in self.regs.items():
             r = reg.index
-            v120, vc = float(rd.reg_v120[r]), float(rd.reg_v120_compared[r])
-            if self.noise is not None:
-                v120, vc = self.noise.regulator(v120, vc)
-            self.seqs[rid] += 1
-            self._send(self.pub_vr[rid], dv.reg_frame(reg=reg, t_ns=t, seq=self.seqs[rid], phase=self.reg_phase[r],
-                                                      v120=min(v120, 200.0), v_compared_120=min(vc, 200.0),
-                                                      tap=int(res.taps[r])), now_s)
-        self._flush(now_s)
+            v120, vc = v120s[r], vcs[r]
+            if noise is not None:
+                v120, vc = noise.regulator(v120, vc)
+            seqs[rid] += 1
+            send(self.pub_vr[rid], dv.reg_frame(reg=reg, t_ns=t, seq=seqs[rid], phase=self.reg_phase[r],
+                                                v120=min(v120, 200.0), v_compared_120=min(vc, 200.0),
+                                                tap=int(taps[r])), now_s)
+        if len(self.delay):
+            self._flush(now_s)
 
-    def publish_truth(self, res: Any) -> None:
+    def publish_truth(self, res: Any, v_lo_pu: float, v_hi_pu: float) -> None:
+        """The step's TruthFrame, if this step has one; ``v_lo_pu``, ``v_hi_pu``: the extremes of ``res.v_pu``.
+
+        The voltages are clipped to the schema's 0..3 pu into a buffer kept across steps; the extremes of the
+        clipped voltages are the clipped extremes (clipping is monotonic).
+        """
         c = self.config
         if c.truth_every == 0 or (self.steps - 1) % c.truth_every != 0:
             return
         self.seqs["truth"] += 1
-        v = np.clip(res.v_pu, 0.0, 3.0)
+        v = np.clip(res.v_pu, 0.0, 3.0, out=self._truth_v)
         self.pub_truth.put(m.TruthFrame(
             t_ns=int(res.t_ns), seq=self.seqs["truth"], source="bridge", feeder_id=self.fid, v_pu=v.tolist(),
-            v_min_pu=float(v.min()), v_max_pu=float(v.max()),
+            v_min_pu=min(max(v_lo_pu, 0.0), 3.0), v_max_pu=min(max(v_hi_pu, 0.0), 3.0),
             node_names=list(self.engine.node_names) if self.truth_frames == 0 else None,
-            taps=[int(x) for x in res.taps], pv_q_kvar=[float(x) for x in res.pv_q_kvar]))
+            taps=np.asarray(res.taps).tolist(), pv_q_kvar=np.asarray(res.pv_q_kvar, dtype=float).tolist()))
         self.truth_frames += 1
 
     def metrics_frame(self, *, final: bool) -> m.MetricsFrame:
@@ -630,8 +658,8 @@ class _Runtime:
             mvvm_pu=min(float(r.mvvm_pu), 3.0), nvv=int(r.nvv),
             minutes_in_violation=int(round(r.minutes_in_violation)), ntc=int(r.ntc), q_cost=float(r.q_cost),
             t_cost=float(r.t_cost), total_cost=float(r.total_cost),
-            v_min_pu=float(np.clip(r.v_min_pu if r.v_min_pu is not None else 0.0, 0.0, 3.0)),
-            v_max_pu=float(np.clip(r.v_max_pu if r.v_max_pu is not None else 0.0, 0.0, 3.0)),
+            v_min_pu=min(max(r.v_min_pu if r.v_min_pu is not None else 0.0, 0.0), 3.0),
+            v_max_pu=min(max(r.v_max_pu if r.v_max_pu is not None else 0.0, 0.0), 3.0),
             taps_changes=dict(zip(r.regulator_ids, r.tap_changes_per_regulator, strict=True)),
             q_mvar_intervals=dict(zip(r.pv_ids, r.q_mvar_intervals_per_plant, strict=True)),
             final=final)
@@ -659,13 +687,13 @@ class _Runtime:
         t_next = int(self.profiles.t_ns(self.qsts.next_step))
         self.run_watchdogs(t_next)
         res = self.qsts.step()
-        _check_finite_step(res)
+        v_lo, v_hi = _check_finite_step(res)
         self.now_t_ns = int(res.t_ns)
         self.pv_p_kw = np.asarray(res.pv_p_kw, float)
         self.steps += 1
         self.publish_frames(res, time.monotonic())
         self.metrics.update(res.v_pu, res.tap_changes, res.pv_q_kvar)
-        self.publish_truth(res)
+        self.publish_truth(res, v_lo, v_hi)
         return res
 
     def is_control_step(self, step_index: int) -> bool:
