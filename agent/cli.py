@@ -22,6 +22,12 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="command tap positions (cases A/B) or eq. 8 voltage set points (cases C/D)")
     p.add_argument("--correction", choices=["on", "off"], default="on", help="eq. 6-7 correction (case D)")
     p.add_argument("--bandwidth-v", type=float, default=4.0, help="regulator band sent with set points [V on 120 V]")
+    p.add_argument("--pv-margin-window-s", type=float, default=None,
+                   help="beyond the paper: tighten each node's limits by the voltage change if the plants went back "
+                        "to their highest/lowest output of this many recent seconds; 0 = off (the paper's method) "
+                        "[default: AgentSettings, 1800]")
+    p.add_argument("--pv-margin-cap-pu", type=float, default=None,
+                   help="largest PV variability margin on either side [pu] [default: AgentSettings, 0.01]")
     p.add_argument("--full-visibility", action="store_true",
                    help="case A: true voltages and sensitivities of every node from the bridge's oracle")
     p.add_argument("--agent-id", default="agent")
@@ -34,9 +40,11 @@ def register(sub: argparse._SubParsersAction) -> None:
 def settings_from_args(args: argparse.Namespace):
     from agent.runtime import AgentSettings
 
+    margin = {name: value for name, value in (("pv_margin_window_s", args.pv_margin_window_s),
+                                              ("pv_margin_cap_pu", args.pv_margin_cap_pu)) if value is not None}
     return AgentSettings(feeder_id=args.feeder_id, agent_id=args.agent_id, mode=args.mode,
                          correction=args.correction == "on", bandwidth_v120=args.bandwidth_v,
-                         full_visibility=args.full_visibility, stale_after_s=args.stale_after_s)
+                         full_visibility=args.full_visibility, stale_after_s=args.stale_after_s, **margin)
 
 
 def _agent(args: argparse.Namespace) -> int:

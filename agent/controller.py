@@ -21,6 +21,7 @@ settings and iteration limits (``agent.solve``).
 from __future__ import annotations
 
 import time
+from collections import deque
 from dataclasses import dataclass, fields
 from typing import Literal
 
@@ -32,8 +33,10 @@ from agent.estimator import (
     SensitivityTable,
     apply_correction,
     correction_pu,
+    dv_dp_pu_per_kw,
     dv_dq_pu_per_kvar,
     estimate_voltages_pu,
+    pv_variability_margins_pu,
 )
 from agent.setpoints import expected_compared_v120, setpoint_for_tap_change
 from agent.solve import CvvcSolution, solve_cvvc
@@ -168,6 +171,10 @@ class CvvcController:
         bands: cases C/D).
     correction : apply the eq. (6)-(7) correction from regulator secondary voltages.
     bandwidth_v120 : regulator bandwidth ``B`` sent with set points [V on 120 V base] (paper case C: 4 V).
+    pv_margin_window_s : beyond the paper: tighten each node's limits by how far its voltage would move if the
+        plants went back to their highest or lowest output of this many recent seconds (control steps seen);
+        0 turns it off (the paper's method). See ``agent.estimator.pv_variability_margins_pu``.
+    pv_margin_cap_pu : largest such margin on either side [pu].
     """
 
     def __init__(
@@ -177,6 +184,8 @@ class CvvcController:
         mode: Literal["taps", "setpoints"],
         correction: bool,
         bandwidth_v120: float,
+        pv_margin_window_s: float = 0.0,
+        pv_margin_cap_pu: float = 0.02,
     ) -> None:
         if mode not in ("taps", "setpoints"):
             raise AgentInputError(f"mode must be 'taps' or 'setpoints', not {mode!r}")
@@ -185,11 +194,19 @@ class CvvcController:
             raise AgentInputError(
                 f"bandwidth {bandwidth_v120} V must exceed one tap step ({steps.max(initial=0.0)} V); use e.g. 4"
             )
+        if not (np.isfinite(pv_margin_window_s) and pv_margin_window_s >= 0.0):
+            raise AgentInputError(f"pv_margin_window_s must be >= 0, not {pv_margin_window_s}")
+        if not (np.isfinite(pv_margin_cap_pu) and 0.0 <= pv_margin_cap_pu <= 0.05):
+            raise AgentInputError(f"pv_margin_cap_pu must be within 0 to 0.05 pu, not {pv_margin_cap_pu}")
         self.model = model
         self.mode = mode
         self.correction = correction
         self.bandwidth_v120 = float(bandwidth_v120)
         self._arrays = ModelArrays.of(model)
+        self._margin_window_ns = int(pv_margin_window_s * 1e9)
+        self._margin_cap_pu = float(pv_margin_cap_pu)
+        self._dv_dp = dv_dp_pu_per_kw(self._arrays, model.feature_names, len(model.pv))
+        self._recent_pv_p: deque[tuple[int, np.ndarray]] = deque()  # (t_ns, (K,) P) at recent decisions
         self._sens = SensitivityTable.of(model.sens_q)
         self._pv_ids = tuple(p.id for p in model.pv)
         self._reg_ids = tuple(r.id for r in model.regulators)
@@ -261,6 +278,23 @@ class CvvcController:
             )
         return head_ok, pv_ok, reg_ok
 
+    def _limits_pu(
+        self, t_ns: int, pv_p_kw: np.ndarray, lo_pu: float, hi_pu: float
+    ) -> tuple[np.ndarray | float, np.ndarray | float]:
+        """The optimization limits of this step: the model's, tightened by the PV variability margin."""
+        if self._margin_window_ns <= 0:
+            return lo_pu, hi_pu
+        recent = self._recent_pv_p
+        if recent and recent[-1][0] >= t_ns:
+            recent.clear()  # a step out of order (the aligner prevents it): start the window again
+        while recent and recent[0][0] < t_ns - self._margin_window_ns:
+            recent.popleft()
+        recent.append((t_ns, pv_p_kw.copy()))
+        rise, fall = pv_variability_margins_pu(
+            self._dv_dp, pv_p_kw, np.array([p for _, p in recent]), self._margin_cap_pu
+        )
+        return lo_pu + fall, hi_pu - rise
+
     # ------------------------------------------------------------------------------------------- decide
     def decide(self, snap: MeasurementSnapshot) -> Decision:
         """Decide the actions for one snapshot (see the module docstring for the hold rule)."""
@@ -318,6 +352,7 @@ class CvvcController:
         q_min = np.where(pv_ok, -headroom, pv_q)
         q_max = np.where(pv_ok, headroom, pv_q)
         lo_pu, hi_pu = self.model.optimization_limits_pu
+        v_min_pu, v_max_pu = self._limits_pu(int(snap.t_ns), pv_p, lo_pu, hi_pu)
         try:
             inputs = CvvcInputs(
                 v0_pu=v_hat,
@@ -333,8 +368,8 @@ class CvvcController:
                 max_taps_per_interval=np.where(reg_ok, self._max_taps, 0),
                 cost_per_tap=self._tap_cost,
                 cost_per_kvar=self._pv_cost,
-                v_min_pu=lo_pu,
-                v_max_pu=hi_pu,
+                v_min_pu=v_min_pu,
+                v_max_pu=v_max_pu,
             )
         except AgentInputError as e:
             return self._hold(

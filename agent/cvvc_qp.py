@@ -112,7 +112,8 @@ class CvvcInputs:
     max_taps_per_interval : (R,) eq. (12) [steps]; 0 freezes a regulator.
     cost_per_tap : (R,) eq. (14) [cost units/step], >= 0.
     cost_per_kvar : (K,) eq. (15) [cost units/kvar], >= 0.
-    v_min_pu, v_max_pu : optimization voltage limits, eq. (13) [pu].
+    v_min_pu, v_max_pu : optimization voltage limits, eq. (13) [pu]: one for every node, or (N,) per node
+        (stored as (N,) arrays).
     soft_alpha : eq. (17)'s alpha (weight of the action cost) [-].
     soft_beta_per_pu2 : eq. (17)'s beta [cost units/pu^2].
     """
@@ -130,8 +131,8 @@ class CvvcInputs:
     max_taps_per_interval: np.ndarray
     cost_per_tap: np.ndarray
     cost_per_kvar: np.ndarray
-    v_min_pu: float
-    v_max_pu: float
+    v_min_pu: np.ndarray | float
+    v_max_pu: np.ndarray | float
     soft_alpha: float = DEFAULT_SOFT_ALPHA
     soft_beta_per_pu2: float = DEFAULT_SOFT_BETA_PER_PU2
 
@@ -148,7 +149,9 @@ class CvvcInputs:
         for name in ("taps", "tap_min", "tap_max", "max_taps_per_interval"):
             put(self, name, _vec(name, getattr(self, name), r, int))
         put(self, "cost_per_tap", _vec("cost_per_tap", self.cost_per_tap, r))
-        for name in ("v_min_pu", "v_max_pu", "soft_alpha", "soft_beta_per_pu2"):
+        for name in ("v_min_pu", "v_max_pu"):
+            put(self, name, _vec(name, np.broadcast_to(np.asarray(getattr(self, name), float), (n,)), n))
+        for name in ("soft_alpha", "soft_beta_per_pu2"):
             value = float(getattr(self, name))
             if not np.isfinite(value):
                 raise AgentInputError(f"CvvcInputs.{name} is not finite")
@@ -161,8 +164,8 @@ class CvvcInputs:
             raise AgentInputError("tap limits must satisfy tap_min <= tap_max and max_taps_per_interval >= 0")
         if np.any(self.cost_per_tap < 0) or np.any(self.cost_per_kvar < 0):
             raise AgentInputError("costs must be non-negative")
-        if not self.v_min_pu < self.v_max_pu:
-            raise AgentInputError(f"v_min_pu {self.v_min_pu} must be below v_max_pu {self.v_max_pu}")
+        if not np.all(self.v_min_pu < self.v_max_pu):
+            raise AgentInputError("v_min_pu must be below v_max_pu at every node")
         if self.soft_alpha < 0 or self.soft_beta_per_pu2 <= 0:
             raise AgentInputError("soft_alpha must be >= 0 and soft_beta_per_pu2 > 0")
 
@@ -384,8 +387,8 @@ def build_cvvc_qp(
     v_base = _PCT_PER_PU * inputs.v0_pu[rows_of] - s_q @ (inputs.q0_kvar / rating)
     if not with_taps:
         v_base = v_base + s_t @ np.asarray(fixed_d_tap, float)
-    v_lo = _PCT_PER_PU * inputs.v_min_pu - v_base
-    v_hi = _PCT_PER_PU * inputs.v_max_pu - v_base
+    v_lo = _PCT_PER_PU * np.asarray(inputs.v_min_pu)[rows_of] - v_base
+    v_hi = _PCT_PER_PU * np.asarray(inputs.v_max_pu)[rows_of] - v_base
 
     # Variable bounds, one identity row each. They carry eq. (10)-(12) exactly for the *net* actions
     # dT = dT+ - dT- and Q = Q+ - Q- (0 <= dT+ <= min(max, room up) gives dT <= room up and |dT| <= max,

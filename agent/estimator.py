@@ -19,8 +19,10 @@ __all__ = [
     "SensitivityTable",
     "apply_correction",
     "correction_pu",
+    "dv_dp_pu_per_kw",
     "dv_dq_pu_per_kvar",
     "estimate_voltages_pu",
+    "pv_variability_margins_pu",
 ]
 
 #: Smallest ``c + q_head_kvar`` [kvar] the power form of eq. (3) is evaluated at (guard against a fit whose
@@ -178,3 +180,57 @@ def dv_dq_pu_per_kvar(fits: SensitivityTable | Sequence[Sequence[SensitivityFit]
     base = np.maximum(table.c[pw] + q[pw], POWER_BASE_FLOOR_KVAR)
     out[pw] = table.a[pw] / base ** table.b[pw]
     return out
+
+
+def dv_dp_pu_per_kw(arrays: ModelArrays, feature_names: Sequence[str], n_pv: int) -> np.ndarray:
+    """Voltage change of each critical node per kW more from each plant, read off eq. (5)'s coefficients.
+
+    A plant producing more lowers the feeder-head P by as much (losses aside): the coefficient of the plant's
+    P minus the mean of the head's per-phase P coefficients (the plant's kW taken off the three phases
+    equally: exact for three-phase plants, an approximation for single-phase ones). Beyond the paper: used
+    for the PV variability margin (``pv_variability_margins_pu``).
+
+    Returns
+    -------
+    (N, K) sensitivities [pu/kW].
+    """
+    names = list(feature_names)
+    try:
+        head = [names.index(f"head_p_kw_{ph}") for ph in "abc"]
+        plants = [names.index(f"pv{k}_p_kw") for k in range(n_pv)]
+    except ValueError as e:
+        raise AgentInputError(f"the model's features lack head or plant P: {e}") from e
+    alpha = arrays.alpha
+    return alpha[:, plants] - alpha[:, head].mean(axis=1, keepdims=True)
+
+
+def pv_variability_margins_pu(
+    dv_dp_pu_per_kw: np.ndarray, pv_p_kw: np.ndarray, recent_pv_p_kw: np.ndarray, cap_pu: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """How far each critical node's voltage could move if the plants went back to their recent extremes.
+
+    Beyond the paper (docs/method.md, "PV variability margin"): Q set points and taps hold for a whole control
+    interval while clouds move the plants' output within it. Each plant may return to the highest or lowest
+    output it had in the recent window; the worst rise and fall of each node under those changes, by the
+    linear model ``dv_dp_pu_per_kw``, tighten its upper and lower optimization limits.
+
+    Parameters
+    ----------
+    dv_dp_pu_per_kw : (N, K) from ``dv_dp_pu_per_kw`` [pu/kW].
+    pv_p_kw : (K,) output now [kW].
+    recent_pv_p_kw : (H, K) outputs at the recent control steps (now included) [kW].
+    cap_pu : largest margin on either side [pu].
+
+    Returns
+    -------
+    ``(rise_pu, fall_pu)``, each (N,) in ``[0, cap_pu]``: subtract ``rise`` from the upper limit, add ``fall``
+    to the lower one.
+    """
+    now = np.asarray(pv_p_kw, float)
+    recent = np.asarray(recent_pv_p_kw, float).reshape(-1, now.size)
+    up = np.maximum(recent.max(axis=0, initial=-np.inf) - now, 0.0) if recent.size else np.zeros_like(now)
+    down = np.maximum(now - recent.min(axis=0, initial=np.inf), 0.0) if recent.size else np.zeros_like(now)
+    s = np.asarray(dv_dp_pu_per_kw, float)
+    rise = np.maximum(s * up, -s * down).sum(axis=1)
+    fall = np.maximum(-s * up, s * down).sum(axis=1)
+    return np.clip(rise, 0.0, cap_pu), np.clip(fall, 0.0, cap_pu)

@@ -51,6 +51,8 @@ class AgentSettings(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fi
     late_window_s: float = 2.0  # live only: how long an incomplete step waits for late frames [s]
     stale_after_s: float = 10.0  # live only: no frame for this long -> "stale" [s]
     oracle_timeout_s: float = 30.0  # case A: how long to wait for the bridge's oracle [s]
+    pv_margin_window_s: float = 1800.0  # beyond the paper: PV variability margin window, 0 = off [s]
+    pv_margin_cap_pu: float = 0.01  # its largest value on either side [pu]
 
 
 class AgentSummary(msgspec.Struct, frozen=True, kw_only=True):
@@ -132,7 +134,9 @@ class DecisionMaker:
                                     regulator_ids=tuple(r.id for r in model.regulators),
                                     control_period_ns=self.period_ns)
         self.controller = CvvcController(model, mode=settings.mode, correction=settings.correction,
-                                         bandwidth_v120=settings.bandwidth_v120)
+                                         bandwidth_v120=settings.bandwidth_v120,
+                                         pv_margin_window_s=settings.pv_margin_window_s,
+                                         pv_margin_cap_pu=settings.pv_margin_cap_pu)
         self.seq = 0
         self.holds = 0
         self.commands_sent = 0

@@ -7,7 +7,7 @@ import pytest
 
 from agent.controller import CvvcController, Decision, MeasurementSnapshot
 from agent.errors import AgentInputError
-from agent.estimator import estimate_voltages_pu
+from agent.estimator import dv_dp_pu_per_kw, estimate_voltages_pu, pv_variability_margins_pu
 from agent.synthetic import synthetic_model
 from training.model import ModelArrays, features
 
@@ -209,3 +209,32 @@ def test_nan_in_a_valid_frame_is_rejected_before_the_solver(field, index, device
     assert d.missing == (device,)
     for name in ("pv_q_kvar", "reg_tap", "v_pu", "v_pred_pu", "dv_dq_pu_per_kvar"):
         assert np.all(np.isfinite(getattr(d, name)))
+
+
+def test_pv_variability_margin_tightens_the_limits_after_a_cloud():
+    """A plant that produced more 10 minutes ago may do so again within the interval: the nodes it raises
+    get a lower upper limit, by the linear model's dV/dP times the output they could regain."""
+    plain, margin = controller(), controller(pv_margin_window_s=1800.0, pv_margin_cap_pu=0.01)
+    minute = 60_000_000_000
+    for t, p in ((0, 1100.0), (5 * minute, 1100.0), (10 * minute, 300.0)):  # a cloud at the third step
+        snap = snapshot(t, pv_p_kw=p, reading_error_pu=HIGH)
+        d_plain, d_margin = plain.decide(snap), margin.decide(snap)
+    assert d_plain.status == d_margin.status == "optimal", (d_plain.reason, d_margin.reason)
+    dv_dp = dv_dp_pu_per_kw(ARRAYS, MODEL.feature_names, K)
+    rise, _ = pv_variability_margins_pu(dv_dp, np.full(K, 300.0), np.array([[1100.0] * K, [300.0] * K]), 0.01)
+    assert rise.max() > 0.005  # the synthetic plants raise some nodes a lot
+    _, hi = MODEL.optimization_limits_pu
+    assert np.all(d_margin.v_pred_pu <= hi - rise + 1e-5)  # every node meets its tightened limit
+    assert d_plain.v_pred_pu.max() > (hi - rise).min()  # ... which the paper's method does not
+    assert d_margin.objective > d_plain.objective  # at a price
+
+
+def test_pv_variability_margin_is_off_by_default_and_validated():
+    c = controller()
+    d = c.decide(snapshot(reading_error_pu=HIGH))
+    _, hi = MODEL.optimization_limits_pu
+    assert d.v_pred_pu.max() == pytest.approx(hi, abs=1e-5)  # the plain limit binds
+    with pytest.raises(AgentInputError, match="pv_margin_window_s"):
+        controller(pv_margin_window_s=-1.0)
+    with pytest.raises(AgentInputError, match="pv_margin_cap_pu"):
+        controller(pv_margin_cap_pu=0.5)

@@ -9,8 +9,10 @@ from agent.estimator import (
     SensitivityTable,
     apply_correction,
     correction_pu,
+    dv_dp_pu_per_kw,
     dv_dq_pu_per_kvar,
     estimate_voltages_pu,
+    pv_variability_margins_pu,
 )
 from agent.synthetic import synthetic_model
 from training.model import ModelArrays, SensitivityFit, features
@@ -124,3 +126,38 @@ def test_synthetic_model_sensitivities_are_plausible():
     s = dv_dq_pu_per_kvar(model.sens_q, 1500.0)
     assert s.shape == (47, 3)
     assert np.all((s > 1e-7) & (s < 1e-4))
+
+
+def test_dv_dp_is_the_plant_coefficient_minus_the_mean_head_coefficient():
+    names = ["head_p_kw_a", "head_p_kw_b", "head_p_kw_c", "head_q_kvar_a", "head_q_kvar_b", "head_q_kvar_c",
+             "pv0_p_kw", "pv0_q_kvar"]
+    alpha = np.zeros((2, len(names) + 1))
+    alpha[0, :3] = [-3e-6, -6e-6, -9e-6]  # more head load, lower voltage
+    alpha[0, 6] = 2e-5
+    alpha[1, 6] = 1e-5
+    arrays = ModelArrays(alpha=alpha, tap0=np.zeros(0), dv_dtap_pu=np.zeros((2, 0)),
+                         upstream_regulator=np.array([-1, -1]), reg_secondary_node=np.zeros(0, int),
+                         reg_pu_per_v120=np.zeros(0))
+    # node 0: 2e-5 - (-6e-6) = 2.6e-5 pu/kW; node 1: 1e-5
+    np.testing.assert_allclose(dv_dp_pu_per_kw(arrays, names, 1), [[2.6e-5], [1e-5]], rtol=1e-12)
+    with pytest.raises(AgentInputError, match="plant P"):
+        dv_dp_pu_per_kw(arrays, names, 2)
+
+
+@pytest.mark.parametrize(
+    ("recent", "rise", "fall"),
+    [
+        ([[500.0], [100.0]], 0.004, 0.0),  # output fell 400 kW: it may come back, +0.004 pu
+        ([[100.0], [100.0]], 0.0, 0.0),  # steady: no margin
+        ([[0.0], [100.0]], 0.0, 0.001),  # output rose 100 kW from 0: it may drop back, -0.001 pu
+        ([[2000.0], [0.0], [100.0]], 0.01, 0.001),  # a 1900 kW swing: capped at 0.01 pu
+    ],
+)
+def test_variability_margin_by_hand(recent, rise, fall):
+    up, down = pv_variability_margins_pu(np.array([[1e-5]]), np.array([100.0]), np.array(recent), 0.01)
+    np.testing.assert_allclose([up[0], down[0]], [rise, fall], atol=1e-15)
+
+
+def test_variability_margin_of_a_node_the_plant_lowers_swaps_sides():
+    up, down = pv_variability_margins_pu(np.array([[-1e-5]]), np.array([100.0]), np.array([[500.0], [100.0]]), 1.0)
+    np.testing.assert_allclose([up[0], down[0]], [0.0, 0.004], atol=1e-15)

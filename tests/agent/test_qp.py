@@ -125,6 +125,8 @@ def test_fully_soft_when_the_reachable_nodes_conflict():
             "v0_pu": np.array([1.10, 1.05, 0.97]),
             "dv_dq_pu_per_kvar": np.array([[2e-5], [1e-5], [1e-5]]),
             "dv_dtap_pu": np.array([[0.00625], [0.00625], [0.00625]]),
+            "v_min_pu": 0.975,  # stored per node: give them again for three nodes
+            "v_max_pu": 1.04,
         }
     )
     sol = solve_cvvc(inputs)
