@@ -96,14 +96,11 @@ def solve_dense_qp(
     normals = a * scale  # row i: the constraint's normal in z coordinates
     z0 = -c * scale  # the unconstrained minimum
     eq = lo == hi
-    # Active set: rows, their sides (+1: a x >= lo, -1: -a x >= -hi), signed normals ``nact`` (q, n), the
-    # inverse of their Gram matrix ``h`` (updated by bordering, never refactorised), and multipliers u >= 0
-    # (free on equalities).
     rows0, sides0, z, u0 = _start(normals, z0, lo, hi, eq, guess)
     cap = n if max_active is None else min(n, max_active)
     # Active set in preallocated buffers, first q entries: rows, sides (+1: a x >= lo, -1: -a x >= -hi),
     # signed normals, multipliers (>= 0; free on equalities) and the inverse of the normals' Gram matrix
-    # (updated by bordering and by a rank-one downdate, never refactorised; refined once at the end).
+    # (updated by bordering and by a rank-one downdate, refactorised only if it drifts; refined at the end).
     q = rows0.size
     if q > cap:
         return failed("guessed active set larger than allowed")
