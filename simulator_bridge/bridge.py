@@ -19,6 +19,16 @@ guide; in short:
   token alive, the bridge does not wait (counted as ``lockstep_skipped``).
 * **Real time**: step ``i`` is simulated at ``t0 + i · step_s / speed`` of wall time; the bridge never
   waits for anyone, it serves commands and oracle queries while it waits for the next tick.
+* **Publisher thread** (``BridgeConfig.publisher``; by default on feeders of 1000 nodes or more, never with
+  ``latency_s``): a step's device frames, streaming metrics and truth frame are built, encoded and put by
+  one publisher thread, in step order, while the stepping thread solves the next step (OpenDSS releases
+  the GIL while it solves). In lockstep a step is handed over when the next step's first power flow starts
+  (``FeederEngine.solve`` of this run's engine is wrapped for that): handed over earlier, the publisher
+  takes the GIL at the stepping thread's first short OpenDSS call and keeps it while the stepping thread
+  waits (slower than inline publishing, measured without Zenoh). The stepping thread waits until every step
+  so far is published (:meth:`_Runtime.drain`) before it changes a device's command state (the frames show
+  it), on a control step before it waits for the decision and publishes metrics and status, and at the
+  end; so every message is the one inline publishing sends, and lockstep is unchanged.
 """
 
 from __future__ import annotations
@@ -73,6 +83,12 @@ _POLL_S = 0.05  # longest a wait goes without checking the stop event [s]
 _HANDLED_MEMORY = 10_000  # cmd_ids remembered for matching decisions
 _STARTUP_PROBE_S = 1.0  # bounded look for an agent already alive, and for its subscription, at startup [s]
 _DRAIN_MAX = 1000  # queued items handled in one go before the clock and the stop event are looked at again
+_PIPE_DEPTH = 4  # simulated steps handed to the publisher thread and not yet published, at most
+_PIPE_WAIT_S = 60.0  # longest the stepping thread waits for the publisher thread to take or publish steps [s]
+# publisher="auto" uses the publisher thread from this many nodes on: measured faster on the rural feeder (1283
+# nodes) and IEEE 8500 (8531), slower on IEEE 123 (278), whose power flow is too short to hide the publishing
+# (docs/bridge.md, Speed)
+_PIPE_MIN_NODES = 1000
 
 
 class BridgeError(CvvcError):
@@ -96,6 +112,10 @@ class BridgeConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fie
     noise_pmu_pct, noise_scada_pct : measurement noise per class [%]; drop_prob : frame drop probability;
     latency_s : fixed frame latency [s of wall time]; noise_seed : seed of noise and drops.
     cache_dir : where profiles are cached as ``.npz`` (None: no cache).
+    publisher : who builds, encodes and puts a step's frames, metrics update and truth: ``inline`` the
+        stepping thread; ``thread`` a publisher thread, while the stepping thread solves the next step (not
+        with ``latency_s``); ``auto`` (default) the thread on feeders of 1000 nodes or more without latency,
+        inline otherwise. The messages are the same.
     """
 
     device_map_path: str
@@ -115,16 +135,18 @@ class BridgeConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fie
     latency_s: float = 0.0
     noise_seed: int = 0
     cache_dir: str | None = ".cvvc-cache"
+    publisher: Literal["auto", "inline", "thread"] = "auto"
 
 
 class BridgeSummary(msgspec.Struct, frozen=True, kw_only=True):
     """What a bridge run did (printed as JSON by ``cvvc bridge --json``).
 
     Times in seconds: ``wall_s`` of the stepping loop; ``cpu_s`` CPU time of every thread of the process
-    during the loop, Zenoh's included; ``thread_cpu_s`` of the stepping thread alone. ``round_trip_*_s`` is
-    from the publication of a control step's head frame to the reception of the agent's decision for it;
-    ``rejected`` counts rejected commands per reason (device reasons, and ``decode_<kind>`` for payloads
-    that did not decode).
+    during the loop, Zenoh's included; ``thread_cpu_s`` of the stepping thread alone;
+    ``publisher_thread_cpu_s`` of the publisher thread (0 when the frames are published inline).
+    ``round_trip_*_s`` is from the publication of a control step's head frame to the reception of the agent's
+    decision for it; ``rejected`` counts rejected commands per reason (device reasons, and ``decode_<kind>``
+    for payloads that did not decode).
     """
 
     feeder_id: str
@@ -154,6 +176,7 @@ class BridgeSummary(msgspec.Struct, frozen=True, kw_only=True):
     agent_alive: bool
     stopped_early: bool
     metrics: m.MetricsFrame | None
+    publisher_thread_cpu_s: float = 0.0
 
 
 # ------------------------------------------------------------------------------------------ helpers
@@ -191,6 +214,9 @@ def _check_config(c: BridgeConfig) -> None:
         raise BridgeError(f"--truth-every must be >= 0 (0: no truth frames), got {c.truth_every}")
     if not (math.isfinite(c.wait_agent_s) and 0.0 <= c.wait_agent_s <= 3600.0):
         raise BridgeError(f"--wait-agent-s must be within 0..3600 s, got {c.wait_agent_s}")
+    if c.publisher == "thread" and c.latency_s > 0.0:
+        raise BridgeError("publisher='thread' cannot hold frames for --latency-s (the stepping thread flushes the "
+                          "delay line); use publisher='auto' or 'inline' with latency")
 
 
 _READING_FIELDS = tuple(f.name for f in dataclasses.fields(FieldReadings))
@@ -238,6 +264,102 @@ def _check_finite_step(res: Any) -> tuple[float, float]:
     return v_lo, v_hi
 
 
+class _StepPublisher:
+    """One thread that publishes simulated steps in order: ``publish(*item)`` for every :meth:`submit`-ted item.
+
+    The stepping thread hands over a step (its ``StepResult``, whose arrays the engine never reuses) and goes
+    on to simulate the next one; OpenDSS releases the GIL while it solves, so the frames of step ``t`` are
+    encoded and put while step ``t+1`` is solved. At most ``_PIPE_DEPTH`` steps wait. :meth:`drain` returns
+    once every submitted step is published. An exception in the thread is kept and raised as
+    ``BridgeError`` in the stepping thread by the next :meth:`submit` or :meth:`drain`; the thread publishes
+    nothing after it. Every wait is bounded (``_PIPE_WAIT_S``).
+    """
+
+    def __init__(self, publish: Any) -> None:
+        self._publish = publish
+        self._queue: queue.Queue[tuple[Any, ...] | None] = queue.Queue(maxsize=_PIPE_DEPTH)
+        self._cond = threading.Condition()
+        self._submitted = self._published = 0
+        self._draining = False  # the stepping thread waits in drain(): wake it after each step
+        self._error: Exception | None = None
+        self._abort = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="cvvc-bridge-publisher", daemon=True)
+        self._thread.start()
+        ident = self._thread.ident
+        self._clock = (time.pthread_getcpuclockid(ident)
+                       if ident is not None and hasattr(time, "pthread_getcpuclockid") else None)
+
+    def _run(self) -> None:
+        try:
+            while True:
+                item = self._queue.get()
+                if item is None or self._abort.is_set():
+                    return
+                self._publish(*item)
+                self._published += 1  # only this thread writes it
+                if self._draining:
+                    with self._cond:
+                        self._cond.notify_all()
+        except Exception as e:  # kept for the stepping thread, which raises it (see _raise_if_failed)
+            with self._cond:
+                self._error = e
+                self._cond.notify_all()
+
+    def cpu_s(self) -> float:
+        """CPU time of the publisher thread so far [s] (0 where the platform cannot tell)."""
+        return time.clock_gettime(self._clock) if self._clock is not None and self._thread.is_alive() else 0.0
+
+    def _raise_if_failed(self) -> None:
+        if self._error is not None:
+            raise BridgeError(f"the publisher thread failed after publishing {self._published} steps: "
+                              f"{self._error!r}; the run stops (later frames were not published)") from self._error
+        if not self._thread.is_alive():
+            raise BridgeError("the publisher thread is gone; the run stops")
+
+    def submit(self, item: tuple[Any, ...]) -> None:
+        """Hand one step over (waits while ``_PIPE_DEPTH`` steps are pending, at most ``_PIPE_WAIT_S``)."""
+        deadline = time.monotonic() + _PIPE_WAIT_S
+        while True:
+            self._raise_if_failed()
+            try:
+                self._queue.put(item, timeout=_POLL_S)
+                break
+            except queue.Full:
+                if time.monotonic() > deadline:
+                    raise BridgeError(f"the publisher thread took no step for {_PIPE_WAIT_S:.0f} s (a put that "
+                                      "blocks?); the run stops") from None
+        self._submitted += 1
+
+    def drain(self) -> None:
+        """Return once every submitted step is published (at most ``_PIPE_WAIT_S``)."""
+        deadline = time.monotonic() + _PIPE_WAIT_S
+        with self._cond:
+            self._draining = True
+            try:
+                while self._published < self._submitted:
+                    self._raise_if_failed()
+                    left = deadline - time.monotonic()
+                    if left <= 0:
+                        raise BridgeError(f"the publisher thread published {self._published} of "
+                                          f"{self._submitted} steps in {_PIPE_WAIT_S:.0f} s; the run stops")
+                    self._cond.wait(min(left, _POLL_S))
+            finally:
+                self._draining = False
+        self._raise_if_failed()
+
+    def close(self) -> None:
+        """Stop the thread: after what is queued when the queue was drained, at once otherwise (bounded)."""
+        if self._published < self._submitted:
+            self._abort.set()  # an error path: what is still queued is not published
+        try:
+            self._queue.put(None, timeout=1.0)
+        except queue.Full:
+            self._abort.set()
+        self._thread.join(5.0)
+        if self._thread.is_alive():
+            log.warning("the publisher thread did not stop within 5 s (a blocked put?); left as a daemon")
+
+
 @dataclass(frozen=True)
 class _SenderGone:
     """An agent's liveliness token was withdrawn: its devices forget its command sequence (stepping thread)."""
@@ -277,6 +399,7 @@ class _Runtime:
                                                  float(engine.reg_default_setpoint_v120[r]),
                                                  float(engine.reg_default_band_v120[r]))
                      for r, rid in enumerate(engine.regulator_ids)}
+        self._devices: list[dv.PvInverter | dv.RegulatorController] = [*self.pvs.values(), *self.regs.values()]
         self.reg_phase = ["abc"[int(engine.node_names[n].split(".")[1]) - 1] for n in engine.reg_secondary_node]
         self.noise = (dv.MeasurementNoise(pmu_pct=c.noise_pmu_pct, scada_pct=c.noise_scada_pct, seed=c.noise_seed)
                       if c.noise_pmu_pct > 0 or c.noise_scada_pct > 0 else None)
@@ -285,19 +408,37 @@ class _Runtime:
         self.metrics = MetricsAccumulator.for_feeder(dm, engine, step_s=self.step_s)
         self._truth_v = np.empty(len(engine.node_names))  # the clipped truth voltages, rewritten every step
         # counters
-        self.seqs: Counter[str] = Counter()
+        self.seqs: Counter[str] = Counter()  # stepping thread: acks, oracle, metrics, status
+        self.frame_seqs: Counter[str] = Counter()  # frames and truth (the publisher thread when there is one)
         self.acks: Counter[str] = Counter()
         self.rejected: Counter[str] = Counter()
         self.steps = self.control_steps = self.misses = self.skipped = self.decisions = 0
         self.frames_published = self.frames_dropped = self.truth_frames = 0
         self.oracle_replies = self.oracle_rejected = self.late_steps = 0
         self.round_trips: list[float] = []
-        self._ctrl_pub_wall_ns: dict[int, int] = {}
+        self._ctrl_pub_wall_ns: dict[int, int] = {}  # written by the publisher, read by the stepping thread
+        self._ctrl_lock = threading.Lock()
         self._handled: set[str] = set()
         self._handled_order: deque[str] = deque()
         self._decision: m.Decision | None = None
         self._logged_no_agent = False
         self._declare()
+        # the delay line is flushed by the stepping thread (serve): with latency, frames are published inline
+        threaded = c.latency_s == 0.0 and (c.publisher == "thread" or (
+            c.publisher == "auto" and len(engine.node_names) >= _PIPE_MIN_NODES))
+        self.publisher = _StepPublisher(self._publish_step) if threaded else None
+        # lockstep: the last step waits here until the next step's first power flow starts (see the module
+        # docstring); real time hands a step over at once, its frames being due now
+        self._pending: tuple[Any, ...] | None = None
+        self._defer = self.publisher is not None and c.clock == "lockstep"
+        if self._defer:
+            real_solve = engine.solve
+
+            def solve_handing_over() -> None:
+                self._hand_over()
+                real_solve()
+
+            engine.solve = solve_handing_over  # undone in close()
 
     # ---------------------------------------------------------------- declarations
     def _declare(self) -> None:
@@ -326,6 +467,10 @@ class _Runtime:
         """Withdraw every token and declaration (the session is closed by the caller's ``with``); oracle
         queries still queued are answered with an error, so their getters do not wait for their timeout.
         """
+        if self.publisher is not None:
+            self.publisher.close()
+        if self._defer:
+            del self.engine.solve  # the class's method again
         for undeclare in [self.queryable.undeclare, self.inbox.undeclare, self.agents.undeclare,
                           self.bridges.undeclare, *(t.undeclare for t in self.tokens)]:
             try:
@@ -419,7 +564,8 @@ class _Runtime:
             self.rejected["decision_wrong_feeder"] += 1
             return
         self.decisions += 1
-        pub = self._ctrl_pub_wall_ns.pop(d.step_t_ns, None)
+        with self._ctrl_lock:
+            pub = self._ctrl_pub_wall_ns.pop(d.step_t_ns, None)
         if pub is not None:
             self.round_trips.append((recv_wall_ns - pub) / _NS)
         self._decision = d
@@ -491,6 +637,7 @@ class _Runtime:
         if bad is not None:
             self._ack(self.ack_pv[pv.plant_id], pv.plant_id, pv.plant_id, cmd.cmd_id, bad)
             return
+        self.drain()  # the frames of the steps simulated so far show the state before this command
         applied = self.qsts.command_pv_q(pv.index, cmd.q_kvar)
         p = float(self.pv_p_kw[pv.index])
         headroom = math.sqrt(max(pv.s_rated_kva**2 - p**2, 0.0)) if p > 0 or self.qsts.pv_q_at_night else 0.0
@@ -503,6 +650,7 @@ class _Runtime:
         if bad is not None:
             self._ack(self.ack_vr[reg.regulator_id], reg.regulator_id, reg.regulator_id, cmd.cmd_id, bad)
             return
+        self.drain()  # the frames of the steps simulated so far show the state before this command
         match cmd.action:
             case m.TapAction(tap=tap):
                 self.qsts.command_tap(reg.index, tap)
@@ -514,6 +662,12 @@ class _Runtime:
 
     def run_watchdogs(self, t_ns: int) -> None:
         """Before simulating ``t_ns``: expire commands past their validity; devices go back to default."""
+        if self.publisher is not None:
+            for device in self._devices:  # the frames of earlier steps show the command (CommandGuard.expire's rule)
+                active = device.guard.active
+                if active is not None and active.valid_until_t_ns < t_ns:
+                    self.drain()
+                    break
         for pv in self.pvs.values():
             gone = pv.guard.expire(t_ns)
             if gone is not None:
@@ -566,9 +720,10 @@ class _Runtime:
 
     def _publish(self, pub: _FramePublisher, msg: msgspec.Struct) -> None:
         if pub is self.pub_head and self.is_control_step(self._step_of(msg.t_ns)):  # type: ignore[attr-defined]
-            self._ctrl_pub_wall_ns[msg.t_ns] = time.time_ns()  # before put: the answer may beat put's return
-            while len(self._ctrl_pub_wall_ns) > 64:  # decisions that never came
-                self._ctrl_pub_wall_ns.pop(next(iter(self._ctrl_pub_wall_ns)))
+            with self._ctrl_lock:
+                self._ctrl_pub_wall_ns[msg.t_ns] = time.time_ns()  # before put: the answer may beat put's return
+                while len(self._ctrl_pub_wall_ns) > 64:  # decisions that never came
+                    self._ctrl_pub_wall_ns.pop(next(iter(self._ctrl_pub_wall_ns)))
         pub.put(msg)
         self.frames_published += 1
 
@@ -593,7 +748,7 @@ class _Runtime:
         The readings are turned into Python numbers once per step (``tolist``), so the frame builders index
         lists rather than making a NumPy scalar of every value; the numbers, hence the frames, are the same.
         """
-        rd, t, seqs, noise = res.readings, int(res.t_ns), self.seqs, self.noise
+        rd, t, seqs, noise = res.readings, int(res.t_ns), self.frame_seqs, self.noise
         send = self._send if self.dropper.p > 0.0 or self.delay.latency_s > 0.0 else self._send_now
         head = (rd.head_v_mag_v, rd.head_v_ang_deg, rd.head_i_mag_a, rd.head_i_ang_deg, rd.head_p_kw,
                 rd.head_q_kvar)
@@ -630,19 +785,20 @@ class _Runtime:
         if len(self.delay):
             self._flush(now_s)
 
-    def publish_truth(self, res: Any, v_lo_pu: float, v_hi_pu: float) -> None:
-        """The step's TruthFrame, if this step has one; ``v_lo_pu``, ``v_hi_pu``: the extremes of ``res.v_pu``.
+    def publish_truth(self, res: Any, n_step: int, v_lo_pu: float, v_hi_pu: float) -> None:
+        """The TruthFrame of the ``n_step``-th step of the run (from 1), if it has one; ``v_lo_pu``, ``v_hi_pu``:
+        the extremes of ``res.v_pu``.
 
         The voltages are clipped to the schema's 0..3 pu into a buffer kept across steps; the extremes of the
         clipped voltages are the clipped extremes (clipping is monotonic).
         """
         c = self.config
-        if c.truth_every == 0 or (self.steps - 1) % c.truth_every != 0:
+        if c.truth_every == 0 or (n_step - 1) % c.truth_every != 0:
             return
-        self.seqs["truth"] += 1
+        self.frame_seqs["truth"] += 1
         v = np.clip(res.v_pu, 0.0, 3.0, out=self._truth_v)
         self.pub_truth.put(m.TruthFrame(
-            t_ns=int(res.t_ns), seq=self.seqs["truth"], source="bridge", feeder_id=self.fid, v_pu=v.tolist(),
+            t_ns=int(res.t_ns), seq=self.frame_seqs["truth"], source="bridge", feeder_id=self.fid, v_pu=v.tolist(),
             v_min_pu=min(max(v_lo_pu, 0.0), 3.0), v_max_pu=min(max(v_hi_pu, 0.0), 3.0),
             node_names=list(self.engine.node_names) if self.truth_frames == 0 else None,
             taps=np.asarray(res.taps).tolist(), pv_q_kvar=np.asarray(res.pv_q_kvar, dtype=float).tolist()))
@@ -679,10 +835,8 @@ class _Runtime:
 
     # ---------------------------------------------------------------- one step
     def step(self) -> Any:
-        """Watchdogs, one QSTS step, frames, then metrics and truth; returns the StepResult.
-
-        The device frames go out first, so that on a control step the agent works while the bridge
-        updates the metrics and publishes the truth.
+        """Watchdogs, one QSTS step, then its frames, metrics and truth (:meth:`_publish_step`, by the publisher
+        thread when there is one: call :meth:`drain` before reading the metrics); returns the StepResult.
         """
         t_next = int(self.profiles.t_ns(self.qsts.next_step))
         self.run_watchdogs(t_next)
@@ -691,10 +845,32 @@ class _Runtime:
         self.now_t_ns = int(res.t_ns)
         self.pv_p_kw = np.asarray(res.pv_p_kw, float)
         self.steps += 1
+        if self.publisher is None:
+            self._publish_step(res, self.steps, v_lo, v_hi)
+        elif self._defer:
+            self._pending = (res, self.steps, v_lo, v_hi)
+        else:
+            self.publisher.submit((res, self.steps, v_lo, v_hi))
+        return res
+
+    def _hand_over(self) -> None:
+        if self._pending is not None:
+            item, self._pending = self._pending, None
+            self.publisher.submit(item)  # type: ignore[union-attr]
+
+    def _publish_step(self, res: Any, n_step: int, v_lo_pu: float, v_hi_pu: float) -> None:
+        """Frames, metrics update and truth of the ``n_step``-th step. The device frames go out first, so that
+        on a control step the agent works while the bridge updates the metrics and publishes the truth.
+        """
         self.publish_frames(res, time.monotonic())
         self.metrics.update(res.v_pu, res.tap_changes, res.pv_q_kvar)
-        self.publish_truth(res, v_lo, v_hi)
-        return res
+        self.publish_truth(res, n_step, v_lo_pu, v_hi_pu)
+
+    def drain(self) -> None:
+        """Return once every simulated step is published (frames, truth) and in the metrics."""
+        if self.publisher is not None:
+            self._hand_over()
+            self.publisher.drain()
 
     def is_control_step(self, step_index: int) -> bool:
         return step_index % self.control_every == 0
@@ -748,6 +924,7 @@ def _loop(rt: _Runtime, stop: threading.Event, on_ready: Any) -> BridgeSummary:
         on_ready()
     rt.pub_status.put(rt.status(done=False))
     t0, cpu0, thread0 = time.monotonic(), time.process_time(), time.thread_time()
+    pub_cpu0 = rt.publisher.cpu_s() if rt.publisher is not None else 0.0
     period_s = rt.step_s / c.speed
     for i in range(c.steps):
         if stop.is_set():
@@ -763,12 +940,15 @@ def _loop(rt: _Runtime, stop: threading.Event, on_ready: Any) -> BridgeSummary:
             rt.serve(0.0, stop)  # handle what is queued, without waiting
         res = rt.step()
         if rt.is_control_step(res.step):
+            rt.drain()  # the step's frames are out and in the metrics before the wait and the metrics frame
             rt.control_steps += 1
             if c.clock == "lockstep":
                 _await_decision(rt, int(res.t_ns), stop)
             rt.pub_metrics.put(rt.metrics_frame(final=False))
             rt.pub_status.put(rt.status(done=False))
+    rt.drain()
     wall_s, cpu_s, thread_cpu_s = time.monotonic() - t0, time.process_time() - cpu0, time.thread_time() - thread0
+    pub_cpu_s = rt.publisher.cpu_s() - pub_cpu0 if rt.publisher is not None else 0.0
     rt.serve(time.monotonic() + c.latency_s, stop if stop.is_set() else threading.Event(),
              lambda: len(rt.delay) == 0)  # frames still in the delay line go out
     final = rt.metrics_frame(final=True)
@@ -783,7 +963,8 @@ def _loop(rt: _Runtime, stop: threading.Event, on_ready: Any) -> BridgeSummary:
         frames_published=rt.frames_published, frames_dropped=rt.frames_dropped, truth_frames=rt.truth_frames,
         oracle_replies=rt.oracle_replies, oracle_rejected=rt.oracle_rejected, realtime_late_steps=rt.late_steps,
         round_trip_p50_s=_percentile(rt.round_trips, 50), round_trip_p99_s=_percentile(rt.round_trips, 99),
-        agent_alive=rt.agent_alive, stopped_early=rt.steps < c.steps, metrics=final)
+        agent_alive=rt.agent_alive, stopped_early=rt.steps < c.steps, metrics=final,
+        publisher_thread_cpu_s=pub_cpu_s)
 
 
 def _startup(rt: _Runtime, stop: threading.Event) -> None:

@@ -199,10 +199,13 @@ def _config(device_map_path: Path, cache_dir: Path, **kw: Any) -> Any:
 
 
 # ------------------------------------------------------------------------------------ tests
+@pytest.mark.parametrize("publisher", ["inline", "thread"])  # IEEE 13 is small: "auto" would be inline
 def test_commands_are_acked_and_show_in_the_next_frames(client: Client, router_endpoint: str,
-                                                        device_map_path: Path, cache_dir: Path) -> None:
+                                                        device_map_path: Path, cache_dir: Path,
+                                                        publisher: str) -> None:
     client.be_agent()
-    th, stop, out = _bridge_thread(_config(device_map_path, cache_dir, steps=11), router_endpoint)
+    th, stop, out = _bridge_thread(_config(device_map_path, cache_dir, steps=11, publisher=publisher),
+                                   router_endpoint)
     try:
         h0 = client.head()
         t0 = h0.t_ns
@@ -275,6 +278,7 @@ def test_commands_are_acked_and_show_in_the_next_frames(client: Client, router_e
     assert summary.lockstep_misses == 0 and summary.lockstep_skipped == 0
     assert summary.acks == {"accepted": 4, "clipped": 1, "expired": 2}
     assert summary.round_trip_p50_s is not None and summary.round_trip_p50_s > 0
+    assert (summary.publisher_thread_cpu_s > 0) == (publisher == "thread")
     # frames carry one t_ns per step and increasing seq per source
     heads = [x for _, x, _ in client.seen if isinstance(x, m.HeadFrame)]
     assert [h.seq for h in heads] == sorted({h.seq for h in heads})
@@ -398,11 +402,12 @@ def test_lockstep_with_a_silent_agent_times_out_and_goes_on(client: Client, rout
         watch.undeclare()
 
 
+@pytest.mark.parametrize("publisher", ["inline", "thread"])
 def test_realtime_keeps_its_clock_and_serves_commands_without_an_agent(
-        client: Client, router_endpoint: str, device_map_path: Path, cache_dir: Path) -> None:
+        client: Client, router_endpoint: str, device_map_path: Path, cache_dir: Path, publisher: str) -> None:
     # 1-minute steps at speed 1200: 20 steps per wall second; real time never waits for anyone
     th, stop, out = _bridge_thread(_config(device_map_path, cache_dir, steps=41, clock="realtime", speed=1200.0,
-                                           wait_agent_s=0.0), router_endpoint)
+                                           wait_agent_s=0.0, publisher=publisher), router_endpoint)
     try:
         t0 = client.head().t_ns
         c = client.pv_cmd("pv680", -100.0, t0)
@@ -459,3 +464,57 @@ def test_sigterm_ends_the_run_cleanly(client: Client, router_endpoint: str, devi
     assert summary["frames_dropped"] > 0
     final = client.next(lambda k, x: isinstance(x, m.MetricsFrame) and x.final)
     assert final.steps == summary["steps"]
+
+
+def test_a_stopped_run_publishes_every_simulated_step_before_its_final_metrics(
+        client: Client, router_endpoint: str, device_map_path: Path, cache_dir: Path) -> None:
+    th, stop, out = _bridge_thread(_config(device_map_path, cache_dir, steps=100000, clock="realtime",
+                                           speed=6000.0, wait_agent_s=0.0, truth_every=1, publisher="thread"),
+                                   router_endpoint)
+    client.next(lambda k, x: isinstance(x, m.HeadFrame) and x.seq >= 20)
+    summary = _finish(th, stop, out, stop_now=True)
+    final = client.next(lambda k, x: isinstance(x, m.MetricsFrame) and x.final)
+    assert summary.stopped_early and final.steps == summary.steps == summary.truth_frames
+    assert summary.frames_published == 7 * summary.steps  # head, 3 PV, 3 regulators per step
+    last = client.next(lambda k, x: isinstance(x, m.TruthFrame) and x.seq == summary.steps)
+    assert last.t_ns == summary.end_t_ns
+
+
+def test_publisher_thread_publishes_in_order_and_surfaces_its_failure() -> None:
+    from simulator_bridge.bridge import BridgeError, _StepPublisher
+
+    seen: list[int] = []
+    pub = _StepPublisher(lambda n: seen.append(n))
+    try:
+        for n in range(50):
+            pub.submit((n,))
+        pub.drain()
+        assert seen == list(range(50))
+    finally:
+        pub.close()
+
+    def fail(n: int) -> None:
+        if n == 3:
+            raise ValueError("put failed")
+        seen.append(n)
+
+    seen.clear()
+    pub = _StepPublisher(fail)
+    try:
+        with pytest.raises(BridgeError, match="publisher thread failed after publishing 3 steps: ValueError"):
+            for n in range(50):
+                pub.submit((n,))
+            pub.drain()
+        assert seen == [0, 1, 2]
+    finally:
+        t = time.monotonic()
+        pub.close()
+        assert time.monotonic() - t < 2.0
+
+
+def test_publisher_thread_cannot_hold_frames_for_latency(device_map_path: Path, cache_dir: Path) -> None:
+    from simulator_bridge.bridge import BridgeError, run_bridge
+
+    with pytest.raises(BridgeError, match="latency"):
+        run_bridge(_config(device_map_path, cache_dir, latency_s=0.1, publisher="thread"),
+                   BusConfig(mode="peer", connect=()))
