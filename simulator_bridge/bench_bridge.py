@@ -10,7 +10,8 @@
 It reports both rates, ``overhead = bare rate / lockstep rate − 1`` (goal: under 20 % on the rural feeder),
 and the round trip from the publication of a control step's head frame to the reception of the decision
 (p50, p99, measured by the bridge). The two are timed alternately, ``repeats`` times, and medians compared.
-Run ``python -m simulator_bridge.bench_bridge [STEPS]`` for IEEE 123 and the rural feeder.
+Run ``python -m simulator_bridge.bench_bridge [STEPS [PUBLISHER ...]]`` for IEEE 123 and the rural feeder, once per
+``BridgeConfig.publisher`` setting (default: ``inline``, then ``thread``).
 """
 
 from __future__ import annotations
@@ -71,7 +72,7 @@ def _responder(endpoint: str, feeder_id: str, control_period_s: int, ready: Any,
 
 
 def bench_bridge(device_map: str | Path, steps: int, *, seed: int = 1, truth_every: int = 1, repeats: int = 3,
-                 cache_dir: str | None = ".cvvc-cache") -> dict:
+                 cache_dir: str | None = ".cvvc-cache", publisher: str = "auto") -> dict:
     """Lockstep bridge vs bare QSTS on ``steps`` 1-minute steps of one feeder.
 
     The two are timed alternately ``repeats`` times (bare, bridge, bare, bridge, ...) on fresh engines from the
@@ -81,14 +82,15 @@ def bench_bridge(device_map: str | Path, steps: int, *, seed: int = 1, truth_eve
     ----------
     device_map : the feeder's device map TOML. steps : steps to time (the same for both).
     seed : profile seed. truth_every : the bridge's truth frame decimation (1: every step, as in a run).
-    repeats : alternations. cache_dir : profile cache.
+    repeats : alternations. cache_dir : profile cache. publisher : ``BridgeConfig.publisher``.
 
     Returns
     -------
     dict with ``feeder``, ``n_nodes``, ``steps``, ``bare_steps_per_s``, ``lockstep_steps_per_s`` (medians),
     ``overhead`` (median bare rate / median lockstep rate − 1), ``overheads`` (per alternation),
     ``overhead_cpu`` (median CPU time of the bridge process's loop, Zenoh's threads included / median bare CPU
-    time − 1), ``overhead_thread_cpu`` (the same for the stepping thread alone),
+    time − 1), ``overhead_thread_cpu`` (the same for the stepping thread alone), ``publisher_cpu_share``
+    (median CPU time of the publisher thread / median bare CPU time; 0 when publishing inline),
     ``round_trip_p50_ms``, ``round_trip_p99_ms`` (medians over the runs), ``control_steps``,
     ``lockstep_misses`` (total).
     """
@@ -111,7 +113,7 @@ def bench_bridge(device_map: str | Path, steps: int, *, seed: int = 1, truth_eve
             bare.append(steps / wall)
             bare_cpu.append(cpu)
             runs.append(_bridge_run(device_map, endpoint, steps, seed=seed, truth_every=truth_every,
-                                    cache_dir=cache_dir))
+                                    cache_dir=cache_dir, publisher=publisher))
     finally:
         stop.set()
         proc.join(10)
@@ -132,12 +134,15 @@ def bench_bridge(device_map: str | Path, steps: int, *, seed: int = 1, truth_eve
         "overhead_cpu": round(statistics.median(r.cpu_s for r in runs) / statistics.median(bare_cpu) - 1.0, 3),
         "overhead_thread_cpu": round(statistics.median(r.thread_cpu_s for r in runs) / statistics.median(bare_cpu)
                                      - 1.0, 3),
+        "publisher_cpu_share": round(statistics.median(r.publisher_thread_cpu_s for r in runs)
+                                     / statistics.median(bare_cpu), 3),
         "round_trip_p50_ms": round(1e3 * statistics.median(p50), 3) if p50 else None,
         "round_trip_p99_ms": round(1e3 * statistics.median(p99), 3) if p99 else None,
         "control_steps": runs[0].control_steps,
         "decisions": sum(r.decisions for r in runs),
         "lockstep_misses": sum(r.lockstep_misses for r in runs),
         "truth_every": truth_every,
+        "publisher": publisher,
     }
 
 
@@ -161,26 +166,30 @@ def _bare_times(dm: Any, steps: int, *, seed: int, cache_dir: str | None) -> tup
 
 
 def _bridge_run(device_map: str | Path, endpoint: str, steps: int, *, seed: int, truth_every: int,
-                cache_dir: str | None) -> Any:
+                cache_dir: str | None, publisher: str) -> Any:
     from schemas.bus import BusConfig
     from simulator_bridge.bridge import BridgeConfig, run_bridge
 
     config = BridgeConfig(device_map_path=str(device_map), start=_START, steps=steps, clock="lockstep",
                           timeout_s=5.0, wait_agent_s=10.0, year_seed=seed, truth_every=truth_every,
-                          cache_dir=cache_dir)
+                          cache_dir=cache_dir, publisher=publisher)
     return run_bridge(config, BusConfig(mode="peer", connect=(endpoint,)))
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Print the bench for IEEE 123 and the embedded rural feeder (``argv[0]``: steps, default 1440)."""
+    """Print the bench for IEEE 123 and the embedded rural feeder (``argv[0]``: steps, default 1440; ``argv[1:]``:
+    publisher settings, default ``inline thread``).
+    """
     from simulator_bridge.cli import DEFAULT_CACHE_ROOT, ensure_default_feeder
 
     args = sys.argv[1:] if argv is None else argv
     steps = int(args[0]) if args else 1440
+    publishers = args[1:] or ["inline", "thread"]
     repo = Path(__file__).resolve().parents[1]
     for path in (repo / "feeders" / "ieee123.toml", ensure_default_feeder(DEFAULT_CACHE_ROOT)):
         for truth_every in (1, 0):
-            print(json.dumps(bench_bridge(path, steps, truth_every=truth_every)), flush=True)
+            for publisher in publishers:
+                print(json.dumps(bench_bridge(path, steps, truth_every=truth_every, publisher=publisher)), flush=True)
     return 0
 
 
