@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from typing import Any
 
 __all__ = ["register"]
 
@@ -28,6 +29,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "[default: AgentSettings, 1800]")
     p.add_argument("--pv-margin-cap-pu", type=float, default=None,
                    help="largest PV variability margin on either side [pu] [default: AgentSettings, 0.01]")
+    p.add_argument("--setpoint-hold", choices=["on", "off"], default=None,
+                   help="beyond the paper (setpoints mode): re-send the last set point unchanged when no tap change is "
+                        "decided, instead of re-centring the band on the reading [default: off]")
     p.add_argument("--full-visibility", action="store_true",
                    help="case A: true voltages and sensitivities of every node from the bridge's oracle")
     p.add_argument("--agent-id", default="agent")
@@ -40,11 +44,12 @@ def register(sub: argparse._SubParsersAction) -> None:
 def settings_from_args(args: argparse.Namespace):
     from agent.runtime import AgentSettings
 
-    margin = {name: value for name, value in (("pv_margin_window_s", args.pv_margin_window_s),
-                                              ("pv_margin_cap_pu", args.pv_margin_cap_pu)) if value is not None}
+    given = {"pv_margin_window_s": args.pv_margin_window_s, "pv_margin_cap_pu": args.pv_margin_cap_pu,
+             "setpoint_hold": None if args.setpoint_hold is None else args.setpoint_hold == "on"}
+    optional: dict[str, Any] = {name: value for name, value in given.items() if value is not None}
     return AgentSettings(feeder_id=args.feeder_id, agent_id=args.agent_id, mode=args.mode,
                          correction=args.correction == "on", bandwidth_v120=args.bandwidth_v,
-                         full_visibility=args.full_visibility, stale_after_s=args.stale_after_s, **margin)
+                         full_visibility=args.full_visibility, stale_after_s=args.stale_after_s, **optional)
 
 
 def _agent(args: argparse.Namespace) -> int:

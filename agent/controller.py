@@ -175,6 +175,9 @@ class CvvcController:
         plants went back to their highest or lowest output of this many recent seconds (control steps seen);
         0 turns it off (the paper's method). See ``agent.estimator.pv_variability_margins_pu``.
     pv_margin_cap_pu : largest such margin on either side [pu].
+    setpoint_hold : beyond the paper, ``setpoints`` mode: when no tap change is decided for a regulator and the
+        set point sent to it at most two control periods ago is still in force, send that set point again
+        instead of eq. (8)'s re-centred one (a noisy regulator reading then cannot move the band).
     """
 
     def __init__(
@@ -186,6 +189,7 @@ class CvvcController:
         bandwidth_v120: float,
         pv_margin_window_s: float = 0.0,
         pv_margin_cap_pu: float = 0.02,
+        setpoint_hold: bool = False,
     ) -> None:
         if mode not in ("taps", "setpoints"):
             raise AgentInputError(f"mode must be 'taps' or 'setpoints', not {mode!r}")
@@ -224,6 +228,9 @@ class CvvcController:
         self._pv_last_q_kvar: list[float | None] = [None] * n_pv
         self._reg_last_tap: list[int | None] = [None] * n_reg
         self._previous: CvvcSolution | None = None
+        self.setpoint_hold = bool(setpoint_hold)
+        self._setpoint_hold_ns = 2 * int(model.control_period_s) * 1_000_000_000  # commands' validity
+        self._last_setpoint: list[tuple[int, float] | None] = [None] * n_reg  # (t_ns, V on 120 V) last sent
 
     # ------------------------------------------------------------------------------------------ helpers
     def _hold(self, snap: MeasurementSnapshot, reason: str, missing: tuple[str, ...], t0: float, **extra) -> Decision:
@@ -412,6 +419,16 @@ class CvvcController:
             setpoints = np.array(
                 [setpoint_for_tap_change(float(v_s1[r]), int(d_tap[r]), band, float(step[r])) for r in range(n_reg)]
             )
+            if self.setpoint_hold:
+                # No tap change decided and our last set point still in force: send it again unchanged instead of
+                # re-centring the band on a (possibly noisy) reading.
+                t_now = int(snap.t_ns)
+                for r in np.flatnonzero((d_tap == 0) & reg_ok):
+                    last = self._last_setpoint[r]
+                    if last is not None and 0 < t_now - last[0] <= self._setpoint_hold_ns:
+                        setpoints[r] = last[1]
+                for r in np.flatnonzero(reg_ok):
+                    self._last_setpoint[r] = (t_now, float(setpoints[r]))
             bands = np.full(n_reg, self.bandwidth_v120)
         return Decision(
             t_ns=int(snap.t_ns),

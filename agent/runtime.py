@@ -53,6 +53,7 @@ class AgentSettings(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fi
     oracle_timeout_s: float = 30.0  # case A: how long to wait for the bridge's oracle [s]
     pv_margin_window_s: float = 1800.0  # beyond the paper: PV variability margin window, 0 = off [s]
     pv_margin_cap_pu: float = 0.01  # its largest value on either side [pu]
+    setpoint_hold: bool = False  # beyond the paper: re-send the last set point when no tap change is decided
 
 
 class AgentSummary(msgspec.Struct, frozen=True, kw_only=True):
@@ -136,7 +137,8 @@ class DecisionMaker:
         self.controller = CvvcController(model, mode=settings.mode, correction=settings.correction,
                                          bandwidth_v120=settings.bandwidth_v120,
                                          pv_margin_window_s=settings.pv_margin_window_s,
-                                         pv_margin_cap_pu=settings.pv_margin_cap_pu)
+                                         pv_margin_cap_pu=settings.pv_margin_cap_pu,
+                                         setpoint_hold=settings.setpoint_hold)
         self.seq = 0
         self.holds = 0
         self.commands_sent = 0

@@ -238,3 +238,22 @@ def test_pv_variability_margin_is_off_by_default_and_validated():
         controller(pv_margin_window_s=-1.0)
     with pytest.raises(AgentInputError, match="pv_margin_cap_pu"):
         controller(pv_margin_cap_pu=0.5)
+
+
+def test_setpoint_hold_resends_the_last_set_point_when_no_tap_change_is_decided():
+    """Beyond the paper: with ``setpoint_hold`` a noisy regulator reading cannot move the band when the decided tap
+    does not change; without it, eq. (8) re-centres the band on the reading."""
+    minute = 60_000_000_000
+    held, plain = controller(mode="setpoints", setpoint_hold=True), controller(mode="setpoints")
+    first = [c.decide(snapshot(0)) for c in (held, plain)]
+    noisy = snapshot(5 * minute, reading_error_pu=np.full(R, 0.004))  # readings 0.5 V higher, same taps
+    second = [c.decide(noisy) for c in (held, plain)]
+    for d in (*first, *second):
+        assert d.status == "optimal", d.reason
+    unchanged = (second[0].reg_tap == first[0].reg_tap) & (first[0].reg_tap == 0)
+    assert unchanged.any()
+    np.testing.assert_array_equal(second[0].reg_setpoint_v120[unchanged], first[0].reg_setpoint_v120[unchanged])
+    assert np.all(second[1].reg_setpoint_v120[unchanged] != first[1].reg_setpoint_v120[unchanged])
+    # an old set point (beyond two control periods) is not held
+    late = held.decide(snapshot(30 * minute, reading_error_pu=np.full(R, 0.004)))
+    assert np.all(late.reg_setpoint_v120[unchanged] != first[0].reg_setpoint_v120[unchanged])
