@@ -188,7 +188,7 @@ class CvvcController:
         correction: bool,
         bandwidth_v120: float,
         pv_margin_window_s: float = 0.0,
-        pv_margin_cap_pu: float = 0.02,
+        pv_margin_cap_pu: float = 0.01,
         setpoint_hold: bool = False,
     ) -> None:
         if mode not in ("taps", "setpoints"):
