@@ -24,6 +24,11 @@ def register_evaluate(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--days-per-season", type=float, default=None,
                    help="days from the first of each season's month (default: the whole month)")
     p.add_argument("--jobs", type=int, default=1, help="runs at a time, each in its own process (default 1)")
+    p.add_argument("--pv-margin-window-s", type=float, default=None,
+                   help="the agent's PV variability margin window [s] (cases B-D; default: the agent's, 1800; "
+                        "0 = the paper's method)")
+    p.add_argument("--setpoint-hold", action="store_true",
+                   help="the agent re-sends its last set point when no tap change is decided (cases C/D)")
     p.add_argument("--robustness", action="store_true",
                    help="case D under PMU/SCADA noise, 1 %% and 5 %% dropped frames, and +-10 %% model error")
     p.add_argument("--resume", action="store_true",
@@ -47,7 +52,8 @@ def _evaluate(args: argparse.Namespace) -> int:
     config = EvaluateConfig(feeder=args.feeder, model=args.model, seasons=seasons, bandwidths_v120=bands,
                             year_seed=args.year_seed, train_seed=args.train_seed,
                             days_per_season=args.days_per_season, jobs=args.jobs, out=args.out, cache=args.cache,
-                            robustness=args.robustness, resume=args.resume, **kw)
+                            robustness=args.robustness, resume=args.resume,
+                            pv_margin_window_s=args.pv_margin_window_s, setpoint_hold=args.setpoint_hold, **kw)
     try:
         ev = evaluate(config)
     except EvaluateError as e:

@@ -17,6 +17,7 @@ A child that dies early stops everything: the others are stopped, the recording 
 
 from __future__ import annotations
 
+import argparse
 import datetime as dt
 import os
 import shutil
@@ -57,6 +58,8 @@ class RunConfig(msgspec.Struct, frozen=True, kw_only=True):
     train_seed: int = 1
     year_seed: int = 2  # out of sample: not the training year
     bandwidth_v120: float = 4.0
+    pv_margin_window_s: float | None = None  # the agent's PV variability margin window; None: its default, 0: off
+    setpoint_hold: bool = False  # the agent's opt-in set-point hold (cases C/D)
     lockstep_timeout_s: float = 10.0
     cache: str = str(DEFAULT_CACHE)
     record: bool = True
@@ -90,29 +93,37 @@ class RunSummary(msgspec.Struct, frozen=True, kw_only=True):
     model: str | None
 
 
-def case_agent_settings(case: Case, feeder_id: str, bandwidth_v120: float):
+def case_agent_settings(case: Case, feeder_id: str, bandwidth_v120: float, pv_margin_window_s: float | None = None,
+                        setpoint_hold: bool = False):
     """The agent's settings of a case, as ``case_agent_args`` makes the agent build them (for the recording)."""
-    from agent.runtime import AgentSettings
+    from agent.cli import register, settings_from_args
 
-    args = case_agent_args(case, bandwidth_v120)
+    args = case_agent_args(case, bandwidth_v120, pv_margin_window_s, setpoint_hold)
     if args is None:
         return None
-    return AgentSettings(feeder_id=feeder_id, mode="taps" if "taps" in args else "setpoints",
-                         correction="on" in args, bandwidth_v120=bandwidth_v120,
-                         full_visibility="--full-visibility" in args)
+    parser = argparse.ArgumentParser()
+    register(parser.add_subparsers())
+    return settings_from_args(parser.parse_args(["agent", "--model", "-", "--feeder-id", feeder_id, *args]))
 
 
-def case_agent_args(case: Case, bandwidth_v120: float) -> list[str] | None:
-    """The ``cvvc agent`` flags of a case (paper Table I), or None when the case runs no agent."""
+def case_agent_args(case: Case, bandwidth_v120: float, pv_margin_window_s: float | None = None,
+                    setpoint_hold: bool = False) -> list[str] | None:
+    """The ``cvvc agent`` flags of a case (paper Table I), or None when the case runs no agent.
+
+    ``pv_margin_window_s`` (None: the agent's default) and ``setpoint_hold`` (cases C/D) are the agent's options
+    beyond the paper (docs/agent.md).
+    """
+    margin = [] if pv_margin_window_s is None else ["--pv-margin-window-s", str(pv_margin_window_s)]
+    hold = ["--setpoint-hold", "on"] if setpoint_hold else []
     match case:
         case "A":
             return ["--mode", "taps", "--correction", "off", "--full-visibility"]
         case "B":
-            return ["--mode", "taps", "--correction", "off"]
+            return ["--mode", "taps", "--correction", "off", *margin]
         case "C":
-            return ["--mode", "setpoints", "--correction", "off", "--bandwidth-v", str(bandwidth_v120)]
+            return ["--mode", "setpoints", "--correction", "off", "--bandwidth-v", str(bandwidth_v120), *margin, *hold]
         case "D":
-            return ["--mode", "setpoints", "--correction", "on", "--bandwidth-v", str(bandwidth_v120)]
+            return ["--mode", "setpoints", "--correction", "on", "--bandwidth-v", str(bandwidth_v120), *margin, *hold]
         case _:
             return None
 
@@ -211,7 +222,7 @@ def run(config: RunConfig) -> RunSummary:
     dm = load_device_map(dm_path)
     feeder_id = dm.feeder.name
     fingerprint = dm.fingerprint()
-    agent_args = case_agent_args(config.case, config.bandwidth_v120)
+    agent_args = case_agent_args(config.case, config.bandwidth_v120, config.pv_margin_window_s, config.setpoint_hold)
     if agent_args is not None and config.check_model_fingerprint:
         from training.model import read_model
 
@@ -249,8 +260,7 @@ def run(config: RunConfig) -> RunSummary:
             if config.record:
                 children.append(_spawn("recorder", [
                     "record", "--out", str(mcap_path), "--keys", f"cvvc/{feeder_id}/**",
-                    "--feeder-fingerprint", fingerprint, *_recorder_agent_args(config.case, feeder_id,
-                                                                              config.bandwidth_v120, kept_model),
+                    "--feeder-fingerprint", fingerprint, *_recorder_agent_args(config, feeder_id, kept_model),
                     *connect], out))
                 probe = session.declare_publisher(keys.sim_status(feeder_id))
                 if not wait_for(lambda: bool(probe.matching_status.matching), 30.0):  # type: ignore[attr-defined]
@@ -339,8 +349,9 @@ def run(config: RunConfig) -> RunSummary:
     return summary
 
 
-def _recorder_agent_args(case: Case, feeder_id: str, bandwidth_v120: float, model: Path) -> list[str]:
-    settings = case_agent_settings(case, feeder_id, bandwidth_v120)
+def _recorder_agent_args(config: RunConfig, feeder_id: str, model: Path) -> list[str]:
+    settings = case_agent_settings(config.case, feeder_id, config.bandwidth_v120, config.pv_margin_window_s,
+                                   config.setpoint_hold)
     if settings is None:
         return []
     return ["--model", str(model), "--agent-settings", msgspec.json.encode(settings).decode()]

@@ -25,6 +25,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--year-seed", type=int, default=2, help="profile year of the run (default 2: out of sample)")
     p.add_argument("--train-seed", type=int, default=1, help="profile year used for training (default 1)")
     p.add_argument("--bandwidth-v", type=float, default=4.0, help="regulator band on 120 V in cases C/D")
+    p.add_argument("--pv-margin-window-s", type=float, default=None,
+                   help="the agent's PV variability margin window [s] (cases B-D; default: the agent's, 1800; "
+                        "0 = the paper's method)")
+    p.add_argument("--setpoint-hold", action="store_true",
+                   help="the agent re-sends its last set point when no tap change is decided (cases C/D)")
     p.add_argument("--no-record", action="store_true", help="do not record the session to MCAP")
     p.add_argument("--no-baseline", action="store_true", help="skip the no-control baseline")
     p.add_argument("--cache", default=".cvvc-cache", help="cache of feeders, profiles and models")
@@ -47,6 +52,7 @@ def _run(args: argparse.Namespace) -> int:
     config = RunConfig(feeder=args.feeder, model=args.model, days=args.days, start=args.start, case=args.case,
                        realtime=args.realtime, speed=args.speed, out=args.out, train_seed=args.train_seed,
                        year_seed=args.year_seed, bandwidth_v120=args.bandwidth_v, record=not args.no_record,
+                       pv_margin_window_s=args.pv_margin_window_s, setpoint_hold=args.setpoint_hold,
                        baseline=not args.no_baseline, cache=args.cache, progress=not args.json,
                        secure=args.secure)
     summary = run(config)

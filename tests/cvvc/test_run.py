@@ -150,3 +150,25 @@ def test_bad_arguments_give_a_clear_error(tmp_path, ieee13_model):
     proc = _cvvc("run", "--feeder", str(REPO / "feeders" / "ieee13.toml"), "--start", "2023-13-01",
                  "--model", str(ieee13_model), cwd=tmp_path)
     assert proc.returncode == 2 and "not a date" in proc.stderr
+
+
+@pytest.mark.parametrize(
+    ("case", "window", "hold", "expect"),
+    [
+        ("D", None, False, {"mode": "setpoints", "correction": True, "pv_margin_window_s": 1800.0,
+                            "setpoint_hold": False}),
+        ("D", 0.0, True, {"pv_margin_window_s": 0.0, "setpoint_hold": True}),  # the paper's method, hold on
+        ("B", 600.0, True, {"mode": "taps", "pv_margin_window_s": 600.0, "setpoint_hold": False}),  # no hold in B
+        ("A", None, False, {"full_visibility": True}),
+    ],
+)
+def test_case_flags_give_the_settings_the_agent_records(case, window, hold, expect):
+    """``cvvc run/evaluate --pv-margin-window-s/--setpoint-hold`` reach the agent, and the recording says so."""
+    from cvvc.launch import case_agent_args, case_agent_settings
+
+    args = case_agent_args(case, 4.0, window, hold)
+    settings = case_agent_settings(case, "ieee13", 4.0, window, hold)
+    assert args is not None and settings is not None
+    for name, value in expect.items():
+        assert getattr(settings, name) == value, name
+    assert case_agent_args("none", 4.0, 0.0, True) is None and case_agent_settings("local", "ieee13", 4.0) is None
