@@ -36,7 +36,7 @@ def _bridge(args: argparse.Namespace) -> int:
             wait_agent_s=args.wait_agent_s, year_seed=args.year_seed, pv_local=args.pv_local,
             truth_every=args.truth_every, noise_pmu_pct=args.noise_pmu_pct, noise_scada_pct=args.noise_scada_pct,
             drop_prob=args.drop_prob, latency_s=args.latency_s, noise_seed=args.noise_seed,
-            cache_dir=None if args.cache_dir == "" else args.cache_dir,
+            cache_dir=None if args.cache_dir == "" else args.cache_dir, publisher=args.publisher,
         )
         default_mode = "router" if args.listen and not args.connect else "peer"
         bus = bus_config_from_args(args, default_mode=default_mode, role="devices")
@@ -94,6 +94,10 @@ def register_bridge(subparsers: argparse._SubParsersAction) -> None:
     out.add_argument("--drop-prob", type=float, default=0.0, help="probability that a frame is dropped")
     out.add_argument("--latency-s", type=float, default=0.0, help="fixed frame latency [s of wall time]")
     out.add_argument("--noise-seed", type=int, default=0, help="seed of noise and drops")
+    p.add_argument("--publisher", choices=["auto", "inline", "thread"], default="auto",
+                   help="who builds and puts each step's frames: the stepping thread (inline), a publisher thread "
+                        "(thread), or auto: the thread on feeders of 1000 nodes or more without --latency-s "
+                        "(docs/bridge.md)")
     p.add_argument("--json", action="store_true", help="print the run summary as JSON")
     add_bus_arguments(p)
     p.set_defaults(func=_bridge)
