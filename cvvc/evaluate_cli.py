@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 
+from cvvc.launch_cli import add_agent_option_arguments
+
 __all__ = ["register_evaluate", "register_report_plots"]
 
 
@@ -24,11 +26,7 @@ def register_evaluate(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--days-per-season", type=float, default=None,
                    help="days from the first of each season's month (default: the whole month)")
     p.add_argument("--jobs", type=int, default=1, help="runs at a time, each in its own process (default 1)")
-    p.add_argument("--pv-margin-window-s", type=float, default=None,
-                   help="the agent's PV variability margin window [s] (cases B-D; default: the agent's, 1800; "
-                        "0 = the paper's method)")
-    p.add_argument("--setpoint-hold", action="store_true",
-                   help="the agent re-sends its last set point when no tap change is decided (cases C/D)")
+    add_agent_option_arguments(p)
     p.add_argument("--robustness", action="store_true",
                    help="case D under PMU/SCADA noise, 1 %% and 5 %% dropped frames, and +-10 %% model error")
     p.add_argument("--resume", action="store_true",
@@ -75,24 +73,24 @@ def register_report_plots(rsub: argparse._SubParsersAction) -> None:
 
 
 def _report_run(args: argparse.Namespace) -> int:
-    from cvvc.cli import CliError
-    from cvvc.report import ReportError, plot_run
+    from cvvc.report import plot_run
 
-    try:
-        paths = plot_run(args.dir, out=args.out)
-    except ReportError as e:
-        raise CliError(str(e)) from e
-    for path in paths:
-        print(path)
-    return 0
+    return _print_plots(plot_run, args)
 
 
 def _report_evaluate(args: argparse.Namespace) -> int:
+    from cvvc.report import plot_evaluation
+
+    return _print_plots(plot_evaluation, args)
+
+
+def _print_plots(plot, args: argparse.Namespace) -> int:
+    """Run ``plot(args.dir, out=args.out)`` and print the PNG paths; a ``ReportError`` is a one-line CLI error."""
     from cvvc.cli import CliError
-    from cvvc.report import ReportError, plot_evaluation
+    from cvvc.report import ReportError
 
     try:
-        paths = plot_evaluation(args.dir, out=args.out)
+        paths = plot(args.dir, out=args.out)
     except ReportError as e:
         raise CliError(str(e)) from e
     for path in paths:

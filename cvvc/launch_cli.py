@@ -25,11 +25,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--year-seed", type=int, default=2, help="profile year of the run (default 2: out of sample)")
     p.add_argument("--train-seed", type=int, default=1, help="profile year used for training (default 1)")
     p.add_argument("--bandwidth-v", type=float, default=4.0, help="regulator band on 120 V in cases C/D")
-    p.add_argument("--pv-margin-window-s", type=float, default=None,
-                   help="the agent's PV variability margin window [s] (cases B-D; default: the agent's, 1800; "
-                        "0 = the paper's method)")
-    p.add_argument("--setpoint-hold", action="store_true",
-                   help="the agent re-sends its last set point when no tap change is decided (cases C/D)")
+    add_agent_option_arguments(p)
     p.add_argument("--no-record", action="store_true", help="do not record the session to MCAP")
     p.add_argument("--no-baseline", action="store_true", help="skip the no-control baseline")
     p.add_argument("--cache", default=".cvvc-cache", help="cache of feeders, profiles and models")
@@ -42,6 +38,15 @@ def register(sub: argparse._SubParsersAction) -> None:
     from cvvc.evaluate_cli import register_evaluate
 
     register_evaluate(sub)
+
+
+def add_agent_option_arguments(p: argparse.ArgumentParser) -> None:
+    """The agent's options beyond the paper, as ``cvvc run`` and ``cvvc evaluate`` pass them on (docs/agent.md)."""
+    p.add_argument("--pv-margin-window-s", type=float, default=None,
+                   help="the agent's PV variability margin window [s] (cases B-D; default: the agent's, 1800; "
+                        "0 = the paper's method)")
+    p.add_argument("--setpoint-hold", action="store_true",
+                   help="the agent re-sends its last set point when no tap change is decided (cases C/D)")
 
 
 def _run(args: argparse.Namespace) -> int:
