@@ -297,10 +297,20 @@ class CvvcController:
         while recent and recent[0][0] < t_ns - self._margin_window_ns:
             recent.popleft()
         recent.append((t_ns, pv_p_kw.copy()))
-        rise, fall = pv_variability_margins_pu(
-            self._dv_dp, pv_p_kw, np.array([p for _, p in recent]), self._margin_cap_pu
-        )
+        rise, fall = self.pv_margins_pu(self._dv_dp, pv_p_kw)
         return lo_pu + fall, hi_pu - rise
+
+    def pv_margins_pu(self, dv_dp_pu_per_kw: np.ndarray, pv_p_kw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(rise, fall)`` PV variability margins [pu] of nodes with these sensitivities (N, K) [pu/kW].
+
+        Over the plants' outputs recorded by ``decide`` in the margin window (this step's included once it has
+        decided); zeros when the margin is off. Case A applies it to every node with the oracle's dV/dP.
+        """
+        n = np.shape(dv_dp_pu_per_kw)[0]
+        if self._margin_window_ns <= 0 or not self._recent_pv_p:
+            return np.zeros(n), np.zeros(n)
+        recent = np.array([p for _, p in self._recent_pv_p])
+        return pv_variability_margins_pu(dv_dp_pu_per_kw, pv_p_kw, recent, self._margin_cap_pu)
 
     # ------------------------------------------------------------------------------------------- decide
     def decide(self, snap: MeasurementSnapshot) -> Decision:

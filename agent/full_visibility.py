@@ -2,7 +2,9 @@
 
 The bridge's oracle gives the true voltage of every node and perturbation sensitivities of every node to
 each plant's Q and each regulator's tap, at the present state; the problem then constrains every node, not
-only the critical ones, and taps are commanded directly. Device order is the device map's, which is also
+only the critical ones, and taps are commanded directly. The agent's PV variability margin (beyond the paper,
+docs/method.md) applies here too, from the oracle's dV/dP of every node, so that case A and case D plan
+against the same cloud movements within an interval. Device order is the device map's, which is also
 the model's (training builds the model from the same map).
 """
 
@@ -40,6 +42,12 @@ def full_visibility_inputs(controller: CvvcController, snap: MeasurementSnapshot
     q0 = np.asarray(snap.pv_q_kvar, float)
     taps = np.asarray(reply.taps, int) if len(reply.taps) == n_reg else np.asarray(snap.reg_tap, int)
     lo, hi = model.optimization_limits_pu
+    rise, fall = 0.0, 0.0
+    if len(reply.dv_dp_pu_per_kw):
+        dv_dp = np.asarray(reply.dv_dp_pu_per_kw, float).reshape(v0.size, -1)
+        if dv_dp.shape[1] != n_pv:
+            raise AgentInputError(f"oracle reply has dV/dP for {dv_dp.shape[1]} plants; the model has {n_pv}")
+        rise, fall = controller.pv_margins_pu(dv_dp[live], p)
     return CvvcInputs(
         v0_pu=v0[live], dv_dq_pu_per_kvar=dv_dq[live], dv_dtap_pu=dv_dtap[live], q0_kvar=q0,
         q_min_kvar=np.where(pv_ok, -headroom, q0), q_max_kvar=np.where(pv_ok, headroom, q0),
@@ -47,7 +55,8 @@ def full_visibility_inputs(controller: CvvcController, snap: MeasurementSnapshot
         tap_min=np.array([r.tap_min for r in regs]), tap_max=np.array([r.tap_max for r in regs]),
         max_taps_per_interval=np.where(np.asarray(snap.reg_valid, bool), [r.max_taps_per_interval for r in regs], 0),
         cost_per_tap=np.array([r.cost_per_tap for r in regs], float),
-        cost_per_kvar=np.array([pv.cost_per_kvar for pv in model.pv], float), v_min_pu=lo, v_max_pu=hi)
+        cost_per_kvar=np.array([pv.cost_per_kvar for pv in model.pv], float), v_min_pu=lo + fall,
+        v_max_pu=hi - rise)
 
 
 def decide_full_visibility(controller: CvvcController, snap: MeasurementSnapshot, estimated: Decision,

@@ -123,7 +123,7 @@ def bench_decision(
         if not aligned_now:
             continue
         t0 = time.perf_counter()
-        dv_dq, dv_dtap = engine.perturbation_sensitivities()
+        sens = engine.perturbation_sensitivities()
         v = engine.node_voltages_pu()
         t1 = time.perf_counter()
         reply = m.OracleReply(
@@ -133,9 +133,10 @@ def bench_decision(
             feeder_id=fid,
             node_names=[],
             v_pu=v.tolist(),
-            dv_dq_pu_per_kvar=np.nan_to_num(dv_dq).tolist(),
-            dv_dtap_pu=dv_dtap.tolist(),
+            dv_dq_pu_per_kvar=np.nan_to_num(sens.dv_dq).tolist(),
+            dv_dtap_pu=sens.dv_dtap.tolist(),
             taps=[int(x) for x in engine.taps()],
+            dv_dp_pu_per_kw=np.nan_to_num(sens.dv_dp).tolist(),
         )
         snap = snapshot_from(aligned_now[0], model)
         solve_cvvc(full_visibility_inputs(reference.controller, snap, reply))

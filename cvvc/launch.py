@@ -117,7 +117,7 @@ def case_agent_args(case: Case, bandwidth_v120: float, pv_margin_window_s: float
     hold = ["--setpoint-hold", "on"] if setpoint_hold else []
     match case:
         case "A":
-            return ["--mode", "taps", "--correction", "off", "--full-visibility"]
+            return ["--mode", "taps", "--correction", "off", "--full-visibility", *margin]
         case "B":
             return ["--mode", "taps", "--correction", "off", *margin]
         case "C":

@@ -304,6 +304,7 @@ class OracleReply(Message, frozen=True, kw_only=True, forbid_unknown_fields=True
     dv_dq_pu_per_kvar: list[list[Sens]] = []  # [node][plant]
     dv_dtap_pu: list[list[Sens]] = []  # [node][regulator]
     taps: list[Tap] = []
+    dv_dp_pu_per_kw: list[list[Sens]] = []  # [node][plant], per kW of output (for the PV variability margin)
 
 
 MESSAGE_TYPES: tuple[type[msgspec.Struct], ...] = (

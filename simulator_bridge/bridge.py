@@ -695,15 +695,16 @@ class _Runtime:
             v = self.engine.node_voltages_pu()[feeder]
             dq: list[list[float]] = []
             dtap: list[list[float]] = []
+            dp: list[list[float]] = []
             if item.request.include_sensitivities:
-                s_q, s_t = self.engine.perturbation_sensitivities()
-                dq = np.clip(np.nan_to_num(s_q[feeder], nan=0.0), -1.0, 1.0).tolist()
-                dtap = np.clip(np.nan_to_num(s_t[feeder], nan=0.0), -1.0, 1.0).tolist()
+                s = self.engine.perturbation_sensitivities()
+                dq, dtap, dp = (np.clip(np.nan_to_num(a[feeder], nan=0.0), -1.0, 1.0).tolist()
+                                for a in (s.dv_dq, s.dv_dtap, s.dv_dp))
             self.seqs["oracle"] += 1
             reply = m.OracleReply(t_ns=max(self.now_t_ns, 0), seq=self.seqs["oracle"], source="bridge",
                                   feeder_id=self.fid, node_names=[self.engine.node_names[i] for i in feeder],
                                   v_pu=np.clip(v, 0.0, 3.0).tolist(), dv_dq_pu_per_kvar=dq, dv_dtap_pu=dtap,
-                                  taps=[int(t) for t in self.engine.taps()])
+                                  taps=[int(t) for t in self.engine.taps()], dv_dp_pu_per_kw=dp)
             q.reply(q.key_expr, codec_for(m.OracleReply).encode(reply), encoding=zenoh.Encoding.APPLICATION_JSON)
             self.oracle_replies += 1
         except CvvcError as e:

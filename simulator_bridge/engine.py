@@ -38,7 +38,7 @@ import opendssdirect as dss
 from schemas.devicemap import DeviceMap, DeviceMapError
 from schemas.errors import CvvcError
 
-__all__ = ["EngineError", "FeederEngine", "FieldReadings", "OpenDssSnapshot", "opendss_snapshot"]
+__all__ = ["EngineError", "FeederEngine", "FieldReadings", "OpenDssSnapshot", "Sensitivities", "opendss_snapshot"]
 
 _PHASES = (1, 2, 3)
 _LOAD_SETTER_FLAGS = 2  # SetterFlags_AvoidFullRecalc: a kW change does not rebuild the load's Yprim
@@ -79,6 +79,24 @@ class FieldReadings:
     reg_v120: np.ndarray
     reg_v120_compared: np.ndarray
     reg_tap: np.ndarray
+
+
+@dataclass(frozen=True)
+class Sensitivities:
+    """Perturbation sensitivities of every node at one state (``FeederEngine.perturbation_sensitivities``).
+
+    Attributes
+    ----------
+    dv_dq : (n_nodes, K) to each plant's reactive power [pu/kvar]; a column is NaN when the plant has less
+        than 1 kvar of headroom.
+    dv_dtap : (n_nodes, R) to each regulator's tap [pu/step].
+    dv_dp : (n_nodes, K) to each plant's active power output, per kW of its measured output [pu/kW]; a
+        column is NaN when the plant's output could not be moved by 1 kW.
+    """
+
+    dv_dq: np.ndarray
+    dv_dtap: np.ndarray
+    dv_dp: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -602,18 +620,15 @@ class FeederEngine:
         )
 
     # ------------------------------------------------------------------ oracle
-    def perturbation_sensitivities(self, dq_kvar: float = 100.0) -> tuple[np.ndarray, np.ndarray]:
+    def perturbation_sensitivities(self, dq_kvar: float = 100.0, dp_kw: float = 100.0) -> Sensitivities:
         """Voltage sensitivities by perturbation from the present state (the case-A oracle).
 
-        Each plant's Q is moved by ``dq_kvar`` (upwards, or downwards when the headroom is short), and
-        each regulator by one tap (up, or down at the top tap), one at a time; each is solved and
-        differenced against the present solution, then undone. The state (Q set points, taps,
-        voltages) is restored and checked.
-
-        Returns
-        -------
-        dv_dq : (n_nodes, K) [pu/kvar]; a column is NaN when the plant has less than 1 kvar of headroom.
-        dv_dtap : (n_nodes, R) [pu/step].
+        Each plant's Q is moved by ``dq_kvar`` (upwards, or downwards when the headroom is short), each
+        plant's available P by ``dp_kw`` (downwards, or upwards when it produces less), and each regulator
+        by one tap (up, or down at the top tap), one at a time; each is solved and differenced against the
+        present solution, then undone. ``dv_dp`` is per kW of the plant's measured output change; when the
+        raised output clips the plant's Q to its headroom, the Q change's share is taken off by ``dv_dq``.
+        The state (set points, taps, voltages) is restored and checked.
         """
         self.solve()
         v0 = self.node_voltages_pu()
@@ -632,6 +647,20 @@ class FeederEngine:
             self.solve()
             dv_dq[:, k] = (self.node_voltages_pu() - v0) / (applied[k] - q0[k])
         self.set_pv(p0, q0)
+        dv_dp = np.full((len(v0), len(p0)), np.nan)
+        out0 = self.readings().pv_p_kw.sum(axis=1)
+        for k in range(len(p0)):
+            p = p0.copy()
+            p[k] += -dp_kw if p0[k] >= dp_kw else min(dp_kw, self.pv_pmpp_kw[k] - p0[k])
+            applied = self.set_pv(p, q0)
+            self.solve()
+            moved = float(self.readings().pv_p_kw[k].sum() - out0[k])
+            dv = self.node_voltages_pu() - v0
+            if applied[k] != q0[k]:
+                dv = dv - dv_dq[:, k] * (applied[k] - q0[k])  # NaN when Q cannot be moved either
+            if abs(moved) >= 1.0:
+                dv_dp[:, k] = dv / moved
+        self.set_pv(p0, q0)
         dv_dtap = np.zeros((len(v0), len(t0)))
         for r in range(len(t0)):
             step = 1 if t0[r] < self.reg_tap_max[r] else -1
@@ -644,9 +673,10 @@ class FeederEngine:
         self.solve()
         drift = float(np.max(np.abs(self.node_voltages_pu() - v0))) if len(v0) else 0.0
         p1, q1 = self.pv_setpoints()
-        if not (np.array_equal(self.taps(), t0) and np.array_equal(q1, q0) and drift < 100 * self.tolerance):
+        if not (np.array_equal(self.taps(), t0) and np.array_equal(q1, q0) and np.array_equal(p1, p0)
+                and drift < 100 * self.tolerance):
             raise EngineError(f"perturbation_sensitivities: state not restored (voltage drift {drift:.2e} pu)")
-        return dv_dq, dv_dtap
+        return Sensitivities(dv_dq=dv_dq, dv_dtap=dv_dtap, dv_dp=dv_dp)
 
     # ------------------------------------------------------------------ bench support
     def bare_steps_s(self, load_kw: np.ndarray, pv_kw: np.ndarray, taps: np.ndarray | None = None) -> float:

@@ -132,7 +132,7 @@ def simulate_month(
         amin.append(int(np.nanargmin(v_el)))
         vext.append((float(v_el[amax[-1]]), float(v_el[amin[-1]])))
         if i in sens_at:
-            dv_dq, _ = engine.perturbation_sensitivities()
+            dv_dq = engine.perturbation_sensitivities().dv_dq
             s_rows.append(i)
             s_vals.append(dv_dq[nodes])
     bar.close()

@@ -2,12 +2,15 @@
 
 import dataclasses
 
+import msgspec
 import numpy as np
 import pytest
 
 from agent.controller import CvvcController, Decision, MeasurementSnapshot
 from agent.errors import AgentInputError
 from agent.estimator import dv_dp_pu_per_kw, estimate_voltages_pu, pv_variability_margins_pu
+from agent.full_visibility import decide_full_visibility, full_visibility_inputs
+from schemas import messages as m
 from agent.synthetic import synthetic_model
 from training.model import ModelArrays, features
 
@@ -238,6 +241,37 @@ def test_pv_variability_margin_is_off_by_default_and_validated():
         controller(pv_margin_window_s=-1.0)
     with pytest.raises(AgentInputError, match="pv_margin_cap_pu"):
         controller(pv_margin_cap_pu=0.5)
+
+
+def test_case_a_tightens_every_node_by_the_oracle_dv_dp():
+    """Case A applies the same margin as B-D, to every node, from the oracle's perturbation dV/dP."""
+    plain, margin = controller(), controller(pv_margin_window_s=1800.0, pv_margin_cap_pu=0.01)
+    minute = 60_000_000_000
+    for t, p in ((0, 1100.0), (5 * minute, 1100.0), (10 * minute, 300.0)):  # a cloud at the third step
+        snap = snapshot(t, pv_p_kw=p)
+        d_plain, d_margin = plain.decide(snap), margin.decide(snap)
+    # three nodes: raised by every plant, by none, by a lot (the cap binds)
+    dv_dp = np.array([[2e-6] * K, [0.0] * K, [1e-4] * K])
+    reply = m.OracleReply(t_ns=snap.t_ns, seq=1, source="bridge", feeder_id="synthetic", node_names=["a", "b", "c"],
+                          v_pu=[1.035, 1.0, 1.038], dv_dq_pu_per_kvar=[[3e-5] * K] * 3,
+                          dv_dtap_pu=[[0.00625] * R] * 3, taps=[0] * R, dv_dp_pu_per_kw=dv_dp.tolist())
+    lo, hi = MODEL.optimization_limits_pu
+    plain_in = full_visibility_inputs(plain, snap, reply)
+    margin_in = full_visibility_inputs(margin, snap, reply)
+    assert np.all(plain_in.v_max_pu == hi) and np.all(plain_in.v_min_pu == lo)  # the paper's case A
+    np.testing.assert_allclose(margin_in.v_max_pu, hi - np.array([2e-6 * 800 * K, 0.0, 0.01]))
+    np.testing.assert_allclose(margin_in.v_min_pu, lo)  # the plants produce their window's least now
+    a_plain = decide_full_visibility(plain, snap, d_plain, reply)
+    a_margin = decide_full_visibility(margin, snap, d_margin, reply)
+    assert a_plain.status == a_margin.status == "optimal", (a_plain.reason, a_margin.reason)
+    assert a_margin.objective > a_plain.objective  # node c (1.038 pu) must come down to 1.03
+    # an oracle without dV/dP (an older bridge): no margin; one for the wrong number of plants: a clear error
+    older = msgspec.structs.replace(reply, dv_dp_pu_per_kw=[])
+    assert np.all(full_visibility_inputs(margin, snap, older).v_max_pu == hi)
+    wrong = msgspec.structs.replace(reply, dv_dp_pu_per_kw=[[1e-6] * (K + 1)] * 3)
+    with pytest.raises(AgentInputError, match="dV/dP for 4 plants"):
+        full_visibility_inputs(margin, snap, wrong)
+    assert decide_full_visibility(margin, snap, d_margin, wrong).status == "hold"
 
 
 def test_setpoint_hold_resends_the_last_set_point_when_no_tap_change_is_decided():

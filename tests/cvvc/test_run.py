@@ -159,7 +159,8 @@ def test_bad_arguments_give_a_clear_error(tmp_path, ieee13_model):
                             "setpoint_hold": False}),
         ("D", 0.0, True, {"pv_margin_window_s": 0.0, "setpoint_hold": True}),  # the paper's method, hold on
         ("B", 600.0, True, {"mode": "taps", "pv_margin_window_s": 600.0, "setpoint_hold": False}),  # no hold in B
-        ("A", None, False, {"full_visibility": True}),
+        ("A", None, False, {"full_visibility": True, "pv_margin_window_s": 1800.0}),
+        ("A", 0.0, False, {"full_visibility": True, "pv_margin_window_s": 0.0}),  # the paper's case A
     ],
 )
 def test_case_flags_give_the_settings_the_agent_records(case, window, hold, expect):

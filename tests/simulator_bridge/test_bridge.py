@@ -355,9 +355,11 @@ def test_oracle_answers_from_the_stepping_thread(client: Client, router_endpoint
     assert not any(name.split(".")[0] in ("sourcebus", "650") for name in rep.node_names)
     assert len(rep.dv_dq_pu_per_kvar) == n and all(len(row) == 3 for row in rep.dv_dq_pu_per_kvar)
     assert len(rep.dv_dtap_pu) == n and all(len(row) == 3 for row in rep.dv_dtap_pu)
-    for k, bus in enumerate(("675", "680", "633")):  # injecting Q raises the plant's own voltage
-        at_plant = [rep.dv_dq_pu_per_kvar[i][k] for i, name in enumerate(rep.node_names) if name.startswith(bus + ".")]
-        assert at_plant and min(at_plant) > 0
+    assert len(rep.dv_dp_pu_per_kw) == n and all(len(row) == 3 for row in rep.dv_dp_pu_per_kw)
+    for k, bus in enumerate(("675", "680", "633")):  # injecting Q or P raises the plant's own voltage
+        for sens in (rep.dv_dq_pu_per_kvar, rep.dv_dp_pu_per_kw):
+            at_plant = [sens[i][k] for i, name in enumerate(rep.node_names) if name.startswith(bus + ".")]
+            assert at_plant and min(at_plant) > 0
     assert summary.oracle_replies == 1 and summary.lockstep_misses == 0
     assert summary.lockstep_skipped == 0 and summary.decisions == 1  # it found the agent before step 0
 

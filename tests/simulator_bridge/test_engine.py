@@ -164,8 +164,9 @@ def test_perturbation_sensitivities_and_restoration(eng123: FeederEngine) -> Non
     e.set_taps(np.array([2, 1, 0, 0, 3, 3, 3]))
     e.solve()
     v0, p0, q0 = e.node_voltages_pu(), *e.pv_setpoints()
-    dv_dq, dv_dtap = e.perturbation_sensitivities(dq_kvar=100.0)
-    assert dv_dq.shape == (278, 3) and dv_dtap.shape == (278, 7)
+    s = e.perturbation_sensitivities(dq_kvar=100.0, dp_kw=100.0)
+    dv_dq, dv_dtap, dv_dp = s.dv_dq, s.dv_dtap, s.dv_dp
+    assert dv_dq.shape == (278, 3) and dv_dtap.shape == (278, 7) and dv_dp.shape == (278, 3)
     for k, ix in enumerate(e.pv_node_index):
         assert np.all(dv_dq[list(ix), k] > 1e-5)  # ~3-4e-5 pu/kvar at the plant's own nodes
     for r, node in enumerate(e.reg_secondary_node):
@@ -180,6 +181,16 @@ def test_perturbation_sensitivities_and_restoration(eng123: FeederEngine) -> Non
     e.solve()
     dv = e.node_voltages_pu() - v0
     np.testing.assert_allclose(dv, dv_dq[:, 1] * 200.0, atol=0.05 * np.max(np.abs(dv)))
+    # ... and dV/dP an independent cloud on plant 0 (its measured output 150 kW lower) to a few percent
+    for k, ix in enumerate(e.pv_node_index):
+        assert np.all(dv_dp[list(ix), k] > 1e-6)  # more output raises the plant's own voltage
+    out0 = e.readings().pv_p_kw.sum(axis=1)
+    e.set_pv(p0 - np.array([150.0, 0.0, 0.0]), q0)
+    e.solve()
+    dv = e.node_voltages_pu() - v0
+    moved = e.readings().pv_p_kw.sum(axis=1)[0] - out0[0]
+    assert moved == pytest.approx(-150.0, rel=0.05)
+    np.testing.assert_allclose(dv, dv_dp[:, 0] * moved, atol=0.05 * np.max(np.abs(dv)))
 
 
 def test_single_phase_plant(map123: DeviceMap) -> None:

@@ -83,7 +83,7 @@ def test_estimates_opendss_out_of_sample(trained_123, profile_cache):
         errs.append(estimate_v_pu(arrays, x[None], taps[None])[0] - v)
         errs_corr.append(estimate_v_pu(arrays, x[None], taps[None], r.reg_v120[None])[0] - v)
         if i % 15 == 0:  # eq. (3) vs perturbation truth at 10 states
-            dv_dq, _ = e.perturbation_sensitivities()
+            dv_dq = e.perturbation_sensitivities().dv_dq
             pred = eval_sensitivities(sens, np.array([r.head_q_kvar.sum()]))[0]
             truth = dv_dq[idx]
             big = np.abs(truth) > 0.2 * np.nanmax(np.abs(truth), axis=1, keepdims=True)
