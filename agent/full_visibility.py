@@ -42,7 +42,8 @@ def full_visibility_inputs(controller: CvvcController, snap: MeasurementSnapshot
     q0 = np.asarray(snap.pv_q_kvar, float)
     taps = np.asarray(reply.taps, int) if len(reply.taps) == n_reg else np.asarray(snap.reg_tap, int)
     lo, hi = model.optimization_limits_pu
-    rise, fall = 0.0, 0.0
+    rise: np.ndarray | float = 0.0
+    fall: np.ndarray | float = 0.0
     if len(reply.dv_dp_pu_per_kw):
         dv_dp = np.asarray(reply.dv_dp_pu_per_kw, float).reshape(v0.size, -1)
         if dv_dp.shape[1] != n_pv:
