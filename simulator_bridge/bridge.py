@@ -23,7 +23,7 @@ guide; in short:
   ``latency_s``): a step's device frames, streaming metrics and truth frame are built, encoded and put by
   one publisher thread, in step order, while the stepping thread solves the next step (OpenDSS releases
   the GIL while it solves). In lockstep a step is handed over when the next step's first power flow starts
-  (``FeederEngine.solve`` of this run's engine is wrapped for that): handed over earlier, the publisher
+  (``Qsts.before_solve``): handed over earlier, the publisher
   takes the GIL at the stepping thread's first short OpenDSS call and keeps it while the stepping thread
   waits (slower than inline publishing, measured without Zenoh). The stepping thread waits until every step
   so far is published (:meth:`_Runtime.drain`) before it changes a device's command state (the frames show
@@ -432,13 +432,7 @@ class _Runtime:
         self._pending: tuple[Any, ...] | None = None
         self._defer = self.publisher is not None and c.clock == "lockstep"
         if self._defer:
-            real_solve = engine.solve
-
-            def solve_handing_over() -> None:
-                self._hand_over()
-                real_solve()
-
-            engine.solve = solve_handing_over  # undone in close()
+            qsts.before_solve = self._hand_over
 
     # ---------------------------------------------------------------- declarations
     def _declare(self) -> None:
@@ -470,7 +464,7 @@ class _Runtime:
         if self.publisher is not None:
             self.publisher.close()
         if self._defer:
-            del self.engine.solve  # the class's method again
+            self.qsts.before_solve = None
         for undeclare in [self.queryable.undeclare, self.inbox.undeclare, self.agents.undeclare,
                           self.bridges.undeclare, *(t.undeclare for t in self.tokens)]:
             try:
