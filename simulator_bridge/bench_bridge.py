@@ -91,6 +91,8 @@ def bench_bridge(device_map: str | Path, steps: int, *, seed: int = 1, truth_eve
     ``overhead_cpu`` (median CPU time of the bridge process's loop, Zenoh's threads included / median bare CPU
     time − 1), ``overhead_thread_cpu`` (the same for the stepping thread alone), ``publisher_cpu_share``
     (median CPU time of the publisher thread / median bare CPU time; 0 when publishing inline),
+    ``drain_wait_share`` and ``decision_wait_share`` (the stepping thread's waits on control steps, for the
+    publisher thread and for the decision, / median bare time: their part of ``overhead``),
     ``round_trip_p50_ms``, ``round_trip_p99_ms`` (medians over the runs), ``control_steps``,
     ``lockstep_misses`` (total).
     """
@@ -121,6 +123,7 @@ def bench_bridge(device_map: str | Path, steps: int, *, seed: int = 1, truth_eve
             proc.terminate()
             proc.join(5)
     lock = [r.steps_per_s for r in runs]
+    bare_s = steps / statistics.median(bare)  # median bare wall time [s]
     p50 = [r.round_trip_p50_s for r in runs if r.round_trip_p50_s is not None]
     p99 = [r.round_trip_p99_s for r in runs if r.round_trip_p99_s is not None]
     return {
@@ -136,6 +139,8 @@ def bench_bridge(device_map: str | Path, steps: int, *, seed: int = 1, truth_eve
                                      - 1.0, 3),
         "publisher_cpu_share": round(statistics.median(r.publisher_thread_cpu_s for r in runs)
                                      / statistics.median(bare_cpu), 3),
+        "drain_wait_share": round(statistics.median(r.drain_wait_s for r in runs) / bare_s, 3),
+        "decision_wait_share": round(statistics.median(r.decision_wait_s for r in runs) / bare_s, 3),
         "round_trip_p50_ms": round(1e3 * statistics.median(p50), 3) if p50 else None,
         "round_trip_p99_ms": round(1e3 * statistics.median(p99), 3) if p99 else None,
         "control_steps": runs[0].control_steps,

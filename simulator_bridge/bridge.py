@@ -143,7 +143,9 @@ class BridgeSummary(msgspec.Struct, frozen=True, kw_only=True):
 
     Times in seconds: ``wall_s`` of the stepping loop; ``cpu_s`` CPU time of every thread of the process
     during the loop, Zenoh's included; ``thread_cpu_s`` of the stepping thread alone;
-    ``publisher_thread_cpu_s`` of the publisher thread (0 when the frames are published inline).
+    ``publisher_thread_cpu_s`` of the publisher thread (0 when the frames are published inline);
+    ``drain_wait_s`` the stepping thread's wall time waiting, on control steps, for the publisher thread to
+    finish the steps so far, and ``decision_wait_s`` waiting for the agent's decisions (lockstep).
     ``round_trip_*_s`` is from the publication of a control step's head frame to the reception of the agent's
     decision for it; ``rejected`` counts rejected commands per reason (device reasons, and ``decode_<kind>``
     for payloads that did not decode).
@@ -177,6 +179,8 @@ class BridgeSummary(msgspec.Struct, frozen=True, kw_only=True):
     stopped_early: bool
     metrics: m.MetricsFrame | None
     publisher_thread_cpu_s: float = 0.0
+    drain_wait_s: float = 0.0
+    decision_wait_s: float = 0.0
 
 
 # ------------------------------------------------------------------------------------------ helpers
@@ -416,6 +420,7 @@ class _Runtime:
         self.frames_published = self.frames_dropped = self.truth_frames = 0
         self.oracle_replies = self.oracle_rejected = self.late_steps = 0
         self.round_trips: list[float] = []
+        self.drain_wait_s = self.decision_wait_s = 0.0  # stepping thread's waits on control steps [s]
         self._ctrl_pub_wall_ns: dict[int, int] = {}  # written by the publisher, read by the stepping thread
         self._ctrl_lock = threading.Lock()
         self._handled: set[str] = set()
@@ -935,10 +940,14 @@ def _loop(rt: _Runtime, stop: threading.Event, on_ready: Any) -> BridgeSummary:
             rt.serve(0.0, stop)  # handle what is queued, without waiting
         res = rt.step()
         if rt.is_control_step(res.step):
+            t_drain = time.monotonic()
             rt.drain()  # the step's frames are out and in the metrics before the wait and the metrics frame
+            t_wait = time.monotonic()
+            rt.drain_wait_s += t_wait - t_drain
             rt.control_steps += 1
             if c.clock == "lockstep":
                 _await_decision(rt, int(res.t_ns), stop)
+                rt.decision_wait_s += time.monotonic() - t_wait
             rt.pub_metrics.put(rt.metrics_frame(final=False))
             rt.pub_status.put(rt.status(done=False))
     rt.drain()
@@ -959,7 +968,7 @@ def _loop(rt: _Runtime, stop: threading.Event, on_ready: Any) -> BridgeSummary:
         oracle_replies=rt.oracle_replies, oracle_rejected=rt.oracle_rejected, realtime_late_steps=rt.late_steps,
         round_trip_p50_s=_percentile(rt.round_trips, 50), round_trip_p99_s=_percentile(rt.round_trips, 99),
         agent_alive=rt.agent_alive, stopped_early=rt.steps < c.steps, metrics=final,
-        publisher_thread_cpu_s=pub_cpu_s)
+        publisher_thread_cpu_s=pub_cpu_s, drain_wait_s=rt.drain_wait_s, decision_wait_s=rt.decision_wait_s)
 
 
 def _startup(rt: _Runtime, stop: threading.Event) -> None:

@@ -387,6 +387,7 @@ def test_lockstep_with_a_silent_agent_times_out_and_goes_on(client: Client, rout
         assert proc.returncode == 0, proc.stderr
         summary = json.loads(proc.stdout)
         assert summary["lockstep_misses"] == 3 and summary["control_steps"] == 3 and summary["steps"] == 11
+        assert 3 * 0.2 <= summary["decision_wait_s"] < summary["wall_s"]  # three whole timeouts waited
         assert summary["agent_alive"] is True and summary["truth_frames"] == 3
         assert wall < 30
         assert "lockstep miss" in proc.stderr
@@ -441,7 +442,7 @@ def test_lockstep_without_an_agent_token_does_not_wait(client: Client, router_en
                                            timeout_s=30.0), router_endpoint)
     summary = _finish(th, stop, out)
     assert summary.steps == 20 and summary.lockstep_skipped == 4 and summary.lockstep_misses == 0
-    assert summary.wall_s < 30 and not summary.agent_alive
+    assert summary.wall_s < 30 and not summary.agent_alive and summary.decision_wait_s < 1.0
 
 
 def test_sigterm_ends_the_run_cleanly(client: Client, router_endpoint: str, device_map_path: Path,
