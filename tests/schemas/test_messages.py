@@ -90,6 +90,29 @@ def test_sender_refuses_non_finite():
         codec_for(m.Decision).encode(nested)
 
 
+@pytest.mark.parametrize("bad", [math.nan, math.inf, -math.inf])
+def test_non_finite_found_in_every_shape_of_list(bad):
+    """The one-pass sum of number lists (``_finite_numbers``) never hides a NaN or an infinity; the walk then
+    names it. Including where the sum alone would cancel (inf and -inf) or overflow (finite values)."""
+    from schemas.bus import check_finite
+
+    big = [[1e-5] * 14 for _ in range(1283)]
+    big[700][9] = bad
+    with pytest.raises(NonFiniteError, match=r"x\[700\]\[9\]"):
+        check_finite(big, "x")
+    with pytest.raises(NonFiniteError, match=r"x\[2\]"):
+        check_finite([1.0, 2, bad], "x")
+    with pytest.raises(NonFiniteError, match=r"x\[1\]"):
+        check_finite([1.0, math.inf, -math.inf], "x")  # the two would cancel to NaN: still found
+    with pytest.raises(NonFiniteError, match=r"x\[1\]\[0\]"):
+        check_finite([[1.0], [bad], "label"], "x")  # mixed: walked
+    check_finite([1e308, 1e308], "x")  # the sum overflows; every value is finite
+    check_finite([[1e308], [1e308]], "x")
+    check_finite([10**400, 1.0, True], "x")  # a huge int: no float sum, walked
+    check_finite([[], [1.0, 2]], "x")
+    check_finite(["a", "b"], "x")
+
+
 def test_tagged_unions_dispatch():
     d = codec_for(m.Decision).decode(codec_for(m.Decision).encode(EXAMPLES[m.Decision]))
     kinds = []
