@@ -15,9 +15,11 @@ from cvvc.evaluate import (
     EvaluateConfig,
     EvaluateError,
     evaluate,
+    longest_first,
     parse_cases,
     parse_seasons,
     perturbation_commands,
+    plan_runs,
     perturbed_device_map,
     season_window,
 )
@@ -80,6 +82,17 @@ def test_unknown_case_or_season_is_a_clear_error(tmp_path):
                           cwd=REPO, env=env, capture_output=True, text=True, timeout=60, check=False)
     assert proc.returncode == 2
     assert "unknown case(s) X" in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_case_a_runs_start_first_and_the_rest_keep_their_order(tmp_path):
+    config = EvaluateConfig(feeder=str(IEEE13), cases=("none", "D", "A", "B"), seasons=("winter", "summer"),
+                            out=str(tmp_path))
+    planned = plan_runs(config)
+    started = longest_first(planned)
+    assert sorted(s.name for s in started) == sorted(s.name for s in planned)
+    assert [s.case for s in started[:2]] == ["A", "A"] and all(s.case != "A" for s in started[2:])
+    rest = [s.name for s in planned if s.case != "A"]
+    assert [s.name for s in started[2:]] == rest
 
 
 def test_season_window_is_the_month_or_its_first_days():
