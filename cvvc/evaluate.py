@@ -98,7 +98,8 @@ class EvaluateConfig(msgspec.Struct, frozen=True, kw_only=True):
 def longest_first(specs: list[RunSpec]) -> list[RunSpec]:
     """The order runs are started in: case A first, so that with ``--jobs`` > 1 the last run to finish is a short
     one (case A asks the bridge's oracle at every decision and takes about 3x as long as B-D, docs/results.md);
-    the rest keep their order."""
+    the rest keep their order.
+    """
     return sorted(specs, key=lambda s: s.case != "A")
 
 
