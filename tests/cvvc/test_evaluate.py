@@ -19,8 +19,8 @@ from cvvc.evaluate import (
     parse_cases,
     parse_seasons,
     perturbation_commands,
-    plan_runs,
     perturbed_device_map,
+    plan_runs,
     season_window,
 )
 
