@@ -1,0 +1,25 @@
+"""The decision bench (``make bench``): on IEEE 13, its case A runs on its own engine, so the agent's frames are
+those of an undisturbed simulation, and the oracle's state is the simulation's."""
+
+import shutil
+from pathlib import Path
+
+from cvvc.bench_decision import bench_decision
+from schemas.devicemap import load_device_map
+from training.train import TRAINING_REVISION
+
+REPO = Path(__file__).resolve().parents[2]
+IEEE13 = REPO / "feeders" / "ieee13.toml"
+
+
+def test_bench_decision_times_the_agent_and_case_a_on_the_same_states(tmp_path, ieee13_model, profile_cache):
+    dm = load_device_map(IEEE13)
+    models = tmp_path / "models"
+    models.mkdir()
+    shutil.copy(ieee13_model, models / f"{dm.feeder.name}-{dm.fingerprint()}-y1-r{TRAINING_REVISION}.json")
+    shutil.copytree(profile_cache, tmp_path / "profiles")
+    r = bench_decision(IEEE13, control_steps=4, cache=tmp_path, repeats=2)
+    assert r["control_steps"] == 4 and r["nodes"] > 0
+    assert r["case_a_state_max_dv_pu"] < 1e-5  # the oracle engine solved the simulation's state
+    assert 0.0 < r["agent_ms_p50"] <= r["agent_ms_p99"] <= r["agent_ms_max"]
+    assert r["case_a_ms_mean"] > r["case_a_oracle_ms_mean"] > 0.0
