@@ -3,7 +3,8 @@
 For ``control_steps`` control steps of a QSTS day (regulators on local control, PV at unity), it times:
 
 - **case A**, during the simulation: the bridge's oracle work (perturbation power flows of every plant and
-  regulator from the present state, restored after) plus the all-node problem solved by the same solver;
+  regulator from the present state, on a second engine set to that state, so that the simulation the agent
+  sees is not disturbed) plus the all-node problem solved by the same solver;
 - **agent** (cases B-D), afterwards, on the frames recorded at those steps, built exactly as the bridge builds
   them and fed one by one to the agent's ``DecisionMaker`` (aligner -> estimator -> QP -> rounding -> set
   points -> messages): aligned frames in, commands out. The whole sequence runs ``repeats`` times, each
