@@ -42,13 +42,11 @@ def full_visibility_inputs(controller: CvvcController, snap: MeasurementSnapshot
     q0 = np.asarray(snap.pv_q_kvar, float)
     taps = np.asarray(reply.taps, int) if len(reply.taps) == n_reg else np.asarray(snap.reg_tap, int)
     lo, hi = model.optimization_limits_pu
-    rise: np.ndarray | float = 0.0
-    fall: np.ndarray | float = 0.0
-    if len(reply.dv_dp_pu_per_kw):
-        dv_dp = np.asarray(reply.dv_dp_pu_per_kw, float).reshape(v0.size, -1)
-        if dv_dp.shape[1] != n_pv:
-            raise AgentInputError(f"oracle reply has dV/dP for {dv_dp.shape[1]} plants; the model has {n_pv}")
-        rise, fall = controller.pv_margins_pu(dv_dp[live], p)
+    # an oracle without dV/dP (an older bridge): no margin
+    dv_dp = np.asarray(reply.dv_dp_pu_per_kw or np.zeros((v0.size, n_pv)), float).reshape(v0.size, -1)
+    if dv_dp.shape[1] != n_pv:
+        raise AgentInputError(f"oracle reply has dV/dP for {dv_dp.shape[1]} plants; the model has {n_pv}")
+    rise, fall = controller.pv_margins_pu(dv_dp[live], p)
     return CvvcInputs(
         v0_pu=v0[live], dv_dq_pu_per_kvar=dv_dq[live], dv_dtap_pu=dv_dtap[live], q0_kvar=q0,
         q_min_kvar=np.where(pv_ok, -headroom, q0), q_max_kvar=np.where(pv_ok, headroom, q0),

@@ -23,9 +23,9 @@ guide; in short:
   ``latency_s``): a step's device frames, streaming metrics and truth frame are built, encoded and put by
   one publisher thread, in step order, while the stepping thread solves the next step (OpenDSS releases
   the GIL while it solves). In lockstep a step is handed over when the next step's first power flow starts
-  (``Qsts.before_solve``): handed over earlier, the publisher
-  takes the GIL at the stepping thread's first short OpenDSS call and keeps it while the stepping thread
-  waits (slower than inline publishing, measured without Zenoh). The stepping thread waits until every step
+  (``Qsts.before_solve``): handed over earlier, the publisher takes the GIL at the stepping thread's first
+  short OpenDSS call and keeps it while the stepping thread waits (slower than inline publishing, measured
+  without Zenoh). The stepping thread waits until every step
   so far is published (:meth:`_Runtime.drain`) before it changes a device's command state (the frames show
   it), on a control step before it waits for the decision and publishes metrics and status, and at the
   end; so every message is the one inline publishing sends, and lockstep is unchanged.
