@@ -105,6 +105,7 @@ def bench_decision(
                     q_kvar=rd.pv_q_kvar[k],
                     v_v=rd.pv_v_v[k],
                     available_p_kw=float(res.pv_p_kw[k]),
+                    q_setpoint_kvar=pv.q_setpoint_kvar,
                 ),
             )
             for k, pv in enumerate(pvs)
@@ -120,6 +121,9 @@ def bench_decision(
                     v120=float(rd.reg_v120[r]),
                     v_compared_120=float(rd.reg_v120_compared[r]),
                     tap=int(res.taps[r]),
+                    setpoint_v120=reg.setpoint_v120,
+                    band_v120=reg.band_v120,
+                    mode=reg.mode,
                 ),
             )
             for r, reg in enumerate(regs)

@@ -11,7 +11,7 @@ It reports both rates, ``overhead = bare rate / lockstep rate − 1`` (goal: und
 and the round trip from the publication of a control step's head frame to the reception of the decision
 (p50, p99, measured by the bridge). The two are timed alternately, ``repeats`` times, and medians compared.
 Run ``python -m simulator_bridge.bench_bridge [STEPS [PUBLISHER ...]]`` for IEEE 123 and the rural feeder, once per
-``BridgeConfig.publisher`` setting (default: ``inline``, then ``thread``).
+``BridgeConfig.publisher`` setting (default: ``inline``, then ``process``).
 """
 
 from __future__ import annotations
@@ -90,9 +90,9 @@ def bench_bridge(device_map: str | Path, steps: int, *, seed: int = 1, truth_eve
     ``overhead`` (median bare rate / median lockstep rate − 1), ``overheads`` (per alternation),
     ``overhead_cpu`` (median CPU time of the bridge process's loop, Zenoh's threads included / median bare CPU
     time − 1), ``overhead_thread_cpu`` (the same for the stepping thread alone), ``publisher_cpu_share``
-    (median CPU time of the publisher thread / median bare CPU time; 0 when publishing inline),
-    ``drain_wait_share`` and ``decision_wait_share`` (the stepping thread's waits on control steps, for the
-    publisher thread and for the decision, / median bare time: their part of ``overhead``),
+    (median CPU time of the publisher process, its start included / median bare CPU time; 0 when publishing
+    inline), ``decision_wait_share`` (the stepping thread's waits for the decisions / median bare time: their
+    part of ``overhead``),
     ``round_trip_p50_ms``, ``round_trip_p99_ms`` (medians over the runs), ``control_steps``,
     ``lockstep_misses`` (total).
     """
@@ -137,9 +137,8 @@ def bench_bridge(device_map: str | Path, steps: int, *, seed: int = 1, truth_eve
         "overhead_cpu": round(statistics.median(r.cpu_s for r in runs) / statistics.median(bare_cpu) - 1.0, 3),
         "overhead_thread_cpu": round(statistics.median(r.thread_cpu_s for r in runs) / statistics.median(bare_cpu)
                                      - 1.0, 3),
-        "publisher_cpu_share": round(statistics.median(r.publisher_thread_cpu_s for r in runs)
+        "publisher_cpu_share": round(statistics.median(r.publisher_cpu_s for r in runs)
                                      / statistics.median(bare_cpu), 3),
-        "drain_wait_share": round(statistics.median(r.drain_wait_s for r in runs) / bare_s, 3),
         "decision_wait_share": round(statistics.median(r.decision_wait_s for r in runs) / bare_s, 3),
         "round_trip_p50_ms": round(1e3 * statistics.median(p50), 3) if p50 else None,
         "round_trip_p99_ms": round(1e3 * statistics.median(p99), 3) if p99 else None,
@@ -183,13 +182,13 @@ def _bridge_run(device_map: str | Path, endpoint: str, steps: int, *, seed: int,
 
 def main(argv: list[str] | None = None) -> int:
     """Print the bench for IEEE 123 and the embedded rural feeder (``argv[0]``: steps, default 1440; ``argv[1:]``:
-    publisher settings, default ``inline thread``).
+    publisher settings, default ``inline process``).
     """
     from simulator_bridge.cli import DEFAULT_CACHE_ROOT, ensure_default_feeder
 
     args = sys.argv[1:] if argv is None else argv
     steps = int(args[0]) if args else 1440
-    publishers = args[1:] or ["inline", "thread"]
+    publishers = args[1:] or ["inline", "process"]
     repo = Path(__file__).resolve().parents[1]
     for path in (repo / "feeders" / "ieee123.toml", ensure_default_feeder(DEFAULT_CACHE_ROOT)):
         for truth_every in (1, 0):

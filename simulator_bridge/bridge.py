@@ -19,16 +19,11 @@ guide; in short:
   token alive, the bridge does not wait (counted as ``lockstep_skipped``).
 * **Real time**: step ``i`` is simulated at ``t0 + i · step_s / speed`` of wall time; the bridge never
   waits for anyone, it serves commands and oracle queries while it waits for the next tick.
-* **Publisher thread** (``BridgeConfig.publisher``; by default on feeders of 1000 nodes or more, never with
-  ``latency_s``): a step's device frames, streaming metrics and truth frame are built, encoded and put by
-  one publisher thread, in step order, while the stepping thread solves the next step (OpenDSS releases
-  the GIL while it solves). In lockstep a step is handed over when the next step's first power flow starts
-  (``Qsts.before_solve``): handed over earlier, the publisher takes the GIL at the stepping thread's first
-  short OpenDSS call and keeps it while the stepping thread waits (slower than inline publishing, measured
-  without Zenoh). The stepping thread waits until every step
-  so far is published (:meth:`_Runtime.drain`) before it changes a device's command state (the frames show
-  it), on a control step before it waits for the decision and publishes metrics and status, and at the
-  end; so every message is the one inline publishing sends, and lockstep is unchanged.
+* **Publishing** (``simulator_bridge.publishing``): a step's device frames, metrics update and truth frame,
+  and the metrics frames, come from a ``StepFramer``: called inline by the stepping thread, or, by default
+  on feeders of 200 nodes or more, in a publisher process with its own Zenoh session, fed through shared
+  memory with each step's results and the device settings in force, so its Python work runs beside the next
+  power flow instead of under this process's GIL. The messages are the same either way.
 """
 
 from __future__ import annotations
@@ -65,6 +60,16 @@ from schemas.devicemap import DeviceMap, load_device_map
 from schemas.errors import CvvcError
 from simulator_bridge import devices as dv
 from simulator_bridge.engine import FieldReadings
+from simulator_bridge.publishing import (
+    DeviceSettings,
+    FramePublisher,
+    FramerSpec,
+    PublisherProcess,
+    PublisherReport,
+    StepFramer,
+    StepPacker,
+    child_bus,
+)
 
 __all__ = [
     "BridgeConfig",
@@ -83,12 +88,10 @@ _POLL_S = 0.05  # longest a wait goes without checking the stop event [s]
 _HANDLED_MEMORY = 10_000  # cmd_ids remembered for matching decisions
 _STARTUP_PROBE_S = 1.0  # bounded look for an agent already alive, and for its subscription, at startup [s]
 _DRAIN_MAX = 1000  # queued items handled in one go before the clock and the stop event are looked at again
-_PIPE_DEPTH = 4  # simulated steps handed to the publisher thread and not yet published, at most
-_PIPE_WAIT_S = 60.0  # longest the stepping thread waits for the publisher thread to take or publish steps [s]
-# publisher="auto" uses the publisher thread from this many nodes on: measured faster on the rural feeder (1283
-# nodes) and IEEE 8500 (8531), slower on IEEE 123 (278), whose power flow is too short to hide the publishing
-# (docs/bridge.md, Speed)
-_PIPE_MIN_NODES = 1000
+# publisher="auto" uses the publisher process from this many nodes on: measured faster than inline on IEEE 123 (278
+# nodes), the rural feeder (1283) and IEEE 8500 (8531); no faster on IEEE 13 (41), where a child process would only
+# add its start, about a second (docs/bridge.md, Speed)
+_PROCESS_MIN_NODES = 200
 
 
 class BridgeError(CvvcError):
@@ -112,10 +115,11 @@ class BridgeConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fie
     noise_pmu_pct, noise_scada_pct : measurement noise per class [%]; drop_prob : frame drop probability;
     latency_s : fixed frame latency [s of wall time]; noise_seed : seed of noise and drops.
     cache_dir : where profiles are cached as ``.npz`` (None: no cache).
-    publisher : who builds, encodes and puts a step's frames, metrics update and truth: ``inline`` the
-        stepping thread; ``thread`` a publisher thread, while the stepping thread solves the next step (not
-        with ``latency_s``); ``auto`` (default) the thread on feeders of 1000 nodes or more without latency,
-        inline otherwise. The messages are the same.
+    publisher : who builds, encodes and puts a step's frames, metrics update, truth and metrics frames:
+        ``inline`` the stepping thread; ``process`` a publisher process with its own Zenoh session, while the
+        stepping thread solves the next step (not with ``latency_s``; the bus must have connect or listen
+        endpoints and no config file); ``auto`` (default) the process on feeders of 200 nodes or more when it
+        can, inline otherwise. The messages are the same.
     """
 
     device_map_path: str
@@ -135,17 +139,17 @@ class BridgeConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fie
     latency_s: float = 0.0
     noise_seed: int = 0
     cache_dir: str | None = ".cvvc-cache"
-    publisher: Literal["auto", "inline", "thread"] = "auto"
+    publisher: Literal["auto", "inline", "process"] = "auto"
 
 
 class BridgeSummary(msgspec.Struct, frozen=True, kw_only=True):
     """What a bridge run did (printed as JSON by ``cvvc bridge --json``).
 
     Times in seconds: ``wall_s`` of the stepping loop; ``cpu_s`` CPU time of every thread of the process
-    during the loop, Zenoh's included; ``thread_cpu_s`` of the stepping thread alone;
-    ``publisher_thread_cpu_s`` of the publisher thread (0 when the frames are published inline);
-    ``drain_wait_s`` the stepping thread's wall time waiting, on control steps, for the publisher thread to
-    finish the steps so far, and ``decision_wait_s`` waiting for the agent's decisions (lockstep).
+    during the loop, Zenoh's included; ``thread_cpu_s`` of the stepping thread alone; ``publisher_cpu_s`` of the
+    publisher process, its start included (0 when the frames are published inline); ``decision_wait_s`` the
+    stepping thread's wall time waiting for the agent's decisions (lockstep). ``publisher``: who published the
+    frames (``BridgeConfig.publisher`` resolved).
     ``round_trip_*_s`` is from the publication of a control step's head frame to the reception of the agent's
     decision for it; ``rejected`` counts rejected commands per reason (device reasons, and ``decode_<kind>``
     for payloads that did not decode).
@@ -178,9 +182,9 @@ class BridgeSummary(msgspec.Struct, frozen=True, kw_only=True):
     agent_alive: bool
     stopped_early: bool
     metrics: m.MetricsFrame | None
-    publisher_thread_cpu_s: float = 0.0
-    drain_wait_s: float = 0.0
+    publisher_cpu_s: float = 0.0
     decision_wait_s: float = 0.0
+    publisher: Literal["inline", "process"] = "inline"
 
 
 # ------------------------------------------------------------------------------------------ helpers
@@ -218,37 +222,12 @@ def _check_config(c: BridgeConfig) -> None:
         raise BridgeError(f"--truth-every must be >= 0 (0: no truth frames), got {c.truth_every}")
     if not (math.isfinite(c.wait_agent_s) and 0.0 <= c.wait_agent_s <= 3600.0):
         raise BridgeError(f"--wait-agent-s must be within 0..3600 s, got {c.wait_agent_s}")
-    if c.publisher == "thread" and c.latency_s > 0.0:
-        raise BridgeError("publisher='thread' cannot hold frames for --latency-s (the stepping thread flushes the "
-                          "delay line); use publisher='auto' or 'inline' with latency")
+    if c.publisher == "process" and c.latency_s > 0.0:
+        raise BridgeError("publisher='process' cannot hold frames for --latency-s (the stepping thread flushes "
+                          "the delay line); use publisher='auto' or 'inline' with latency")
 
 
 _READING_FIELDS = tuple(f.name for f in dataclasses.fields(FieldReadings))
-
-
-class _FramePublisher:
-    """Publisher of the bridge's own messages, whose numbers are already known to be finite.
-
-    ``TypedPublisher`` walks every field of every message for NaN (about 60 µs a frame, more than a power
-    flow of IEEE 13). Frames and truth here come from arrays that :func:`_check_finite_step` checked in one
-    vectorised pass; metrics from the accumulator, which refuses non-finite inputs and clips what it reports;
-    the status holds no float. Same Zenoh settings and JSON as ``TypedPublisher``.
-    """
-
-    def __init__(self, session: zenoh.Session, key: str, *, reliable: bool = False) -> None:
-        self.key = key
-        self._enc = msgspec.json.Encoder()
-        self._pub = session.declare_publisher(
-            key, encoding=zenoh.Encoding.APPLICATION_JSON,
-            congestion_control=zenoh.CongestionControl.BLOCK if reliable else zenoh.CongestionControl.DROP,
-            priority=zenoh.Priority.REAL_TIME if reliable else zenoh.Priority.DATA, express=reliable)
-
-    def put(self, msg: msgspec.Struct) -> None:
-        self._pub.put(self._enc.encode(msg))
-
-    def wait_matched(self, timeout_s: float) -> bool:
-        """Wait until a subscriber exists (a put right after a remote declaration is often lost)."""
-        return wait_for(lambda: bool(self._pub.matching_status.matching), timeout_s)
 
 
 def _check_finite_step(res: Any) -> tuple[float, float]:
@@ -263,105 +242,24 @@ def _check_finite_step(res: Any) -> tuple[float, float]:
     small = np.concatenate([getattr(rd, name) for name in _READING_FIELDS] + [res.pv_q_kvar, res.pv_p_kw],
                            axis=None, dtype=float)
     if not (math.isfinite(v_lo) and math.isfinite(v_hi) and np.isfinite(small).all()):
-        raise BridgeError(f"step at t_ns={res.t_ns}: the power flow produced non-finite values; the "
-                          "feeder or its profiles are broken (check `cvvc feeder info`)")
+        raise _non_finite(res)
     return v_lo, v_hi
 
 
-class _StepPublisher:
-    """One thread that publishes simulated steps in order: ``publish(*item)`` for every :meth:`submit`-ted item.
+def _non_finite(res: Any) -> BridgeError:
+    return BridgeError(f"step at t_ns={res.t_ns}: the power flow produced non-finite values; the feeder or its "
+                       "profiles are broken (check `cvvc feeder info`)")
 
-    The stepping thread hands over a step (its ``StepResult``, whose arrays the engine never reuses) and goes
-    on to simulate the next one; OpenDSS releases the GIL while it solves, so the frames of step ``t`` are
-    encoded and put while step ``t+1`` is solved. At most ``_PIPE_DEPTH`` steps wait. :meth:`drain` returns
-    once every submitted step is published. An exception in the thread is kept and raised as
-    ``BridgeError`` in the stepping thread by the next :meth:`submit` or :meth:`drain`; the thread publishes
-    nothing after it. Every wait is bounded (``_PIPE_WAIT_S``).
-    """
 
-    def __init__(self, publish: Any) -> None:
-        self._publish = publish
-        self._queue: queue.Queue[tuple[Any, ...] | None] = queue.Queue(maxsize=_PIPE_DEPTH)
-        self._cond = threading.Condition()
-        self._submitted = self._published = 0
-        self._draining = False  # the stepping thread waits in drain(): wake it after each step
-        self._error: Exception | None = None
-        self._abort = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="cvvc-bridge-publisher", daemon=True)
-        self._thread.start()
-        ident = self._thread.ident
-        self._clock = (time.pthread_getcpuclockid(ident)
-                       if ident is not None and hasattr(time, "pthread_getcpuclockid") else None)
-
-    def _run(self) -> None:
-        try:
-            while True:
-                item = self._queue.get()
-                if item is None or self._abort.is_set():
-                    return
-                self._publish(*item)
-                self._published += 1  # only this thread writes it
-                if self._draining:
-                    with self._cond:
-                        self._cond.notify_all()
-        except Exception as e:  # kept for the stepping thread, which raises it (see _raise_if_failed)
-            with self._cond:
-                self._error = e
-                self._cond.notify_all()
-
-    def cpu_s(self) -> float:
-        """CPU time of the publisher thread so far [s] (0 where the platform cannot tell)."""
-        return time.clock_gettime(self._clock) if self._clock is not None and self._thread.is_alive() else 0.0
-
-    def _raise_if_failed(self) -> None:
-        if self._error is not None:
-            raise BridgeError(f"the publisher thread failed after publishing {self._published} steps: "
-                              f"{self._error!r}; the run stops (later frames were not published)") from self._error
-        if not self._thread.is_alive():
-            raise BridgeError("the publisher thread is gone; the run stops")
-
-    def submit(self, item: tuple[Any, ...]) -> None:
-        """Hand one step over (waits while ``_PIPE_DEPTH`` steps are pending, at most ``_PIPE_WAIT_S``)."""
-        deadline = time.monotonic() + _PIPE_WAIT_S
-        while True:
-            self._raise_if_failed()
-            try:
-                self._queue.put(item, timeout=_POLL_S)
-                break
-            except queue.Full:
-                if time.monotonic() > deadline:
-                    raise BridgeError(f"the publisher thread took no step for {_PIPE_WAIT_S:.0f} s (a put that "
-                                      "blocks?); the run stops") from None
-        self._submitted += 1
-
-    def drain(self) -> None:
-        """Return once every submitted step is published (at most ``_PIPE_WAIT_S``)."""
-        deadline = time.monotonic() + _PIPE_WAIT_S
-        with self._cond:
-            self._draining = True
-            try:
-                while self._published < self._submitted:
-                    self._raise_if_failed()
-                    left = deadline - time.monotonic()
-                    if left <= 0:
-                        raise BridgeError(f"the publisher thread published {self._published} of "
-                                          f"{self._submitted} steps in {_PIPE_WAIT_S:.0f} s; the run stops")
-                    self._cond.wait(min(left, _POLL_S))
-            finally:
-                self._draining = False
-        self._raise_if_failed()
-
-    def close(self) -> None:
-        """Stop the thread: after what is queued when the queue was drained, at once otherwise (bounded)."""
-        if self._published < self._submitted:
-            self._abort.set()  # an error path: what is still queued is not published
-        try:
-            self._queue.put(None, timeout=1.0)
-        except queue.Full:
-            self._abort.set()
-        self._thread.join(5.0)
-        if self._thread.is_alive():
-            log.warning("the publisher thread did not stop within 5 s (a blocked put?); left as a daemon")
+def _publisher_bus(c: BridgeConfig, bus: BusConfig, n_nodes: int) -> BusConfig | None:
+    """The publisher process's bus, or None to publish inline (``BridgeConfig.publisher``)."""
+    if c.publisher == "inline" or c.latency_s > 0.0 or (c.publisher == "auto" and n_nodes < _PROCESS_MIN_NODES):
+        return None
+    child = child_bus(bus)
+    if child is None and c.publisher == "process":
+        raise BridgeError("publisher='process' needs a bus the publisher process can join: connect or listen "
+                          "endpoints (not :0) and no Zenoh config file; use publisher='inline'")
+    return child
 
 
 @dataclass(frozen=True)
@@ -385,7 +283,7 @@ def _percentile(values: list[float], q: float) -> float | None:
 class _Runtime:
     """The bridge's state between steps. Used only by the stepping thread (callbacks only enqueue)."""
 
-    def __init__(self, config: BridgeConfig, session: zenoh.Session, dm: DeviceMap, engine: Any,
+    def __init__(self, config: BridgeConfig, bus: BusConfig, session: zenoh.Session, dm: DeviceMap, engine: Any,
                  profiles: Any, qsts: Any, start_step: int) -> None:
         from simulator_bridge.metrics import MetricsAccumulator
 
@@ -403,41 +301,41 @@ class _Runtime:
                                                  float(engine.reg_default_setpoint_v120[r]),
                                                  float(engine.reg_default_band_v120[r]))
                      for r, rid in enumerate(engine.regulator_ids)}
-        self._devices: list[dv.PvInverter | dv.RegulatorController] = [*self.pvs.values(), *self.regs.values()]
         self.reg_phase = ["abc"[int(engine.node_names[n].split(".")[1]) - 1] for n in engine.reg_secondary_node]
-        self.noise = (dv.MeasurementNoise(pmu_pct=c.noise_pmu_pct, scada_pct=c.noise_scada_pct, seed=c.noise_seed)
-                      if c.noise_pmu_pct > 0 or c.noise_scada_pct > 0 else None)
-        self.dropper = dv.FrameDropper(p=c.drop_prob, seed=c.noise_seed)
-        self.delay = dv.DelayLine(c.latency_s)
-        self.metrics = MetricsAccumulator.for_feeder(dm, engine, step_s=self.step_s)
-        self._truth_v = np.empty(len(engine.node_names))  # the clipped truth voltages, rewritten every step
+        self.spec = FramerSpec(
+            feeder_id=self.fid, step_s=self.step_s, control_every=self.control_every,
+            profile_start_t_ns=int(profiles.start_t_ns), run_start_t_ns=int(profiles.t_ns(start_step)),
+            truth_every=c.truth_every, node_names=tuple(engine.node_names),
+            pvs=tuple((pv.plant_id, pv.index, pv.s_rated_kva, pv.local_mode) for pv in self.pvs.values()),
+            regs=tuple((r.regulator_id, r.index, r.tap_max, r.default_setpoint_v120, r.default_band_v120)
+                       for r in self.regs.values()),
+            reg_phase=tuple(self.reg_phase), q_at_night=bool(qsts.pv_q_at_night), noise_pmu_pct=c.noise_pmu_pct,
+            noise_scada_pct=c.noise_scada_pct, drop_prob=c.drop_prob, latency_s=c.latency_s,
+            noise_seed=c.noise_seed, metrics=MetricsAccumulator.for_feeder(dm, engine, step_s=self.step_s))
         # counters
-        self.seqs: Counter[str] = Counter()  # stepping thread: acks, oracle, metrics, status
-        self.frame_seqs: Counter[str] = Counter()  # frames and truth (the publisher thread when there is one)
+        self.seqs: Counter[str] = Counter()  # acks, oracle, status
         self.acks: Counter[str] = Counter()
         self.rejected: Counter[str] = Counter()
         self.steps = self.control_steps = self.misses = self.skipped = self.decisions = 0
-        self.frames_published = self.frames_dropped = self.truth_frames = 0
         self.oracle_replies = self.oracle_rejected = self.late_steps = 0
         self.round_trips: list[float] = []
-        self.drain_wait_s = self.decision_wait_s = 0.0  # stepping thread's waits on control steps [s]
-        self._ctrl_pub_wall_ns: dict[int, int] = {}  # written by the publisher, read by the stepping thread
-        self._ctrl_lock = threading.Lock()
+        self.decision_wait_s = 0.0  # stepping thread's waits for decisions on control steps [s]
+        self._ctrl_pub_wall_ns: dict[int, int] = {}  # inline: when a control step's head frame was put
         self._handled: set[str] = set()
         self._handled_order: deque[str] = deque()
         self._decision: m.Decision | None = None
         self._logged_no_agent = False
+        self.report: PublisherReport | None = None  # the publisher process's, once closed
+        self._settings: DeviceSettings | None = None  # the devices' settings, until the next change
         self._declare()
-        # the delay line is flushed by the stepping thread (serve): with latency, frames are published inline
-        threaded = c.latency_s == 0.0 and (c.publisher == "thread" or (
-            c.publisher == "auto" and len(engine.node_names) >= _PIPE_MIN_NODES))
-        self.publisher = _StepPublisher(self._publish_step) if threaded else None
-        # lockstep: the last step waits here until the next step's first power flow starts (see the module
-        # docstring); real time hands a step over at once, its frames being due now
-        self._pending: tuple[Any, ...] | None = None
-        self._defer = self.publisher is not None and c.clock == "lockstep"
-        if self._defer:
-            qsts.before_solve = self._hand_over
+        self.child: PublisherProcess | None = None
+        self.framer: StepFramer | None = None
+        child = _publisher_bus(c, bus, len(engine.node_names))
+        if child is None:
+            self.framer = StepFramer(self.spec, session, self._on_control_head)
+        else:
+            packer = StepPacker(len(engine.node_names), len(self.pvs), len(self.regs))
+            self.child = PublisherProcess(self.spec, packer, child)
 
     # ---------------------------------------------------------------- declarations
     def _declare(self) -> None:
@@ -447,14 +345,9 @@ class _Runtime:
                        lv.declare_token(keys.alive(f, "head", "head"))]
         self.tokens += [lv.declare_token(keys.alive(f, "pv", p)) for p in self.pvs]
         self.tokens += [lv.declare_token(keys.alive(f, "vr", r)) for r in self.regs]
-        self.pub_head = _FramePublisher(s, keys.meas_head(f))
-        self.pub_pv = {p: _FramePublisher(s, keys.meas_pv(f, p)) for p in self.pvs}
-        self.pub_vr = {r: _FramePublisher(s, keys.meas_vr(f, r)) for r in self.regs}
         self.ack_pv = {p: TypedPublisher(s, keys.ack(f, "pv", p), m.Ack, reliable=True) for p in self.pvs}
         self.ack_vr = {r: TypedPublisher(s, keys.ack(f, "vr", r), m.Ack, reliable=True) for r in self.regs}
-        self.pub_truth = _FramePublisher(s, keys.sim_truth(f), reliable=True)
-        self.pub_metrics = _FramePublisher(s, keys.sim_metrics(f), reliable=True)
-        self.pub_status = _FramePublisher(s, keys.sim_status(f), reliable=True)
+        self.pub_status = FramePublisher(s, keys.sim_status(f), reliable=True)
         self.inbox = Inbox(maxsize=4096)
         self.inbox.subscribe(s, f"{keys.ROOT}/*/cmd/**")  # other feeders too: see _wrong_feeder
         self.inbox.subscribe(s, keys.agent_decision(f), m.Decision)
@@ -466,10 +359,8 @@ class _Runtime:
         """Withdraw every token and declaration (the session is closed by the caller's ``with``); oracle
         queries still queued are answered with an error, so their getters do not wait for their timeout.
         """
-        if self.publisher is not None:
-            self.publisher.close()
-        if self._defer:
-            self.qsts.before_solve = None
+        if self.child is not None:
+            self.report = self.child.close(None) if self.report is None else self.report
         for undeclare in [self.queryable.undeclare, self.inbox.undeclare, self.agents.undeclare,
                           self.bridges.undeclare, *(t.undeclare for t in self.tokens)]:
             try:
@@ -527,7 +418,7 @@ class _Runtime:
         """
         while True:
             now = time.monotonic()
-            self._flush(now)
+            self.flush(now)
             for _ in range(_DRAIN_MAX):
                 try:
                     item = self.inbox.queue.get_nowait()
@@ -539,7 +430,7 @@ class _Runtime:
             if now >= deadline_s or stop.is_set():
                 return False
             wait = min(deadline_s - now, _POLL_S)
-            nxt = self.delay.next_due_s()
+            nxt = self.framer.delay.next_due_s() if self.framer is not None else None
             if nxt is not None:
                 wait = min(wait, max(nxt - now, 0.0))
             item = self.inbox.get(timeout_s=max(wait, 0.0))
@@ -563,8 +454,8 @@ class _Runtime:
             self.rejected["decision_wrong_feeder"] += 1
             return
         self.decisions += 1
-        with self._ctrl_lock:
-            pub = self._ctrl_pub_wall_ns.pop(d.step_t_ns, None)
+        pub = (self._ctrl_pub_wall_ns.pop(d.step_t_ns, None) if self.child is None
+               else self.child.control_head_wall_ns(d.step_t_ns))
         if pub is not None:
             self.round_trips.append((recv_wall_ns - pub) / _NS)
         self._decision = d
@@ -588,6 +479,8 @@ class _Runtime:
         ack = dv.make_ack(device_id=device_id, source=source, cmd_id=cmd_id, verdict=verdict,
                           t_ns=max(self.now_t_ns, 0), seq=self.seqs[f"ack:{source}"])
         self.acks[verdict.status] += 1
+        if verdict.status != "rejected":
+            self._settings = None  # accepted, clipped or expired: a device's settings changed
         if verdict.status == "rejected":
             self.rejected[verdict.reason_kind] += 1
             log.info("rejected command %s for %s: %s", cmd_id, device_id, verdict.reason)
@@ -636,7 +529,6 @@ class _Runtime:
         if bad is not None:
             self._ack(self.ack_pv[pv.plant_id], pv.plant_id, pv.plant_id, cmd.cmd_id, bad)
             return
-        self.drain()  # the frames of the steps simulated so far show the state before this command
         applied = self.qsts.command_pv_q(pv.index, cmd.q_kvar)
         p = float(self.pv_p_kw[pv.index])
         headroom = math.sqrt(max(pv.s_rated_kva**2 - p**2, 0.0)) if p > 0 or self.qsts.pv_q_at_night else 0.0
@@ -649,7 +541,6 @@ class _Runtime:
         if bad is not None:
             self._ack(self.ack_vr[reg.regulator_id], reg.regulator_id, reg.regulator_id, cmd.cmd_id, bad)
             return
-        self.drain()  # the frames of the steps simulated so far show the state before this command
         match cmd.action:
             case m.TapAction(tap=tap):
                 self.qsts.command_tap(reg.index, tap)
@@ -661,12 +552,6 @@ class _Runtime:
 
     def run_watchdogs(self, t_ns: int) -> None:
         """Before simulating ``t_ns``: expire commands past their validity; devices go back to default."""
-        if self.publisher is not None:
-            for device in self._devices:  # the frames of earlier steps show the command (CommandGuard.expire's rule)
-                active = device.guard.active
-                if active is not None and active.valid_until_t_ns < t_ns:
-                    self.drain()
-                    break
         for pv in self.pvs.values():
             gone = pv.guard.expire(t_ns)
             if gone is not None:
@@ -714,111 +599,25 @@ class _Runtime:
             q.drop()
 
     # ---------------------------------------------------------------- frames
-    def _flush(self, now_s: float) -> None:
-        for pub, msg in self.delay.due(now_s):  # type: ignore[misc]
-            self._publish(pub, msg)
+    def _on_control_head(self, t_ns: int, wall_ns: int) -> None:
+        """Inline publishing: a control step's head frame is about to be put (the round trip starts)."""
+        self._ctrl_pub_wall_ns[t_ns] = wall_ns
+        while len(self._ctrl_pub_wall_ns) > 64:  # decisions that never came
+            self._ctrl_pub_wall_ns.pop(next(iter(self._ctrl_pub_wall_ns)))
 
-    def _publish(self, pub: _FramePublisher, msg: msgspec.Struct) -> None:
-        if pub is self.pub_head and self.is_control_step(self._step_of(msg.t_ns)):  # type: ignore[attr-defined]
-            with self._ctrl_lock:
-                self._ctrl_pub_wall_ns[msg.t_ns] = time.time_ns()  # before put: the answer may beat put's return
-                while len(self._ctrl_pub_wall_ns) > 64:  # decisions that never came
-                    self._ctrl_pub_wall_ns.pop(next(iter(self._ctrl_pub_wall_ns)))
-        pub.put(msg)
-        self.frames_published += 1
-
-    def _step_of(self, t_ns: int) -> int:
-        return (t_ns - int(self.profiles.start_t_ns)) // (self.step_s * _NS)
-
-    def _send_now(self, pub: _FramePublisher, msg: msgspec.Struct, now_s: float) -> None:
-        """:meth:`_send` without drops or latency configured."""
-        self._publish(pub, msg)
-
-    def _send(self, pub: _FramePublisher, msg: msgspec.Struct, now_s: float) -> None:
-        if self.dropper.drop():
-            self.frames_dropped += 1
-        elif self.delay.latency_s > 0.0:
-            self.delay.put((pub, msg), now_s)
-        else:
-            self._publish(pub, msg)
-
-    def publish_frames(self, res: Any, now_s: float) -> None:
-        """Schedule the frames of one step (noise, drops, latency applied).
-
-        The readings are turned into Python numbers once per step (``tolist``), so the frame builders index
-        lists rather than making a NumPy scalar of every value; the numbers, hence the frames, are the same.
+    def settings(self) -> DeviceSettings:
+        """The devices' command state now, as the frames of the step just simulated show it (kept until a
+        command is applied or expires: every such change is acked, see :meth:`_ack`).
         """
-        rd, t, seqs, noise = res.readings, int(res.t_ns), self.frame_seqs, self.noise
-        send = self._send if self.dropper.p > 0.0 or self.delay.latency_s > 0.0 else self._send_now
-        head = (rd.head_v_mag_v, rd.head_v_ang_deg, rd.head_i_mag_a, rd.head_i_ang_deg, rd.head_p_kw,
-                rd.head_q_kvar)
-        if noise is not None:
-            head = noise.head(*head)
-        hv, ha, hi, hia, hp, hq = (x.tolist() for x in head)
-        seqs["head"] += 1
-        send(self.pub_head, dv.head_frame(feeder_id=self.fid, t_ns=t, seq=seqs["head"], v_mag_v=hv, v_ang_deg=ha,
-                                          i_mag_a=hi, i_ang_deg=hia, p_kw=hp, q_kvar=hq), now_s)
-        pv_p, pv_q, pv_v = rd.pv_p_kw, rd.pv_q_kvar, rd.pv_v_v
-        if noise is None:
-            pv_p, pv_q, pv_v = pv_p.tolist(), pv_q.tolist(), pv_v.tolist()
-        available, q_at_night = np.asarray(res.pv_p_kw, dtype=float).tolist(), self.qsts.pv_q_at_night
-        for pid, pv in self.pvs.items():
-            k = pv.index
-            p, q, v = pv_p[k], pv_q[k], pv_v[k]
-            if noise is not None:
-                p, q, v = (x.tolist() for x in noise.pv(p, q, v, pv.s_rated_kva))
-            seqs[pid] += 1
-            send(self.pub_pv[pid], dv.pv_frame(plant=pv, t_ns=t, seq=seqs[pid], p_kw=p, q_kvar=q, v_v=v,
-                                               available_p_kw=available[k], q_at_night=q_at_night), now_s)
-        v120s = np.asarray(rd.reg_v120, dtype=float).tolist()
-        vcs = np.asarray(rd.reg_v120_compared, dtype=float).tolist()
-        taps = np.asarray(res.taps).tolist()
-        for rid, reg in self.regs.items():
-            r = reg.index
-            v120, vc = v120s[r], vcs[r]
-            if noise is not None:
-                v120, vc = noise.regulator(v120, vc)
-            seqs[rid] += 1
-            send(self.pub_vr[rid], dv.reg_frame(reg=reg, t_ns=t, seq=seqs[rid], phase=self.reg_phase[r],
-                                                v120=min(v120, 200.0), v_compared_120=min(vc, 200.0),
-                                                tap=int(taps[r])), now_s)
-        if len(self.delay):
-            self._flush(now_s)
+        if self._settings is None:
+            self._settings = self._read_settings()
+        return self._settings
 
-    def publish_truth(self, res: Any, n_step: int, v_lo_pu: float, v_hi_pu: float) -> None:
-        """The TruthFrame of the ``n_step``-th step of the run (from 1), if it has one; ``v_lo_pu``, ``v_hi_pu``:
-        the extremes of ``res.v_pu``.
-
-        The voltages are clipped to the schema's 0..3 pu into a buffer kept across steps; the extremes of the
-        clipped voltages are the clipped extremes (clipping is monotonic).
-        """
-        c = self.config
-        if c.truth_every == 0 or (n_step - 1) % c.truth_every != 0:
-            return
-        self.frame_seqs["truth"] += 1
-        v = np.clip(res.v_pu, 0.0, 3.0, out=self._truth_v)
-        self.pub_truth.put(m.TruthFrame(
-            t_ns=int(res.t_ns), seq=self.frame_seqs["truth"], source="bridge", feeder_id=self.fid, v_pu=v.tolist(),
-            v_min_pu=min(max(v_lo_pu, 0.0), 3.0), v_max_pu=min(max(v_hi_pu, 0.0), 3.0),
-            node_names=list(self.engine.node_names) if self.truth_frames == 0 else None,
-            taps=np.asarray(res.taps).tolist(), pv_q_kvar=np.asarray(res.pv_q_kvar, dtype=float).tolist()))
-        self.truth_frames += 1
-
-    def metrics_frame(self, *, final: bool) -> m.MetricsFrame:
-        """Cumulative paper IV.F metrics since the first step (``simulator_bridge.metrics``)."""
-        r = self.metrics.result()
-        self.seqs["metrics"] += 1
-        return m.MetricsFrame(
-            t_ns=max(self.now_t_ns, 0), seq=self.seqs["metrics"], source="bridge", feeder_id=self.fid,
-            start_t_ns=int(self.profiles.t_ns(self.start_step)), steps=r.n_steps,
-            mvvm_pu=min(float(r.mvvm_pu), 3.0), nvv=int(r.nvv),
-            minutes_in_violation=int(round(r.minutes_in_violation)), ntc=int(r.ntc), q_cost=float(r.q_cost),
-            t_cost=float(r.t_cost), total_cost=float(r.total_cost),
-            v_min_pu=min(max(r.v_min_pu if r.v_min_pu is not None else 0.0, 0.0), 3.0),
-            v_max_pu=min(max(r.v_max_pu if r.v_max_pu is not None else 0.0, 0.0), 3.0),
-            taps_changes=dict(zip(r.regulator_ids, r.tap_changes_per_regulator, strict=True)),
-            q_mvar_intervals=dict(zip(r.pv_ids, r.q_mvar_intervals_per_plant, strict=True)),
-            final=final)
+    def _read_settings(self) -> DeviceSettings:
+        regs = self.regs.values()
+        return DeviceSettings(pv_q_setpoint_kvar=tuple(pv.q_setpoint_kvar for pv in self.pvs.values()),
+                              reg_setpoint_v120=tuple(r.setpoint_v120 for r in regs),
+                              reg_band_v120=tuple(r.band_v120 for r in regs), reg_mode=tuple(r.mode for r in regs))
 
     def status(self, *, done: bool) -> m.BridgeStatus:
         self.seqs["status"] += 1
@@ -835,42 +634,31 @@ class _Runtime:
 
     # ---------------------------------------------------------------- one step
     def step(self) -> Any:
-        """Watchdogs, one QSTS step, then its frames, metrics and truth (:meth:`_publish_step`, by the publisher
-        thread when there is one: call :meth:`drain` before reading the metrics); returns the StepResult.
+        """Watchdogs, one QSTS step, then its frames, metrics update and truth (inline, or handed to the publisher
+        process with a metrics frame after it on a control step); returns the StepResult.
         """
         t_next = int(self.profiles.t_ns(self.qsts.next_step))
         self.run_watchdogs(t_next)
         res = self.qsts.step()
-        v_lo, v_hi = _check_finite_step(res)
         self.now_t_ns = int(res.t_ns)
-        self.pv_p_kw = np.asarray(res.pv_p_kw, float)
+        self.pv_p_kw = res.pv_p_kw
         self.steps += 1
-        if self.publisher is None:
-            self._publish_step(res, self.steps, v_lo, v_hi)
-        elif self._defer:
-            self._pending = (res, self.steps, v_lo, v_hi)
+        if self.child is not None:
+            if not self.child.submit(res, self.steps, self.settings(), metrics_after=self.is_control_step(res.step)):
+                raise _non_finite(res)
         else:
-            self.publisher.submit((res, self.steps, v_lo, v_hi))
+            v_lo, v_hi = _check_finite_step(res)
+            self.framer.publish_step(res, self.steps, v_lo, v_hi, self.settings(), time.monotonic())  # type: ignore[union-attr]
         return res
 
-    def _hand_over(self) -> None:
-        if self._pending is not None:
-            item, self._pending = self._pending, None
-            self.publisher.submit(item)  # type: ignore[union-attr]
+    def flush(self, now_s: float) -> None:
+        """Frames held by the latency line (inline publishing only) that are due go out."""
+        if self.framer is not None and len(self.framer.delay):
+            self.framer.flush(now_s)
 
-    def _publish_step(self, res: Any, n_step: int, v_lo_pu: float, v_hi_pu: float) -> None:
-        """Frames, metrics update and truth of the ``n_step``-th step. The device frames go out first, so that
-        on a control step the agent works while the bridge updates the metrics and publishes the truth.
-        """
-        self.publish_frames(res, time.monotonic())
-        self.metrics.update(res.v_pu, res.tap_changes, res.pv_q_kvar)
-        self.publish_truth(res, n_step, v_lo_pu, v_hi_pu)
-
-    def drain(self) -> None:
-        """Return once every simulated step is published (frames, truth) and in the metrics."""
-        if self.publisher is not None:
-            self._hand_over()
-            self.publisher.drain()
+    def held(self) -> int:
+        """Frames the latency line still holds."""
+        return len(self.framer.delay) if self.framer is not None else 0
 
     def is_control_step(self, step_index: int) -> bool:
         return step_index % self.control_every == 0
@@ -908,7 +696,7 @@ def run_bridge(config: BridgeConfig, bus: BusConfig, *, stop: threading.Event | 
                               f"({profiles.n_steps - start} steps left); start earlier or run fewer steps")
         qsts = Qsts(engine, profiles, start_step=start, pv_local=config.pv_local)
         with open_session(bus) as session:
-            rt = _Runtime(config, session, dm, engine, profiles, qsts, start)
+            rt = _Runtime(config, bus, session, dm, engine, profiles, qsts, start)
             try:
                 return _loop(rt, stop, on_ready)
             finally:
@@ -924,7 +712,6 @@ def _loop(rt: _Runtime, stop: threading.Event, on_ready: Any) -> BridgeSummary:
         on_ready()
     rt.pub_status.put(rt.status(done=False))
     t0, cpu0, thread0 = time.monotonic(), time.process_time(), time.thread_time()
-    pub_cpu0 = rt.publisher.cpu_s() if rt.publisher is not None else 0.0
     period_s = rt.step_s / c.speed
     for i in range(c.steps):
         if stop.is_set():
@@ -936,27 +723,35 @@ def _loop(rt: _Runtime, stop: threading.Event, on_ready: Any) -> BridgeSummary:
             rt.serve(due, stop)
             if stop.is_set():
                 break
-        else:
+        elif rt.inbox.queue.qsize() or rt.held():
             rt.serve(0.0, stop)  # handle what is queued, without waiting
         res = rt.step()
         if rt.is_control_step(res.step):
-            t_drain = time.monotonic()
-            rt.drain()  # the step's frames are out and in the metrics before the wait and the metrics frame
-            t_wait = time.monotonic()
-            rt.drain_wait_s += t_wait - t_drain
             rt.control_steps += 1
             if c.clock == "lockstep":
+                t_wait = time.monotonic()
                 _await_decision(rt, int(res.t_ns), stop)
                 rt.decision_wait_s += time.monotonic() - t_wait
-            rt.pub_metrics.put(rt.metrics_frame(final=False))
+            if rt.framer is not None:  # the publisher process publishes it after the step's frames
+                rt.framer.publish_metrics(rt.now_t_ns, final=False)
             rt.pub_status.put(rt.status(done=False))
-    rt.drain()
+    if rt.child is not None:
+        rt.child.drain()
     wall_s, cpu_s, thread_cpu_s = time.monotonic() - t0, time.process_time() - cpu0, time.thread_time() - thread0
-    pub_cpu_s = rt.publisher.cpu_s() - pub_cpu0 if rt.publisher is not None else 0.0
     rt.serve(time.monotonic() + c.latency_s, stop if stop.is_set() else threading.Event(),
-             lambda: len(rt.delay) == 0)  # frames still in the delay line go out
-    final = rt.metrics_frame(final=True)
-    rt.pub_metrics.put(final)
+             lambda: rt.held() == 0)  # frames still in the delay line go out
+    if rt.child is not None:
+        rt.report = rt.child.close(rt.now_t_ns)
+        if rt.report is None:
+            raise BridgeError("the publisher process gave no report at the end of the run")
+        r = rt.report
+        final, published, dropped, truth, pub_cpu_s = (r.final_metrics, r.frames_published, r.frames_dropped,
+                                                       r.truth_frames, r.cpu_s)
+    else:
+        f = rt.framer
+        assert f is not None
+        final = f.publish_metrics(rt.now_t_ns, final=True)
+        published, dropped, truth, pub_cpu_s = f.frames_published, f.frames_dropped, f.truth_frames, 0.0
     rt.pub_status.put(rt.status(done=True))
     return BridgeSummary(
         feeder_id=rt.fid, clock=c.clock, start_t_ns=int(rt.profiles.t_ns(rt.start_step)), end_t_ns=max(rt.now_t_ns, 0),
@@ -964,11 +759,12 @@ def _loop(rt: _Runtime, stop: threading.Event, on_ready: Any) -> BridgeSummary:
         thread_cpu_s=thread_cpu_s,
         steps_per_s=rt.steps / wall_s if wall_s > 0 else 0.0, lockstep_misses=rt.misses,
         lockstep_skipped=rt.skipped, decisions=rt.decisions, acks=dict(rt.acks), rejected=rt.all_rejected(),
-        frames_published=rt.frames_published, frames_dropped=rt.frames_dropped, truth_frames=rt.truth_frames,
+        frames_published=published, frames_dropped=dropped, truth_frames=truth,
         oracle_replies=rt.oracle_replies, oracle_rejected=rt.oracle_rejected, realtime_late_steps=rt.late_steps,
         round_trip_p50_s=_percentile(rt.round_trips, 50), round_trip_p99_s=_percentile(rt.round_trips, 99),
         agent_alive=rt.agent_alive, stopped_early=rt.steps < c.steps, metrics=final,
-        publisher_thread_cpu_s=pub_cpu_s, drain_wait_s=rt.drain_wait_s, decision_wait_s=rt.decision_wait_s)
+        publisher_cpu_s=pub_cpu_s, decision_wait_s=rt.decision_wait_s,
+        publisher="inline" if rt.child is None else "process")
 
 
 def _startup(rt: _Runtime, stop: threading.Event) -> None:
@@ -984,13 +780,17 @@ def _startup(rt: _Runtime, stop: threading.Event) -> None:
         if any(r.ok is not None for r in rt.session.liveliness().get(key, timeout=_STARTUP_PROBE_S)):
             wait_for(lambda: rt.agent_alive, _STARTUP_PROBE_S)
     if rt.agent_alive:
-        rt.pub_head.wait_matched(max(deadline - time.monotonic(), _STARTUP_PROBE_S))
+        timeout_s = max(deadline - time.monotonic(), _STARTUP_PROBE_S)
+        if rt.child is not None:
+            rt.child.wait_matched(timeout_s)
+        else:
+            rt.framer.pub_head.wait_matched(timeout_s)  # type: ignore[union-attr]
 
 
 def _await_decision(rt: _Runtime, t_ns: int, stop: threading.Event) -> None:
     """Lockstep: wait (serving the queue) for the decision of step ``t_ns`` and its commands."""
     # frames held by the latency line must be out before the agent can answer them
-    rt.serve(time.monotonic() + rt.config.latency_s + 1.0, stop, lambda: len(rt.delay) == 0)
+    rt.serve(time.monotonic() + rt.config.latency_s + 1.0, stop, lambda: rt.held() == 0)
     if not rt.agent_alive:
         rt.skipped += 1
         if not rt._logged_no_agent:

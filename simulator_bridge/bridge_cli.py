@@ -55,9 +55,9 @@ def _bridge(args: argparse.Namespace) -> int:
     else:
         rt = ("" if summary.round_trip_p50_s is None
               else f", decision round trip p50 {1e3 * summary.round_trip_p50_s:.2f} ms")
-        print(f"bridge {summary.feeder_id} ({summary.clock}): {summary.steps}/{summary.steps_total} steps in "
-              f"{summary.wall_s:.2f} s ({summary.steps_per_s:.1f} steps/s), {summary.decisions} decisions, "
-              f"{summary.lockstep_misses} lockstep misses{rt}")
+        print(f"bridge {summary.feeder_id} ({summary.clock}, publisher {summary.publisher}): {summary.steps}/"
+              f"{summary.steps_total} steps in {summary.wall_s:.2f} s ({summary.steps_per_s:.1f} steps/s), "
+              f"{summary.decisions} decisions, {summary.lockstep_misses} lockstep misses{rt}")
     return 0
 
 
@@ -94,10 +94,11 @@ def register_bridge(subparsers: argparse._SubParsersAction) -> None:
     out.add_argument("--drop-prob", type=float, default=0.0, help="probability that a frame is dropped")
     out.add_argument("--latency-s", type=float, default=0.0, help="fixed frame latency [s of wall time]")
     out.add_argument("--noise-seed", type=int, default=0, help="seed of noise and drops")
-    p.add_argument("--publisher", choices=["auto", "inline", "thread"], default="auto",
-                   help="who builds and puts each step's frames: the stepping thread (inline), a publisher thread "
-                        "(thread), or auto: the thread on feeders of 1000 nodes or more without --latency-s "
-                        "(docs/bridge.md)")
+    p.add_argument("--publisher", choices=["auto", "inline", "process"], default="auto",
+                   help="who builds and puts each step's frames, truth and metrics: the stepping thread (inline), "
+                        "a publisher process with its own Zenoh session (process), or auto: the process on feeders "
+                        "of 200 nodes or more, without --latency-s, with --connect/--listen and no "
+                        "--zenoh-config (docs/bridge.md)")
     p.add_argument("--json", action="store_true", help="print the run summary as JSON")
     add_bus_arguments(p)
     p.set_defaults(func=_bridge)

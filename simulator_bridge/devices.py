@@ -401,40 +401,37 @@ def head_frame(*, feeder_id: str, t_ns: int, seq: int, v_mag_v: _Values, v_ang_d
 
 
 def pv_frame(*, plant: PvInverter, t_ns: int, seq: int, p_kw: _Values, q_kvar: _Values, v_v: _Values,
-             available_p_kw: float, q_at_night: bool = False) -> m.PvFrame:
+             available_p_kw: float, q_setpoint_kvar: float | None, q_at_night: bool = False) -> m.PvFrame:
     """A PV inverter's frame from its per-phase output (generator convention) and voltages, each (3,).
 
     ``q_available_kvar`` is the headroom ``sqrt(S² − P²)`` at the available active power [kvar]; 0 when there
     is no active power and the inverter gives no reactive power at night (``q_at_night`` false). The readings
-    may be arrays or lists.
+    may be arrays or lists. ``q_setpoint_kvar`` is the commanded Q in force at the step (``plant.q_setpoint_kvar``
+    then): passed, not read from ``plant``, because a publisher may build the frame after the state moved on.
     """
     present = [ph for ph in range(3) if v_v[ph] > 0.0] or [0, 1, 2]
     phases = [m.PvPhase(phase=_PHASE_NAMES[ph], p_kw=float(p_kw[ph]), q_kvar=float(q_kvar[ph]),
                         v_mag_v=float(v_v[ph])) for ph in present]
     s_rated = plant.s_rated_kva
     p_avail = min(max(float(available_p_kw), 0.0), s_rated)
-    active = plant.guard.active
     return m.PvFrame(t_ns=t_ns, seq=seq, source=plant.plant_id, plant_id=plant.plant_id, phases=phases,
                      p_kw=float(sum([p.p_kw for p in phases])), q_kvar=float(sum([p.q_kvar for p in phases])),
                      s_rated_kva=s_rated,
                      q_available_kvar=(math.sqrt(max(s_rated**2 - p_avail**2, 0.0))
                                        if p_avail > 0.0 or q_at_night else 0.0),
-                     q_setpoint_kvar=None if active is None else active.value, local_mode=plant.local_mode)
+                     q_setpoint_kvar=q_setpoint_kvar, local_mode=plant.local_mode)
 
 
 def reg_frame(*, reg: RegulatorController, t_ns: int, seq: int, phase: str, v120: float,
-              v_compared_120: float, tap: int) -> m.RegFrame:
-    """A regulator controller's frame: raw and compared secondary voltage [V, 120 V base], tap, settings."""
-    a = reg.action
-    if isinstance(a, m.SetpointAction):
-        setpoint, band, mode = a.setpoint_v120, a.band_v120, "local"
-    else:
-        setpoint, band = reg.default_setpoint_v120, reg.default_band_v120
-        mode = "local" if a is None else "locked"
+              v_compared_120: float, tap: int, setpoint_v120: float, band_v120: float,
+              mode: Literal["local", "locked"]) -> m.RegFrame:
+    """A regulator controller's frame: raw and compared secondary voltage [V, 120 V base], tap, and the
+    settings in force at the step (``reg.setpoint_v120``, ``reg.band_v120``, ``reg.mode`` then).
+    """
     return m.RegFrame(t_ns=t_ns, seq=seq, source=reg.regulator_id, regulator_id=reg.regulator_id,
                       phases=[m.RegPhase(phase=phase, v_120=float(v120))],  # type: ignore[arg-type]
-                      v_compared_120=float(v_compared_120), tap=int(tap), setpoint_v120=setpoint,
-                      band_v120=band, mode=mode)
+                      v_compared_120=float(v_compared_120), tap=int(tap), setpoint_v120=setpoint_v120,
+                      band_v120=band_v120, mode=mode)
 
 
 def _wrap(angle_deg: float) -> float:

@@ -28,7 +28,6 @@ Each step (one profile row, 1 minute by default):
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Literal, Protocol
 
@@ -165,9 +164,6 @@ class Qsts:
         self.delay_steps = int(delay_steps)
         self.max_taps_per_step = int(max_taps_per_step)
         self._chunk_steps = int(chunk_steps)
-        # called once per step right before its first power flow (the bridge hands the previous step to its
-        # publisher thread then: OpenDSS releases the GIL while it solves)
-        self.before_solve: Callable[[], None] | None = None
         self._chunk_start = -1
         self._chunk_load = np.empty((0, 0))
         self._chunk_pv = np.empty((0, 0))
@@ -284,8 +280,6 @@ class Qsts:
         changes = np.abs(taps - taps0)
         if changes.any():
             e.set_taps(taps)
-        if self.before_solve is not None:
-            self.before_solve()
         e.solve()
         readings = e.readings()
 

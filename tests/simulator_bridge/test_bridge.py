@@ -9,6 +9,7 @@ acks and their effect on the next frames. Runs that must exit cleanly are subpro
 from __future__ import annotations
 
 import json
+import math
 import os
 import queue
 import signal
@@ -21,6 +22,7 @@ from pathlib import Path
 from typing import Any
 
 import msgspec
+import numpy as np
 import pytest
 import zenoh
 
@@ -199,7 +201,7 @@ def _config(device_map_path: Path, cache_dir: Path, **kw: Any) -> Any:
 
 
 # ------------------------------------------------------------------------------------ tests
-@pytest.mark.parametrize("publisher", ["inline", "thread"])  # IEEE 13 is small: "auto" would be inline
+@pytest.mark.parametrize("publisher", ["inline", "process"])  # IEEE 13 is small: "auto" would be inline
 def test_commands_are_acked_and_show_in_the_next_frames(client: Client, router_endpoint: str,
                                                         device_map_path: Path, cache_dir: Path,
                                                         publisher: str) -> None:
@@ -278,7 +280,7 @@ def test_commands_are_acked_and_show_in_the_next_frames(client: Client, router_e
     assert summary.lockstep_misses == 0 and summary.lockstep_skipped == 0
     assert summary.acks == {"accepted": 4, "clipped": 1, "expired": 2}
     assert summary.round_trip_p50_s is not None and summary.round_trip_p50_s > 0
-    assert (summary.publisher_thread_cpu_s > 0) == (publisher == "thread")
+    assert (summary.publisher_cpu_s > 0) == (publisher == "process") and summary.publisher == publisher
     # frames carry one t_ns per step and increasing seq per source
     heads = [x for _, x, _ in client.seen if isinstance(x, m.HeadFrame)]
     assert [h.seq for h in heads] == sorted({h.seq for h in heads})
@@ -405,7 +407,7 @@ def test_lockstep_with_a_silent_agent_times_out_and_goes_on(client: Client, rout
         watch.undeclare()
 
 
-@pytest.mark.parametrize("publisher", ["inline", "thread"])
+@pytest.mark.parametrize("publisher", ["inline", "process"])
 def test_realtime_keeps_its_clock_and_serves_commands_without_an_agent(
         client: Client, router_endpoint: str, device_map_path: Path, cache_dir: Path, publisher: str) -> None:
     # 1-minute steps at speed 1200: 20 steps per wall second; real time never waits for anyone
@@ -472,7 +474,7 @@ def test_sigterm_ends_the_run_cleanly(client: Client, router_endpoint: str, devi
 def test_a_stopped_run_publishes_every_simulated_step_before_its_final_metrics(
         client: Client, router_endpoint: str, device_map_path: Path, cache_dir: Path) -> None:
     th, stop, out = _bridge_thread(_config(device_map_path, cache_dir, steps=100000, clock="realtime",
-                                           speed=6000.0, wait_agent_s=0.0, truth_every=1, publisher="thread"),
+                                           speed=6000.0, wait_agent_s=0.0, truth_every=1, publisher="process"),
                                    router_endpoint)
     client.next(lambda k, x: isinstance(x, m.HeadFrame) and x.seq >= 20)
     summary = _finish(th, stop, out, stop_now=True)
@@ -483,41 +485,153 @@ def test_a_stopped_run_publishes_every_simulated_step_before_its_final_metrics(
     assert last.t_ns == summary.end_t_ns
 
 
-def test_publisher_thread_publishes_in_order_and_surfaces_its_failure() -> None:
-    from simulator_bridge.bridge import BridgeError, _StepPublisher
+def _collect(client: Client, until: Callable[[str, Any], bool]) -> dict[str, dict[int, Any]]:
+    """Every message seen until ``until`` and half a second more (frames, at a lower priority than the status,
+    may still be on their way), by key and seq."""
+    client.next(until)
+    with pytest.raises(AssertionError, match="no matching sample"):
+        client.next(lambda k, x: False, timeout_s=0.5)
+    out: dict[str, dict[int, Any]] = {}
+    for key, msg, _ in client.seen:
+        out.setdefault(key, {})[msg.seq] = msg
+    return out
 
-    seen: list[int] = []
-    pub = _StepPublisher(lambda n: seen.append(n))
+
+def test_the_publisher_process_sends_what_inline_publishing_sends(router_endpoint: str, device_map_path: Path,
+                                                                  cache_dir: Path) -> None:
+    """The same lockstep run (commands, noise, drops, volt-var, truth), published inline and by the process:
+    every message is the same, key by key and seq by seq."""
+    runs = {}
+    for publisher in ("inline", "process"):
+        client = Client(router_endpoint)
+        try:
+            client.be_agent()
+            th, stop, out = _bridge_thread(_config(
+                device_map_path, cache_dir, steps=16, truth_every=1, pv_local="volt_var", noise_pmu_pct=0.2,
+                noise_scada_pct=1.0, drop_prob=0.1, noise_seed=5, publisher=publisher), router_endpoint)
+            try:
+                t0 = client.next(lambda k, x: isinstance(x, m.TruthFrame)).t_ns
+                for i, t in enumerate(t0 + 5 * j * STEP_NS for j in range(4)):
+                    client.next(lambda k, x, t=t: isinstance(x, m.TruthFrame) and x.t_ns == t)
+                    cmds = [client.pv_cmd("pv675", 100.0 + 50 * i, t, valid_s=120),
+                            client.reg_cmd("reg1", m.TapAction(tap=i), t)]
+                    client.decide(t, cmds)
+                summary = _finish(th, stop, out)
+                runs[publisher] = (summary, _collect(client, lambda k, x: isinstance(x, m.BridgeStatus) and x.done))
+            finally:
+                stop.set()
+                th.join(timeout=30)
+        finally:
+            client.close()
+    (a, inline), (b, process) = runs["inline"], runs["process"]
+    assert a.lockstep_misses == b.lockstep_misses == 0 and a.acks == b.acks and a.acks["expired"] >= 1
+    assert a.metrics == b.metrics and a.frames_dropped == b.frames_dropped > 0
+    assert (a.frames_published, a.truth_frames) == (b.frames_published, b.truth_frames)
+    assert b.publisher_cpu_s > 0 == a.publisher_cpu_s
+    assert inline.keys() == process.keys()
+    for key in inline:
+        if "/meas/" in key:  # frames go with congestion control DROP: compare what both runs received
+            common = inline[key].keys() & process[key].keys()
+            assert len(common) >= 0.8 * max(len(inline[key]), len(process[key])), (key, inline[key], process[key])
+            assert all(inline[key][n] == process[key][n] for n in common), key
+        elif key.endswith("/sim/status"):  # the status says how the run was published: nothing else differs
+            assert inline[key].keys() == process[key].keys()
+        else:  # truth, metrics, acks
+            assert inline[key] == process[key], key
+
+
+def test_packed_steps_come_back_as_they_went_in(device_map_path: Path, cache_dir: Path) -> None:
+    """The shared-memory slot layout: a real step and the device settings in force, packed and unpacked."""
+    from simulator_bridge.bridge import cached_profiles
+    from simulator_bridge.engine import FeederEngine
+    from simulator_bridge.publishing import DeviceSettings, StepPacker
+    from simulator_bridge.qsts import Qsts
+
+    engine = FeederEngine(load_device_map(device_map_path))
     try:
-        for n in range(50):
-            pub.submit((n,))
-        pub.drain()
-        assert seen == list(range(50))
+        profiles = cached_profiles(load_device_map(device_map_path), engine, seed=1, cache_dir=cache_dir)
+        res = Qsts(engine, profiles, start_step=12 * 60).step()  # 12:00 on 1 January: PV produces
     finally:
-        pub.close()
+        engine.close()
+    assert res.pv_p_kw.max() > 0
+    k, r = len(engine.pv_ids), len(engine.regulator_ids)
+    packer = StepPacker(len(engine.node_names), k, r)
+    fs, ints = np.full(packer.n_float, -1.0), np.full(packer.n_int, -1, np.int64)
+    settings = DeviceSettings(pv_q_setpoint_kvar=(None, 120.5, *([None] * (k - 2))),
+                              reg_setpoint_v120=tuple(121.0 + i for i in range(r)), reg_band_v120=(2.0,) * r,
+                              reg_mode=("locked", *(("local",) * (r - 1))))
+    assert packer.pack(fs, ints, res, 7, settings)
+    back, n_step, got = packer.unpack(fs, ints)
+    assert n_step == 7 and got == settings
+    assert (back.step, back.t_ns) == (res.step, res.t_ns)
+    for name in ("v_pu", "taps", "tap_changes", "pv_q_kvar", "pv_p_kw"):
+        np.testing.assert_array_equal(getattr(back, name), getattr(res, name))
+    for name in ("head_v_mag_v", "head_i_ang_deg", "pv_p_kw", "pv_v_v", "reg_v120_compared", "reg_tap"):
+        np.testing.assert_array_equal(getattr(back.readings, name), getattr(res.readings, name))
+    # a NaN or an infinity anywhere in the numbers the frames are made of is caught by the one-sum check
+    for bad in (math.nan, math.inf):
+        res.v_pu[3] = bad
+        assert not packer.pack(fs, ints, res, 8, settings)
+    res.v_pu[3] = 1.0
+    res.readings.pv_q_kvar[0, 1] = -math.inf
+    assert not packer.pack(fs, ints, res, 8, settings)
 
-    def fail(n: int) -> None:
-        if n == 3:
-            raise ValueError("put failed")
-        seen.append(n)
 
-    seen.clear()
-    pub = _StepPublisher(fail)
+def test_the_publisher_process_fails_the_run_and_is_stopped(client: Client, router_endpoint: str,
+                                                            device_map_path: Path, cache_dir: Path) -> None:
+    """A publisher process killed mid-run: the bridge stops with an error at its next hand-over, in bounded time,
+    and withdraws its tokens (the client sees the bridge's token go)."""
+    import simulator_bridge.publishing as pub
+
+    procs: list[Any] = []
+    orig = pub.PublisherProcess.__init__
+
+    def spy(self: Any, *a: Any, **k: Any) -> None:
+        orig(self, *a, **k)
+        procs.append(self._proc)
+
+    pub.PublisherProcess.__init__ = spy  # type: ignore[method-assign]
     try:
-        with pytest.raises(BridgeError, match="publisher thread failed after publishing 3 steps: ValueError"):
-            for n in range(50):
-                pub.submit((n,))
-            pub.drain()
-        assert seen == [0, 1, 2]
+        th, stop, out = _bridge_thread(_config(device_map_path, cache_dir, steps=100000, clock="realtime",
+                                               speed=600.0, wait_agent_s=0.0, publisher="process"),
+                                       router_endpoint)
+        client.next(lambda k, x: isinstance(x, m.HeadFrame) and x.seq >= 3)
     finally:
-        t = time.monotonic()
-        pub.close()
-        assert time.monotonic() - t < 2.0
+        pub.PublisherProcess.__init__ = orig  # type: ignore[method-assign]
+    assert len(procs) == 1
+    t = time.monotonic()
+    os.kill(procs[0].pid, signal.SIGKILL)
+    th.join(timeout=30)
+    assert not th.is_alive() and time.monotonic() - t < 10.0
+    stop.set()
+    assert out and "publisher process" in str(out[0]), out
+    assert not procs[0].is_alive()
 
 
-def test_publisher_thread_cannot_hold_frames_for_latency(device_map_path: Path, cache_dir: Path) -> None:
+def test_publisher_process_cannot_hold_frames_for_latency(device_map_path: Path, cache_dir: Path) -> None:
     from simulator_bridge.bridge import BridgeError, run_bridge
 
     with pytest.raises(BridgeError, match="latency"):
-        run_bridge(_config(device_map_path, cache_dir, latency_s=0.1, publisher="thread"),
+        run_bridge(_config(device_map_path, cache_dir, latency_s=0.1, publisher="process"),
                    BusConfig(mode="peer", connect=()))
+
+
+def test_auto_publishes_from_a_process_where_it_pays_and_the_child_can_join(device_map_path: Path,
+                                                                             cache_dir: Path) -> None:
+    from simulator_bridge.bridge import BridgeError, _publisher_bus
+
+    router = BusConfig(mode="peer", connect=("tcp/127.0.0.1:7447",))
+    auto = _config(device_map_path, cache_dir)
+    assert _publisher_bus(auto, router, 41) is None  # IEEE 13: no faster, only a start more
+    child = _publisher_bus(auto, router, 278)
+    assert child is not None and child.connect == router.connect and child.listen == ()
+    # a bridge that only listens: the child connects there (it cannot listen on the same port)
+    listening = BusConfig(mode="peer", listen=("tcp/127.0.0.1:7448",))
+    assert _publisher_bus(auto, listening, 1283).connect == ("tcp/127.0.0.1:7448",)  # type: ignore[union-attr]
+    for no in (BusConfig(mode="peer"), BusConfig(mode="peer", config_file="z.json5", connect=router.connect)):
+        assert _publisher_bus(auto, no, 1283) is None
+        with pytest.raises(BridgeError, match="publisher='process' needs a bus"):
+            _publisher_bus(_config(device_map_path, cache_dir, publisher="process"), no, 1283)
+    assert _publisher_bus(_config(device_map_path, cache_dir, latency_s=0.1), router, 1283) is None
+    assert _publisher_bus(_config(device_map_path, cache_dir, publisher="inline"), router, 8531) is None
+    assert _publisher_bus(_config(device_map_path, cache_dir, publisher="process"), router, 41) is not None

@@ -147,13 +147,14 @@ def test_frames_from_readings_decode_within_schema_bounds(pv: dv.PvInverter, reg
     assert head.phases[1].i_ang_deg == pytest.approx(-179.0)  # wrapped into (-180, 180]
     pv.guard.apply(_pv_cmd(120.0), 120.0)
     frame = dv.pv_frame(plant=pv, t_ns=NOW, seq=1, p_kw=np.full(3, 200.0), q_kvar=np.full(3, 40.0),
-                        v_v=np.full(3, 2400.0), available_p_kw=600.0)
+                        v_v=np.full(3, 2400.0), available_p_kw=600.0, q_setpoint_kvar=pv.q_setpoint_kvar)
     assert frame.q_available_kvar == pytest.approx(800.0) and frame.q_setpoint_kvar == 120.0
     assert frame.p_kw == 600.0 and frame.q_kvar == 120.0
     night = dv.pv_frame(plant=pv, t_ns=NOW, seq=2, p_kw=np.zeros(3), q_kvar=np.zeros(3), v_v=np.full(3, 2400.0),
-                        available_p_kw=0.0)
+                        available_p_kw=0.0, q_setpoint_kvar=None)
     assert night.q_available_kvar == 0.0  # no reactive power without active power (unless q_at_night)
-    rf = dv.reg_frame(reg=reg, t_ns=NOW, seq=1, phase="b", v120=121.5, v_compared_120=120.9, tap=4)
+    rf = dv.reg_frame(reg=reg, t_ns=NOW, seq=1, phase="b", v120=121.5, v_compared_120=120.9, tap=4,
+                      setpoint_v120=reg.setpoint_v120, band_v120=reg.band_v120, mode=reg.mode)
     assert rf.phases == [m.RegPhase(phase="b", v_120=121.5)] and rf.mode == "local"
     for msg in (head, frame, rf):
         codec = codec_for(type(msg))

@@ -104,20 +104,6 @@ def test_tap_changes_counted_and_limited_per_step(eng: FeederEngine) -> None:
     assert changes.sum(axis=0)[0] == net[0]  # creg1a itself only rises
 
 
-def test_before_solve_runs_once_per_step_before_its_first_power_flow(eng: FeederEngine) -> None:
-    """The bridge's hand-over point: once per step, after loads and PV are set, before the first solve, even
-    when regulators then move and the step solves again."""
-    q = Qsts(eng, constant(eng, 3, 1.0, 0.0), start_step=0, max_taps_per_step=2)
-    seen: list[tuple[int, float]] = []
-    q.before_solve = lambda: seen.append((q.next_step, float(eng.node_voltages_pu().sum())))
-    v_before = float(eng.node_voltages_pu().sum())
-    results = [q.step() for _ in range(3)]
-    assert results[0].tap_changes.sum() > 0  # the first step solved more than once
-    assert [s for s, _ in seen] == [0, 1, 2]
-    assert seen[0][1] == v_before  # nothing solved yet in that step
-    assert seen[1][1] == pytest.approx(float(results[0].v_pu.sum()))  # the previous step's solution
-
-
 def test_no_hunting_within_a_step(eng: FeederEngine) -> None:
     """A band narrower than one tap (0.3 V < 0.75 V): within one step a regulator never reverses."""
     q = Qsts(eng, constant(eng, 6, 1.0, 0.0), start_step=0, max_taps_per_step=16)
