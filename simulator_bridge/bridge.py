@@ -573,6 +573,7 @@ class _Runtime:
     def _answer_oracle(self, item: _OracleQuery) -> None:
         q = item.query
         try:
+            self.qsts.unstage_loads()  # the oracle's flows are of the present state
             # Only the feeder's own nodes (the head meter's side): the transmission side of the substation
             # is no control target, and constraining it made case A trade Q and taps for an unfixable node.
             feeder = np.flatnonzero(self.engine.node_in_feeder)
@@ -799,6 +800,7 @@ def _await_decision(rt: _Runtime, t_ns: int, stop: threading.Event) -> None:
             rt._logged_no_agent = True
         return
     rt._logged_no_agent = False
+    rt.qsts.stage_loads()  # the next step's loads do not depend on the decision: set them while it comes
     if not rt.serve(time.monotonic() + rt.config.timeout_s, stop, lambda: rt._decided(t_ns)):
         if stop.is_set():
             return

@@ -165,6 +165,7 @@ class Qsts:
         self.max_taps_per_step = int(max_taps_per_step)
         self._chunk_steps = int(chunk_steps)
         self._chunk_start = -1
+        self._staged: int | None = None  # the step whose loads are already set (stage_loads)
         self._chunk_load = np.empty((0, 0))
         self._chunk_pv = np.empty((0, 0))
         self._step = int(start_step)
@@ -229,6 +230,24 @@ class Qsts:
                                   else float(setpoint_v120))
         self._band_v120[r] = self.engine.reg_default_band_v120[r] if band_v120 is None else float(band_v120)
 
+    # ------------------------------------------------------------------ staging
+    def stage_loads(self) -> None:
+        """Set the next step's loads now: they come from the profiles alone, so a caller that waits between
+        steps (the bridge, for the agent's decision) can do this part of the next :meth:`step` meanwhile. The
+        power flow then solves exactly what it would have. Before any power flow on the present state (a
+        perturbation), call :meth:`unstage_loads`.
+        """
+        s = self._step
+        if s < self.profiles.n_steps and self._staged != s:
+            self.engine.set_loads_kw(self._rows(s)[0])
+            self._staged = s
+
+    def unstage_loads(self) -> None:
+        """Put back the loads of the step last simulated, if :meth:`stage_loads` moved them on."""
+        if self._staged is not None:
+            self.engine.set_loads_kw(self._rows(self._step - 1)[0])
+            self._staged = None
+
     @staticmethod
     def _check_index(i: int, n: int, what: str) -> None:
         if not (isinstance(i, int | np.integer) and 0 <= i < n):
@@ -272,7 +291,9 @@ class Qsts:
         load_kw, pv_kw = self._rows(s)
         p = np.minimum(np.maximum(pv_kw, 0.0), e.pv_pmpp_kw)
         q = e.set_pv(p, self._pv_q_target(p, self._pv_v_pu))
-        e.set_loads_kw(load_kw)
+        if self._staged != s:
+            e.set_loads_kw(load_kw)
+        self._staged = None
 
         taps0 = e.taps()  # the engine's, in case its owner moved them between steps
         locked = self._locked

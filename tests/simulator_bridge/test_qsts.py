@@ -245,3 +245,36 @@ def test_commands_reject_unknown_devices(eng: FeederEngine) -> None:
         q.command_tap(7, 1)
     with pytest.raises(QstsError, match="must be positive"):
         q.command_setpoint(0, float("nan"), None)
+
+
+def test_staged_loads_solve_exactly_what_the_step_would_have(map123: DeviceMap) -> None:
+    """The bridge sets the next step's loads while it waits for a decision (stage_loads): the steps, bit for bit,
+    are those of a run without it, with commands in between; unstage_loads puts the present state back for a
+    power flow of it (the oracle's)."""
+    results = {}
+    for staged in (False, True):
+        e = FeederEngine(map123, tolerance=1e-6)
+        rng = np.random.default_rng(3)
+        load = e.load_kw_nominal * rng.uniform(0.3, 1.2, size=(8, len(e.load_kw_nominal)))
+        q = Qsts(e, ArrayProfiles(load, np.tile(e.pv_pmpp_kw * 0.6, (8, 1))), start_step=0)
+        out = []
+        for i in range(7):
+            out.append(q.step())
+            if staged:
+                q.stage_loads()
+            if i == 2:  # a power flow of the present state between steps (the oracle's): back to its loads first
+                if staged:
+                    q.unstage_loads()
+                e.solve()
+                np.testing.assert_allclose(e.node_voltages_pu(), out[-1].v_pu, rtol=0, atol=1e-6)  # a re-solve
+                if staged:
+                    q.stage_loads()
+            if i == 1:
+                q.command_pv_q(0, 50.0)
+                q.command_tap(0, 3)
+        results[staged] = out
+    for a, b in zip(results[False], results[True], strict=True):
+        np.testing.assert_array_equal(a.v_pu, b.v_pu)
+        np.testing.assert_array_equal(a.taps, b.taps)
+    # the loads differ from step to step, so a run that left the staged loads in place would not match
+    assert not np.array_equal(results[False][0].v_pu, results[False][1].v_pu)
