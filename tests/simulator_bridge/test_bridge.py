@@ -635,3 +635,61 @@ def test_auto_publishes_from_a_process_where_it_pays_and_the_child_can_join(devi
     assert _publisher_bus(_config(device_map_path, cache_dir, latency_s=0.1), router, 1283) is None
     assert _publisher_bus(_config(device_map_path, cache_dir, publisher="inline"), router, 8531) is None
     assert _publisher_bus(_config(device_map_path, cache_dir, publisher="process"), router, 41) is not None
+
+
+def _children(pid: int) -> set[int]:
+    """The child processes of ``pid`` (Linux /proc)."""
+    out: set[int] = set()
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        out |= {int(c) for c in (task / "children").read_text().split()}
+    return out
+
+
+def _gone(pid: int, timeout_s: float) -> bool:
+    """Whether process ``pid`` has exited (a zombie counts), waiting up to ``timeout_s``."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            if "zombie" in Path(f"/proc/{pid}/status").read_text():
+                return True
+        except FileNotFoundError:
+            return True
+        if time.monotonic() >= deadline:
+            return False
+        time.sleep(0.05)
+
+
+@pytest.mark.parametrize("how", ["sigterm", "sigkill"])
+def test_the_publisher_process_ends_with_the_bridge(client: Client, router_endpoint: str, device_map_path: Path,
+                                                    cache_dir: Path, repo_root_module: Path, how: str) -> None:
+    """SIGTERM: the bridge ends cleanly (final metrics from the child, exit 0) and so does its child. SIGKILL of the
+    bridge: the orphaned child notices and exits by itself."""
+    children: set[int] = set()
+    proc = subprocess.Popen(
+        _bridge_cmd(router_endpoint, device_map_path, cache_dir, "--steps", "100000", "--realtime", "--speed", "600",
+                    "--publisher", "process"),
+        cwd=repo_root_module, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    try:
+        client.next(lambda k, x: isinstance(x, m.HeadFrame) and x.seq >= 3)
+        children = _children(proc.pid)
+        assert len(children) >= 1  # the publisher process (multiprocessing may add its resource tracker)
+        if how == "sigterm":
+            proc.send_signal(signal.SIGTERM)
+            stdout, stderr = proc.communicate(timeout=30)
+            assert proc.returncode == 0, stderr
+            summary = json.loads(stdout)
+            assert summary["publisher"] == "process" and summary["stopped_early"] is True
+            final = client.next(lambda k, x: isinstance(x, m.MetricsFrame) and x.final)
+            assert final.steps == summary["steps"]
+        else:
+            proc.kill()
+            proc.communicate(timeout=10)
+        assert all(_gone(c, 10.0) for c in children), children
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+        for c in children:  # only if the test failed: leave nothing behind
+            if not _gone(c, 0.0):
+                os.kill(c, signal.SIGKILL)
