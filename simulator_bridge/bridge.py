@@ -65,7 +65,6 @@ from simulator_bridge.publishing import (
     FramePublisher,
     FramerSpec,
     PublisherProcess,
-    PublisherReport,
     StepFramer,
     StepPacker,
     child_bus,
@@ -147,7 +146,7 @@ class BridgeSummary(msgspec.Struct, frozen=True, kw_only=True):
 
     Times in seconds: ``wall_s`` of the stepping loop; ``cpu_s`` CPU time of every thread of the process
     during the loop, Zenoh's included; ``thread_cpu_s`` of the stepping thread alone; ``publisher_cpu_s`` of the
-    publisher process, its start included (0 when the frames are published inline); ``decision_wait_s`` the
+    publisher process from its first step on (0 when the frames are published inline); ``decision_wait_s`` the
     stepping thread's wall time waiting for the agent's decisions (lockstep). ``publisher``: who published the
     frames (``BridgeConfig.publisher`` resolved).
     ``round_trip_*_s`` is from the publication of a control step's head frame to the reception of the agent's
@@ -325,7 +324,6 @@ class _Runtime:
         self._handled_order: deque[str] = deque()
         self._decision: m.Decision | None = None
         self._logged_no_agent = False
-        self.report: PublisherReport | None = None  # the publisher process's, once closed
         self._settings: DeviceSettings | None = None  # the devices' settings, until the next change
         self._declare()
         self.child: PublisherProcess | None = None
@@ -360,7 +358,7 @@ class _Runtime:
         queries still queued are answered with an error, so their getters do not wait for their timeout.
         """
         if self.child is not None:
-            self.report = self.child.close(None) if self.report is None else self.report
+            self.child.close(None)  # nothing more when the run closed it already
         for undeclare in [self.queryable.undeclare, self.inbox.undeclare, self.agents.undeclare,
                           self.bridges.undeclare, *(t.undeclare for t in self.tokens)]:
             try:
@@ -742,10 +740,9 @@ def _loop(rt: _Runtime, stop: threading.Event, on_ready: Any) -> BridgeSummary:
     rt.serve(time.monotonic() + c.latency_s, stop if stop.is_set() else threading.Event(),
              lambda: rt.held() == 0)  # frames still in the delay line go out
     if rt.child is not None:
-        rt.report = rt.child.close(rt.now_t_ns)
-        if rt.report is None:
-            raise BridgeError("the publisher process gave no report at the end of the run")
-        r = rt.report
+        r = rt.child.close(rt.now_t_ns)
+        if r is None:
+            raise BridgeError("the publisher process gave no report at the end of the run (see the log)")
         final, published, dropped, truth, pub_cpu_s = (r.final_metrics, r.frames_published, r.frames_dropped,
                                                        r.truth_frames, r.cpu_s)
     else:

@@ -398,7 +398,7 @@ class PublisherProcess:
         self._floats = ctx.RawArray("d", depth * packer.n_float)
         self._ints = ctx.RawArray("q", depth * packer.n_int)
         self._ctrl = ctx.RawArray("q", 2 * _CTRL_RING)  # (t_ns, wall ns of the head put) of control steps
-        self._state = ctx.RawArray("q", 2)  # [steps published, failed]
+        self._state = ctx.RawArray("q", 2)  # [items of the ring done (steps and commands), failed]
         self._fs = np.frombuffer(self._floats, dtype=np.float64).reshape(depth, packer.n_float)
         self._is = np.frombuffer(self._ints, dtype=np.int64).reshape(depth, packer.n_int)
         self._ctrl_view = np.frombuffer(self._ctrl, dtype=np.int64).reshape(_CTRL_RING, 2)
@@ -423,8 +423,7 @@ class PublisherProcess:
     def _check(self) -> None:
         if self._state_view[1]:
             why = self._conn.recv() if self._conn.poll(1.0) else ("error", "no reason received")
-            raise PublisherError(f"the publisher process failed after publishing {int(self._state_view[0])} steps: "
-                                 f"{why[1]}; the run stops")
+            raise PublisherError(f"the publisher process failed: {why[1]}; the run stops")
         if not self._proc.is_alive():
             raise PublisherError(f"the publisher process is gone (exit code {self._proc.exitcode}); the run stops")
 
@@ -452,15 +451,15 @@ class PublisherProcess:
         self._ready.release()
         return True
 
-    def _command(self, kind: int, arg: float) -> None:
+    def _command(self, kind: int, *, seconds: float = 0.0, t_ns: int = 0) -> None:
         i = self._slot()
-        self._is[i, 0], self._fs[i, 0] = kind, arg
+        self._is[i, 0], self._is[i, 1], self._fs[i, 0] = kind, t_ns, seconds
         self._submitted += 1
         self._ready.release()
 
     def wait_matched(self, timeout_s: float) -> bool:
         """Wait (in the child) until the head frames have a subscriber, at most ``timeout_s``."""
-        self._command(_MATCH, timeout_s)
+        self._command(_MATCH, seconds=timeout_s)
         return bool(self._expect("matched", timeout_s + _WAIT_S)[1])
 
     def control_head_wall_ns(self, t_ns: int) -> int | None:
@@ -485,8 +484,8 @@ class PublisherProcess:
             time.sleep(0.0005)
 
     def close(self, final_t_ns: int | None) -> PublisherReport | None:
-        """Stop the child: with ``final_t_ns``, after it published everything and a final metrics frame at that
-        time; with None (an error path), at once. Returns its report, None if it could not give one.
+        """Stop the child after it published every step handed over and, with ``final_t_ns``, a final metrics
+        frame at that time (None: an error path, no final frame). Returns its report, None if it gave none.
         """
         if self._closed:
             return None
@@ -494,7 +493,7 @@ class PublisherProcess:
         report = None
         try:
             if self._proc.is_alive() and not self._state_view[1]:
-                self._command(_CLOSE, math.nan if final_t_ns is None else float(final_t_ns))
+                self._command(_CLOSE, t_ns=-1 if final_t_ns is None else final_t_ns)
                 _, report = self._expect("closed", _WAIT_S)
         except PublisherError as e:
             log.warning("the publisher process did not close cleanly: %s", e)
@@ -587,8 +586,8 @@ def _child_main(spec: FramerSpec, packer: StepPacker, bus: BusConfig, depth: int
                     conn.send(("matched", framer.pub_head.wait_matched(timeout_s)))
                     st[0] += 1
                 elif kind == _CLOSE:
-                    final_t_ns = float(fs[slot, 0])
-                    final = None if math.isnan(final_t_ns) else framer.publish_metrics(int(final_t_ns), final=True)
+                    final_t_ns = int(ins[slot, 1])
+                    final = None if final_t_ns < 0 else framer.publish_metrics(final_t_ns, final=True)
                     conn.send(("closed", PublisherReport(
                         steps=framer.metrics.n_steps, frames_published=framer.frames_published,
                         frames_dropped=framer.frames_dropped, truth_frames=framer.truth_frames,
