@@ -60,7 +60,10 @@ def test_two_processes_exchange_typed_messages_and_count_a_bad_one(router_endpoi
             inbox.subscribe(session, "test/report", m.AgentStatus)
             inbox.subscribe(session, "test/ready", m.AgentStatus)
             out = TypedPublisher(session, "test/in", m.PvCommand, reliable=True)
-            raw = session.declare_publisher("test/in", congestion_control=zenoh.CongestionControl.BLOCK)
+            # the same priority and express flag as ``out``: one queue, so the bad payload arrives between the two
+            # good ones (at DATA priority it could arrive after the second and be counted after the report)
+            raw = session.declare_publisher("test/in", congestion_control=zenoh.CongestionControl.BLOCK,
+                                            priority=zenoh.Priority.REAL_TIME, express=True)
             # wait for the peer's ready signal: it has subscribed and sees our subscriber
             first = inbox.get(timeout_s=20.0)
             assert first is not None and first.key == "test/ready"
