@@ -147,6 +147,7 @@ def bench_bridge(device_map: str | Path, steps: int, *, seed: int = 1, truth_eve
         "lockstep_misses": sum(r.lockstep_misses for r in runs),
         "truth_every": truth_every,
         "publisher": publisher,
+        "publisher_used": runs[0].publisher,  # what "auto" chose
     }
 
 

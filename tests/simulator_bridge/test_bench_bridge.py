@@ -17,5 +17,5 @@ def test_bench_bridge_figures_add_up(tmp_path: Path, publisher: str) -> None:
     # waiting for six decisions is part of the overhead, and the round trip is what was waited for
     assert 0.0 < r["decision_wait_share"] < r["overhead"] + 1.0
     assert 0.0 < r["round_trip_p50_ms"] <= r["round_trip_p99_ms"]
-    assert r["publisher"] == publisher
+    assert r["publisher"] == r["publisher_used"] == publisher
     assert (r["publisher_cpu_share"] > 0.0) == (publisher == "process")  # the child's CPU time is counted
