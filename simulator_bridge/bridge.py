@@ -28,7 +28,6 @@ guide; in short:
 
 from __future__ import annotations
 
-import dataclasses
 import datetime as dt
 import logging
 import math
@@ -59,8 +58,8 @@ from schemas.bus import (
 from schemas.devicemap import DeviceMap, load_device_map
 from schemas.errors import CvvcError
 from simulator_bridge import devices as dv
-from simulator_bridge.engine import FieldReadings
 from simulator_bridge.publishing import (
+    READING_FIELDS,
     DeviceSettings,
     FramePublisher,
     FramerSpec,
@@ -226,9 +225,6 @@ def _check_config(c: BridgeConfig) -> None:
                           "the delay line); use publisher='auto' or 'inline' with latency")
 
 
-_READING_FIELDS = tuple(f.name for f in dataclasses.fields(FieldReadings))
-
-
 def _check_finite_step(res: Any) -> tuple[float, float]:
     """Raise ``BridgeError`` if a step's readings or truth hold NaN or inf (a power flow gone wrong); return
     the lowest and highest node voltage [pu].
@@ -238,7 +234,7 @@ def _check_finite_step(res: Any) -> tuple[float, float]:
     """
     v_lo, v_hi = float(res.v_pu.min()), float(res.v_pu.max())
     rd = res.readings
-    small = np.concatenate([getattr(rd, name) for name in _READING_FIELDS] + [res.pv_q_kvar, res.pv_p_kw],
+    small = np.concatenate([getattr(rd, name) for name in READING_FIELDS] + [res.pv_q_kvar, res.pv_p_kw],
                            axis=None, dtype=float)
     if not (math.isfinite(v_lo) and math.isfinite(v_hi) and np.isfinite(small).all()):
         raise _non_finite(res)

@@ -49,6 +49,7 @@ __all__ = [
     "PublisherError",
     "PublisherProcess",
     "PublisherReport",
+    "READING_FIELDS",
     "StepFramer",
     "StepPacker",
 ]
@@ -56,7 +57,8 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 _NS = 1_000_000_000
-_READING_FIELDS = tuple(f.name for f in dataclasses.fields(FieldReadings))
+READING_FIELDS = tuple(f.name for f in dataclasses.fields(FieldReadings))
+"""The fields of ``FieldReadings``, in order (the slot layout, and the bridge's finiteness check)."""
 _POLL_S = 0.05  # longest a wait goes without looking at the other process [s]
 _WAIT_S = 60.0  # longest the stepping process waits for the child to take a step or answer [s]
 _START_S = 60.0  # longest the child may take to start (a fresh interpreter, imports, a Zenoh session) [s]
@@ -104,7 +106,8 @@ class FramerSpec:
     pvs : (plant_id, index, s_rated_kva, local_mode) per plant. regs : (regulator_id, index, tap_max,
     default set point, default band) per regulator. reg_phase : each regulator's phase letter.
     q_at_night : PV gives Q without P. noise_pmu_pct, noise_scada_pct, drop_prob, latency_s, noise_seed :
-    measurement realism (``BridgeConfig``). metrics : the run's (empty) metrics accumulator.
+    measurement realism (``BridgeConfig``). metrics : the run's metrics accumulator, empty at the start, the
+    one mutable part: the framer updates it (inline, the runtime's own; in the process, the pickled copy).
     """
 
     feeder_id: str
@@ -306,11 +309,11 @@ class StepPacker:
     """
 
     def __init__(self, n_nodes: int, n_pv: int, n_reg: int) -> None:
-        shapes = {name: (3,) for name in _READING_FIELDS if name.startswith("head_")}
+        shapes = {name: (3,) for name in READING_FIELDS if name.startswith("head_")}
         shapes |= {"pv_p_kw": (n_pv, 3), "pv_q_kvar": (n_pv, 3), "pv_v_v": (n_pv, 3), "reg_v120": (n_reg,),
                    "reg_v120_compared": (n_reg,), "reg_tap": (n_reg,)}
         fields, at = [], 0
-        for name in _READING_FIELDS:  # FieldReadings' shapes (see its docstring)
+        for name in READING_FIELDS:  # FieldReadings' shapes (see its docstring)
             size = int(np.prod(shapes[name], dtype=np.int64))
             fields.append(_Field(name, shapes[name], at, at + size))
             at += size
@@ -318,8 +321,8 @@ class StepPacker:
             fields.append(_Field(name, (n,), at, at + n))
             at += n
         self.n_checked = at
-        self.readings = tuple(fields[:len(_READING_FIELDS)])
-        self.step_fields = tuple(fields[len(_READING_FIELDS):])
+        self.readings = tuple(fields[:len(READING_FIELDS)])
+        self.step_fields = tuple(fields[len(READING_FIELDS):])
         self.n_pv, self.n_reg = n_pv, n_reg
         self.n_float = at + n_pv + 2 * n_reg  # + PV set points, regulator set points and bands
         self.n_int = 4 + 3 * n_reg  # kind, t_ns, step, n_step; taps, tap changes, modes
