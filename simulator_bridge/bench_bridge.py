@@ -90,7 +90,7 @@ def bench_bridge(device_map: str | Path, steps: int, *, seed: int = 1, truth_eve
     ``overhead`` (median bare rate / median lockstep rate − 1), ``overheads`` (per alternation),
     ``overhead_cpu`` (median CPU time of the bridge process's loop, Zenoh's threads included / median bare CPU
     time − 1), ``overhead_thread_cpu`` (the same for the stepping thread alone), ``publisher_cpu_share``
-    (median CPU time of the publisher process, its start included / median bare CPU time; 0 when publishing
+    (median CPU time of the publisher process from its first step on / median bare CPU time; 0 when publishing
     inline), ``decision_wait_share`` (the stepping thread's waits for the decisions / median bare time: their
     part of ``overhead``),
     ``round_trip_p50_ms``, ``round_trip_p99_ms`` (medians over the runs), ``control_steps``,

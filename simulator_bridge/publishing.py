@@ -79,7 +79,6 @@ class FramePublisher:
     """
 
     def __init__(self, session: zenoh.Session, key: str, *, reliable: bool = False) -> None:
-        self.key = key
         self._enc = msgspec.json.Encoder()
         self._pub = session.declare_publisher(
             key, encoding=zenoh.Encoding.APPLICATION_JSON,
