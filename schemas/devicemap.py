@@ -38,6 +38,7 @@ __all__ = [
     "DeviceMap",
     "DeviceMapError",
     "FeederSection",
+    "CapacitorSpec",
     "PvPlantSpec",
     "RegulatorSpec",
     "load_device_map",
@@ -88,6 +89,22 @@ class RegulatorSpec(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fi
     band_v120: Annotated[float, Meta(gt=0.0, le=12.0)] | None = None
 
 
+class CapacitorSpec(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """One switched capacitor bank as a field device (an OpenDSS ``Capacitor``, with its ``CapControl`` if any).
+
+    Without a command the bank follows its local control as the model states it (its ``CapControl``; a bank
+    with none stays where it is). ``capcontrol`` names that control when the model has one for the bank.
+    ``cost_per_switch`` is per switching operation (one step of the bank opened or closed), on the same
+    scale as ``RegulatorSpec.cost_per_tap``: a study choice, about seven tap changes, because a capacitor
+    switch's contacts and the transient wear the bank more than one tap step wears a regulator.
+    """
+
+    id: Name
+    capacitor: str
+    capcontrol: str | None = None
+    cost_per_switch: Cost = 1.0
+
+
 class PvPlantSpec(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
     """One PV plant. ``create`` adds it to the model at ``bus``; otherwise ``pvsystem`` names an existing one.
 
@@ -111,6 +128,7 @@ class DeviceMap(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields
 
     feeder: FeederSection
     regulator: list[RegulatorSpec] = []
+    capacitor: list[CapacitorSpec] = []
     pv: list[PvPlantSpec] = []
     root: str = "."
 
@@ -151,7 +169,8 @@ def load_device_map(path: str | Path) -> DeviceMap:
     except msgspec.DecodeError as e:
         raise DeviceMapError(f"{path}: not valid TOML: {e}") from e
     dm = msgspec.structs.replace(dm, root=str(path.parent.resolve()))
-    for kind, ids in (("regulator", [r.id for r in dm.regulator]), ("pv", [p.id for p in dm.pv])):
+    for kind, ids in (("regulator", [r.id for r in dm.regulator]), ("capacitor", [c.id for c in dm.capacitor]),
+                      ("pv", [p.id for p in dm.pv])):
         dupes = {i for i in ids if ids.count(i) > 1}
         if dupes:
             raise DeviceMapError(f"{path}: duplicate {kind} id(s): {sorted(dupes)}")
