@@ -11,6 +11,15 @@ produce the same aligned sets. The rule, documented in docs/agent.md:
   not know, with a ``seq`` not above the last accepted one from that source (duplicate / out of order),
   older than the newest released group (stale), with the ``invalid`` quality flag, or with physically
   impossible values.
+- No single frame moves the clock (issue "Robust by default"): a frame more than ``max_jump_ns`` (one control
+  period) ahead of the newest accepted frame, or any frame before the first accepted one, is *held* until
+  frames of at least two sources (one if the model has a single device) agree on the new time within
+  ``max_jump_ns``; then the held frames are taken in arrival order. Lost-frame bursts and the start of a run
+  pass at once (every device reports the same step); a lone forged timestamp stays held, and is counted as
+  ``time_jump`` when it is pushed out of the bounded hold.
+- No single frame locks a source out: a frame whose ``seq`` is not above its source's last but whose ``t_ns`` is
+  at least one control period past that source's last accepted frame is taken (a restarted device, or a forged
+  high ``seq`` earlier) and counted in ``seq_resets``.
 - Only groups on a control step (``t_ns`` a multiple of the control period) are released as decisions to
   make; the others only refresh the last-known state.
 """
@@ -71,6 +80,9 @@ def plausibility_problem(frame: m.HeadFrame | m.PvFrame | m.RegFrame) -> str | N
     return None
 
 
+_Frame = m.HeadFrame | m.PvFrame | m.RegFrame
+
+
 @dataclass
 class _Group:
     t_ns: int
@@ -83,27 +95,69 @@ class FrameAligner:
     """Stateful grouping of frames by timestamp; see the module docstring for the rule."""
 
     def __init__(self, *, feeder_id: str, pv_ids: tuple[str, ...], regulator_ids: tuple[str, ...],
-                 control_period_ns: int) -> None:
+                 control_period_ns: int, max_jump_ns: int | None = None) -> None:
         self.feeder_id = feeder_id
         self.pv_ids = pv_ids
         self.regulator_ids = regulator_ids
         self.control_period_ns = control_period_ns
+        self.max_jump_ns = control_period_ns if max_jump_ns is None else int(max_jump_ns)
         self.rejected: Counter[str] = Counter()
         self.last_reject: dict[str, str] = {}
+        self.accepted = 0
+        self.seq_resets = 0
         self._last_seq: dict[str, int] = {}
+        self._last_t_ns: dict[str, int] = {}
         self._groups: dict[int, _Group] = {}
         self._released_t_ns = -1
+        self._newest_t_ns: int | None = None  # newest accepted frame time; None before the first
+        self._held: list[tuple[str, _Frame]] = []  # frames ahead of the clock, awaiting a second source
+        n_sources = 1 + len(pv_ids) + len(regulator_ids)
+        self._sources_needed = min(2, n_sources)
+        self._hold_max = 4 * n_sources
 
     # ---------------------------------------------------------------------------------------- input
-    def add(self, key: str, frame: m.HeadFrame | m.PvFrame | m.RegFrame) -> list[AlignedFrames]:
+    def add(self, key: str, frame: _Frame) -> list[AlignedFrames]:
         """Add one decoded frame; returns the control-step groups this frame completes or closes."""
-        why = self._check(key, frame)
+        why = self._check_static(key, frame)
         if why is not None:
-            kind, detail = why
-            self.rejected[kind] += 1
-            self.last_reject[kind] = detail
+            self._reject(*why)
             return []
+        if self._newest_t_ns is None or frame.t_ns > self._newest_t_ns + self.max_jump_ns:
+            return self._hold(key, frame)
+        return self._take(key, frame)
+
+    def _reject(self, kind: str, detail: str) -> None:
+        self.rejected[kind] += 1
+        self.last_reject[kind] = detail
+
+    def _hold(self, key: str, frame: _Frame) -> list[AlignedFrames]:
+        """Keep a frame that would move the clock until another source agrees (see the module docstring)."""
+        self._held.append((key, frame))
+        if len(self._held) > self._hold_max:
+            _, gone = self._held.pop(0)
+            self._reject("time_jump", f"{gone.source} t_ns {gone.t_ns}: ahead of the feeder's clock "
+                         f"({self._newest_t_ns}) and never confirmed by another device")
+        times = sorted({f.t_ns for _, f in self._held})
+        for t in times:
+            sources = {f.source for _, f in self._held if t <= f.t_ns <= t + self.max_jump_ns}
+            if len(sources) >= self._sources_needed:
+                held, self._held = self._held, []
+                self._newest_t_ns = t if self._newest_t_ns is None else max(self._newest_t_ns, t)
+                out: list[AlignedFrames] = []
+                for k, f in held:
+                    out += self.add(k, f)
+                return out
+        return []
+
+    def _take(self, key: str, frame: _Frame) -> list[AlignedFrames]:
+        why = self._check_order(frame)
+        if why is not None:
+            self._reject(*why)
+            return []
+        self.accepted += 1
+        self._newest_t_ns = frame.t_ns if self._newest_t_ns is None else max(self._newest_t_ns, frame.t_ns)
         self._last_seq[frame.source] = frame.seq
+        self._last_t_ns[frame.source] = frame.t_ns
         out = [self._release(t) for t in sorted(self._groups) if t < frame.t_ns]
         g = self._groups.setdefault(frame.t_ns, _Group(frame.t_ns))
         match frame:
@@ -127,7 +181,8 @@ class FrameAligner:
         return bool(self._groups)
 
     # ------------------------------------------------------------------------------------- internals
-    def _check(self, key: str, frame: m.HeadFrame | m.PvFrame | m.RegFrame) -> tuple[str, str] | None:
+    def _check_static(self, key: str, frame: _Frame) -> tuple[str, str] | None:
+        """Why a frame is not this feeder's, not a known device's, or physically impossible; or None."""
         parts = key.split("/")
         if len(parts) < 4 or parts[1] != self.feeder_id:
             return "wrong_feeder", f"{key}: not feeder {self.feeder_id!r}"
@@ -141,14 +196,22 @@ class FrameAligner:
             case m.RegFrame():
                 if frame.regulator_id not in self.regulator_ids or parts[-1] != frame.regulator_id:
                     return "unknown_device", f"regulator {frame.regulator_id!r} on {key}"
-        last = self._last_seq.get(frame.source)
-        if last is not None and frame.seq <= last:
-            return ("duplicate" if frame.seq == last else "out_of_order"), f"{frame.source} seq {frame.seq} <= {last}"
-        if frame.t_ns <= self._released_t_ns:
-            return "stale", f"{frame.source} t_ns {frame.t_ns} not after released {self._released_t_ns}"
         problem = plausibility_problem(frame)
         if problem is not None:
             return "implausible", f"{frame.source}: {problem}"
+        return None
+
+    def _check_order(self, frame: _Frame) -> tuple[str, str] | None:
+        """Why a frame is a duplicate, out of order or stale, or None (may count a ``seq`` reset)."""
+        last = self._last_seq.get(frame.source)
+        if last is not None and frame.seq <= last:
+            if frame.t_ns >= self._last_t_ns[frame.source] + self.control_period_ns:
+                self.seq_resets += 1  # the source moved on by more than a period: its seq restarted
+            else:
+                kind = "duplicate" if frame.seq == last else "out_of_order"
+                return kind, f"{frame.source} seq {frame.seq} <= {last}"
+        if frame.t_ns <= self._released_t_ns:
+            return "stale", f"{frame.source} t_ns {frame.t_ns} not after released {self._released_t_ns}"
         return None
 
     def _missing(self, g: _Group) -> tuple[str, ...]:

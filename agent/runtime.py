@@ -30,11 +30,15 @@ from agent.controller import CvvcController, MeasurementSnapshot
 from agent.controller import Decision as ControllerDecision
 from schemas import keys
 from schemas import messages as m
+from schemas.logs import RateLimitedLog
 from training.model import CvvcModel
 
 __all__ = ["AgentSettings", "AgentSummary", "DecisionMaker", "decide_offline", "run_agent", "snapshot_from"]
 
 log = logging.getLogger(__name__)
+#: The window over which the status judges the share of refused frames [s], and the least refused to say so.
+DEGRADED_WINDOW_S = 10.0
+DEGRADED_MIN_REFUSED = 3
 _PHASE_INDEX = {"a": 0, "b": 1, "c": 2}
 
 
@@ -57,11 +61,19 @@ class AgentSettings(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fi
 
 
 class AgentSummary(msgspec.Struct, frozen=True, kw_only=True):
+    """What one live agent run did: decisions, commands, acks by status, refused inputs by reason.
+
+    ``clamped``: eq. (8) set points or bands brought into the regulators' accepted range before sending;
+    ``log_suppressed``: warning lines not written by the rate limit, by kind.
+    """
+
     decisions: int
     holds: int
     commands: int
     acks: dict[str, int]
     rejected: dict[str, int]
+    clamped: int = 0
+    log_suppressed: dict[str, int] = {}
 
 
 def snapshot_from(aligned: AlignedFrames, model: CvvcModel) -> MeasurementSnapshot:
@@ -142,6 +154,7 @@ class DecisionMaker:
         self.seq = 0
         self.holds = 0
         self.commands_sent = 0
+        self.clamped = 0  # set points / bands brought into the regulators' accepted range
         self._dv_dtap = _within_array(np.asarray(model.dv_dtap_pu, float), -1.0, 1.0, 12)  # a model constant
 
     def on_frame(self, key: str, msg: Any) -> list[tuple[AlignedFrames, ControllerDecision]]:
@@ -174,8 +187,8 @@ class DecisionMaker:
                     continue
                 action: m.TapAction | m.SetpointAction
                 if s.mode == "setpoints" and d.reg_setpoint_v120 is not None and d.reg_band_v120 is not None:
-                    action = m.SetpointAction(setpoint_v120=_round(d.reg_setpoint_v120[r], 4),
-                                              band_v120=_round(d.reg_band_v120[r], 4))
+                    action = m.SetpointAction(setpoint_v120=self._clamp(d.reg_setpoint_v120[r], m.SETPOINT_RANGE_V120),
+                                              band_v120=self._clamp(d.reg_band_v120[r], m.BAND_RANGE_V120))
                 elif d.reg_tap is not None:
                     action = m.TapAction(tap=int(d.reg_tap[r]))
                 else:
@@ -204,6 +217,18 @@ class DecisionMaker:
                               total_s=tm.total_s + align_s),
             corrected=d.corrected, missing=list(aligned.missing) + [x for x in d.missing if x not in aligned.missing],
         )
+
+
+    def _clamp(self, value: float, accepted: tuple[float, float]) -> float:
+        """``value`` rounded and brought into a regulator's ``accepted`` range (issue 17 (g)); counts clamps.
+
+        Eq. (8) can ask for a set point outside what a controller accepts (a large tap change from an extreme
+        reading); the nearest accepted value moves the regulator the same way instead of being refused.
+        """
+        v = _round(value, 4)
+        c = min(max(v, accepted[0]), accepted[1])
+        self.clamped += c != v
+        return c
 
 
 _FRAME_TYPES = (m.HeadFrame, m.PvFrame, m.RegFrame)
@@ -243,6 +268,8 @@ def run_agent(model: CvvcModel, settings: AgentSettings, bus, *, stop: threading
     maker = DecisionMaker(model, settings)
     f = settings.feeder_id
     acks: Counter[str] = Counter()
+    rlog = RateLimitedLog(log)
+    health = _FrameHealth(maker.aligner)
     with open_session(bus) as session:
         token = session.liveliness().declare_token(keys.alive(f, "agent", settings.agent_id))
         devices = LivelinessWatcher(session, keys.alive_all(f),
@@ -260,7 +287,7 @@ def run_agent(model: CvvcModel, settings: AgentSettings, bus, *, stop: threading
             cmd_pubs[p.id] = TypedPublisher(session, keys.cmd(f, "pv", p.id), m.PvCommand, reliable=True)
         for r in model.regulators:
             cmd_pubs[r.id] = TypedPublisher(session, keys.cmd(f, "vr", r.id), m.RegCommand, reliable=True)
-        oracle = _Oracle(session, f, settings.oracle_timeout_s) if settings.full_visibility else None
+        oracle = _Oracle(session, f, settings.oracle_timeout_s, rlog) if settings.full_visibility else None
 
         last_frame_wall = time.monotonic()
         last_frame_t_ns = 0
@@ -287,7 +314,8 @@ def run_agent(model: CvvcModel, settings: AgentSettings, bus, *, stop: threading
                     if isinstance(msg, m.Ack):
                         acks[msg.status] += 1
                         if msg.status == "rejected":
-                            log.warning("command %s rejected by %s: %s", msg.cmd_id, msg.device_id, msg.reason)
+                            rlog.warning("command_rejected", "command %s rejected by %s: %s", msg.cmd_id,
+                                         msg.device_id, msg.reason)
                     else:
                         last_frame_wall, last_frame_t_ns = now, msg.t_ns
                         publish(maker.on_frame(item.key, msg), now)
@@ -301,17 +329,21 @@ def run_agent(model: CvvcModel, settings: AgentSettings, bus, *, stop: threading
                     next_status = now + 1.0
                     status_seq += 1
                     since = now - last_frame_wall
-                    state: Literal["ok", "stale", "starting"] = (
-                        "stale" if since > settings.stale_after_s else ("starting" if not last_frame_t_ns else "ok"))
+                    degraded = health.refusing(now)
+                    state: Literal["ok", "stale", "starting", "degraded"] = (
+                        "stale" if since > settings.stale_after_s else "degraded" if degraded
+                        else ("starting" if not last_frame_t_ns else "ok"))
                     rejected = dict(inbox.rejects.by_kind())
                     for k, n in maker.aligner.rejected.items():
                         rejected[k] = rejected.get(k, 0) + n
                     status_pub.put(m.AgentStatus(
                         t_ns=last_frame_t_ns, seq=status_seq, source=settings.agent_id, feeder_id=f, state=state,
                         last_frame_t_ns=last_frame_t_ns, seconds_since_frame=min(since, 1e6),
-                        decisions=maker.seq, rejected=rejected))
-                    if state == "stale" and status_seq % 10 == 1:
-                        log.warning("no frames for %.0f s: inputs stale, sending nothing", since)
+                        decisions=maker.seq, rejected=rejected, reason=(degraded or "")[:500]))
+                    if state == "stale":
+                        rlog.warning("stale", "no frames for %.0f s: inputs stale, sending nothing", since)
+                    elif degraded:
+                        rlog.warning("degraded", "degraded: %s", degraded)
         finally:
             devices.undeclare()
             inbox.undeclare()
@@ -320,7 +352,30 @@ def run_agent(model: CvvcModel, settings: AgentSettings, bus, *, stop: threading
     for k, n in maker.aligner.rejected.items():
         rejected[k] = rejected.get(k, 0) + n
     return AgentSummary(decisions=maker.seq, holds=maker.holds, commands=maker.commands_sent, acks=dict(acks),
-                        rejected=rejected)
+                        rejected=rejected, clamped=maker.clamped, log_suppressed=dict(rlog.suppressed))
+
+
+class _FrameHealth:
+    """Whether the agent refused most of the frames it got in the last ``DEGRADED_WINDOW_S`` (wall clock)."""
+
+    def __init__(self, aligner: FrameAligner) -> None:
+        self._aligner = aligner
+        self._samples: list[tuple[float, int, Counter[str]]] = []  # (wall time, accepted, refused by kind) so far
+
+    def refusing(self, now: float) -> str | None:
+        """The reason the agent is degraded now, or None (call once per status period)."""
+        a = self._aligner
+        self._samples.append((now, a.accepted, Counter(a.rejected)))
+        while len(self._samples) > 1 and now - self._samples[0][0] > DEGRADED_WINDOW_S:
+            self._samples.pop(0)
+        _, acc0, ref0 = self._samples[0]
+        by_kind = a.rejected - ref0
+        accepted, refused = a.accepted - acc0, sum(by_kind.values())
+        if refused < DEGRADED_MIN_REFUSED or refused <= accepted:
+            return None
+        kind = max(by_kind, key=lambda k: by_kind[k])
+        return (f"refused {refused} of {refused + accepted} frames in the last {DEGRADED_WINDOW_S:g} s, "
+                f"mostly {kind!r}: {a.last_reject.get(kind, '')}")
 
 
 def _frame_key_problem(key: str, msg: Any) -> str | None:
@@ -332,10 +387,11 @@ def _frame_key_problem(key: str, msg: Any) -> str | None:
 class _Oracle:
     """Case A: true voltages of every node and perturbation sensitivities, asked of the bridge."""
 
-    def __init__(self, session, feeder_id: str, timeout_s: float) -> None:
+    def __init__(self, session, feeder_id: str, timeout_s: float, rlog: RateLimitedLog) -> None:
         self._session = session
         self._key = keys.sim_oracle(feeder_id)
         self._timeout_s = timeout_s
+        self._rlog = rlog
 
     def decide(self, maker: DecisionMaker, aligned: AlignedFrames, d: ControllerDecision) -> ControllerDecision:
         from agent.full_visibility import decide_full_visibility
@@ -348,5 +404,5 @@ class _Oracle:
                 try:
                     reply = codec_for(m.OracleReply).decode(r.ok.payload.to_bytes())
                 except BadMessage as e:
-                    log.warning("bad oracle reply: %s", e)
+                    self._rlog.warning("bad_oracle_reply", "bad oracle reply: %s", e)
         return decide_full_visibility(maker.controller, snapshot_from(aligned, maker.model), d, reply)

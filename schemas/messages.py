@@ -22,6 +22,7 @@ __all__ = [
     "MESSAGE_TYPES",
     "Ack",
     "AgentStatus",
+    "BAND_RANGE_V120",
     "BridgeStatus",
     "Command",
     "Decision",
@@ -41,6 +42,7 @@ __all__ = [
     "RegCommand",
     "RegFrame",
     "RegPhase",
+    "SETPOINT_RANGE_V120",
     "SetpointAction",
     "SolverStats",
     "TapAction",
@@ -68,6 +70,11 @@ Cost = Annotated[float, Meta(ge=0.0, le=1e12)]
 Count = Annotated[int, Meta(ge=0, le=2**53)]
 Seconds = Annotated[float, Meta(ge=0.0, le=1e6)]
 Sens = Annotated[float, Meta(ge=-1.0, le=1.0)]
+
+SETPOINT_RANGE_V120 = (108.0, 132.0)
+"""Set points a regulator controller accepts [V on the 120 V base]: ±10 % of 120 V (the command contract)."""
+BAND_RANGE_V120 = (1.0, 8.0)
+"""Bandwidths a regulator controller accepts [V on the 120 V base] (the paper's case C uses 4 V)."""
 
 QualityFlag = Literal["invalid", "questionable", "substituted", "old_data", "test", "noisy"]
 
@@ -234,14 +241,18 @@ class Decision(Message, frozen=True, kw_only=True, forbid_unknown_fields=True):
 
 
 class AgentStatus(Message, frozen=True, kw_only=True, forbid_unknown_fields=True):
-    """Agent health, published on a wall-clock period: staleness and rejected-input counts."""
+    """Agent health, published on a wall-clock period: staleness and rejected-input counts.
+
+    ``degraded``: the agent refused most of the frames it received lately; ``reason`` says which and why.
+    """
 
     feeder_id: Ident
-    state: Literal["ok", "stale", "holding", "starting"]
+    state: Literal["ok", "stale", "holding", "starting", "degraded"]
     last_frame_t_ns: TimeNs = 0
     seconds_since_frame: Seconds = 0.0
     decisions: Count = 0
     rejected: dict[str, Count] = {}
+    reason: Reason = ""
 
 
 # ----------------------------------------------------------------------------------- simulation only

@@ -73,10 +73,8 @@ RejectReason = Literal[
 REJECT_REASONS: tuple[str, ...] = (
     "unknown_device", "wrong_feeder", "wrong_device", "non_finite", "expired", "replay", "out_of_range",
 )
-SETPOINT_RANGE_V120 = (108.0, 132.0)
-"""Set points a regulator controller accepts [V on the 120 V base]: ±10 % of 120 V."""
-BAND_RANGE_V120 = (1.0, 8.0)
-"""Bandwidths a regulator controller accepts [V on the 120 V base] (the paper's case C uses 4 V)."""
+SETPOINT_RANGE_V120 = m.SETPOINT_RANGE_V120
+BAND_RANGE_V120 = m.BAND_RANGE_V120
 _CLIP_TOL_KVAR = 1e-6
 
 

@@ -11,6 +11,7 @@ from schemas import messages as m
 from schemas.examples import examples
 
 PERIOD_NS = 300_000_000_000
+MINUTE = 60_000_000_000
 T0 = 1_672_549_200_000_000_000  # a control step (multiple of 5 min)
 EX = examples()
 
@@ -59,8 +60,9 @@ def test_incomplete_group_closed_by_newer_frame_names_missing(aligner):
 
 def test_close_pending_releases_with_missing(aligner):
     aligner.add(*pv(T0, 1))
+    aligner.add(*vr(T0, 1))
     (out,) = aligner.close_pending()
-    assert out.head is None and out.missing == ("head", "vr1a")
+    assert out.head is None and out.missing == ("head",)
 
 
 @pytest.mark.parametrize(
@@ -78,6 +80,9 @@ def test_close_pending_releases_with_missing(aligner):
     ],
 )
 def test_rejections_are_counted_by_reason(aligner, frames, kind):
+    # the feeder's clock is set by two sources a step before (seq 0: every frame below has a higher one)
+    aligner.add(*pv(T0 - MINUTE, 0))
+    aligner.add(*vr(T0 - MINUTE, 0))
     for k, f in frames:
         aligner.add(k, f)
     assert aligner.rejected[kind] == 1
@@ -98,3 +103,64 @@ def test_good_frame_after_bad_is_handled(aligner):
     aligner.add(*pv(T0, 1))
     (out,) = aligner.add(*vr(T0, 1))
     assert out.complete and out.head.seq == 2
+
+
+# ------------------------------------------------------------------ no single frame moves the clock or locks out
+def test_one_frame_from_the_future_does_not_blind_the_aligner(aligner):
+    """Issue 17 (a): a schema-valid head frame stamped 2100 made every real frame 'stale' for the rest of the run."""
+    for k, f in (head(T0, 1), pv(T0, 1), vr(T0, 1)):
+        aligner.add(k, f)
+    forged_t = 4_102_444_800_000_000_000  # 2100-01-01
+    assert aligner.add(*head(forged_t, 2)) == []
+    assert aligner.close_pending() == []  # the runtime's late-frame window passes
+    released = []
+    for i in range(1, 11):  # ten real minutes go on as if nothing happened
+        t = T0 + i * MINUTE
+        for k, f in (head(t, 2 + i), pv(t, 1 + i), vr(t, 1 + i)):
+            released += aligner.add(k, f)
+    assert [a.t_ns for a in released] == [T0 + 5 * MINUTE, T0 + 10 * MINUTE]
+    assert all(a.complete for a in released)
+    assert aligner.rejected["stale"] == 0
+
+
+def test_a_lone_frame_never_starts_the_clock(aligner):
+    """Before any frame is accepted, a forged first frame waits for a second source and is pushed out later."""
+    forged_t = 4_102_444_800_000_000_000
+    aligner.add(*head(forged_t, 1))
+    released = []
+    for i in range(0, 6):
+        t = T0 + i * MINUTE
+        for k, f in (head(t, 2 + i), pv(t, 1 + i), vr(t, 1 + i)):
+            released += aligner.add(k, f)
+    assert [a.t_ns for a in released] == [T0, T0 + 5 * MINUTE]
+    # a flood of lone forgeries from one source never confirms a jump; the bounded hold counts what it pushes out
+    for i in range(20):
+        released += aligner.add(*head(forged_t + i * 10**15, 100 + i))
+    assert aligner.rejected["time_jump"] == 21 - 4 * 3  # 21 held in all, 12 kept
+    assert not any(a.t_ns >= forged_t for a in released)
+
+
+def test_a_burst_of_lost_frames_passes_at_once(aligner):
+    """Ten minutes with no frame at all (a lost burst): the next step's devices agree, so it is taken at once."""
+    for k, f in (head(T0, 1), pv(T0, 1), vr(T0, 1)):
+        aligner.add(k, f)
+    t = T0 + 10 * MINUTE
+    assert aligner.add(*head(t, 2)) == []  # held: more than a period ahead, one source so far
+    assert aligner.add(*pv(t, 2)) == []  # confirmed: head and pv taken
+    (out,) = aligner.add(*vr(t, 2))
+    assert out.t_ns == t and out.complete and sum(aligner.rejected.values()) == 0
+
+
+def test_a_forged_huge_seq_locks_a_source_out_for_at_most_one_period(aligner):
+    """Issue 17 (a): a head frame with seq 2**63-1 made the agent hold for the rest of the run."""
+    for k, f in (head(T0, 1), pv(T0, 1), vr(T0, 1)):
+        aligner.add(k, f)
+    aligner.add(*head(T0 + MINUTE, 2**63 - 1))  # taken: its time is plausible
+    released = []
+    for i in range(2, 12):
+        t = T0 + i * MINUTE
+        for k, f in (head(t, i), pv(t, i), vr(t, i)):
+            released += aligner.add(k, f)
+    assert aligner.rejected["out_of_order"] == 4  # the real head at +2..+5 min
+    assert aligner.seq_resets == 1  # at +6 min, one period after the forgery
+    assert [(a.t_ns, a.head is not None) for a in released] == [(T0 + 5 * MINUTE, False), (T0 + 10 * MINUTE, True)]

@@ -85,3 +85,26 @@ def test_offline_decisions_are_bit_identical_across_runs(model):
 def test_full_visibility_cannot_run_offline(model):
     with pytest.raises(ValueError, match="oracle"):
         list(decide_offline(model, AgentSettings(feeder_id="rural", full_visibility=True), []))
+
+
+def test_eq8_set_points_are_clamped_into_the_accepted_range_and_counted(model):
+    """Issue 17 (g): eq. (8) set points outside a controller's accepted range were sent and came back refused."""
+    import dataclasses
+
+    import numpy as np
+
+    maker = DecisionMaker(model, AgentSettings(feeder_id="rural"))
+    pairs = []
+    for key, frame in _frames(model, T0, 1):
+        pairs += maker.on_frame(key, frame)
+    ((aligned, d),) = pairs
+    n = len(model.regulators)
+    wild = dataclasses.replace(d, reg_setpoint_v120=np.array([150.0, 100.0] * n)[:n],
+                               reg_band_v120=np.full(n, 0.5), reg_command=np.ones(n, bool))
+    msg = maker.to_message(aligned, wild)
+    actions = [c.action for c in msg.commands if isinstance(c, m.RegCommand)]
+    assert len(actions) == n
+    lo, hi = m.SETPOINT_RANGE_V120
+    assert [a.setpoint_v120 for a in actions] == [hi if i % 2 == 0 else lo for i in range(n)]
+    assert all(a.band_v120 == m.BAND_RANGE_V120[0] for a in actions)
+    assert maker.clamped == 2 * n
