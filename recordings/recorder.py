@@ -4,9 +4,12 @@ File layout (docs/recordings.md):
 
 - one channel per concrete Zenoh key (the topic is the key, e.g. ``cvvc/rural/meas/pv/pv1``), message
   encoding ``json``, with the JSON Schema of the key's message type (schema encoding ``jsonschema``, name
-  ``cvvc.<Type>``, top-level ``"type": "object"`` so Foxglove can plot it). A key outside the cvvc layout
-  gets a channel with no schema (schema id 0), message encoding ``json`` if its first payload is JSON,
-  else ``application/octet-stream``;
+  ``cvvc.<Type>``, top-level ``"type": "object"`` so Foxglove can plot it). Only payloads that decode into
+  their key's message type (the shared typed codec: bounds, finiteness, unknown fields) reach these channels;
+- everything else goes to the **quarantine** channel ``cvvc.quarantine`` (schema ``cvvc.Quarantined``): the
+  key, the reason and the payload (base64), so nothing is lost and nothing junk sits on a real channel: a key
+  outside the cvvc layout, a payload that does not decode, or a new key past ``max_channels`` (a flood of
+  made-up device ids cannot open unbounded channels);
 - each message: ``log_time`` = the message's own ``t_ns`` (measurement time; the receive time when the
   payload has no valid ``t_ns``, counted), ``publish_time`` = receive wall time [ns], ``sequence`` = the
   message's ``seq`` modulo 2**32 (MCAP sequences are 32-bit);
@@ -21,6 +24,7 @@ counted, never blocking Zenoh); one writer thread owns the ``mcap`` writer (it i
 
 from __future__ import annotations
 
+import base64
 import collections
 import json
 import logging
@@ -36,16 +40,21 @@ import zenoh
 from mcap.writer import LIBRARY_IDENTIFIER, CompressionType, Writer
 
 from recordings.errors import RecordingError
-from schemas.bus import BusConfig, open_session
+from schemas.bus import BadMessage, BusConfig, codec_for, open_session
 from schemas.jsonschema import schema_bytes, schema_name
 from schemas.keys import message_type_for_key
 
-__all__ = ["METADATA_NAME", "STATS_METADATA_NAME", "McapSink", "Recorder", "RecorderConfig", "RecorderStats", "main"]
+__all__ = ["METADATA_NAME", "QUARANTINE_TOPIC", "STATS_METADATA_NAME", "McapSink", "Quarantined", "Recorder",
+           "RecorderConfig", "RecorderStats", "main"]
 
 log = logging.getLogger(__name__)
 
 METADATA_NAME = "cvvc.recording"
 STATS_METADATA_NAME = "cvvc.recorder_stats"
+QUARANTINE_TOPIC = "cvvc.quarantine"
+"""The MCAP topic of refused samples (not a Zenoh key: it cannot collide with one)."""
+MAX_CHANNELS = 512
+"""Default bound on the real channels of one recording (the largest feeder here has under 40 devices)."""
 _U32 = 0xFFFFFFFF
 _U64_MAX = 2**64 - 1
 
@@ -64,6 +73,7 @@ class RecorderConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_f
     flush_period_s: float = 1.0
     queue_size: int = 200_000
     chunk_size_bytes: int = 1 << 20
+    max_channels: int = MAX_CHANNELS
     feeder_fingerprint: str = ""
     model_path: str = ""
     agent_settings_json: str = ""  # the agent's settings, for the offline re-run (empty: unknown)
@@ -80,6 +90,15 @@ class RecorderStats(msgspec.Struct, frozen=True, kw_only=True):
     log_time_fallbacks: int  # payloads without a valid integer t_ns: log_time = receive time
     callback_errors: int
     flushes: int
+    quarantined: int = 0  # samples written to the quarantine channel instead of their key's channel
+
+
+class Quarantined(msgspec.Struct, frozen=True, kw_only=True):
+    """One refused sample on the quarantine channel: where it came, why it was refused, its bytes (base64)."""
+
+    key: str
+    reason: str
+    payload_b64: str
 
 
 class _Header(msgspec.Struct):
@@ -97,7 +116,7 @@ class McapSink:
     """
 
     def __init__(self, file: IO[bytes], *, metadata: dict[str, str] | None = None,
-                 chunk_size_bytes: int = 1 << 20) -> None:
+                 chunk_size_bytes: int = 1 << 20, max_channels: int = MAX_CHANNELS) -> None:
         self._writer = Writer(file, chunk_size=chunk_size_bytes, compression=CompressionType.ZSTD)
         self._writer.start(profile="", library=f"cvvc-edge {_version()}; {LIBRARY_IDENTIFIER}")
         if metadata is not None:
@@ -106,6 +125,9 @@ class McapSink:
         self._schemas: dict[type, int] = {}
         self._header_decoder = msgspec.json.Decoder(_Header)
         self._add = self._writer.add_message
+        self._max_channels = max_channels
+        self._quarantine_channel = 0
+        self.quarantined = 0
         self.messages = 0
         self.payload_bytes = 0
         self.log_time_fallbacks = 0
@@ -116,12 +138,37 @@ class McapSink:
         return len(self._channels)
 
     def write(self, raw: bytes, key: str, recv_ns: int) -> None:
-        """Add one sample: ``log_time`` from its ``t_ns`` (else ``recv_ns``), ``publish_time`` = ``recv_ns``."""
+        """Add one sample: ``log_time`` from its ``t_ns`` (else ``recv_ns``), ``publish_time`` = ``recv_ns``.
+
+        A sample that does not decode into its key's message type goes to the quarantine channel instead.
+        """
+        msg_type = message_type_for_key(key)
         channel_id = self._channels.get(key)
-        if channel_id is None:
-            channel_id = self._register_channel(key, raw)
+        if msg_type is None:
+            return self._quarantine(raw, key, recv_ns, "not a key of the cvvc layout")
+        if channel_id is None and len(self._channels) >= self._max_channels:
+            return self._quarantine(raw, key, recv_ns, f"channel limit: already {self._max_channels} channels")
         try:
-            header = self._header_decoder.decode(raw)
+            codec_for(msg_type).decode(raw)
+        except BadMessage as e:
+            return self._quarantine(raw, key, recv_ns, f"not a {msg_type.__name__}: {e}")
+        if channel_id is None:
+            channel_id = self._register_channel(key, msg_type)
+        self._write(channel_id, raw, recv_ns)
+
+    def _quarantine(self, raw: bytes, key: str, recv_ns: int, reason: str) -> None:
+        if not self._quarantine_channel:
+            schema_id = self._writer.register_schema("cvvc.Quarantined", "jsonschema",
+                                                     msgspec.json.encode(msgspec.json.schema(Quarantined)))
+            self._quarantine_channel = self._writer.register_channel(
+                QUARANTINE_TOPIC, "json", schema_id, {"cvvc_message_type": "Quarantined"})
+        record = Quarantined(key=key[:1000], reason=reason[:500], payload_b64=base64.b64encode(raw).decode())
+        self._write(self._quarantine_channel, msgspec.json.encode(record), recv_ns, header_of=raw)
+        self.quarantined += 1
+
+    def _write(self, channel_id: int, raw: bytes, recv_ns: int, *, header_of: bytes | None = None) -> None:
+        try:
+            header = self._header_decoder.decode(raw if header_of is None else header_of)
             log_time, seq = header.t_ns, header.seq
         except (msgspec.DecodeError, UnicodeDecodeError, RecursionError):  # not a JSON object, t_ns/seq not
             # integers, bad UTF-8, or nested too deeply: msgspec raises the last two as they are
@@ -144,25 +191,12 @@ class McapSink:
             self._writer.add_metadata(STATS_METADATA_NAME, stats)
         self._writer.finish()
 
-    def _register_channel(self, key: str, first_payload: bytes) -> int:
-        msg_type = message_type_for_key(key)
-        if msg_type is None:
-            schema_id = 0
-            try:
-                msgspec.json.decode(first_payload)
-                encoding = "json"
-            except (msgspec.DecodeError, UnicodeDecodeError, RecursionError):  # see ``write``
-                encoding = "application/octet-stream"
-            metadata = {"cvvc_message_type": ""}
-        else:
-            schema_id = self._schemas.get(msg_type, 0)
-            if not schema_id:
-                schema_id = self._writer.register_schema(schema_name(msg_type), "jsonschema",
-                                                         schema_bytes(msg_type))
-                self._schemas[msg_type] = schema_id
-            encoding = "json"
-            metadata = {"cvvc_message_type": msg_type.__name__}
-        channel_id = self._writer.register_channel(key, encoding, schema_id, metadata)
+    def _register_channel(self, key: str, msg_type: type) -> int:
+        schema_id = self._schemas.get(msg_type, 0)
+        if not schema_id:
+            schema_id = self._writer.register_schema(schema_name(msg_type), "jsonschema", schema_bytes(msg_type))
+            self._schemas[msg_type] = schema_id
+        channel_id = self._writer.register_channel(key, "json", schema_id, {"cvvc_message_type": msg_type.__name__})
         self._channels[key] = channel_id
         return channel_id
 
@@ -206,7 +240,8 @@ class Recorder:
         try:
             self._file = open(Path(self.config.out_path), "wb")  # noqa: SIM115  # closed in close()
             self._sink = McapSink(self._file, metadata=_recording_metadata(self.config),
-                                  chunk_size_bytes=self.config.chunk_size_bytes)
+                                  chunk_size_bytes=self.config.chunk_size_bytes,
+                                  max_channels=self.config.max_channels)
             self._sink.flush()
             self._thread.start()
             for key in self.config.keys:
@@ -254,7 +289,8 @@ class Recorder:
         return RecorderStats(messages=sink.messages if sink else 0, payload_bytes=sink.payload_bytes if sink else 0,
                              channels=sink.channels if sink else 0, dropped_queue_full=self._dropped,
                              log_time_fallbacks=sink.log_time_fallbacks if sink else 0,
-                             callback_errors=self._callback_errors, flushes=sink.flushes if sink else 0)
+                             callback_errors=self._callback_errors, flushes=sink.flushes if sink else 0,
+                             quarantined=sink.quarantined if sink else 0)
 
     @property
     def pending(self) -> int:

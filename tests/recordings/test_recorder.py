@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import base64
 import json
 import os
 import signal
@@ -17,7 +18,14 @@ from mcap.reader import make_reader
 from recutil import EXAMPLE_KEYS, encode, head_frame
 
 from recordings.info import recording_info, recover
-from recordings.recorder import METADATA_NAME, STATS_METADATA_NAME, Recorder, RecorderConfig
+from recordings.recorder import (
+    METADATA_NAME,
+    QUARANTINE_TOPIC,
+    STATS_METADATA_NAME,
+    Quarantined,
+    Recorder,
+    RecorderConfig,
+)
 from schemas.bus import BusConfig, codec_for, open_session, wait_for
 from schemas.examples import examples
 from schemas.jsonschema import schema_bytes, schema_name
@@ -55,6 +63,7 @@ def test_round_trip_every_message_type(router_endpoint: str, tmp_path: Path) -> 
     stats = recorder.stats()
     assert stats.dropped_queue_full == 0 and stats.callback_errors == 0
     assert stats.log_time_fallbacks == 1
+    assert stats.quarantined == 4  # the three OracleRequests and the JSON without t_ns, on a non-cvvc key
 
     with open(out, "rb") as f:
         reader = make_reader(f)
@@ -62,19 +71,23 @@ def test_round_trip_every_message_type(router_endpoint: str, tmp_path: Path) -> 
         assert summary is not None
         got: dict[str, list[bytes]] = {}
         for schema, channel, message in reader.iter_messages(log_time_order=False):
-            key = channel.topic
-            got.setdefault(key, []).append(message.data)
+            key, data = channel.topic, message.data
+            if key == QUARANTINE_TOPIC:  # a key outside the cvvc layout: kept, with its bytes, apart
+                q = msgspec.json.decode(data, type=Quarantined)
+                key, data = q.key, base64.b64decode(q.payload_b64)
+                assert q.reason == "not a key of the cvvc layout"
+            got.setdefault(key, []).append(data)
             msg_type = next(t for t, k in EXAMPLE_KEYS.items() if k == key)
             assert wall0 <= message.publish_time <= wall1
-            if message.data == b'{"no_time": 1}':
+            if data == b'{"no_time": 1}':
                 assert message.log_time == message.publish_time
                 continue
-            decoded = codec_for(msg_type).decode(message.data)
+            decoded = codec_for(msg_type).decode(data)
             assert message.log_time == decoded.t_ns
             assert message.sequence == getattr(decoded, "seq", 0)
             assert channel.message_encoding == "json"
             if key == "test/oracle_request":
-                assert schema is None and channel.schema_id == 0
+                assert channel.topic == QUARANTINE_TOPIC and schema is not None and schema.name == "cvvc.Quarantined"
             else:
                 assert schema is not None
                 assert schema.encoding == "jsonschema"
@@ -205,3 +218,35 @@ def test_unwritable_output_is_a_clear_error(router_endpoint: str, tmp_path: Path
     with open_session(BusConfig(mode="peer", connect=(router_endpoint,))) as session:
         with pytest.raises(RecordingError, match="cannot write .*check the directory exists"):
             Recorder(session, RecorderConfig(out_path=str(tmp_path / "no" / "such" / "dir.mcap"))).start()
+
+
+def test_junk_goes_to_quarantine_and_channels_are_bounded(router_endpoint: str, tmp_path: Path) -> None:
+    """Issue 17 (e): junk on a real key sat on the real channel; a flood of made-up keys opened 813 channels."""
+    out = tmp_path / "junk.mcap"
+    bus = BusConfig(mode="peer", connect=(router_endpoint,))
+    good = encode(head_frame(1))
+    negative_seq = msgspec.json.encode(msgspec.to_builtins(head_frame(1)) | {"seq": -1})
+    junk = [b"not json", b'{"t_ns": 5, "seq": 1}', negative_seq]
+    with open_session(bus) as rec_session, open_session(bus) as pub_session:
+        config = RecorderConfig(out_path=str(out), bus=bus, max_channels=3)
+        with Recorder(rec_session, config) as recorder:
+            head = _publisher(pub_session, "cvvc/rural/meas/head")
+            ghosts = [_publisher(pub_session, f"cvvc/rural/meas/head/g{i}") for i in range(5)]
+            assert wait_for(lambda: head.matching_status.matching and all(g.matching_status.matching
+                                                                          for g in ghosts), 10.0)
+            head.put(good)
+            for raw in junk:
+                head.put(raw)
+            for g in ghosts:  # valid head frames on made-up keys: two get channels, three hit the bound
+                g.put(good)
+            assert wait_for(lambda: recorder.stats().messages == 9, 10.0), recorder.stats()
+    stats = recorder.stats()
+    assert stats.quarantined == 3 + 3 and stats.channels == 3
+    with open(out, "rb") as f:
+        by_topic: dict[str, list[bytes]] = {}
+        for _, channel, message in make_reader(f).iter_messages(log_time_order=False):
+            by_topic.setdefault(channel.topic, []).append(message.data)
+    assert by_topic["cvvc/rural/meas/head"] == [good]  # the real channel holds only the real frame
+    quarantined = [msgspec.json.decode(d, type=Quarantined) for d in by_topic[QUARANTINE_TOPIC]]
+    assert [base64.b64decode(q.payload_b64) for q in quarantined[:3]] == junk  # nothing lost
+    assert [q.reason.split(":")[0] for q in quarantined] == ["not a HeadFrame"] * 3 + ["channel limit"] * 3
