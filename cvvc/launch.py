@@ -70,6 +70,7 @@ class RunConfig(msgspec.Struct, frozen=True, kw_only=True):
     drop_prob: float = 0.0
     truth_every: int = 1  # the recording keeps the truth, so metrics can be recomputed from it
     secure: bool = False  # security profile: mTLS + access control, certificates in <cache>/security
+    ca_dir: str | None = None  # secure: the CA that issues them (`cvvc security init-ca`), kept out of the cache
     progress_label: str = "simulated"  # the progress bar's label (``cvvc evaluate`` names the run)
     # False only for the model-error study (``cvvc evaluate --robustness``): the simulated feeder is deliberately
     # not the one the model was trained on, so its fingerprint differs from the model's.
@@ -243,8 +244,11 @@ def run(config: RunConfig) -> RunSummary:
     if config.secure:  # every child presents its role's certificate; the router enforces the policy
         from schemas.security import init_security_dir
 
+        if config.ca_dir is None:
+            raise LaunchError("--secure needs --ca-dir CA: create the authority once with `cvvc security init-ca "
+                              "--dir CA`, outside the cache (its key must not sit beside the run's keys)")
         security_dir = str(Path(config.cache) / "security")
-        init_security_dir(security_dir)
+        init_security_dir(security_dir, ca_dir=config.ca_dir)
         connect += ["--secure-dir", security_dir]
     children: list[_Child] = []
     final: m.MetricsFrame | None = None

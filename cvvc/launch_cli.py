@@ -31,8 +31,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--cache", default=".cvvc-cache", help="cache of feeders, profiles and models")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     p.add_argument("--secure", action="store_true",
-                   help="security profile: mTLS with per-role certificates (made once in <cache>/security) "
-                        "and the router's access-control policy; see docs/security.md")
+                   help="security profile: mTLS with per-role certificates (issued once into <cache>/security "
+                        "from --ca-dir) and the router's access-control policy; see docs/security.md")
+    p.add_argument("--ca-dir", metavar="CA", help="with --secure: the certificate authority's folder, made once "
+                   "with `cvvc security init-ca --dir CA` (kept apart from the cache)")
     p.set_defaults(func=_run)
     register_report(sub)
     from cvvc.evaluate_cli import register_evaluate
@@ -59,7 +61,7 @@ def _run(args: argparse.Namespace) -> int:
                        year_seed=args.year_seed, bandwidth_v120=args.bandwidth_v, record=not args.no_record,
                        pv_margin_window_s=args.pv_margin_window_s, setpoint_hold=args.setpoint_hold,
                        baseline=not args.no_baseline, cache=args.cache, progress=not args.json,
-                       secure=args.secure)
+                       secure=args.secure, ca_dir=args.ca_dir)
     summary = run(config)
     if args.json:
         sys.stdout.write(msgspec.json.format(msgspec.json.encode(summary), indent=2).decode() + "\n")

@@ -15,8 +15,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     e.set_defaults(func=_export)
     s = sub.add_parser("security", help="security profile: local CA and role certificates (mTLS + access control)")
     ssec = s.add_subparsers(dest="security_verb", metavar="SUBVERB")
-    i = ssec.add_parser("init", help="create a local CA and one certificate per role in DIR (idempotent)")
+    a = ssec.add_parser("init-ca", help="create the local certificate authority in DIR (idempotent); keep DIR "
+                        "apart from any run's cache")
+    a.add_argument("--dir", required=True, metavar="DIR", help="the CA directory")
+    a.set_defaults(func=_security_init_ca)
+    i = ssec.add_parser("init", help="issue one certificate per role into DIR from the CA in --ca-dir (idempotent)")
     i.add_argument("--dir", required=True, metavar="DIR", help="the security state directory")
+    i.add_argument("--ca-dir", required=True, metavar="CA", help="the CA directory (`cvvc security init-ca`)")
     i.add_argument("--san", action="append", default=[], metavar="HOST_OR_IP",
                    help="also valid for this host name or IP address (repeatable; for use across hosts)")
     i.set_defaults(func=_security_init)
@@ -39,13 +44,23 @@ def _export(args: argparse.Namespace) -> int:
     return 0
 
 
+def _security_init_ca(args: argparse.Namespace) -> int:
+    from schemas.security import init_ca
+
+    written = init_ca(args.dir)
+    for path in written:
+        print(path)
+    print(f"{args.dir}: certificate authority ({'created' if written else 'already there, kept'})")
+    return 0
+
+
 def _security_init(args: argparse.Namespace) -> int:
     from schemas.security import ROLES, init_security_dir
 
-    written = init_security_dir(args.dir, extra_sans=tuple(args.san))
+    written = init_security_dir(args.dir, ca_dir=args.ca_dir, extra_sans=tuple(args.san))
     for path in written:
         print(path)
-    print(f"{args.dir}: CA and certificates of {', '.join(ROLES)} "
+    print(f"{args.dir}: certificates of {', '.join(ROLES)} issued by the CA in {args.ca_dir} "
           f"({'created' if written else 'already there, kept'})")
     return 0
 

@@ -1,13 +1,22 @@
 """The security profile of the bus: a local CA, one certificate per role, mTLS and the router's access policy.
 
-``init_security_dir(DIR)`` (``cvvc security init --dir DIR``) writes, once::
+Two steps, two folders (the CA's private key never sits beside the keys a run uses):
 
-    DIR/ca.pem, DIR/ca.key                 the local certificate authority (EC P-256, 10 years)
-    DIR/<role>.pem, DIR/<role>.key         one certificate per role, CN = role name,
+1. ``init_ca(CA)`` (``cvvc security init-ca --dir CA``), once, on the machine that keeps the authority::
+
+       CA/ca.pem, CA/ca.key                the local certificate authority (EC P-256, 10 years)
+
+2. ``init_security_dir(DIR, ca_dir=CA)`` (``cvvc security init --dir DIR --ca-dir CA``; ``cvvc run --secure
+   --ca-dir CA`` does it into ``<cache>/security``) issues from it::
+
+       DIR/ca.pem                          the CA's certificate only (to verify peers)
+       DIR/<role>.pem, DIR/<role>.key      one certificate per role, CN = role name,
                                            SAN 127.0.0.1 / localhost, server + client use
 
 for the roles ``agent``, ``devices`` (the bridge: head meter, PV plants, regulators), ``recorder`` and
-``router`` (the launcher). Private keys are 0600. Running it again keeps what is there (idempotent).
+``router`` (the launcher). Private keys are 0600. Running either again keeps what is there (idempotent);
+a ``DIR`` that holds a CA key (made by an older version) is refused until that key is moved out. Rotation:
+delete a role's two files in ``DIR`` and run step 2 again (docs/security.md).
 
 ``zenoh_security_settings(DIR, role)`` gives the Zenoh config entries of a role: TLS certificate and key for
 both listening and connecting, the CA, ``enable_mtls`` and, for the router, an ``access_control`` policy with
@@ -32,6 +41,7 @@ __all__ = [
     "SecurityError",
     "SecurityRole",
     "access_control_policy",
+    "init_ca",
     "init_security_dir",
     "nested_zenoh_config",
     "role_paths",
@@ -56,27 +66,61 @@ def role_paths(state_dir: str | Path, role: str) -> tuple[Path, Path]:
     return d / f"{role}.pem", d / f"{role}.key"
 
 
-def init_security_dir(state_dir: str | Path, *, extra_sans: tuple[str, ...] = ()) -> list[Path]:
-    """Create the CA and every role's certificate in ``state_dir`` unless they exist; returns the files written.
-
-    Idempotent: an existing CA and existing role certificates are kept (a missing role certificate is
-    issued by the existing CA; delete a role's two files to reissue it). Private keys are written 0600,
-    the directory is 0700. ``extra_sans`` (host names or IP addresses) are added to the subject
-    alternative names of new certificates, beside 127.0.0.1 and localhost, for use across hosts.
-    """
-    d = Path(state_dir)
+def _private_dir(d: Path, what: str) -> None:
     try:
         d.mkdir(parents=True, exist_ok=True)
         os.chmod(d, 0o700)
     except OSError as e:
-        raise SecurityError(f"cannot create the security directory {d}: {e}") from e
+        raise SecurityError(f"cannot create the {what} {d}: {e}") from e
+
+
+def init_ca(ca_dir: str | Path) -> list[Path]:
+    """Create the local certificate authority in ``ca_dir`` unless it exists; returns the files written.
+
+    Keep ``ca_dir`` apart from any run's cache (its key signs every certificate of the bus).
+    """
+    d = Path(ca_dir)
+    _private_dir(d, "CA directory")
+    cert_path, key_path = role_paths(d, "ca")
+    if cert_path.is_file() and key_path.is_file():
+        _load(cert_path, key_path)  # readable, or a clear error
+        return []
+    cert, key = _make_ca()
+    return _write(cert_path, key_path, cert, key)
+
+
+def init_security_dir(state_dir: str | Path, *, ca_dir: str | Path, extra_sans: tuple[str, ...] = ()) -> list[Path]:
+    """Issue every role's certificate into ``state_dir`` from the CA in ``ca_dir``; returns the files written.
+
+    ``state_dir`` gets the CA's certificate, never its key. Idempotent: existing role certificates are kept
+    (delete a role's two files to reissue it). Private keys are written 0600, the directory is 0700.
+    ``extra_sans`` (host names or IP addresses) are added to the subject alternative names of new
+    certificates, beside 127.0.0.1 and localhost, for use across hosts.
+
+    Raises
+    ------
+    SecurityError
+        No CA in ``ca_dir`` (run ``cvvc security init-ca`` first), or ``state_dir`` holds a CA key.
+    """
+    d = Path(state_dir)
+    ca_cert_path, ca_key_path = role_paths(ca_dir, "ca")
+    if not (ca_cert_path.is_file() and ca_key_path.is_file()):
+        raise SecurityError(f"no certificate authority in {ca_dir}; create one with `cvvc security init-ca "
+                            f"--dir {ca_dir}` (keep it apart from the run's cache)")
+    stray_key = role_paths(d, "ca")[1]
+    if stray_key.exists() and Path(ca_dir).resolve() != d.resolve():
+        raise SecurityError(f"{stray_key} is a CA private key inside a run's security directory; move it out "
+                            "(e.g. into the folder you pass as --ca-dir) and run again")
+    ca_cert, ca_key = _load(ca_cert_path, ca_key_path)
+    _private_dir(d, "security directory")
     written: list[Path] = []
-    ca_cert_path, ca_key_path = role_paths(d, "ca")
-    if ca_cert_path.is_file() and ca_key_path.is_file():
-        ca_cert, ca_key = _load(ca_cert_path, ca_key_path)
-    else:
-        ca_cert, ca_key = _make_ca()
-        written += _write(ca_cert_path, ca_key_path, ca_cert, ca_key)
+    state_ca = role_paths(d, "ca")[0]
+    if not state_ca.is_file() or state_ca.read_bytes() != ca_cert_path.read_bytes():
+        try:
+            state_ca.write_bytes(ca_cert_path.read_bytes())
+        except OSError as e:
+            raise SecurityError(f"cannot write {state_ca}: {e}") from e
+        written.append(state_ca)
     for role in ROLES:
         cert_path, key_path = role_paths(d, role)
         if cert_path.is_file() and key_path.is_file():
@@ -170,7 +214,7 @@ def _load(cert_path: Path, key_path: Path):
         key = serialization.load_pem_private_key(key_path.read_bytes(), password=None)
     except (OSError, ValueError) as e:
         raise SecurityError(f"cannot read the CA in {cert_path.parent}: {e}; remove the directory and run "
-                            "`cvvc security init` again") from e
+                            "`cvvc security init-ca` again") from e
     return cert, key
 
 
@@ -185,7 +229,8 @@ def zenoh_security_settings(state_dir: str | Path, role: str) -> dict[str, Any]:
     cert, key = role_paths(state_dir, role)
     missing = [str(p) for p in (ca, cert, key) if not p.is_file()]
     if missing:
-        raise SecurityError(f"missing {', '.join(missing)}; run `cvvc security init --dir {state_dir}` first")
+        raise SecurityError(f"missing {', '.join(missing)}; run `cvvc security init --dir {state_dir} --ca-dir CA` "
+                            "first")
     tls = "transport/link/tls"
     out: dict[str, Any] = {
         "transport/link/protocols": ["tls"],

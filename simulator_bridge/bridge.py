@@ -296,6 +296,8 @@ class _Runtime:
                                                  float(engine.reg_default_setpoint_v120[r]),
                                                  float(engine.reg_default_band_v120[r]))
                      for r, rid in enumerate(engine.regulator_ids)}
+        for device in (*self.pvs.values(), *self.regs.values()):
+            device.guard.period_ns = int(dm.feeder.control_period_s) * _NS  # the commands' time windows
         self.reg_phase = ["abc"[int(engine.node_names[n].split(".")[1]) - 1] for n in engine.reg_secondary_node]
         self.spec = FramerSpec(
             feeder_id=self.fid, step_s=self.step_s, control_every=self.control_every,

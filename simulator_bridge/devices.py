@@ -7,9 +7,13 @@ Command handling, the same for every device (:class:`CommandGuard`):
 
 1. **Checks**, in this order, each a :data:`RejectReason`: the payload names the device the key names
    (``wrong_device``); the value is finite (``non_finite``); the command is not already expired at the
-   device's present simulation time (``expired``: ``valid_until_t_ns <= now_t_ns``); its ``seq`` is
-   greater than the last applied one from the same ``source`` (``replay``); the value is within the
-   device's own range (``out_of_range``). ``unknown_device`` and ``wrong_feeder`` are decided by the
+   device's present simulation time (``expired``: ``valid_until_t_ns <= now_t_ns``); its times are within
+   the device's window (``out_of_window``: ``t_ns`` at most one control period ahead of the device's time,
+   ``valid_until_t_ns`` at most :data:`MAX_VALIDITY_PERIODS` periods ahead); its ``seq`` is greater than the
+   last applied one from the same ``source`` (``replay``), unless its ``t_ns`` is at least one control
+   period past that source's last applied command (the sender restarted, or a forged huge ``seq`` came
+   earlier: no command locks a source out for longer than one period); the value is within the device's own
+   range (``out_of_range``). ``unknown_device`` and ``wrong_feeder`` are decided by the
    bridge, which owns the key space. A rejected command changes nothing.
 2. **Apply**: the command becomes the device's active command until ``valid_until_t_ns``.
 3. **Watchdog**: before a step at simulation time ``t_ns`` is simulated, an active command with
@@ -53,6 +57,7 @@ __all__ = [
     "CommandGuard",
     "DeviceError",
     "FrameDropper",
+    "MAX_VALIDITY_PERIODS",
     "MeasurementNoise",
     "PvInverter",
     "RegulatorController",
@@ -68,11 +73,17 @@ __all__ = [
 ]
 
 RejectReason = Literal[
-    "unknown_device", "wrong_feeder", "wrong_device", "non_finite", "expired", "replay", "out_of_range"
+    "unknown_device", "wrong_feeder", "wrong_device", "non_finite", "expired", "out_of_window", "replay",
+    "out_of_range",
 ]
 REJECT_REASONS: tuple[str, ...] = (
-    "unknown_device", "wrong_feeder", "wrong_device", "non_finite", "expired", "replay", "out_of_range",
+    "unknown_device", "wrong_feeder", "wrong_device", "non_finite", "expired", "out_of_window", "replay",
+    "out_of_range",
 )
+DEFAULT_PERIOD_NS = 300_000_000_000
+"""A device's control period when the bridge does not set one (``CommandGuard.period_ns``) [ns]."""
+MAX_VALIDITY_PERIODS = 12
+"""The furthest a command's ``valid_until_t_ns`` may lie past the device's time, in control periods."""
 SETPOINT_RANGE_V120 = m.SETPOINT_RANGE_V120
 BAND_RANGE_V120 = m.BAND_RANGE_V120
 _CLIP_TOL_KVAR = 1e-6
@@ -120,10 +131,12 @@ class CommandGuard:
     stepping thread is its only user.
     """
 
-    def __init__(self, device_id: str) -> None:
+    def __init__(self, device_id: str, *, period_ns: int = DEFAULT_PERIOD_NS) -> None:
         self.device_id = device_id
+        self.period_ns = int(period_ns)  # the feeder's control period [ns]: the unit of the time windows
         self.active: ActiveCommand | None = None
         self._last_seq: dict[str, int] = {}
+        self._last_t_ns: dict[str, int] = {}
 
     def check(self, cmd: m.Command, payload_device_id: str, value: float, *, now_t_ns: int) -> Verdict | None:
         """The rejection of ``cmd`` by the generic checks (see the module docstring), or None if it passes."""
@@ -135,8 +148,14 @@ class CommandGuard:
         if cmd.valid_until_t_ns <= now_t_ns:
             return reject("expired", f"valid_until_t_ns {cmd.valid_until_t_ns} is not after the device's "
                           f"present time {now_t_ns}; send commands valid past the frame they answer")
+        if cmd.t_ns > now_t_ns + self.period_ns:
+            return reject("out_of_window", f"t_ns {cmd.t_ns} is more than one control period ahead of the "
+                          f"device's time {now_t_ns}; stamp commands with the step they answer")
+        if cmd.valid_until_t_ns > now_t_ns + MAX_VALIDITY_PERIODS * self.period_ns:
+            return reject("out_of_window", f"valid_until_t_ns {cmd.valid_until_t_ns} is more than "
+                          f"{MAX_VALIDITY_PERIODS} control periods past the device's time {now_t_ns}")
         last = self._last_seq.get(cmd.source)
-        if last is not None and cmd.seq <= last:
+        if last is not None and cmd.seq <= last and cmd.t_ns < self._last_t_ns[cmd.source] + self.period_ns:
             return reject("replay", f"seq {cmd.seq} from {cmd.source!r} is not greater than the last "
                           f"applied {last}; every command needs a new, increasing seq")
         return None
@@ -144,6 +163,7 @@ class CommandGuard:
     def apply(self, cmd: m.Command, value: float) -> None:
         """Record ``cmd`` as applied: it becomes the active command and its seq the last from its source."""
         self._last_seq[cmd.source] = cmd.seq
+        self._last_t_ns[cmd.source] = cmd.t_ns
         self.active = ActiveCommand(cmd_id=cmd.cmd_id, source=cmd.source, seq=cmd.seq,
                                     valid_until_t_ns=cmd.valid_until_t_ns, value=float(value))
 
@@ -152,6 +172,7 @@ class CommandGuard:
         was withdrawn), and a restarted sender counts again from 1. Its active command stays until it expires.
         """
         self._last_seq.pop(source, None)
+        self._last_t_ns.pop(source, None)
 
     def expire(self, t_ns: int) -> ActiveCommand | None:
         """Before simulating time ``t_ns``: drop and return the active command if it has expired."""
@@ -406,18 +427,20 @@ def pv_frame(*, plant: PvInverter, t_ns: int, seq: int, p_kw: _Values, q_kvar: _
     is no active power and the inverter gives no reactive power at night (``q_at_night`` false). The readings
     may be arrays or lists. ``q_setpoint_kvar`` is the commanded Q in force at the step (``plant.q_setpoint_kvar``
     then): passed, not read from ``plant``, because a publisher may build the frame after the state moved on.
+    The frame reports the set point as the inverter applies it: clipped to ``±q_available_kvar`` (a request of
+    1,000,000 kvar on a 1,860 kVA inverter reads as its headroom, not as the request).
     """
     present = [ph for ph in range(3) if v_v[ph] > 0.0] or [0, 1, 2]
     phases = [m.PvPhase(phase=_PHASE_NAMES[ph], p_kw=float(p_kw[ph]), q_kvar=float(q_kvar[ph]),
                         v_mag_v=float(v_v[ph])) for ph in present]
     s_rated = plant.s_rated_kva
     p_avail = min(max(float(available_p_kw), 0.0), s_rated)
+    q_avail = math.sqrt(max(s_rated**2 - p_avail**2, 0.0)) if p_avail > 0.0 or q_at_night else 0.0
+    q_applied = None if q_setpoint_kvar is None else min(max(float(q_setpoint_kvar), -q_avail), q_avail)
     return m.PvFrame(t_ns=t_ns, seq=seq, source=plant.plant_id, plant_id=plant.plant_id, phases=phases,
                      p_kw=float(sum([p.p_kw for p in phases])), q_kvar=float(sum([p.q_kvar for p in phases])),
                      s_rated_kva=s_rated,
-                     q_available_kvar=(math.sqrt(max(s_rated**2 - p_avail**2, 0.0))
-                                       if p_avail > 0.0 or q_at_night else 0.0),
-                     q_setpoint_kvar=q_setpoint_kvar, local_mode=plant.local_mode)
+                     q_available_kvar=q_avail, q_setpoint_kvar=q_applied, local_mode=plant.local_mode)
 
 
 def reg_frame(*, reg: RegulatorController, t_ns: int, seq: int, phase: str, v120: float,

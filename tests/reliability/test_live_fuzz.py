@@ -320,8 +320,9 @@ def test_live_agent_bridge_and_recorder_survive_12000_bad_messages(procs: Procs,
 
         # nothing crashed, and the next good command and frames are handled normally
         assert agent.alive() and bridge.alive() and recorder.alive()
+        now_t_ns = last_fuzz_t_ns  # a command may be in force at most 12 periods past the device's time
         probe = m.PvCommand(t_ns=1, seq=1, source="probe", cmd_id="probe:1", in_reply_to=0,
-                            valid_until_t_ns=FAR_FUTURE_NS, plant_id="pv680", q_kvar=-50.0)
+                            valid_until_t_ns=now_t_ns + 3_600_000_000_000, plant_id="pv680", q_kvar=-50.0)
         pubs[f"{F}/cmd/pv/pv680"].put(msgspec.json.encode(probe))
         ack = watcher.first(m.Ack, lambda a: a.cmd_id == "probe:1", 10, "the probe's ack")
         assert ack.status in ("accepted", "clipped"), ack

@@ -19,7 +19,14 @@ import pytest
 import zenoh
 
 from schemas.bus import BusConfig, BusError, free_port, open_session, wait_for, zenoh_config
-from schemas.security import ROLES, SecurityError, init_security_dir, role_paths, zenoh_security_settings
+from schemas.security import (
+    ROLES,
+    SecurityError,
+    init_ca,
+    init_security_dir,
+    role_paths,
+    zenoh_security_settings,
+)
 
 N = 20
 
@@ -27,7 +34,9 @@ N = 20
 @pytest.fixture(scope="module")
 def security_dir(tmp_path_factory) -> Path:
     d = tmp_path_factory.mktemp("security")
-    init_security_dir(d)
+    ca = tmp_path_factory.mktemp("ca")
+    init_ca(ca)
+    init_security_dir(d, ca_dir=ca)
     return d
 
 
@@ -89,9 +98,13 @@ def test_init_makes_one_certificate_per_role_signed_by_the_ca_and_is_idempotent(
     from cryptography import x509
     from cryptography.x509.oid import NameOID
 
-    d = tmp_path / "sec"
-    written = init_security_dir(d)
-    assert len(written) == 2 * (len(ROLES) + 1)
+    d, ca_dir = tmp_path / "sec", tmp_path / "ca"
+    with pytest.raises(SecurityError, match="init-ca"):  # no CA yet: the explicit CA step comes first
+        init_security_dir(d, ca_dir=ca_dir)
+    assert init_ca(ca_dir) == list(role_paths(ca_dir, "ca")) and init_ca(ca_dir) == []
+    written = init_security_dir(d, ca_dir=ca_dir)
+    assert len(written) == 1 + 2 * len(ROLES)  # the CA's certificate and each role's two files
+    assert not role_paths(d, "ca")[1].exists()  # issue 17 (j): the CA key never sits in the run's directory
     ca = x509.load_pem_x509_certificate(role_paths(d, "ca")[0].read_bytes())
     for role in ROLES:
         cert_path, key_path = role_paths(d, role)
@@ -102,12 +115,15 @@ def test_init_makes_one_certificate_per_role_signed_by_the_ca_and_is_idempotent(
         san = cert.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
         assert "localhost" in san.get_values_for_type(x509.DNSName)
         assert [str(ip) for ip in san.get_values_for_type(x509.IPAddress)] == ["127.0.0.1"]
-    assert stat.S_IMODE(role_paths(d, "ca")[1].stat().st_mode) == 0o600
+    assert stat.S_IMODE(role_paths(ca_dir, "ca")[1].stat().st_mode) == 0o600
     before = {p.name: p.read_bytes() for p in d.iterdir()}
-    assert init_security_dir(d) == []  # second run keeps everything
+    assert init_security_dir(d, ca_dir=ca_dir) == []  # second run keeps everything
     assert {p.name: p.read_bytes() for p in d.iterdir()} == before
     role_paths(d, "agent")[0].unlink()
-    assert init_security_dir(d) == list(role_paths(d, "agent"))  # a lost role certificate is reissued
+    assert init_security_dir(d, ca_dir=ca_dir) == list(role_paths(d, "agent"))  # rotation: a role reissued
+    shutil.copy(role_paths(ca_dir, "ca")[1], role_paths(d, "ca")[1])  # an old layout's CA key in the run's dir
+    with pytest.raises(SecurityError, match="CA private key"):
+        init_security_dir(d, ca_dir=ca_dir)
 
 
 def test_secure_config_uses_tls_endpoints_mtls_and_clients(security_dir):
@@ -133,7 +149,8 @@ def test_secure_config_uses_tls_endpoints_mtls_and_clients(security_dir):
 # ------------------------------------------------------------------------------------ authentication
 def test_certificate_of_another_ca_cannot_connect(security_dir, secure_router, tmp_path):
     other = tmp_path / "other"
-    init_security_dir(other)
+    init_ca(tmp_path / "other-ca")
+    init_security_dir(other, ca_dir=tmp_path / "other-ca")
     # trusts the right CA (so it accepts the router) but presents an agent certificate of another CA:
     # only the router's check of the client certificate can refuse it
     rogue = tmp_path / "rogue"

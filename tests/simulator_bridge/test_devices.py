@@ -17,8 +17,8 @@ MIN = 60 * 10**9
 
 
 def _pv_cmd(q: float = 100.0, *, seq: int = 1, source: str = "agent", plant: str = "pv1",
-            valid_until: int = NOW + 5 * MIN) -> m.PvCommand:
-    return m.PvCommand(t_ns=NOW, seq=seq, source=source, cmd_id=f"c{seq}", in_reply_to=0,
+            valid_until: int = NOW + 5 * MIN, t_ns: int = NOW) -> m.PvCommand:
+    return m.PvCommand(t_ns=t_ns, seq=seq, source=source, cmd_id=f"c{seq}", in_reply_to=0,
                        valid_until_t_ns=valid_until, plant_id=plant, q_kvar=q)
 
 
@@ -52,6 +52,9 @@ def test_a_valid_command_passes_and_becomes_active(pv: dv.PvInverter) -> None:
     (_pv_cmd(math.nan), "non_finite"),
     (_pv_cmd(valid_until=NOW), "expired"),           # valid until exactly now: never applies to a step
     (_pv_cmd(valid_until=NOW - 1), "expired"),
+    (_pv_cmd(t_ns=NOW + 5 * MIN + 1), "out_of_window"),  # stamped more than one period ahead
+    (_pv_cmd(valid_until=NOW + 60 * MIN + 1), "out_of_window"),  # in force for more than 12 periods
+    (_pv_cmd(valid_until=2**63 - 1), "out_of_window"),
 ])
 def test_generic_rejections(pv: dv.PvInverter, cmd: m.PvCommand, reason: str) -> None:
     v = pv.check(cmd, now_t_ns=NOW)
@@ -67,6 +70,19 @@ def test_replays_are_rejected_per_source(pv: dv.PvInverter) -> None:
         assert v is not None and v.reason_kind == "replay"
     assert pv.check(_pv_cmd(seq=6), now_t_ns=NOW) is None
     assert pv.check(_pv_cmd(seq=1, source="other-agent"), now_t_ns=NOW) is None  # seqs are per source
+
+
+def test_a_forged_huge_seq_locks_a_source_out_for_at_most_one_period(pv: dv.PvInverter) -> None:
+    """Issue 17 (b): two commands from 'agent' with seq 2**63-1 locked the real agent out for good."""
+    forged = _pv_cmd(seq=2**63 - 1)
+    assert pv.check(forged, now_t_ns=NOW) is None
+    pv.guard.apply(forged, forged.q_kvar)
+    later = NOW + 4 * MIN
+    v = pv.check(_pv_cmd(seq=3, t_ns=later, valid_until=later + 10 * MIN), now_t_ns=later)
+    assert v is not None and v.reason_kind == "replay"  # within the period: still a replay
+    t = NOW + 5 * MIN  # one control period later the real agent is obeyed again
+    assert pv.check(_pv_cmd(seq=3, t_ns=t, valid_until=t + 10 * MIN), now_t_ns=t) is None
+    assert pv.check(_pv_cmd(seq=2**63 - 1), now_t_ns=t) is not None  # the old forgery replayed: refused
 
 
 def test_a_rejected_command_does_not_advance_the_seq(pv: dv.PvInverter) -> None:
@@ -153,6 +169,12 @@ def test_frames_from_readings_decode_within_schema_bounds(pv: dv.PvInverter, reg
     night = dv.pv_frame(plant=pv, t_ns=NOW, seq=2, p_kw=np.zeros(3), q_kvar=np.zeros(3), v_v=np.full(3, 2400.0),
                         available_p_kw=0.0, q_setpoint_kvar=None)
     assert night.q_available_kvar == 0.0  # no reactive power without active power (unless q_at_night)
+    # issue 17 (h): the frame reports the set point the inverter applies, not the request
+    huge = dv.pv_frame(plant=pv, t_ns=NOW, seq=3, p_kw=np.full(3, 200.0), q_kvar=np.full(3, 266.0),
+                       v_v=np.full(3, 2400.0), available_p_kw=600.0, q_setpoint_kvar=1e6)
+    assert huge.q_setpoint_kvar == pytest.approx(800.0)
+    assert dv.pv_frame(plant=pv, t_ns=NOW, seq=4, p_kw=np.zeros(3), q_kvar=np.zeros(3), v_v=np.full(3, 2400.0),
+                       available_p_kw=0.0, q_setpoint_kvar=-300.0).q_setpoint_kvar == 0.0  # night: none applied
     rf = dv.reg_frame(reg=reg, t_ns=NOW, seq=1, phase="b", v120=121.5, v_compared_120=120.9, tap=4,
                       setpoint_v120=reg.setpoint_v120, band_v120=reg.band_v120, mode=reg.mode)
     assert rf.phases == [m.RegPhase(phase="b", v_120=121.5)] and rf.mode == "local"
