@@ -58,8 +58,8 @@ def _agent(args: argparse.Namespace) -> int:
     import msgspec
 
     from agent.runtime import run_agent
+    from regression.model import read_model
     from schemas.bus import bus_config_from_args
-    from training.model import read_model
 
     expect = None
     if args.feeder:

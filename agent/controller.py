@@ -29,7 +29,9 @@ import numpy as np
 
 from agent.cvvc_qp import CvvcInputs
 from agent.errors import AgentInputError
-from agent.estimator import (
+from agent.setpoints import expected_compared_v120, setpoint_for_tap_change
+from agent.solve import CvvcSolution, solve_cvvc
+from regression.estimator import (
     SensitivityTable,
     apply_correction,
     correction_pu,
@@ -38,9 +40,7 @@ from agent.estimator import (
     estimate_voltages_pu,
     pv_variability_margins_pu,
 )
-from agent.setpoints import expected_compared_v120, setpoint_for_tap_change
-from agent.solve import CvvcSolution, solve_cvvc
-from training.model import CvvcModel, ModelArrays, features
+from regression.model import CvvcModel, ModelArrays, features
 
 __all__ = ["CvvcController", "Decision", "DecisionTimings", "MeasurementSnapshot"]
 
@@ -173,7 +173,7 @@ class CvvcController:
     bandwidth_v120 : regulator bandwidth ``B`` sent with set points [V on 120 V base] (paper case C: 4 V).
     pv_margin_window_s : beyond the paper: tighten each node's limits by how far its voltage would move if the
         plants went back to their highest or lowest output of this many recent seconds (control steps seen);
-        0 turns it off (the paper's method). See ``agent.estimator.pv_variability_margins_pu``.
+        0 turns it off (the paper's method). See ``regression.estimator.pv_variability_margins_pu``.
     pv_margin_cap_pu : largest such margin on either side [pu].
     setpoint_hold : beyond the paper, ``setpoints`` mode: when no tap change is decided for a regulator and the
         set point sent to it at most two control periods ago is still in force, send that set point again

@@ -28,9 +28,9 @@ import numpy as np
 from agent.aligner import AlignedFrames, FrameAligner
 from agent.controller import CvvcController, MeasurementSnapshot
 from agent.controller import Decision as ControllerDecision
+from regression.model import CvvcModel
 from schemas import keys
 from schemas import messages as m
-from training.model import CvvcModel
 
 __all__ = ["AgentSettings", "AgentSummary", "DecisionMaker", "decide_offline", "run_agent", "snapshot_from"]
 

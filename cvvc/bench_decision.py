@@ -37,6 +37,7 @@ def bench_decision(
     from agent.full_visibility import full_visibility_inputs
     from agent.runtime import AgentSettings, DecisionMaker, snapshot_from
     from agent.solve import solve_cvvc
+    from regression.model import read_model, write_model
     from schemas import keys
     from schemas import messages as m
     from schemas.devicemap import load_device_map
@@ -44,7 +45,6 @@ def bench_decision(
     from simulator_bridge.engine import FeederEngine
     from simulator_bridge.profiles import month_steps
     from simulator_bridge.qsts import Qsts
-    from training.model import read_model, write_model
     from training.train import TRAINING_REVISION, load_profiles, train
 
     dm = load_device_map(device_map_path)

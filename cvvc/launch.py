@@ -147,7 +147,7 @@ def prepare_feeder_and_model(config: RunConfig) -> tuple[Path, Path]:
     name = f"{dm.feeder.name}-{dm.fingerprint()}-y{config.train_seed}-r{TRAINING_REVISION}.json"
     model_path = cache / "models" / name
     if not model_path.is_file():
-        from training.model import write_model
+        from regression.model import write_model
         from training.train import train
 
         _log(f"training a model for {dm.feeder.name} (year seed {config.train_seed}); cached afterwards")
@@ -224,7 +224,7 @@ def run(config: RunConfig) -> RunSummary:
     fingerprint = dm.fingerprint()
     agent_args = case_agent_args(config.case, config.bandwidth_v120, config.pv_margin_window_s, config.setpoint_hold)
     if agent_args is not None and config.check_model_fingerprint:
-        from training.model import read_model
+        from regression.model import read_model
 
         read_model(model_path, expect_fingerprint=fingerprint)  # refuse a model of another feeder early
 

@@ -163,11 +163,11 @@ def _offline_speed(steps: int = 1440) -> dict[str, Any] | None:
 
     from recordings.offline import run_offline
     from recordings.recorder import McapSink
+    from regression.model import write_model
     from schemas import keys
     from schemas import messages as m
     from schemas.bus import Received, codec_for
     from schemas.examples import T0_NS, examples
-    from training.model import write_model
 
     model = synthetic_model(seed=3)
     settings = AgentSettings(feeder_id="rural")

@@ -17,9 +17,9 @@ from pathlib import Path
 import msgspec
 import numpy as np
 
-from training._estimate import estimate_v_pu, eval_sensitivities, sensitivity_arrays
+from regression.batch import estimate_v_pu, eval_sensitivities, sensitivity_arrays
+from regression.model import CvvcModel, ModelArrays, features, read_model
 from training.errors import TrainingError
-from training.model import CvvcModel, ModelArrays, features, read_model
 
 __all__ = ["AccuracyReport", "ErrorStats", "MonthTruth", "accuracy_report", "error_stats", "simulate_month"]
 

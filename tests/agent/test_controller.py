@@ -8,11 +8,11 @@ import pytest
 
 from agent.controller import CvvcController, Decision, MeasurementSnapshot
 from agent.errors import AgentInputError
-from agent.estimator import dv_dp_pu_per_kw, estimate_voltages_pu, pv_variability_margins_pu
 from agent.full_visibility import decide_full_visibility, full_visibility_inputs
 from agent.synthetic import synthetic_model
+from regression.estimator import dv_dp_pu_per_kw, estimate_voltages_pu, pv_variability_margins_pu
+from regression.model import ModelArrays, features
 from schemas import messages as m
-from training.model import ModelArrays, features
 
 MODEL = synthetic_model(0)
 ARRAYS = ModelArrays.of(MODEL)
