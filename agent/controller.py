@@ -30,7 +30,7 @@ import numpy as np
 from agent.cvvc_qp import CvvcInputs
 from agent.errors import AgentInputError
 from agent.setpoints import expected_compared_v120, setpoint_for_tap_change
-from agent.solve import CvvcSolution, solve_cvvc
+from agent.solve import WarmStart, solve_cvvc
 from regression.estimator import (
     SensitivityTable,
     apply_correction,
@@ -227,7 +227,7 @@ class CvvcController:
         self._pv_last_p_kw: list[float | None] = [None] * n_pv
         self._pv_last_q_kvar: list[float | None] = [None] * n_pv
         self._reg_last_tap: list[int | None] = [None] * n_reg
-        self._previous: CvvcSolution | None = None
+        self._warm: WarmStart | None = None
         self.setpoint_hold = bool(setpoint_hold)
         self._setpoint_hold_ns = 2 * int(model.control_period_s) * 1_000_000_000  # commands' validity
         self._last_setpoint: list[tuple[int, float] | None] = [None] * n_reg  # (t_ns, V on 120 V) last sent
@@ -399,7 +399,7 @@ class CvvcController:
                 dv_dq=dv_dq,
                 estimate_s=t_est - t0,
             )
-        solution = solve_cvvc(inputs, warm_start=self._previous)
+        solution = solve_cvvc(inputs, warm_start=self._warm)
         sec = solution.seconds
         if solution.status == "hold":
             return self._hold(
@@ -416,7 +416,7 @@ class CvvcController:
                 solve_s=sec.build_s + sec.relaxed_s,
                 round_s=sec.rounding_s,
             )
-        self._previous = solution
+        self._warm = solution.warm_start
 
         # Commands.
         setpoints = bands = None
