@@ -28,6 +28,7 @@ import numpy as np
 from agent.aligner import AlignedFrames, FrameAligner
 from agent.controller import CvvcController, MeasurementSnapshot
 from agent.controller import Decision as ControllerDecision
+from agent.state import OracleSource
 from regression.model import CvvcModel
 from schemas import keys
 from schemas import messages as m
@@ -139,16 +140,20 @@ class DecisionMaker:
                                          pv_margin_window_s=settings.pv_margin_window_s,
                                          pv_margin_cap_pu=settings.pv_margin_cap_pu,
                                          setpoint_hold=settings.setpoint_hold)
+        self.oracle: OracleSource | None = None  # case A: set by the live runtime once its session is open
         self.seq = 0
         self.holds = 0
         self.commands_sent = 0
         self._dv_dtap = _within_array(np.asarray(model.dv_dtap_pu, float), -1.0, 1.0, 12)  # a model constant
 
     def on_frame(self, key: str, msg: Any) -> list[tuple[AlignedFrames, ControllerDecision]]:
-        return [(a, self.controller.decide(snapshot_from(a, self.model))) for a in self.aligner.add(key, msg)]
+        return [(a, self._decide(a)) for a in self.aligner.add(key, msg)]
 
     def close_pending(self) -> list[tuple[AlignedFrames, ControllerDecision]]:
-        return [(a, self.controller.decide(snapshot_from(a, self.model))) for a in self.aligner.close_pending()]
+        return [(a, self._decide(a)) for a in self.aligner.close_pending()]
+
+    def _decide(self, aligned: AlignedFrames) -> ControllerDecision:
+        return self.controller.decide(snapshot_from(aligned, self.model), oracle=self.oracle)
 
     def to_message(self, aligned: AlignedFrames, d: ControllerDecision, *, align_s: float = 0.0) -> m.Decision:
         """The bus message of one controller decision, with the commands it sends."""
@@ -260,7 +265,8 @@ def run_agent(model: CvvcModel, settings: AgentSettings, bus, *, stop: threading
             cmd_pubs[p.id] = TypedPublisher(session, keys.cmd(f, "pv", p.id), m.PvCommand, reliable=True)
         for r in model.regulators:
             cmd_pubs[r.id] = TypedPublisher(session, keys.cmd(f, "vr", r.id), m.RegCommand, reliable=True)
-        oracle = _Oracle(session, f, settings.oracle_timeout_s) if settings.full_visibility else None
+        if settings.full_visibility:
+            maker.oracle = _Oracle(session, f, settings.oracle_timeout_s).reply
 
         last_frame_wall = time.monotonic()
         last_frame_t_ns = 0
@@ -270,8 +276,6 @@ def run_agent(model: CvvcModel, settings: AgentSettings, bus, *, stop: threading
 
         def publish(pairs: list[tuple[AlignedFrames, ControllerDecision]], t_recv: float) -> None:
             for aligned, d in pairs:
-                if oracle is not None:
-                    d = oracle.decide(maker, aligned, d)
                 msg = maker.to_message(aligned, d, align_s=max(0.0, time.monotonic() - t_recv - d.timings.total_s))
                 for c in msg.commands:
                     device = c.plant_id if isinstance(c, m.PvCommand) else c.regulator_id
@@ -337,11 +341,11 @@ class _Oracle:
         self._key = keys.sim_oracle(feeder_id)
         self._timeout_s = timeout_s
 
-    def decide(self, maker: DecisionMaker, aligned: AlignedFrames, d: ControllerDecision) -> ControllerDecision:
-        from agent.full_visibility import decide_full_visibility
+    def reply(self, t_ns: int) -> m.OracleReply | None:
+        """The oracle's reply for step ``t_ns`` [ns], or None when the bridge did not answer in time."""
         from schemas.bus import BadMessage, codec_for
 
-        request = codec_for(m.OracleRequest).encode(m.OracleRequest(t_ns=aligned.t_ns))
+        request = codec_for(m.OracleRequest).encode(m.OracleRequest(t_ns=t_ns))
         reply = None
         for r in self._session.get(self._key, payload=request, timeout=self._timeout_s):
             if r.ok is not None:
@@ -349,4 +353,4 @@ class _Oracle:
                     reply = codec_for(m.OracleReply).decode(r.ok.payload.to_bytes())
                 except BadMessage as e:
                     log.warning("bad oracle reply: %s", e)
-        return decide_full_visibility(maker.controller, snapshot_from(aligned, maker.model), d, reply)
+        return reply
