@@ -25,7 +25,7 @@ lint: $(STAMP)
 	$(BIN)/mypy schemas agent
 
 bench: $(STAMP)
-	$(BIN)/python -m cvvc.bench
+	$(BIN)/python -m benchmarks
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache .mypy_cache .ruff_cache

@@ -299,7 +299,7 @@ def train(
         )
     pvs = [PvInfo(id=p.id, kva=p.kva, pmpp_kw=p.pmpp_kw, cost_per_kvar=p.cost_per_kvar, phases=p.phases) for p in dm.pv]
     seconds = time.perf_counter() - t_start
-    from cvvc import __version__
+    from schemas.version import __version__
 
     fit_stats = FitStats(
         voltage_rmse_pu=float(np.sqrt(np.mean(vfit.rmse_pu**2))),

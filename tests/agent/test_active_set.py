@@ -10,7 +10,7 @@ import scipy.sparse as sp
 
 from agent.cvvc_qp import build_cvvc_qp
 from agent.solve.active_set import solve_dense_qp
-from agent.synthetic import random_cvvc_inputs
+from benchmarks.synthetic import random_cvvc_inputs
 
 
 def _random_problem(rng: np.random.Generator, feasible: bool = True):

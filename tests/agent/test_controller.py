@@ -9,7 +9,7 @@ import pytest
 from agent.controller import CvvcController, Decision, MeasurementSnapshot
 from agent.errors import AgentInputError
 from agent.state import oracle_state
-from agent.synthetic import synthetic_model
+from benchmarks.synthetic import synthetic_model
 from regression.estimator import dv_dp_pu_per_kw, estimate_voltages_pu, pv_variability_margins_pu
 from regression.model import ModelArrays, features
 from schemas import messages as m

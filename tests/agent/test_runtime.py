@@ -6,7 +6,7 @@ import msgspec
 import pytest
 
 from agent.runtime import AgentSettings, DecisionMaker, decide_offline
-from agent.synthetic import synthetic_model
+from benchmarks.synthetic import synthetic_model
 from schemas import keys
 from schemas import messages as m
 from schemas.bus import codec_for

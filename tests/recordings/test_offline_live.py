@@ -11,7 +11,7 @@ import msgspec
 import zenoh
 
 from agent.runtime import AgentSettings, run_agent
-from agent.synthetic import synthetic_model
+from benchmarks.synthetic import synthetic_model
 from cvvc.cli import main as cvvc_main
 from recordings.info import recording_info
 from recordings.offline import run_offline

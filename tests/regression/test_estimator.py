@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from agent.synthetic import synthetic_model
+from benchmarks.synthetic import synthetic_model
 from regression.errors import ModelInputError
 from regression.estimator import (
     POWER_BASE_FLOOR_KVAR,

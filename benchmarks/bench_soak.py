@@ -14,7 +14,7 @@ samples ``VmRSS`` and ``VmHWM`` of every process (the three children and this ro
   control steps without a decision, the agent's ``queue_full`` and ``stale`` rejections (and every other
   rejection kind), the recorder's ``dropped_queue_full``.
 
-Run it with ``make bench`` (``python -m cvvc.bench --only soak``) or ``python -m cvvc.bench_soak [DAYS]``.
+Run it with ``make bench`` (``python -m benchmarks --only soak``) or ``python -m benchmarks.bench_soak [DAYS]``.
 """
 
 from __future__ import annotations
