@@ -58,6 +58,8 @@ class AgentSettings(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fi
 
 
 class AgentSummary(msgspec.Struct, frozen=True, kw_only=True):
+    """Counts of one agent run, printed at exit with ``--json``."""
+
     decisions: int
     holds: int
     commands: int

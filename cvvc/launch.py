@@ -32,8 +32,8 @@ from typing import TYPE_CHECKING, Literal
 
 import msgspec
 
+from cvvc.errors import CommandError
 from schemas import messages as m
-from schemas.errors import CvvcError
 from simulator_bridge.metrics import Metrics
 
 if TYPE_CHECKING:
@@ -47,7 +47,7 @@ CASES: tuple[Case, ...] = ("A", "B", "C", "D", "none", "local")
 DEFAULT_CACHE = Path(".cvvc-cache")
 
 
-class LaunchError(CvvcError):
+class LaunchError(CommandError):
     """A run that cannot start or whose processes failed; the message says which and why."""
 
 
@@ -84,6 +84,8 @@ class RunConfig(msgspec.Struct, frozen=True, kw_only=True):
 
 
 class RunSummary(msgspec.Struct, frozen=True, kw_only=True):
+    """What ``cvvc run`` reports (``summary.json``): the run, its final metrics and the baseline's."""
+
     feeder: str
     feeder_id: str
     case: str

@@ -23,6 +23,7 @@ from pathlib import Path
 import msgspec
 import numpy as np
 
+from cvvc.errors import CommandError
 from schemas.errors import CvvcError
 
 __all__ = ["ReportError", "RunTrace", "plot_evaluation", "plot_run", "read_trace", "window_envelope_pu"]
@@ -30,7 +31,7 @@ __all__ = ["ReportError", "RunTrace", "plot_evaluation", "plot_run", "read_trace
 WINDOW_STEPS = 10  # 10-minute averages at the 1-minute step
 
 
-class ReportError(CvvcError):
+class ReportError(CommandError):
     """A run or evaluation folder that cannot be plotted; the message says what is missing."""
 
 

@@ -109,6 +109,8 @@ class SensitivityFit(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_f
 
 
 class TrainingSettings(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """The training run that made a model: seeds, scenario selection and fit settings."""
+
     year_seed: int
     selection: Literal["guided", "random"]
     blocks: tuple[int, int]

@@ -50,6 +50,8 @@ class SensitivityStats(msgspec.Struct, frozen=True, kw_only=True):
 
 
 class AccuracyReport(msgspec.Struct, frozen=True, kw_only=True):
+    """Estimation accuracy of a model over a simulated month: errors at the critical nodes and every node."""
+
     feeder: str
     month: int
     year_seed: int
