@@ -21,7 +21,7 @@ T0 = 1_672_549_200_000_000_000
 EX = examples()
 FEEDER = "rural"
 LIVE_STEPS = 30  # simulated minutes of the live session: six control steps
-DATA = Path(__file__).resolve().parent / "data"
+DATA = Path(__file__).resolve().parents[1] / "data"
 
 
 @pytest.fixture(scope="module")
@@ -79,15 +79,15 @@ def test_missing_head_holds_with_no_commands(model):
 
 
 def live_frames(model, i: int):
-    """The frames of minute ``i`` of the live session (``data/make_live_session.py`` publishes these)."""
+    """The frames of minute ``i`` of the live session (``tests/data/make_live_session.py`` publishes these)."""
     return _frames(model, T0 + i * 60_000_000_000, i + 1, head_p_kw=600.0 + 40.0 * i)
 
 
 def test_offline_decisions_equal_the_live_agents_recording(model):
     """The decision code, run on the frames the live agent received, makes the decisions the live agent made.
 
-    Golden: ``data/live_session.mcap``, recorded from ``run_agent`` on a real Zenoh bus by
-    ``data/make_live_session.py`` (same model, settings and frames); timings aside, bit for bit.
+    Golden: ``tests/data/live_session.mcap``, recorded from ``run_agent`` on a real Zenoh bus by
+    ``tests/data/make_live_session.py`` (same model, settings and frames); timings aside, bit for bit.
     """
     frames, recorded = [], []
     with RecordedMessages(str(DATA / "live_session.mcap"), (f"cvvc/{FEEDER}/**",)) as rec:

@@ -1,6 +1,6 @@
 """Make ``live_session.mcap``: the live agent (``run_agent``) on a real Zenoh bus, every message recorded.
 
-Run from the repository root: ``PYTHONPATH=. .venv/bin/python tests/agent/data/make_live_session.py``.
+Run from the repository root: ``PYTHONPATH=. .venv/bin/python tests/data/make_live_session.py``.
 The agent decides on ``synthetic_model(seed=3)`` with default ``AgentSettings(feeder_id="rural")`` the frames
 that ``tests/agent/test_runtime.py`` builds (``live_frames``), one control step at a time (lockstep): its decisions
 are the golden record the offline decision code must reproduce. Re-make it only when decisions change on
@@ -15,7 +15,7 @@ from pathlib import Path
 
 import zenoh
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # tests/agent: the frames of test_runtime
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "agent"))  # the frames of test_runtime
 
 from test_runtime import FEEDER, LIVE_STEPS, live_frames  # noqa: E402
 
