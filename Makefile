@@ -22,10 +22,10 @@ test: $(STAMP)
 
 lint: $(STAMP)
 	$(BIN)/ruff check .
-	$(BIN)/mypy schemas agent
+	$(BIN)/mypy schemas agent regression
 
 bench: $(STAMP)
-	$(BIN)/python -m cvvc.bench
+	$(BIN)/python -m benchmarks
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache .mypy_cache .ruff_cache

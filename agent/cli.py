@@ -17,6 +17,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                                    "and publish PV Q set points and regulator commands.")
     p.add_argument("--model", required=True, help="model file from `cvvc train`")
     p.add_argument("--feeder-id", required=True, help="feeder id of the keys (cvvc/<ID>/...)")
+    p.add_argument("--settings", default=None, metavar="JSON",
+                   help="every decision setting as encoded AgentSettings (how `cvvc run` hands a case over); "
+                        "the flags below that shape decisions are then ignored")
     p.add_argument("--feeder", default=None,
                    help="device map of the feeder: refuse the model if its fingerprint differs")
     p.add_argument("--mode", choices=["taps", "setpoints"], default="setpoints",
@@ -42,7 +45,20 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def settings_from_args(args: argparse.Namespace):
+    """The agent's settings: decoded from ``--settings`` when given, else from the flags."""
+    import msgspec
+
+    from agent.errors import AgentError
     from agent.runtime import AgentSettings
+
+    if args.settings is not None:
+        try:
+            settings = msgspec.json.decode(args.settings, type=AgentSettings)
+        except (msgspec.DecodeError, msgspec.ValidationError) as e:
+            raise AgentError(f"--settings is not valid AgentSettings JSON: {e}") from e
+        if settings.feeder_id != args.feeder_id:
+            raise AgentError(f"--settings is for feeder {settings.feeder_id!r}, --feeder-id is {args.feeder_id!r}")
+        return settings
 
     given = {"pv_margin_window_s": args.pv_margin_window_s, "pv_margin_cap_pu": args.pv_margin_cap_pu,
              "setpoint_hold": None if args.setpoint_hold is None else args.setpoint_hold == "on"}
@@ -58,8 +74,8 @@ def _agent(args: argparse.Namespace) -> int:
     import msgspec
 
     from agent.runtime import run_agent
+    from regression.model import read_model
     from schemas.bus import bus_config_from_args
-    from training.model import read_model
 
     expect = None
     if args.feeder:
@@ -68,9 +84,9 @@ def _agent(args: argparse.Namespace) -> int:
 
         expect = load_device_map(resolve_device_map_path(args.feeder)).fingerprint()
     model = read_model(args.model, expect_fingerprint=expect)
-    if args.mode == "taps" and args.correction == "on" and not args.full_visibility:
-        logging.getLogger("agent").info("taps mode with correction: not one of the paper's cases, allowed")
     settings = settings_from_args(args)
+    if settings.mode == "taps" and settings.correction and not settings.full_visibility:
+        logging.getLogger("agent").info("taps mode with correction: not one of the paper's cases, allowed")
     summary = run_agent(model, settings, bus_config_from_args(args, role="agent"))
     if args.json:
         print(json.dumps(msgspec.to_builtins(summary)))

@@ -29,18 +29,11 @@ import numpy as np
 
 from agent.cvvc_qp import CvvcInputs
 from agent.errors import AgentInputError
-from agent.estimator import (
-    SensitivityTable,
-    apply_correction,
-    correction_pu,
-    dv_dp_pu_per_kw,
-    dv_dq_pu_per_kvar,
-    estimate_voltages_pu,
-    pv_variability_margins_pu,
-)
 from agent.setpoints import expected_compared_v120, setpoint_for_tap_change
-from agent.solve import CvvcSolution, solve_cvvc
-from training.model import CvvcModel, ModelArrays, features
+from agent.solve import CvvcSolution, WarmStart, solve_cvvc
+from agent.state import GridState, OracleSource, estimated_state, oracle_state
+from regression.estimator import SensitivityTable, dv_dp_pu_per_kw, pv_variability_margins_pu
+from regression.model import CvvcModel, ModelArrays
 
 __all__ = ["CvvcController", "Decision", "DecisionTimings", "MeasurementSnapshot"]
 
@@ -173,7 +166,7 @@ class CvvcController:
     bandwidth_v120 : regulator bandwidth ``B`` sent with set points [V on 120 V base] (paper case C: 4 V).
     pv_margin_window_s : beyond the paper: tighten each node's limits by how far its voltage would move if the
         plants went back to their highest or lowest output of this many recent seconds (control steps seen);
-        0 turns it off (the paper's method). See ``agent.estimator.pv_variability_margins_pu``.
+        0 turns it off (the paper's method). See ``regression.estimator.pv_variability_margins_pu``.
     pv_margin_cap_pu : largest such margin on either side [pu].
     setpoint_hold : beyond the paper, ``setpoints`` mode: when no tap change is decided for a regulator and the
         set point sent to it at most two control periods ago is still in force, send that set point again
@@ -227,14 +220,32 @@ class CvvcController:
         self._pv_last_p_kw: list[float | None] = [None] * n_pv
         self._pv_last_q_kvar: list[float | None] = [None] * n_pv
         self._reg_last_tap: list[int | None] = [None] * n_reg
-        self._previous: CvvcSolution | None = None
+        self._warm: WarmStart | None = None
         self.setpoint_hold = bool(setpoint_hold)
         self._setpoint_hold_ns = 2 * int(model.control_period_s) * 1_000_000_000  # commands' validity
         self._last_setpoint: list[tuple[int, float] | None] = [None] * n_reg  # (t_ns, V on 120 V) last sent
 
     # ------------------------------------------------------------------------------------------ helpers
-    def _hold(self, snap: MeasurementSnapshot, reason: str, missing: tuple[str, ...], t0: float, **extra) -> Decision:
+    def _hold(
+        self,
+        snap: MeasurementSnapshot,
+        reason: str,
+        missing: tuple[str, ...],
+        t0: float,
+        *,
+        state: GridState | None = None,
+        solution: CvvcSolution | None = None,
+        estimate_s: float = 0.0,
+    ) -> Decision:
+        """The one constructor of a ``hold``: no commands; the state and solver figures reached, if any.
+
+        ``state`` (when the grid state was built) gives the reported estimates (critical nodes only),
+        ``solution`` (when the solver ran) its iterations, status and stage times; ``t0`` is
+        ``time.perf_counter()`` at the start of the decision.
+        """
         n_pv, n_reg = len(self._pv_ids), len(self._reg_ids)
+        report = state is not None and state.critical
+        sec = solution.seconds if solution is not None else None
         return Decision(
             t_ns=int(snap.t_ns),
             status="hold",
@@ -245,18 +256,18 @@ class CvvcController:
             reg_setpoint_v120=None,
             reg_band_v120=None,
             reg_command=np.zeros(n_reg, bool),
-            v_pu=extra.get("v_pu"),
+            v_pu=state.v0_pu if report and state is not None else None,
             v_pred_pu=None,
-            corrected=bool(extra.get("corrected", False)),
-            dv_dq_pu_per_kvar=extra.get("dv_dq"),
+            corrected=state.corrected if state is not None else False,
+            dv_dq_pu_per_kvar=state.dv_dq_pu_per_kvar if report and state is not None else None,
             missing=missing,
-            iterations=int(extra.get("iterations", 0)),
+            iterations=solution.iterations if solution is not None else 0,
             objective=0.0,
-            solver_status=str(extra.get("solver_status", "not run")),
+            solver_status=solution.status if solution is not None else "not run",
             timings=DecisionTimings(
-                estimate_s=float(extra.get("estimate_s", 0.0)),
-                solve_s=float(extra.get("solve_s", 0.0)),
-                round_s=float(extra.get("round_s", 0.0)),
+                estimate_s=float(estimate_s),
+                solve_s=sec.build_s + sec.relaxed_s if sec is not None else 0.0,
+                round_s=sec.rounding_s if sec is not None else 0.0,
                 total_s=time.perf_counter() - t0,
             ),
         )
@@ -285,20 +296,51 @@ class CvvcController:
             )
         return head_ok, pv_ok, reg_ok
 
-    def _limits_pu(
-        self, t_ns: int, pv_p_kw: np.ndarray, lo_pu: float, hi_pu: float
-    ) -> tuple[np.ndarray | float, np.ndarray | float]:
-        """The optimization limits of this step: the model's, tightened by the PV variability margin."""
+    def _remember_pv_p(self, t_ns: int, pv_p_kw: np.ndarray) -> None:
+        """Record the plants' output of this step in the PV variability margin's window [kW]."""
         if self._margin_window_ns <= 0:
-            return lo_pu, hi_pu
+            return
         recent = self._recent_pv_p
         if recent and recent[-1][0] >= t_ns:
             recent.clear()  # a step out of order (the aligner prevents it): start the window again
         while recent and recent[0][0] < t_ns - self._margin_window_ns:
             recent.popleft()
         recent.append((t_ns, pv_p_kw.copy()))
-        rise, fall = self.pv_margins_pu(self._dv_dp, pv_p_kw)
-        return lo_pu + fall, hi_pu - rise
+
+    def problem(self, snap: MeasurementSnapshot, state: GridState) -> CvvcInputs:
+        """The CVVC problem (eq. 9-17) of a snapshot the controller has taken in, over ``state``'s nodes.
+
+        The one inputs builder, whichever the state's source: missing plants fixed at their last Q, missing
+        regulators frozen; the optimization limits tightened by the PV variability margin of ``state``'s
+        dV/dP over the window recorded so far. No state changes. Raises ``AgentInputError`` on unusable inputs.
+        """
+        _, pv_ok, reg_ok = self._usable(snap)
+        pv_p = np.array(self._pv_last_p_kw, float)
+        pv_q = np.array(self._pv_last_q_kvar, float)
+        headroom = np.sqrt(np.maximum(np.asarray(snap.pv_kva_available, float) ** 2 - pv_p**2, 0.0))
+        lo_pu, hi_pu = self.model.optimization_limits_pu
+        v_min_pu: np.ndarray | float = lo_pu
+        v_max_pu: np.ndarray | float = hi_pu
+        if self._margin_window_ns > 0:
+            rise, fall = self.pv_margins_pu(state.dv_dp_pu_per_kw, pv_p)
+            v_min_pu, v_max_pu = lo_pu + fall, hi_pu - rise
+        return CvvcInputs(
+            v0_pu=state.v0_pu,
+            dv_dq_pu_per_kvar=state.dv_dq_pu_per_kvar,
+            dv_dtap_pu=state.dv_dtap_pu,
+            q0_kvar=pv_q,
+            q_min_kvar=np.where(pv_ok, -headroom, pv_q),
+            q_max_kvar=np.where(pv_ok, headroom, pv_q),
+            q_rating_kvar=np.maximum(self._pv_rating_kva, 1.0),
+            taps=state.taps,
+            tap_min=self._tap_min,
+            tap_max=self._tap_max,
+            max_taps_per_interval=np.where(reg_ok, self._max_taps, 0),
+            cost_per_tap=self._tap_cost,
+            cost_per_kvar=self._pv_cost,
+            v_min_pu=v_min_pu,
+            v_max_pu=v_max_pu,
+        )
 
     def pv_margins_pu(self, dv_dp_pu_per_kw: np.ndarray, pv_p_kw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(rise, fall)`` PV variability margins [pu] of nodes with these sensitivities (N, K) [pu/kW].
@@ -313,8 +355,12 @@ class CvvcController:
         return pv_variability_margins_pu(dv_dp_pu_per_kw, pv_p_kw, recent, self._margin_cap_pu)
 
     # ------------------------------------------------------------------------------------------- decide
-    def decide(self, snap: MeasurementSnapshot) -> Decision:
-        """Decide the actions for one snapshot (see the module docstring for the hold rule)."""
+    def decide(self, snap: MeasurementSnapshot, oracle: OracleSource | None = None) -> Decision:
+        """Decide the actions for one snapshot (see the module docstring for the hold rule).
+
+        ``oracle`` (case A) is asked for the true state of every node at the snapshot's time once the hold
+        rule lets the step be decided; without it the estimator gives the state of the critical nodes.
+        """
         t0 = time.perf_counter()
         n_pv, n_reg = len(self._pv_ids), len(self._reg_ids)
         shapes = {
@@ -347,84 +393,51 @@ class CvvcController:
         if never_pv or never_reg:
             return self._hold(snap, f"no valid frame yet from {', '.join(never_pv + never_reg)}: holding", missing, t0)
 
-        # Estimation, eq. (5)-(7), and sensitivities, eq. (3).
+        # The grid state: the estimator's (eq. 5-7, eq. 3) or, in case A, the bridge's oracle (every node).
         pv_p = np.array(self._pv_last_p_kw, float)  # equals the snapshot where usable
         pv_q = np.array(self._pv_last_q_kvar, float)
         taps = np.array(self._reg_last_tap, int)
-        m = features(snap.head_p_kw, snap.head_q_kvar, pv_p, pv_q)
-        v_hat = estimate_voltages_pu(self._arrays, m, taps)
-        corrected = False
-        if self.correction:
-            measured = np.asarray(snap.reg_v120, float) * self._arrays.reg_pu_per_v120
-            eps = correction_pu(v_hat, self._arrays.reg_secondary_node, measured, valid=reg_ok)
-            v_hat = apply_correction(v_hat, eps, self._arrays.upstream_regulator)
-            corrected = bool(np.any(reg_ok))
-        dv_dq = dv_dq_pu_per_kvar(self._sens, float(np.sum(snap.head_q_kvar)))
+        prefix = "" if oracle is None else "case A: "
+        if oracle is None:
+            state = estimated_state(
+                self._arrays, self._sens, self._dv_dp, head_p_kw=snap.head_p_kw, head_q_kvar=snap.head_q_kvar,
+                pv_p_kw=pv_p, pv_q_kvar=pv_q, taps=taps, reg_v120=snap.reg_v120 if self.correction else None,
+                reg_ok=reg_ok)
+        else:
+            reply = oracle(int(snap.t_ns))
+            if reply is None:
+                return self._hold(snap, "case A: no oracle reply from the bridge", missing, t0)
+            try:
+                state = oracle_state(self.model, reply, taps)
+            except AgentInputError as e:
+                return self._hold(snap, f"case A: {e}", missing, t0)
         t_est = time.perf_counter()
-        if not (_finite(v_hat, dv_dq)):
-            return self._hold(snap, "estimate is not finite: check the model", missing, t0, estimate_s=t_est - t0)
+        if not _finite(state.v0_pu, state.dv_dq_pu_per_kvar):
+            return self._hold(snap, f"{prefix}estimate is not finite: check the model", missing, t0,
+                              estimate_s=t_est - t0)
 
-        # The CVVC problem: missing plants fixed at their last Q, missing regulators frozen.
-        headroom = np.sqrt(np.maximum(np.asarray(snap.pv_kva_available, float) ** 2 - pv_p**2, 0.0))
-        q_min = np.where(pv_ok, -headroom, pv_q)
-        q_max = np.where(pv_ok, headroom, pv_q)
-        lo_pu, hi_pu = self.model.optimization_limits_pu
-        v_min_pu, v_max_pu = self._limits_pu(int(snap.t_ns), pv_p, lo_pu, hi_pu)
+        self._remember_pv_p(int(snap.t_ns), pv_p)
         try:
-            inputs = CvvcInputs(
-                v0_pu=v_hat,
-                dv_dq_pu_per_kvar=dv_dq,
-                dv_dtap_pu=self._arrays.dv_dtap_pu,
-                q0_kvar=pv_q,
-                q_min_kvar=q_min,
-                q_max_kvar=q_max,
-                q_rating_kvar=np.maximum(self._pv_rating_kva, 1.0),
-                taps=taps,
-                tap_min=self._tap_min,
-                tap_max=self._tap_max,
-                max_taps_per_interval=np.where(reg_ok, self._max_taps, 0),
-                cost_per_tap=self._tap_cost,
-                cost_per_kvar=self._pv_cost,
-                v_min_pu=v_min_pu,
-                v_max_pu=v_max_pu,
-            )
+            inputs = self.problem(snap, state)
         except AgentInputError as e:
-            return self._hold(
-                snap,
-                f"unusable optimization inputs: {e}",
-                missing,
-                t0,
-                v_pu=v_hat,
-                corrected=corrected,
-                dv_dq=dv_dq,
-                estimate_s=t_est - t0,
-            )
-        solution = solve_cvvc(inputs, warm_start=self._previous)
+            return self._hold(snap, f"{prefix}unusable optimization inputs: {e}", missing, t0, state=state,
+                              estimate_s=t_est - t0)
+        # Case A solves cold (as it always has): its rows are every live node, not the critical nodes.
+        solution = solve_cvvc(inputs, warm_start=self._warm if oracle is None else None)
         sec = solution.seconds
         if solution.status == "hold":
-            return self._hold(
-                snap,
-                solution.reason,
-                missing,
-                t0,
-                v_pu=v_hat,
-                corrected=corrected,
-                dv_dq=dv_dq,
-                iterations=solution.iterations,
-                solver_status=solution.status,
-                estimate_s=t_est - t0,
-                solve_s=sec.build_s + sec.relaxed_s,
-                round_s=sec.rounding_s,
-            )
-        self._previous = solution
+            return self._hold(snap, prefix + solution.reason, missing, t0, state=state, solution=solution,
+                              estimate_s=t_est - t0)
+        if oracle is None:
+            self._warm = solution.warm_start
 
         # Commands.
         setpoints = bands = None
         if self.mode == "setpoints":
             sec_node = self._arrays.reg_secondary_node
-            dv_sec = solution.v_pred_pu[sec_node] - v_hat[sec_node]
+            dv_sec = solution.v_pred_pu[sec_node] - state.v0_pu[sec_node]
             v_s1 = expected_compared_v120(snap.reg_v120_compared, dv_sec, self._arrays.reg_pu_per_v120)
-            d_tap = solution.taps_new - taps
+            d_tap = solution.taps_new - state.taps
             band, step = self.bandwidth_v120, self._step_v120
             setpoints = np.array(
                 [setpoint_for_tap_change(float(v_s1[r]), int(d_tap[r]), band, float(step[r])) for r in range(n_reg)]
@@ -450,10 +463,10 @@ class CvvcController:
             reg_setpoint_v120=setpoints,
             reg_band_v120=bands,
             reg_command=reg_ok.copy(),
-            v_pu=v_hat,
-            v_pred_pu=solution.v_pred_pu.copy(),
-            corrected=corrected,
-            dv_dq_pu_per_kvar=dv_dq,
+            v_pu=state.v0_pu if state.critical else None,
+            v_pred_pu=solution.v_pred_pu.copy() if state.critical else None,
+            corrected=state.corrected,
+            dv_dq_pu_per_kvar=state.dv_dq_pu_per_kvar if state.critical else None,
             missing=missing,
             iterations=solution.iterations,
             objective=solution.cost,

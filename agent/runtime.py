@@ -28,10 +28,11 @@ import numpy as np
 from agent.aligner import AlignedFrames, FrameAligner
 from agent.controller import CvvcController, MeasurementSnapshot
 from agent.controller import Decision as ControllerDecision
+from agent.state import OracleSource
+from regression.model import CvvcModel
 from schemas import keys
 from schemas import messages as m
 from schemas.logs import RateLimitedLog
-from training.model import CvvcModel
 
 __all__ = ["AgentSettings", "AgentSummary", "DecisionMaker", "decide_offline", "run_agent", "snapshot_from"]
 
@@ -61,7 +62,8 @@ class AgentSettings(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fi
 
 
 class AgentSummary(msgspec.Struct, frozen=True, kw_only=True):
-    """What one live agent run did: decisions, commands, acks by status, refused inputs by reason.
+    """Counts of one agent run, printed at exit with ``--json``: decisions, commands, acks by status, refused
+    inputs by reason.
 
     ``clamped``: eq. (8) set points or bands brought into the regulators' accepted range before sending;
     ``log_suppressed``: warning lines not written by the rate limit, by kind.
@@ -151,6 +153,7 @@ class DecisionMaker:
                                          pv_margin_window_s=settings.pv_margin_window_s,
                                          pv_margin_cap_pu=settings.pv_margin_cap_pu,
                                          setpoint_hold=settings.setpoint_hold)
+        self.oracle: OracleSource | None = None  # case A: set by the live runtime once its session is open
         self.seq = 0
         self.holds = 0
         self.commands_sent = 0
@@ -158,10 +161,13 @@ class DecisionMaker:
         self._dv_dtap = _within_array(np.asarray(model.dv_dtap_pu, float), -1.0, 1.0, 12)  # a model constant
 
     def on_frame(self, key: str, msg: Any) -> list[tuple[AlignedFrames, ControllerDecision]]:
-        return [(a, self.controller.decide(snapshot_from(a, self.model))) for a in self.aligner.add(key, msg)]
+        return [(a, self._decide(a)) for a in self.aligner.add(key, msg)]
 
     def close_pending(self) -> list[tuple[AlignedFrames, ControllerDecision]]:
-        return [(a, self.controller.decide(snapshot_from(a, self.model))) for a in self.aligner.close_pending()]
+        return [(a, self._decide(a)) for a in self.aligner.close_pending()]
+
+    def _decide(self, aligned: AlignedFrames) -> ControllerDecision:
+        return self.controller.decide(snapshot_from(aligned, self.model), oracle=self.oracle)
 
     def to_message(self, aligned: AlignedFrames, d: ControllerDecision, *, align_s: float = 0.0) -> m.Decision:
         """The bus message of one controller decision, with the commands it sends."""
@@ -287,7 +293,8 @@ def run_agent(model: CvvcModel, settings: AgentSettings, bus, *, stop: threading
             cmd_pubs[p.id] = TypedPublisher(session, keys.cmd(f, "pv", p.id), m.PvCommand, reliable=True)
         for r in model.regulators:
             cmd_pubs[r.id] = TypedPublisher(session, keys.cmd(f, "vr", r.id), m.RegCommand, reliable=True)
-        oracle = _Oracle(session, f, settings.oracle_timeout_s, rlog) if settings.full_visibility else None
+        if settings.full_visibility:
+            maker.oracle = _Oracle(session, f, settings.oracle_timeout_s, rlog).reply
 
         last_frame_wall = time.monotonic()
         last_frame_t_ns = 0
@@ -297,8 +304,6 @@ def run_agent(model: CvvcModel, settings: AgentSettings, bus, *, stop: threading
 
         def publish(pairs: list[tuple[AlignedFrames, ControllerDecision]], t_recv: float) -> None:
             for aligned, d in pairs:
-                if oracle is not None:
-                    d = oracle.decide(maker, aligned, d)
                 msg = maker.to_message(aligned, d, align_s=max(0.0, time.monotonic() - t_recv - d.timings.total_s))
                 for c in msg.commands:
                     device = c.plant_id if isinstance(c, m.PvCommand) else c.regulator_id
@@ -393,11 +398,11 @@ class _Oracle:
         self._timeout_s = timeout_s
         self._rlog = rlog
 
-    def decide(self, maker: DecisionMaker, aligned: AlignedFrames, d: ControllerDecision) -> ControllerDecision:
-        from agent.full_visibility import decide_full_visibility
+    def reply(self, t_ns: int) -> m.OracleReply | None:
+        """The oracle's reply for step ``t_ns`` [ns], or None when the bridge did not answer in time."""
         from schemas.bus import BadMessage, codec_for
 
-        request = codec_for(m.OracleRequest).encode(m.OracleRequest(t_ns=aligned.t_ns))
+        request = codec_for(m.OracleRequest).encode(m.OracleRequest(t_ns=t_ns))
         reply = None
         for r in self._session.get(self._key, payload=request, timeout=self._timeout_s):
             if r.ok is not None:
@@ -405,4 +410,4 @@ class _Oracle:
                     reply = codec_for(m.OracleReply).decode(r.ok.payload.to_bytes())
                 except BadMessage as e:
                     self._rlog.warning("bad_oracle_reply", "bad oracle reply: %s", e)
-        return decide_full_visibility(maker.controller, snapshot_from(aligned, maker.model), d, reply)
+        return reply

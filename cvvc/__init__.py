@@ -1,5 +1,5 @@
 """The ``cvvc`` program: one command line over every package, and the launchers that compose them."""
 
-__all__ = ["__version__"]
+from schemas.version import __version__
 
-__version__ = "0.1.0"
+__all__ = ["__version__"]

@@ -12,8 +12,9 @@ import importlib
 import logging
 import sys
 
-from cvvc import __version__
+from cvvc.errors import CliError
 from schemas.errors import CvvcError
+from schemas.version import __version__
 
 __all__ = ["main", "build_parser", "CliError"]
 
@@ -26,10 +27,6 @@ _VERB_MODULES = (
     "recordings.cli",
     "cvvc.launch_cli",
 )
-
-
-class CliError(CvvcError):
-    """A user-facing error of the command line itself."""
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -32,7 +32,8 @@ from typing import Literal
 import msgspec
 import numpy as np
 
-from cvvc.launch import CASES, LaunchError, RunConfig
+from cvvc.launch import CASES, LaunchError, RunConfig, RunSummary
+from schemas import messages as m
 from schemas.errors import CvvcError
 
 __all__ = [
@@ -124,7 +125,7 @@ class RunResult(msgspec.Struct, frozen=True, kw_only=True):
     """What one run measured: its spec, the final metrics frame (paper IV.F) and the run's summary."""
 
     spec: RunSpec
-    metrics: dict[str, object]
+    metrics: m.MetricsFrame  # the bridge's final metrics frame
     wall_s: float
     steps: int
     decisions: int
@@ -294,12 +295,15 @@ def _finished(spec: RunSpec, run_dir: Path) -> RunResult | None:
     path = run_dir / "summary.json"
     if not path.is_file():
         return None
-    s = json.loads(path.read_text())
-    if (s.get("case"), s.get("start", "")[:10], s.get("days")) != (spec.case, spec.start, spec.days):
+    try:
+        s = msgspec.json.decode(path.read_bytes(), type=RunSummary)
+    except (OSError, msgspec.DecodeError, msgspec.ValidationError) as e:
+        _log(f"{spec.name}: {path} is not a summary of this version ({e}): running it again")
         return None
-    return RunResult(spec=spec, metrics=s["metrics"], wall_s=s["wall_s"], steps=s["steps"],
-                     decisions=s["decisions"], lockstep_misses=s["lockstep_misses"], out_dir=s["out_dir"],
-                     recording=s.get("recording"))
+    if (s.case, s.start[:10], s.days) != (spec.case, spec.start, spec.days):
+        return None
+    return RunResult(spec=spec, metrics=s.metrics, wall_s=s.wall_s, steps=s.steps, decisions=s.decisions,
+                     lockstep_misses=s.lockstep_misses, out_dir=s.out_dir, recording=s.recording)
 
 
 def _write(out: Path, ev: Evaluation) -> None:
@@ -372,7 +376,7 @@ def evaluate(config: EvaluateConfig) -> Evaluation:
                     failures.append(RunFailure(spec=spec, error=str(e), out_dir=str(out / spec.name)))
                 else:
                     mt = r.metrics
-                    _log(f"{spec.name}: NVV {mt['nvv']}, NTC {mt['ntc']}, total cost {mt['total_cost']:.1f} "
+                    _log(f"{spec.name}: NVV {mt.nvv}, NTC {mt.ntc}, total cost {mt.total_cost:.1f} "
                          f"({r.wall_s:.0f} s)")
                     results.append(r)
                 _write(out, snapshot())
@@ -430,25 +434,25 @@ def render_results_md(ev: Evaluation) -> str:
     for r in ev.runs:
         mt = r.metrics
         lines.append("| " + " | ".join(_row_label(r, robust, bands) + [
-            f"{mt['mvvm_pu']:.4f}", str(mt["nvv"]), str(mt["ntc"]), f"{mt['q_cost']:.1f}", f"{mt['t_cost']:.2f}",
-            f"{mt['total_cost']:.1f}", f"{r.wall_s:.0f}"]) + " |")
-    pv_ids = sorted({k for r in ev.runs for k in r.metrics.get("q_mvar_intervals", {})})  # type: ignore[union-attr]
+            f"{mt.mvvm_pu:.4f}", str(mt.nvv), str(mt.ntc), f"{mt.q_cost:.1f}", f"{mt.t_cost:.2f}",
+            f"{mt.total_cost:.1f}", f"{r.wall_s:.0f}"]) + " |")
+    pv_ids = sorted({k for r in ev.runs for k in r.metrics.q_mvar_intervals})
     lines += ["", "## Reactive energy per PV plant (paper Table IV)", "",
               f"Sum of |Q| over the window in Mvar x control intervals ({ev.control_period_s} s), and in kvarh.", "",
               "| " + " | ".join(head + [f"{p} [Mvar·int]" for p in pv_ids] + [f"{p} [kvarh]" for p in pv_ids]) + " |",
               "|" + "---|" * (len(head) + 2 * len(pv_ids))]
     for r in ev.runs:
-        q = r.metrics.get("q_mvar_intervals", {})
-        vals = [float(q.get(p, 0.0)) for p in pv_ids]  # type: ignore[union-attr]
+        q = r.metrics.q_mvar_intervals
+        vals = [float(q.get(p, 0.0)) for p in pv_ids]
         lines.append("| " + " | ".join(_row_label(r, robust, bands) + [f"{v:.1f}" for v in vals] + [
             f"{kvarh_from_mvar_intervals(v, ev.control_period_s):.0f}" for v in vals]) + " |")
-    reg_ids = sorted({k for r in ev.runs for k in r.metrics.get("taps_changes", {})})  # type: ignore[union-attr]
+    reg_ids = sorted({k for r in ev.runs for k in r.metrics.taps_changes})
     lines += ["", "## Tap changes per regulator (paper Table V)", "",
               "| " + " | ".join(head + reg_ids + ["total"]) + " |", "|" + "---|" * (len(head) + len(reg_ids) + 1)]
     for r in ev.runs:
-        t = r.metrics.get("taps_changes", {})
-        lines.append("| " + " | ".join(_row_label(r, robust, bands) + [str(t.get(g, 0)) for g in reg_ids]  # type: ignore[union-attr]
-                                       + [str(r.metrics["ntc"])]) + " |")
+        t = r.metrics.taps_changes
+        lines.append("| " + " | ".join(_row_label(r, robust, bands) + [str(t.get(g, 0)) for g in reg_ids]
+                                       + [str(r.metrics.ntc)]) + " |")
     if ev.failures:
         lines += ["", "## Failed runs", ""]
         lines += [f"- {f.spec.name}: {f.error.splitlines()[0] if f.error else '?'} (logs in `{f.out_dir}`)"

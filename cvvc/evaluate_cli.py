@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from cvvc.launch_cli import add_agent_option_arguments
+from cvvc.cli_options import add_agent_option_arguments
 
 __all__ = ["register_evaluate", "register_report_plots"]
 
@@ -37,7 +37,7 @@ def register_evaluate(sub: argparse._SubParsersAction) -> None:
 
 
 def _evaluate(args: argparse.Namespace) -> int:
-    from cvvc.cli import CliError
+    from cvvc.errors import CliError
     from cvvc.evaluate import EvaluateConfig, EvaluateError, evaluate, parse_cases, parse_seasons
 
     try:
@@ -86,7 +86,7 @@ def _report_evaluate(args: argparse.Namespace) -> int:
 
 def _print_plots(plot, args: argparse.Namespace) -> int:
     """Run ``plot(args.dir, out=args.out)`` and print the PNG paths; a ``ReportError`` is a one-line CLI error."""
-    from cvvc.cli import CliError
+    from cvvc.errors import CliError
     from cvvc.report import ReportError
 
     try:

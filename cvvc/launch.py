@@ -17,7 +17,6 @@ A child that dies early stops everything: the others are stopped, the recording 
 
 from __future__ import annotations
 
-import argparse
 import datetime as dt
 import os
 import shutil
@@ -25,22 +24,30 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from types import MappingProxyType
+from typing import TYPE_CHECKING, Literal
 
 import msgspec
 
-from schemas.errors import CvvcError
+from cvvc.errors import CommandError
+from schemas import messages as m
+from simulator_bridge.metrics import Metrics
 
-__all__ = ["CASES", "LaunchError", "RunConfig", "RunSummary", "case_agent_args", "run"]
+if TYPE_CHECKING:
+    from agent.runtime import AgentSettings
+
+__all__ = ["CASES", "CASE_AGENT", "CaseAgent", "LaunchError", "RunConfig", "RunSummary", "agent_settings_args",
+           "case_agent_settings", "run"]
 
 Case = Literal["A", "B", "C", "D", "none", "local"]
 CASES: tuple[Case, ...] = ("A", "B", "C", "D", "none", "local")
 DEFAULT_CACHE = Path(".cvvc-cache")
 
 
-class LaunchError(CvvcError):
+class LaunchError(CommandError):
     """A run that cannot start or whose processes failed; the message says which and why."""
 
 
@@ -78,6 +85,8 @@ class RunConfig(msgspec.Struct, frozen=True, kw_only=True):
 
 
 class RunSummary(msgspec.Struct, frozen=True, kw_only=True):
+    """What ``cvvc run`` reports (``summary.json``): the run, its final metrics and the baseline's."""
+
     feeder: str
     feeder_id: str
     case: str
@@ -85,8 +94,8 @@ class RunSummary(msgspec.Struct, frozen=True, kw_only=True):
     days: float
     steps: int
     wall_s: float
-    metrics: dict[str, object]
-    baseline: dict[str, object] | None
+    metrics: m.MetricsFrame  # the bridge's final metrics frame (paper IV.F)
+    baseline: Metrics | None  # the no-control baseline of the same days
     lockstep_misses: int
     decisions: int
     out_dir: str
@@ -94,39 +103,52 @@ class RunSummary(msgspec.Struct, frozen=True, kw_only=True):
     model: str | None
 
 
+class CaseAgent(msgspec.Struct, frozen=True, kw_only=True):
+    """What a paper case (Table I) sets in the agent; the rest of ``AgentSettings`` is the run's or the default."""
+
+    mode: Literal["taps", "setpoints"]
+    correction: bool
+    full_visibility: bool = False
+    setpoints: bool = False  # the run's regulator band and set-point hold apply (cases C/D)
+
+
+#: The one table of cases -> agent settings (paper Table I); ``none`` and ``local`` run no agent.
+CASE_AGENT: Mapping[Case, CaseAgent | None] = MappingProxyType({
+    "A": CaseAgent(mode="taps", correction=False, full_visibility=True),
+    "B": CaseAgent(mode="taps", correction=False),
+    "C": CaseAgent(mode="setpoints", correction=False, setpoints=True),
+    "D": CaseAgent(mode="setpoints", correction=True, setpoints=True),
+    "none": None,
+    "local": None,
+})
+
+
 def case_agent_settings(case: Case, feeder_id: str, bandwidth_v120: float, pv_margin_window_s: float | None = None,
-                        setpoint_hold: bool = False):
-    """The agent's settings of a case, as ``case_agent_args`` makes the agent build them (for the recording)."""
-    from agent.cli import register, settings_from_args
+                        setpoint_hold: bool = False) -> AgentSettings | None:
+    """The agent's settings of a case (``CASE_AGENT``), or None when the case runs no agent.
 
-    args = case_agent_args(case, bandwidth_v120, pv_margin_window_s, setpoint_hold)
-    if args is None:
-        return None
-    parser = argparse.ArgumentParser()
-    register(parser.add_subparsers())
-    return settings_from_args(parser.parse_args(["agent", "--model", "-", "--feeder-id", feeder_id, *args]))
-
-
-def case_agent_args(case: Case, bandwidth_v120: float, pv_margin_window_s: float | None = None,
-                    setpoint_hold: bool = False) -> list[str] | None:
-    """The ``cvvc agent`` flags of a case (paper Table I), or None when the case runs no agent.
-
-    ``pv_margin_window_s`` (None: the agent's default) and ``setpoint_hold`` (cases C/D) are the agent's options
-    beyond the paper (docs/agent.md).
+    ``pv_margin_window_s`` [s] (None: the agent's default) and ``setpoint_hold`` (cases C/D) are the agent's
+    options beyond the paper (docs/agent.md); ``bandwidth_v120`` [V on the 120 V base] applies to cases C/D.
+    The agent process and the recording get these settings encoded (``agent_settings_args``).
     """
-    margin = [] if pv_margin_window_s is None else ["--pv-margin-window-s", str(pv_margin_window_s)]
-    hold = ["--setpoint-hold", "on"] if setpoint_hold else []
-    match case:
-        case "A":
-            return ["--mode", "taps", "--correction", "off", "--full-visibility", *margin]
-        case "B":
-            return ["--mode", "taps", "--correction", "off", *margin]
-        case "C":
-            return ["--mode", "setpoints", "--correction", "off", "--bandwidth-v", str(bandwidth_v120), *margin, *hold]
-        case "D":
-            return ["--mode", "setpoints", "--correction", "on", "--bandwidth-v", str(bandwidth_v120), *margin, *hold]
-        case _:
-            return None
+    from agent.runtime import AgentSettings
+
+    row = CASE_AGENT[case]
+    if row is None:
+        return None
+    settings = AgentSettings(feeder_id=feeder_id, mode=row.mode, correction=row.correction,
+                             full_visibility=row.full_visibility)
+    if pv_margin_window_s is not None:
+        settings = msgspec.structs.replace(settings, pv_margin_window_s=float(pv_margin_window_s))
+    if row.setpoints:
+        settings = msgspec.structs.replace(settings, bandwidth_v120=float(bandwidth_v120),
+                                           setpoint_hold=bool(setpoint_hold))
+    return msgspec.convert(msgspec.to_builtins(settings), AgentSettings)  # checks the settings' constraints
+
+
+def agent_settings_args(settings: AgentSettings) -> list[str]:
+    """The ``cvvc agent`` flags that hand ``settings`` over to the agent process, encoded."""
+    return ["--feeder-id", settings.feeder_id, "--settings", msgspec.json.encode(settings).decode()]
 
 
 def _log(msg: str) -> None:
@@ -148,7 +170,7 @@ def prepare_feeder_and_model(config: RunConfig) -> tuple[Path, Path]:
     name = f"{dm.feeder.name}-{dm.fingerprint()}-y{config.train_seed}-r{TRAINING_REVISION}.json"
     model_path = cache / "models" / name
     if not model_path.is_file():
-        from training.model import write_model
+        from regression.model import write_model
         from training.train import train
 
         _log(f"training a model for {dm.feeder.name} (year seed {config.train_seed}); cached afterwards")
@@ -204,7 +226,6 @@ def _tail(path: Path, n: int = 15) -> str:
 def run(config: RunConfig) -> RunSummary:
     """Run one case end to end; see the module docstring."""
     from schemas import keys
-    from schemas import messages as m
     from schemas.bus import BusConfig, Inbox, LivelinessWatcher, free_port, open_session, wait_for
     from schemas.devicemap import load_device_map
 
@@ -223,9 +244,10 @@ def run(config: RunConfig) -> RunSummary:
     dm = load_device_map(dm_path)
     feeder_id = dm.feeder.name
     fingerprint = dm.fingerprint()
-    agent_args = case_agent_args(config.case, config.bandwidth_v120, config.pv_margin_window_s, config.setpoint_hold)
-    if agent_args is not None and config.check_model_fingerprint:
-        from training.model import read_model
+    agent_settings = case_agent_settings(config.case, feeder_id, config.bandwidth_v120, config.pv_margin_window_s,
+                                         config.setpoint_hold)
+    if agent_settings is not None and config.check_model_fingerprint:
+        from regression.model import read_model
 
         read_model(model_path, expect_fingerprint=fingerprint)  # refuse a model of another feeder early
 
@@ -233,7 +255,7 @@ def run(config: RunConfig) -> RunSummary:
     out = Path(config.out) if config.out else Path("runs") / f"{feeder_id}-{config.case}-{stamp}"
     out.mkdir(parents=True, exist_ok=True)
     kept_model = out / "model.json"
-    if agent_args is not None:
+    if agent_settings is not None:
         shutil.copyfile(model_path, kept_model)
     mcap_path = out / "session.mcap"
     steps = int(round(config.days * 1440))
@@ -264,15 +286,15 @@ def run(config: RunConfig) -> RunSummary:
             if config.record:
                 children.append(_spawn("recorder", [
                     "record", "--out", str(mcap_path), "--keys", f"cvvc/{feeder_id}/**",
-                    "--feeder-fingerprint", fingerprint, *_recorder_agent_args(config, feeder_id, kept_model),
+                    "--feeder-fingerprint", fingerprint, *_recorder_agent_args(agent_settings, kept_model),
                     *connect], out))
                 probe = session.declare_publisher(keys.sim_status(feeder_id))
                 if not wait_for(lambda: bool(probe.matching_status.matching), 30.0):  # type: ignore[attr-defined]
                     raise LaunchError(f"the recorder did not subscribe within 30 s:\n{_tail(out / 'recorder.log')}")
                 probe.undeclare()
-            if agent_args is not None:
+            if agent_settings is not None:
                 children.append(_spawn("agent", [
-                    "agent", "--model", str(kept_model), "--feeder-id", feeder_id, *agent_args, *connect], out))
+                    "agent", "--model", str(kept_model), *agent_settings_args(agent_settings), *connect], out))
                 agent_key = keys.alive(feeder_id, "agent", "agent")
                 agents = LivelinessWatcher(session, agent_key)
                 if not wait_for(lambda: agents.is_alive(agent_key), 60.0):
@@ -341,21 +363,19 @@ def run(config: RunConfig) -> RunSummary:
     baseline = None
     if config.baseline and config.case != "none":
         _log("simulating the no-control baseline of the same days")
-        baseline = msgspec.to_builtins(no_control_baseline(dm_path, start, steps, config.year_seed, Path(config.cache)))
+        baseline = no_control_baseline(dm_path, start, steps, config.year_seed, Path(config.cache))
     summary = RunSummary(
         feeder=str(dm_path), feeder_id=feeder_id, case=config.case, start=start_text, days=config.days,
-        steps=steps, wall_s=round(wall_s, 2), metrics=_metrics_frame_dict(final), baseline=baseline,
+        steps=steps, wall_s=round(wall_s, 2), metrics=final, baseline=baseline,
         lockstep_misses=status.lockstep_misses if status else 0, decisions=decisions, out_dir=str(out),
         recording=str(mcap_path) if config.record else None,
-        model=str(kept_model) if agent_args is not None else None)
+        model=str(kept_model) if agent_settings is not None else None)
     (out / "summary.json").write_bytes(msgspec.json.format(msgspec.json.encode(summary), indent=2))
     (out / "report.md").write_text(render_summary(summary))
     return summary
 
 
-def _recorder_agent_args(config: RunConfig, feeder_id: str, model: Path) -> list[str]:
-    settings = case_agent_settings(config.case, feeder_id, config.bandwidth_v120, config.pv_margin_window_s,
-                                   config.setpoint_hold)
+def _recorder_agent_args(settings: AgentSettings | None, model: Path) -> list[str]:
     if settings is None:
         return []
     return ["--model", str(model), "--agent-settings", msgspec.json.encode(settings).decode()]
@@ -370,7 +390,7 @@ def _progress(total: int, enabled: bool, label: str = "simulated"):
                 disable=not sys.stderr.isatty())
 
 
-def no_control_baseline(dm_path: Path, start: dt.datetime, steps: int, year_seed: int, cache: Path):
+def no_control_baseline(dm_path: Path, start: dt.datetime, steps: int, year_seed: int, cache: Path) -> Metrics:
     """The same days with no central control (regulators local, PV unity PF), simulated in-process."""
     from schemas.devicemap import load_device_map
     from simulator_bridge.engine import FeederEngine
@@ -390,25 +410,17 @@ def no_control_baseline(dm_path: Path, start: dt.datetime, steps: int, year_seed
     return acc.result()
 
 
-def _metrics_frame_dict(frame) -> dict[str, object]:
-    d = msgspec.to_builtins(frame)
-    for k in ("t_ns", "seq", "source", "final"):
-        d.pop(k, None)
-    return d
-
-
 def render_summary(s: RunSummary) -> str:
     """The run's summary as a short markdown report."""
-    mt = s.metrics
+    mt, base = s.metrics, s.baseline
     rows = [("MVVM [pu]", "mvvm_pu"), ("NVV", "nvv"), ("minutes in violation", "minutes_in_violation"),
             ("NTC (tap changes)", "ntc"), ("Q cost", "q_cost"), ("T cost", "t_cost"), ("total cost", "total_cost"),
             ("V min [pu]", "v_min_pu"), ("V max [pu]", "v_max_pu")]
-    base = s.baseline or {}
     lines = [f"# cvvc run: case {s.case} on {s.feeder_id}, {s.start}, {s.days:g} day(s)", "",
              f"| metric | case {s.case} | no control |", "|---|---|---|"]
     for label, key in rows:
-        b = base.get(key, "")
-        lines.append(f"| {label} | {_fmt(mt.get(key))} | {_fmt(b) if b != '' else ''} |")
+        b = "" if base is None else _fmt(getattr(base, key))
+        lines.append(f"| {label} | {_fmt(getattr(mt, key))} | {b} |")
     lines += ["", f"- decisions: {s.decisions}; lockstep misses: {s.lockstep_misses}; wall time {s.wall_s:.1f} s",
               f"- recording: `{s.recording}`" if s.recording else "- recording: off",
               f"- model: `{s.model}`" if s.model else "- model: none (baseline case)", ""]

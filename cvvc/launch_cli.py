@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 import sys
 
+from cvvc.cli_options import add_agent_option_arguments
+
 __all__ = ["register"]
 
 
@@ -40,15 +42,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     from cvvc.evaluate_cli import register_evaluate
 
     register_evaluate(sub)
-
-
-def add_agent_option_arguments(p: argparse.ArgumentParser) -> None:
-    """The agent's options beyond the paper, as ``cvvc run`` and ``cvvc evaluate`` pass them on (docs/agent.md)."""
-    p.add_argument("--pv-margin-window-s", type=float, default=None,
-                   help="the agent's PV variability margin window [s] (cases A-D; default: the agent's, 1800; "
-                        "0 = the paper's method)")
-    p.add_argument("--setpoint-hold", action="store_true",
-                   help="the agent re-sends its last set point when no tap change is decided (cases C/D)")
 
 
 def _run(args: argparse.Namespace) -> int:

@@ -23,14 +23,16 @@ from pathlib import Path
 import msgspec
 import numpy as np
 
+from cvvc.errors import CommandError
 from schemas.errors import CvvcError
 
-__all__ = ["ReportError", "RunTrace", "plot_evaluation", "plot_run", "read_trace", "window_envelope_pu"]
+__all__ = ["ReportError", "RunTrace", "envelope_figure", "errors_figure", "plot_evaluation", "plot_run", "pv_figure",
+           "read_trace", "taps_figure", "window_envelope_pu"]
 
 WINDOW_STEPS = 10  # 10-minute averages at the 1-minute step
 
 
-class ReportError(CvvcError):
+class ReportError(CommandError):
     """A run or evaluation folder that cannot be plotted; the message says what is missing."""
 
 
@@ -224,7 +226,8 @@ def _save(fig, path: Path) -> Path:
     return path
 
 
-def _plot_envelopes(traces: dict[str, RunTrace], title: str, path: Path) -> Path:
+def envelope_figure(traces: dict[str, RunTrace], title: str):
+    """The 10-minute average voltage envelope (max and min over nodes [pu]) of each trace, with the limits."""
     plt = _plt()
     fig, (ax_hi, ax_lo) = plt.subplots(2, 1, figsize=(12, 6.5), sharex=True)
     t0 = min(int(tr.t_ns[0]) for tr in traces.values())
@@ -240,10 +243,11 @@ def _plot_envelopes(traces: dict[str, RunTrace], title: str, path: Path) -> Path
     ax_hi.set_title(title)
     ax_hi.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))
     ax_lo.set_xlabel("time [days from start]")
-    return _save(fig, path)
+    return fig
 
 
-def _plot_pv(traces: dict[str, RunTrace], title: str, path: Path) -> Path:
+def pv_figure(traces: dict[str, RunTrace], title: str):
+    """Each plant's 10-minute average reactive power [kvar], one panel per trace."""
     plt = _plt()
     n = len(traces)
     fig, axes = plt.subplots(n, 1, figsize=(11, 2.4 * n + 0.6), sharex=True, squeeze=False)
@@ -259,10 +263,11 @@ def _plot_pv(traces: dict[str, RunTrace], title: str, path: Path) -> Path:
         ax.legend(fontsize=7, loc="upper right")
     axes[-1, 0].set_xlabel("time [days from start]")
     fig.suptitle(title)
-    return _save(fig, path)
+    return fig
 
 
-def _plot_taps(traces: dict[str, RunTrace], title: str, path: Path) -> Path:
+def taps_figure(traces: dict[str, RunTrace], title: str):
+    """Each regulator's tap position [steps] over time, one panel per trace."""
     plt = _plt()
     n = len(traces)
     fig, axes = plt.subplots(n, 1, figsize=(11, 2.4 * n + 0.6), sharex=True, squeeze=False)
@@ -278,10 +283,11 @@ def _plot_taps(traces: dict[str, RunTrace], title: str, path: Path) -> Path:
         ax.legend(fontsize=7, ncol=4, loc="upper right")
     axes[-1, 0].set_xlabel("time [days from start]")
     fig.suptitle(title)
-    return _save(fig, path)
+    return fig
 
 
-def _plot_errors(traces: dict[str, RunTrace], title: str, path: Path) -> Path | None:
+def errors_figure(traces: dict[str, RunTrace], title: str):
+    """Estimation error (estimate - truth [pu]) over time and its histogram; None without estimates."""
     with_est = {k: v for k, v in traces.items() if v.err_t_ns.size}
     if not with_est:
         return None
@@ -304,17 +310,17 @@ def _plot_errors(traces: dict[str, RunTrace], title: str, path: Path) -> Path | 
     axh.set_xlabel("estimate - truth [pu]")
     axh.set_ylabel("count")
     axh.legend(fontsize=7)
-    return _save(fig, path)
+    return fig
 
 
 def _plots(traces: dict[str, RunTrace], title: str, out: Path, prefix: str = "") -> list[Path]:
     out.mkdir(parents=True, exist_ok=True)
-    paths = [_plot_envelopes(traces, f"{title}: 10-min average voltage envelope",
-                             out / f"{prefix}voltage_envelope.png"),
-             _plot_pv(traces, f"{title}: PV reactive power (10-min average)", out / f"{prefix}pv_q.png"),
-             _plot_taps(traces, f"{title}: regulator taps", out / f"{prefix}taps.png")]
-    err = _plot_errors(traces, f"{title}: estimation error", out / f"{prefix}estimation_error.png")
-    return paths + ([err] if err else [])
+    paths = [_save(envelope_figure(traces, f"{title}: 10-min average voltage envelope"),
+                   out / f"{prefix}voltage_envelope.png"),
+             _save(pv_figure(traces, f"{title}: PV reactive power (10-min average)"), out / f"{prefix}pv_q.png"),
+             _save(taps_figure(traces, f"{title}: regulator taps"), out / f"{prefix}taps.png")]
+    err = errors_figure(traces, f"{title}: estimation error")
+    return paths + ([_save(err, out / f"{prefix}estimation_error.png")] if err is not None else [])
 
 
 def plot_run(run_dir: str | Path, *, out: str | Path | None = None) -> list[Path]:

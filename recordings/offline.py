@@ -235,7 +235,7 @@ def agent_decider(model_path: str | Path, settings_json: str = "") -> Decider:
     decide = getattr(runtime, "decide_offline", None)
     if decide is None:
         raise OfflineError("agent.runtime has no decide_offline(model, settings, frames) yet")
-    from training.model import read_model
+    from regression.model import read_model
 
     model = read_model(model_path)
     settings: Any = None

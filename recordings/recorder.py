@@ -347,7 +347,7 @@ class Recorder:
 
 
 def _version() -> str:
-    from cvvc import __version__
+    from schemas.version import __version__
 
     return __version__
 

@@ -28,7 +28,7 @@ from schemas import messages as m
 from schemas.errors import CvvcError
 
 __all__ = [
-    "KeyError_",
+    "KeyExprError",
     "Role",
     "ack",
     "agent_decision",
@@ -54,13 +54,13 @@ DeviceKind = Literal["pv", "vr"]
 Role = Literal["agent", "head", "pv", "vr", "bridge", "recorder"]
 
 
-class KeyError_(CvvcError):
+class KeyExprError(CvvcError):
     """An id that cannot be part of a key expression (empty, too long, or with '/', '*', '$', ...)."""
 
 
 def _id(value: str) -> str:
     if not _ID.match(value):
-        raise KeyError_(f"{value!r} is not a valid id: use 1-64 of A-Z a-z 0-9 _ . -")
+        raise KeyExprError(f"{value!r} is not a valid id: use 1-64 of A-Z a-z 0-9 _ . -")
     return value
 
 

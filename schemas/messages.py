@@ -97,6 +97,8 @@ class Command(Message, frozen=True, kw_only=True, forbid_unknown_fields=True):
 
 # ------------------------------------------------------------------------------------- measurements
 class HeadPhase(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """One phase of the feeder-head meter: voltage and current phasors, P and Q into the feeder."""
+
     phase: Phase
     v_mag_v: VoltsLN
     v_ang_deg: AngleDeg
@@ -117,6 +119,8 @@ class HeadFrame(Message, frozen=True, kw_only=True, forbid_unknown_fields=True):
 
 
 class PvPhase(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """One phase of a PV plant: P and Q (generator convention) and the terminal voltage."""
+
     phase: Phase
     p_kw: Kw
     q_kvar: Kvar
@@ -138,6 +142,8 @@ class PvFrame(Message, frozen=True, kw_only=True, forbid_unknown_fields=True):
 
 
 class RegPhase(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """One phase of a regulator: its PT secondary voltage on the 120 V base."""
+
     phase: Phase
     v_120: V120  # raw secondary voltage on the 120 V base (PT secondary)
 
@@ -177,6 +183,8 @@ class SetpointAction(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_f
 
 
 class RegCommand(Command, frozen=True, kw_only=True, forbid_unknown_fields=True, tag="vr"):
+    """A regulator command: a tap position or a voltage set point and band."""
+
     regulator_id: Ident
     action: TapAction | SetpointAction
 
@@ -196,12 +204,16 @@ class Ack(Message, frozen=True, kw_only=True, forbid_unknown_fields=True):
 
 # ------------------------------------------------------------------------------------------ decisions
 class NodeEstimate(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """A critical node's estimated voltage and the voltage predicted after the decided actions [pu]."""
+
     node: Annotated[str, Meta(max_length=128)]
     v_pu: Pu
     v_predicted_pu: Pu  # after the decided actions (linear model)
 
 
 class SolverStats(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """The optimizer's status, iterations and eq. (9) objective of one decision."""
+
     status: Annotated[str, Meta(max_length=64)]
     iterations: Count = 0
     objective: Annotated[float, Meta(ge=-1e12, le=1e12)] = 0.0
@@ -309,6 +321,8 @@ class OracleRequest(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fi
 
 
 class OracleReply(Message, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """Case A: true voltages of every node and perturbation sensitivities at one step, from the bridge."""
+
     feeder_id: Ident
     node_names: list[str]
     v_pu: list[Pu]

@@ -58,6 +58,7 @@ from schemas.bus import (
 from schemas.devicemap import DeviceMap, load_device_map
 from schemas.errors import CvvcError
 from simulator_bridge import devices as dv
+from simulator_bridge.errors import SimulatorError
 from simulator_bridge.publishing import (
     READING_FIELDS,
     DeviceSettings,
@@ -92,7 +93,7 @@ _DRAIN_MAX = 1000  # queued items handled in one go before the clock and the sto
 _PROCESS_MIN_NODES = 200
 
 
-class BridgeError(CvvcError):
+class BridgeError(SimulatorError):
     """The bridge cannot run as configured (bad dates, step counts, speeds, feeders)."""
 
 

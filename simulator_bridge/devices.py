@@ -47,7 +47,7 @@ from typing import Literal
 import numpy as np
 
 from schemas import messages as m
-from schemas.errors import CvvcError
+from simulator_bridge.errors import SimulatorError
 
 __all__ = [
     "BAND_RANGE_V120",
@@ -89,7 +89,7 @@ BAND_RANGE_V120 = m.BAND_RANGE_V120
 _CLIP_TOL_KVAR = 1e-6
 
 
-class DeviceError(CvvcError):
+class DeviceError(SimulatorError):
     """A device asked to do something impossible (a programming error in the bridge, not bad input)."""
 
 

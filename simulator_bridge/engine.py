@@ -36,7 +36,7 @@ import numpy as np
 import opendssdirect as dss
 
 from schemas.devicemap import DeviceMap, DeviceMapError
-from schemas.errors import CvvcError
+from simulator_bridge.errors import SimulatorError
 
 __all__ = ["EngineError", "FeederEngine", "FieldReadings", "OpenDssSnapshot", "Sensitivities", "opendss_snapshot"]
 
@@ -45,7 +45,7 @@ _LOAD_SETTER_FLAGS = 2  # SetterFlags_AvoidFullRecalc: a kW change does not rebu
 _BATCH_SET = 0  # BatchOperation_Set
 
 
-class EngineError(CvvcError):
+class EngineError(SimulatorError):
     """OpenDSS could not compile or solve the feeder, or was asked for something impossible."""
 
 

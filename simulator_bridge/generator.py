@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from schemas.errors import CvvcError
+from simulator_bridge.errors import SimulatorError
 
 __all__ = [
     "CONDUCTORS",
@@ -58,7 +58,7 @@ _KM_PER_MILE = 1.609344
 _OMEGA = 2.0 * math.pi * 60.0
 
 
-class GeneratorError(CvvcError):
+class GeneratorError(SimulatorError):
     """The rural feeder could not be generated (bad arguments or an unwritable output folder)."""
 
 

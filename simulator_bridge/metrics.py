@@ -33,7 +33,7 @@ import msgspec
 import numpy as np
 from msgspec import Meta
 
-from schemas.errors import CvvcError
+from simulator_bridge.errors import SimulatorError
 
 __all__ = [
     "JUDGED_LIMITS_PU",
@@ -59,7 +59,7 @@ NonNegInt = Annotated[int, Meta(ge=0)]
 NonNegFloat = Annotated[float, Meta(ge=0.0)]
 
 
-class MetricsError(CvvcError):
+class MetricsError(SimulatorError):
     """Inputs to the metrics that do not fit (shapes, NaN voltages, negative counts, mixed runs)."""
 
 

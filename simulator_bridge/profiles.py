@@ -28,7 +28,7 @@ from typing import Literal
 import numpy as np
 from scipy.signal import lfilter
 
-from schemas.errors import CvvcError
+from simulator_bridge.errors import SimulatorError
 
 __all__ = [
     "feeder_profiles",
@@ -79,7 +79,7 @@ _ALBEDO = 0.2
 _SEASON_MONTH = {"winter": 1, "spring": 4, "summer": 7, "fall": 10}
 
 
-class ProfileError(CvvcError):
+class ProfileError(SimulatorError):
     """A profile that is malformed (gaps, NaN, wrong lengths) or a request outside it."""
 
 

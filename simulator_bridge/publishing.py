@@ -38,9 +38,9 @@ import zenoh
 from schemas import keys
 from schemas import messages as m
 from schemas.bus import BusConfig, open_session, wait_for
-from schemas.errors import CvvcError
 from simulator_bridge import devices as dv
 from simulator_bridge.engine import FieldReadings
+from simulator_bridge.errors import SimulatorError
 
 __all__ = [
     "DeviceSettings",
@@ -65,7 +65,7 @@ _START_S = 60.0  # longest the child may take to start (a fresh interpreter, imp
 _CTRL_RING = 64  # control-step head publication times kept for the round trip
 
 
-class PublisherError(CvvcError):
+class PublisherError(SimulatorError):
     """The publisher process cannot start, failed, or is gone: the run stops."""
 
 

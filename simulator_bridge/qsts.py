@@ -33,8 +33,8 @@ from typing import Literal, Protocol
 
 import numpy as np
 
-from schemas.errors import CvvcError
 from simulator_bridge.engine import FeederEngine, FieldReadings
+from simulator_bridge.errors import SimulatorError
 
 __all__ = [
     "IEEE1547_CAT_B_Q_PU",
@@ -54,7 +54,7 @@ IEEE1547_CAT_B_Q_PU = (0.44, 0.0, 0.0, -0.44)
 """IEEE 1547-2018 Category B default Q1..Q4 [pu of the inverter's kVA rating], + injects."""
 
 
-class QstsError(CvvcError):
+class QstsError(SimulatorError):
     """The time series cannot run: profiles that do not fit the feeder, a step past the end, a bad command."""
 
 

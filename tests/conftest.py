@@ -34,7 +34,7 @@ def shared_feeders() -> Path:
 @pytest.fixture(scope="session")
 def ieee13_model(tmp_path_factory) -> Path:
     """A model trained on IEEE 13 (real OpenDSS power flows, ~4 s), once per test session."""
-    from training.model import write_model
+    from regression.model import write_model
     from training.train import train
 
     out = tmp_path_factory.mktemp("ieee13-model") / "model.json"

@@ -17,9 +17,9 @@ from pathlib import Path
 import msgspec
 import numpy as np
 
-from training._estimate import estimate_v_pu, eval_sensitivities, sensitivity_arrays
+from regression.batch import estimate_v_pu, eval_sensitivities, sensitivity_arrays
+from regression.model import CvvcModel, ModelArrays, features, read_model
 from training.errors import TrainingError
-from training.model import CvvcModel, ModelArrays, features, read_model
 
 __all__ = ["AccuracyReport", "ErrorStats", "MonthTruth", "accuracy_report", "error_stats", "simulate_month"]
 
@@ -50,6 +50,8 @@ class SensitivityStats(msgspec.Struct, frozen=True, kw_only=True):
 
 
 class AccuracyReport(msgspec.Struct, frozen=True, kw_only=True):
+    """Estimation accuracy of a model over a simulated month: errors at the critical nodes and every node."""
+
     feeder: str
     month: int
     year_seed: int

@@ -30,7 +30,7 @@ def _feeder_path(feeder: str | None) -> Path:
 def _train(args: argparse.Namespace) -> int:
     import msgspec
 
-    from training.model import write_model
+    from regression.model import write_model
     from training.train import DEFAULT_COMBINED_PCT, train
 
     result = train(

@@ -22,8 +22,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import OptimizeWarning, curve_fit
 
+from regression.model import SensitivityFit
 from training.errors import TrainingError
-from training.model import SensitivityFit
 
 __all__ = [
     "SensitivitySamples",
@@ -59,7 +59,7 @@ def fit_voltage_regression(x: np.ndarray, v_pu: np.ndarray, *, rcond: float = 1e
 
     Parameters
     ----------
-    x : (F, M) features of F power flows (``training.model.features``) [kW, kvar].
+    x : (F, M) features of F power flows (``regression.model.features``) [kW, kvar].
     v_pu : (F, N) node voltages [pu of each node's base].
     rcond : singular values of the standardised design below ``rcond * s_max`` are dropped.
 

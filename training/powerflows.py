@@ -26,9 +26,9 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from regression.model import features
 from schemas.errors import CvvcError
 from training.errors import TrainingError
-from training.model import features
 
 __all__ = [
     "BASE",
@@ -61,7 +61,7 @@ class PowerFlowSet:
     scenario: np.ndarray  # (F,) int
     plant: np.ndarray  # (F,) int: k perturbed alone, BASE or COMBINED
     q_pct: np.ndarray  # (F,) requested Q of the perturbed plant(s) [% of kVA, or of headroom if COMBINED]
-    features: np.ndarray  # (F, M) regression features (training.model.features)
+    features: np.ndarray  # (F, M) regression features (regression.model.features)
     q_head_kvar: np.ndarray  # (F,) feeder-head Q, sum of phases [kvar]
     pv_q_kvar: np.ndarray  # (F, K) applied plant Q [kvar], generator convention
     v_pu: np.ndarray  # (F, n_nodes) every node voltage [pu]

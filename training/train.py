@@ -1,6 +1,6 @@
 """Training pipeline: scenarios (II.A), power flows (II.B, Algorithm 1), critical nodes (II.C), fits (II.D).
 
-``train(device_map_path, ...)`` returns a ``TrainResult`` holding the model (``training.model.CvvcModel``)
+``train(device_map_path, ...)`` returns a ``TrainResult`` holding the model (``regression.model.CvvcModel``)
 and a summary of what was done. It drives OpenDSS only through ``simulator_bridge.engine.FeederEngine``.
 """
 
@@ -15,6 +15,16 @@ from typing import Literal
 import msgspec
 import numpy as np
 
+from regression.model import (
+    CriticalNode,
+    CvvcModel,
+    FitStats,
+    PvInfo,
+    RegulatorInfo,
+    SensitivityFit,
+    TrainingSettings,
+    feature_names,
+)
 from training.critical import extreme_nodes, node_phase, select_critical, upstream_regulators
 from training.errors import TrainingError
 from training.fits import (
@@ -24,16 +34,6 @@ from training.fits import (
     fit_voltage_regression,
     sensitivity_samples,
     tap_sensitivities,
-)
-from training.model import (
-    CriticalNode,
-    CvvcModel,
-    FitStats,
-    PvInfo,
-    RegulatorInfo,
-    SensitivityFit,
-    TrainingSettings,
-    feature_names,
 )
 from training.powerflows import (
     PowerFlowSet,
@@ -299,7 +299,7 @@ def train(
         )
     pvs = [PvInfo(id=p.id, kva=p.kva, pmpp_kw=p.pmpp_kw, cost_per_kvar=p.cost_per_kvar, phases=p.phases) for p in dm.pv]
     seconds = time.perf_counter() - t_start
-    from cvvc import __version__
+    from schemas.version import __version__
 
     fit_stats = FitStats(
         voltage_rmse_pu=float(np.sqrt(np.mean(vfit.rmse_pu**2))),
@@ -415,7 +415,7 @@ def _sensitivity_rel_err(sens: list[list[SensitivityFit]], samples: SensitivityS
 
     A (node, plant) pair is significant when its median |dV/dQ| is at least 10 % of the node's largest.
     """
-    from training._estimate import eval_sensitivities, sensitivity_arrays
+    from regression.batch import eval_sensitivities, sensitivity_arrays
 
     n_pv = len(sens[0]) if sens else 0
     pred = eval_sensitivities(sensitivity_arrays(sens), samples.q_head_kvar)

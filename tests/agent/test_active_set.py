@@ -1,4 +1,4 @@
-"""The dual active-set QP solver (agent/active_set.py) against Clarabel and HiGHS on random problems."""
+"""The dual active-set QP solver (agent/solve/active_set.py) against Clarabel and HiGHS on random problems."""
 
 from __future__ import annotations
 
@@ -8,9 +8,9 @@ import qpsolvers
 import scipy.optimize
 import scipy.sparse as sp
 
-from agent.active_set import solve_dense_qp
 from agent.cvvc_qp import build_cvvc_qp
-from agent.synthetic import random_cvvc_inputs
+from agent.solve.active_set import solve_dense_qp
+from benchmarks.synthetic import random_cvvc_inputs
 
 
 def _random_problem(rng: np.random.Generator, feasible: bool = True):

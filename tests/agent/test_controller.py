@@ -8,11 +8,11 @@ import pytest
 
 from agent.controller import CvvcController, Decision, MeasurementSnapshot
 from agent.errors import AgentInputError
-from agent.estimator import dv_dp_pu_per_kw, estimate_voltages_pu, pv_variability_margins_pu
-from agent.full_visibility import decide_full_visibility, full_visibility_inputs
-from agent.synthetic import synthetic_model
+from agent.state import oracle_state
+from benchmarks.synthetic import synthetic_model
+from regression.estimator import dv_dp_pu_per_kw, estimate_voltages_pu, pv_variability_margins_pu
+from regression.model import ModelArrays, features
 from schemas import messages as m
-from training.model import ModelArrays, features
 
 MODEL = synthetic_model(0)
 ARRAYS = ModelArrays.of(MODEL)
@@ -245,33 +245,52 @@ def test_pv_variability_margin_is_off_by_default_and_validated():
 
 def test_case_a_tightens_every_node_by_the_oracle_dv_dp():
     """Case A applies the same margin as B-D, to every node, from the oracle's perturbation dV/dP."""
-    plain, margin = controller(), controller(pv_margin_window_s=1800.0, pv_margin_cap_pu=0.01)
     minute = 60_000_000_000
-    for t, p in ((0, 1100.0), (5 * minute, 1100.0), (10 * minute, 300.0)):  # a cloud at the third step
-        snap = snapshot(t, pv_p_kw=p)
-        d_plain, d_margin = plain.decide(snap), margin.decide(snap)
     # three nodes: raised by every plant, by none, by a lot (the cap binds)
     dv_dp = np.array([[2e-6] * K, [0.0] * K, [1e-4] * K])
-    reply = m.OracleReply(t_ns=snap.t_ns, seq=1, source="bridge", feeder_id="synthetic", node_names=["a", "b", "c"],
-                          v_pu=[1.035, 1.0, 1.038], dv_dq_pu_per_kvar=[[3e-5] * K] * 3,
+    reply = m.OracleReply(t_ns=10 * minute, seq=1, source="bridge", feeder_id="synthetic",
+                          node_names=["a", "b", "c"], v_pu=[1.035, 1.0, 1.038], dv_dq_pu_per_kvar=[[3e-5] * K] * 3,
                           dv_dtap_pu=[[0.00625] * R] * 3, taps=[0] * R, dv_dp_pu_per_kw=dv_dp.tolist())
+
+    def case_a(oracle_reply, **kw):
+        """A case-A controller after three steps (a cloud at the third), the third decided from the oracle."""
+        c = controller(**kw)
+        asked = []
+
+        def oracle(t_ns):
+            asked.append(t_ns)
+            return oracle_reply
+
+        for t, p in ((0, 1100.0), (5 * minute, 1100.0), (10 * minute, 300.0)):
+            snap = snapshot(t, pv_p_kw=p)
+            d = c.decide(snap, oracle=oracle)
+        assert asked == [0, 5 * minute, 10 * minute]  # asked once per decided step, with its time
+        return c, snap, d
+
     lo, hi = MODEL.optimization_limits_pu
-    plain_in = full_visibility_inputs(plain, snap, reply)
-    margin_in = full_visibility_inputs(margin, snap, reply)
+    plain, snap, a_plain = case_a(reply)
+    margin, _, a_margin = case_a(reply, pv_margin_window_s=1800.0, pv_margin_cap_pu=0.01)
+    plain_in = plain.problem(snap, oracle_state(MODEL, reply, snap.reg_tap))
+    margin_in = margin.problem(snap, oracle_state(MODEL, reply, snap.reg_tap))
     assert np.all(plain_in.v_max_pu == hi) and np.all(plain_in.v_min_pu == lo)  # the paper's case A
     np.testing.assert_allclose(margin_in.v_max_pu, hi - np.array([2e-6 * 800 * K, 0.0, 0.01]))
     np.testing.assert_allclose(margin_in.v_min_pu, lo)  # the plants produce their window's least now
-    a_plain = decide_full_visibility(plain, snap, d_plain, reply)
-    a_margin = decide_full_visibility(margin, snap, d_margin, reply)
     assert a_plain.status == a_margin.status == "optimal", (a_plain.reason, a_margin.reason)
     assert a_margin.objective > a_plain.objective  # node c (1.038 pu) must come down to 1.03
+    # case A commands taps from the oracle's state: no estimates of critical nodes are reported
+    assert a_margin.reg_tap is not None and a_margin.v_pu is None and a_margin.dv_dq_pu_per_kvar is None
     # an oracle without dV/dP (an older bridge): no margin; one for the wrong number of plants: a clear error
     older = msgspec.structs.replace(reply, dv_dp_pu_per_kw=[])
-    assert np.all(full_visibility_inputs(margin, snap, older).v_max_pu == hi)
+    older_margin, _, a_older = case_a(older, pv_margin_window_s=1800.0, pv_margin_cap_pu=0.01)
+    assert np.all(older_margin.problem(snap, oracle_state(MODEL, older, snap.reg_tap)).v_max_pu == hi)
+    assert a_older.objective == a_plain.objective
     wrong = msgspec.structs.replace(reply, dv_dp_pu_per_kw=[[1e-6] * (K + 1)] * 3)
     with pytest.raises(AgentInputError, match="dV/dP for 4 plants"):
-        full_visibility_inputs(margin, snap, wrong)
-    assert decide_full_visibility(margin, snap, d_margin, wrong).status == "hold"
+        oracle_state(MODEL, wrong, snap.reg_tap)
+    _, _, a_wrong = case_a(wrong)
+    assert a_wrong.status == "hold" and a_wrong.reason.startswith("case A: oracle reply has dV/dP")
+    _, _, a_silent = case_a(None)
+    assert a_silent.status == "hold" and a_silent.reason == "case A: no oracle reply from the bridge"
 
 
 def test_setpoint_hold_resends_the_last_set_point_when_no_tap_change_is_decided():

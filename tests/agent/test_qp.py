@@ -10,7 +10,7 @@ import scipy.optimize
 from agent.cvvc_qp import CvvcInputs, build_cvvc_qp
 from agent.errors import AgentInputError
 from agent.solve import V_TOL_PU, solve_cvvc, solve_milp_reference
-from agent.synthetic import random_cvvc_inputs
+from benchmarks.synthetic import random_cvvc_inputs
 
 
 def _tiny(v0, *, cost_per_kvar=1e-4, cost_per_tap=1.0, dv_dq=(2e-5, 1e-5), q0=0.0) -> CvvcInputs:

@@ -2,19 +2,26 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import msgspec
 import pytest
 
 from agent.runtime import AgentSettings, DecisionMaker, decide_offline
-from agent.synthetic import synthetic_model
+from benchmarks.synthetic import synthetic_model
+from recordings.replay import RecordedMessages
 from schemas import keys
 from schemas import messages as m
 from schemas.bus import codec_for
 from schemas.examples import examples
+from schemas.keys import message_type_for_key
 
 PERIOD_NS = 300_000_000_000
 T0 = 1_672_549_200_000_000_000
 EX = examples()
+FEEDER = "rural"
+LIVE_STEPS = 30  # simulated minutes of the live session: six control steps
+DATA = Path(__file__).resolve().parents[1] / "data"
 
 
 @pytest.fixture(scope="module")
@@ -23,7 +30,7 @@ def model():
 
 
 def _frames(model, t_ns: int, seq: int, *, head_p_kw: float = 900.0, drop: tuple[str, ...] = ()):
-    fid = "rural"
+    fid = FEEDER
     out = []
     if "head" not in drop:
         phases = [msgspec.structs.replace(p, p_kw=head_p_kw) for p in EX[m.HeadFrame].phases]
@@ -71,15 +78,36 @@ def test_missing_head_holds_with_no_commands(model):
     assert "feeder-head" in msg.reason
 
 
-def test_offline_decisions_are_bit_identical_across_runs(model):
-    frames = []
-    for i, t in enumerate(range(T0, T0 + 30 * 60_000_000_000, 60_000_000_000)):
-        frames += _frames(model, t, i + 1, head_p_kw=600.0 + 40.0 * i)
-    settings = AgentSettings(feeder_id="rural")
-    a = [msgspec.structs.replace(d, timings=m.Timings()) for d in decide_offline(model, settings, frames)]
-    b = [msgspec.structs.replace(d, timings=m.Timings()) for d in decide_offline(model, settings, frames)]
-    assert len(a) == 6
-    assert [msgspec.json.encode(x) for x in a] == [msgspec.json.encode(x) for x in b]
+def live_frames(model, i: int):
+    """The frames of minute ``i`` of the live session (``tests/data/make_live_session.py`` publishes these)."""
+    return _frames(model, T0 + i * 60_000_000_000, i + 1, head_p_kw=600.0 + 40.0 * i)
+
+
+def test_offline_decisions_equal_the_live_agents_recording(model):
+    """The decision code, run on the frames the live agent received, makes the decisions the live agent made.
+
+    Golden: ``tests/data/live_session.mcap``, recorded from ``run_agent`` on a real Zenoh bus by
+    ``tests/data/make_live_session.py`` (same model, settings and frames); timings aside, bit for bit.
+    """
+    frames, recorded = [], []
+    with RecordedMessages(str(DATA / "live_session.mcap"), (f"cvvc/{FEEDER}/**",)) as rec:
+        messages = sorted(rec, key=lambda r: r.publish_time_ns)  # receive order
+    for r in messages:
+        typ = message_type_for_key(r.topic)
+        if typ in (m.HeadFrame, m.PvFrame, m.RegFrame):
+            frames.append((r.topic, codec_for(typ).decode(r.data)))
+        elif typ is m.Decision:
+            recorded.append(codec_for(m.Decision).decode(r.data))
+    assert len(frames) == LIVE_STEPS * (1 + len(model.pv) + len(model.regulators))
+    # the recording holds what this test's frames are: a live session of other frames cannot pass
+    assert frames == [kf for i in range(LIVE_STEPS) for kf in live_frames(model, i)]
+    assert len(recorded) == LIVE_STEPS // 5 and all(d.status == "optimal" and d.commands for d in recorded)
+    offline = list(decide_offline(model, AgentSettings(feeder_id=FEEDER), frames))
+
+    def content(d: m.Decision) -> bytes:
+        return msgspec.json.encode(msgspec.structs.replace(d, timings=m.Timings()))
+
+    assert [content(d) for d in offline] == [content(d) for d in recorded]
 
 
 def test_full_visibility_cannot_run_offline(model):

@@ -4,7 +4,7 @@ those of an undisturbed simulation, and the oracle's state is the simulation's."
 import shutil
 from pathlib import Path
 
-from cvvc.bench_decision import bench_decision
+from benchmarks.bench_decision import bench_decision
 from schemas.devicemap import load_device_map
 from training.train import TRAINING_REVISION
 

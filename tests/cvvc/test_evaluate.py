@@ -60,11 +60,11 @@ def test_results_md_has_the_paper_table_rows(small_evaluation):
     assert "| Season | Case | MVVM [pu] | NVV | NTC | Q Cost | T Cost | Total | wall [s] |" in md
     for r in ev.runs:
         mt = r.metrics
-        row = (f"| summer | {r.spec.case} | {mt['mvvm_pu']:.4f} | {mt['nvv']} | {mt['ntc']} | {mt['q_cost']:.1f} | "
-               f"{mt['t_cost']:.2f} | {mt['total_cost']:.1f} |")
+        row = (f"| summer | {r.spec.case} | {mt.mvvm_pu:.4f} | {mt.nvv} | {mt.ntc} | {mt.q_cost:.1f} | "
+               f"{mt.t_cost:.2f} | {mt.total_cost:.1f} |")
         assert row in md
-        taps = " | ".join(str(mt["taps_changes"][g]) for g in ("reg1", "reg2", "reg3"))
-        assert f"| summer | {r.spec.case} | {taps} | {mt['ntc']} |" in md
+        taps = " | ".join(str(mt.taps_changes[g]) for g in ("reg1", "reg2", "reg3"))
+        assert f"| summer | {r.spec.case} | {taps} | {mt.ntc} |" in md
     assert "pv633 [kvarh]" in md and "(paper Table IV)" in md and "(paper Table V)" in md
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import subprocess
@@ -13,7 +14,17 @@ import pytest
 from mcap.reader import make_reader
 
 from cvvc.evaluate import EvaluateConfig, evaluate
-from cvvc.report import ReportError, plot_evaluation, plot_run, read_trace, window_envelope_pu
+from cvvc.report import (
+    ReportError,
+    envelope_figure,
+    errors_figure,
+    plot_evaluation,
+    plot_run,
+    pv_figure,
+    read_trace,
+    taps_figure,
+    window_envelope_pu,
+)
 
 REPO = Path(__file__).resolve().parents[2]
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -36,10 +47,18 @@ def _truth(path: Path) -> list[dict]:
 
 
 def _assert_pngs(paths: list[Path], names: set[str]) -> None:
+    """The files are PNGs with something drawn: ink (axes, labels, data) and coloured series (not only grey)."""
+    import matplotlib.image
+
     assert {p.name for p in paths} == names
     for p in paths:
-        data = p.read_bytes()
-        assert data[:8] == PNG_MAGIC and len(data) > 10_000, p
+        assert p.read_bytes()[:8] == PNG_MAGIC, p
+        rgb = matplotlib.image.imread(p)[..., :3]
+        assert rgb.shape[0] > 300 and rgb.shape[1] > 1000, (p, rgb.shape)
+        ink = np.any(rgb < 0.9, axis=-1).mean()
+        assert 0.01 < ink < 0.5, (p, ink)  # axes, labels and data; not blank, not a filled canvas
+        coloured = (rgb.max(axis=-1) - rgb.min(axis=-1)) > 0.3  # series colours; axes and text are grey
+        assert coloured.sum() > 20, p
 
 
 def test_report_run_writes_the_four_pngs(tiny_evaluation, tmp_path):
@@ -77,6 +96,43 @@ def test_trace_matches_the_recorded_truth(tiny_evaluation):
     # decisions every 5 minutes, each matched with the truth of its step
     assert trace.err_t_ns.size == 5
     assert trace.errors_pu.size > 0 and np.abs(trace.errors_pu).max() < 0.05
+
+
+def test_figures_draw_the_trace(tiny_evaluation):
+    """Each figure's axes hold the trace's numbers: envelopes and limits, plant Q, taps, estimation errors."""
+    import matplotlib.pyplot as plt
+
+    out, ev = tiny_evaluation
+    recorded = read_trace(Path(ev.runs[0].recording))
+    # distinct columns (the recorded night has every plant at Q = 0), so a plant drawn for another shows
+    q, taps = recorded.pv_q_kvar, recorded.taps
+    trace = dataclasses.replace(recorded, pv_q_kvar=q + np.arange(q.size).reshape(q.shape),
+                                taps=taps + np.arange(taps.shape[1]))
+    traces = {"case D": trace}
+    lo, hi = trace.limits_pu
+    fig = envelope_figure(traces, "t")
+    ax_hi, ax_lo = fig.axes
+    np.testing.assert_array_equal(ax_hi.lines[0].get_ydata(), trace.v_env_max_pu)
+    np.testing.assert_array_equal(ax_lo.lines[0].get_ydata(), trace.v_env_min_pu)
+    assert list(ax_hi.lines[1].get_ydata()) == [hi, hi] and list(ax_lo.lines[1].get_ydata()) == [lo, lo]
+    fig_pv = pv_figure(traces, "t")
+    (ax,) = fig_pv.axes
+    assert len(ax.lines) == trace.pv_q_kvar.shape[1]
+    for k, line in enumerate(ax.lines):
+        np.testing.assert_array_equal(line.get_ydata(), trace.pv_q_kvar[:, k])
+    fig_taps = taps_figure(traces, "t")
+    (ax,) = fig_taps.axes
+    assert len(ax.lines) == trace.taps.shape[1]
+    for r, line in enumerate(ax.lines):
+        np.testing.assert_array_equal(line.get_ydata(), trace.taps[:, r])
+    fig_err = errors_figure(traces, "t")
+    ax, axh = fig_err.axes
+    np.testing.assert_array_equal(ax.lines[0].get_ydata(), trace.err_rms_pu)
+    assert sum(patch.get_height() for patch in axh.patches) == trace.errors_pu.size  # every error binned
+    for f in (fig, fig_pv, fig_taps, fig_err):
+        plt.close(f)
+    no_estimates = {"case none": dataclasses.replace(trace, err_t_ns=trace.err_t_ns[:0])}
+    assert errors_figure(no_estimates, "t") is None
 
 
 def test_window_envelope_by_hand():

@@ -165,11 +165,19 @@ def test_bad_arguments_give_a_clear_error(tmp_path, ieee13_model):
 )
 def test_case_flags_give_the_settings_the_agent_records(case, window, hold, expect):
     """``cvvc run/evaluate --pv-margin-window-s/--setpoint-hold`` reach the agent, and the recording says so."""
-    from cvvc.launch import case_agent_args, case_agent_settings
+    import argparse
 
-    args = case_agent_args(case, 4.0, window, hold)
+    from agent.cli import register, settings_from_args
+    from cvvc.launch import agent_settings_args, case_agent_settings
+
     settings = case_agent_settings(case, "ieee13", 4.0, window, hold)
-    assert args is not None and settings is not None
+    assert settings is not None
     for name, value in expect.items():
         assert getattr(settings, name) == value, name
-    assert case_agent_args("none", 4.0, 0.0, True) is None and case_agent_settings("local", "ieee13", 4.0) is None
+    # the agent process decodes exactly these settings from its command line
+    parser = argparse.ArgumentParser()
+    register(parser.add_subparsers())
+    args = parser.parse_args(["agent", "--model", "-", *agent_settings_args(settings), "--mode", "taps"])
+    assert settings_from_args(args) == settings
+    assert case_agent_settings("none", "ieee13", 4.0, 0.0, True) is None
+    assert case_agent_settings("local", "ieee13", 4.0) is None

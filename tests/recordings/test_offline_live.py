@@ -11,16 +11,16 @@ import msgspec
 import zenoh
 
 from agent.runtime import AgentSettings, run_agent
-from agent.synthetic import synthetic_model
+from benchmarks.synthetic import synthetic_model
 from cvvc.cli import main as cvvc_main
 from recordings.info import recording_info
 from recordings.offline import run_offline
 from recordings.recorder import Recorder, RecorderConfig
+from regression.model import write_model
 from schemas import keys
 from schemas import messages as m
 from schemas.bus import BusConfig, codec_for, open_session, wait_for
 from schemas.examples import T0_NS, examples
-from training.model import write_model
 
 FEEDER = "rural"
 STEPS = 30  # simulated minutes; a decision every 5 minutes

@@ -133,8 +133,8 @@ def test_cli_offline_needs_a_model(tmp_path: Path, capsys: pytest.CaptureFixture
 
 
 def test_cli_offline_refuses_case_a(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    from agent.synthetic import synthetic_model
-    from training.model import write_model
+    from benchmarks.synthetic import synthetic_model
+    from regression.model import write_model
 
     model = tmp_path / "model.json"
     write_model(synthetic_model(seed=3), model)

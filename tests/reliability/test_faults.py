@@ -177,7 +177,7 @@ def _decision_message(model, snap) -> m.Decision:
 def test_infeasible_limits_use_the_soft_form_and_say_so(model13: Path) -> None:
     import msgspec
 
-    from training.model import read_model
+    from regression.model import read_model
 
     model = read_model(model13)
     assert _decision_message(model, _snapshot(model)).status == "optimal"
@@ -193,7 +193,7 @@ def test_solver_failure_holds_and_says_so(model13: Path) -> None:
     import msgspec
     import numpy as np
 
-    from training.model import read_model
+    from regression.model import read_model
 
     model = read_model(model13)
     # tap sensitivities 1e150 times too large: OSQP refuses the hard form, then the soft form: safe hold

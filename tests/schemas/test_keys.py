@@ -4,7 +4,7 @@ import pytest
 
 from schemas import keys
 from schemas import messages as m
-from schemas.keys import KeyError_
+from schemas.keys import KeyExprError
 
 
 def test_key_layout_and_types():
@@ -20,5 +20,5 @@ def test_key_layout_and_types():
 
 @pytest.mark.parametrize("bad", ["", "a/b", "x*", "$y", "a" * 65, "sp ace"])
 def test_bad_ids_rejected(bad):
-    with pytest.raises(KeyError_):
+    with pytest.raises(KeyExprError):
         keys.meas_pv("rural", bad)

@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
+from regression.model import ModelArrays, ModelError, features, read_model, write_model
 from tests.training.conftest import IEEE123, REPO
 from training.errors import TrainingError
-from training.model import ModelArrays, ModelError, features, read_model, write_model
 
 
 def test_summary_and_model_are_consistent(trained_123):
@@ -55,9 +55,9 @@ def test_model_file_round_trip_and_fingerprint(trained_123, tmp_path):
 
 def test_estimates_opendss_out_of_sample(trained_123, profile_cache):
     """Random minutes of another year (seed 2), random plant Q and taps near tap0: eq. (5)-(7) vs OpenDSS."""
+    from regression.batch import estimate_v_pu, eval_sensitivities, sensitivity_arrays
     from schemas.devicemap import load_device_map
     from simulator_bridge.engine import FeederEngine
-    from training._estimate import estimate_v_pu, eval_sensitivities, sensitivity_arrays
     from training.train import load_profiles
 
     m = trained_123.model

@@ -14,7 +14,7 @@ from typing import Literal
 import numpy as np
 
 from agent.cvvc_qp import CvvcInputs
-from training.model import (
+from regression.model import (
     CriticalNode,
     CvvcModel,
     NodeKind,

@@ -1,7 +1,7 @@
 import numpy as np
 
-from training._estimate import estimate_v_pu, eval_sensitivities, sensitivity_arrays
-from training.model import ModelArrays, SensitivityFit
+from regression.batch import estimate_v_pu, eval_sensitivities, sensitivity_arrays
+from regression.model import ModelArrays, SensitivityFit
 
 
 def _arrays():

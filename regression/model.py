@@ -21,7 +21,7 @@ import msgspec
 import numpy as np
 from msgspec import Meta
 
-from schemas.errors import CvvcError
+from regression.errors import ModelError
 
 __all__ = [
     "MODEL_FORMAT_VERSION",
@@ -43,10 +43,6 @@ __all__ = [
 MODEL_FORMAT_VERSION = 1
 
 Finite = Annotated[float, Meta(ge=-1e12, le=1e12)]
-
-
-class ModelError(CvvcError):
-    """A model file that is missing, corrupt, of another version, or for another feeder."""
 
 
 NodeKind = Literal["head", "reg_primary", "reg_secondary", "pv", "extreme"]
@@ -113,6 +109,8 @@ class SensitivityFit(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_f
 
 
 class TrainingSettings(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """The training run that made a model: seeds, scenario selection and fit settings."""
+
     year_seed: int
     selection: Literal["guided", "random"]
     blocks: tuple[int, int]

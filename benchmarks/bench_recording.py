@@ -9,7 +9,7 @@ own ``t_ns`` and ``seq``) into a zstd-chunked MCAP file on disk:
     session, where the ``Recorder`` (callback enqueues, writer thread parses ``t_ns``, writes, flushes
     every second) records them; timed from the first sample's receive time to the file being finished.
 
-Run: ``python -m recordings.bench [N]``.
+Run: ``python -m benchmarks.bench_recording [N]``.
 """
 
 from __future__ import annotations
@@ -154,7 +154,7 @@ def _offline_speed(steps: int = 1440) -> dict[str, Any] | None:
     """
     try:
         from agent.runtime import AgentSettings, decide_offline  # type: ignore[attr-defined]
-        from agent.synthetic import synthetic_model
+        from benchmarks.synthetic import synthetic_model
     except ImportError:
         return None
     import math
@@ -163,11 +163,11 @@ def _offline_speed(steps: int = 1440) -> dict[str, Any] | None:
 
     from recordings.offline import run_offline
     from recordings.recorder import McapSink
+    from regression.model import write_model
     from schemas import keys
     from schemas import messages as m
     from schemas.bus import Received, codec_for
     from schemas.examples import T0_NS, examples
-    from training.model import write_model
 
     model = synthetic_model(seed=3)
     settings = AgentSettings(feeder_id="rural")

@@ -1,6 +1,6 @@
 """``make bench``: every benchmark of the project, each with a baseline measured in the same run.
 
-``python -m cvvc.bench [--only NAME ...] [--quick] [--json FILE]`` prints one block per benchmark:
+``python -m benchmarks [--only NAME ...] [--quick] [--json FILE]`` prints one block per benchmark:
 
 - ``qsts``: QSTS steps/s on the rural feeder, IEEE 123 and IEEE 8500 vs bare OpenDSS solves (goal < 1.3x);
 - ``bridge``: lockstep steps/s through Zenoh with a trivial responder vs the bare QSTS (goal overhead < 20 %),
@@ -75,7 +75,7 @@ def bench_training(quick: bool) -> dict[str, Any]:
 
 
 def bench_solver(quick: bool) -> dict[str, Any]:
-    from agent import bench_solver
+    from benchmarks import bench_solver
 
     argv = ["--problems", "50" if quick else "300", "--days", "1" if quick else "3"]
     t0 = time.perf_counter()
@@ -84,7 +84,7 @@ def bench_solver(quick: bool) -> dict[str, Any]:
 
 
 def bench_decision(quick: bool) -> dict[str, Any]:
-    from cvvc.bench_decision import bench_decision as run
+    from benchmarks.bench_decision import bench_decision as run
 
     out = {"rural": run(_rural(), control_steps=12 if quick else 96, cache=CACHE)}
     if not quick:
@@ -93,13 +93,13 @@ def bench_decision(quick: bool) -> dict[str, Any]:
 
 
 def bench_recording(quick: bool) -> dict[str, Any]:
-    from recordings.bench import bench_recording as run
+    from benchmarks.bench_recording import bench_recording as run
 
     return run(5_000 if quick else 20_000)
 
 
 def bench_soak(quick: bool) -> dict[str, Any]:
-    from cvvc.bench_soak import bench_soak as run
+    from benchmarks.bench_soak import bench_soak as run
 
     return run(days=1 if quick else 30)
 
@@ -116,7 +116,7 @@ BENCHES: dict[str, Callable[[bool], dict[str, Any]]] = {
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m cvvc.bench", description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m benchmarks", description=__doc__.split("\n\n")[0])
     parser.add_argument("--only", nargs="+", choices=sorted(BENCHES), help="run only these benchmarks")
     parser.add_argument("--quick", action="store_true", help="shorter windows (for a smoke run)")
     parser.add_argument("--json", metavar="FILE", help="also write every figure as JSON")

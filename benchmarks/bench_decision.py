@@ -34,9 +34,10 @@ def bench_decision(
     month: int = 7,
     repeats: int = 3,
 ) -> dict[str, Any]:
-    from agent.full_visibility import full_visibility_inputs
     from agent.runtime import AgentSettings, DecisionMaker, snapshot_from
     from agent.solve import solve_cvvc
+    from agent.state import oracle_state
+    from regression.model import read_model, write_model
     from schemas import keys
     from schemas import messages as m
     from schemas.devicemap import load_device_map
@@ -44,7 +45,6 @@ def bench_decision(
     from simulator_bridge.engine import FeederEngine
     from simulator_bridge.profiles import month_steps
     from simulator_bridge.qsts import Qsts
-    from training.model import read_model, write_model
     from training.train import TRAINING_REVISION, load_profiles, train
 
     dm = load_device_map(device_map_path)
@@ -153,7 +153,7 @@ def bench_decision(
             dv_dp_pu_per_kw=np.nan_to_num(sens.dv_dp).tolist(),
         )
         snap = snapshot_from(aligned_now[0], model)
-        solve_cvvc(full_visibility_inputs(reference.controller, snap, reply))
+        solve_cvvc(reference.controller.problem(snap, oracle_state(model, reply, snap.reg_tap)))
         case_a_s.append(time.perf_counter() - t0)
         oracle_s.append(t1 - t0)
         sizes.append(len(v))

@@ -14,7 +14,7 @@ samples ``VmRSS`` and ``VmHWM`` of every process (the three children and this ro
   control steps without a decision, the agent's ``queue_full`` and ``stale`` rejections (and every other
   rejection kind), the recorder's ``dropped_queue_full``.
 
-Run it with ``make bench`` (``python -m cvvc.bench --only soak``) or ``python -m cvvc.bench_soak [DAYS]``.
+Run it with ``make bench`` (``python -m benchmarks --only soak``) or ``python -m benchmarks.bench_soak [DAYS]``.
 """
 
 from __future__ import annotations
@@ -92,7 +92,7 @@ def bench_soak(days: float = 30.0, feeder: str | None = None, *, start: str = "2
         (hourly by default: a month of every-step truth frames would be gigabytes of recording).
     year_seed : profile seed of the simulated year (2: not the training year, as ``cvvc run``).
     """
-    from cvvc.launch import RunConfig, case_agent_args, prepare_feeder_and_model
+    from cvvc.launch import RunConfig, agent_settings_args, case_agent_settings, prepare_feeder_and_model
     from recordings.info import recording_info
     from schemas import keys
     from schemas import messages as m
@@ -128,8 +128,11 @@ def bench_soak(days: float = 30.0, feeder: str | None = None, *, start: str = "2
             if not wait_for(lambda: bool(probe.matching_status.matching), 60.0):  # type: ignore[attr-defined]
                 raise SoakError(f"the recorder did not subscribe within 60 s; see {out / 'recorder.log'}")
             probe.undeclare()
-            procs["agent"] = _spawn("agent", ["agent", "--model", str(model_path), "--feeder-id", fid,
-                                              *(case_agent_args("D", 4.0) or []), "--connect", endpoint], out)
+            case_d = case_agent_settings("D", fid, 4.0)
+            if case_d is None:
+                raise SoakError("case D runs no agent: the case table is broken")
+            procs["agent"] = _spawn("agent", ["agent", "--model", str(model_path), *agent_settings_args(case_d),
+                                              "--connect", endpoint], out)
             procs["bridge"] = _spawn("bridge", [
                 "bridge", "--feeder", str(dm_path), "--feeder-id", fid, "--start", start, "--steps", str(steps),
                 "--year-seed", str(year_seed), "--lockstep", "--timeout-s", str(lockstep_timeout_s),

@@ -1,6 +1,6 @@
 """Benchmark of the CVVC solver at the paper's size (47 critical nodes, 3 plants, 8 regulators).
 
-``python -m agent.bench_solver [--problems N] [--days D] [--seed S]`` prints, for independent random problems
+``python -m benchmarks.bench_solver [--problems N] [--days D] [--seed S]`` prints, for independent random problems
 (cold start) and for closed-loop synthetic days (5-minute steps, warm start from the previous solution, the
 way the agent runs): solve time p50/p99/max, OSQP iterations, statuses, and the rounding's cost gap to the
 exact MILP (``scipy.optimize.milp``). Wall times depend on the machine's load (printed); thread CPU
@@ -17,7 +17,7 @@ from collections import Counter
 import numpy as np
 
 from agent.solve import solve_cvvc, solve_milp_reference
-from agent.synthetic import cvvc_day_sequence, random_cvvc_inputs
+from benchmarks.synthetic import cvvc_day_sequence, random_cvvc_inputs
 
 __all__ = ["main"]
 
@@ -41,7 +41,7 @@ def _summary(
 
 def main(argv: list[str] | None = None) -> int:
     """Run the benchmark and print one line per scenario."""
-    parser = argparse.ArgumentParser(prog="python -m agent.bench_solver", description=__doc__)
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.bench_solver", description=__doc__)
     parser.add_argument("--problems", type=int, default=300, help="independent random problems (cold start)")
     parser.add_argument("--days", type=int, default=2, help="closed-loop synthetic days of 288 steps (warm start)")
     parser.add_argument("--seed", type=int, default=1)

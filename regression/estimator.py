@@ -1,7 +1,7 @@
 """Online voltage and sensitivity estimation: paper eq. (5)-(7) and the evaluation of eq. (3)-(4) fits.
 
 Pure functions of arrays: no I/O, no state, inputs are never modified. Index conventions are those of
-``training.model`` (``n`` critical node, ``k`` PV plant, ``r`` regulator, ``m`` feature).
+``regression.model`` (``n`` critical node, ``k`` PV plant, ``r`` regulator, ``m`` feature).
 All voltages are per unit of each critical node's own base (``_pu``).
 """
 
@@ -12,8 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from agent.errors import AgentInputError
-from training.model import ModelArrays, SensitivityFit
+from regression.errors import ModelInputError
+from regression.model import ModelArrays, SensitivityFit
 
 __all__ = [
     "SensitivityTable",
@@ -40,7 +40,7 @@ def estimate_voltages_pu(arrays: ModelArrays, features: np.ndarray, taps: np.nda
     Parameters
     ----------
     arrays : model arrays (``alpha`` (N, M+1) with trailing intercept, ``dv_dtap_pu`` (N, R), ``tap0`` (R,)).
-    features : (..., M) regression features in ``training.model.feature_names`` order [kW, kvar].
+    features : (..., M) regression features in ``regression.model.feature_names`` order [kW, kvar].
     taps : (..., R) present tap positions [steps].
 
     Returns
@@ -50,12 +50,12 @@ def estimate_voltages_pu(arrays: ModelArrays, features: np.ndarray, taps: np.nda
     m = np.asarray(features, float)
     t = np.asarray(taps, float)
     if m.shape[-1] != arrays.alpha.shape[1] - 1:
-        raise AgentInputError(
+        raise ModelInputError(
             f"features have {m.shape[-1]} columns but the model expects {arrays.alpha.shape[1] - 1}; "
-            "build them with training.model.features()"
+            "build them with regression.model.features()"
         )
     if t.shape[-1] != arrays.tap0.shape[0]:
-        raise AgentInputError(f"taps have {t.shape[-1]} entries but the model has {arrays.tap0.shape[0]} regulators")
+        raise ModelInputError(f"taps have {t.shape[-1]} entries but the model has {arrays.tap0.shape[0]} regulators")
     return m @ arrays.alpha[:, :-1].T + arrays.alpha[:, -1] + (t - arrays.tap0) @ arrays.dv_dtap_pu.T
 
 
@@ -136,7 +136,7 @@ class SensitivityTable:
         n = len(fits)
         k = len(fits[0]) if n else 0
         if any(len(row) != k for row in fits):
-            raise AgentInputError("sensitivity fits are not a rectangular (nodes x plants) grid; retrain the model")
+            raise ModelInputError("sensitivity fits are not a rectangular (nodes x plants) grid; retrain the model")
 
         def grid(get):
             return np.array([[get(f) for f in row] for row in fits], float).reshape(n, k)
@@ -171,7 +171,7 @@ def dv_dq_pu_per_kvar(fits: SensitivityTable | Sequence[Sequence[SensitivityFit]
     table = fits if isinstance(fits, SensitivityTable) else SensitivityTable.of(fits)
     q_head = float(q_head_kvar)
     if not np.isfinite(q_head):
-        raise AgentInputError("feeder-head reactive power is not finite; reject the head frame before estimating")
+        raise ModelInputError("feeder-head reactive power is not finite; reject the head frame before estimating")
     q = np.clip(q_head, table.q_min_kvar, table.q_max_kvar)
     out = table.a.copy()
     lin = table.form == 1
@@ -199,7 +199,7 @@ def dv_dp_pu_per_kw(arrays: ModelArrays, feature_names: Sequence[str], n_pv: int
         head = [names.index(f"head_p_kw_{ph}") for ph in "abc"]
         plants = [names.index(f"pv{k}_p_kw") for k in range(n_pv)]
     except ValueError as e:
-        raise AgentInputError(f"the model's features lack head or plant P: {e}") from e
+        raise ModelInputError(f"the model's features lack head or plant P: {e}") from e
     alpha = arrays.alpha
     return alpha[:, plants] - alpha[:, head].mean(axis=1, keepdims=True)
 

@@ -1,7 +1,7 @@
-"""Batch evaluation of a trained model over many minutes, on top of ``agent.estimator``.
+"""Batch evaluation of a trained model over many minutes, on top of ``regression.estimator``.
 
 The estimation math (paper eq. (5)-(7) and the evaluation of eq. (3)) lives in one place,
-``agent/estimator.py``, which the online agent uses. This module only applies it to (T, ...) batches for
+``regression/estimator.py``, which the online agent uses. This module only applies it to (T, ...) batches for
 training statistics, tests and the accuracy report.
 """
 
@@ -11,14 +11,14 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from agent.estimator import (
+from regression.estimator import (
     SensitivityTable,
     apply_correction,
     correction_pu,
     dv_dq_pu_per_kvar,
     estimate_voltages_pu,
 )
-from training.model import ModelArrays, SensitivityFit
+from regression.model import ModelArrays, SensitivityFit
 
 __all__ = ["estimate_v_pu", "eval_sensitivities", "sensitivity_arrays"]
 
@@ -34,7 +34,7 @@ def estimate_v_pu(
     Parameters
     ----------
     arrays : the model's arrays.
-    features : (T, M) feature vectors (``training.model.features``) [kW, kvar].
+    features : (T, M) feature vectors (``regression.model.features``) [kW, kvar].
     taps : (T, R) present tap positions [steps].
     reg_v120 : (T, R) measured raw regulator secondary voltages [V on the 120 V base], or None.
 
@@ -57,7 +57,7 @@ def sensitivity_arrays(fits: Sequence[Sequence[SensitivityFit]]) -> SensitivityT
 
 
 def eval_sensitivities(table: SensitivityTable, q_head_kvar: np.ndarray) -> np.ndarray:
-    """dV_n/dQ_k at each head Q, paper eq. (3) (``agent.estimator.dv_dq_pu_per_kvar``).
+    """dV_n/dQ_k at each head Q, paper eq. (3) (``regression.estimator.dv_dq_pu_per_kvar``).
 
     Parameters
     ----------

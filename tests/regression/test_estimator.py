@@ -3,8 +3,9 @@
 import numpy as np
 import pytest
 
-from agent.errors import AgentInputError
-from agent.estimator import (
+from benchmarks.synthetic import synthetic_model
+from regression.errors import ModelInputError
+from regression.estimator import (
     POWER_BASE_FLOOR_KVAR,
     SensitivityTable,
     apply_correction,
@@ -14,8 +15,7 @@ from agent.estimator import (
     estimate_voltages_pu,
     pv_variability_margins_pu,
 )
-from agent.synthetic import synthetic_model
-from training.model import ModelArrays, SensitivityFit, features
+from regression.model import ModelArrays, SensitivityFit, features
 
 
 def _arrays() -> ModelArrays:
@@ -48,7 +48,7 @@ def test_eq5_batches_over_leading_axes():
 
 
 def test_eq5_rejects_wrong_feature_count():
-    with pytest.raises(AgentInputError, match="features"):
+    with pytest.raises(ModelInputError, match="features"):
         estimate_voltages_pu(_arrays(), np.zeros(3), np.zeros(2))
 
 
@@ -117,7 +117,7 @@ def test_eq3_power_form_guard_keeps_base_positive():
 
 
 def test_eq3_rejects_non_finite_head_q():
-    with pytest.raises(AgentInputError):
+    with pytest.raises(ModelInputError):
         dv_dq_pu_per_kvar([[SensitivityFit(form="constant", a=1e-5)]], float("nan"))
 
 
@@ -140,7 +140,7 @@ def test_dv_dp_is_the_plant_coefficient_minus_the_mean_head_coefficient():
                          reg_pu_per_v120=np.zeros(0))
     # node 0: 2e-5 - (-6e-6) = 2.6e-5 pu/kW; node 1: 1e-5
     np.testing.assert_allclose(dv_dp_pu_per_kw(arrays, names, 1), [[2.6e-5], [1e-5]], rtol=1e-12)
-    with pytest.raises(AgentInputError, match="plant P"):
+    with pytest.raises(ModelInputError, match="plant P"):
         dv_dp_pu_per_kw(arrays, names, 2)
 
 

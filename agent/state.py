@@ -1,0 +1,114 @@
+"""Where the controller's picture of the grid comes from: the estimator (cases B-D) or the bridge's oracle (A).
+
+Both sources give a ``GridState``: voltages of the nodes to constrain, their sensitivities to each plant's Q and
+P and to each regulator's tap, and the present taps. The controller builds one CVVC problem from it, whichever
+the source (paper Table I: case A is the same problem with full visibility).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from agent.errors import AgentInputError
+from regression.estimator import (
+    SensitivityTable,
+    apply_correction,
+    correction_pu,
+    dv_dq_pu_per_kvar,
+    estimate_voltages_pu,
+)
+from regression.model import CvvcModel, ModelArrays, features
+from schemas import messages as m
+
+__all__ = ["GridState", "OracleSource", "estimated_state", "oracle_state"]
+
+#: Case A's source: the bridge's oracle reply for a step time [ns], or None when it did not answer.
+OracleSource = Callable[[int], "m.OracleReply | None"]
+
+
+@dataclass(frozen=True)
+class GridState:
+    """The grid at one control step, as the CVVC problem needs it.
+
+    Attributes
+    ----------
+    v0_pu : (N,) present voltages of the nodes to constrain [pu of each node's base].
+    dv_dq_pu_per_kvar : (N, K) sensitivity to each plant's Q [pu/kvar].
+    dv_dtap_pu : (N, R) sensitivity to each regulator's tap [pu/step].
+    dv_dp_pu_per_kw : (N, K) sensitivity to each plant's P [pu/kW] (the PV variability margin).
+    taps : (R,) present taps [steps].
+    corrected : eq. (6)-(7) correction applied (estimator only).
+    critical : the nodes are the model's critical nodes (the decision reports their estimates); False for the
+        oracle's every live node.
+    """
+
+    v0_pu: np.ndarray
+    dv_dq_pu_per_kvar: np.ndarray
+    dv_dtap_pu: np.ndarray
+    dv_dp_pu_per_kw: np.ndarray
+    taps: np.ndarray
+    corrected: bool
+    critical: bool
+
+
+def estimated_state(
+    arrays: ModelArrays,
+    sens: SensitivityTable,
+    dv_dp_pu_per_kw: np.ndarray,
+    *,
+    head_p_kw: np.ndarray,
+    head_q_kvar: np.ndarray,
+    pv_p_kw: np.ndarray,
+    pv_q_kvar: np.ndarray,
+    taps: np.ndarray,
+    reg_v120: np.ndarray | None,
+    reg_ok: np.ndarray,
+) -> GridState:
+    """The critical nodes by the estimator: eq. (5), corrected by eq. (6)-(7) when ``reg_v120`` is given, eq. (3).
+
+    Parameters
+    ----------
+    arrays, sens, dv_dp_pu_per_kw : the model's arrays, eq. (3) fits and (N, K) dV/dP [pu/kW].
+    head_p_kw, head_q_kvar : (3,) feeder-head P [kW] and Q [kvar] per phase.
+    pv_p_kw, pv_q_kvar : (K,) plant output (last known where missing) [kW], [kvar].
+    taps : (R,) taps (last known where missing) [steps].
+    reg_v120 : (R,) raw regulator secondary voltages [V on the 120 V base], or None (no correction).
+    reg_ok : (R,) bool, regulators whose reading is usable.
+    """
+    v_hat = estimate_voltages_pu(arrays, features(head_p_kw, head_q_kvar, pv_p_kw, pv_q_kvar), taps)
+    corrected = False
+    if reg_v120 is not None:
+        measured = np.asarray(reg_v120, float) * arrays.reg_pu_per_v120
+        eps = correction_pu(v_hat, arrays.reg_secondary_node, measured, valid=reg_ok)
+        v_hat = apply_correction(v_hat, eps, arrays.upstream_regulator)
+        corrected = bool(np.any(reg_ok))
+    dv_dq = dv_dq_pu_per_kvar(sens, float(np.sum(head_q_kvar)))
+    return GridState(v0_pu=v_hat, dv_dq_pu_per_kvar=dv_dq, dv_dtap_pu=arrays.dv_dtap_pu,
+                     dv_dp_pu_per_kw=dv_dp_pu_per_kw, taps=taps, corrected=corrected, critical=True)
+
+
+def oracle_state(model: CvvcModel, reply: m.OracleReply, taps: np.ndarray) -> GridState:
+    """Every energised node from the bridge's oracle: true voltages and perturbation sensitivities (case A).
+
+    Device order is the device map's, which is also the model's (training builds the model from the same map).
+    ``taps`` (R,) [steps] stand in when the reply carries none. Raises ``AgentInputError`` when the reply's
+    device counts are not the model's.
+    """
+    n_pv, n_reg = len(model.pv), len(model.regulators)
+    v0 = np.asarray(reply.v_pu, float)
+    dv_dq = np.asarray(reply.dv_dq_pu_per_kvar, float).reshape(v0.size, -1)
+    dv_dtap = np.asarray(reply.dv_dtap_pu, float).reshape(v0.size, -1)
+    if dv_dq.shape[1] != n_pv or dv_dtap.shape[1] != n_reg:
+        raise AgentInputError(f"oracle reply has {dv_dq.shape[1]} plants and {dv_dtap.shape[1]} regulators; "
+                              f"the model has {n_pv} and {n_reg}")
+    # an oracle without dV/dP (an older bridge): no margin
+    dv_dp = np.asarray(reply.dv_dp_pu_per_kw or np.zeros((v0.size, n_pv)), float).reshape(v0.size, -1)
+    if dv_dp.shape[1] != n_pv:
+        raise AgentInputError(f"oracle reply has dV/dP for {dv_dp.shape[1]} plants; the model has {n_pv}")
+    live = v0 > 0.5  # nodes that are not energised (0 pu) cannot be constrained
+    present = np.asarray(reply.taps, int) if len(reply.taps) == n_reg else np.asarray(taps, int)
+    return GridState(v0_pu=v0[live], dv_dq_pu_per_kvar=dv_dq[live], dv_dtap_pu=dv_dtap[live],
+                     dv_dp_pu_per_kw=dv_dp[live], taps=present, corrected=False, critical=False)

@@ -1,0 +1,9 @@
+"""The base of every ``simulator_bridge`` exception, under ``schemas.errors.CvvcError``."""
+
+from schemas.errors import CvvcError
+
+__all__ = ["SimulatorError"]
+
+
+class SimulatorError(CvvcError):
+    """Base of every exception raised by the ``simulator_bridge`` package."""
