@@ -219,7 +219,8 @@ DecisionCommand = PvCommand | RegCommand | CapCommand
 
 class Ack(Message, frozen=True, kw_only=True, forbid_unknown_fields=True):
     """A device's answer to one command. ``applied_value`` is kvar (PV), a tap, volts (set point), or a
-    capacitor bank's closed steps (None when a bank was released to its local control)."""
+    capacitor bank's closed steps (None when a bank was released to its local control).
+    """
 
     cmd_id: Annotated[str, Meta(max_length=96)]
     device_id: Ident
