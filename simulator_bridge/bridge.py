@@ -328,7 +328,7 @@ class _Runtime:
         if child is None:
             self.framer = StepFramer(self.spec, session, self._on_control_head)
         else:
-            packer = StepPacker(len(engine.node_names), len(self.pvs), len(self.regs))
+            packer = StepPacker(len(engine.node_names), len(self.pvs), len(self.regs), len(engine.capacitor_ids))
             self.child = PublisherProcess(self.spec, packer, child)
 
     # ---------------------------------------------------------------- declarations

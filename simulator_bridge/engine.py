@@ -65,6 +65,10 @@ class FieldReadings:
     reg_v120_compared : (R,) the voltage the controller compares with its band: ``reg_v120`` with
         line-drop compensation applied [V on the 120 V base].
     reg_tap : (R,) tap positions, -16..16 for a 32-step regulator.
+    cap_states : (C,) int, closed steps of each map capacitor bank (0..its ``numsteps``).
+    cap_v_v : (C,) mean line-to-neutral voltage magnitude at the bank's bus [V].
+    cap_control_value : (C,) the quantity the bank's CapControl compares with its ON/OFF settings, in the
+        control's own unit (V on its PT base, kvar, A, PF, hour of day); NaN when the bank has none.
     """
 
     head_v_mag_v: np.ndarray
@@ -79,6 +83,9 @@ class FieldReadings:
     reg_v120: np.ndarray
     reg_v120_compared: np.ndarray
     reg_tap: np.ndarray
+    cap_states: np.ndarray
+    cap_v_v: np.ndarray
+    cap_control_value: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -161,6 +168,11 @@ class FeederEngine:
     reg_default_setpoint_v120, reg_default_band_v120 : (R,) local-control defaults: the map's, else the
         model's ``vreg`` and ``band`` [V on the 120 V base].
     reg_tap_max : (R,) highest tap position (taps run ``-reg_tap_max..reg_tap_max``).
+    capacitor_ids : the map's ``[[capacitor]]`` ids, map order.
+    cap_kvar : (C,) rated kvar of each bank, all steps [kvar].
+    cap_steps : (C,) int, number of steps of each bank.
+    cap_control_type : per bank, its CapControl's type: ``"voltage"``, ``"kvar"``, ``"current"``, ``"pf"``,
+        ``"time"``, ``"follow"``, or ``"none"`` (no CapControl).
     """
 
     def __init__(self, device_map: DeviceMap, *, tolerance: float = 1e-6) -> None:
@@ -189,6 +201,7 @@ class FeederEngine:
         self._init_loads()
         self._init_pv()
         self._init_regulators()
+        self._init_capacitors()
         self._init_measurements()
         bus_distance, feeder_buses, head_bus = self._bus_distance_ohm()
         self.node_in_feeder = np.array([n.split(".")[0] in feeder_buses for n in self.node_names])
@@ -234,6 +247,22 @@ class FeederEngine:
             if r.regcontrol.lower() not in regcontrols:
                 raise DeviceMapError(f"{self._where}: regulator {r.id!r}: RegControl {r.regcontrol!r} not "
                                      f"found in {master}; known: {sorted(regcontrols)}")
+        capacitors = {c.lower() for c in self._dss.Capacitors.AllNames()}
+        capcontrols = {c.lower() for c in self._dss.CapControls.AllNames()}
+        for c in dm.capacitor:
+            if c.capacitor.lower() not in capacitors:
+                raise DeviceMapError(f"{self._where}: capacitor {c.id!r}: Capacitor {c.capacitor!r} not found in "
+                                     f"{master}; known: {sorted(capacitors)}")
+            if c.capcontrol is None:
+                continue
+            if c.capcontrol.lower() not in capcontrols:
+                raise DeviceMapError(f"{self._where}: capacitor {c.id!r}: CapControl {c.capcontrol!r} not found "
+                                     f"in {master}; known: {sorted(capcontrols)}")
+            self._dss.CapControls.Name(c.capcontrol)
+            controlled = self._dss.CapControls.Capacitor().lower()
+            if controlled != c.capacitor.lower():
+                raise DeviceMapError(f"{self._where}: capacitor {c.id!r}: CapControl {c.capcontrol!r} switches "
+                                     f"Capacitor {controlled!r}, not {c.capacitor!r}; name the bank's own control")
         for p in dm.pv:
             if p.bus.split(".")[0].lower() not in buses:
                 raise DeviceMapError(f"{self._where}: PV plant {p.id!r}: bus {p.bus!r} not found in {master}")
@@ -369,6 +398,26 @@ class FeederEngine:
             rc.Name(reg.regcontrol)
             self._taps[r] = rc.TapNumber()
 
+    def _init_capacitors(self) -> None:
+        d = self._dss
+        kvar, steps, kinds, states = [], [], [], []
+        for spec in self.device_map.capacitor:
+            d.Capacitors.Name(spec.capacitor)
+            kvar.append(float(d.Capacitors.kvar()))
+            steps.append(int(d.Capacitors.NumSteps()))
+            states.append(int(sum(d.Capacitors.States())))
+            if spec.capcontrol is None:
+                kinds.append("none")
+            else:
+                kind = self._command(f"? capcontrol.{spec.capcontrol}.type", what=f"capacitor {spec.id!r}")
+                kinds.append(kind.strip().lower())
+        self.capacitor_ids: tuple[str, ...] = tuple(c.id for c in self.device_map.capacitor)
+        self._cap_names = tuple(c.capacitor.lower() for c in self.device_map.capacitor)
+        self.cap_kvar = np.array(kvar, dtype=float)
+        self.cap_steps = np.array(steps, dtype=int)
+        self.cap_control_type: tuple[str, ...] = tuple(kinds)
+        self._cap_states = np.array(states, dtype=int)
+
     def _init_measurements(self) -> None:
         """Batch the measured elements (head, PV plants, regulator transformers) for one current read.
 
@@ -376,8 +425,8 @@ class FeederEngine:
         """
         lib, ffi = self._lib, self._ffi
         elements = [self.device_map.feeder.head_element] + [f"PVSystem.{n}" for n in self._pv_names] + [
-            f"Transformer.{r.transformer}" for r in self._regs]
-        terminals = [1] * (1 + len(self._pv_names)) + self._reg_winding
+            f"Transformer.{r.transformer}" for r in self._regs] + [f"Capacitor.{c}" for c in self._cap_names]
+        terminals = [1] * (1 + len(self._pv_names)) + self._reg_winding + [1] * len(self._cap_names)
         handles, terms, offset = [], [], 0
         for element, terminal in zip(elements, terminals, strict=True):
             cls, name = element.split(".", 1)
@@ -392,7 +441,14 @@ class FeederEngine:
         self._n_ce = len(handles)
         self._ce_result = ffi.new("double**")
         self._ce_dims = ffi.new("int32_t[4]")
-        head, pvs, regs = terms[0], terms[1:1 + len(self._pv_names)], terms[1 + len(self._pv_names):]
+        n_pv, n_reg = len(self._pv_names), len(self._regs)
+        head, pvs, regs = terms[0], terms[1:1 + n_pv], terms[1 + n_pv:1 + n_pv + n_reg]
+        caps = terms[1 + n_pv + n_reg:]
+        # a bank's voltage: mean over its phases of |V(phase) - V(neutral)|; absent phases are masked out
+        self._cap_cond = np.array([t.conductor for t in caps], dtype=int).reshape(-1, 3)
+        self._cap_neutral = np.array([t.neutral for t in caps], dtype=int)
+        self._cap_phase_mask = self._cap_cond >= 0
+        self._cap_n_phases = np.maximum(self._cap_phase_mask.sum(axis=1), 1)
         self._head_cond, self._head_neutral = np.array(head.conductor), head.neutral
         self._pv_cond = np.array([t.conductor for t in pvs], dtype=int).reshape(-1, 3)
         self._pv_neutral = np.array([t.neutral for t in pvs], dtype=int)
@@ -565,6 +621,27 @@ class FeederEngine:
         """(R,) present tap positions (OpenDSS's controls are off: only :meth:`set_taps` moves them)."""
         return self._taps.copy()
 
+    def set_cap_states(self, states: np.ndarray) -> None:
+        """Set every map capacitor bank's number of closed steps (integers within ``0..cap_steps``).
+
+        Steps close in order (step 1 first), as OpenDSS's CapControl switches them.
+        """
+        st = np.asarray(states)
+        if st.shape != self.cap_steps.shape or np.any(st != np.round(st)) or np.any(st < 0) \
+                or np.any(st > self.cap_steps):
+            raise EngineError(f"set_cap_states: expected {len(self.cap_steps)} integer states within "
+                              f"0..{self.cap_steps.tolist()}, got {states!r}")
+        cap = self._dss.Capacitors
+        for c in np.flatnonzero(st != self._cap_states):
+            n = int(st[c])
+            cap.Name(self._cap_names[c])
+            cap.States([1] * n + [0] * (int(self.cap_steps[c]) - n))
+            self._cap_states[c] = n
+
+    def cap_states(self) -> np.ndarray:
+        """(C,) closed steps of each map capacitor bank."""
+        return self._cap_states.copy()
+
     # ------------------------------------------------------------------ solve and read
     def solve(self) -> None:
         """Solve one power flow at the present loads, PV and taps.
@@ -611,13 +688,20 @@ class FeederEngine:
         pv_s = -pv_v * np.conj(i[self._pv_cond]) / 1000.0
         v_sec = (v[self._reg_cond] - v[self._reg_neutral]) / self._reg_ratio
         compared = np.abs(v_sec + self._reg_ldc * i[self._reg_cond])
+        cap_v = np.abs(v[self._cap_cond] - v[self._cap_neutral][:, None]) * self._cap_phase_mask
+        cap_v_v = cap_v.sum(axis=1) / self._cap_n_phases
         return FieldReadings(
             head_v_mag_v=np.abs(hv), head_v_ang_deg=np.degrees(np.angle(hv)),
             head_i_mag_a=np.abs(hi), head_i_ang_deg=np.degrees(np.angle(hi)),
             head_p_kw=hs.real, head_q_kvar=hs.imag,
             pv_p_kw=pv_s.real, pv_q_kvar=pv_s.imag, pv_v_v=np.abs(pv_v),
             reg_v120=np.abs(v_sec), reg_v120_compared=compared, reg_tap=self._taps.copy(),
+            cap_states=self._cap_states.copy(), cap_v_v=cap_v_v, cap_control_value=self._cap_control_value(),
         )
+
+    def _cap_control_value(self) -> np.ndarray:
+        """(C,) what each map bank's CapControl compares (NaN: none, or not sampled yet)."""
+        return np.full(len(self._cap_names), np.nan)
 
     # ------------------------------------------------------------------ oracle
     def perturbation_sensitivities(self, dq_kvar: float = 100.0, dp_kw: float = 100.0) -> Sensitivities:

@@ -307,10 +307,11 @@ class StepPacker:
     whether the step is finite; the device settings follow (a NaN set point is "none").
     """
 
-    def __init__(self, n_nodes: int, n_pv: int, n_reg: int) -> None:
+    def __init__(self, n_nodes: int, n_pv: int, n_reg: int, n_cap: int = 0) -> None:
         shapes = {name: (3,) for name in READING_FIELDS if name.startswith("head_")}
         shapes |= {"pv_p_kw": (n_pv, 3), "pv_q_kvar": (n_pv, 3), "pv_v_v": (n_pv, 3), "reg_v120": (n_reg,),
-                   "reg_v120_compared": (n_reg,), "reg_tap": (n_reg,)}
+                   "reg_v120_compared": (n_reg,), "reg_tap": (n_reg,), "cap_states": (n_cap,),
+                   "cap_v_v": (n_cap,), "cap_control_value": (n_cap,)}
         fields, at = [], 0
         for name in READING_FIELDS:  # FieldReadings' shapes (see its docstring)
             size = int(np.prod(shapes[name], dtype=np.int64))
@@ -322,9 +323,12 @@ class StepPacker:
         self.n_checked = at
         self.readings = tuple(fields[:len(READING_FIELDS)])
         self.step_fields = tuple(fields[len(READING_FIELDS):])
-        self.n_pv, self.n_reg = n_pv, n_reg
+        self.n_pv, self.n_reg, self.n_cap = n_pv, n_reg, n_cap
         self.n_float = at + n_pv + 2 * n_reg  # + PV set points, regulator set points and bands
-        self.n_int = 4 + 3 * n_reg  # kind, t_ns, step, n_step; taps, tap changes, modes
+        self.n_int = 4 + 3 * n_reg + 2 * n_cap  # kind, t_ns, step, n_step; taps, changes, modes; caps, switches
+        # a bank without a CapControl reads NaN: that field is left out of the finiteness check
+        cv = next(f for f in self.readings if f.name == "cap_control_value")
+        self._nan_ok = (cv.start, cv.stop)
         self._last: DeviceSettings | None = None  # the settings last packed, and their packed form
         self._settings_f = np.zeros(n_pv + 2 * n_reg)
         self._modes = np.zeros(n_reg, np.int64)
@@ -348,19 +352,30 @@ class StepPacker:
         ints[1], ints[2], ints[3] = int(res.t_ns), int(res.step), n_step
         ints[4:4 + r] = res.taps
         ints[4 + r:4 + 2 * r] = res.tap_changes
-        ints[4 + 2 * r:] = self._modes
-        return math.isfinite(float(checked.sum())) or bool(np.isfinite(checked).all())
+        ints[4 + 2 * r:4 + 3 * r] = self._modes
+        c = self.n_cap
+        ints[4 + 3 * r:4 + 3 * r + c] = res.cap_states
+        ints[4 + 3 * r + c:] = res.cap_switches
+        a, b = self._nan_ok
+        if a == b:
+            return math.isfinite(float(checked.sum())) or bool(np.isfinite(checked).all())
+        rest = float(checked[:a].sum()) + float(checked[b:].sum())
+        return math.isfinite(rest) or bool(np.isfinite(checked[:a]).all() and np.isfinite(checked[b:]).all())
 
     def unpack(self, fs: np.ndarray, ints: np.ndarray) -> tuple[Any, int, DeviceSettings]:
         """(a ``StepResult`` with copies of the arrays, the step's number in the run, its device settings)."""
         from simulator_bridge.qsts import StepResult
 
         r, k, at = self.n_reg, self.n_pv, self.n_checked
-        readings = FieldReadings(**{f.name: fs[f.start:f.stop].reshape(f.shape).copy() for f in self.readings})
+        fields = {f.name: fs[f.start:f.stop].reshape(f.shape).copy() for f in self.readings}
+        fields["cap_states"] = fields["cap_states"].astype(int)
+        readings = FieldReadings(**fields)
+        c = self.n_cap
         v_pu, pv_q, pv_p = (fs[f.start:f.stop].copy() for f in self.step_fields)
         res = StepResult(step=int(ints[2]), t_ns=int(ints[1]), readings=readings, v_pu=v_pu,
                          taps=ints[4:4 + r].copy(), tap_changes=ints[4 + r:4 + 2 * r].copy(), pv_q_kvar=pv_q,
-                         pv_p_kw=pv_p)
+                         pv_p_kw=pv_p, cap_states=ints[4 + 3 * r:4 + 3 * r + c].copy(),
+                         cap_switches=ints[4 + 3 * r + c:4 + 3 * r + 2 * c].copy())
         q_set = fs[at:at + k].tolist()
         settings = DeviceSettings(
             pv_q_setpoint_kvar=tuple(None if math.isnan(q) else q for q in q_set),

@@ -83,6 +83,9 @@ class StepResult:
     tap_changes : (R,) taps moved during the step (local control and commands).
     pv_q_kvar : (K,) reactive power applied, generator convention [kvar].
     pv_p_kw : (K,) available active power applied [kW].
+    cap_states : (C,) int, closed steps of each map capacitor bank at the end of the step.
+    cap_switches : (C,) int, switching operations during the step (one per step closed or opened; local
+        control and commands).
     """
 
     step: int
@@ -93,6 +96,8 @@ class StepResult:
     tap_changes: np.ndarray
     pv_q_kvar: np.ndarray
     pv_p_kw: np.ndarray
+    cap_states: np.ndarray
+    cap_switches: np.ndarray
 
 
 #: Share of the way to the volt-var curve's value a plant moves per step (first-order lag; see above).
@@ -176,6 +181,9 @@ class Qsts:
         self._setpoint_v120 = engine.reg_default_setpoint_v120.copy()
         self._band_v120 = engine.reg_default_band_v120.copy()
         self._out_of_band_steps = np.zeros(n_reg, dtype=int)
+        n_cap = len(engine.capacitor_ids)
+        self._cap_locked = np.zeros(n_cap, dtype=bool)  # bank c held at self._cap_lock_state[c]
+        self._cap_lock_state = np.zeros(n_cap, dtype=int)
         # plant voltage = mean of its nodes' voltages: flat node indices and segment starts
         self._pv_nodes = np.array([i for ix in engine.pv_node_index for i in ix], dtype=int)
         self._pv_counts = np.array([len(ix) for ix in engine.pv_node_index], dtype=float)
@@ -229,6 +237,20 @@ class Qsts:
         self._setpoint_v120[r] = (self.engine.reg_default_setpoint_v120[r] if setpoint_v120 is None
                                   else float(setpoint_v120))
         self._band_v120[r] = self.engine.reg_default_band_v120[r] if band_v120 is None else float(band_v120)
+
+    def command_cap(self, c: int, state_steps: int | None) -> int:
+        """Hold map capacitor bank ``c`` at ``state_steps`` closed steps from the next step on (clipped to
+        ``0..cap_steps``); ``None`` returns it to its local CapControl (a bank without one stays where it is).
+
+        Returns the state it will hold (its present state when released).
+        """
+        self._check_index(c, len(self._cap_locked), "capacitor")
+        if state_steps is None:
+            self._cap_locked[c] = False
+            return int(self.engine.cap_states()[c])
+        st = int(np.clip(int(state_steps), 0, self.engine.cap_steps[c]))
+        self._cap_locked[c], self._cap_lock_state[c] = True, st
+        return st
 
     # ------------------------------------------------------------------ staging
     def stage_loads(self) -> None:
@@ -301,6 +323,11 @@ class Qsts:
         changes = np.abs(taps - taps0)
         if changes.any():
             e.set_taps(taps)
+        caps0 = e.cap_states()
+        caps = np.where(self._cap_locked, self._cap_lock_state, caps0)
+        cap_switches = np.abs(caps - caps0)
+        if cap_switches.any():
+            e.set_cap_states(caps)
         e.solve()
         readings = e.readings()
 
@@ -332,5 +359,5 @@ class Qsts:
         self._step = s + 1
         return StepResult(
             step=s, t_ns=int(self.profiles.t_ns(s)), readings=readings, v_pu=v, taps=taps.copy(),
-            tap_changes=changes, pv_q_kvar=q, pv_p_kw=p,
+            tap_changes=changes, pv_q_kvar=q, pv_p_kw=p, cap_states=e.cap_states(), cap_switches=cap_switches,
         )

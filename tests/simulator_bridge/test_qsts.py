@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import msgspec
 import numpy as np
 import pytest
 
@@ -278,3 +279,26 @@ def test_staged_loads_solve_exactly_what_the_step_would_have(map123: DeviceMap) 
         np.testing.assert_array_equal(a.taps, b.taps)
     # the loads differ from step to step, so a run that left the staged loads in place would not match
     assert not np.array_equal(results[False][0].v_pu, results[False][1].v_pu)
+
+
+# --------------------------------------------------------------------------- capacitor commands
+def test_command_cap_holds_and_counts_switches(map123: DeviceMap) -> None:
+    """A commanded bank is switched at the next step, counted once per step moved, and held."""
+    from schemas.devicemap import CapacitorSpec
+
+    dm = msgspec.structs.replace(map123, capacitor=[CapacitorSpec(id="c83", capacitor="c83")])
+    e = FeederEngine(dm)
+    q = Qsts(e, constant(e, 3, 1.0, 0.0), start_step=0)
+    assert e.cap_states().tolist() == [1]
+    assert q.command_cap(0, 0) == 0
+    assert q.command_cap(0, 5) == 1  # clipped to the bank's one step
+    assert q.command_cap(0, 0) == 0
+    r0 = q.step()
+    assert r0.cap_states.tolist() == [0] and r0.cap_switches.tolist() == [1]
+    assert r0.readings.cap_states.tolist() == [0]
+    r1 = q.step()
+    assert r1.cap_states.tolist() == [0] and r1.cap_switches.tolist() == [0]
+    assert q.command_cap(0, None) == 0  # no CapControl: it stays where it is
+    assert q.step().cap_states.tolist() == [0]
+    with pytest.raises(QstsError, match="no capacitor"):
+        q.command_cap(1, 0)
