@@ -336,9 +336,9 @@ def test_inline_and_process_publish_the_same_cap_frames(router_endpoint: str, ca
             _run(_config(cap_map, cache_dir, steps=10, noise_scada_pct=1.0, drop_prob=0.1, noise_seed=5,
                          publisher=publisher), router_endpoint, drive)
             by_key: dict[str, dict[int, Any]] = {}
-            for key, x in client.seen:
+            for key, msg in client.seen:
                 if not key.endswith("/sim/status"):
-                    by_key.setdefault(key, {})[x.seq] = x
+                    by_key.setdefault(key, {})[msg.seq] = msg
             runs[publisher] = by_key
         finally:
             client.close()
@@ -354,3 +354,61 @@ def test_inline_and_process_publish_the_same_cap_frames(router_endpoint: str, ca
             assert all(inline[key][n] == process[key][n] for n in common), key
         else:
             assert inline[key] == process[key], key
+
+
+def test_recorded_banks_in_recordings_info_and_the_run_report(client: Client, router_endpoint: str, cap_map: Path,
+                                                              cache_dir: Path, tmp_path: Path,
+                                                              capsys: pytest.CaptureFixture[str]) -> None:
+    """A recorded run with a bank command: ``recordings info`` lists the bank channels with their schema and
+    counts, and ``cvvc report run`` draws the banks' states from the recording's truth."""
+    from cvvc.cli import main as cvvc_main
+    from cvvc.report import plot_run, read_trace
+    from recordings.info import recording_info
+    from recordings.recorder import Recorder, RecorderConfig
+    from schemas.bus import open_session, wait_for
+
+    rec_path = tmp_path / "session.mcap"
+    bus = BusConfig(mode="peer", connect=(router_endpoint,))
+    client.be_agent()
+    got: dict[str, Any] = {}
+
+    def drive() -> None:
+        t0 = client.next(lambda k, x: isinstance(x, m.HeadFrame)).t_ns
+        got["cmd"] = client.cap_cmd("cap2", 0, t0)
+        client.decide(t0, [got["cmd"]])
+        t5 = t0 + 5 * STEP_NS
+        client.next(lambda k, x: isinstance(x, m.HeadFrame) and x.t_ns == t5)
+        client.decide(t5)
+        got["final"] = client.next(lambda k, x: isinstance(x, m.MetricsFrame) and x.final)
+
+    with open_session(bus) as session, Recorder(session, RecorderConfig(out_path=str(rec_path), bus=bus)) as rec:
+        summary = _run(_config(cap_map, cache_dir, steps=8), router_endpoint, drive)
+        n_seen = sum(1 for k, _ in client.seen if "/cmd/" not in k)  # the recorder sees what the client saw
+        assert wait_for(lambda: rec.stats().messages >= n_seen, 10.0), rec.stats()
+
+    info = recording_info(rec_path)
+    channels = {c.topic: c for c in info.channels}
+    for cap_id in ("cap1", "cap2"):
+        ch = channels[keys.meas_cap(FEEDER, cap_id)]
+        assert (ch.schema_name, ch.schema_encoding, ch.messages) == ("cvvc.CapFrame", "jsonschema", summary.steps)
+    assert channels[keys.cmd(FEEDER, "cap", "cap2")].schema_name == "cvvc.CapCommand"
+    assert channels[keys.ack(FEEDER, "cap", "cap2")].messages == 1
+    assert info.devices["cap"] == ["cap1", "cap2"] and info.devices["vr"] == ["reg1", "reg2", "reg3"]
+    assert cvvc_main(["recordings", "info", str(rec_path)]) == 0
+    out = capsys.readouterr().out
+    assert "devices: 2 cap (cap1, cap2)" in out and f"{summary.steps}  {keys.meas_cap(FEEDER, 'cap1')}" in out
+
+    final = got["final"]
+    assert final.cap_switches_per_bank == {"cap1": 0, "cap2": 1}
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    (run_dir / "summary.json").write_text(json.dumps({
+        "feeder": str(cap_map), "feeder_id": FEEDER, "case": "local", "start": T0, "recording": str(rec_path),
+        "metrics": msgspec.to_builtins(final)}))
+    trace = read_trace(rec_path, capacitor_ids=("cap1", "cap2"))
+    assert trace.cap_states.shape == (summary.steps, 2)
+    assert trace.cap_states[0].tolist() == [1, 1] and trace.cap_states[1:, 1].max() == 0
+    paths = plot_run(run_dir)
+    assert {p.name for p in paths} == {"voltage_envelope.png", "pv_q.png", "taps.png", "cap_states.png"}
+    cap_png = next(p for p in paths if p.name == "cap_states.png").read_bytes()
+    assert cap_png[:8] == b"\x89PNG\r\n\x1a\n" and len(cap_png) > 10_000
