@@ -389,8 +389,8 @@ class MeasurementNoise:
     def capacitor(self, v_v: float, control_value: float | None) -> tuple[float, float | None]:
         """Noisy bus voltage [V] and control reading (its own unit; None stays None) of one bank; SCADA class."""
         n = self._gauss((2,), self.scada)
-        return (max(v_v * (1 + n[0]), 0.0),
-                None if control_value is None else control_value * (1 + n[1]))
+        return (max(float(v_v * (1 + n[0])), 0.0),
+                None if control_value is None else float(control_value * (1 + n[1])))
 
     def regulator(self, v120: float, v_compared_120: float) -> tuple[float, float]:
         """Noisy raw and compared secondary voltages [V on the 120 V base]; SCADA class."""
@@ -502,7 +502,8 @@ def cap_frame(*, cap: CapBankController, t_ns: int, seq: int, closed_steps: int,
     """A capacitor bank's frame: closed steps, bus voltage [V], its control's reading (None without a control or
     when not finite) and the command in force at the step (``cap.guard.active`` then; None: local control).
     """
-    cv = None if control_value is None or not math.isfinite(control_value) else min(max(control_value, -1e9), 1e9)
+    cv = (None if control_value is None or not math.isfinite(control_value)
+          else min(max(float(control_value), -1e9), 1e9))
     return m.CapFrame(t_ns=t_ns, seq=seq, source=cap.capacitor_id, capacitor_id=cap.capacitor_id,
                       closed_steps=min(max(int(closed_steps), 0), cap.steps), steps=cap.steps,
                       kvar_rated=cap.kvar_rated, v_v=min(max(float(v_v), 0.0), 1e6), control_type=cap.control_type,

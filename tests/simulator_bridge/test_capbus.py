@@ -32,14 +32,18 @@ STEP_NS = 60 * 1_000_000_000
 
 @pytest.fixture(scope="module")
 def cap_map(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """IEEE 13's own map plus its banks: cap1 (600 kvar, three-phase, with a voltage CapControl) and cap2."""
+    """IEEE 13's own map plus its banks: cap1 (600 kvar, three-phase) and cap2 (100 kvar, one phase, no control).
+
+    cap1's voltage CapControl (on a 120 V PT base) switches ON below 140 V and OFF above 150 V: on this feeder it
+    always wants the bank closed, so a bank opened by a command that expires closes again under local control.
+    """
     repo = Path(__file__).resolve().parents[2]
     base = (repo / "feeders" / "ieee13.toml").read_text()
     shared = (repo.parent / "shared" / "feeders" / "ieee13" / "IEEE13Nodeckt.dss").resolve()
     text = base.replace('name = "ieee13"', f'name = "{FEEDER}"').replace(
         'master = "../../shared/feeders/ieee13/IEEE13Nodeckt.dss"',
         f'master = "{shared.as_posix()}"\nextra_commands = ["New CapControl.cc1 Capacitor=Cap1 Element=Line.692675 '
-        'Terminal=1 Type=Voltage PTratio=20 ON=118 OFF=126 Delay=30 DelayOFF=30"]')
+        'Terminal=1 Type=Voltage PTratio=20 ON=140 OFF=150 Delay=30 DelayOFF=30"]')
     text += ('\n[[capacitor]]\nid = "cap1"\ncapacitor = "Cap1"\ncapcontrol = "cc1"\ncost_per_switch = 2.0\n'
              '\n[[capacitor]]\nid = "cap2"\ncapacitor = "Cap2"\n')
     path = tmp_path_factory.mktemp("capmap") / "ieee13caps.toml"
@@ -211,6 +215,7 @@ def test_cap_commands_acked_applied_expired_and_counted(client: Client, router_e
         got["f1"] = (client.cap("cap1", t0 + STEP_NS), client.cap("cap2", t0 + STEP_NS))
         got["expired"] = client.ack(open1.cmd_id, "expired")
         got["f2"] = (client.cap("cap1", t0 + 2 * STEP_NS), client.cap("cap2", t0 + 2 * STEP_NS))
+        got["f4"] = client.cap("cap1", t0 + 4 * STEP_NS)
         t5 = t0 + 5 * STEP_NS
         client.next(lambda k, x: isinstance(x, m.HeadFrame) and x.t_ns == t5)
         release = client.cap_cmd("cap2", None, t5)
@@ -229,6 +234,7 @@ def test_cap_commands_acked_applied_expired_and_counted(client: Client, router_e
     assert (c2.closed_steps, c2.control_type, c2.control_value, c2.mode) == (1, "none", None, "local")
     assert c1.kvar_rated == pytest.approx(600.0) and c2.kvar_rated == pytest.approx(100.0)
     assert 2000.0 < c1.v_v < 3000.0 and 2000.0 < c2.v_v < 3000.0  # 4.16 kV buses, line to neutral
+    assert c1.control_value is not None and 110.0 < c1.control_value < 130.0  # its PT's secondary [V]
 
     a = got["acks"]
     assert (a["open1"].status, a["open1"].applied_value, a["open1"].device_id) == ("accepted", 0.0, "cap1")
@@ -244,6 +250,7 @@ def test_cap_commands_acked_applied_expired_and_counted(client: Client, router_e
     assert got["expired"].t_ns == t0 + STEP_NS and "local control (voltage)" in got["expired"].reason
     f2_1, f2_2 = got["f2"]
     assert (f2_1.mode, f2_1.cmd_id, f2_1.valid_until_t_ns) == ("local", None, None)
+    assert got["f4"].closed_steps == 1  # back on local control: its CapControl closed it again (30 s delay)
     assert f2_2.mode == "commanded"
     assert (got["release"].status, got["release"].applied_value) == ("accepted", None)
     assert (got["f6"].mode, got["f6"].cmd_id, got["f6"].closed_steps) == ("local", None, 0)  # no control: holds
@@ -254,7 +261,7 @@ def test_cap_commands_acked_applied_expired_and_counted(client: Client, router_e
     final = got["final"]
     switches = final.cap_switches_per_bank
     assert switches["cap2"] == 1  # opened once, then held (no control)
-    assert switches["cap1"] >= 1  # opened once; its CapControl may close it again after the expiry
+    assert switches["cap1"] == 2  # opened by the command, closed again by its CapControl
     assert final.cap_switches == sum(switches.values())
     assert final.cap_cost == pytest.approx(2.0 * switches["cap1"] + 1.0 * switches["cap2"])
     assert final.total_cost == pytest.approx(final.q_cost + final.t_cost + final.cap_cost)
@@ -271,15 +278,31 @@ def test_cap_tokens_and_frames_every_step(client: Client, router_endpoint: str, 
     """Each bank has its own liveliness token and publishes one frame per step with increasing seq."""
     tokens: list[str] = []
 
+    from schemas.bus import wait_for
+
+    client.be_agent()  # the bridge waits for the agent's subscription, and for its decision at t0
+    up: queue.Queue[str] = queue.Queue()
+    watcher = client.session.liveliness().declare_subscriber(
+        f"cvvc/{FEEDER}/alive/cap/*", lambda s: up.put(str(s.key_expr)) if s.kind == zenoh.SampleKind.PUT else None,
+        history=True)
+
     def drive() -> None:
-        client.next(lambda k, x: isinstance(x, m.HeadFrame))
-        for reply in client.session.liveliness().get(f"cvvc/{FEEDER}/alive/cap/*", timeout=5.0):
-            if reply.ok is not None:
-                tokens.append(str(reply.ok.key_expr))
+        t0 = client.next(lambda k, x: isinstance(x, m.HeadFrame)).t_ns
+
+        def both() -> bool:
+            while not up.empty():
+                tokens.append(up.get_nowait())
+            return len(set(tokens)) == 2
+
+        wait_for(both, 10.0)  # while the bridge waits for the decision at t0: its tokens are up
+        client.decide(t0)
         client.next(lambda k, x: isinstance(x, m.BridgeStatus) and x.done)
 
-    summary = _run(_config(cap_map, cache_dir, steps=4, wait_agent_s=0.0, truth_every=0), router_endpoint, drive)
-    assert sorted(tokens) == [f"cvvc/{FEEDER}/alive/cap/cap1", f"cvvc/{FEEDER}/alive/cap/cap2"]
+    try:
+        summary = _run(_config(cap_map, cache_dir, steps=4, truth_every=0), router_endpoint, drive)
+    finally:
+        watcher.undeclare()
+    assert sorted(set(tokens)) == [f"cvvc/{FEEDER}/alive/cap/cap1", f"cvvc/{FEEDER}/alive/cap/cap2"]
     frames = [x for _, x in client.seen if isinstance(x, m.CapFrame) and x.capacitor_id == "cap1"]
     assert [f.seq for f in frames] == list(range(1, summary.steps + 1))
     assert np.all(np.diff([f.t_ns for f in frames]) == STEP_NS)

@@ -273,5 +273,6 @@ def test_cap_noise_is_scada_class() -> None:
     vs = np.array([noise.capacitor(2400.0, 120.0) for _ in range(2000)])
     assert abs(vs[:, 0].std() / 2400.0 - 0.01) < 0.002 and abs(vs[:, 1].std() / 120.0 - 0.01) < 0.002
     assert noise.capacitor(2400.0, None)[1] is None
+    assert all(type(x) is float for x in noise.capacitor(2400.0, 120.0))  # msgspec encodes no NumPy scalars
     exact = dv.MeasurementNoise(pmu_pct=0.0, scada_pct=0.0, seed=3)
     assert exact.capacitor(2400.0, 120.0) == (2400.0, 120.0)
