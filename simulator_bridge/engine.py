@@ -495,7 +495,7 @@ class FeederEngine:
             what = f"{self._where}: CapControl {name!r}"
             prop = {p: self._command(f"? capcontrol.{name}.{p}", what=what).strip().lower()
                     for p in ("type", "ptphase", "ctphase", "pctminkvar", "enabled", "voltoverride")}
-            kind = prop["type"]
+            kind = {"powerfactor": "pf"}.get(prop["type"], prop["type"])
             if kind not in ("current", "voltage", "kvar", "pf", "time", "follow"):
                 raise DeviceMapError(f"{what}: type {kind!r} is not modelled (current, voltage, kvar, pf, time, "
                                      "follow)")
