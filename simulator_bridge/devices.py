@@ -42,7 +42,7 @@ import heapq
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Literal
+from typing import Literal, get_args
 
 import numpy as np
 
@@ -300,6 +300,9 @@ class CapBankController:
         self.index = index
         self.steps = int(steps)
         self.kvar_rated = float(kvar_rated)
+        if control_type not in get_args(m.CapControlType):
+            raise DeviceError(f"capacitor bank {capacitor_id!r}: control type {control_type!r} is none of "
+                              f"{get_args(m.CapControlType)}; the engine must translate OpenDSS's CapControl type")
         self.control_type: m.CapControlType = control_type
         self.guard = CommandGuard(capacitor_id)
 

@@ -276,3 +276,8 @@ def test_cap_noise_is_scada_class() -> None:
     assert all(type(x) is float for x in noise.capacitor(2400.0, 120.0))  # msgspec encodes no NumPy scalars
     exact = dv.MeasurementNoise(pmu_pct=0.0, scada_pct=0.0, seed=3)
     assert exact.capacitor(2400.0, 120.0) == (2400.0, 120.0)
+
+
+def test_cap_control_type_must_be_one_the_schema_knows() -> None:
+    with pytest.raises(dv.DeviceError, match="control type 'powerfactor'"):
+        dv.CapBankController("c1", 0, 1, 300.0, "powerfactor")  # type: ignore[arg-type]
