@@ -306,8 +306,7 @@ def run_agent(model: CvvcModel, settings: AgentSettings, bus, *, stop: threading
             for aligned, d in pairs:
                 msg = maker.to_message(aligned, d, align_s=max(0.0, time.monotonic() - t_recv - d.timings.total_s))
                 for c in msg.commands:
-                    device = c.plant_id if isinstance(c, m.PvCommand) else c.regulator_id
-                    cmd_pubs[device].put(c)
+                    cmd_pubs[_command_device(c)].put(c)
                 decision_pub.put(msg)
 
         try:
@@ -381,6 +380,18 @@ class _FrameHealth:
         kind = max(by_kind, key=lambda k: by_kind[k])
         return (f"refused {refused} of {refused + accepted} frames in the last {DEGRADED_WINDOW_S:g} s, "
                 f"mostly {kind!r}: {a.last_reject.get(kind, '')}")
+
+
+def _command_device(c: m.DecisionCommand) -> str:
+    """The id of the device a command is for."""
+    match c:
+        case m.PvCommand():
+            return c.plant_id
+        case m.RegCommand():
+            return c.regulator_id
+        case m.CapCommand():
+            return c.capacitor_id
+    raise TypeError(f"not a device command: {type(c).__name__}")
 
 
 def _frame_key_problem(key: str, msg: Any) -> str | None:

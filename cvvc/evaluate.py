@@ -424,18 +424,23 @@ def render_results_md(ev: Evaluation) -> str:
     bands = len(ev.config.bandwidths_v120) > 1
     head = ["Season", "Case"] + (["Variant"] if robust else [])
     days = sorted({r.spec.days for r in ev.runs})
+    cap_ids = sorted({k for r in ev.runs for k in r.metrics.cap_switches_per_bank})
+    cap_head = ["Cap sw", "Cap Cost"] if cap_ids else []  # feeders with capacitor banks in the device map
     lines = [f"# cvvc evaluate: {ev.feeder_id}", "",
              f"Evaluation year seed {ev.config.year_seed}, model trained on year seed {ev.config.train_seed}; "
              f"{', '.join(f'{d:g}' for d in days)} day(s) per season from the first of the season's month; "
              f"{len(ev.runs)} runs in {ev.wall_s:.0f} s wall time (jobs={ev.config.jobs}).", "",
              "## Voltage violations and costs (paper Tables II/III layout)", "",
-             "| " + " | ".join(head + ["MVVM [pu]", "NVV", "NTC", "Q Cost", "T Cost", "Total", "wall [s]"]) + " |",
-             "|" + "---|" * (len(head) + 7)]
+             "| " + " | ".join(head + ["MVVM [pu]", "NVV", "NTC"] + cap_head[:1] + ["Q Cost", "T Cost"] + cap_head[1:]
+                               + ["Total", "wall [s]"]) + " |",
+             "|" + "---|" * (len(head) + 7 + len(cap_head))]
     for r in ev.runs:
         mt = r.metrics
+        cap_sw = [str(mt.cap_switches)] if cap_ids else []
+        cap_cost = [f"{mt.cap_cost:.2f}"] if cap_ids else []
         lines.append("| " + " | ".join(_row_label(r, robust, bands) + [
-            f"{mt.mvvm_pu:.4f}", str(mt.nvv), str(mt.ntc), f"{mt.q_cost:.1f}", f"{mt.t_cost:.2f}",
-            f"{mt.total_cost:.1f}", f"{r.wall_s:.0f}"]) + " |")
+            f"{mt.mvvm_pu:.4f}", str(mt.nvv), str(mt.ntc)] + cap_sw + [f"{mt.q_cost:.1f}",
+            f"{mt.t_cost:.2f}"] + cap_cost + [f"{mt.total_cost:.1f}", f"{r.wall_s:.0f}"]) + " |")
     pv_ids = sorted({k for r in ev.runs for k in r.metrics.q_mvar_intervals})
     lines += ["", "## Reactive energy per PV plant (paper Table IV)", "",
               f"Sum of |Q| over the window in Mvar x control intervals ({ev.control_period_s} s), and in kvarh.", "",
@@ -453,6 +458,14 @@ def render_results_md(ev: Evaluation) -> str:
         t = r.metrics.taps_changes
         lines.append("| " + " | ".join(_row_label(r, robust, bands) + [str(t.get(g, 0)) for g in reg_ids]
                                        + [str(r.metrics.ntc)]) + " |")
+    if cap_ids:
+        lines += ["", "## Capacitor switchings per bank", "",
+                  "Switching operations (one per step of a bank opened or closed), local control and commands.", "",
+                  "| " + " | ".join(head + cap_ids + ["total"]) + " |", "|" + "---|" * (len(head) + len(cap_ids) + 1)]
+        for r in ev.runs:
+            sw = r.metrics.cap_switches_per_bank
+            lines.append("| " + " | ".join(_row_label(r, robust, bands) + [str(sw.get(c, 0)) for c in cap_ids]
+                                           + [str(r.metrics.cap_switches)]) + " |")
     if ev.failures:
         lines += ["", "## Failed runs", ""]
         lines += [f"- {f.spec.name}: {f.error.splitlines()[0] if f.error else '?'} (logs in `{f.out_dir}`)"

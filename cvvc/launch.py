@@ -406,7 +406,7 @@ def no_control_baseline(dm_path: Path, start: dt.datetime, steps: int, year_seed
     acc = MetricsAccumulator.for_feeder(dm, engine)
     for _ in range(steps):
         r = sim.step()
-        acc.update(r.v_pu, r.tap_changes, r.pv_q_kvar)
+        acc.update(r.v_pu, r.tap_changes, r.pv_q_kvar, r.cap_switches)
     return acc.result()
 
 
@@ -416,6 +416,8 @@ def render_summary(s: RunSummary) -> str:
     rows = [("MVVM [pu]", "mvvm_pu"), ("NVV", "nvv"), ("minutes in violation", "minutes_in_violation"),
             ("NTC (tap changes)", "ntc"), ("Q cost", "q_cost"), ("T cost", "t_cost"), ("total cost", "total_cost"),
             ("V min [pu]", "v_min_pu"), ("V max [pu]", "v_max_pu")]
+    if mt.cap_switches_per_bank:  # capacitor banks in the device map
+        rows[4:4] = [("capacitor switchings", "cap_switches"), ("cap cost", "cap_cost")]
     lines = [f"# cvvc run: case {s.case} on {s.feeder_id}, {s.start}, {s.days:g} day(s)", "",
              f"| metric | case {s.case} | no control |", "|---|---|---|"]
     for label, key in rows:

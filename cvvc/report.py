@@ -6,10 +6,12 @@ What is plotted (matplotlib, Agg backend, no display needed):
   over nodes, against time, with the judged limits;
 - ``pv_q.png`` (Fig. 10): each PV plant's reactive power (truth), 10-minute averages [kvar];
 - ``taps.png`` (Fig. 11): each regulator's tap position (truth) at every step;
+- ``cap_states.png`` (feeders with capacitor banks in their device map): each bank's closed steps (truth) at every
+  step, with its switchings in the legend;
 - ``estimation_error.png`` (Fig. 8-like): the agent's estimate minus the true voltage at the same node and
   ``t_ns`` [pu], over time (max/min/RMS per decision) and its histogram.
 
-The data come from ``cvvc/<F>/sim/truth`` (TruthFrame: ``v_pu`` per node, ``taps``, ``pv_q_kvar``) and
+The data come from ``cvvc/<F>/sim/truth`` (TruthFrame: ``v_pu`` per node, ``taps``, ``pv_q_kvar``, ``cap_states``) and
 ``cvvc/<F>/agent/decision`` (Decision: ``estimates``), read with ``mcap.reader.make_reader`` and decoded with
 lean msgspec types (only the fields used). A month of truth is streamed: nothing per node and step is kept.
 """
@@ -17,7 +19,7 @@ lean msgspec types (only the fields used). A month of truth is streamed: nothing
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import msgspec
@@ -42,6 +44,7 @@ class _Truth(msgspec.Struct):
     node_names: list[str] | None = None
     taps: list[int] = []
     pv_q_kvar: list[float] = []
+    cap_states: list[int] = []
 
 
 class _Estimate(msgspec.Struct):
@@ -61,6 +64,7 @@ class RunTrace:
     ``v_env_*`` are (W,) max/min over nodes of the 10-minute average voltage [pu]; ``taps`` (T, R) the taps at
     every step ``step_t_ns`` (T,); ``pv_q_kvar`` (W, K) 10-minute averages; ``err_t_ns`` (D,) decision times with
     ``err_max_pu``/``err_min_pu``/``err_rms_pu`` over the estimated nodes, and ``errors_pu`` every error.
+    ``cap_states`` (T, C) each capacitor bank's closed steps at every step (C = 0 without banks).
     """
 
     t_ns: np.ndarray
@@ -77,6 +81,8 @@ class RunTrace:
     err_rms_pu: np.ndarray
     errors_pu: np.ndarray
     limits_pu: tuple[float, float]
+    cap_states: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
+    capacitor_ids: tuple[str, ...] = ()
 
 
 def window_envelope_pu(v_pu: np.ndarray, window_steps: int = WINDOW_STEPS) -> tuple[np.ndarray, np.ndarray]:
@@ -107,7 +113,7 @@ def _topic(reader, suffix: str) -> str | None:
 
 
 def read_trace(mcap_path: str | Path, *, regulator_ids: tuple[str, ...] = (), pv_ids: tuple[str, ...] = (),
-               limits_pu: tuple[float, float] = (0.965, 1.05)) -> RunTrace:
+               limits_pu: tuple[float, float] = (0.965, 1.05), capacitor_ids: tuple[str, ...] = ()) -> RunTrace:
     """Reduce one run's MCAP recording to a :class:`RunTrace` (two streaming passes: decisions, then truth)."""
     from mcap.reader import make_reader
 
@@ -128,7 +134,7 @@ def read_trace(mcap_path: str | Path, *, regulator_ids: tuple[str, ...] = (), pv
                 if d.estimates:
                     estimates[d.step_t_ns] = d.estimates
         node_index: dict[str, int] = {}
-        t_list, step_t, vmax, vmin, taps, pvq = [], [], [], [], [], []
+        t_list, step_t, vmax, vmin, taps, pvq, caps = [], [], [], [], [], [], []
         err_t, err_max, err_min, err_rms, errors = [], [], [], [], []
         acc_v = None
         acc_q = None
@@ -141,6 +147,7 @@ def read_trace(mcap_path: str | Path, *, regulator_ids: tuple[str, ...] = (), pv
             q = np.asarray(tr.pv_q_kvar, dtype=float)
             step_t.append(tr.t_ns)
             taps.append(tr.taps)
+            caps.append(tr.cap_states)
             if n_acc == 0:
                 t_list.append(tr.t_ns)
                 acc_v, acc_q = v.copy(), q.copy()
@@ -175,7 +182,8 @@ def read_trace(mcap_path: str | Path, *, regulator_ids: tuple[str, ...] = (), pv
         taps=np.asarray(taps, dtype=float).reshape(len(step_t), -1), pv_q_kvar=np.asarray(pvq).reshape(-1, n_pv),
         regulator_ids=regulator_ids, pv_ids=pv_ids, err_t_ns=np.asarray(err_t, dtype=np.int64),
         err_max_pu=np.asarray(err_max), err_min_pu=np.asarray(err_min), err_rms_pu=np.asarray(err_rms),
-        errors_pu=np.concatenate(errors) if errors else np.zeros(0), limits_pu=limits_pu)
+        errors_pu=np.concatenate(errors) if errors else np.zeros(0), limits_pu=limits_pu,
+        cap_states=np.asarray(caps, dtype=float).reshape(len(step_t), -1), capacitor_ids=capacitor_ids)
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -214,9 +222,10 @@ def _run_meta(run_dir: Path) -> tuple[dict, tuple[str, ...], tuple[str, ...], tu
 
 def _trace_of(run_dir: Path) -> tuple[dict, RunTrace]:
     summary, regs, pvs, limits = _run_meta(run_dir)
+    caps = tuple(summary.get("metrics", {}).get("cap_switches_per_bank", {}))
     rec = summary.get("recording") or str(run_dir / "session.mcap")
     path = Path(rec) if Path(rec).is_file() else run_dir / "session.mcap"
-    return summary, read_trace(path, regulator_ids=regs, pv_ids=pvs, limits_pu=limits)
+    return summary, read_trace(path, regulator_ids=regs, pv_ids=pvs, limits_pu=limits, capacitor_ids=caps)
 
 
 def _save(fig, path: Path) -> Path:
@@ -286,6 +295,28 @@ def taps_figure(traces: dict[str, RunTrace], title: str):
     return fig
 
 
+def caps_figure(traces: dict[str, RunTrace], title: str):
+    """Each capacitor bank's closed steps at every step, one panel per run; switchings in the legend."""
+    plt = _plt()
+    n = len(traces)
+    fig, axes = plt.subplots(n, 1, figsize=(11, 2.4 * n + 0.6), sharex=True, squeeze=False)
+    t0 = min(int(tr.step_t_ns[0]) for tr in traces.values())
+    for ax, (label, tr) in zip(axes[:, 0], traces.items(), strict=True):
+        x = _days(tr.step_t_ns, t0)
+        for c in range(tr.cap_states.shape[1]):
+            name = tr.capacitor_ids[c] if c < len(tr.capacitor_ids) else f"cap {c}"
+            states = tr.cap_states[:, c]
+            switches = int(np.abs(np.diff(states)).sum())
+            ax.step(x, states + 0.04 * c, where="post", lw=0.9, label=f"{name} ({switches} switchings)")
+        ax.set_ylabel("closed steps")
+        ax.set_title(f"{label}", fontsize=9)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7, ncol=3, loc="upper right")
+    axes[-1, 0].set_xlabel("time [days from start]")
+    fig.suptitle(title)
+    return fig
+
+
 def errors_figure(traces: dict[str, RunTrace], title: str):
     """Estimation error (estimate - truth [pu]) over time and its histogram; None without estimates."""
     with_est = {k: v for k, v in traces.items() if v.err_t_ns.size}
@@ -319,6 +350,8 @@ def _plots(traces: dict[str, RunTrace], title: str, out: Path, prefix: str = "")
                    out / f"{prefix}voltage_envelope.png"),
              _save(pv_figure(traces, f"{title}: PV reactive power (10-min average)"), out / f"{prefix}pv_q.png"),
              _save(taps_figure(traces, f"{title}: regulator taps"), out / f"{prefix}taps.png")]
+    if any(tr.cap_states.size for tr in traces.values()):
+        paths.append(_save(caps_figure(traces, f"{title}: capacitor banks"), out / f"{prefix}cap_states.png"))
     err = errors_figure(traces, f"{title}: estimation error")
     return paths + ([_save(err, out / f"{prefix}estimation_error.png")] if err is not None else [])
 

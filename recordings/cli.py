@@ -111,6 +111,9 @@ def _info(args: argparse.Namespace) -> int:
         print(f"{info.path}: {info.size_bytes} bytes, {state} (read from the {info.source}), {info.library}")
         print(f"  {info.messages} messages in {info.chunks} chunks, {_iso(info.start_ns)} .. {_iso(info.end_ns)} "
               f"({info.duration_s:.1f} s)")
+        if info.devices:
+            print("  devices: " + "; ".join(f"{len(ids)} {kind} ({', '.join(ids)})"
+                                          for kind, ids in info.devices.items()))
         for ch in info.channels:
             schema = f"{ch.schema_name} ({ch.schema_encoding})" if ch.schema_name else "no schema"
             print(f"  {ch.messages:>9}  {ch.topic}  [{ch.message_encoding}; {schema}]")

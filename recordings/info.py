@@ -59,6 +59,7 @@ __all__ = [
     "RecordingInfo",
     "RecoverResult",
     "check_mcap_file",
+    "devices_of",
     "recording_info",
     "recover",
 ]
@@ -119,6 +120,17 @@ class RecordingInfo(msgspec.Struct, frozen=True, kw_only=True):
     readable_bytes: int
     problems: list[str] = []
     corrupt_chunks: list[CorruptChunk] = []
+    devices: dict[str, list[str]] = {}  # field devices by kind ("pv", "vr", "cap"), from the meas/<kind>/<id> channels
+
+
+def devices_of(channels: list[ChannelInfo]) -> dict[str, list[str]]:
+    """The field devices a recording has channels of, by kind: ``cvvc/<F>/meas/<kind>/<id>`` topics."""
+    out: dict[str, set[str]] = {}
+    for ch in channels:
+        parts = ch.topic.split("/")
+        if len(parts) == 5 and parts[0] == "cvvc" and parts[2] == "meas":
+            out.setdefault(parts[3], set()).add(parts[4])
+    return {kind: sorted(ids) for kind, ids in sorted(out.items())}
 
 
 class RecoverResult(msgspec.Struct, frozen=True, kw_only=True):
@@ -296,7 +308,7 @@ def _info_from_summary(path: str | Path, size: int) -> RecordingInfo:
     return RecordingInfo(path=str(path), size_bytes=size, source="summary", complete=True, library=header.library,
                          profile=header.profile, messages=stats.message_count, start_ns=start, end_ns=end,
                          duration_s=_span_s(start, end), channels=channels, metadata=metadata,
-                         chunks=stats.chunk_count, readable_bytes=size)
+                         chunks=stats.chunk_count, readable_bytes=size, devices=devices_of(channels))
 
 
 def _tail_magic(f: IO[bytes]) -> bytes:
@@ -365,7 +377,7 @@ def _info_from_scan(path: str | Path, size: int, problems: list[str]) -> Recordi
                          library=header.library if header else "", profile=header.profile if header else "",
                          messages=sum(counts.values()), start_ns=start, end_ns=end, duration_s=_span_s(start, end),
                          channels=infos, metadata=metadata, chunks=chunks, readable_bytes=state.end,
-                         problems=problems, corrupt_chunks=corrupt)
+                         problems=problems, corrupt_chunks=corrupt, devices=devices_of(infos))
 
 
 # ----------------------------------------------------------------------------------------- recover

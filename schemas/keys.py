@@ -5,16 +5,18 @@ Layout, for a feeder id ``F`` and a device id ``D``::
     cvvc/F/meas/head            HeadFrame        feeder-head meter
     cvvc/F/meas/pv/D            PvFrame          PV plant inverter
     cvvc/F/meas/vr/D            RegFrame         regulator controller
+    cvvc/F/meas/cap/D           CapFrame         capacitor bank (its switch and local control)
     cvvc/F/cmd/pv/D             PvCommand        agent -> inverter
     cvvc/F/cmd/vr/D             RegCommand       agent -> regulator controller
-    cvvc/F/ack/pv/D, ack/vr/D   Ack              device -> agent
+    cvvc/F/cmd/cap/D            CapCommand       agent -> capacitor bank
+    cvvc/F/ack/pv/D, ack/vr/D, ack/cap/D   Ack   device -> agent
     cvvc/F/agent/decision       Decision
     cvvc/F/agent/status         AgentStatus
     cvvc/F/sim/truth            TruthFrame       simulation only
     cvvc/F/sim/metrics          MetricsFrame     simulation only
     cvvc/F/sim/status           BridgeStatus     simulation only
     cvvc/F/sim/oracle           OracleRequest -> OracleReply (queryable, case A)
-    cvvc/F/alive/<role>/<id>    liveliness tokens (role: agent, head, pv, vr, bridge, recorder)
+    cvvc/F/alive/<role>/<id>    liveliness tokens (role: agent, head, pv, vr, cap, bridge, recorder)
 """
 
 from __future__ import annotations
@@ -37,6 +39,7 @@ __all__ = [
     "alive_all",
     "cmd",
     "feeder_all",
+    "meas_cap",
     "meas_head",
     "meas_pv",
     "meas_vr",
@@ -50,8 +53,8 @@ __all__ = [
 
 ROOT = "cvvc"
 _ID = re.compile(r"^[A-Za-z0-9_.\-]{1,64}$")
-DeviceKind = Literal["pv", "vr"]
-Role = Literal["agent", "head", "pv", "vr", "bridge", "recorder"]
+DeviceKind = Literal["pv", "vr", "cap"]
+Role = Literal["agent", "head", "pv", "vr", "cap", "bridge", "recorder"]
 
 
 class KeyExprError(CvvcError):
@@ -78,6 +81,10 @@ def meas_pv(feeder: str, plant: str = "*") -> str:
 
 def meas_vr(feeder: str, regulator: str = "*") -> str:
     return f"{ROOT}/{_id(feeder)}/meas/vr/{regulator if regulator == '*' else _id(regulator)}"
+
+
+def meas_cap(feeder: str, capacitor: str = "*") -> str:
+    return f"{ROOT}/{_id(feeder)}/meas/cap/{capacitor if capacitor == '*' else _id(capacitor)}"
 
 
 def cmd(feeder: str, kind: DeviceKind, device: str = "*") -> str:
@@ -132,10 +139,13 @@ _BY_SUFFIX: dict[tuple[str, ...], type[msgspec.Struct]] = {
     ("meas", "head"): m.HeadFrame,
     ("meas", "pv"): m.PvFrame,
     ("meas", "vr"): m.RegFrame,
+    ("meas", "cap"): m.CapFrame,
     ("cmd", "pv"): m.PvCommand,
     ("cmd", "vr"): m.RegCommand,
+    ("cmd", "cap"): m.CapCommand,
     ("ack", "pv"): m.Ack,
     ("ack", "vr"): m.Ack,
+    ("ack", "cap"): m.Ack,
     ("agent", "decision"): m.Decision,
     ("agent", "status"): m.AgentStatus,
     ("sim", "truth"): m.TruthFrame,

@@ -24,6 +24,9 @@ __all__ = [
     "AgentStatus",
     "BAND_RANGE_V120",
     "BridgeStatus",
+    "CapCommand",
+    "CapControlType",
+    "CapFrame",
     "Command",
     "Decision",
     "DecisionCommand",
@@ -70,6 +73,9 @@ Cost = Annotated[float, Meta(ge=0.0, le=1e12)]
 Count = Annotated[int, Meta(ge=0, le=2**53)]
 Seconds = Annotated[float, Meta(ge=0.0, le=1e6)]
 Sens = Annotated[float, Meta(ge=-1.0, le=1.0)]
+CapSteps = Annotated[int, Meta(ge=0, le=64)]  # closed steps of a capacitor bank (OpenDSS allows up to 64 steps)
+ControlValue = Annotated[float, Meta(ge=-1e9, le=1e9)]  # a CapControl's compared quantity, in its own unit
+CapControlType = Literal["voltage", "kvar", "current", "pf", "time", "follow", "none"]
 
 SETPOINT_RANGE_V120 = (108.0, 132.0)
 """Set points a regulator controller accepts [V on the 120 V base]: ±10 % of 120 V (the command contract)."""
@@ -161,6 +167,30 @@ class RegFrame(Message, frozen=True, kw_only=True, forbid_unknown_fields=True):
     quality: list[QualityFlag] = []
 
 
+class CapFrame(Message, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """A switched capacitor bank: its state, bus voltage, its local control's reading, and the settings in force.
+
+    ``closed_steps`` of ``steps`` are closed (0: open). ``v_v`` is the bus line-to-neutral voltage [V] (the mean of
+    the bank's phases). ``control_type`` is its ``CapControl``'s type (``none``: no local control, the bank holds);
+    ``control_value`` is the quantity that control compares with its ON/OFF settings, in the control's own unit
+    (V on its PT secondary, kvar, A, power factor, hour of day; ``None`` without a control). ``mode``:
+    ``local`` (its control acts) or ``commanded`` (held at a commanded state; ``cmd_id`` and
+    ``valid_until_t_ns`` say which command and until when).
+    """
+
+    capacitor_id: Ident
+    closed_steps: CapSteps
+    steps: Annotated[int, Meta(ge=1, le=64)]
+    kvar_rated: Kva  # the bank's rating, all steps closed [kvar]
+    v_v: VoltsLN
+    control_type: CapControlType = "none"
+    control_value: ControlValue | None = None
+    mode: Literal["local", "commanded"] = "local"
+    cmd_id: Annotated[str, Meta(max_length=96)] | None = None
+    valid_until_t_ns: TimeNs | None = None
+    quality: list[QualityFlag] = []
+
+
 # ------------------------------------------------------------------------------------------ commands
 class PvCommand(Command, frozen=True, kw_only=True, forbid_unknown_fields=True, tag="pv"):
     """Reactive power set point for one PV plant [kvar], generator convention."""
@@ -189,11 +219,23 @@ class RegCommand(Command, frozen=True, kw_only=True, forbid_unknown_fields=True,
     action: TapAction | SetpointAction
 
 
-DecisionCommand = PvCommand | RegCommand
+class CapCommand(Command, frozen=True, kw_only=True, forbid_unknown_fields=True, tag="cap"):
+    """Hold a capacitor bank at ``closed_steps`` closed steps until ``valid_until_t_ns``; ``None`` (JSON ``null``)
+    releases it to its local control at once. Acked like every command; on expiry the bank returns to its local
+    control (its ``CapControl``, or holding its state when it has none).
+    """
+
+    capacitor_id: Ident
+    closed_steps: CapSteps | None
+
+
+DecisionCommand = PvCommand | RegCommand | CapCommand
 
 
 class Ack(Message, frozen=True, kw_only=True, forbid_unknown_fields=True):
-    """A device's answer to one command. ``applied_value`` is kvar (PV), a tap, or volts (set point)."""
+    """A device's answer to one command. ``applied_value`` is kvar (PV), a tap, volts (set point), or a
+    capacitor bank's closed steps (None when a bank was released to its local control).
+    """
 
     cmd_id: Annotated[str, Meta(max_length=96)]
     device_id: Ident
@@ -278,6 +320,7 @@ class TruthFrame(Message, frozen=True, kw_only=True, forbid_unknown_fields=True)
     node_names: list[str] | None = None
     taps: list[Tap] = []
     pv_q_kvar: list[Kvar] = []
+    cap_states: list[CapSteps] = []  # closed steps of each capacitor bank (device-map order)
 
 
 class MetricsFrame(Message, frozen=True, kw_only=True, forbid_unknown_fields=True):
@@ -298,6 +341,9 @@ class MetricsFrame(Message, frozen=True, kw_only=True, forbid_unknown_fields=Tru
     taps_changes: dict[str, Count] = {}
     q_mvar_intervals: dict[str, Annotated[float, Meta(ge=0.0, le=1e12)]] = {}
     final: bool = False
+    cap_switches: Count = 0  # capacitor switching operations (steps opened or closed), over every bank
+    cap_cost: Cost = 0.0  # sum over banks of cost_per_switch x switchings (included in total_cost)
+    cap_switches_per_bank: dict[str, Count] = {}
 
 
 class BridgeStatus(Message, frozen=True, kw_only=True, forbid_unknown_fields=True):
@@ -346,4 +392,6 @@ MESSAGE_TYPES: tuple[type[msgspec.Struct], ...] = (
     BridgeStatus,
     OracleRequest,
     OracleReply,
+    CapFrame,
+    CapCommand,
 )

@@ -6,7 +6,8 @@ guide; in short:
 
 * Every device is its own entity with its own keys and liveliness token: the feeder-head meter
   (``meas/head``, token ``alive/head/head``), each PV inverter (``meas/pv/<id>``, ``cmd/pv/<id>``,
-  ``ack/pv/<id>``, token ``alive/pv/<id>``), each regulator controller (``.../vr/<id>``), and the bridge
+  ``ack/pv/<id>``, token ``alive/pv/<id>``), each regulator controller (``.../vr/<id>``), each capacitor bank
+  of the device map (``.../cap/<id>``), and the bridge
   itself (``alive/bridge/bridge``; ``sim/truth``, ``sim/metrics``, ``sim/status``, queryable ``sim/oracle``).
 * One stepping thread (the caller of :func:`run_bridge`) does everything that touches the simulation.
   Zenoh callbacks only decode and enqueue (``schemas.bus.Inbox``); oracle queries are enqueued on the
@@ -60,7 +61,7 @@ from schemas.errors import CvvcError
 from simulator_bridge import devices as dv
 from simulator_bridge.errors import SimulatorError
 from simulator_bridge.publishing import (
-    READING_FIELDS,
+    FINITE_READING_FIELDS,
     DeviceSettings,
     FramePublisher,
     FramerSpec,
@@ -235,7 +236,7 @@ def _check_finite_step(res: Any) -> tuple[float, float]:
     """
     v_lo, v_hi = float(res.v_pu.min()), float(res.v_pu.max())
     rd = res.readings
-    small = np.concatenate([getattr(rd, name) for name in READING_FIELDS] + [res.pv_q_kvar, res.pv_p_kw],
+    small = np.concatenate([getattr(rd, name) for name in FINITE_READING_FIELDS] + [res.pv_q_kvar, res.pv_p_kw],
                            axis=None, dtype=float)
     if not (math.isfinite(v_lo) and math.isfinite(v_hi) and np.isfinite(small).all()):
         raise _non_finite(res)
@@ -271,6 +272,11 @@ class _OracleQuery:
     request: m.OracleRequest
 
 
+def _ack_kind(kind: str) -> keys.DeviceKind:
+    """The ack key kind of a command key's kind (``vr`` for kinds this bridge does not know)."""
+    return "pv" if kind == "pv" else "cap" if kind == "cap" else "vr"
+
+
 def _percentile(values: list[float], q: float) -> float | None:
     return float(np.percentile(values, q)) if values else None
 
@@ -297,7 +303,10 @@ class _Runtime:
                                                  float(engine.reg_default_setpoint_v120[r]),
                                                  float(engine.reg_default_band_v120[r]))
                      for r, rid in enumerate(engine.regulator_ids)}
-        for device in (*self.pvs.values(), *self.regs.values()):
+        self.caps = {cid: dv.CapBankController(cid, c, int(engine.cap_steps[c]), float(engine.cap_kvar[c]),
+                                               engine.cap_control_type[c])
+                     for c, cid in enumerate(engine.capacitor_ids)}
+        for device in (*self.pvs.values(), *self.regs.values(), *self.caps.values()):
             device.guard.period_ns = int(dm.feeder.control_period_s) * _NS  # the commands' time windows
         self.reg_phase = ["abc"[int(engine.node_names[n].split(".")[1]) - 1] for n in engine.reg_secondary_node]
         self.spec = FramerSpec(
@@ -309,7 +318,8 @@ class _Runtime:
                        for r in self.regs.values()),
             reg_phase=tuple(self.reg_phase), q_at_night=bool(qsts.pv_q_at_night), noise_pmu_pct=c.noise_pmu_pct,
             noise_scada_pct=c.noise_scada_pct, drop_prob=c.drop_prob, latency_s=c.latency_s,
-            noise_seed=c.noise_seed, metrics=MetricsAccumulator.for_feeder(dm, engine, step_s=self.step_s))
+            noise_seed=c.noise_seed, metrics=MetricsAccumulator.for_feeder(dm, engine, step_s=self.step_s),
+            caps=tuple((k.capacitor_id, k.index, k.steps, k.kvar_rated, k.control_type) for k in self.caps.values()))
         # counters
         self.seqs: Counter[str] = Counter()  # acks, oracle, status
         self.acks: Counter[str] = Counter()
@@ -331,7 +341,7 @@ class _Runtime:
         if child is None:
             self.framer = StepFramer(self.spec, session, self._on_control_head)
         else:
-            packer = StepPacker(len(engine.node_names), len(self.pvs), len(self.regs))
+            packer = StepPacker(len(engine.node_names), len(self.pvs), len(self.regs), len(engine.capacitor_ids))
             self.child = PublisherProcess(self.spec, packer, child)
 
     # ---------------------------------------------------------------- declarations
@@ -342,8 +352,10 @@ class _Runtime:
                        lv.declare_token(keys.alive(f, "head", "head"))]
         self.tokens += [lv.declare_token(keys.alive(f, "pv", p)) for p in self.pvs]
         self.tokens += [lv.declare_token(keys.alive(f, "vr", r)) for r in self.regs]
+        self.tokens += [lv.declare_token(keys.alive(f, "cap", k)) for k in self.caps]
         self.ack_pv = {p: TypedPublisher(s, keys.ack(f, "pv", p), m.Ack, reliable=True) for p in self.pvs}
         self.ack_vr = {r: TypedPublisher(s, keys.ack(f, "vr", r), m.Ack, reliable=True) for r in self.regs}
+        self.ack_cap = {k: TypedPublisher(s, keys.ack(f, "cap", k), m.Ack, reliable=True) for k in self.caps}
         self.pub_status = FramePublisher(s, keys.sim_status(f), reliable=True)
         self.inbox = Inbox(maxsize=4096)
         self.inbox.subscribe(s, f"{keys.ROOT}/*/cmd/**")  # other feeders too: see _wrong_feeder
@@ -439,11 +451,11 @@ class _Runtime:
         if isinstance(msg, _OracleQuery):
             self._answer_oracle(msg)
         elif isinstance(msg, _SenderGone):
-            for device in [*self.pvs.values(), *self.regs.values()]:
+            for device in [*self.pvs.values(), *self.regs.values(), *self.caps.values()]:
                 device.guard.forget_source(msg.source)
         elif isinstance(msg, m.Decision):
             self._on_decision(msg, item.recv_wall_ns)
-        elif isinstance(msg, m.PvCommand | m.RegCommand):
+        elif isinstance(msg, m.PvCommand | m.RegCommand | m.CapCommand):
             self._on_command(item.key, msg)
 
     def _on_decision(self, d: m.Decision, recv_wall_ns: int) -> None:
@@ -487,7 +499,7 @@ class _Runtime:
             self.session.put(pub_or_key, codec_for(m.Ack).encode(ack), encoding=zenoh.Encoding.APPLICATION_JSON,
                              congestion_control=zenoh.CongestionControl.BLOCK, priority=zenoh.Priority.REAL_TIME)
 
-    def _on_command(self, key: str, cmd: m.PvCommand | m.RegCommand) -> None:
+    def _on_command(self, key: str, cmd: m.PvCommand | m.RegCommand | m.CapCommand) -> None:
         self._remember(cmd.cmd_id)
         parts = keys.parse_device_key(key)
         if parts is None:
@@ -497,15 +509,17 @@ class _Runtime:
         if feeder != self.fid:
             self._wrong_feeder(feeder, kind, device, cmd)
             return
-        ack_key = keys.ack(self.fid, "pv" if kind == "pv" else "vr", device)
+        ack_key = keys.ack(self.fid, _ack_kind(kind), device)
         if kind == "pv" and device in self.pvs and isinstance(cmd, m.PvCommand):
             self._pv_command(self.pvs[device], cmd)
         elif kind == "vr" and device in self.regs and isinstance(cmd, m.RegCommand):
             self._reg_command(self.regs[device], cmd)
+        elif kind == "cap" and device in self.caps and isinstance(cmd, m.CapCommand):
+            self._cap_command(self.caps[device], cmd)
         else:
+            known = {"pv": self.pvs, "cap": self.caps}.get(kind, self.regs)
             self._ack(ack_key, device, "bridge", cmd.cmd_id, dv.reject(
-                "unknown_device", f"feeder {self.fid!r} has no {kind} device {device!r}; devices: "
-                f"{sorted(self.pvs) if kind == 'pv' else sorted(self.regs)}"))
+                "unknown_device", f"feeder {self.fid!r} has no {kind} device {device!r}; devices: {sorted(known)}"))
 
     def _wrong_feeder(self, feeder: str, kind: str, device: str, cmd: m.Command) -> None:
         """A command addressed to another feeder: ignored when that feeder has a live bridge (it is its
@@ -514,7 +528,7 @@ class _Runtime:
         if any(k.startswith(f"{keys.ROOT}/{feeder}/alive/bridge/") for k in self.bridges.alive()):
             return
         try:
-            ack_key = keys.ack(feeder, "pv" if kind == "pv" else "vr", device)
+            ack_key = keys.ack(feeder, _ack_kind(kind), device)
         except CvvcError:
             self.rejected["wrong_feeder"] += 1
             return
@@ -547,6 +561,15 @@ class _Runtime:
                 self.qsts.command_setpoint(reg.index, sp, bw)
         self._ack(self.ack_vr[reg.regulator_id], reg.regulator_id, reg.regulator_id, cmd.cmd_id, reg.apply(cmd))
 
+    def _cap_command(self, cap: dv.CapBankController, cmd: m.CapCommand) -> None:
+        bad = cap.check(cmd, now_t_ns=self.now_t_ns)
+        if bad is not None:
+            self._ack(self.ack_cap[cap.capacitor_id], cap.capacitor_id, cap.capacitor_id, cmd.cmd_id, bad)
+            return
+        applied = self.qsts.command_cap(cap.index, cmd.closed_steps)
+        self._ack(self.ack_cap[cap.capacitor_id], cap.capacitor_id, cap.capacitor_id, cmd.cmd_id,
+                  cap.apply(cmd, None if cmd.closed_steps is None else applied))
+
     def run_watchdogs(self, t_ns: int) -> None:
         """Before simulating ``t_ns``: expire commands past their validity; devices go back to default."""
         for pv in self.pvs.values():
@@ -565,6 +588,13 @@ class _Runtime:
                           dv.Verdict(status="expired", applied_value=reg.default_setpoint_v120,
                                      reason=f"valid until {gone.valid_until_t_ns}; back to local control at "
                                             f"{reg.default_setpoint_v120:.2f} V, band {reg.default_band_v120:.2f} V"))
+        for cap in self.caps.values():
+            gone = cap.expire(t_ns)
+            if gone is not None:
+                self.qsts.command_cap(cap.index, None)
+                self._ack(self.ack_cap[cap.capacitor_id], cap.capacitor_id, cap.capacitor_id, gone.cmd_id,
+                          dv.Verdict(status="expired", reason=f"valid until {gone.valid_until_t_ns}; back to local "
+                                                              f"control ({cap.control_type})"))
 
     # ---------------------------------------------------------------- oracle
     def _answer_oracle(self, item: _OracleQuery) -> None:
@@ -615,7 +645,10 @@ class _Runtime:
         regs = self.regs.values()
         return DeviceSettings(pv_q_setpoint_kvar=tuple(pv.q_setpoint_kvar for pv in self.pvs.values()),
                               reg_setpoint_v120=tuple(r.setpoint_v120 for r in regs),
-                              reg_band_v120=tuple(r.band_v120 for r in regs), reg_mode=tuple(r.mode for r in regs))
+                              reg_band_v120=tuple(r.band_v120 for r in regs), reg_mode=tuple(r.mode for r in regs),
+                              cap_command=tuple(None if k.guard.active is None else
+                                                (k.guard.active.cmd_id, k.guard.active.valid_until_t_ns)
+                                                for k in self.caps.values()))
 
     def status(self, *, done: bool) -> m.BridgeStatus:
         self.seqs["status"] += 1

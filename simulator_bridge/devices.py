@@ -28,12 +28,16 @@ Device limits (beyond the schema bounds checked at decode):
 * Regulator controller: a tap outside the regulator's own range (``±tap_max``, 16 for a 32-step
   regulator) is rejected; a set point outside :data:`SETPOINT_RANGE_V120` or a band outside
   :data:`BAND_RANGE_V120` is rejected.
+* Capacitor bank: more closed steps than the bank has is rejected (``out_of_range``). A release
+  (``closed_steps = None``) is accepted and ends the active command at once: the bank is back on its local
+  control, as after an expiry.
 
 Measurement realism (:class:`MeasurementNoise`): Gaussian noise per measurement class, off by default.
 PMU class (feeder head): magnitudes get relative noise ``σ = pct/100 · |x|``; angles ``σ = pct/100`` rad
 (the angle error that gives the same total vector error); P and Q ``σ = pct/100 · |S|`` of the phase.
-SCADA class (PV plants, regulators): voltages relative; P and Q ``σ = pct/100 · S_rated``. Taps and set
-points are exact. Noise never makes a magnitude negative (clipped at 0).
+SCADA class (PV plants, regulators, capacitor banks): voltages relative; P and Q ``σ = pct/100 · S_rated``;
+a capacitor control's compared quantity relative. Taps, bank states and set points are exact. Noise never
+makes a magnitude negative (clipped at 0).
 """
 
 from __future__ import annotations
@@ -42,7 +46,7 @@ import heapq
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Literal
+from typing import Literal, get_args
 
 import numpy as np
 
@@ -54,6 +58,7 @@ __all__ = [
     "REJECT_REASONS",
     "SETPOINT_RANGE_V120",
     "ActiveCommand",
+    "CapBankController",
     "CommandGuard",
     "DeviceError",
     "FrameDropper",
@@ -64,6 +69,7 @@ __all__ = [
     "RejectReason",
     "DelayLine",
     "Verdict",
+    "cap_frame",
     "head_frame",
     "make_ack",
     "pv_frame",
@@ -296,6 +302,60 @@ class RegulatorController:
         return self.action.band_v120 if isinstance(self.action, m.SetpointAction) else self.default_band_v120
 
 
+class CapBankController:
+    """A switched capacitor bank as a field device: held at a commanded number of closed steps, or on its
+    local control (its ``CapControl``; a bank without one holds its state).
+
+    Parameters
+    ----------
+    capacitor_id : device id. index : position in the engine's capacitor arrays.
+    steps : the bank's number of steps. kvar_rated : its rating with every step closed [kvar].
+    control_type : its local control's type (``none``: no control).
+    """
+
+    def __init__(self, capacitor_id: str, index: int, steps: int, kvar_rated: float,
+                 control_type: m.CapControlType) -> None:
+        self.capacitor_id = capacitor_id
+        self.index = index
+        self.steps = int(steps)
+        self.kvar_rated = float(kvar_rated)
+        if control_type not in get_args(m.CapControlType):
+            raise DeviceError(f"capacitor bank {capacitor_id!r}: control type {control_type!r} is none of "
+                              f"{get_args(m.CapControlType)}; the engine must translate OpenDSS's CapControl type")
+        self.control_type: m.CapControlType = control_type
+        self.guard = CommandGuard(capacitor_id)
+
+    def check(self, cmd: m.CapCommand, *, now_t_ns: int) -> Verdict | None:
+        """Reject ``cmd`` by the generic checks or the bank's range, or None (then :meth:`apply` it)."""
+        value = 0.0 if cmd.closed_steps is None else float(cmd.closed_steps)
+        generic = self.guard.check(cmd, cmd.capacitor_id, value, now_t_ns=now_t_ns)
+        if generic is not None:
+            return generic
+        if cmd.closed_steps is not None and cmd.closed_steps > self.steps:
+            return reject("out_of_range", f"{cmd.closed_steps} closed steps asked of bank {self.capacitor_id!r}, "
+                          f"which has {self.steps}; send 0..{self.steps}, or null to release it")
+        return None
+
+    def apply(self, cmd: m.CapCommand, applied_steps: int | None) -> Verdict:
+        """Record an accepted command (``applied_steps``: the state the simulator holds the bank at; None for a
+        release); returns its verdict.
+        """
+        if cmd.closed_steps is None:
+            self.guard.apply(cmd, 0.0)
+            self.guard.active = None  # released: local control from now on, nothing left to expire
+            return Verdict(status="accepted", reason=f"released to local control ({self.control_type})")
+        self.guard.apply(cmd, float(applied_steps if applied_steps is not None else cmd.closed_steps))
+        return Verdict(status="accepted", applied_value=self.guard.active.value)  # type: ignore[union-attr]
+
+    def expire(self, t_ns: int) -> ActiveCommand | None:
+        """Watchdog: the expired command (then the bank is back on its local control), or None."""
+        return self.guard.expire(t_ns)
+
+    @property
+    def mode(self) -> Literal["local", "commanded"]:
+        return "local" if self.guard.active is None else "commanded"
+
+
 def make_ack(*, device_id: str, source: str, cmd_id: str, verdict: Verdict, t_ns: int, seq: int) -> m.Ack:
     """The ack of one command (``cmd_id`` is truncated to the schema's 96 characters)."""
     return m.Ack(t_ns=int(t_ns), seq=int(seq), source=source, cmd_id=cmd_id[:96], device_id=device_id,
@@ -347,6 +407,12 @@ class MeasurementNoise:
             q_kvar + per_phase_kva * self._gauss(q_kvar.shape, e),
             np.maximum(v_v * (1 + self._gauss(v_v.shape, e)), 0.0),
         )
+
+    def capacitor(self, v_v: float, control_value: float | None) -> tuple[float, float | None]:
+        """Noisy bus voltage [V] and control reading (its own unit; None stays None) of one bank; SCADA class."""
+        n = self._gauss((2,), self.scada)
+        return (max(float(v_v * (1 + n[0])), 0.0),
+                None if control_value is None else float(control_value * (1 + n[1])))
 
     def regulator(self, v120: float, v_compared_120: float) -> tuple[float, float]:
         """Noisy raw and compared secondary voltages [V on the 120 V base]; SCADA class."""
@@ -453,6 +519,21 @@ def reg_frame(*, reg: RegulatorController, t_ns: int, seq: int, phase: str, v120
                       phases=[m.RegPhase(phase=phase, v_120=float(v120))],  # type: ignore[arg-type]
                       v_compared_120=float(v_compared_120), tap=int(tap), setpoint_v120=setpoint_v120,
                       band_v120=band_v120, mode=mode)
+
+
+def cap_frame(*, cap: CapBankController, t_ns: int, seq: int, closed_steps: int, v_v: float,
+              control_value: float | None, active: ActiveCommand | None) -> m.CapFrame:
+    """A capacitor bank's frame: closed steps, bus voltage [V], its control's reading (None without a control or
+    when not finite) and the command in force at the step (``cap.guard.active`` then; None: local control).
+    """
+    cv = (None if control_value is None or not math.isfinite(control_value)
+          else min(max(float(control_value), -1e9), 1e9))
+    return m.CapFrame(t_ns=t_ns, seq=seq, source=cap.capacitor_id, capacitor_id=cap.capacitor_id,
+                      closed_steps=min(max(int(closed_steps), 0), cap.steps), steps=cap.steps,
+                      kvar_rated=cap.kvar_rated, v_v=min(max(float(v_v), 0.0), 1e6), control_type=cap.control_type,
+                      control_value=cv, mode="local" if active is None else "commanded",
+                      cmd_id=None if active is None else active.cmd_id[:96],
+                      valid_until_t_ns=None if active is None else active.valid_until_t_ns)
 
 
 def _wrap(angle_deg: float) -> float:

@@ -36,9 +36,19 @@ import numpy as np
 import opendssdirect as dss
 
 from schemas.devicemap import DeviceMap, DeviceMapError
+from simulator_bridge.controls import CapControlSettings, RegControlSettings
 from simulator_bridge.errors import SimulatorError
 
-__all__ = ["EngineError", "FeederEngine", "FieldReadings", "OpenDssSnapshot", "Sensitivities", "opendss_snapshot"]
+__all__ = [
+    "EngineError",
+    "FeederEngine",
+    "FieldReadings",
+    "OpenDssControlRun",
+    "OpenDssSnapshot",
+    "Sensitivities",
+    "opendss_control_loop",
+    "opendss_snapshot",
+]
 
 _PHASES = (1, 2, 3)
 _LOAD_SETTER_FLAGS = 2  # SetterFlags_AvoidFullRecalc: a kW change does not rebuild the load's Yprim
@@ -65,6 +75,10 @@ class FieldReadings:
     reg_v120_compared : (R,) the voltage the controller compares with its band: ``reg_v120`` with
         line-drop compensation applied [V on the 120 V base].
     reg_tap : (R,) tap positions, -16..16 for a 32-step regulator.
+    cap_states : (C,) int, closed steps of each map capacitor bank (0..its ``numsteps``).
+    cap_v_v : (C,) mean line-to-neutral voltage magnitude at the bank's bus [V].
+    cap_control_value : (C,) the quantity the bank's CapControl compares with its ON/OFF settings, in the
+        control's own unit (V on its PT base, kvar, A, PF, hour of day); NaN when the bank has none.
     """
 
     head_v_mag_v: np.ndarray
@@ -79,6 +93,9 @@ class FieldReadings:
     reg_v120: np.ndarray
     reg_v120_compared: np.ndarray
     reg_tap: np.ndarray
+    cap_states: np.ndarray
+    cap_v_v: np.ndarray
+    cap_control_value: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -117,7 +134,9 @@ class _Terminal:
 class _Regulator:
     regcontrol: str
     transformer: str
-    pt_phase: int  # phase number (1, 2, 3) of the controlled winding's conductor the PT reads
+    winding: int  # the monitored winding (OpenDSS's ``winding``: the element terminal)
+    pt_phase: int  # phase number (1, 2, 3) of the controlled winding's conductor the PT reads (MAX/MIN: 1st)
+    pt_mode: int  # PT phase 1..3 of the winding, or -2 (MAX) / -3 (MIN)
     pt_ratio: float
     ct_primary_a: float
     ldc_r_v: float
@@ -125,6 +144,23 @@ class _Regulator:
     tap_winding: int
     tap_center: float  # [pu] tap of position 0
     tap_step: float  # [pu] per position
+    tap_max: int
+    primary_node: int
+    secondary_node: int
+    pu_per_v120: float
+    remote_node: int  # node index of the monitored remote bus (``bus=``), -1 if none
+    remote_pt_ratio: float
+
+
+def _phase_mode(text: str, what: str) -> int:
+    """A CapControl's PTphase/CTphase: 1..3, or -1 (AVG), -2 (MAX), -3 (MIN)."""
+    t = text.strip().lower()
+    if t.isdigit():
+        return int(t)
+    modes = {"avg": -1, "max": -2, "min": -3}
+    if t not in modes:
+        raise DeviceMapError(f"{what}: phase selection {text!r} is not understood")
+    return modes[t]
 
 
 class FeederEngine:
@@ -161,6 +197,11 @@ class FeederEngine:
     reg_default_setpoint_v120, reg_default_band_v120 : (R,) local-control defaults: the map's, else the
         model's ``vreg`` and ``band`` [V on the 120 V base].
     reg_tap_max : (R,) highest tap position (taps run ``-reg_tap_max..reg_tap_max``).
+    capacitor_ids : the map's ``[[capacitor]]`` ids, map order.
+    cap_kvar : (C,) rated kvar of each bank, all steps [kvar].
+    cap_steps : (C,) int, number of steps of each bank.
+    cap_control_type : per bank, its CapControl's type: ``"voltage"``, ``"kvar"``, ``"current"``, ``"pf"``,
+        ``"time"``, ``"follow"``, or ``"none"`` (no CapControl).
     """
 
     def __init__(self, device_map: DeviceMap, *, tolerance: float = 1e-6) -> None:
@@ -189,6 +230,7 @@ class FeederEngine:
         self._init_loads()
         self._init_pv()
         self._init_regulators()
+        self._init_capacitors()
         self._init_measurements()
         bus_distance, feeder_buses, head_bus = self._bus_distance_ohm()
         self.node_in_feeder = np.array([n.split(".")[0] in feeder_buses for n in self.node_names])
@@ -234,6 +276,22 @@ class FeederEngine:
             if r.regcontrol.lower() not in regcontrols:
                 raise DeviceMapError(f"{self._where}: regulator {r.id!r}: RegControl {r.regcontrol!r} not "
                                      f"found in {master}; known: {sorted(regcontrols)}")
+        capacitors = {c.lower() for c in self._dss.Capacitors.AllNames()}
+        capcontrols = {c.lower() for c in self._dss.CapControls.AllNames()}
+        for c in dm.capacitor:
+            if c.capacitor.lower() not in capacitors:
+                raise DeviceMapError(f"{self._where}: capacitor {c.id!r}: Capacitor {c.capacitor!r} not found in "
+                                     f"{master}; known: {sorted(capacitors)}")
+            if c.capcontrol is None:
+                continue
+            if c.capcontrol.lower() not in capcontrols:
+                raise DeviceMapError(f"{self._where}: capacitor {c.id!r}: CapControl {c.capcontrol!r} not found "
+                                     f"in {master}; known: {sorted(capcontrols)}")
+            self._dss.CapControls.Name(c.capcontrol)
+            controlled = self._dss.CapControls.Capacitor().lower()
+            if controlled != c.capacitor.lower():
+                raise DeviceMapError(f"{self._where}: capacitor {c.id!r}: CapControl {c.capcontrol!r} switches "
+                                     f"Capacitor {controlled!r}, not {c.capacitor!r}; name the bank's own control")
         for p in dm.pv:
             if p.bus.split(".")[0].lower() not in buses:
                 raise DeviceMapError(f"{self._where}: PV plant {p.id!r}: bus {p.bus!r} not found in {master}")
@@ -314,71 +372,172 @@ class FeederEngine:
         self._pv_q_kvar = np.zeros(len(pvs))
 
     def _init_regulators(self) -> None:
+        """Every RegControl of the model: the map's first (map order), then the others (model order)."""
         d = self._dss
-        regs, primary, secondary, pu_per_v120, sp, band, taps_max = [], [], [], [], [], [], []
-        self._reg_winding: list[int] = []
-        for spec in self.device_map.regulator:
-            d.RegControls.Name(spec.regcontrol)
+        map_names = [s.regcontrol.lower() for s in self.device_map.regulator]
+        others = [n.lower() for n in d.RegControls.AllNames() if n and n.upper() != "NONE"
+                  and n.lower() not in map_names]
+        regs, settings = [], []
+        for name in map_names + others:
+            d.RegControls.Name(name)
+            what = f"{self._where}: RegControl {name!r}"
             xf, winding = d.RegControls.Transformer().lower(), int(d.RegControls.Winding())
             pt_ratio, ct = float(d.RegControls.PTRatio()), float(d.RegControls.CTPrimary())
             r_v, x_v = float(d.RegControls.ForwardR()), float(d.RegControls.ForwardX())
             vreg, bandw = float(d.RegControls.ForwardVreg()), float(d.RegControls.ForwardBand())
-            if d.RegControls.MonitoredBus().strip():
-                raise DeviceMapError(f"{self._where}: regulator {spec.id!r}: RegControl {spec.regcontrol!r} "
-                                     "senses a remote bus (MonitoredBus); only local sensing is supported")
-            pt_phase = self._command(f"? regcontrol.{spec.regcontrol}.ptphase", what=f"regulator {spec.id!r}")
-            if not pt_phase.strip().isdigit():
-                raise DeviceMapError(f"{self._where}: regulator {spec.id!r}: RegControl {spec.regcontrol!r} "
-                                     f"uses PTphase={pt_phase}; only a single PT phase is supported")
+            remote_bus = d.RegControls.MonitoredBus().strip().lower()
+            prop = {p: self._command(f"? regcontrol.{name}.{p}", what=what).strip().lower()
+                    for p in ("ptphase", "remoteptratio", "enabled", "vlimit", "reversible", "ldc_z", "cogen")}
+            if prop["reversible"] in ("yes", "true") or prop["cogen"] in ("yes", "true") \
+                    or float(prop["vlimit"] or 0) > 0 or float(prop["ldc_z"] or 0) > 0:
+                raise DeviceMapError(f"{what}: reversible/cogen modes, vlimit and LDC_Z are not modelled (forward "
+                                     "mode with R/X line-drop compensation only); remove them from the model")
             tap_winding = int(d.RegControls.TapWinding())
             d.Transformers.Name(xf)
             d.Transformers.Wdg(tap_winding)
             tap_max = int(d.Transformers.NumTaps()) // 2
             tap_lo, tap_hi = float(d.Transformers.MinTap()), float(d.Transformers.MaxTap())
+            d.Transformers.Wdg(winding)
+            kv_wdg, delta = float(d.Transformers.kV()), bool(d.Transformers.IsDelta())
             d.Circuit.SetActiveElement(f"Transformer.{xf}")
+            n_phases = int(d.CktElement.NumPhases())
+            # OpenDSS's winding base voltage: L-N for more than one phase or a delta winding, else kV [V]
+            v_base_wdg = kv_wdg * 1000.0 / (np.sqrt(3.0) if (n_phases > 1 or delta) else 1.0)
             buses = [b.split(".") for b in d.CktElement.BusNames()]
             n_cond = int(d.CktElement.NumConductors())
             order = list(d.CktElement.NodeOrder())
-            ph = int(pt_phase) - 1
+            if prop["ptphase"].isdigit():
+                pt_mode = int(prop["ptphase"]) if int(prop["ptphase"]) <= n_phases else 1
+            elif prop["ptphase"] in ("max", "min"):
+                pt_mode = -2 if prop["ptphase"] == "max" else -3
+            else:
+                raise DeviceMapError(f"{what}: PTphase={prop['ptphase']} is not understood")
+            ph = (pt_mode if pt_mode > 0 else 1) - 1
             other = 1 if winding != 1 else 2
             pt_phase_number = order[(winding - 1) * n_cond + ph]
             sec_node = f"{buses[winding - 1][0].lower()}.{pt_phase_number}"
             pri_node = f"{buses[other - 1][0].lower()}.{order[(other - 1) * n_cond + ph]}"
             d.Circuit.SetActiveBus(buses[winding - 1][0])
             base_v = d.Bus.kVBase() * 1000.0
-            regs.append(_Regulator(spec.regcontrol.lower(), xf, pt_phase_number, pt_ratio, ct, r_v, x_v,
-                                   tap_winding, (tap_lo + tap_hi) / 2, (tap_hi - tap_lo) / (2 * tap_max)))
-            self._reg_winding.append(winding)
-            primary.append(self._node_index[pri_node])
-            secondary.append(self._node_index[sec_node])
-            pu_per_v120.append(pt_ratio / base_v)
-            sp.append(spec.setpoint_v120 if spec.setpoint_v120 is not None else vreg)
-            band.append(spec.band_v120 if spec.band_v120 is not None else bandw)
-            taps_max.append(tap_max)
+            remote_node = -1
+            if remote_bus:
+                bus, *node = remote_bus.split(".")
+                key = f"{bus}.{node[0] if node else 1}"
+                if key not in self._node_index:
+                    raise DeviceMapError(f"{what}: monitored bus {remote_bus!r} is not a node of the model")
+                remote_node = self._node_index[key]
+            tap_step = (tap_hi - tap_lo) / (2 * tap_max)
+            regs.append(_Regulator(
+                regcontrol=name, transformer=xf, winding=winding, pt_phase=pt_phase_number, pt_mode=pt_mode,
+                pt_ratio=pt_ratio, ct_primary_a=ct, ldc_r_v=r_v, ldc_x_v=x_v, tap_winding=tap_winding,
+                tap_center=(tap_lo + tap_hi) / 2, tap_step=tap_step, tap_max=tap_max,
+                primary_node=self._node_index[pri_node], secondary_node=self._node_index[sec_node],
+                pu_per_v120=pt_ratio / base_v, remote_node=remote_node,
+                remote_pt_ratio=float(prop["remoteptratio"] or pt_ratio)))
+            max_change = int(d.RegControls.MaxTapChange())
+            settings.append(RegControlSettings(
+                name=name, vreg_v120=vreg, band_v120=bandw, delay_s=float(d.RegControls.Delay()),
+                tap_delay_s=float(d.RegControls.TapDelay()), inverse_time=bool(d.RegControls.IsInverseTime()),
+                enabled=prop["enabled"] in ("yes", "true") and max_change > 0, tap_max=tap_max,
+                taps_per_v120=pt_ratio / (v_base_wdg * tap_step) * (1.0 if tap_winding == winding else -1.0)))
         self._regs = tuple(regs)
+        self.reg_controls: tuple[RegControlSettings, ...] = tuple(settings)
+        n = len(self.device_map.regulator)
         self.regulator_ids: tuple[str, ...] = tuple(r.id for r in self.device_map.regulator)
-        self.reg_primary_node = np.array(primary, dtype=int)
-        self.reg_secondary_node = np.array(secondary, dtype=int)
-        self.reg_pu_per_v120 = np.array(pu_per_v120, dtype=float)
-        self.reg_default_setpoint_v120 = np.array(sp, dtype=float)
-        self.reg_default_band_v120 = np.array(band, dtype=float)
-        self.reg_tap_max = np.array(taps_max, dtype=int)
+        self.reg_primary_node = np.array([r.primary_node for r in regs[:n]], dtype=int)
+        self.reg_secondary_node = np.array([r.secondary_node for r in regs[:n]], dtype=int)
+        self.reg_pu_per_v120 = np.array([r.pu_per_v120 for r in regs[:n]], dtype=float)
+        self.reg_default_setpoint_v120 = np.array(
+            [s.setpoint_v120 if s.setpoint_v120 is not None else c.vreg_v120
+             for s, c in zip(self.device_map.regulator, settings, strict=False)], dtype=float)
+        self.reg_default_band_v120 = np.array(
+            [s.band_v120 if s.band_v120 is not None else c.band_v120
+             for s, c in zip(self.device_map.regulator, settings, strict=False)], dtype=float)
+        self.reg_tap_max = np.array([r.tap_max for r in regs[:n]], dtype=int)
         rc = d.RegControls
-        self._taps = np.empty(len(regs), dtype=int)
+        self._all_taps = np.empty(len(regs), dtype=int)
         for r, reg in enumerate(regs):
             rc.Name(reg.regcontrol)
-            self._taps[r] = rc.TapNumber()
+            self._all_taps[r] = rc.TapNumber()
+        self._taps = self._all_taps[:n]  # a view: the map's regulators
+
+    def _init_capacitors(self) -> None:
+        """The map's banks (map order), then every other bank a CapControl of the model switches."""
+        d = self._dss
+        specs = self.device_map.capacitor
+        cc_names = [n.lower() for n in d.CapControls.AllNames() if n and n.upper() != "NONE"]
+        cc_cap = {}
+        for name in cc_names:
+            d.CapControls.Name(name)
+            cc_cap[name] = d.CapControls.Capacitor().lower()
+        banks = [c.capacitor.lower() for c in specs]
+        banks += [b for b in dict.fromkeys(cc_cap.values()) if b not in banks]
+        kvar, steps, states, conn_delta = [], [], [], []
+        for b in banks:
+            d.Capacitors.Name(b)
+            kvar.append(float(d.Capacitors.kvar()))
+            steps.append(int(d.Capacitors.NumSteps()))
+            states.append(int(sum(d.Capacitors.States())))
+            conn_delta.append(bool(d.Capacitors.IsDelta()))
+        n = len(specs)
+        self._banks = tuple(banks)
+        self._bank_kvar = np.array(kvar, dtype=float)
+        self._bank_steps = np.array(steps, dtype=int)
+        self._bank_states = np.array(states, dtype=int)
+        self.capacitor_ids: tuple[str, ...] = tuple(c.id for c in specs)
+        self._cap_names = tuple(banks[:n])
+        self.cap_kvar = self._bank_kvar[:n].copy()
+        self.cap_steps = self._bank_steps[:n].copy()
+        self._cap_states = self._bank_states[:n]  # a view: the map's banks
+        controls, monitored, bank_of = [], [], []
+        for name in cc_names:
+            d.CapControls.Name(name)
+            what = f"{self._where}: CapControl {name!r}"
+            prop = {p: self._command(f"? capcontrol.{name}.{p}", what=what).strip().lower()
+                    for p in ("type", "ptphase", "ctphase", "pctminkvar", "enabled", "voltoverride")}
+            kind = {"powerfactor": "pf"}.get(prop["type"], prop["type"])
+            if kind not in ("current", "voltage", "kvar", "pf", "time", "follow"):
+                raise DeviceMapError(f"{what}: type {kind!r} is not modelled (current, voltage, kvar, pf, time, "
+                                     "follow)")
+            on, off = float(d.CapControls.ONSetting()), float(d.CapControls.OFFSetting())
+            if kind == "pf":  # OpenDSS's 0..2 scale: a leading (negative) PF setting is 2 + PF
+                on, off = (2.0 + on if on < 0 else on), (2.0 + off if off < 0 else off)
+            b = banks.index(cc_cap[name])
+            bank_of.append(b)
+            controls.append(CapControlSettings(
+                name=name, kind=kind, on=on, off=off, delay_s=float(d.CapControls.Delay()),
+                delay_off_s=float(d.CapControls.DelayOff()), dead_time_s=float(d.CapControls.DeadTime()),
+                volt_override=prop["voltoverride"] in ("yes", "true"), vmin_v=float(d.CapControls.Vmin()),
+                vmax_v=float(d.CapControls.Vmax()), n_steps=steps[b], total_kvar=kvar[b],
+                pct_min_kvar=float(prop["pctminkvar"] or 50.0), enabled=prop["enabled"] in ("yes", "true")))
+            monitored.append((d.CapControls.MonitoredObj(), int(d.CapControls.MonitoredTerm()),
+                              _phase_mode(prop["ptphase"], what), _phase_mode(prop["ctphase"], what),
+                              float(d.CapControls.PTRatio()), float(d.CapControls.CTRatio()), conn_delta[b]))
+        self.cap_controls: tuple[CapControlSettings, ...] = tuple(controls)
+        self._cc_monitored = tuple(monitored)
+        self.cap_control_bank = np.array(bank_of, dtype=int)
+        # each map bank's control (index into cap_controls), -1 without one
+        by_name = {c.name: j for j, c in enumerate(controls)}
+        self.cap_control_index = np.array([by_name[c.capcontrol.lower()] if c.capcontrol else -1 for c in specs],
+                                          dtype=int)
+        self.cap_control_type: tuple[str, ...] = tuple(
+            controls[j].kind if j >= 0 else "none" for j in self.cap_control_index)
+        self._cap_value = np.full(len(controls), np.nan)  # last sensed, for readings
 
     def _init_measurements(self) -> None:
-        """Batch the measured elements (head, PV plants, regulator transformers) for one current read.
+        """Batch the measured elements (head, PV plants, regulator transformers, banks, CapControls'
+        monitored elements) for one current read.
 
         Also builds the index tables that turn the node voltages and those currents into readings.
         """
         lib, ffi = self._lib, self._ffi
+        cc_elements = [m[0] for m in self._cc_monitored]
         elements = [self.device_map.feeder.head_element] + [f"PVSystem.{n}" for n in self._pv_names] + [
-            f"Transformer.{r.transformer}" for r in self._regs]
-        terminals = [1] * (1 + len(self._pv_names)) + self._reg_winding
-        handles, terms, offset = [], [], 0
+            f"Transformer.{r.transformer}" for r in self._regs] + [f"Capacitor.{c}" for c in self._cap_names] \
+            + cc_elements
+        terminals = [1] * (1 + len(self._pv_names)) + [r.winding for r in self._regs] + [1] * len(
+            self._cap_names) + [m[1] for m in self._cc_monitored]
+        handles, terms, offsets, offset = [], [], [], 0
         for element, terminal in zip(elements, terminals, strict=True):
             cls, name = element.split(".", 1)
             handle = lib.Obj_GetHandleByName(lib._ctx, lib.DSS_SetActiveClass(cls.encode()), name.encode())
@@ -387,20 +546,65 @@ class FeederEngine:
             handles.append(handle)
             t, size = self._terminal(element, terminal, offset)
             terms.append(t)
+            offsets.append(offset)
             offset += size
         self._ce_handles = ffi.new("void*[]", handles)
         self._n_ce = len(handles)
         self._ce_result = ffi.new("double**")
         self._ce_dims = ffi.new("int32_t[4]")
-        head, pvs, regs = terms[0], terms[1:1 + len(self._pv_names)], terms[1 + len(self._pv_names):]
+        n_pv, n_reg, n_cap = len(self._pv_names), len(self._regs), len(self._cap_names)
+        head, pvs = terms[0], terms[1:1 + n_pv]
+        regs = terms[1 + n_pv:1 + n_pv + n_reg]
+        caps = terms[1 + n_pv + n_reg:1 + n_pv + n_reg + n_cap]
         self._head_cond, self._head_neutral = np.array(head.conductor), head.neutral
         self._pv_cond = np.array([t.conductor for t in pvs], dtype=int).reshape(-1, 3)
         self._pv_neutral = np.array([t.neutral for t in pvs], dtype=int)
-        ph = np.array([r.pt_phase - 1 for r in self._regs], dtype=int)
-        self._reg_cond = np.array([t.conductor[p] for t, p in zip(regs, ph, strict=True)], dtype=int)
+        # regulators: the winding's phase conductors in the transformer's own order (PT phase 1..n)
+        reg_cond = np.full((n_reg, 3), -1, dtype=int)
+        for r, (reg, off) in enumerate(zip(self._regs, offsets[1 + n_pv:1 + n_pv + n_reg], strict=True)):
+            first, nph = self._conductor_range(f"Transformer.{reg.transformer}", reg.winding, off)
+            reg_cond[r, :nph] = np.arange(first, first + nph)
+        self._reg_cond_all = reg_cond
+        self._reg_phase_mask = reg_cond >= 0
         self._reg_neutral = np.array([t.neutral for t in regs], dtype=int)
         self._reg_ratio = np.array([r.pt_ratio for r in self._regs], dtype=float)
-        self._reg_ldc = np.array([complex(r.ldc_r_v, r.ldc_x_v) / r.ct_primary_a for r in self._regs])
+        self._reg_ldc = np.array([complex(r.ldc_r_v, r.ldc_x_v) / r.ct_primary_a if r.remote_node < 0 else 0j
+                                  for r in self._regs])
+        self._reg_pt_mode = np.array([r.pt_mode for r in self._regs], dtype=int)
+        self._reg_fixed = np.flatnonzero(self._reg_pt_mode > 0)
+        self._reg_remote = np.flatnonzero(np.array([r.remote_node >= 0 for r in self._regs], dtype=bool))
+        # a bank's voltage: mean over its phases of |V(phase) - V(neutral)|; absent phases are masked out
+        self._cap_cond = np.array([t.conductor for t in caps], dtype=int).reshape(-1, 3)
+        self._cap_neutral = np.array([t.neutral for t in caps], dtype=int)
+        self._cap_phase_mask = self._cap_cond >= 0
+        self._cap_n_phases = np.maximum(self._cap_phase_mask.sum(axis=1), 1)
+        # CapControls: the monitored terminal's phase conductors (PT/CT phase 1..n) and all its conductors
+        n_cc = len(self._cc_monitored)
+        cc_ph = np.full((n_cc, 3), -1, dtype=int)
+        cc_all = np.full((n_cc, 8), -1, dtype=int)
+        for j, (m, off) in enumerate(zip(self._cc_monitored, offsets[1 + n_pv + n_reg + n_cap:], strict=True)):
+            first, nph, ncond = self._conductor_range(m[0], m[1], off, with_conductors=True)
+            cc_ph[j, :min(nph, 3)] = np.arange(first, first + min(nph, 3))
+            cc_all[j, :min(ncond, 8)] = np.arange(first, first + min(ncond, 8))
+        self._cc_ph, self._cc_all, self._cc_mask = cc_ph, cc_all, cc_ph >= 0
+        self._cc_nph = np.maximum(self._cc_mask.sum(axis=1), 1)
+        self._cc_pt = np.array([m[2] for m in self._cc_monitored], dtype=int)
+        self._cc_ct = np.array([m[3] for m in self._cc_monitored], dtype=int)
+        self._cc_ptratio = np.array([m[4] for m in self._cc_monitored], dtype=float)
+        self._cc_ctratio = np.array([m[5] for m in self._cc_monitored], dtype=float)
+        self._cc_delta = np.array([m[6] for m in self._cc_monitored], dtype=bool)
+        kinds = [c.kind for c in self.cap_controls]
+        self._cc_kind = {k: np.array([x == k for x in kinds], dtype=bool) for k in ("current", "voltage", "kvar",
+                                                                                      "pf", "time")}
+        self._batch: tuple[np.ndarray, np.ndarray] | None = None
+
+    def _conductor_range(self, element: str, terminal: int, offset: int, *, with_conductors: bool = False):
+        """(first batch index of ``terminal``'s conductors, number of phases[, number of conductors])."""
+        d = self._dss
+        d.Circuit.SetActiveElement(element)
+        n_cond, n_phases = int(d.CktElement.NumConductors()), int(d.CktElement.NumPhases())
+        first = offset + (terminal - 1) * n_cond
+        return (first, n_phases, n_cond) if with_conductors else (first, n_phases)
 
     def _terminal(self, element: str, terminal: int, offset: int) -> tuple[_Terminal, int]:
         """Index tables for ``terminal`` of ``element``; also its number of currents (all terminals)."""
@@ -543,11 +747,11 @@ class FeederEngine:
         return self._pv_p_kw.copy(), self._pv_q_kvar.copy()
 
     def set_taps(self, taps: np.ndarray) -> None:
-        """Set every regulator's tap position (integers within ``±reg_tap_max``)."""
+        """Set every map regulator's tap position (integers within ``±reg_tap_max``)."""
         t = np.asarray(taps)
-        if t.shape != (len(self._regs),) or np.any(t != np.round(t)) or np.any(np.abs(t) > self.reg_tap_max):
-            raise EngineError(f"set_taps: expected {len(self._regs)} integer taps within ±{self.reg_tap_max}, "
-                              f"got {taps!r}")
+        n = len(self._taps)
+        if t.shape != (n,) or np.any(t != np.round(t)) or np.any(np.abs(t) > self.reg_tap_max):
+            raise EngineError(f"set_taps: expected {n} integer taps within ±{self.reg_tap_max}, got {taps!r}")
         for r in np.flatnonzero(t != self._taps):
             self._set_tap(r, int(t[r]))
 
@@ -559,11 +763,55 @@ class FeederEngine:
         xf.Name(reg.transformer)
         xf.Wdg(reg.tap_winding)
         xf.Tap(reg.tap_center + tap * reg.tap_step)
-        self._taps[r] = tap
+        self._all_taps[r] = tap
 
     def taps(self) -> np.ndarray:
-        """(R,) present tap positions (OpenDSS's controls are off: only :meth:`set_taps` moves them)."""
+        """(R,) present tap positions of the map's regulators (only this engine's setters move them)."""
         return self._taps.copy()
+
+    def control_taps(self) -> np.ndarray:
+        """(NR,) present tap of every RegControl of the model, ``reg_controls`` order (the map's first)."""
+        return self._all_taps.copy()
+
+    def set_control_tap(self, r: int, tap: int) -> None:
+        """Set RegControl ``r``'s (``reg_controls`` order) tap position, clipped to its range."""
+        t = max(-self._regs[r].tap_max, min(self._regs[r].tap_max, int(tap)))
+        if t != self._all_taps[r]:
+            self._set_tap(r, t)
+
+    def set_cap_states(self, states: np.ndarray) -> None:
+        """Set every map capacitor bank's number of closed steps (integers within ``0..cap_steps``).
+
+        Steps close in order (step 1 first), as OpenDSS's CapControl switches them.
+        """
+        st = np.asarray(states)
+        if st.shape != self.cap_steps.shape or np.any(st != np.round(st)) or np.any(st < 0) \
+                or np.any(st > self.cap_steps):
+            raise EngineError(f"set_cap_states: expected {len(self.cap_steps)} integer states within "
+                              f"0..{self.cap_steps.tolist()}, got {states!r}")
+        for c in np.flatnonzero(st != self._cap_states):
+            self._set_bank(c, int(st[c]))
+
+    def _set_bank(self, b: int, n: int) -> None:
+        cap = self._dss.Capacitors
+        cap.Name(self._banks[b])
+        cap.States([1] * n + [0] * (int(self._bank_steps[b]) - n))
+        self._bank_states[b] = n
+
+    def cap_states(self) -> np.ndarray:
+        """(C,) closed steps of each map capacitor bank."""
+        return self._cap_states.copy()
+
+    def control_cap_states(self) -> np.ndarray:
+        """(NC,) closed steps of the bank of every CapControl of the model, ``cap_controls`` order."""
+        return self._bank_states[self.cap_control_bank]
+
+    def set_control_cap_state(self, j: int, n: int) -> None:
+        """Set the bank of CapControl ``j`` (``cap_controls`` order) to ``n`` closed steps."""
+        b = int(self.cap_control_bank[j])
+        n = max(0, min(int(self._bank_steps[b]), int(n)))
+        if n != self._bank_states[b]:
+            self._set_bank(b, n)
 
     # ------------------------------------------------------------------ solve and read
     def solve(self) -> None:
@@ -574,6 +822,7 @@ class FeederEngine:
         EngineError
             OpenDSS did not converge.
         """
+        self._batch = None
         try:
             self._dss.Solution.Solve()
         except dss.DSSException as e:
@@ -596,27 +845,99 @@ class FeederEngine:
         out[:-1] = np.frombuffer(self._ffi.buffer(self._ce_result[0], n * 8), dtype=complex)  # (re, im) pairs
         return out
 
+    def _read(self) -> tuple[np.ndarray, np.ndarray]:
+        """The batch voltages and currents of the present solution (read once per solve)."""
+        if self._batch is None:
+            self._batch = (self._batch_read(self._lib.Alt_CEBatch_Get_Voltages),
+                           self._batch_read(self._lib.Alt_CEBatch_Get_Currents))
+        return self._batch
+
+    def _reg_voltages(self, v: np.ndarray, i: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(raw, compared) voltage of every RegControl [V on the 120 V base], as its ``Sample`` computes it:
+        the PT phase's winding voltage (MAX/MIN: the highest/lowest phase) over PTratio plus ``(R + jX)·I/CTprim``
+        (current into the winding, same phase); a remote bus: that node's voltage over its PT ratio, no LDC.
+        """
+        w = (v[self._reg_cond_all] - v[self._reg_neutral][:, None]) * self._reg_phase_mask
+        rows = np.arange(len(w))
+        sel = _select_phase_index(np.abs(w), self._reg_phase_mask, self._reg_pt_mode)
+        v_sec = w[rows, sel] / self._reg_ratio
+        compared = np.abs(v_sec + self._reg_ldc * i[self._reg_cond_all[rows, sel]])
+        raw = np.abs(v_sec)
+        for r in self._reg_remote:
+            reg = self._regs[r]
+            bus, node = self.node_names[reg.remote_node].split(".")
+            self._dss.Circuit.SetActiveBus(bus)
+            pos = list(self._dss.Bus.Nodes()).index(int(node))
+            raw[r] = compared[r] = self._dss.Bus.VMagAngle()[2 * pos] / reg.remote_pt_ratio
+        return raw, compared
+
+    def sense(self, tod_h: float = float("nan")) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """What every RegControl and CapControl of the model samples at the present solution.
+
+        Parameters
+        ----------
+        tod_h : time of day [h]: the time-type CapControls' quantity (kept for :meth:`readings`).
+
+        Returns
+        -------
+        reg_v120 : (NR,) each RegControl's compared voltage (``reg_controls`` order) [V on the 120 V base].
+        cap_value : (NC,) each CapControl's quantity in its type's unit (``cap_controls`` order): V on its PT
+            base, A on its CT base, kvar, PF on OpenDSS's 0..2 scale, hour of day.
+        cap_v : (NC,) the voltage its ``VoltOverride`` tests [V on the PT base].
+        cap_q_kvar : (NC,) reactive power into its monitored terminal [kvar].
+        """
+        v, i = self._read()
+        reg = self._reg_voltages(v, i)[1]
+        if not len(self._cc_ph):
+            z = np.zeros(0)
+            return reg, z, z, z
+        vph = v[self._cc_ph] * self._cc_mask
+        vm = np.abs(vph)
+        volts = _select_phase(vm, self._cc_mask, self._cc_pt, self._cc_nph)
+        if self._cc_delta.any():  # a delta bank with one PT phase reads the line-to-line voltage
+            for j in np.flatnonzero(self._cc_delta & (self._cc_pt > 0)):
+                k = self._cc_pt[j] - 1
+                volts[j] = abs(vph[j, k] - vph[j, (k + 1) % self._cc_nph[j]])
+        volts = volts / self._cc_ptratio
+        amps = _select_phase(np.abs(i[self._cc_ph]) * self._cc_mask, self._cc_mask, self._cc_ct, self._cc_nph)
+        amps = amps / self._cc_ctratio
+        s = (v[self._cc_all] * np.conj(i[self._cc_all])).sum(axis=1)
+        q_kvar = s.imag / 1000.0
+        s_abs = np.abs(s)
+        pf = np.where(s_abs > 0, np.abs(s.real) / np.where(s_abs > 0, s_abs, 1.0), 1.0)
+        pf = np.where(s.imag < 0, 2.0 - pf, pf)  # OpenDSS's 0..2 scale: above 1 is leading
+        k = self._cc_kind
+        value = np.select([k["voltage"], k["current"], k["kvar"], k["pf"], k["time"]],
+                          [volts, amps, q_kvar, pf, np.full(len(pf), tod_h)], np.nan)
+        self._cap_value = value
+        return reg, value, volts, q_kvar
+
     def readings(self) -> FieldReadings:
         """What the field devices measure at the present solution (call after :meth:`solve`).
 
         Powers are ``V·conj(I)`` per conductor with ``I`` into the element (OpenDSS's convention): into
-        the feeder at the head, negated at PV plants (generator convention).
+        the feeder at the head, negated at PV plants (generator convention). ``cap_control_value`` is what
+        :meth:`sense` last computed (NaN before the first call, and for a bank without a CapControl).
         """
-        v = self._batch_read(self._lib.Alt_CEBatch_Get_Voltages)
-        i = self._batch_read(self._lib.Alt_CEBatch_Get_Currents)
+        v, i = self._read()
         hv = v[self._head_cond] - v[self._head_neutral]  # index -1 reads the trailing 0
         hi = i[self._head_cond]
         hs = hv * np.conj(hi) / 1000.0
         pv_v = np.where(self._pv_cond >= 0, v[self._pv_cond] - v[self._pv_neutral][:, None], 0)  # absent: 0
         pv_s = -pv_v * np.conj(i[self._pv_cond]) / 1000.0
-        v_sec = (v[self._reg_cond] - v[self._reg_neutral]) / self._reg_ratio
-        compared = np.abs(v_sec + self._reg_ldc * i[self._reg_cond])
+        n = len(self._taps)
+        raw, compared = self._reg_voltages(v, i)
+        cap_v = np.abs(v[self._cap_cond] - v[self._cap_neutral][:, None]) * self._cap_phase_mask
+        cap_v_v = cap_v.sum(axis=1) / self._cap_n_phases
+        cc = self.cap_control_index
+        value = np.where(cc >= 0, self._cap_value[cc] if len(self._cap_value) else np.nan, np.nan)
         return FieldReadings(
             head_v_mag_v=np.abs(hv), head_v_ang_deg=np.degrees(np.angle(hv)),
             head_i_mag_a=np.abs(hi), head_i_ang_deg=np.degrees(np.angle(hi)),
             head_p_kw=hs.real, head_q_kvar=hs.imag,
             pv_p_kw=pv_s.real, pv_q_kvar=pv_s.imag, pv_v_v=np.abs(pv_v),
-            reg_v120=np.abs(v_sec), reg_v120_compared=compared, reg_tap=self._taps.copy(),
+            reg_v120=raw[:n], reg_v120_compared=compared[:n], reg_tap=self._taps.copy(),
+            cap_states=self._cap_states.copy(), cap_v_v=cap_v_v, cap_control_value=value,
         )
 
     # ------------------------------------------------------------------ oracle
@@ -717,6 +1038,24 @@ class FeederEngine:
             self._ce_result = None
 
 
+def _select_phase_index(mag: np.ndarray, mask: np.ndarray, mode: np.ndarray) -> np.ndarray:
+    """(n,) column of each row: the fixed phase ``mode`` (1..3), the highest (-2) or lowest (-3) present one."""
+    fixed = np.clip(mode - 1, 0, 2)
+    hi = np.argmax(np.where(mask, mag, -np.inf), axis=1)
+    lo = np.argmin(np.where(mask, mag, np.inf), axis=1)
+    return np.where(mode > 0, fixed, np.where(mode == -2, hi, lo))
+
+
+def _select_phase(mag: np.ndarray, mask: np.ndarray, mode: np.ndarray, n_phases: np.ndarray) -> np.ndarray:
+    """(n,) per row: a fixed phase (``mode`` 1..3), the average (-1), maximum (-2) or minimum (-3) over phases."""
+    if not len(mag):
+        return np.zeros(0)
+    rows = np.arange(len(mag))
+    avg = (mag * mask).sum(axis=1) / n_phases
+    pick = mag[rows, _select_phase_index(mag, mask, np.where(mode == -1, 1, mode))]
+    return np.where(mode == -1, avg, pick)
+
+
 @dataclass(frozen=True)
 class OpenDssSnapshot:
     """OpenDSS's own solution of a plain model (its own controls on), for golden comparisons.
@@ -765,3 +1104,76 @@ def opendss_snapshot(master: str | Path, *, tolerance: float = 1e-8) -> OpenDssS
         v_pu=np.asarray(ctx.Circuit.AllBusMagPu(), dtype=float),
         taps=taps,
     )
+
+
+@dataclass(frozen=True)
+class OpenDssControlRun:
+    """OpenDSS's own time-driven control loop over per-minute loads (:func:`opendss_control_loop`).
+
+    Attributes
+    ----------
+    regcontrol_names : every RegControl of the model, ``FeederEngine.reg_controls`` order (the map's first).
+    capcontrol_names : every CapControl of the model, ``FeederEngine.cap_controls`` order.
+    taps : (n_minutes, NR) int, each RegControl's tap at the end of each minute.
+    cap_states : (n_minutes, NC) int, closed steps of each CapControl's bank at the end of each minute.
+    step_s : OpenDSS's time step [s]. elapsed_s : wall time of the loop [s].
+    """
+
+    regcontrol_names: tuple[str, ...]
+    capcontrol_names: tuple[str, ...]
+    taps: np.ndarray
+    cap_states: np.ndarray
+    step_s: float
+    elapsed_s: float
+
+
+def opendss_control_loop(device_map: DeviceMap, load_kw: np.ndarray, *, step_s: float = 60.0,
+                         start_tod_s: float = 0.0, tolerance: float = 1e-6) -> OpenDssControlRun:
+    """Run OpenDSS's own control loop (``set controlmode=time``) over per-minute loads: the reference that
+    ``qsts.py``'s local device physics is checked against.
+
+    The circuit is the engine's (same compile, ``extra_commands``, PV plants at zero output, tolerance);
+    then ``set controlmode=time``, ``set mode=daily stepsize=step_s number=1``, and the clock is set so the
+    first solve is at ``start_tod_s``. Minute ``m``'s loads are set once, then ``60 / step_s`` solves follow at
+    ``start + 60 m + k · step_s``; the taps and bank states are read after the minute's last solve.
+
+    Parameters
+    ----------
+    load_kw : (n_minutes, n_loads) every load's kW per minute (``FeederEngine.load_names`` order).
+    step_s : OpenDSS's step [s], a divisor of 60. start_tod_s : time of day of the first minute [s].
+    """
+    if step_s <= 0 or abs(60.0 / step_s - round(60.0 / step_s)) > 1e-9:
+        raise EngineError(f"opendss_control_loop: step_s {step_s} must divide 60 s")
+    eng = FeederEngine(device_map, tolerance=tolerance)
+    try:
+        d = eng._dss
+        eng._command("set controlmode=time", what="control loop")
+        eng._command("set maxcontroliter=100", what="control loop")
+        eng._command(f"set mode=daily stepsize={step_s:g}s number=1", what="control loop")
+        d.Solution.Hour(int(start_tod_s // 3600))
+        d.Solution.Seconds(start_tod_s % 3600 - step_s)  # the clock moves by one step before each solve
+        n_sub = int(round(60.0 / step_s))
+        regs = [r.regcontrol for r in eng._regs]
+        banks = [eng._banks[b] for b in eng.cap_control_bank]
+        taps = np.zeros((len(load_kw), len(regs)), dtype=int)
+        states = np.zeros((len(load_kw), len(banks)), dtype=int)
+        solve, rc, cap = d.Solution.Solve, d.RegControls, d.Capacitors
+        t = time.perf_counter()
+        for m, row in enumerate(np.asarray(load_kw, dtype=float)):
+            eng.set_loads_kw(row)
+            try:
+                for _ in range(n_sub):
+                    solve()
+            except dss.DSSException as e:
+                raise EngineError(f"{device_map.feeder.name}: OpenDSS control loop failed at minute {m}: {e}") from e
+            for r, name in enumerate(regs):
+                rc.Name(name)
+                taps[m, r] = rc.TapNumber()
+            for j, name in enumerate(banks):
+                cap.Name(name)
+                states[m, j] = sum(cap.States())
+        elapsed = time.perf_counter() - t
+    finally:
+        eng.close()
+    return OpenDssControlRun(regcontrol_names=tuple(regs), capcontrol_names=tuple(c.name for c in eng.cap_controls),
+                             taps=taps, cap_states=states, step_s=float(step_s), elapsed_s=elapsed)

@@ -17,6 +17,9 @@ Our reading of IV.F (the paper gives names, not formulas), also in ``docs/profil
   steps that is node-minutes; a node above the limit for 8 minutes counts 8.
 * Minutes in violation: judged steps in which any node's rolling average is outside, x ``step_s`` / 60.
 * NTC: tap steps moved, summed over regulators and steps. T cost = sum_r cost_per_tap_r x NTC_r (eq. 14).
+* Capacitor switchings (beyond the paper, which has no switched banks): switching operations per bank, one per
+  step of the bank opened or closed, counted like NTC; cap cost = sum_c cost_per_switch_c x switchings_c, and
+  it is part of the total cost.
 * Q cost (eq. 15): the paper charges ``c_k (Q_k^+ + Q_k^-)`` per kvar of set point per 5-minute control
   interval. We charge every step its share of an interval: ``sum_t sum_k c_k |Q_k[t]| step_s /
   control_period_s``, so a set point held for one interval costs exactly ``c_k |Q_k|``.
@@ -41,6 +44,7 @@ __all__ = [
     "MetricsAccumulator",
     "MetricsError",
     "VIOLATION_TOLERANCE_PU",
+    "cap_cost_per_bank",
     "combine_metrics",
     "metrics_from_series",
     "q_cost_per_plant",
@@ -95,13 +99,19 @@ class Metrics(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=T
     q_kvarh_per_plant: tuple[NonNegFloat, ...]
     q_mvar_intervals_per_plant: tuple[NonNegFloat, ...]
     q_cost_per_plant: tuple[NonNegFloat, ...]
+    # capacitor banks (append-only: metrics stored before them still decode)
+    capacitor_ids: tuple[str, ...] = ()
+    cap_switches_per_bank: tuple[NonNegInt, ...] = ()
+    cap_switches: NonNegInt = 0
+    cap_cost: NonNegFloat = 0.0
 
     def combine(self, other: Metrics) -> Metrics:
         """The metrics of this run and ``other`` together (counts and costs add, extremes combine).
 
         Both must have the same devices, limits and timing; each run keeps its own rolling windows.
         """
-        for name in ("step_s", "window_steps", "control_period_s", "limits_pu", "regulator_ids", "pv_ids"):
+        for name in ("step_s", "window_steps", "control_period_s", "limits_pu", "regulator_ids", "pv_ids",
+                     "capacitor_ids"):
             if getattr(self, name) != getattr(other, name):
                 raise MetricsError(
                     f"cannot combine metrics with different {name}: {getattr(self, name)!r} vs "
@@ -129,6 +139,9 @@ class Metrics(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=T
             q_kvarh_per_plant=_add(self.q_kvarh_per_plant, other.q_kvarh_per_plant),
             q_mvar_intervals_per_plant=_add(self.q_mvar_intervals_per_plant, other.q_mvar_intervals_per_plant),
             q_cost_per_plant=_add(self.q_cost_per_plant, other.q_cost_per_plant),
+            cap_switches_per_bank=_add(self.cap_switches_per_bank, other.cap_switches_per_bank),
+            cap_switches=self.cap_switches + other.cap_switches,
+            cap_cost=self.cap_cost + other.cap_cost,
         )
 
 
@@ -182,6 +195,12 @@ def tap_cost_per_regulator(tap_changes: np.ndarray, cost_per_tap: np.ndarray) ->
     return np.asarray(cost_per_tap, dtype=float) * taps.reshape(-1, taps.shape[-1]).sum(axis=0)
 
 
+def cap_cost_per_bank(cap_switches: np.ndarray, cost_per_switch: np.ndarray) -> np.ndarray:
+    """Switching cost of each capacitor bank: ``cost_per_switch_c x`` switching operations (summed over rows)."""
+    sw = np.asarray(cap_switches, dtype=float)
+    return np.asarray(cost_per_switch, dtype=float) * sw.sum(axis=tuple(range(sw.ndim - 1)))
+
+
 def q_cost_per_plant(
     q_kvar: np.ndarray, cost_per_kvar: np.ndarray, *, step_s: float, control_period_s: float
 ) -> np.ndarray:
@@ -207,6 +226,9 @@ def metrics_from_series(
     window_steps: int = 10,
     step_s: int = 60,
     control_period_s: int = 300,
+    cap_switches: np.ndarray | None = None,
+    capacitor_ids: Sequence[str] = (),
+    cost_per_switch: float | Sequence[float] = 1.0,
 ) -> Metrics:
     """The metrics of one run given as whole arrays.
 
@@ -219,6 +241,10 @@ def metrics_from_series(
     pv_q_kvar : ndarray, shape (T, K)
         Each plant's reactive power [kvar] (either sign).
     regulator_ids, pv_ids, cost_per_tap, cost_per_kvar, limits_pu, window_steps, step_s, control_period_s
+        As for :class:`MetricsAccumulator`.
+    cap_switches : ndarray of int, shape (T, C), optional
+        Switching operations of each capacitor bank during each step (>= 0); None: no bank.
+    capacitor_ids, cost_per_switch
         As for :class:`MetricsAccumulator`.
     """
     if np.ndim(v_pu) != 2:
@@ -233,9 +259,12 @@ def metrics_from_series(
         window_steps=window_steps,
         step_s=step_s,
         control_period_s=control_period_s,
+        capacitor_ids=capacitor_ids,
+        cost_per_switch=cost_per_switch,
     )
     n_steps = int(np.shape(v_pu)[0])
     v, taps, q = cfg.check(v_pu, tap_changes, pv_q_kvar, rows=(n_steps,))
+    sw = cfg.check_switches(cap_switches, rows=(n_steps,))
     avg = rolling_mean_pu(v, cfg.window_steps)[cfg.window_steps - 1 :]
     viol = violation_pu(avg, cfg.limits_pu)
     outside = viol > 0.0
@@ -252,6 +281,7 @@ def metrics_from_series(
         v_avg_min_max=(float(avg.min()), float(avg.max())) if avg.size else None,
         taps=taps.astype(np.int64).sum(axis=0),
         abs_q_kvar_steps=np.abs(q).sum(axis=0),
+        cap_switches=sw.sum(axis=0),
     )
 
 
@@ -283,6 +313,10 @@ class MetricsAccumulator:
         Step length [s].
     control_period_s : int
         Control interval the Q cost is charged per [s].
+    capacitor_ids : sequence of str
+        Names of the capacitor banks (entries of ``cap_switches``); none by default.
+    cost_per_switch : float or sequence of float
+        Cost of one switching operation, per bank or one for all.
     """
 
     def __init__(
@@ -297,6 +331,8 @@ class MetricsAccumulator:
         window_steps: int = 10,
         step_s: int = 60,
         control_period_s: int = 300,
+        capacitor_ids: Sequence[str] = (),
+        cost_per_switch: float | Sequence[float] = 1.0,
     ) -> None:
         self._cfg = _Config.make(
             n_nodes=n_nodes,
@@ -308,6 +344,8 @@ class MetricsAccumulator:
             window_steps=window_steps,
             step_s=step_s,
             control_period_s=control_period_s,
+            capacitor_ids=capacitor_ids,
+            cost_per_switch=cost_per_switch,
         )
         cfg = self._cfg
         self._ring = np.zeros((cfg.window_steps, cfg.n_nodes))
@@ -323,6 +361,7 @@ class MetricsAccumulator:
         self._avg_max = -np.inf
         self._taps = np.zeros(cfg.n_regs, dtype=np.int64)
         self._abs_q = np.zeros(cfg.n_pv)
+        self._cap_sw = np.zeros(len(cfg.capacitor_ids), dtype=np.int64)
         self._avg = np.empty(cfg.n_nodes)  # the present rolling average, rewritten in place every step
 
     @property
@@ -330,7 +369,8 @@ class MetricsAccumulator:
         """Steps accumulated so far."""
         return self._n_steps
 
-    def update(self, v_pu: np.ndarray, tap_changes: np.ndarray, pv_q_kvar: np.ndarray) -> None:
+    def update(self, v_pu: np.ndarray, tap_changes: np.ndarray, pv_q_kvar: np.ndarray,
+               cap_switches: np.ndarray | None = None) -> None:
         """Add one step.
 
         Parameters
@@ -341,9 +381,13 @@ class MetricsAccumulator:
             Tap steps each regulator moved during the step (>= 0).
         pv_q_kvar : ndarray, shape (K,)
             Each plant's reactive power during the step [kvar] (either sign).
+        cap_switches : ndarray of int, shape (C,), optional
+            Switching operations of each capacitor bank during the step (>= 0); None: no bank switched.
         """
         cfg = self._cfg
         v, taps, q, v_lo, v_hi = cfg.check_step(v_pu, tap_changes, pv_q_kvar)
+        if cap_switches is not None:
+            self._cap_sw += cfg.check_switches(cap_switches)
         w = cfg.window_steps
         self._ring[self._n_steps % w] = v
         self._n_steps += 1
@@ -389,6 +433,8 @@ class MetricsAccumulator:
             cost_per_kvar=[p.cost_per_kvar for p in device_map.pv],
             limits_pu=tuple(f.judged_limits_pu), step_s=f.step_s if step_s is None else int(step_s),
             control_period_s=f.control_period_s,
+            capacitor_ids=list(getattr(engine, "capacitor_ids", ())),
+            cost_per_switch=[c.cost_per_switch for c in device_map.capacitor],
         )
 
     def result(self) -> Metrics:
@@ -404,6 +450,7 @@ class MetricsAccumulator:
             v_avg_min_max=(self._avg_min, self._avg_max) if self._n_judged else None,
             taps=self._taps,
             abs_q_kvar_steps=self._abs_q,
+            cap_switches=self._cap_sw,
         )
 
 
@@ -422,6 +469,8 @@ class _Config(msgspec.Struct, frozen=True, kw_only=True):
     window_steps: int
     step_s: int
     control_period_s: int
+    capacitor_ids: tuple[str, ...] = ()
+    cost_per_switch: tuple[float, ...] = ()
 
     @property
     def n_regs(self) -> int:
@@ -444,6 +493,8 @@ class _Config(msgspec.Struct, frozen=True, kw_only=True):
         window_steps: int,
         step_s: int,
         control_period_s: int,
+        capacitor_ids: Sequence[str] = (),
+        cost_per_switch: float | Sequence[float] = 1.0,
     ) -> _Config:
         if int(n_nodes) < 1:
             raise MetricsError(f"n_nodes = {n_nodes}; voltages must be (n_steps, n_nodes) with n_nodes >= 1")
@@ -464,7 +515,23 @@ class _Config(msgspec.Struct, frozen=True, kw_only=True):
             window_steps=int(window_steps),
             step_s=int(step_s),
             control_period_s=int(control_period_s),
+            capacitor_ids=tuple(str(c) for c in capacitor_ids),
+            cost_per_switch=_costs(cost_per_switch, len(tuple(capacitor_ids)), "cost_per_switch", "capacitor bank"),
         )
+
+    def check_switches(self, cap_switches: np.ndarray | None, rows: tuple[int, ...] = ()) -> np.ndarray:
+        """Validate capacitor switchings of one step (``rows = ()``) or ``rows = (T,)`` steps; int64. None: zeros."""
+        n = len(self.capacitor_ids)
+        if cap_switches is None:
+            return np.zeros(rows + (n,), dtype=np.int64)
+        sw = np.asarray(cap_switches)
+        if sw.shape != rows + (n,):
+            raise MetricsError(f"cap_switches has shape {sw.shape}; expected {rows + (n,)}, one per capacitor bank")
+        bad = sw.size and (sw.dtype.kind not in "iu" and (not np.all(np.isfinite(sw)) or np.any(sw != np.round(sw))))
+        if bad or (sw.size and sw.min() < 0):
+            raise MetricsError("cap_switches must be whole numbers >= 0 (switching operations), got "
+                               + repr(sw.tolist()))
+        return sw.astype(np.int64, copy=False)
 
     def check_step(
         self, v_pu: np.ndarray, tap_changes: np.ndarray, pv_q_kvar: np.ndarray
@@ -522,8 +589,10 @@ class _Config(msgspec.Struct, frozen=True, kw_only=True):
         v_avg_min_max: tuple[float, float] | None,
         taps: np.ndarray,
         abs_q_kvar_steps: np.ndarray,
+        cap_switches: np.ndarray,
     ) -> Metrics:
         t_cost = tap_cost_per_regulator(taps[None, :], np.array(self.cost_per_tap))
+        c_cost = cap_cost_per_bank(cap_switches[None, :], np.array(self.cost_per_switch))
         q_cost = q_cost_per_plant(
             abs_q_kvar_steps[None, :],
             np.array(self.cost_per_kvar),
@@ -550,13 +619,17 @@ class _Config(msgspec.Struct, frozen=True, kw_only=True):
             ntc=int(taps.sum()),
             t_cost=float(t_cost.sum()),
             q_cost=float(q_cost.sum()),
-            total_cost=float(t_cost.sum() + q_cost.sum()),
+            total_cost=float(t_cost.sum() + q_cost.sum() + c_cost.sum()),
             regulator_ids=self.regulator_ids,
             tap_changes_per_regulator=tuple(int(t) for t in taps),
             pv_ids=self.pv_ids,
             q_kvarh_per_plant=tuple(float(x) for x in abs_q_kvar_steps * self.step_s / 3600.0),
             q_mvar_intervals_per_plant=tuple(float(x) for x in abs_q_kvar_steps / 1000.0 * intervals),
             q_cost_per_plant=tuple(float(x) for x in q_cost),
+            capacitor_ids=self.capacitor_ids,
+            cap_switches_per_bank=tuple(int(x) for x in cap_switches),
+            cap_switches=int(cap_switches.sum()),
+            cap_cost=float(c_cost.sum()),
         )
 
 

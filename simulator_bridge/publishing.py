@@ -1,7 +1,7 @@
 """Publishing one simulated step: device frames, streaming metrics and truth, inline or from a publisher process.
 
-:class:`StepFramer` builds, encodes and puts a step's messages (the head meter's, PV and regulator frames with
-noise, drops and latency; the metrics update; the truth frame) and the metrics frames. The bridge's stepping
+:class:`StepFramer` builds, encodes and puts a step's messages (the head meter's, PV, regulator and capacitor bank
+frames with noise, drops and latency; the metrics update; the truth frame) and the metrics frames. The bridge's stepping
 thread calls it directly (``publisher="inline"``), or hands each step to a :class:`PublisherProcess`
 (``publisher="process"``), a child process with its own Zenoh session and its own :class:`StepFramer`: the
 Python work of publishing then runs beside the power flow, on the other core, instead of under the stepping
@@ -49,6 +49,7 @@ __all__ = [
     "PublisherError",
     "PublisherProcess",
     "PublisherReport",
+    "FINITE_READING_FIELDS",
     "READING_FIELDS",
     "StepFramer",
     "StepPacker",
@@ -58,7 +59,10 @@ log = logging.getLogger(__name__)
 
 _NS = 1_000_000_000
 READING_FIELDS = tuple(f.name for f in dataclasses.fields(FieldReadings))
-"""The fields of ``FieldReadings``, in order (the slot layout, and the bridge's finiteness check)."""
+"""The fields of ``FieldReadings``, in order (the slot layout)."""
+FINITE_READING_FIELDS = tuple(name for name in READING_FIELDS if name != "cap_control_value")
+"""The readings that must be finite (the bridge's check): a bank without a CapControl reads NaN."""
+_CMD_ID_WORDS = 12  # a cmd_id (at most 96 bytes of ASCII) packed into int64 words
 _POLL_S = 0.05  # longest a wait goes without looking at the other process [s]
 _WAIT_S = 60.0  # longest the stepping process waits for the child to take a step or answer [s]
 _START_S = 60.0  # longest the child may take to start (a fresh interpreter, imports, a Zenoh session) [s]
@@ -107,6 +111,7 @@ class FramerSpec:
     q_at_night : PV gives Q without P. noise_pmu_pct, noise_scada_pct, drop_prob, latency_s, noise_seed :
     measurement realism (``BridgeConfig``). metrics : the run's metrics accumulator, empty at the start, the
     one mutable part: the framer updates it (inline, the runtime's own; in the process, the pickled copy).
+    caps : (capacitor_id, index, steps, kvar_rated, control_type) per capacitor bank.
     """
 
     feeder_id: str
@@ -126,6 +131,7 @@ class FramerSpec:
     latency_s: float
     noise_seed: int
     metrics: Any  # simulator_bridge.metrics.MetricsAccumulator
+    caps: tuple[tuple[str, int, int, float, str], ...] = ()
 
     def is_control_t(self, t_ns: int) -> bool:
         return ((t_ns - self.profile_start_t_ns) // (self.step_s * _NS)) % self.control_every == 0
@@ -137,12 +143,14 @@ class DeviceSettings:
 
     pv_q_setpoint_kvar : per plant, the commanded Q in force [kvar] or None (local default). reg_setpoint_v120,
     reg_band_v120, reg_mode : per regulator, the set point and band in force [V, 120 V base] and its mode.
+    cap_command : per capacitor bank, the command in force as (cmd_id, valid_until_t_ns), or None (local control).
     """
 
     pv_q_setpoint_kvar: tuple[float | None, ...]
     reg_setpoint_v120: tuple[float, ...]
     reg_band_v120: tuple[float, ...]
     reg_mode: tuple[Literal["local", "locked"], ...]
+    cap_command: tuple[tuple[str, int] | None, ...] = ()
 
 
 class StepFramer:
@@ -157,6 +165,7 @@ class StepFramer:
         self.spec = spec
         self.pvs = [dv.PvInverter(pid, k, kva, local) for pid, k, kva, local in s.pvs]
         self.regs = [dv.RegulatorController(rid, r, tmax, sp, bw) for rid, r, tmax, sp, bw in s.regs]
+        self.caps = [dv.CapBankController(cid, c, steps, kvar, kind) for cid, c, steps, kvar, kind in s.caps]  # type: ignore[arg-type]
         self.noise = (dv.MeasurementNoise(pmu_pct=s.noise_pmu_pct, scada_pct=s.noise_scada_pct, seed=s.noise_seed)
                       if s.noise_pmu_pct > 0 or s.noise_scada_pct > 0 else None)
         self.dropper = dv.FrameDropper(p=s.drop_prob, seed=s.noise_seed)
@@ -167,6 +176,7 @@ class StepFramer:
         self.pub_head = FramePublisher(session, keys.meas_head(f))
         self.pub_pv = [FramePublisher(session, keys.meas_pv(f, pv.plant_id)) for pv in self.pvs]
         self.pub_vr = [FramePublisher(session, keys.meas_vr(f, reg.regulator_id)) for reg in self.regs]
+        self.pub_cap = [FramePublisher(session, keys.meas_cap(f, cap.capacitor_id)) for cap in self.caps]
         self.pub_truth = FramePublisher(session, keys.sim_truth(f), reliable=True)
         self.pub_metrics = FramePublisher(session, keys.sim_metrics(f), reliable=True)
         self.seqs: Counter[str] = Counter()
@@ -180,7 +190,7 @@ class StepFramer:
         device frames go out first, so that on a control step the agent works while the rest is done.
         """
         self.publish_frames(res, settings, now_s)
-        self.metrics.update(res.v_pu, res.tap_changes, res.pv_q_kvar)
+        self.metrics.update(res.v_pu, res.tap_changes, res.pv_q_kvar, res.cap_switches)
         self.publish_truth(res, n_step, v_lo_pu, v_hi_pu)
 
     def flush(self, now_s: float) -> None:
@@ -248,8 +258,28 @@ class StepFramer:
             send(pub, dv.reg_frame(reg=reg, t_ns=t, seq=seqs[reg.regulator_id], phase=self.spec.reg_phase[r],
                                    v120=min(v120, 200.0), v_compared_120=min(vc, 200.0), tap=int(taps[r]),
                                    setpoint_v120=sp, band_v120=bw, mode=mode), now_s)
+        if self.caps:
+            self._cap_frames(rd, t, settings, send, now_s)
         if len(self.delay):
             self.flush(now_s)
+
+    def _cap_frames(self, rd: Any, t: int, settings: DeviceSettings, send: Any, now_s: float) -> None:
+        """The capacitor banks' frames of one step (states exact; voltage and control reading SCADA class)."""
+        states = np.asarray(rd.cap_states).tolist()
+        volts = np.asarray(rd.cap_v_v, dtype=float).tolist()
+        values = np.asarray(rd.cap_control_value, dtype=float).tolist()
+        commands = settings.cap_command or (None,) * len(self.caps)
+        for cap, pub, command in zip(self.caps, self.pub_cap, commands, strict=True):
+            c = cap.index
+            v, cv = volts[c], values[c]
+            cv = None if math.isnan(cv) else cv
+            if self.noise is not None:
+                v, cv = self.noise.capacitor(v, cv)
+            active = None if command is None else dv.ActiveCommand(
+                cmd_id=command[0], source="", seq=0, valid_until_t_ns=command[1], value=float(states[c]))
+            self.seqs[f"cap:{cap.capacitor_id}"] += 1
+            send(pub, dv.cap_frame(cap=cap, t_ns=t, seq=self.seqs[f"cap:{cap.capacitor_id}"],
+                                   closed_steps=int(states[c]), v_v=v, control_value=cv, active=active), now_s)
 
     def publish_truth(self, res: Any, n_step: int, v_lo_pu: float, v_hi_pu: float) -> None:
         """The TruthFrame of the ``n_step``-th step of the run (from 1), if it has one.
@@ -266,7 +296,8 @@ class StepFramer:
             t_ns=int(res.t_ns), seq=self.seqs["truth"], source="bridge", feeder_id=self.spec.feeder_id,
             v_pu=v.tolist(), v_min_pu=min(max(v_lo_pu, 0.0), 3.0), v_max_pu=min(max(v_hi_pu, 0.0), 3.0),
             node_names=list(self.spec.node_names) if self.truth_frames == 0 else None,
-            taps=np.asarray(res.taps).tolist(), pv_q_kvar=np.asarray(res.pv_q_kvar, dtype=float).tolist()))
+            taps=np.asarray(res.taps).tolist(), pv_q_kvar=np.asarray(res.pv_q_kvar, dtype=float).tolist(),
+            cap_states=np.asarray(res.cap_states).tolist()))
         self.truth_frames += 1
 
     def metrics_frame(self, t_ns: int, *, final: bool) -> m.MetricsFrame:
@@ -283,7 +314,8 @@ class StepFramer:
             v_max_pu=min(max(r.v_max_pu if r.v_max_pu is not None else 0.0, 0.0), 3.0),
             taps_changes=dict(zip(r.regulator_ids, r.tap_changes_per_regulator, strict=True)),
             q_mvar_intervals=dict(zip(r.pv_ids, r.q_mvar_intervals_per_plant, strict=True)),
-            final=final)
+            final=final, cap_switches=int(r.cap_switches), cap_cost=float(r.cap_cost),
+            cap_switches_per_bank=dict(zip(r.capacitor_ids, r.cap_switches_per_bank, strict=True)))
 
     def publish_metrics(self, t_ns: int, *, final: bool) -> m.MetricsFrame:
         frame = self.metrics_frame(t_ns, final=final)
@@ -307,10 +339,11 @@ class StepPacker:
     whether the step is finite; the device settings follow (a NaN set point is "none").
     """
 
-    def __init__(self, n_nodes: int, n_pv: int, n_reg: int) -> None:
+    def __init__(self, n_nodes: int, n_pv: int, n_reg: int, n_cap: int = 0) -> None:
         shapes = {name: (3,) for name in READING_FIELDS if name.startswith("head_")}
         shapes |= {"pv_p_kw": (n_pv, 3), "pv_q_kvar": (n_pv, 3), "pv_v_v": (n_pv, 3), "reg_v120": (n_reg,),
-                   "reg_v120_compared": (n_reg,), "reg_tap": (n_reg,)}
+                   "reg_v120_compared": (n_reg,), "reg_tap": (n_reg,), "cap_states": (n_cap,),
+                   "cap_v_v": (n_cap,), "cap_control_value": (n_cap,)}
         fields, at = [], 0
         for name in READING_FIELDS:  # FieldReadings' shapes (see its docstring)
             size = int(np.prod(shapes[name], dtype=np.int64))
@@ -322,12 +355,19 @@ class StepPacker:
         self.n_checked = at
         self.readings = tuple(fields[:len(READING_FIELDS)])
         self.step_fields = tuple(fields[len(READING_FIELDS):])
-        self.n_pv, self.n_reg = n_pv, n_reg
+        self.n_pv, self.n_reg, self.n_cap = n_pv, n_reg, n_cap
         self.n_float = at + n_pv + 2 * n_reg  # + PV set points, regulator set points and bands
-        self.n_int = 4 + 3 * n_reg  # kind, t_ns, step, n_step; taps, tap changes, modes
+        # kind, t_ns, step, n_step; taps, changes, modes; caps, switches; per bank the command in force: valid until
+        # (-1: none) and its cmd_id's bytes
+        self._cap_cmd_at = 4 + 3 * n_reg + 2 * n_cap
+        self.n_int = self._cap_cmd_at + (1 + _CMD_ID_WORDS) * n_cap
+        # a bank without a CapControl reads NaN: that field is left out of the finiteness check
+        cv = next(f for f in self.readings if f.name == "cap_control_value")
+        self._nan_ok = (cv.start, cv.stop)
         self._last: DeviceSettings | None = None  # the settings last packed, and their packed form
         self._settings_f = np.zeros(n_pv + 2 * n_reg)
         self._modes = np.zeros(n_reg, np.int64)
+        self._cap_cmds = np.full((n_cap, 1 + _CMD_ID_WORDS), -1, np.int64)
 
     def pack(self, fs: np.ndarray, ints: np.ndarray, res: Any, n_step: int, settings: DeviceSettings) -> bool:
         """Write ``res`` and ``settings`` into the slot ``fs`` (floats), ``ints``; returns whether every checked
@@ -343,31 +383,62 @@ class StepPacker:
             self._settings_f = np.array([math.nan if q is None else q for q in settings.pv_q_setpoint_kvar]
                                         + list(settings.reg_setpoint_v120) + list(settings.reg_band_v120), float)
             self._modes = np.array([mode == "locked" for mode in settings.reg_mode], np.int64).reshape(r)
+            self._cap_cmds = _pack_cap_commands(settings.cap_command, self.n_cap)
         fs[self.n_checked:] = self._settings_f
         r = self.n_reg
         ints[1], ints[2], ints[3] = int(res.t_ns), int(res.step), n_step
         ints[4:4 + r] = res.taps
         ints[4 + r:4 + 2 * r] = res.tap_changes
-        ints[4 + 2 * r:] = self._modes
-        return math.isfinite(float(checked.sum())) or bool(np.isfinite(checked).all())
+        ints[4 + 2 * r:4 + 3 * r] = self._modes
+        c = self.n_cap
+        ints[4 + 3 * r:4 + 3 * r + c] = res.cap_states
+        ints[4 + 3 * r + c:self._cap_cmd_at] = res.cap_switches
+        ints[self._cap_cmd_at:] = self._cap_cmds.ravel()
+        a, b = self._nan_ok
+        if a == b:
+            return math.isfinite(float(checked.sum())) or bool(np.isfinite(checked).all())
+        rest = float(checked[:a].sum()) + float(checked[b:].sum())
+        return math.isfinite(rest) or bool(np.isfinite(checked[:a]).all() and np.isfinite(checked[b:]).all())
 
     def unpack(self, fs: np.ndarray, ints: np.ndarray) -> tuple[Any, int, DeviceSettings]:
         """(a ``StepResult`` with copies of the arrays, the step's number in the run, its device settings)."""
         from simulator_bridge.qsts import StepResult
 
         r, k, at = self.n_reg, self.n_pv, self.n_checked
-        readings = FieldReadings(**{f.name: fs[f.start:f.stop].reshape(f.shape).copy() for f in self.readings})
+        fields = {f.name: fs[f.start:f.stop].reshape(f.shape).copy() for f in self.readings}
+        fields["cap_states"] = fields["cap_states"].astype(int)
+        readings = FieldReadings(**fields)
+        c = self.n_cap
         v_pu, pv_q, pv_p = (fs[f.start:f.stop].copy() for f in self.step_fields)
         res = StepResult(step=int(ints[2]), t_ns=int(ints[1]), readings=readings, v_pu=v_pu,
                          taps=ints[4:4 + r].copy(), tap_changes=ints[4 + r:4 + 2 * r].copy(), pv_q_kvar=pv_q,
-                         pv_p_kw=pv_p)
+                         pv_p_kw=pv_p, cap_states=ints[4 + 3 * r:4 + 3 * r + c].copy(),
+                         cap_switches=ints[4 + 3 * r + c:4 + 3 * r + 2 * c].copy())
         q_set = fs[at:at + k].tolist()
         settings = DeviceSettings(
             pv_q_setpoint_kvar=tuple(None if math.isnan(q) else q for q in q_set),
             reg_setpoint_v120=tuple(fs[at + k:at + k + r].tolist()),
             reg_band_v120=tuple(fs[at + k + r:at + k + 2 * r].tolist()),
-            reg_mode=tuple("locked" if x else "local" for x in ints[4 + 2 * r:4 + 3 * r].tolist()))
+            reg_mode=tuple("locked" if x else "local" for x in ints[4 + 2 * r:4 + 3 * r].tolist()),
+            cap_command=_unpack_cap_commands(ints[self._cap_cmd_at:], self.n_cap))
         return res, int(ints[3]), settings
+
+
+def _pack_cap_commands(commands: tuple[tuple[str, int] | None, ...], n_cap: int) -> np.ndarray:
+    """(n_cap, 1 + words) int64: per bank its command's valid_until_t_ns (-1: none) and its cmd_id, NUL padded."""
+    out = np.full((n_cap, 1 + _CMD_ID_WORDS), -1, np.int64)
+    for c, command in enumerate(commands or (None,) * n_cap):
+        if command is not None:
+            raw = command[0].encode("ascii")[:8 * _CMD_ID_WORDS].ljust(8 * _CMD_ID_WORDS, b"\0")
+            out[c, 0] = command[1]
+            out[c, 1:] = np.frombuffer(raw, dtype=np.int64)
+    return out
+
+
+def _unpack_cap_commands(words: np.ndarray, n_cap: int) -> tuple[tuple[str, int] | None, ...]:
+    rows = np.asarray(words, dtype=np.int64).reshape(n_cap, 1 + _CMD_ID_WORDS)
+    return tuple(None if row[0] < 0 else (row[1:].tobytes().rstrip(b"\0").decode("ascii"), int(row[0]))
+                 for row in rows)
 
 
 # ------------------------------------------------------------------------------------------ the process

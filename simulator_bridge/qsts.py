@@ -14,16 +14,18 @@ Each step (one profile row, 1 minute by default):
    response time (IEEE 1547-2018: 1-90 s) settles it continuously onto the curve's fixed point, which the lag
    reaches in a few steps. Q is clipped to the headroom ``sqrt(kVA² − P²)``; at night (available P = 0) it
    is 0 unless ``pv_q_at_night=True``.
-3. Regulators locked at a commanded tap are set to it; then the power flow is solved.
-4. Regulator local control on the others (:func:`tap_direction`): after each solve, a regulator whose
-   *compared* voltage (line-drop compensation included) is outside ``set point ± band/2`` counts one more
-   consecutive step out of band (the count resets when it is inside). Once the count reaches
-   ``delay_steps`` it moves one tap toward the band, the feeder is re-solved, and it keeps moving one tap
-   per solve while still outside, up to ``max_taps_per_step`` taps in this step, never reversing
-   direction within the step (a band narrower than one tap would otherwise hunt). ``delay_steps=1``
-   models a time delay shorter than one step (the regulator acts in the minute it sees the violation);
-   ``delay_steps=n`` a delay between ``n−1`` and ``n`` steps. Every tap moved is counted in
-   ``StepResult.tap_changes``, commanded moves included.
+3. Devices held by a command are set (a locked regulator's tap, a held capacitor bank's state); then the
+   power flow is solved.
+4. Local control of every RegControl and CapControl of the model, with its own settings, on an event clock
+   inside the step (``controls.py`` states OpenDSS's semantics): each control samples the solution at the
+   step's start time ``t``; an out-of-band regulator or a capacitor control whose condition holds arms an
+   action at ``t + delay``. While the next queued action falls inside the step (before ``t + step``), the
+   clock moves to it: controls sample again (no new power flow: loads and PV are constant within the step),
+   the actions due then are done, the feeder is re-solved and every control samples the new solution. An
+   action due later stays queued into the next step, where the first sample after the new loads may disarm
+   it. A quiet step costs one power flow. So the number of taps a regulator moves in a step follows from its
+   own ``delay`` and ``tapdelay``. Every tap moved and every capacitor step switched is counted
+   (``StepResult.tap_changes``, ``cap_switches``), commanded moves included.
 """
 
 from __future__ import annotations
@@ -33,6 +35,7 @@ from typing import Literal, Protocol
 
 import numpy as np
 
+from simulator_bridge.controls import LocalControls
 from simulator_bridge.engine import FeederEngine, FieldReadings
 from simulator_bridge.errors import SimulatorError
 
@@ -83,6 +86,9 @@ class StepResult:
     tap_changes : (R,) taps moved during the step (local control and commands).
     pv_q_kvar : (K,) reactive power applied, generator convention [kvar].
     pv_p_kw : (K,) available active power applied [kW].
+    cap_states : (C,) int, closed steps of each map capacitor bank at the end of the step.
+    cap_switches : (C,) int, switching operations during the step (one per step closed or opened; local
+        control and commands).
     """
 
     step: int
@@ -93,7 +99,12 @@ class StepResult:
     tap_changes: np.ndarray
     pv_q_kvar: np.ndarray
     pv_p_kw: np.ndarray
+    cap_states: np.ndarray
+    cap_switches: np.ndarray
 
+
+_MAX_INSTANTS = 10_000  # event times within one step (a runaway control loop is an error, not a hang)
+_MAX_ROUNDS = 100  # action rounds at one instant (OpenDSS's maxcontroliter)
 
 #: Share of the way to the volt-var curve's value a plant moves per step (first-order lag; see above).
 VOLT_VAR_RESPONSE = 0.3
@@ -128,8 +139,6 @@ class Qsts:
     start_step : first profile step to simulate.
     pv_local : local default of a PV plant without a commanded Q: ``"unity"`` or ``"volt_var"``.
     pv_q_at_night : allow reactive power (commanded or volt-var) when available P is 0.
-    delay_steps : consecutive out-of-band steps before a regulator starts moving (>= 1).
-    max_taps_per_step : most taps one regulator moves in one step under local control.
     chunk_steps : profile rows read at a time.
     """
 
@@ -141,8 +150,6 @@ class Qsts:
         start_step: int,
         pv_local: Literal["unity", "volt_var"] = "unity",
         pv_q_at_night: bool = False,
-        delay_steps: int = 1,
-        max_taps_per_step: int = 8,
         chunk_steps: int = 1440,
     ) -> None:
         if profiles.n_loads != len(engine.load_names) or profiles.n_pv != len(engine.pv_ids):
@@ -155,14 +162,10 @@ class Qsts:
             raise QstsError(f"start_step {start_step} outside the profiles' 0..{profiles.n_steps - 1}")
         if pv_local not in ("unity", "volt_var"):
             raise QstsError(f"pv_local must be 'unity' or 'volt_var', not {pv_local!r}")
-        if delay_steps < 1 or max_taps_per_step < 0:
-            raise QstsError("delay_steps must be >= 1 and max_taps_per_step >= 0")
         self.engine = engine
         self.profiles = profiles
         self.pv_local = pv_local
         self.pv_q_at_night = bool(pv_q_at_night)
-        self.delay_steps = int(delay_steps)
-        self.max_taps_per_step = int(max_taps_per_step)
         self._chunk_steps = int(chunk_steps)
         self._chunk_start = -1
         self._staged: int | None = None  # the step whose loads are already set (stage_loads)
@@ -173,9 +176,16 @@ class Qsts:
         self._pv_cmd: list[float | None] = [None] * n_pv
         self._locked = np.zeros(n_reg, dtype=bool)  # regulator r held at self._lock_tap[r]
         self._lock_tap = np.zeros(n_reg, dtype=int)
-        self._setpoint_v120 = engine.reg_default_setpoint_v120.copy()
-        self._band_v120 = engine.reg_default_band_v120.copy()
-        self._out_of_band_steps = np.zeros(n_reg, dtype=int)
+        self.controls = LocalControls(engine.reg_controls, engine.cap_controls)
+        for r in range(n_reg):  # the map's set point and band, where it gives them, replace the model's
+            self.controls.set_reg_band(r, engine.reg_default_setpoint_v120[r], engine.reg_default_band_v120[r])
+        n_cap = len(engine.capacitor_ids)
+        self._cap_locked = np.zeros(n_cap, dtype=bool)  # bank c held at self._cap_lock_state[c]
+        self._cap_lock_state = np.zeros(n_cap, dtype=int)
+        self._cap_control = engine.cap_control_index  # each map bank's CapControl, -1 without one
+        self._cap_bank = engine.cap_control_bank  # each CapControl's bank (map banks first)
+        self._step_s = float(getattr(profiles, "step_s", engine.device_map.feeder.step_s))
+        self._has_time_caps = any(c.kind == "time" for c in engine.cap_controls)
         # plant voltage = mean of its nodes' voltages: flat node indices and segment starts
         self._pv_nodes = np.array([i for ix in engine.pv_node_index for i in ix], dtype=int)
         self._pv_counts = np.array([len(ix) for ix in engine.pv_node_index], dtype=float)
@@ -204,31 +214,62 @@ class Qsts:
         return float(q)
 
     def command_tap(self, r: int, tap: int | None) -> int:
-        """Lock regulator ``r`` at ``tap`` from the next step on (clipped to its range); ``None`` unlocks.
+        """Lock regulator ``r`` at ``tap`` from the next step on (clipped to its range); ``None`` unlocks (back
+        to its local control, which starts unarmed).
 
         Returns the tap it will hold (its present tap when unlocked).
         """
         self._check_index(r, len(self._locked), "regulator")
         if tap is None:
             self._locked[r] = False
-            self._out_of_band_steps[r] = 0
+            self.controls.block_reg(r, False)
             return int(self.engine.taps()[r])
         t = int(np.clip(int(tap), -self.engine.reg_tap_max[r], self.engine.reg_tap_max[r]))
         self._locked[r], self._lock_tap[r] = True, t
+        self.controls.block_reg(r, True)
         return t
 
     def command_setpoint(self, r: int, setpoint_v120: float | None, band_v120: float | None) -> None:
         """Set regulator ``r``'s local-control set point and band [V on the 120 V base]; ``None``: default.
 
-        A locked regulator keeps its tap; the set point applies once it is unlocked.
+        Its own delays still apply. A locked regulator keeps its tap; the set point applies once it is unlocked.
         """
         self._check_index(r, len(self._locked), "regulator")
         for name, value in (("setpoint_v120", setpoint_v120), ("band_v120", band_v120)):
             if value is not None and not (np.isfinite(value) and value > 0):
                 raise QstsError(f"command_setpoint: regulator {r}: {name} {value!r} must be positive")
-        self._setpoint_v120[r] = (self.engine.reg_default_setpoint_v120[r] if setpoint_v120 is None
-                                  else float(setpoint_v120))
-        self._band_v120[r] = self.engine.reg_default_band_v120[r] if band_v120 is None else float(band_v120)
+        e = self.engine
+        self.controls.set_reg_band(
+            r, e.reg_default_setpoint_v120[r] if setpoint_v120 is None else float(setpoint_v120),
+            e.reg_default_band_v120[r] if band_v120 is None else float(band_v120))
+
+    @property
+    def setpoint_v120(self) -> np.ndarray:
+        """(R,) the map regulators' present local-control set points [V on the 120 V base]."""
+        return self.controls.vreg_v120[:len(self._locked)].copy()
+
+    @property
+    def band_v120(self) -> np.ndarray:
+        """(R,) the map regulators' present local-control bands [V on the 120 V base]."""
+        return self.controls.band_v120[:len(self._locked)].copy()
+
+    def command_cap(self, c: int, state_steps: int | None) -> int:
+        """Hold map capacitor bank ``c`` at ``state_steps`` closed steps from the next step on (clipped to
+        ``0..cap_steps``); ``None`` returns it to its local CapControl (a bank without one stays where it is).
+
+        Returns the state it will hold (its present state when released).
+        """
+        self._check_index(c, len(self._cap_locked), "capacitor")
+        if state_steps is None:
+            self._cap_locked[c] = False
+            if self._cap_control[c] >= 0:
+                self.controls.block_cap(int(self._cap_control[c]), False)
+            return int(self.engine.cap_states()[c])
+        st = int(np.clip(int(state_steps), 0, self.engine.cap_steps[c]))
+        self._cap_locked[c], self._cap_lock_state[c] = True, st
+        if self._cap_control[c] >= 0:
+            self.controls.block_cap(int(self._cap_control[c]), True)
+        return st
 
     # ------------------------------------------------------------------ staging
     def stage_loads(self) -> None:
@@ -284,7 +325,7 @@ class Qsts:
         return np.minimum(np.maximum(q, -headroom), headroom)
 
     def step(self) -> StepResult:
-        """Advance one profile step: set loads and PV, apply locked taps, solve, run regulator control."""
+        """Advance one profile step: set loads and PV, apply held devices, solve, run local control."""
         e, s = self.engine, self._step
         if s >= self.profiles.n_steps:
             raise QstsError(f"step {s} is past the end of the profiles ({self.profiles.n_steps} steps)")
@@ -296,41 +337,60 @@ class Qsts:
         self._staged = None
 
         taps0 = e.taps()  # the engine's, in case its owner moved them between steps
-        locked = self._locked
-        taps = np.where(locked, self._lock_tap, taps0)
+        taps = np.where(self._locked, self._lock_tap, taps0)
         changes = np.abs(taps - taps0)
         if changes.any():
             e.set_taps(taps)
+        caps0 = e.cap_states()
+        caps = np.where(self._cap_locked, self._cap_lock_state, caps0)
+        cap_switches = np.abs(caps - caps0)
+        if cap_switches.any():
+            e.set_cap_states(caps)
         e.solve()
+        t0 = self.profiles.t_ns(s) / 1e9
+        self._run_controls(t0, t0 + self._step_s, changes, cap_switches)
         readings = e.readings()
-
-        want = tap_direction(readings.reg_v120_compared, self._setpoint_v120, self._band_v120)
-        want[locked] = 0
-        self._out_of_band_steps = np.where(want != 0, self._out_of_band_steps + 1, 0)
-        moving = self._out_of_band_steps >= self.delay_steps
-        first_move = np.zeros_like(want)
-        for _ in range(self.max_taps_per_step):
-            # a regulator never reverses within one step (no hunting when the band is under one tap)
-            moving &= (first_move == 0) | (want == first_move)
-            move = np.where(moving, want, 0)
-            move = np.where(np.abs(taps + move) <= e.reg_tap_max, move, 0)
-            if not move.any():
-                break
-            first_move = np.where(first_move == 0, move, first_move)
-            taps = taps + move
-            changes += np.abs(move)
-            e.set_taps(taps)
-            e.solve()
-            readings = e.readings()
-            want = tap_direction(readings.reg_v120_compared, self._setpoint_v120, self._band_v120)
-            want[locked] = 0
-        self._out_of_band_steps = np.where(want != 0, self._out_of_band_steps, 0)
 
         v = e.node_voltages_pu()
         self._pv_v_pu = self._plant_v_pu(v)
         self._pv_p_kw, self._pv_q_kvar = p, np.asarray(q, dtype=float)
         self._step = s + 1
         return StepResult(
-            step=s, t_ns=int(self.profiles.t_ns(s)), readings=readings, v_pu=v, taps=taps.copy(),
-            tap_changes=changes, pv_q_kvar=q, pv_p_kw=p,
+            step=s, t_ns=int(self.profiles.t_ns(s)), readings=readings, v_pu=v, taps=e.taps(),
+            tap_changes=changes, pv_q_kvar=q, pv_p_kw=p, cap_states=e.cap_states(), cap_switches=cap_switches,
         )
+
+    def _run_controls(self, t0_s: float, t1_s: float, tap_changes: np.ndarray, cap_switches: np.ndarray) -> None:
+        """The event clock over ``[t0_s, t1_s)`` on the solved feeder; counts moves into the arrays given."""
+        e, ctl = self.engine, self.controls
+        n_reg, n_cap = len(tap_changes), len(cap_switches)
+        now = t0_s
+        sensed = e.sense((now % 86400.0) / 3600.0)
+        for _ in range(_MAX_INSTANTS):
+            ctl.sample(now, sensed[0], e.control_taps(), sensed[1], sensed[2], e.control_cap_states(), sensed[3])
+            for _ in range(_MAX_ROUNDS):  # actions due now, a power flow, the controls sample again
+                done = ctl.pop_due(now, e.control_taps(), e.control_cap_states())
+                if not (done.taps or done.cap_states):
+                    break
+                all_taps = e.control_taps()
+                for r, tap in done.taps.items():
+                    if r < n_reg:
+                        tap_changes[r] += abs(tap - all_taps[r])
+                    e.set_control_tap(r, tap)
+                states = e.control_cap_states()
+                for j, n in done.cap_states.items():
+                    b = int(self._cap_bank[j])
+                    if b < n_cap:
+                        cap_switches[b] += abs(n - int(states[j]))
+                    e.set_control_cap_state(j, n)
+                e.solve()
+                sensed = e.sense((now % 86400.0) / 3600.0)
+                ctl.sample(now, sensed[0], e.control_taps(), sensed[1], sensed[2], e.control_cap_states(),
+                           sensed[3])
+            nxt = ctl.next_time_s(now)
+            if nxt >= t1_s:
+                return
+            now = nxt
+            if self._has_time_caps:
+                sensed = (sensed[0], e.sense((now % 86400.0) / 3600.0)[1], sensed[2], sensed[3])
+        raise QstsError(f"step {self._step}: local controls did not settle within {_MAX_INSTANTS} instants")

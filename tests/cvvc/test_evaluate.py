@@ -21,6 +21,7 @@ from cvvc.evaluate import (
     perturbation_commands,
     perturbed_device_map,
     plan_runs,
+    render_results_md,
     season_window,
 )
 
@@ -52,6 +53,19 @@ def test_evaluate_writes_results_json_with_every_run(small_evaluation):
     d, none = data["runs"]
     assert d["decisions"] == 15  # every 5 simulated minutes: t = 0, 5, ..., 70
     assert none["decisions"] == 0  # the baseline runs no agent
+
+
+def test_results_md_shows_capacitor_switchings_only_for_maps_with_banks(small_evaluation):
+    import msgspec
+
+    out, ev = small_evaluation
+    assert "Cap sw" not in (out / "results.md").read_text()  # IEEE 13's map lists no bank
+    runs = tuple(msgspec.structs.replace(r, metrics=msgspec.structs.replace(
+        r.metrics, cap_switches=3, cap_cost=4.0, cap_switches_per_bank={"cap1": 2, "cap2": 1})) for r in ev.runs)
+    md = render_results_md(msgspec.structs.replace(ev, runs=runs))
+    assert "| Season | Case | MVVM [pu] | NVV | NTC | Cap sw | Q Cost | T Cost | Cap Cost | Total | wall [s] |" in md
+    assert "## Capacitor switchings per bank" in md and "| Season | Case | cap1 | cap2 | total |" in md
+    assert "| summer | none | 2 | 1 | 3 |" in md
 
 
 def test_results_md_has_the_paper_table_rows(small_evaluation):

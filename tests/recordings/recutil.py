@@ -29,6 +29,8 @@ EXAMPLE_KEYS: dict[type, str] = {
     m.BridgeStatus: keys.sim_status(FEEDER),
     m.OracleRequest: "test/oracle_request",
     m.OracleReply: keys.sim_oracle(FEEDER),
+    m.CapFrame: keys.meas_cap(FEEDER, "cap1"),
+    m.CapCommand: keys.cmd(FEEDER, "cap", "cap1"),
 }
 
 

@@ -22,3 +22,16 @@ def test_key_layout_and_types():
 def test_bad_ids_rejected(bad):
     with pytest.raises(KeyExprError):
         keys.meas_pv("rural", bad)
+
+
+def test_capacitor_keys_and_types():
+    assert keys.meas_cap("ieee123", "c83") == "cvvc/ieee123/meas/cap/c83"
+    assert keys.meas_cap("ieee123") == "cvvc/ieee123/meas/cap/*"
+    assert keys.cmd("ieee123", "cap", "c83") == "cvvc/ieee123/cmd/cap/c83"
+    assert keys.ack("ieee123", "cap", "c83") == "cvvc/ieee123/ack/cap/c83"
+    assert keys.alive("ieee123", "cap", "c83") == "cvvc/ieee123/alive/cap/c83"
+    assert keys.message_type_for_key(keys.meas_cap("ieee123", "c83")) is m.CapFrame
+    assert keys.message_type_for_key(keys.cmd("ieee123", "cap", "c83")) is m.CapCommand
+    assert keys.message_type_for_key(keys.ack("ieee123", "cap", "c83")) is m.Ack
+    with pytest.raises(KeyExprError):
+        keys.meas_cap("ieee123", "c/83")

@@ -141,3 +141,47 @@ def test_schema_validates_example_with_jsonschema_semantics():
         schema = json_schema(t)
         doc = json.loads(msgspec.json.encode(EXAMPLES[t]))
         assert set(schema.get("required", [])) <= set(doc), t
+
+
+# ------------------------------------------------------------------------------------ capacitor banks
+def _cap_command(**change) -> bytes:
+    good = json.loads(msgspec.json.encode(EXAMPLES[m.CapCommand]))
+    return json.dumps({**good, **change}).encode()
+
+
+def test_cap_command_release_is_null_and_required():
+    codec = codec_for(m.CapCommand)
+    assert codec.decode(_cap_command(closed_steps=None)).closed_steps is None
+    good = json.loads(_cap_command())
+    del good["closed_steps"]
+    with pytest.raises(BadMessage) as e:
+        codec.decode(json.dumps(good).encode())
+    assert e.value.kind == "missing_field"  # a command must say switch or release; nothing is implied
+
+
+@pytest.mark.parametrize("steps", [-1, 65, 1.5, "1"])
+def test_cap_command_bad_steps_rejected(steps):
+    with pytest.raises(BadMessage):
+        codec_for(m.CapCommand).decode(_cap_command(closed_steps=steps))
+
+
+def test_cap_command_in_a_decision():
+    ex = EXAMPLES[m.CapCommand]
+    d = msgspec.structs.replace(EXAMPLES[m.Decision], commands=[ex])
+    codec = codec_for(m.Decision)
+    assert codec.decode(codec.encode(d)).commands == [ex]
+
+
+def test_recordings_before_capacitors_still_decode():
+    """Append-only: TruthFrame, MetricsFrame and Decision payloads without the capacitor fields decode."""
+    for t, defaults in ((m.TruthFrame, {"cap_states": []}),
+                        (m.MetricsFrame, {"cap_switches": 0, "cap_cost": 0.0, "cap_switches_per_bank": {}})):
+        old = {k: v for k, v in json.loads(msgspec.json.encode(EXAMPLES[t])).items() if k not in defaults}
+        msg = codec_for(t).decode(json.dumps(old).encode())
+        assert {f: getattr(msg, f) for f in defaults} == defaults
+
+
+def test_cap_frame_schema_is_an_object():
+    s = json_schema(m.CapFrame)
+    assert s["type"] == "object"
+    assert "closed_steps" in s["required"] and "control_value" in s["properties"]

@@ -235,3 +235,71 @@ def test_bad_realism_settings_raise(bad) -> None:  # noqa: ANN001
 
 def test_reject_reasons_are_listed() -> None:
     assert set(dv.REJECT_REASONS) == set(msgspec.inspect.type_info(dv.RejectReason).values)
+
+
+# ------------------------------------------------------------------------------ capacitor banks
+def _cap_cmd(steps: int | None = 1, *, seq: int = 1, cap: str = "c83", valid_until: int = NOW + 5 * MIN
+             ) -> m.CapCommand:
+    return m.CapCommand(t_ns=NOW, seq=seq, source="agent", cmd_id=f"k{seq}", in_reply_to=0,
+                        valid_until_t_ns=valid_until, capacitor_id=cap, closed_steps=steps)
+
+
+@pytest.fixture
+def cap() -> dv.CapBankController:
+    return dv.CapBankController("c83", 0, 2, 600.0, "voltage")
+
+
+@pytest.mark.parametrize(("cmd", "reason"), [
+    (_cap_cmd(cap="c88a"), "wrong_device"),             # payload names another bank than the key
+    (_cap_cmd(3), "out_of_range"),                      # the bank has 2 steps
+    (_cap_cmd(valid_until=NOW), "expired"),             # not valid after the present time
+])
+def test_cap_command_rejections(cap: dv.CapBankController, cmd: m.CapCommand, reason: str) -> None:
+    v = cap.check(cmd, now_t_ns=NOW)
+    assert v is not None and v.status == "rejected" and v.reason_kind == reason
+    assert cap.mode == "local" and cap.guard.active is None  # a rejected command changes nothing
+
+
+def test_cap_command_apply_replay_expire_release(cap: dv.CapBankController) -> None:
+    c = _cap_cmd(2, seq=5)
+    assert cap.check(c, now_t_ns=NOW) is None
+    v = cap.apply(c, 2)
+    assert (v.status, v.applied_value, cap.mode) == ("accepted", 2.0, "commanded")
+    replay = cap.check(_cap_cmd(0, seq=5), now_t_ns=NOW)
+    assert replay is not None and replay.reason_kind == "replay"
+    assert cap.expire(NOW + 5 * MIN) is None  # in force up to and including valid_until
+    gone = cap.expire(NOW + 6 * MIN)
+    assert gone is not None and gone.cmd_id == "k5" and cap.mode == "local"
+    c = _cap_cmd(0, seq=6)
+    cap.apply(c, 0)
+    release = _cap_cmd(None, seq=7)
+    assert cap.check(release, now_t_ns=NOW) is None
+    v = cap.apply(release, None)
+    assert (v.status, v.applied_value, cap.mode) == ("accepted", None, "local")
+    assert cap.expire(NOW + 60 * MIN) is None  # nothing left to expire
+
+
+def test_cap_frame_round_trips_and_says_what_is_in_force(cap: dv.CapBankController) -> None:
+    codec = codec_for(m.CapFrame)
+    f = dv.cap_frame(cap=cap, t_ns=NOW, seq=1, closed_steps=1, v_v=2401.5, control_value=float("nan"), active=None)
+    assert (f.mode, f.control_value, f.cmd_id, f.closed_steps, f.steps) == ("local", None, None, 1, 2)
+    cap.apply(_cap_cmd(2, seq=1), 2)
+    f = dv.cap_frame(cap=cap, t_ns=NOW, seq=2, closed_steps=2, v_v=2401.5, control_value=121.0,
+                     active=cap.guard.active)
+    assert (f.mode, f.cmd_id, f.valid_until_t_ns, f.control_value) == ("commanded", "k1", NOW + 5 * MIN, 121.0)
+    assert codec.decode(codec.encode(f)) == f
+
+
+def test_cap_noise_is_scada_class() -> None:
+    noise = dv.MeasurementNoise(pmu_pct=0.0, scada_pct=1.0, seed=3)
+    vs = np.array([noise.capacitor(2400.0, 120.0) for _ in range(2000)])
+    assert abs(vs[:, 0].std() / 2400.0 - 0.01) < 0.002 and abs(vs[:, 1].std() / 120.0 - 0.01) < 0.002
+    assert noise.capacitor(2400.0, None)[1] is None
+    assert all(type(x) is float for x in noise.capacitor(2400.0, 120.0))  # msgspec encodes no NumPy scalars
+    exact = dv.MeasurementNoise(pmu_pct=0.0, scada_pct=0.0, seed=3)
+    assert exact.capacitor(2400.0, 120.0) == (2400.0, 120.0)
+
+
+def test_cap_control_type_must_be_one_the_schema_knows() -> None:
+    with pytest.raises(dv.DeviceError, match="control type 'powerfactor'"):
+        dv.CapBankController("c1", 0, 1, 300.0, "powerfactor")  # type: ignore[arg-type]

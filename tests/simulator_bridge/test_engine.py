@@ -287,3 +287,51 @@ def test_ieee8500_map_compiles_and_reads() -> None:
     np.testing.assert_allclose(r.head_v_mag_v, 7200 * 1.05, rtol=0.05)  # source at 1.05 pu, 12.47 kV
     assert 0.9 * e.load_kw_nominal.sum() < r.head_p_kw.sum() < 1.15 * e.load_kw_nominal.sum()
     np.testing.assert_allclose(e.reg_pu_per_v120, 60.0 / 7200.0, rtol=1e-3)
+
+
+# --------------------------------------------------------------------------- capacitor banks
+def _with_caps(dm: DeviceMap, caps: list[dict], extra: list[str] = ()) -> DeviceMap:
+    from schemas.devicemap import CapacitorSpec
+
+    feeder = msgspec.structs.replace(dm.feeder, extra_commands=[*dm.feeder.extra_commands, *extra])
+    return msgspec.structs.replace(dm, feeder=feeder, capacitor=[CapacitorSpec(**c) for c in caps])
+
+
+def test_capacitor_inventory_and_switching(map13: DeviceMap) -> None:
+    """IEEE 13's Cap1 (600 kvar at 675, 3 phases) as a map bank: rated kvar, steps, state; opening it lowers
+    the voltage at its bus by about its kvar times the Thevenin reactance (a fraction of a per cent).
+    """
+    dm = _with_caps(map13, [{"id": "c675", "capacitor": "Cap1"},
+                            {"id": "c611", "capacitor": "cap2", "capcontrol": "cc611"}],
+                    ["new capcontrol.cc611 capacitor=cap2 element=line.684611 terminal=2 type=voltage "
+                     "ptratio=20 on=118 off=126"])
+    eng = FeederEngine(dm, tolerance=1e-8)
+    assert eng.capacitor_ids == ("c675", "c611")
+    np.testing.assert_allclose(eng.cap_kvar, [600.0, 100.0])
+    np.testing.assert_array_equal(eng.cap_steps, [1, 1])
+    assert eng.cap_control_type == ("none", "voltage")
+    np.testing.assert_array_equal(eng.cap_states(), [1, 1])
+    eng.solve()
+    closed = eng.readings()
+    assert closed.cap_states.tolist() == [1, 1]
+    assert 2300 < closed.cap_v_v[0] < 2600 and 2300 < closed.cap_v_v[1] < 2600  # 4.16 kV L-L: ~2.4 kV L-N
+    assert np.isnan(closed.cap_control_value[0])
+    eng.set_cap_states(np.array([0, 1]))
+    eng.solve()
+    opened = eng.readings()
+    assert opened.cap_states.tolist() == [0, 1]
+    assert 0.003 < (closed.cap_v_v[0] - opened.cap_v_v[0]) / closed.cap_v_v[0] < 0.05
+    with pytest.raises(EngineError, match="set_cap_states"):
+        eng.set_cap_states(np.array([2, 0]))
+
+
+@pytest.mark.parametrize(("caps", "extra", "match"), [
+    ([{"id": "x", "capacitor": "nosuchcap"}], [], "Capacitor 'nosuchcap' not found"),
+    ([{"id": "x", "capacitor": "cap1", "capcontrol": "nosuch"}], [], "CapControl 'nosuch' not found"),
+    ([{"id": "x", "capacitor": "cap1", "capcontrol": "cc611"}],
+     ["new capcontrol.cc611 capacitor=cap2 element=line.684611 terminal=2 type=voltage on=118 off=126"],
+     "switches Capacitor 'cap2'"),
+])
+def test_capacitor_map_errors(map13: DeviceMap, caps: list[dict], extra: list[str], match: str) -> None:
+    with pytest.raises(DeviceMapError, match=match):
+        FeederEngine(_with_caps(map13, caps, extra))

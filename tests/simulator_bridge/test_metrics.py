@@ -267,3 +267,52 @@ def test_bad_configuration():
             cost_per_kvar=0.001,
         )
     assert issubclass(MetricsError, CvvcError)
+
+
+# ------------------------------------------------------------------------------------ capacitor banks
+CAPS = ("c83", "c88a", "c90b")
+
+
+def test_capacitor_switchings_counted_and_costed():
+    """Switchings per bank add up over steps; cost per bank from cost_per_switch; part of the total cost."""
+    v, taps, q = _hand_series()
+    sw = np.zeros((60, 3), dtype=int)
+    sw[5, 0] = 1  # c83 closes
+    sw[30, 0] = 1  # and opens again
+    sw[12, 2] = 2  # a two-step bank closes both steps in one minute
+    kw = {"capacitor_ids": CAPS, "cost_per_switch": [1.0, 2.5, 0.5]}
+    base = _batch(v, taps, q)
+    for r in (_batch(v, taps, q, cap_switches=sw, **kw), _stream_caps(v, taps, q, sw, **kw)):
+        assert r.capacitor_ids == CAPS
+        assert r.cap_switches_per_bank == (2, 0, 2)
+        assert r.cap_switches == 4
+        assert r.cap_cost == pytest.approx(2 * 1.0 + 2 * 0.5)
+        assert r.total_cost == pytest.approx(base.total_cost + 3.0)
+        assert r.ntc == base.ntc  # switchings are not tap changes
+    both = combine_metrics([_batch(v, taps, q, cap_switches=sw, **kw)] * 2)
+    assert both.cap_switches_per_bank == (4, 0, 4) and both.cap_cost == pytest.approx(6.0)
+
+
+def _stream_caps(v, taps, q, sw, **kw):
+    kw = {"regulator_ids": REGS, "pv_ids": PVS, "cost_per_tap": 0.14, "cost_per_kvar": 0.001} | kw
+    acc = MetricsAccumulator(n_nodes=v.shape[1], **kw)
+    for row in range(v.shape[0]):
+        acc.update(v[row], taps[row], q[row], sw[row])
+    return acc.result()
+
+
+@pytest.mark.parametrize("bad", [np.array([1, -1, 0]), np.array([0.5, 0, 0]), np.array([1, 0])],
+                         ids=["negative", "fraction", "wrong shape"])
+def test_bad_capacitor_switchings_rejected(bad):
+    acc = MetricsAccumulator(n_nodes=4, regulator_ids=REGS, pv_ids=PVS, cost_per_tap=0.14, cost_per_kvar=0.001,
+                             capacitor_ids=CAPS)
+    with pytest.raises(MetricsError, match="cap_switches"):
+        acc.update(np.ones(4), np.zeros(2, dtype=int), np.zeros(2), bad)
+
+
+def test_metrics_without_capacitors_decode_from_old_json():
+    v, taps, q = _hand_series()
+    r = _batch(v, taps, q)
+    old = {k: val for k, val in msgspec.to_builtins(r).items()
+           if k not in ("capacitor_ids", "cap_switches_per_bank", "cap_switches", "cap_cost")}
+    assert msgspec.convert(old, Metrics) == r

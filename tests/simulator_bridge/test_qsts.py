@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import msgspec
 import numpy as np
 import pytest
 
@@ -76,7 +77,7 @@ def test_tap_direction() -> None:
 # --------------------------------------------------------------------------- regulators
 def test_local_control_ends_inside_band(eng: FeederEngine) -> None:
     """From tap 0 at nominal load creg1a compares ~115 V (band 119-121): it must end inside its band."""
-    q = Qsts(eng, constant(eng, 5, 1.0, 0.0), start_step=0, max_taps_per_step=16)
+    q = Qsts(eng, constant(eng, 5, 1.0, 0.0), start_step=0)
     first = q.step()
     assert first.tap_changes.sum() > 0
     for _ in range(4):
@@ -89,13 +90,22 @@ def test_local_control_ends_inside_band(eng: FeederEngine) -> None:
     np.testing.assert_array_equal(r.reg_tap, last.taps)
 
 
-def test_tap_changes_counted_and_limited_per_step(eng: FeederEngine) -> None:
-    q = Qsts(eng, constant(eng, 10, 1.0, 0.0), start_step=0, max_taps_per_step=2)
+def _with_commands(dm: DeviceMap, *commands: str) -> DeviceMap:
+    feeder = msgspec.structs.replace(dm.feeder, extra_commands=[*dm.feeder.extra_commands, *commands])
+    return msgspec.structs.replace(dm, feeder=feeder)
+
+
+def test_taps_per_step_follow_the_regulators_delays(map123: DeviceMap) -> None:
+    """creg1a with delay=30 s, tapdelay=10 s, ~5 V (7 taps) low: in the first minute it arms at 0 s and taps at
+    30, 40 and 50 s (the one due at 60 s belongs to the next minute), then one tap every 10 s (60..110 s)."""
+    eng = FeederEngine(_with_commands(map123, "edit regcontrol.creg1a delay=30 tapdelay=10"))
+    q = Qsts(eng, constant(eng, 10, 1.0, 0.0), start_step=0)
     t0 = eng.taps()
     results = [q.step() for _ in range(10)]
     changes = np.array([r.tap_changes for r in results])
-    assert changes.max() <= 2
-    assert changes[0, 0] == 2  # creg1a is ~5 V low: two taps in the first minute, not more
+    assert changes[0, 0] == 3
+    assert changes[1, 0] == min(6, abs(results[1].taps[0] - results[0].taps[0]))
+    assert changes[:, 0].max() <= 6
     # every tap move is counted: downstream regulators move back when creg1a raises their input, so
     # the count is at least the net move and differs from it by pairs of up/down moves
     net = np.abs(results[-1].taps - t0)
@@ -104,23 +114,31 @@ def test_tap_changes_counted_and_limited_per_step(eng: FeederEngine) -> None:
     assert changes.sum(axis=0)[0] == net[0]  # creg1a itself only rises
 
 
-def test_no_hunting_within_a_step(eng: FeederEngine) -> None:
-    """A band narrower than one tap (0.3 V < 0.75 V): within one step a regulator never reverses."""
-    q = Qsts(eng, constant(eng, 6, 1.0, 0.0), start_step=0, max_taps_per_step=16)
-    for r in range(7):
-        q.command_setpoint(r, None, 0.3)
+def test_no_hunting_with_a_band_under_one_tap(eng: FeederEngine) -> None:
+    """A band narrower than one tap (0.3 V < 0.75 V): creg1a (the others held) moves only toward its set
+    point, as OpenDSS's pending change rounds to whole taps (within 0.375 V of vreg it wants none), and
+    settles instead of hunting."""
+    q = Qsts(eng, constant(eng, 6, 1.0, 0.0), start_step=0)
+    q.command_setpoint(0, None, 0.3)
+    for r in range(1, 7):
+        q.command_tap(r, int(eng.taps()[r]))
     prev = eng.taps()
+    moves = []
     for _ in range(6):
         res = q.step()
-        np.testing.assert_array_equal(res.tap_changes, np.abs(res.taps - prev))
+        assert res.tap_changes[0] == abs(res.taps[0] - prev[0])
+        moves.append(res.tap_changes[0])
         prev = res.taps
+    assert moves[0] > 0 and moves[-1] == 0 and moves[-2] == 0
+    assert abs(res.readings.reg_v120_compared[0] - 120.0) < 0.375 + 0.05
 
 
-def test_delay_steps(eng: FeederEngine) -> None:
-    """delay_steps=3: out of band at steps 0, 1, 2 -> first move at step 2 (the third consecutive one)."""
-    q = Qsts(eng, constant(eng, 4, 1.0, 0.0), start_step=0, delay_steps=3)
-    changes = [q.step().tap_changes.sum() for _ in range(4)]
-    assert changes[0] == 0 and changes[1] == 0 and changes[2] > 0
+def test_delay_longer_than_a_step(map123: DeviceMap) -> None:
+    """delay=150 s: out of band from 0 s, creg1a's first tap comes at 150 s, in the third minute."""
+    eng = FeederEngine(_with_commands(map123, "edit regcontrol.creg1a delay=150 tapdelay=5"))
+    q = Qsts(eng, constant(eng, 4, 1.0, 0.0), start_step=0)
+    changes = [q.step().tap_changes[0] for _ in range(4)]
+    assert changes[0] == 0 and changes[1] == 0 and 1 <= changes[2] <= 6  # 150, 155, ..., 175 s at most
 
 
 def test_locked_tap_stays_then_unlocks(eng: FeederEngine) -> None:
@@ -140,7 +158,7 @@ def test_locked_tap_stays_then_unlocks(eng: FeederEngine) -> None:
 
 
 def test_commanded_setpoint_and_band(eng: FeederEngine) -> None:
-    q = Qsts(eng, constant(eng, 4, 0.8, 0.0), start_step=0, max_taps_per_step=16)
+    q = Qsts(eng, constant(eng, 4, 0.8, 0.0), start_step=0)
     q.command_setpoint(0, 123.0, 1.5)
     for _ in range(3):
         res = q.step()
@@ -278,3 +296,26 @@ def test_staged_loads_solve_exactly_what_the_step_would_have(map123: DeviceMap) 
         np.testing.assert_array_equal(a.taps, b.taps)
     # the loads differ from step to step, so a run that left the staged loads in place would not match
     assert not np.array_equal(results[False][0].v_pu, results[False][1].v_pu)
+
+
+# --------------------------------------------------------------------------- capacitor commands
+def test_command_cap_holds_and_counts_switches(map123: DeviceMap) -> None:
+    """A commanded bank is switched at the next step, counted once per step moved, and held."""
+    from schemas.devicemap import CapacitorSpec
+
+    dm = msgspec.structs.replace(map123, capacitor=[CapacitorSpec(id="c83", capacitor="c83")])
+    e = FeederEngine(dm)
+    q = Qsts(e, constant(e, 3, 1.0, 0.0), start_step=0)
+    assert e.cap_states().tolist() == [1]
+    assert q.command_cap(0, 0) == 0
+    assert q.command_cap(0, 5) == 1  # clipped to the bank's one step
+    assert q.command_cap(0, 0) == 0
+    r0 = q.step()
+    assert r0.cap_states.tolist() == [0] and r0.cap_switches.tolist() == [1]
+    assert r0.readings.cap_states.tolist() == [0]
+    r1 = q.step()
+    assert r1.cap_states.tolist() == [0] and r1.cap_switches.tolist() == [0]
+    assert q.command_cap(0, None) == 0  # no CapControl: it stays where it is
+    assert q.step().cap_states.tolist() == [0]
+    with pytest.raises(QstsError, match="no capacitor"):
+        q.command_cap(1, 0)
