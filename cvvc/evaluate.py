@@ -85,7 +85,7 @@ class EvaluateConfig(msgspec.Struct, frozen=True, kw_only=True):
     days_per_season: float | None = None  # None: the whole month
     jobs: int = 1
     out: str = "runs/evaluate"
-    cache: str = ".cvvc-cache"
+    cache: str | None = None  # cache root; None: schemas.cache.default_cache_root()
     robustness: bool = False
     pv_margin_window_s: float | None = None  # the agent's PV variability margin window; None: its default, 0: off
     setpoint_hold: bool = False  # the agent's opt-in set-point hold (cases C/D)

@@ -31,13 +31,13 @@ from typing import Literal
 
 import msgspec
 
+from schemas.cache import cache_root, profiles_dir
 from schemas.errors import CvvcError
 
 __all__ = ["CASES", "LaunchError", "RunConfig", "RunSummary", "case_agent_args", "run"]
 
 Case = Literal["A", "B", "C", "D", "none", "local"]
 CASES: tuple[Case, ...] = ("A", "B", "C", "D", "none", "local")
-DEFAULT_CACHE = Path(".cvvc-cache")
 
 
 class LaunchError(CvvcError):
@@ -61,7 +61,7 @@ class RunConfig(msgspec.Struct, frozen=True, kw_only=True):
     pv_margin_window_s: float | None = None  # the agent's PV variability margin window; None: its default, 0: off
     setpoint_hold: bool = False  # the agent's opt-in set-point hold (cases C/D)
     lockstep_timeout_s: float = 10.0
-    cache: str = str(DEFAULT_CACHE)
+    cache: str | None = None  # cache root; None: schemas.cache.default_cache_root()
     record: bool = True
     baseline: bool = True
     progress: bool = True
@@ -134,10 +134,10 @@ def _log(msg: str) -> None:
 
 def prepare_feeder_and_model(config: RunConfig) -> tuple[Path, Path]:
     """Resolve (generating or training once, cached) the device map and the model."""
-    from schemas.devicemap import load_device_map
-    from simulator_bridge.cli import ensure_default_feeder, resolve_device_map_path
+    from schemas.devicemap import load_device_map, resolve_device_map_path
+    from simulator_bridge.default_feeder import ensure_default_feeder
 
-    cache = Path(config.cache)
+    cache = cache_root(config.cache)
     dm_path = resolve_device_map_path(config.feeder) if config.feeder else ensure_default_feeder(cache)
     dm = load_device_map(dm_path)
     if config.model:
@@ -243,7 +243,7 @@ def run(config: RunConfig) -> RunSummary:
     if config.secure:  # every child presents its role's certificate; the router enforces the policy
         from schemas.security import init_security_dir
 
-        security_dir = str(Path(config.cache) / "security")
+        security_dir = str(cache_root(config.cache) / "security")
         init_security_dir(security_dir)
         connect += ["--secure-dir", security_dir]
     children: list[_Child] = []
@@ -282,7 +282,7 @@ def run(config: RunConfig) -> RunSummary:
                 realism += ["--noise-scada-pct", str(config.noise_scada_pct)]
             if config.drop_prob:
                 realism += ["--drop-prob", str(config.drop_prob)]
-            realism += ["--truth-every", str(config.truth_every), "--cache-dir", str(Path(config.cache) / "profiles")]
+            realism += ["--truth-every", str(config.truth_every), "--cache-dir", str(profiles_dir(config.cache))]
             bridge = _spawn("bridge", [
                 "bridge", "--feeder", str(dm_path), "--feeder-id", feeder_id, "--start", start_text,
                 "--steps", str(steps), "--year-seed", str(config.year_seed),
@@ -337,7 +337,8 @@ def run(config: RunConfig) -> RunSummary:
     baseline = None
     if config.baseline and config.case != "none":
         _log("simulating the no-control baseline of the same days")
-        baseline = msgspec.to_builtins(no_control_baseline(dm_path, start, steps, config.year_seed, Path(config.cache)))
+        baseline = msgspec.to_builtins(no_control_baseline(dm_path, start, steps, config.year_seed,
+                                                           cache_root(config.cache)))
     summary = RunSummary(
         feeder=str(dm_path), feeder_id=feeder_id, case=config.case, start=start_text, days=config.days,
         steps=steps, wall_s=round(wall_s, 2), metrics=_metrics_frame_dict(final), baseline=baseline,

@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 import sys
 
+from schemas.cache import CACHE_HELP
+
 __all__ = ["register"]
 
 
@@ -28,7 +30,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_agent_option_arguments(p)
     p.add_argument("--no-record", action="store_true", help="do not record the session to MCAP")
     p.add_argument("--no-baseline", action="store_true", help="skip the no-control baseline")
-    p.add_argument("--cache", default=".cvvc-cache", help="cache of feeders, profiles and models")
+    p.add_argument("--cache", default=None, help=CACHE_HELP)
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     p.add_argument("--secure", action="store_true",
                    help="security profile: mTLS with per-role certificates (made once in <cache>/security) "

@@ -38,7 +38,9 @@ import opendssdirect as dss
 from schemas.devicemap import DeviceMap, DeviceMapError
 from schemas.errors import CvvcError
 
-__all__ = ["EngineError", "FeederEngine", "FieldReadings", "OpenDssSnapshot", "Sensitivities", "opendss_snapshot"]
+__all__ = ["CircuitSurvey", "EngineError", "FeederEngine", "FieldReadings", "OpenDssSnapshot", "Sensitivities",
+           "SurveyBus", "SurveyCapacitor", "SurveyEdge", "SurveyLoad", "SurveyMeter", "SurveyPvSystem",
+           "SurveyRegControl", "opendss_snapshot", "survey_circuit"]
 
 _PHASES = (1, 2, 3)
 _LOAD_SETTER_FLAGS = 2  # SetterFlags_AvoidFullRecalc: a kW change does not rebuild the load's Yprim
@@ -217,6 +219,7 @@ class FeederEngine:
             os.chdir(cwd)
         if self._dss.Circuit.NumBuses() == 0:
             raise EngineError(f"{master}: compiled to an empty circuit; is this an OpenDSS master file?")
+        _close_debug_traces(self._dss)
 
     def _check_names(self) -> None:
         dm = self.device_map
@@ -716,6 +719,24 @@ class FeederEngine:
             self._lib.DSS_Dispose_PDouble(self._ce_result)
             self._ce_result = None
 
+    # ------------------------------------------------------------------ the feeder zone
+    @property
+    def load_in_feeder(self) -> np.ndarray:
+        """(n_loads,) bool, in ``load_names`` order: the load is downstream of the head meter.
+
+        A load on the meter's own bus (beside the meter, e.g. the aggregate of the substation's other feeders)
+        or upstream of it is not the feeder's: it keeps its profile in the simulation but is left out of the
+        feeder's peak load and PV sizing (``simulator_bridge.zone``, ``docs/feeders.md``).
+        """
+        zone = {n.split(".")[0] for n, inside in zip(self.node_names, self.node_in_feeder, strict=True) if inside}
+        head = {self.node_names[i].split(".")[0] for i in self.head_node_index}
+        return np.array([b in zone and b not in head for b in self._load_buses], dtype=bool)
+
+    @property
+    def zone_peak_load_kw(self) -> float:
+        """Sum of the nominal ``kW=`` of the loads downstream of the head meter [kW]."""
+        return float(self.load_kw_nominal[self.load_in_feeder].sum())
+
 
 @dataclass(frozen=True)
 class OpenDssSnapshot:
@@ -765,3 +786,265 @@ def opendss_snapshot(master: str | Path, *, tolerance: float = 1e-8) -> OpenDssS
         v_pu=np.asarray(ctx.Circuit.AllBusMagPu(), dtype=float),
         taps=taps,
     )
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Circuit survey: a read-only description of a compiled model, for ``cvvc feeder scaffold`` and ``feeder info``.
+# ---------------------------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class SurveyBus:
+    """One bus: its name (lower case), line-to-neutral base [kV] and the phases (1-3) it has."""
+
+    name: str
+    kv_ln: float
+    phases: tuple[int, ...]
+
+
+@dataclass(frozen=True)
+class SurveyEdge:
+    """One enabled power-delivery element between two buses (lines, transformers, regulators, reactors).
+
+    ``z_ohm`` is a line's positive-sequence series impedance times its length, on its own voltage [ohm]
+    (0 for every other element); ``phases`` its number of phases; ``kind`` its OpenDSS class, lower case.
+    A transformer with more than two windings gives one edge per winding pair.
+    """
+
+    element: str
+    kind: str
+    bus1: str
+    bus2: str
+    phases: int
+    z_ohm: complex
+
+
+@dataclass(frozen=True)
+class SurveyRegControl:
+    """One OpenDSS ``RegControl``: its transformer and winding, the buses of the winding, and its settings.
+
+    ``vreg_v120``/``band_v120`` [V on the 120 V base], ``delay_s``/``tapdelay_s`` [s]; ``monitored_bus`` is ``""``
+    for local sensing.
+    """
+
+    name: str
+    transformer: str
+    winding: int
+    bus: str
+    other_bus: str
+    phases: int
+    vreg_v120: float
+    band_v120: float
+    delay_s: float
+    tapdelay_s: float
+    monitored_bus: str
+
+
+@dataclass(frozen=True)
+class SurveyCapacitor:
+    """One OpenDSS ``Capacitor`` [kvar at rated kV, kV as rated] and its ``CapControl`` (None when it has none)."""
+
+    name: str
+    bus: str
+    phases: int
+    kvar: float
+    kv: float
+    capcontrol: str | None
+    control_mode: str | None
+
+
+@dataclass(frozen=True)
+class SurveyPvSystem:
+    """One existing OpenDSS ``PVSystem`` [kVA, kW, kV as in the model]."""
+
+    name: str
+    bus: str
+    phases: int
+    kva: float
+    pmpp_kw: float
+    kv: float
+
+
+@dataclass(frozen=True)
+class SurveyLoad:
+    """One load: its bus and nominal ``kW=`` [kW]."""
+
+    name: str
+    bus: str
+    kw: float
+
+
+@dataclass(frozen=True)
+class SurveyMeter:
+    """One ``EnergyMeter``: the element (``Class.name``, lower case) and terminal it meters."""
+
+    name: str
+    element: str
+    terminal: int
+
+
+@dataclass(frozen=True)
+class CircuitSurvey:
+    """What a compiled OpenDSS model holds, read once (``survey_circuit``); no OpenDSS object outlives it.
+
+    ``source_bus`` is the bus of ``Vsource.source`` (``source_kv_ll`` [kV], ``source_pu`` [pu]); ``elements``
+    every element name (``class.name``, lower case); ``node_count`` the single-phase nodes (``AllNodeNames``).
+    """
+
+    master: str
+    circuit: str
+    source_bus: str
+    source_kv_ll: float
+    source_pu: float
+    buses: tuple[SurveyBus, ...]
+    edges: tuple[SurveyEdge, ...]
+    elements: frozenset[str]
+    regcontrols: tuple[SurveyRegControl, ...]
+    capacitors: tuple[SurveyCapacitor, ...]
+    pvsystems: tuple[SurveyPvSystem, ...]
+    loads: tuple[SurveyLoad, ...]
+    meters: tuple[SurveyMeter, ...]
+    node_count: int
+
+
+_CAPCONTROL_MODES = {0: "current", 1: "voltage", 2: "kvar", 3: "time", 4: "pf"}
+
+
+def survey_circuit(master: str | Path, *, extra_commands: tuple[str, ...] | list[str] = ()) -> CircuitSurvey:
+    """Compile ``master`` in a context of its own (plus ``extra_commands``) and read what it holds.
+
+    Read only: nothing is solved, nothing is changed; the context is dropped on return.
+
+    Raises
+    ------
+    EngineError
+        The model does not compile, an extra command is rejected, or the circuit is empty.
+    """
+    master = Path(master).resolve()
+    d = dss.NewContext()
+    cwd = os.getcwd()
+    try:
+        d.Text.Command(f'compile "{master}"')
+        for cmd in extra_commands:
+            d.Text.Command(cmd)
+    except dss.DSSException as e:
+        raise EngineError(f"{master}: the feeder does not compile: {e}; fix the OpenDSS model") from e
+    finally:
+        os.chdir(cwd)
+    if d.Circuit.NumBuses() == 0:
+        raise EngineError(f"{master}: compiled to an empty circuit; is this an OpenDSS master file?")
+    _close_debug_traces(d)
+
+    def bus_of(spec: str) -> str:
+        return spec.split(".")[0].lower()
+
+    def phases_of(spec: str, n: int) -> int:
+        parts = [p for p in spec.split(".")[1:] if p.isdigit() and 1 <= int(p) <= 3]
+        return len(parts) if parts else n
+
+    buses = []
+    for name in d.Circuit.AllBusNames():
+        d.Circuit.SetActiveBus(name)
+        buses.append(SurveyBus(name.lower(), float(d.Bus.kVBase()),
+                               tuple(sorted(int(n) for n in d.Bus.Nodes() if 1 <= int(n) <= 3))))
+    line_z: dict[str, complex] = {}
+    i = d.Lines.First()
+    while i > 0:
+        n = int(d.Lines.Phases())
+        z = (np.asarray(d.Lines.RMatrix(), float) + 1j * np.asarray(d.Lines.XMatrix(), float)).reshape(n, n)
+        z1 = np.mean(np.diag(z)) - (np.mean(z[~np.eye(n, dtype=bool)]) if n > 1 else 0.0)
+        line_z[f"line.{d.Lines.Name().lower()}"] = complex(z1 * d.Lines.Length())
+        i = d.Lines.Next()
+    edges = []
+    i = d.PDElements.First()
+    while i > 0:
+        name = d.CktElement.Name().lower()
+        specs = list(d.CktElement.BusNames())
+        kind = name.split(".")[0]
+        if d.CktElement.Enabled() and kind != "capacitor":
+            n_ph = int(d.CktElement.NumPhases())
+            for a in range(len(specs)):
+                for b in range(a + 1, len(specs)):
+                    if bus_of(specs[a]) != bus_of(specs[b]):
+                        edges.append(SurveyEdge(name, kind, bus_of(specs[a]), bus_of(specs[b]),
+                                                min(phases_of(specs[a], n_ph), phases_of(specs[b], n_ph)),
+                                                line_z.get(name, 0j)))
+        i = d.PDElements.Next()
+    d.Circuit.SetActiveElement("Vsource.source")
+    source_bus = bus_of(d.CktElement.BusNames()[0])
+    d.Vsources.Name("source")
+    source_kv, source_pu = float(d.Vsources.BasekV()), float(d.Vsources.PU())
+
+    regs = []
+    i = d.RegControls.First()
+    while i > 0:
+        name, xf, w = d.RegControls.Name().lower(), d.RegControls.Transformer().lower(), int(d.RegControls.Winding())
+        vreg, band = float(d.RegControls.ForwardVreg()), float(d.RegControls.ForwardBand())
+        delay, tapdelay = float(d.RegControls.Delay()), float(d.RegControls.TapDelay())
+        monitored = d.RegControls.MonitoredBus().strip().lower()
+        d.Circuit.SetActiveElement(f"Transformer.{xf}")
+        specs = list(d.CktElement.BusNames())
+        n_ph = int(d.CktElement.NumPhases())
+        other = specs[1] if w == 1 and len(specs) > 1 else specs[0]
+        regs.append(SurveyRegControl(name, xf, w, bus_of(specs[w - 1]), bus_of(other), phases_of(specs[w - 1], n_ph),
+                                     vreg, band, delay, tapdelay, monitored))
+        i = d.RegControls.Next()
+    controls: dict[str, tuple[str, str]] = {}
+    i = d.CapControls.First()
+    while i > 0:
+        controls[d.CapControls.Capacitor().lower()] = (
+            d.CapControls.Name().lower(), _CAPCONTROL_MODES.get(int(d.CapControls.Mode()), "unknown"))
+        i = d.CapControls.Next()
+    caps = []
+    i = d.Capacitors.First()
+    while i > 0:
+        name = d.Capacitors.Name().lower()
+        spec = d.CktElement.BusNames()[0]
+        ctl = controls.get(name)
+        caps.append(SurveyCapacitor(name, bus_of(spec), phases_of(spec, int(d.CktElement.NumPhases())),
+                                    float(d.Capacitors.kvar()), float(d.Capacitors.kV()),
+                                    ctl[0] if ctl else None, ctl[1] if ctl else None))
+        i = d.Capacitors.Next()
+    pvs = []
+    i = d.PVsystems.First()
+    while i > 0:
+        spec = d.CktElement.BusNames()[0]
+        name = d.PVsystems.Name().lower()
+        d.Text.Command(f"? pvsystem.{name}.kv")
+        try:
+            kv = float(d.Text.Result())
+        except ValueError:
+            kv = 0.0
+        pvs.append(SurveyPvSystem(name, bus_of(spec), phases_of(spec, int(d.CktElement.NumPhases())),
+                                  float(d.PVsystems.kVARated()), float(d.PVsystems.Pmpp()), kv))
+        i = d.PVsystems.Next()
+    loads = []
+    i = d.Loads.First()
+    while i > 0:
+        loads.append(SurveyLoad(d.Loads.Name().lower(), bus_of(d.CktElement.BusNames()[0]), float(d.Loads.kW())))
+        i = d.Loads.Next()
+    meters = []
+    i = d.Meters.First()
+    while i > 0:
+        meters.append(SurveyMeter(d.Meters.Name().lower(), d.Meters.MeteredElement().lower(),
+                                  int(d.Meters.MeteredTerminal())))
+        i = d.Meters.Next()
+    return CircuitSurvey(
+        master=str(master), circuit=d.Circuit.Name().lower(), source_bus=source_bus, source_kv_ll=source_kv,
+        source_pu=source_pu, buses=tuple(buses), edges=tuple(edges),
+        elements=frozenset(e.lower() for e in d.Circuit.AllElementNames()), regcontrols=tuple(regs),
+        capacitors=tuple(caps), pvsystems=tuple(pvs), loads=tuple(loads), meters=tuple(meters),
+        node_count=len(d.Circuit.AllNodeNames()),
+    )
+
+
+def _close_debug_traces(d) -> None:
+    """Turn off every RegControl's ``debugtrace``, which closes its trace file.
+
+    A model compiled with ``debugtrace=yes`` (epri-ckt24's LTC) keeps ``REG_<name>.csv`` open in the model's
+    folder; a second context in the same process then fails to compile it ("Unable to create file").
+    """
+    i = d.RegControls.First()
+    while i > 0:
+        d.Text.Command(f"edit regcontrol.{d.RegControls.Name()} debugtrace=no")
+        i = d.RegControls.Next()

@@ -175,7 +175,7 @@ def train(
     combined_pct: tuple[float, ...] = DEFAULT_COMBINED_PCT,
     tolerance: float = 1e-8,
     rcond: float = 1e-6,
-    cache_dir: str | Path | None = ".cvvc-cache",
+    cache_dir: str | Path | None = None,
     profiles=None,
     progress: bool = True,
 ) -> TrainResult:
@@ -192,7 +192,7 @@ def train(
     combined_pct : extra flows with all plants at this share of their headroom at once ([] to disable).
     tolerance : OpenDSS solve tolerance for training (1e-8: finite differences need it, trap 5).
     rcond : truncation of the eq. (5) regression (``fits.fit_voltage_regression``).
-    cache_dir : where to cache the year profiles (None: no cache).
+    cache_dir : where to cache the year profiles (None: no cache; the CLI passes ``schemas.cache.profiles_dir``).
     profiles : use these ``YearProfiles`` instead of generating them (tests).
     progress : progress bar on stderr when it is a terminal.
 
