@@ -283,6 +283,9 @@ class MetricsAccumulator:
         Step length [s].
     control_period_s : int
         Control interval the Q cost is charged per [s].
+    judged_nodes : sequence of int, optional
+        Indices of the nodes judged (the feeder zone's, ``for_feeder``); None: every node. ``v_min_pu``,
+        ``v_max_pu``, NVV and MVVM are then of these nodes, and ``mvvm_node`` indexes the whole ``v_pu`` row.
     """
 
     def __init__(
@@ -297,6 +300,7 @@ class MetricsAccumulator:
         window_steps: int = 10,
         step_s: int = 60,
         control_period_s: int = 300,
+        judged_nodes: Sequence[int] | np.ndarray | None = None,
     ) -> None:
         self._cfg = _Config.make(
             n_nodes=n_nodes,
@@ -310,7 +314,14 @@ class MetricsAccumulator:
             control_period_s=control_period_s,
         )
         cfg = self._cfg
-        self._ring = np.zeros((cfg.window_steps, cfg.n_nodes))
+        judged = None if judged_nodes is None else np.asarray(judged_nodes, dtype=np.intp)
+        if judged is not None and (judged.ndim != 1 or judged.size == 0 or judged.min() < 0
+                                   or judged.max() >= cfg.n_nodes):
+            raise MetricsError(f"judged_nodes must be 1..{cfg.n_nodes} node indices below n_nodes = {cfg.n_nodes}")
+        self._judged = judged
+        n_judged = cfg.n_nodes if judged is None else judged.size
+        self._v_judged = np.empty(n_judged)
+        self._ring = np.zeros((cfg.window_steps, n_judged))
         self._n_steps = 0
         self._n_judged = 0
         self._mvvm = 0.0
@@ -323,7 +334,7 @@ class MetricsAccumulator:
         self._avg_max = -np.inf
         self._taps = np.zeros(cfg.n_regs, dtype=np.int64)
         self._abs_q = np.zeros(cfg.n_pv)
-        self._avg = np.empty(cfg.n_nodes)  # the present rolling average, rewritten in place every step
+        self._avg = np.empty(n_judged)  # the present rolling average, rewritten in place every step
 
     @property
     def n_steps(self) -> int:
@@ -344,6 +355,9 @@ class MetricsAccumulator:
         """
         cfg = self._cfg
         v, taps, q, v_lo, v_hi = cfg.check_step(v_pu, tap_changes, pv_q_kvar)
+        if self._judged is not None:  # the feeder zone's nodes only (checked whole above)
+            v = np.take(v, self._judged, out=self._v_judged)
+            v_lo, v_hi = float(v.min()), float(v.max())
         w = cfg.window_steps
         self._ring[self._n_steps % w] = v
         self._n_steps += 1
@@ -373,22 +387,30 @@ class MetricsAccumulator:
             self._steps_in_violation += 1
             worst = int(np.argmax(viol))
             if viol[worst] > self._mvvm:
-                self._mvvm, self._mvvm_node = float(viol[worst]), worst
+                self._mvvm = float(viol[worst])
+                self._mvvm_node = worst if self._judged is None else int(self._judged[worst])
 
     @classmethod
     def for_feeder(cls, device_map, engine, *, step_s: int | None = None) -> MetricsAccumulator:
         """The accumulator of a feeder: its nodes, devices, costs and judged limits from the device map.
 
         ``engine`` is any object with ``node_names``, ``regulator_ids`` and ``pv_ids`` (a ``FeederEngine``);
-        ``step_s`` defaults to the device map's step.
+        ``step_s`` defaults to the device map's step. When it has ``node_in_feeder`` (the feeder zone: downstream
+        of the head meter), only the zone's phase nodes (phases 1-3) are judged: the transmission side, other
+        feeders and neutral nodes are not this feeder's voltages (``docs/feeders.md``).
         """
         f = device_map.feeder
+        zone = getattr(engine, "node_in_feeder", None)
+        judged = None
+        if zone is not None:
+            phase_node = np.array([n.rpartition(".")[2] in ("1", "2", "3") for n in engine.node_names], dtype=bool)
+            judged = np.flatnonzero(np.asarray(zone, dtype=bool) & phase_node)
         return cls(
             n_nodes=len(engine.node_names), regulator_ids=list(engine.regulator_ids), pv_ids=list(engine.pv_ids),
             cost_per_tap=[r.cost_per_tap for r in device_map.regulator],
             cost_per_kvar=[p.cost_per_kvar for p in device_map.pv],
             limits_pu=tuple(f.judged_limits_pu), step_s=f.step_s if step_s is None else int(step_s),
-            control_period_s=f.control_period_s,
+            control_period_s=f.control_period_s, judged_nodes=judged,
         )
 
     def result(self) -> Metrics:
