@@ -133,7 +133,11 @@ def _log(msg: str) -> None:
 
 
 def prepare_feeder_and_model(config: RunConfig) -> tuple[Path, Path]:
-    """Resolve (generating or training once, cached) the device map and the model."""
+    """Resolve (generating or training once, cached) the device map and the model.
+
+    A case that runs no agent (``none``, ``local``) trains nothing: the model path is then where the cached
+    model would be, and may not exist.
+    """
     from schemas.devicemap import load_device_map, resolve_device_map_path
     from simulator_bridge.default_feeder import ensure_default_feeder
 
@@ -146,7 +150,7 @@ def prepare_feeder_and_model(config: RunConfig) -> tuple[Path, Path]:
 
     name = f"{dm.feeder.name}-{dm.fingerprint()}-y{config.train_seed}-r{TRAINING_REVISION}.json"
     model_path = cache / "models" / name
-    if not model_path.is_file():
+    if not model_path.is_file() and case_agent_args(config.case, config.bandwidth_v120) is not None:
         from training.model import write_model
         from training.train import train
 
