@@ -179,7 +179,8 @@ def violation_pu(v_pu: np.ndarray, limits_pu: tuple[float, float]) -> np.ndarray
 def tap_cost_per_regulator(tap_changes: np.ndarray, cost_per_tap: np.ndarray) -> np.ndarray:
     """T cost of each regulator, paper eq. (14): ``cost_per_tap_r x`` taps moved (summed over rows)."""
     taps = np.asarray(tap_changes, dtype=float)
-    return np.asarray(cost_per_tap, dtype=float) * taps.reshape(-1, taps.shape[-1]).sum(axis=0)
+    # summed over every leading axis (not reshape(-1, R): that fails for a feeder without regulators, R = 0)
+    return np.asarray(cost_per_tap, dtype=float) * taps.sum(axis=tuple(range(taps.ndim - 1)))
 
 
 def q_cost_per_plant(
