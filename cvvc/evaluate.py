@@ -328,9 +328,12 @@ def evaluate(config: EvaluateConfig) -> Evaluation:
     t0 = time.monotonic()
     out = Path(config.out)
     out.mkdir(parents=True, exist_ok=True)
-    # the feeder and model once, here, so parallel runs never train the same model twice
+    # the feeder and model once, here, so parallel runs never train the same model twice; none when no case runs
+    # an agent (none, local: e.g. epri-ckt5, which has no regulator to train for)
+    agent_case = any(c not in ("none", "local") for c in config.cases)
     dm_path, model = prepare_feeder_and_model(RunConfig(feeder=config.feeder, model=config.model,
                                                         train_seed=config.train_seed, cache=config.cache,
+                                                        case="D" if agent_case else "none",
                                                         progress=config.progress))
     dm = load_device_map(dm_path)
     perturbed = None
