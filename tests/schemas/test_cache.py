@@ -30,3 +30,24 @@ def test_no_module_spells_the_old_working_directory_cache():
                                                       "training") for p in (repo / pkg).rglob("*.py")
                  if old in p.read_text()]
     assert offenders == []
+
+
+def _imports(path: Path) -> set[str]:
+    import ast
+
+    names = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.ImportFrom) and node.module:
+            names.add(node.module)
+        elif isinstance(node, ast.Import):
+            names.update(a.name for a in node.names)
+    return names
+
+
+def test_path_helpers_need_no_sideways_import():
+    """agent/ resolves a device map path through schemas; bridge_cli and cli of simulator_bridge are no circle."""
+    repo = Path(__file__).resolve().parents[2]
+    for p in (repo / "agent").rglob("*.py"):
+        assert not any(m.startswith("simulator_bridge") for m in _imports(p)), p.name
+    assert "simulator_bridge.cli" not in _imports(repo / "simulator_bridge" / "bridge_cli.py")
+    assert "simulator_bridge.cli" not in _imports(repo / "training" / "cli.py")
