@@ -204,11 +204,11 @@ def _info(args: argparse.Namespace) -> int:
         problems = check_feeder(path)
         if problems:
             for line in problems:
-                print(f"cvvc feeder info: {path}: {line}", file=sys.stderr)
+                print(f"cvvc feeder info: error: {path}: {line}", file=sys.stderr)
             return 2
         info = feeder_info(path)
     except CvvcError as e:
-        print(f"cvvc feeder info: {e}", file=sys.stderr)
+        print(f"cvvc feeder info: error: {e}", file=sys.stderr)
         return 2
     if args.json:
         print(msgspec.json.format(msgspec.json.encode(info), indent=2).decode())
@@ -225,12 +225,12 @@ def _scaffold(args: argparse.Namespace) -> int:
 
     out = Path(args.out)
     if out.exists() and not args.force:
-        print(f"cvvc feeder scaffold: {out} exists; pass --force to overwrite it", file=sys.stderr)
+        print(f"cvvc feeder scaffold: error: {out} exists; pass --force to overwrite it", file=sys.stderr)
         return 2
     try:
         r = scaffold_device_map(args.master, out, name=args.name)
     except CvvcError as e:
-        print(f"cvvc feeder scaffold: {e}", file=sys.stderr)
+        print(f"cvvc feeder scaffold: error: {e}", file=sys.stderr)
         return 2
     sites = ", ".join(f"{s.bus} ({s.pmpp_kw:.0f} kW)" for s in r.pv_sites)
     print(f"{out}: feeder {r.name}, head {r.head_element}, zone peak {r.zone.peak_load_kw:.1f} kW "

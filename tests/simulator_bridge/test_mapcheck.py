@@ -72,7 +72,7 @@ def test_each_problem_is_one_line_that_says_how_to_mend_it(info, change, line):
     assert code == 2 and out == ""
     lines = err.strip().splitlines()
     assert len(lines) == 1, err
-    assert lines[0].startswith("cvvc feeder info: ") and line in lines[0]
+    assert lines[0].startswith("cvvc feeder info: error: ") and line in lines[0]
 
 
 def test_every_problem_is_reported_at_once(info):

@@ -117,7 +117,7 @@ def test_scaffold_refuses_to_overwrite_and_names_the_cause(tmp_path, capsys):
     assert "exists; pass --force" in capsys.readouterr().err and out.read_bytes() == before
     assert main(["feeder", "scaffold", str(tmp_path / "missing.dss"), "--out", str(tmp_path / "x.toml")]) == 2
     err = capsys.readouterr().err.strip()
-    assert err.startswith("cvvc feeder scaffold:") and "\n" not in err
+    assert err.startswith("cvvc feeder scaffold: error:") and "\n" not in err
 
 
 def test_zone_of_a_circuit_without_meter_starts_at_the_first_line_out():
