@@ -31,6 +31,7 @@ import time
 from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import opendssdirect as dss
@@ -38,9 +39,8 @@ import opendssdirect as dss
 from schemas.devicemap import DeviceMap, DeviceMapError
 from schemas.errors import CvvcError
 
-__all__ = ["CircuitSurvey", "EngineError", "FeederEngine", "FieldReadings", "OpenDssSnapshot", "Sensitivities",
-           "SurveyBus", "SurveyCapacitor", "SurveyEdge", "SurveyLoad", "SurveyMeter", "SurveyPvSystem",
-           "SurveyRegControl", "opendss_snapshot", "survey_circuit"]
+__all__ = ["EngineError", "FeederEngine", "FieldReadings", "OpenDssSnapshot", "Sensitivities", "opendss_snapshot",
+           "survey_circuit"]
 
 _PHASES = (1, 2, 3)
 _LOAD_SETTER_FLAGS = 2  # SetterFlags_AvoidFullRecalc: a kW change does not rebuild the load's Yprim
@@ -789,125 +789,15 @@ def opendss_snapshot(master: str | Path, *, tolerance: float = 1e-8) -> OpenDssS
 
 
 # ---------------------------------------------------------------------------------------------------------------
-# Circuit survey: a read-only description of a compiled model, for ``cvvc feeder scaffold`` and ``feeder info``.
+# Circuit survey: a read-only description of a compiled model, for ``cvvc feeder scaffold`` and ``feeder info``
+# (the result types are in survey.py).
 # ---------------------------------------------------------------------------------------------------------------
 
 
-@dataclass(frozen=True)
-class SurveyBus:
-    """One bus: its name (lower case), line-to-neutral base [kV] and the phases (1-3) it has."""
+_CAPCONTROL_MODES = {0: "current", 1: "voltage", 2: "kvar", 3: "time", 4: "pf"}  # CapControls.Mode()
 
-    name: str
-    kv_ln: float
-    phases: tuple[int, ...]
-
-
-@dataclass(frozen=True)
-class SurveyEdge:
-    """One enabled power-delivery element between two buses (lines, transformers, regulators, reactors).
-
-    ``z_ohm`` is a line's positive-sequence series impedance times its length, on its own voltage [ohm]
-    (0 for every other element); ``phases`` its number of phases; ``kind`` its OpenDSS class, lower case.
-    A transformer with more than two windings gives one edge per winding pair.
-    """
-
-    element: str
-    kind: str
-    bus1: str
-    bus2: str
-    phases: int
-    z_ohm: complex
-
-
-@dataclass(frozen=True)
-class SurveyRegControl:
-    """One OpenDSS ``RegControl``: its transformer and winding, the buses of the winding, and its settings.
-
-    ``vreg_v120``/``band_v120`` [V on the 120 V base], ``delay_s``/``tapdelay_s`` [s]; ``monitored_bus`` is ``""``
-    for local sensing.
-    """
-
-    name: str
-    transformer: str
-    winding: int
-    bus: str
-    other_bus: str
-    phases: int
-    vreg_v120: float
-    band_v120: float
-    delay_s: float
-    tapdelay_s: float
-    monitored_bus: str
-
-
-@dataclass(frozen=True)
-class SurveyCapacitor:
-    """One OpenDSS ``Capacitor`` [kvar at rated kV, kV as rated] and its ``CapControl`` (None when it has none)."""
-
-    name: str
-    bus: str
-    phases: int
-    kvar: float
-    kv: float
-    capcontrol: str | None
-    control_mode: str | None
-
-
-@dataclass(frozen=True)
-class SurveyPvSystem:
-    """One existing OpenDSS ``PVSystem`` [kVA, kW, kV as in the model]."""
-
-    name: str
-    bus: str
-    phases: int
-    kva: float
-    pmpp_kw: float
-    kv: float
-
-
-@dataclass(frozen=True)
-class SurveyLoad:
-    """One load: its bus and nominal ``kW=`` [kW]."""
-
-    name: str
-    bus: str
-    kw: float
-
-
-@dataclass(frozen=True)
-class SurveyMeter:
-    """One ``EnergyMeter``: the element (``Class.name``, lower case) and terminal it meters."""
-
-    name: str
-    element: str
-    terminal: int
-
-
-@dataclass(frozen=True)
-class CircuitSurvey:
-    """What a compiled OpenDSS model holds, read once (``survey_circuit``); no OpenDSS object outlives it.
-
-    ``source_bus`` is the bus of ``Vsource.source`` (``source_kv_ll`` [kV], ``source_pu`` [pu]); ``elements``
-    every element name (``class.name``, lower case); ``node_count`` the single-phase nodes (``AllNodeNames``).
-    """
-
-    master: str
-    circuit: str
-    source_bus: str
-    source_kv_ll: float
-    source_pu: float
-    buses: tuple[SurveyBus, ...]
-    edges: tuple[SurveyEdge, ...]
-    elements: frozenset[str]
-    regcontrols: tuple[SurveyRegControl, ...]
-    capacitors: tuple[SurveyCapacitor, ...]
-    pvsystems: tuple[SurveyPvSystem, ...]
-    loads: tuple[SurveyLoad, ...]
-    meters: tuple[SurveyMeter, ...]
-    node_count: int
-
-
-_CAPCONTROL_MODES = {0: "current", 1: "voltage", 2: "kvar", 3: "time", 4: "pf"}
+if TYPE_CHECKING:
+    from simulator_bridge.survey import CircuitSurvey
 
 
 def survey_circuit(master: str | Path, *, extra_commands: tuple[str, ...] | list[str] = ()) -> CircuitSurvey:
@@ -920,6 +810,17 @@ def survey_circuit(master: str | Path, *, extra_commands: tuple[str, ...] | list
     EngineError
         The model does not compile, an extra command is rejected, or the circuit is empty.
     """
+    from simulator_bridge.survey import (
+        CircuitSurvey,
+        SurveyBus,
+        SurveyCapacitor,
+        SurveyEdge,
+        SurveyLoad,
+        SurveyMeter,
+        SurveyPvSystem,
+        SurveyRegControl,
+    )
+
     master = Path(master).resolve()
     d = dss.NewContext()
     cwd = os.getcwd()

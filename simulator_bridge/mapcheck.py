@@ -1,13 +1,13 @@
 """Check a device map against its circuit (``cvvc feeder info``): one line per problem, saying how to mend it.
 
-Pure: works on a :class:`~simulator_bridge.engine.CircuitSurvey` (``engine.survey_circuit``), so it needs no
+Pure: works on a :class:`~simulator_bridge.survey.CircuitSurvey` (``engine.survey_circuit``), so it needs no
 ``FeederEngine`` and finds every problem at once instead of stopping at the first.
 """
 
 from __future__ import annotations
 
 from schemas.devicemap import DeviceMap
-from simulator_bridge.engine import CircuitSurvey
+from simulator_bridge.survey import CircuitSurvey
 from simulator_bridge.zone import ZoneError, feeder_zone, first_line_out
 
 __all__ = ["KV_TOLERANCE", "check_device_map", "suggested_head_element"]

@@ -1,4 +1,4 @@
-"""The feeder zone and electrical distances on a circuit survey (pure functions of ``engine.CircuitSurvey``).
+"""The feeder zone and electrical distances on a circuit survey (pure functions of ``survey.CircuitSurvey``).
 
 The **feeder zone** is what lies downstream of the head meter element: the head element's first bus (where the
 meter measures) and every bus reached from its other side without crossing it back. Loads on the head's first
@@ -14,7 +14,7 @@ from collections import deque
 from dataclasses import dataclass
 
 from schemas.errors import CvvcError
-from simulator_bridge.engine import CircuitSurvey
+from simulator_bridge.survey import CircuitSurvey
 
 __all__ = [
     "PRIMARY_MIN_KV_LL",

@@ -9,7 +9,7 @@ import json
 
 import pytest
 
-from simulator_bridge.engine import CircuitSurvey, SurveyBus, SurveyEdge, SurveyLoad
+from simulator_bridge.survey import CircuitSurvey, SurveyBus, SurveyEdge, SurveyLoad
 from simulator_bridge.zone import feeder_zone
 from tests.conftest import REPO, SHARED_FEEDERS
 
