@@ -27,6 +27,7 @@ OpenDSS's own controls are off (``set controlmode=off``); regulator behaviour is
 from __future__ import annotations
 
 import os
+import tempfile
 import time
 from collections import deque
 from dataclasses import dataclass
@@ -212,7 +213,7 @@ class FeederEngine:
     def _compile(self, master: Path) -> None:
         cwd = os.getcwd()
         try:
-            self._dss.Text.Command(f'compile "{master}"')
+            _compile_read_only(self._dss, master)
         except dss.DSSException as e:
             raise EngineError(f"{master}: the feeder does not compile: {e}; fix the OpenDSS model") from e
         finally:
@@ -825,7 +826,7 @@ def survey_circuit(master: str | Path, *, extra_commands: tuple[str, ...] | list
     d = dss.NewContext()
     cwd = os.getcwd()
     try:
-        d.Text.Command(f'compile "{master}"')
+        _compile_read_only(d, master)
         for cmd in extra_commands:
             d.Text.Command(cmd)
     except dss.DSSException as e:
@@ -937,6 +938,22 @@ def survey_circuit(master: str | Path, *, extra_commands: tuple[str, ...] | list
         capacitors=tuple(caps), pvsystems=tuple(pvs), loads=tuple(loads), meters=tuple(meters),
         node_count=len(d.Circuit.AllNodeNames()),
     )
+
+
+def _compile_read_only(d, master: Path) -> None:
+    """Compile ``master`` without writing into its folder, then make its folder the data path as ``compile`` does.
+
+    ``compile`` makes the master's folder OpenDSS's output folder while the model is read, so a model that opens
+    an output file as it is defined (epri-ckt24's LTC has ``debugtrace=yes``: ``REG_<name>.csv``) writes into the
+    shared, read-in-place model folder, and FreePascal's exclusive lock on that file makes every other process that
+    compiles the model meanwhile fail ("Unable to create file"). Here the model is read with ``redirect`` (which
+    resolves its files as ``compile`` does) while the data path is a private temporary folder, removed afterwards.
+    """
+    with tempfile.TemporaryDirectory(prefix="cvvc-dss-") as scratch:
+        d.Text.Command(f'set datapath="{scratch}"')
+        d.Text.Command(f'redirect "{master}"')
+        _close_debug_traces(d)  # closes the trace files, which live in scratch
+        d.Text.Command(f'set datapath="{master.parent}"')
 
 
 def _close_debug_traces(d) -> None:
