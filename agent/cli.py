@@ -79,8 +79,7 @@ def _agent(args: argparse.Namespace) -> int:
 
     expect = None
     if args.feeder:
-        from schemas.devicemap import load_device_map
-        from simulator_bridge.cli import resolve_device_map_path
+        from schemas.devicemap import load_device_map, resolve_device_map_path
 
         expect = load_device_map(resolve_device_map_path(args.feeder)).fingerprint()
     model = read_model(args.model, expect_fingerprint=expect)

@@ -29,7 +29,7 @@ def bench_decision(
     device_map_path: str | Path,
     *,
     control_steps: int = 48,
-    cache: Path = Path(".cvvc-cache"),
+    cache: Path | None = None,
     start_hour: float = 10.0,
     month: int = 7,
     repeats: int = 3,
@@ -40,6 +40,7 @@ def bench_decision(
     from regression.model import read_model, write_model
     from schemas import keys
     from schemas import messages as m
+    from schemas.cache import cache_root
     from schemas.devicemap import load_device_map
     from simulator_bridge import devices as dv
     from simulator_bridge.engine import FeederEngine
@@ -47,6 +48,7 @@ def bench_decision(
     from simulator_bridge.qsts import Qsts
     from training.train import TRAINING_REVISION, load_profiles, train
 
+    cache = cache_root(cache)
     dm = load_device_map(device_map_path)
     model_path = cache / "models" / f"{dm.feeder.name}-{dm.fingerprint()}-y1-r{TRAINING_REVISION}.json"
     if not model_path.is_file():

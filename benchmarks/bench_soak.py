@@ -29,6 +29,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from schemas.cache import profiles_dir
 from schemas.errors import CvvcError
 
 __all__ = ["SoakError", "bench_soak", "proc_memory_kib"]
@@ -79,7 +80,7 @@ def _growth(start: dict[str, int], end: dict[str, int], key: str) -> float | Non
 
 
 def bench_soak(days: float = 30.0, feeder: str | None = None, *, start: str = "2023-06-01",
-               cache: str = ".cvvc-cache", out_dir: str | None = None, lockstep_timeout_s: float = 10.0,
+               cache: str | None = None, out_dir: str | None = None, lockstep_timeout_s: float = 10.0,
                truth_every: int = 60, year_seed: int = 2) -> dict[str, Any]:
     """Run ``days`` simulated days in lockstep (case D) and return the memory and loss figures (module doc).
 
@@ -137,7 +138,7 @@ def bench_soak(days: float = 30.0, feeder: str | None = None, *, start: str = "2
                 "bridge", "--feeder", str(dm_path), "--feeder-id", fid, "--start", start, "--steps", str(steps),
                 "--year-seed", str(year_seed), "--lockstep", "--timeout-s", str(lockstep_timeout_s),
                 "--wait-agent-s", "120", "--truth-every", str(truth_every),
-                "--cache-dir", str(Path(cache) / "profiles"), "--json", "--connect", endpoint], out)
+                "--cache-dir", str(profiles_dir(cache)), "--json", "--connect", endpoint], out)
             next_sample_step = per_hour
             while procs["bridge"].poll() is None:
                 for name in ("recorder", "agent"):

@@ -25,17 +25,18 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from schemas.cache import cache_root, profiles_dir
+
 REPO = Path(__file__).resolve().parents[1]
 FEEDERS = REPO / "feeders"
-CACHE = Path(".cvvc-cache")
 
 __all__ = ["main"]
 
 
 def _rural() -> Path:
-    from simulator_bridge.cli import ensure_default_feeder
+    from simulator_bridge.default_feeder import ensure_default_feeder
 
-    return ensure_default_feeder(CACHE)
+    return ensure_default_feeder(cache_root(None))
 
 
 def bench_qsts_all(quick: bool) -> dict[str, Any]:
@@ -53,7 +54,7 @@ def bench_bridge_all(quick: bool) -> dict[str, Any]:
     from simulator_bridge.bench_bridge import bench_bridge
 
     steps = 240 if quick else 1440
-    return {name: bench_bridge(path, steps, cache_dir=str(CACHE / "profiles"))
+    return {name: bench_bridge(path, steps, cache_dir=str(profiles_dir(None)))
             for name, path in (("rural", _rural()), ("ieee123", FEEDERS / "ieee123.toml"))}
 
 
@@ -65,9 +66,9 @@ def bench_training(quick: bool) -> dict[str, Any]:
     if not quick:
         feeders.append(("ieee8500", FEEDERS / "ieee8500.toml"))
     for name, path in feeders:
-        train(path, year_seed=1, cache_dir=CACHE / "profiles", progress=False)  # profiles cached: not timed
+        train(path, year_seed=1, cache_dir=profiles_dir(None), progress=False)  # profiles cached: not timed
         t0 = time.perf_counter()
-        result = train(path, year_seed=1, cache_dir=CACHE / "profiles", progress=False)
+        result = train(path, year_seed=1, cache_dir=profiles_dir(None), progress=False)
         out[name] = {"seconds": round(time.perf_counter() - t0, 2), "scenarios": result.summary.scenarios,
                      "power_flows": result.summary.power_flows, "critical_nodes": result.summary.critical_nodes,
                      "goal_s": 60 if name != "ieee8500" else 600}
@@ -86,9 +87,9 @@ def bench_solver(quick: bool) -> dict[str, Any]:
 def bench_decision(quick: bool) -> dict[str, Any]:
     from benchmarks.bench_decision import bench_decision as run
 
-    out = {"rural": run(_rural(), control_steps=12 if quick else 96, cache=CACHE)}
+    out = {"rural": run(_rural(), control_steps=12 if quick else 96, cache=cache_root(None))}
     if not quick:
-        out["ieee8500"] = run(FEEDERS / "ieee8500.toml", control_steps=24, cache=CACHE)
+        out["ieee8500"] = run(FEEDERS / "ieee8500.toml", control_steps=24, cache=cache_root(None))
     return out
 
 

@@ -86,7 +86,7 @@ class EvaluateConfig(msgspec.Struct, frozen=True, kw_only=True):
     days_per_season: float | None = None  # None: the whole month
     jobs: int = 1
     out: str = "runs/evaluate"
-    cache: str = ".cvvc-cache"
+    cache: str | None = None  # cache root; None: schemas.cache.default_cache_root()
     robustness: bool = False
     pv_margin_window_s: float | None = None  # the agent's PV variability margin window; None: its default, 0: off
     setpoint_hold: bool = False  # the agent's opt-in set-point hold (cases C/D)
@@ -332,9 +332,12 @@ def evaluate(config: EvaluateConfig) -> Evaluation:
     t0 = time.monotonic()
     out = Path(config.out)
     out.mkdir(parents=True, exist_ok=True)
-    # the feeder and model once, here, so parallel runs never train the same model twice
+    # the feeder and model once, here, so parallel runs never train the same model twice; none when no case runs
+    # an agent (none, local: e.g. epri-ckt5, which has no regulator to train for)
+    agent_case = any(c not in ("none", "local") for c in config.cases)
     dm_path, model = prepare_feeder_and_model(RunConfig(feeder=config.feeder, model=config.model,
                                                         train_seed=config.train_seed, cache=config.cache,
+                                                        case="D" if agent_case else "none",
                                                         progress=config.progress))
     dm = load_device_map(dm_path)
     perturbed = None

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 
 from cvvc.cli_options import add_agent_option_arguments
+from schemas.cache import CACHE_HELP
 
 __all__ = ["register_evaluate", "register_report_plots"]
 
@@ -31,7 +32,7 @@ def register_evaluate(sub: argparse._SubParsersAction) -> None:
                    help="case D under PMU/SCADA noise, 1 %% and 5 %% dropped frames, and +-10 %% model error")
     p.add_argument("--resume", action="store_true",
                    help="reuse runs already finished in --out (same case and window); run only the others")
-    p.add_argument("--cache", default=".cvvc-cache", help="cache of feeders, profiles and models")
+    p.add_argument("--cache", default=None, help=CACHE_HELP)
     p.add_argument("--out", required=True, help="output folder")
     p.set_defaults(func=_evaluate)
 

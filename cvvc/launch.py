@@ -34,6 +34,7 @@ import msgspec
 
 from cvvc.errors import CommandError
 from schemas import messages as m
+from schemas.cache import cache_root, profiles_dir
 from simulator_bridge.metrics import Metrics
 
 if TYPE_CHECKING:
@@ -44,7 +45,6 @@ __all__ = ["CASES", "CASE_AGENT", "CaseAgent", "LaunchError", "RunConfig", "RunS
 
 Case = Literal["A", "B", "C", "D", "none", "local"]
 CASES: tuple[Case, ...] = ("A", "B", "C", "D", "none", "local")
-DEFAULT_CACHE = Path(".cvvc-cache")
 
 
 class LaunchError(CommandError):
@@ -68,7 +68,7 @@ class RunConfig(msgspec.Struct, frozen=True, kw_only=True):
     pv_margin_window_s: float | None = None  # the agent's PV variability margin window; None: its default, 0: off
     setpoint_hold: bool = False  # the agent's opt-in set-point hold (cases C/D)
     lockstep_timeout_s: float = 10.0
-    cache: str = str(DEFAULT_CACHE)
+    cache: str | None = None  # cache root; None: schemas.cache.default_cache_root()
     record: bool = True
     baseline: bool = True
     progress: bool = True
@@ -156,11 +156,15 @@ def _log(msg: str) -> None:
 
 
 def prepare_feeder_and_model(config: RunConfig) -> tuple[Path, Path]:
-    """Resolve (generating or training once, cached) the device map and the model."""
-    from schemas.devicemap import load_device_map
-    from simulator_bridge.cli import ensure_default_feeder, resolve_device_map_path
+    """Resolve (generating or training once, cached) the device map and the model.
 
-    cache = Path(config.cache)
+    A case that runs no agent (``none``, ``local``) trains nothing: the model path is then where the cached
+    model would be, and may not exist.
+    """
+    from schemas.devicemap import load_device_map, resolve_device_map_path
+    from simulator_bridge.default_feeder import ensure_default_feeder
+
+    cache = cache_root(config.cache)
     dm_path = resolve_device_map_path(config.feeder) if config.feeder else ensure_default_feeder(cache)
     dm = load_device_map(dm_path)
     if config.model:
@@ -169,7 +173,7 @@ def prepare_feeder_and_model(config: RunConfig) -> tuple[Path, Path]:
 
     name = f"{dm.feeder.name}-{dm.fingerprint()}-y{config.train_seed}-r{TRAINING_REVISION}.json"
     model_path = cache / "models" / name
-    if not model_path.is_file():
+    if not model_path.is_file() and CASE_AGENT[config.case] is not None:  # cases without an agent need none
         from regression.model import write_model
         from training.train import train
 
@@ -269,7 +273,7 @@ def run(config: RunConfig) -> RunSummary:
         if config.ca_dir is None:
             raise LaunchError("--secure needs --ca-dir CA: create the authority once with `cvvc security init-ca "
                               "--dir CA`, outside the cache (its key must not sit beside the run's keys)")
-        security_dir = str(Path(config.cache) / "security")
+        security_dir = str(cache_root(config.cache) / "security")
         init_security_dir(security_dir, ca_dir=config.ca_dir)
         connect += ["--secure-dir", security_dir]
     children: list[_Child] = []
@@ -308,7 +312,7 @@ def run(config: RunConfig) -> RunSummary:
                 realism += ["--noise-scada-pct", str(config.noise_scada_pct)]
             if config.drop_prob:
                 realism += ["--drop-prob", str(config.drop_prob)]
-            realism += ["--truth-every", str(config.truth_every), "--cache-dir", str(Path(config.cache) / "profiles")]
+            realism += ["--truth-every", str(config.truth_every), "--cache-dir", str(profiles_dir(config.cache))]
             bridge = _spawn("bridge", [
                 "bridge", "--feeder", str(dm_path), "--feeder-id", feeder_id, "--start", start_text,
                 "--steps", str(steps), "--year-seed", str(config.year_seed),
@@ -363,7 +367,7 @@ def run(config: RunConfig) -> RunSummary:
     baseline = None
     if config.baseline and config.case != "none":
         _log("simulating the no-control baseline of the same days")
-        baseline = no_control_baseline(dm_path, start, steps, config.year_seed, Path(config.cache))
+        baseline = no_control_baseline(dm_path, start, steps, config.year_seed, cache_root(config.cache))
     summary = RunSummary(
         feeder=str(dm_path), feeder_id=feeder_id, case=config.case, start=start_text, days=config.days,
         steps=steps, wall_s=round(wall_s, 2), metrics=final, baseline=baseline,

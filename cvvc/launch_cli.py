@@ -6,6 +6,7 @@ import argparse
 import sys
 
 from cvvc.cli_options import add_agent_option_arguments
+from schemas.cache import CACHE_HELP
 
 __all__ = ["register"]
 
@@ -30,7 +31,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_agent_option_arguments(p)
     p.add_argument("--no-record", action="store_true", help="do not record the session to MCAP")
     p.add_argument("--no-baseline", action="store_true", help="skip the no-control baseline")
-    p.add_argument("--cache", default=".cvvc-cache", help="cache of feeders, profiles and models")
+    p.add_argument("--cache", default=None, help=CACHE_HELP)
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     p.add_argument("--secure", action="store_true",
                    help="security profile: mTLS with per-role certificates (issued once into <cache>/security "

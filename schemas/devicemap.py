@@ -42,6 +42,7 @@ __all__ = [
     "PvPlantSpec",
     "RegulatorSpec",
     "load_device_map",
+    "resolve_device_map_path",
 ]
 
 Name = Annotated[str, Meta(pattern=r"^[A-Za-z0-9_.\-]{1,64}$")]
@@ -185,3 +186,22 @@ def load_device_map(path: str | Path) -> DeviceMap:
     if not dm.master_path.is_file():
         raise DeviceMapError(f"{path}: master file {dm.feeder.master!r} not found at {dm.master_path}")
     return dm
+
+
+def resolve_device_map_path(feeder: str | Path) -> Path:
+    """Turn a FEEDER argument (device map TOML, or a folder holding ``devicemap.toml``) into the TOML path.
+
+    Raises
+    ------
+    DeviceMapError
+        Neither a TOML file nor a folder with ``devicemap.toml``.
+    """
+    p = Path(feeder)
+    if p.is_dir():
+        p = p / "devicemap.toml"
+    if not p.is_file():
+        raise DeviceMapError(
+            f"{feeder}: no device map there; pass a device map TOML or a folder with "
+            "devicemap.toml (cvvc feeder generate writes one, cvvc feeder scaffold drafts one)"
+        )
+    return p

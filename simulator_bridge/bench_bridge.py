@@ -72,7 +72,7 @@ def _responder(endpoint: str, feeder_id: str, control_period_s: int, ready: Any,
 
 
 def bench_bridge(device_map: str | Path, steps: int, *, seed: int = 1, truth_every: int = 1, repeats: int = 3,
-                 cache_dir: str | None = ".cvvc-cache", publisher: str = "auto") -> dict:
+                 cache_dir: str | None = None, publisher: str = "auto") -> dict:
     """Lockstep bridge vs bare QSTS on ``steps`` 1-minute steps of one feeder.
 
     The two are timed alternately ``repeats`` times (bare, bridge, bare, bridge, ...) on fresh engines from the
@@ -185,13 +185,14 @@ def main(argv: list[str] | None = None) -> int:
     """Print the bench for IEEE 123 and the embedded rural feeder (``argv[0]``: steps, default 1440; ``argv[1:]``:
     publisher settings, default ``inline process``).
     """
-    from simulator_bridge.cli import DEFAULT_CACHE_ROOT, ensure_default_feeder
+    from schemas.cache import cache_root
+    from simulator_bridge.default_feeder import ensure_default_feeder
 
     args = sys.argv[1:] if argv is None else argv
     steps = int(args[0]) if args else 1440
     publishers = args[1:] or ["inline", "process"]
     repo = Path(__file__).resolve().parents[1]
-    for path in (repo / "feeders" / "ieee123.toml", ensure_default_feeder(DEFAULT_CACHE_ROOT)):
+    for path in (repo / "feeders" / "ieee123.toml", ensure_default_feeder(cache_root(None))):
         for truth_every in (1, 0):
             for publisher in publishers:
                 print(json.dumps(bench_bridge(path, steps, truth_every=truth_every, publisher=publisher)), flush=True)

@@ -138,7 +138,7 @@ class BridgeConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fie
     drop_prob: float = 0.0
     latency_s: float = 0.0
     noise_seed: int = 0
-    cache_dir: str | None = ".cvvc-cache"
+    cache_dir: str | None = None  # year-profile cache folder; None: no cache (the CLI passes its --cache's)
     publisher: Literal["auto", "inline", "process"] = "auto"
 
 

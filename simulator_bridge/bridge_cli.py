@@ -19,12 +19,14 @@ def _bridge(args: argparse.Namespace) -> int:
     import msgspec
 
     from schemas.bus import bus_config_from_args
+    from schemas.cache import cache_root, profiles_dir
+    from schemas.devicemap import resolve_device_map_path
     from schemas.errors import CvvcError
     from simulator_bridge.bridge import BridgeConfig, run_bridge
-    from simulator_bridge.cli import DEFAULT_CACHE_ROOT, ensure_default_feeder, resolve_device_map_path
+    from simulator_bridge.default_feeder import ensure_default_feeder
 
     try:
-        path = (ensure_default_feeder(DEFAULT_CACHE_ROOT) if args.feeder is None
+        path = (ensure_default_feeder(cache_root(args.cache)) if args.feeder is None
                 else resolve_device_map_path(args.feeder))
         if args.steps is not None:
             steps = args.steps
@@ -36,7 +38,8 @@ def _bridge(args: argparse.Namespace) -> int:
             wait_agent_s=args.wait_agent_s, year_seed=args.year_seed, pv_local=args.pv_local,
             truth_every=args.truth_every, noise_pmu_pct=args.noise_pmu_pct, noise_scada_pct=args.noise_scada_pct,
             drop_prob=args.drop_prob, latency_s=args.latency_s, noise_seed=args.noise_seed,
-            cache_dir=None if args.cache_dir == "" else args.cache_dir, publisher=args.publisher,
+            cache_dir=(str(profiles_dir(args.cache)) if args.cache_dir is None
+                       else None if args.cache_dir == "" else args.cache_dir), publisher=args.publisher,
         )
         default_mode = "router" if args.listen and not args.connect else "peer"
         bus = bus_config_from_args(args, default_mode=default_mode, role="devices")
@@ -64,6 +67,7 @@ def _bridge(args: argparse.Namespace) -> int:
 def register_bridge(subparsers: argparse._SubParsersAction) -> None:
     """Add the ``bridge`` verb."""
     from schemas.bus import add_bus_arguments
+    from schemas.cache import CACHE_HELP
 
     p = subparsers.add_parser("bridge", help="run the simulated feeder's field devices on the bus")
     p.add_argument("--feeder", default=None,
@@ -78,7 +82,9 @@ def register_bridge(subparsers: argparse._SubParsersAction) -> None:
     when.add_argument("--year-seed", type=int, default=1, help="profile seed (default 1)")
     when.add_argument("--pv-local", choices=["unity", "volt_var"], default="unity",
                       help="PV local default without a valid command (default unity power factor)")
-    when.add_argument("--cache-dir", default=".cvvc-cache", help="profile cache folder ('' for none)")
+    when.add_argument("--cache", default=None, help=CACHE_HELP)
+    when.add_argument("--cache-dir", default=None,
+                      help="profile cache folder ('' for none; default: profiles/ in the --cache folder)")
     clock = p.add_argument_group("clock")
     mode = clock.add_mutually_exclusive_group()
     mode.add_argument("--lockstep", action="store_true", help="wait for the agent each control step (default)")

@@ -27,10 +27,12 @@ OpenDSS's own controls are off (``set controlmode=off``); regulator behaviour is
 from __future__ import annotations
 
 import os
+import tempfile
 import time
 from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import opendssdirect as dss
@@ -48,6 +50,7 @@ __all__ = [
     "Sensitivities",
     "opendss_control_loop",
     "opendss_snapshot",
+    "survey_circuit",
 ]
 
 _PHASES = (1, 2, 3)
@@ -252,13 +255,14 @@ class FeederEngine:
     def _compile(self, master: Path) -> None:
         cwd = os.getcwd()
         try:
-            self._dss.Text.Command(f'compile "{master}"')
+            _compile_read_only(self._dss, master)
         except dss.DSSException as e:
             raise EngineError(f"{master}: the feeder does not compile: {e}; fix the OpenDSS model") from e
         finally:
             os.chdir(cwd)
         if self._dss.Circuit.NumBuses() == 0:
             raise EngineError(f"{master}: compiled to an empty circuit; is this an OpenDSS master file?")
+        _close_debug_traces(self._dss)
 
     def _check_names(self) -> None:
         dm = self.device_map
@@ -1037,6 +1041,24 @@ class FeederEngine:
             self._lib.DSS_Dispose_PDouble(self._ce_result)
             self._ce_result = None
 
+    # ------------------------------------------------------------------ the feeder zone
+    @property
+    def load_in_feeder(self) -> np.ndarray:
+        """(n_loads,) bool, in ``load_names`` order: the load is downstream of the head meter.
+
+        A load on the meter's own bus (beside the meter, e.g. the aggregate of the substation's other feeders)
+        or upstream of it is not the feeder's: it keeps its profile in the simulation but is left out of the
+        feeder's peak load and PV sizing (``simulator_bridge.zone``, ``docs/feeders.md``).
+        """
+        zone = {n.split(".")[0] for n, inside in zip(self.node_names, self.node_in_feeder, strict=True) if inside}
+        head = {self.node_names[i].split(".")[0] for i in self.head_node_index}
+        return np.array([b in zone and b not in head for b in self._load_buses], dtype=bool)
+
+    @property
+    def zone_peak_load_kw(self) -> float:
+        """Sum of the nominal ``kW=`` of the loads downstream of the head meter [kW]."""
+        return float(self.load_kw_nominal[self.load_in_feeder].sum())
+
 
 def _select_phase_index(mag: np.ndarray, mask: np.ndarray, mode: np.ndarray) -> np.ndarray:
     """(n,) column of each row: the fixed phase ``mode`` (1..3), the highest (-2) or lowest (-3) present one."""
@@ -1177,3 +1199,182 @@ def opendss_control_loop(device_map: DeviceMap, load_kw: np.ndarray, *, step_s: 
         eng.close()
     return OpenDssControlRun(regcontrol_names=tuple(regs), capcontrol_names=tuple(c.name for c in eng.cap_controls),
                              taps=taps, cap_states=states, step_s=float(step_s), elapsed_s=elapsed)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Circuit survey: a read-only description of a compiled model, for ``cvvc feeder scaffold`` and ``feeder info``
+# (the result types are in survey.py).
+# ---------------------------------------------------------------------------------------------------------------
+
+
+_CAPCONTROL_MODES = {0: "current", 1: "voltage", 2: "kvar", 3: "time", 4: "pf"}  # CapControls.Mode()
+
+if TYPE_CHECKING:
+    from simulator_bridge.survey import CircuitSurvey
+
+
+def survey_circuit(master: str | Path, *, extra_commands: tuple[str, ...] | list[str] = ()) -> CircuitSurvey:
+    """Compile ``master`` in a context of its own (plus ``extra_commands``) and read what it holds.
+
+    Read only: nothing is solved, nothing is changed; the context is dropped on return.
+
+    Raises
+    ------
+    EngineError
+        The model does not compile, an extra command is rejected, or the circuit is empty.
+    """
+    from simulator_bridge.survey import (
+        CircuitSurvey,
+        SurveyBus,
+        SurveyCapacitor,
+        SurveyEdge,
+        SurveyLoad,
+        SurveyMeter,
+        SurveyPvSystem,
+        SurveyRegControl,
+    )
+
+    master = Path(master).resolve()
+    d = dss.NewContext()
+    cwd = os.getcwd()
+    try:
+        _compile_read_only(d, master)
+        for cmd in extra_commands:
+            d.Text.Command(cmd)
+    except dss.DSSException as e:
+        raise EngineError(f"{master}: the feeder does not compile: {e}; fix the OpenDSS model") from e
+    finally:
+        os.chdir(cwd)
+    if d.Circuit.NumBuses() == 0:
+        raise EngineError(f"{master}: compiled to an empty circuit; is this an OpenDSS master file?")
+    _close_debug_traces(d)
+
+    def bus_of(spec: str) -> str:
+        return spec.split(".")[0].lower()
+
+    def phases_of(spec: str, n: int) -> int:
+        parts = [p for p in spec.split(".")[1:] if p.isdigit() and 1 <= int(p) <= 3]
+        return len(parts) if parts else n
+
+    buses = []
+    for name in d.Circuit.AllBusNames():
+        d.Circuit.SetActiveBus(name)
+        buses.append(SurveyBus(name.lower(), float(d.Bus.kVBase()),
+                               tuple(sorted(int(n) for n in d.Bus.Nodes() if 1 <= int(n) <= 3))))
+    line_z: dict[str, complex] = {}
+    i = d.Lines.First()
+    while i > 0:
+        n = int(d.Lines.Phases())
+        z = (np.asarray(d.Lines.RMatrix(), float) + 1j * np.asarray(d.Lines.XMatrix(), float)).reshape(n, n)
+        z1 = np.mean(np.diag(z)) - (np.mean(z[~np.eye(n, dtype=bool)]) if n > 1 else 0.0)
+        line_z[f"line.{d.Lines.Name().lower()}"] = complex(z1 * d.Lines.Length())
+        i = d.Lines.Next()
+    edges = []
+    i = d.PDElements.First()
+    while i > 0:
+        name = d.CktElement.Name().lower()
+        specs = list(d.CktElement.BusNames())
+        kind = name.split(".")[0]
+        if d.CktElement.Enabled() and kind != "capacitor":
+            n_ph = int(d.CktElement.NumPhases())
+            for a in range(len(specs)):
+                for b in range(a + 1, len(specs)):
+                    if bus_of(specs[a]) != bus_of(specs[b]):
+                        edges.append(SurveyEdge(name, kind, bus_of(specs[a]), bus_of(specs[b]),
+                                                min(phases_of(specs[a], n_ph), phases_of(specs[b], n_ph)),
+                                                line_z.get(name, 0j)))
+        i = d.PDElements.Next()
+    d.Circuit.SetActiveElement("Vsource.source")
+    source_bus = bus_of(d.CktElement.BusNames()[0])
+    d.Vsources.Name("source")
+    source_kv, source_pu = float(d.Vsources.BasekV()), float(d.Vsources.PU())
+
+    regs = []
+    i = d.RegControls.First()
+    while i > 0:
+        name, xf, w = d.RegControls.Name().lower(), d.RegControls.Transformer().lower(), int(d.RegControls.Winding())
+        vreg, band = float(d.RegControls.ForwardVreg()), float(d.RegControls.ForwardBand())
+        delay, tapdelay = float(d.RegControls.Delay()), float(d.RegControls.TapDelay())
+        monitored = d.RegControls.MonitoredBus().strip().lower()
+        d.Circuit.SetActiveElement(f"Transformer.{xf}")
+        specs = list(d.CktElement.BusNames())
+        n_ph = int(d.CktElement.NumPhases())
+        other = specs[1] if w == 1 and len(specs) > 1 else specs[0]
+        regs.append(SurveyRegControl(name, xf, w, bus_of(specs[w - 1]), bus_of(other), phases_of(specs[w - 1], n_ph),
+                                     vreg, band, delay, tapdelay, monitored))
+        i = d.RegControls.Next()
+    controls: dict[str, tuple[str, str]] = {}
+    i = d.CapControls.First()
+    while i > 0:
+        controls[d.CapControls.Capacitor().lower()] = (
+            d.CapControls.Name().lower(), _CAPCONTROL_MODES.get(int(d.CapControls.Mode()), "unknown"))
+        i = d.CapControls.Next()
+    caps = []
+    i = d.Capacitors.First()
+    while i > 0:
+        name = d.Capacitors.Name().lower()
+        spec = d.CktElement.BusNames()[0]
+        ctl = controls.get(name)
+        caps.append(SurveyCapacitor(name, bus_of(spec), phases_of(spec, int(d.CktElement.NumPhases())),
+                                    float(d.Capacitors.kvar()), float(d.Capacitors.kV()),
+                                    ctl[0] if ctl else None, ctl[1] if ctl else None))
+        i = d.Capacitors.Next()
+    pvs = []
+    i = d.PVsystems.First()
+    while i > 0:
+        spec = d.CktElement.BusNames()[0]
+        name = d.PVsystems.Name().lower()
+        d.Text.Command(f"? pvsystem.{name}.kv")
+        try:
+            kv = float(d.Text.Result())
+        except ValueError:
+            kv = 0.0
+        pvs.append(SurveyPvSystem(name, bus_of(spec), phases_of(spec, int(d.CktElement.NumPhases())),
+                                  float(d.PVsystems.kVARated()), float(d.PVsystems.Pmpp()), kv))
+        i = d.PVsystems.Next()
+    loads = []
+    i = d.Loads.First()
+    while i > 0:
+        loads.append(SurveyLoad(d.Loads.Name().lower(), bus_of(d.CktElement.BusNames()[0]), float(d.Loads.kW())))
+        i = d.Loads.Next()
+    meters = []
+    i = d.Meters.First()
+    while i > 0:
+        meters.append(SurveyMeter(d.Meters.Name().lower(), d.Meters.MeteredElement().lower(),
+                                  int(d.Meters.MeteredTerminal())))
+        i = d.Meters.Next()
+    return CircuitSurvey(
+        master=str(master), circuit=d.Circuit.Name().lower(), source_bus=source_bus, source_kv_ll=source_kv,
+        source_pu=source_pu, buses=tuple(buses), edges=tuple(edges),
+        elements=frozenset(e.lower() for e in d.Circuit.AllElementNames()), regcontrols=tuple(regs),
+        capacitors=tuple(caps), pvsystems=tuple(pvs), loads=tuple(loads), meters=tuple(meters),
+        node_count=len(d.Circuit.AllNodeNames()),
+    )
+
+
+def _compile_read_only(d, master: Path) -> None:
+    """Compile ``master`` without writing into its folder, then make its folder the data path as ``compile`` does.
+
+    ``compile`` makes the master's folder OpenDSS's output folder while the model is read, so a model that opens
+    an output file as it is defined (epri-ckt24's LTC has ``debugtrace=yes``: ``REG_<name>.csv``) writes into the
+    shared, read-in-place model folder, and FreePascal's exclusive lock on that file makes every other process that
+    compiles the model meanwhile fail ("Unable to create file"). Here the model is read with ``redirect`` (which
+    resolves its files as ``compile`` does) while the data path is a private temporary folder, removed afterwards.
+    """
+    with tempfile.TemporaryDirectory(prefix="cvvc-dss-") as scratch:
+        d.Text.Command(f'set datapath="{scratch}"')
+        d.Text.Command(f'redirect "{master}"')
+        _close_debug_traces(d)  # closes the trace files, which live in scratch
+        d.Text.Command(f'set datapath="{master.parent}"')
+
+
+def _close_debug_traces(d) -> None:
+    """Turn off every RegControl's ``debugtrace``, which closes its trace file.
+
+    A model compiled with ``debugtrace=yes`` (epri-ckt24's LTC) keeps ``REG_<name>.csv`` open in the model's
+    folder; a second context in the same process then fails to compile it ("Unable to create file").
+    """
+    i = d.RegControls.First()
+    while i > 0:
+        d.Text.Command(f"edit regcontrol.{d.RegControls.Name()} debugtrace=no")
+        i = d.RegControls.Next()

@@ -192,7 +192,8 @@ def violation_pu(v_pu: np.ndarray, limits_pu: tuple[float, float]) -> np.ndarray
 def tap_cost_per_regulator(tap_changes: np.ndarray, cost_per_tap: np.ndarray) -> np.ndarray:
     """T cost of each regulator, paper eq. (14): ``cost_per_tap_r x`` taps moved (summed over rows)."""
     taps = np.asarray(tap_changes, dtype=float)
-    return np.asarray(cost_per_tap, dtype=float) * taps.reshape(-1, taps.shape[-1]).sum(axis=0)
+    # summed over every leading axis (not reshape(-1, R): that fails for a feeder without regulators, R = 0)
+    return np.asarray(cost_per_tap, dtype=float) * taps.sum(axis=tuple(range(taps.ndim - 1)))
 
 
 def cap_cost_per_bank(cap_switches: np.ndarray, cost_per_switch: np.ndarray) -> np.ndarray:
@@ -317,6 +318,9 @@ class MetricsAccumulator:
         Names of the capacitor banks (entries of ``cap_switches``); none by default.
     cost_per_switch : float or sequence of float
         Cost of one switching operation, per bank or one for all.
+    judged_nodes : sequence of int, optional
+        Indices of the nodes judged (the feeder zone's, ``for_feeder``); None: every node. ``v_min_pu``,
+        ``v_max_pu``, NVV and MVVM are then of these nodes, and ``mvvm_node`` indexes the whole ``v_pu`` row.
     """
 
     def __init__(
@@ -333,6 +337,7 @@ class MetricsAccumulator:
         control_period_s: int = 300,
         capacitor_ids: Sequence[str] = (),
         cost_per_switch: float | Sequence[float] = 1.0,
+        judged_nodes: Sequence[int] | np.ndarray | None = None,
     ) -> None:
         self._cfg = _Config.make(
             n_nodes=n_nodes,
@@ -348,7 +353,14 @@ class MetricsAccumulator:
             cost_per_switch=cost_per_switch,
         )
         cfg = self._cfg
-        self._ring = np.zeros((cfg.window_steps, cfg.n_nodes))
+        judged = None if judged_nodes is None else np.asarray(judged_nodes, dtype=np.intp)
+        if judged is not None and (judged.ndim != 1 or judged.size == 0 or judged.min() < 0
+                                   or judged.max() >= cfg.n_nodes):
+            raise MetricsError(f"judged_nodes must be 1..{cfg.n_nodes} node indices below n_nodes = {cfg.n_nodes}")
+        self._judged = judged
+        n_judged = cfg.n_nodes if judged is None else judged.size
+        self._v_judged = np.empty(n_judged)
+        self._ring = np.zeros((cfg.window_steps, n_judged))
         self._n_steps = 0
         self._n_judged = 0
         self._mvvm = 0.0
@@ -362,7 +374,7 @@ class MetricsAccumulator:
         self._taps = np.zeros(cfg.n_regs, dtype=np.int64)
         self._abs_q = np.zeros(cfg.n_pv)
         self._cap_sw = np.zeros(len(cfg.capacitor_ids), dtype=np.int64)
-        self._avg = np.empty(cfg.n_nodes)  # the present rolling average, rewritten in place every step
+        self._avg = np.empty(n_judged)  # the present rolling average, rewritten in place every step
 
     @property
     def n_steps(self) -> int:
@@ -388,6 +400,9 @@ class MetricsAccumulator:
         v, taps, q, v_lo, v_hi = cfg.check_step(v_pu, tap_changes, pv_q_kvar)
         if cap_switches is not None:
             self._cap_sw += cfg.check_switches(cap_switches)
+        if self._judged is not None:  # the feeder zone's nodes only (checked whole above)
+            v = np.take(v, self._judged, out=self._v_judged)
+            v_lo, v_hi = float(v.min()), float(v.max())
         w = cfg.window_steps
         self._ring[self._n_steps % w] = v
         self._n_steps += 1
@@ -417,22 +432,30 @@ class MetricsAccumulator:
             self._steps_in_violation += 1
             worst = int(np.argmax(viol))
             if viol[worst] > self._mvvm:
-                self._mvvm, self._mvvm_node = float(viol[worst]), worst
+                self._mvvm = float(viol[worst])
+                self._mvvm_node = worst if self._judged is None else int(self._judged[worst])
 
     @classmethod
     def for_feeder(cls, device_map, engine, *, step_s: int | None = None) -> MetricsAccumulator:
         """The accumulator of a feeder: its nodes, devices, costs and judged limits from the device map.
 
         ``engine`` is any object with ``node_names``, ``regulator_ids`` and ``pv_ids`` (a ``FeederEngine``);
-        ``step_s`` defaults to the device map's step.
+        ``step_s`` defaults to the device map's step. When it has ``node_in_feeder`` (the feeder zone: downstream
+        of the head meter), only the zone's phase nodes (phases 1-3) are judged: the transmission side, other
+        feeders and neutral nodes are not this feeder's voltages (``docs/feeders.md``).
         """
         f = device_map.feeder
+        zone = getattr(engine, "node_in_feeder", None)
+        judged = None
+        if zone is not None:
+            phase_node = np.array([n.rpartition(".")[2] in ("1", "2", "3") for n in engine.node_names], dtype=bool)
+            judged = np.flatnonzero(np.asarray(zone, dtype=bool) & phase_node)
         return cls(
             n_nodes=len(engine.node_names), regulator_ids=list(engine.regulator_ids), pv_ids=list(engine.pv_ids),
             cost_per_tap=[r.cost_per_tap for r in device_map.regulator],
             cost_per_kvar=[p.cost_per_kvar for p in device_map.pv],
             limits_pu=tuple(f.judged_limits_pu), step_s=f.step_s if step_s is None else int(step_s),
-            control_period_s=f.control_period_s,
+            control_period_s=f.control_period_s, judged_nodes=judged,
             capacitor_ids=list(getattr(engine, "capacitor_ids", ())),
             cost_per_switch=[c.cost_per_switch for c in device_map.capacitor],
         )

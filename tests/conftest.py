@@ -11,6 +11,21 @@ REPO = Path(__file__).resolve().parents[1]
 SHARED_FEEDERS = (REPO.parent / "shared" / "feeders").resolve()
 
 
+@pytest.fixture(scope="session", autouse=True)
+def _user_cache_in_tmp(tmp_path_factory) -> Iterator[Path]:
+    """No test writes into the user's cache: the default cache root (schemas.cache) points into a tmp folder."""
+    import os
+
+    folder = tmp_path_factory.mktemp("xdg-cache")
+    before = os.environ.get("XDG_CACHE_HOME")
+    os.environ["XDG_CACHE_HOME"] = str(folder)
+    yield folder
+    if before is None:
+        os.environ.pop("XDG_CACHE_HOME", None)
+    else:
+        os.environ["XDG_CACHE_HOME"] = before
+
+
 @pytest.fixture
 def router_endpoint() -> Iterator[str]:
     """A router-mode Zenoh session listening on a free tcp/127.0.0.1 port; yields its endpoint."""

@@ -189,7 +189,7 @@ def accuracy_report(
     png_path: str | Path | None = None,
     max_minutes: int | None = None,
     sens_minutes: int = 24,
-    cache_dir: str | Path | None = ".cvvc-cache",
+    cache_dir: str | Path | None = None,
     progress: bool = True,
 ) -> AccuracyReport:
     """Estimation error of one or more models over a month (paper IV.D-E, Fig. 8).

@@ -3,9 +3,9 @@
 Verbs::
 
     cvvc train [--feeder FEEDER] --out MODEL [--year-seed S] [--selection guided|random]
-               [--blocks NL NPV] [--workers N] [--no-combined] [--json]
+               [--blocks NL NPV] [--workers N] [--no-combined] [--cache DIR] [--json]
     cvvc report accuracy --model MODEL [--model MODEL2] [--feeder FEEDER] --month M [--year-seed S]
-               [--png PATH] [--max-minutes N] [--json]
+               [--png PATH] [--max-minutes N] [--cache DIR] [--json]
 
 FEEDER is a device map TOML or a folder with ``devicemap.toml``; default: the embedded rural feeder.
 Nothing heavy is imported at module level.
@@ -16,14 +16,18 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from schemas.cache import CACHE_HELP
+
 __all__ = ["register", "register_accuracy"]
 
 
-def _feeder_path(feeder: str | None) -> Path:
-    from simulator_bridge.cli import DEFAULT_CACHE_ROOT, ensure_default_feeder, resolve_device_map_path
+def _feeder_path(feeder: str | None, cache: str | None) -> Path:
+    from schemas.cache import cache_root
+    from schemas.devicemap import resolve_device_map_path
+    from simulator_bridge.default_feeder import ensure_default_feeder
 
     if feeder is None:
-        return ensure_default_feeder(DEFAULT_CACHE_ROOT)
+        return ensure_default_feeder(cache_root(cache))
     return resolve_device_map_path(feeder)
 
 
@@ -31,11 +35,13 @@ def _train(args: argparse.Namespace) -> int:
     import msgspec
 
     from regression.model import write_model
+    from schemas.cache import profiles_dir
     from training.train import DEFAULT_COMBINED_PCT, train
 
     result = train(
-        _feeder_path(args.feeder),
+        _feeder_path(args.feeder, args.cache),
         year_seed=args.year_seed,
+        cache_dir=profiles_dir(args.cache),
         selection=args.selection,
         blocks=(args.blocks[0], args.blocks[1]),
         workers=args.workers,
@@ -71,13 +77,15 @@ def _train(args: argparse.Namespace) -> int:
 def _accuracy(args: argparse.Namespace) -> int:
     import msgspec
 
+    from schemas.cache import profiles_dir
     from training.accuracy import accuracy_report
 
     report = accuracy_report(
         args.model,
-        _feeder_path(args.feeder),
+        _feeder_path(args.feeder, args.cache),
         args.month,
         args.year_seed,
+        cache_dir=profiles_dir(args.cache),
         png_path=args.png,
         max_minutes=args.max_minutes,
         progress=not args.json,
@@ -121,6 +129,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--workers", type=int, default=None, help="power-flow processes (default: one per core)")
     p.add_argument("--no-combined", action="store_true", help="only the paper's one-plant-at-a-time Q perturbations")
     p.add_argument("--json", action="store_true", help="print the summary as JSON (no progress bar)")
+    p.add_argument("--cache", default=None, help=CACHE_HELP)
     p.set_defaults(func=_train)
 
 
@@ -135,4 +144,5 @@ def register_accuracy(report_subparsers: argparse._SubParsersAction) -> None:
     a.add_argument("--png", help="write a figure like the paper's Fig. 8 here")
     a.add_argument("--max-minutes", type=int, default=None, help="only the first N minutes of the month")
     a.add_argument("--json", action="store_true", help="print the report as JSON")
+    a.add_argument("--cache", default=None, help=CACHE_HELP)
     a.set_defaults(func=_accuracy)

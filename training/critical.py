@@ -1,7 +1,11 @@
 """Critical nodes (paper II.C) and the upstream regulator of each (for eq. (6)-(7)).
 
 Critical nodes: the feeder-head nodes, the primary and secondary nodes of every regulator, the PV plant
-nodes, plus every node that is the highest or the lowest voltage in any training power flow.
+nodes, plus every node that is the highest or the lowest voltage in any training power flow; all of them taken in
+the feeder zone (downstream of the head meter) only, and only where a controlled device can move the voltage
+(:func:`movable_nodes`): an LTC's subtransmission primary or the source bus is never critical, since no decision of
+the agent changes it and a limit there would only make the optimization infeasible. Regulator secondaries are
+always kept (the eq. (6)-(7) correction reads them).
 
 The upstream regulator is found without walking the topology: regulator r is upstream of node i when one
 tap step of r moves node i by more than ``share`` (0.5) of the step it gives r's own secondary node (from
@@ -18,7 +22,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["CriticalSet", "extreme_nodes", "node_phase", "select_critical", "upstream_regulators"]
+__all__ = ["MOVABLE_PU", "CriticalSet", "extreme_nodes", "movable_nodes", "node_phase", "select_critical",
+           "upstream_regulators"]
+
+#: A node is movable when one tap step of some regulator, or some plant's whole reactive range (``kva`` kvar),
+#: moves it by at least this much [pu]: 0.001 pu is 0.12 V on the 120 V base, a sixth of a 5/8 % tap step.
+MOVABLE_PU = 1e-3
 
 
 def node_phase(name: str) -> int:
@@ -47,6 +56,32 @@ def extreme_nodes(v_pu: np.ndarray, *, eligible: np.ndarray | None = None) -> np
     hi = np.nanargmax(v, axis=1)
     lo = np.nanargmin(v, axis=1)
     return np.unique(np.concatenate([hi, lo]))
+
+
+def movable_nodes(dv_dtap_pu: np.ndarray, dv_dq_pu_per_kvar: np.ndarray, kva: np.ndarray, *,
+                  threshold_pu: float = MOVABLE_PU) -> np.ndarray:
+    """Nodes whose voltage a controlled device can move, from the training sensitivities.
+
+    Parameters
+    ----------
+    dv_dtap_pu : (n, R) voltage change per tap step of each regulator [pu/step] (eq. (4)).
+    dv_dq_pu_per_kvar : (n, K) voltage change per kvar of each plant [pu/kvar]; NaN columns count as 0.
+    kva : (K,) plant ratings [kVA]: a plant can move its Q over ``±kva``.
+    threshold_pu : the smallest move that counts [pu].
+
+    Returns
+    -------
+    (n,) bool: ``max_r |dv_dtap| >= threshold`` or ``max_k |dv_dq| * kva_k >= threshold``.
+    """
+    tap = np.abs(np.asarray(dv_dtap_pu, float))
+    q = np.abs(np.nan_to_num(np.asarray(dv_dq_pu_per_kvar, float))) * np.asarray(kva, float)[None, :]
+    n = tap.shape[0] if tap.ndim == 2 else q.shape[0]
+    best = np.zeros(n)
+    if tap.size:
+        best = np.maximum(best, tap.max(axis=1))
+    if q.size:
+        best = np.maximum(best, q.max(axis=1))
+    return best >= threshold_pu
 
 
 def upstream_regulators(dv_dtap_pu: np.ndarray, reg_secondary_node: np.ndarray, *, share: float = 0.5) -> np.ndarray:

@@ -25,7 +25,7 @@ from regression.model import (
     TrainingSettings,
     feature_names,
 )
-from training.critical import extreme_nodes, node_phase, select_critical, upstream_regulators
+from training.critical import extreme_nodes, movable_nodes, node_phase, select_critical, upstream_regulators
 from training.errors import TrainingError
 from training.fits import (
     SensitivitySamples,
@@ -46,7 +46,7 @@ from training.scenarios import ScenarioSet, select_scenarios, summarize_year
 __all__ = ["DEFAULT_Q_STEPS_PCT", "TRAINING_REVISION", "TrainResult", "TrainSummary", "load_profiles", "train"]
 
 #: Bump when training changes what it produces, so cached models (``cvvc run``'s cache) are retrained.
-TRAINING_REVISION = 2
+TRAINING_REVISION = 3  # 3: critical nodes in the feeder zone and movable only
 
 DEFAULT_Q_STEPS_PCT = tuple(float(p) for p in range(-100, 101, 20))
 DEFAULT_COMBINED_PCT = (-100.0, -50.0, 50.0, 100.0)
@@ -142,21 +142,32 @@ def _tap_perturbation(engine, first: ScenarioInput, tap0: np.ndarray) -> tuple[n
     return v0, tap_sensitivities(v0, v_tap)
 
 
-def _critical(engine, dm, flows: PowerFlowSet, dv_dtap_all: np.ndarray):
+def _q_sensitivities(engine, first: ScenarioInput, tap0: np.ndarray) -> np.ndarray:
+    """dV/dQ of every node to each plant on the first scenario at Q = 0 [pu/kvar] (for ``movable_nodes``)."""
+    engine.set_loads_kw(first.load_kw)
+    engine.set_pv(first.pv_kw, np.zeros(len(first.pv_kw)))
+    engine.set_taps(tap0)
+    return engine.perturbation_sensitivities().dv_dq
+
+
+def _critical(engine, dm, flows: PowerFlowSet, dv_dtap_all: np.ndarray, dv_dq_all: np.ndarray):
     names = engine.node_names
     phases = np.asarray([node_phase(n) for n in names])
     v_ref = np.median(flows.v_pu, axis=0)
     eligible = (phases >= 1) & (phases <= 3) & (v_ref > 0.5)  # real phases of energised nodes
     # Nodes upstream of the head meter (the transmission side of the substation) are not the feeder: no
     # device of the feeder controls them, so they are never extremes to constrain (a source bus at
-    # 1.045 pu would otherwise make every optimization infeasible above its 1.04 pu limit).
+    # 1.045 pu would otherwise make every optimization infeasible above its 1.04 pu limit). Nor is a node that
+    # no controlled device can move (an LTC's primary inside the zone, a stiff bus): critical.movable_nodes.
     eligible &= np.asarray(engine.node_in_feeder, bool)
+    eligible &= movable_nodes(dv_dtap_all, dv_dq_all, engine.pv_kva)
     head = np.asarray([i for i in engine.head_node_index if eligible[i]], int)  # where the head meter is
     pv_nodes = np.asarray(sorted({i for idx in engine.pv_node_index for i in idx}), int)
+    reg_primary = np.asarray(engine.reg_primary_node, int)
     required = {
         "head": head,
-        "reg_primary": np.asarray(engine.reg_primary_node, int),
-        "reg_secondary": np.asarray(engine.reg_secondary_node, int),
+        "reg_primary": reg_primary[eligible[reg_primary]] if reg_primary.size else reg_primary,
+        "reg_secondary": np.asarray(engine.reg_secondary_node, int),  # always: the correction reads them
         "pv": pv_nodes[eligible[pv_nodes]] if pv_nodes.size else pv_nodes,
     }
     crit = select_critical(required, extreme_nodes(flows.v_pu, eligible=eligible))
@@ -175,7 +186,7 @@ def train(
     combined_pct: tuple[float, ...] = DEFAULT_COMBINED_PCT,
     tolerance: float = 1e-8,
     rcond: float = 1e-6,
-    cache_dir: str | Path | None = ".cvvc-cache",
+    cache_dir: str | Path | None = None,
     profiles=None,
     progress: bool = True,
 ) -> TrainResult:
@@ -192,7 +203,7 @@ def train(
     combined_pct : extra flows with all plants at this share of their headroom at once ([] to disable).
     tolerance : OpenDSS solve tolerance for training (1e-8: finite differences need it, trap 5).
     rcond : truncation of the eq. (5) regression (``fits.fit_voltage_regression``).
-    cache_dir : where to cache the year profiles (None: no cache).
+    cache_dir : where to cache the year profiles (None: no cache; the CLI passes ``schemas.cache.profiles_dir``).
     profiles : use these ``YearProfiles`` instead of generating them (tests).
     progress : progress bar on stderr when it is a terminal.
 
@@ -253,7 +264,8 @@ def train(
         raise TrainingError(f"feeder {dm.feeder.name!r}: no training power flow converged; check the feeder")
 
     # II.C: critical nodes
-    crit, upstream_all, phases = _critical(engine, dm, flows, dv_dtap_all)
+    dv_dq_all = _q_sensitivities(engine, inputs[0], tap0)
+    crit, upstream_all, phases = _critical(engine, dm, flows, dv_dtap_all, dv_dq_all)
     nodes = crit.nodes
     pos = {int(n): i for i, n in enumerate(nodes)}
 

@@ -12,6 +12,8 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 
+from schemas.devicemap import load_device_map
+from simulator_bridge.engine import FeederEngine
 from simulator_bridge.metrics import MetricsAccumulator
 
 REPO = Path(__file__).resolve().parents[2]
@@ -79,8 +81,14 @@ def test_summary_metrics_equal_those_recomputed_from_the_recording(one_hour_run)
     rec = _messages(Path(summary["recording"]))
     truth = rec["cvvc/ieee13/sim/truth"]
     assert len(truth) == summary["steps"]
+    # judged on the feeder zone's phase nodes (downstream of the head meter), as the bridge judges them
+    engine = FeederEngine(load_device_map(REPO / "feeders" / "ieee13.toml"))
+    assert list(engine.node_names) == truth[0]["node_names"]
+    zone = [i for i, n in enumerate(engine.node_names) if engine.node_in_feeder[i] and n[-2:] in (".1", ".2", ".3")]
+    assert 0 < len(zone) < len(engine.node_names)
     acc = MetricsAccumulator(n_nodes=len(truth[0]["v_pu"]), regulator_ids=["reg1", "reg2", "reg3"],
-                             pv_ids=["pv675", "pv680", "pv633"], cost_per_tap=0.14, cost_per_kvar=0.001)
+                             pv_ids=["pv675", "pv680", "pv633"], cost_per_tap=0.14, cost_per_kvar=0.001,
+                             judged_nodes=zone)
     prev = np.asarray(truth[0]["taps"])
     for frame in truth:
         taps = np.asarray(frame["taps"])

@@ -316,3 +316,51 @@ def test_metrics_without_capacitors_decode_from_old_json():
     old = {k: val for k, val in msgspec.to_builtins(r).items()
            if k not in ("capacitor_ids", "cap_switches_per_bank", "cap_switches", "cap_cost")}
     assert msgspec.convert(old, Metrics) == r
+
+
+def test_only_the_judged_nodes_count():
+    """Nodes outside the feeder zone (a source bus at 1.06 pu) are neither violations nor the run's extremes."""
+    v = np.full((12, 4), 1.0)
+    v[:, 0] = 1.06  # upstream of the head meter
+    v[:, 3] = 0.95  # in the zone, below 0.965 pu
+    kw = {"regulator_ids": REGS, "pv_ids": PVS, "cost_per_tap": 0.14, "cost_per_kvar": 0.001}
+    judged = MetricsAccumulator(n_nodes=4, judged_nodes=[1, 2, 3], **kw)
+    every = MetricsAccumulator(n_nodes=4, **kw)
+    for row in v:
+        for acc in (judged, every):
+            acc.update(row, np.zeros(len(REGS), int), np.zeros(len(PVS)))
+    r, a = judged.result(), every.result()
+    assert r.nvv == 3 and a.nvv == 6  # 3 judged windows (12 steps, 10-step window) x 1 or 2 nodes
+    assert r.mvvm_node == 3 and r.mvvm_pu == pytest.approx(0.015)  # the index of the whole row
+    assert r.v_max_pu == 1.0 and a.v_max_pu == 1.06
+    with pytest.raises(MetricsError, match="judged_nodes"):
+        MetricsAccumulator(n_nodes=4, judged_nodes=[4], **kw)
+
+
+def test_for_feeder_judges_the_zone_phase_nodes_of_ieee13(repo_root):
+    from schemas.devicemap import load_device_map
+    from simulator_bridge.engine import FeederEngine
+
+    dm = load_device_map(repo_root / "feeders" / "ieee13.toml")
+    engine = FeederEngine(dm)
+    try:
+        acc = MetricsAccumulator.for_feeder(dm, engine)
+        v = engine.node_voltages_pu().copy()
+        names = engine.node_names
+    finally:
+        engine.close()
+    src = names.index("sourcebus.1")
+    v[src] = 1.2  # the transmission side: not this feeder's
+    for _ in range(10):
+        acc.update(v, np.zeros(3, int), np.zeros(3))
+    r = acc.result()
+    assert r.v_max_pu < 1.1 and (r.nvv == 0 or names[r.mvvm_node].split(".")[0] not in ("sourcebus", "650"))
+
+
+def test_a_feeder_without_regulators_has_no_tap_cost():
+    """epri-ckt5 has no regulator: R = 0 must give NTC 0 and T cost 0, not an error."""
+    acc = MetricsAccumulator(n_nodes=3, regulator_ids=[], pv_ids=PVS, cost_per_tap=0.14, cost_per_kvar=0.001)
+    for _ in range(10):
+        acc.update(np.ones(3), np.zeros(0, int), np.array([10.0, -5.0]))
+    r = acc.result()
+    assert r.ntc == 0 and r.t_cost == 0.0 and r.q_cost > 0.0

@@ -9,17 +9,23 @@ from tests.training.test_train import _map
 def test_train_json_then_accuracy(tmp_path, monkeypatch, capsys):
     from cvvc.cli import main
 
-    monkeypatch.chdir(tmp_path)  # the profile cache goes to ./.cvvc-cache
+    work, cache = tmp_path / "work", tmp_path / "cache"
+    work.mkdir()
+    monkeypatch.chdir(work)  # nothing may be written here: the profiles go to --cache
     feeder = REPO / "feeders" / "ieee13.toml"
     out = tmp_path / "m13.json"
-    assert main(["train", "--feeder", str(feeder), "--out", str(out), "--blocks", "2", "2", "--json"]) == 0
+    argv = ["train", "--feeder", str(feeder), "--out", str(out), "--blocks", "2", "2", "--cache", str(cache)]
+    assert main([*argv, "--json"]) == 0
+    assert list(work.iterdir()) == [] and list((cache / "profiles").glob("profiles-ieee13-*.npz"))
     summary = json.loads(capsys.readouterr().out)
     for key in ("scenarios", "power_flows", "critical_nodes", "critical_share", "seconds", "voltage_rmse_pu"):
         assert key in summary
     assert summary["scenarios"] >= 4 and summary["power_flows"] > summary["scenarios"]
     assert out.is_file()
-    argv = ["report", "accuracy", "--model", str(out), "--feeder", str(feeder), "--month", "4", "--max-minutes", "30"]
+    argv = ["report", "accuracy", "--model", str(out), "--feeder", str(feeder), "--month", "4", "--max-minutes", "30",
+            "--cache", str(cache)]
     assert main([*argv, "--json"]) == 0
+    assert list(work.iterdir()) == []
     report = json.loads(capsys.readouterr().out)
     assert report["minutes"] == 30 and len(report["errors"]) == 2
     assert all(e["max_abs_pu"] < 0.01 for e in report["errors"])
