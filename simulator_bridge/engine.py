@@ -1,9 +1,11 @@
 """The feeder engine: the only module that imports ``opendssdirect``.
 
 One :class:`FeederEngine` holds one OpenDSS context (``dss.NewContext()``), compiled from a device map.
-It sets loads, PV plants and regulator taps, solves one power flow, and reads what field devices would
-measure (:class:`FieldReadings`) and the truth (every node's voltage). Device physics that spans time
-(regulator local control, volt-var, night behaviour) lives in ``qsts.py``; this module is one snapshot.
+It sets loads, PV plants, regulator taps and capacitor banks, solves one power flow, and reads what field
+devices would measure (:class:`FieldReadings`), what every RegControl and CapControl of the model samples
+(:meth:`FeederEngine.sense`) and the truth (every node's voltage). Device physics that spans time (the local
+controls' event clock, volt-var, night behaviour) lives in ``qsts.py`` and ``controls.py``; this module is one
+snapshot. :func:`opendss_control_loop` runs OpenDSS's own time-driven control loop as the reference.
 
 Every OpenDSS name and unit is translated to ours here:
 
@@ -21,7 +23,7 @@ ours                        OpenDSS
 
 Conventions (see ``docs/simulation.md``): voltages are line-to-neutral; ``q_kvar > 0`` injects reactive
 power at PV plants (generator convention); at the feeder head P and Q are positive into the feeder.
-OpenDSS's own controls are off (``set controlmode=off``); regulator behaviour is ``qsts.py``'s.
+OpenDSS's own controls are off (``set controlmode=off``); every control's behaviour is ``controls.py``'s.
 """
 
 from __future__ import annotations
@@ -202,6 +204,10 @@ class FeederEngine:
     cap_steps : (C,) int, number of steps of each bank.
     cap_control_type : per bank, its CapControl's type: ``"voltage"``, ``"kvar"``, ``"current"``, ``"pf"``,
         ``"time"``, ``"follow"``, or ``"none"`` (no CapControl).
+    reg_controls : every RegControl of the model with its own settings (the map's regulators first, map order).
+    cap_controls : every CapControl of the model with its own settings (model order).
+    cap_control_index : (C,) each map bank's CapControl (index into ``cap_controls``), -1 without one.
+    cap_control_bank : (NC,) each CapControl's bank (the map's banks are 0..C-1).
     """
 
     def __init__(self, device_map: DeviceMap, *, tolerance: float = 1e-6) -> None:
