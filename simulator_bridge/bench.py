@@ -6,9 +6,10 @@ on the same rows:
 
 * **qsts**: ``Qsts.step()`` — set loads and PV (Q per the local default), solve, read every field
   device and every node voltage, regulator local control (extra solves after tap moves);
-* **bare**: ``FeederEngine.bare_steps_s`` — per row set loads and PV output, set the taps the QSTS
-  ended that step with (replayed, so both pay OpenDSS's costly re-factorisation after a tap change),
-  solve; nothing else. The QSTS also solves once more per tap-move round, which bare does not.
+* **bare**: ``FeederEngine.bare_steps_s`` — per row set loads and PV output, set the taps and capacitor
+  states (every RegControl and CapControl of the model) the QSTS ended that step with (replayed, so both pay
+  OpenDSS's costly re-factorisation after a move), solve; nothing else. The QSTS also solves once more per
+  instant at which a device acted inside the step (its event clock), which bare does not.
 
 ``ratio = qsts time / bare time`` (best of a few alternating repeats); the goal is under 1.3.
 Profile generation is timed separately.
@@ -47,7 +48,8 @@ def bench_qsts(device_map_path: str | Path, steps: int, *, seed: int = 1, month:
     Returns
     -------
     dict with ``feeder``, ``n_nodes``, ``steps``, ``qsts_steps_per_s``, ``bare_steps_per_s``,
-    ``ratio`` (best qsts time / best bare time), ``tap_changes`` (in the window), ``qsts_s`` and
+    ``ratio`` (best qsts time / best bare time), ``tap_changes`` and ``cap_switches`` (the map's devices, in
+    the window), ``qsts_s`` and
     ``bare_s`` (every repeat's time [s]), ``compile_s``, ``profiles_s``.
     """
     dm = load_device_map(device_map_path)
@@ -64,25 +66,27 @@ def bench_qsts(device_map_path: str | Path, steps: int, *, seed: int = 1, month:
     for _ in range(warmup_steps):
         warm.step()
     window = range(start + warmup_steps, stop)
-    taps0 = engine.taps()
+    taps0, caps0 = engine.control_taps(), engine.control_cap_states()
     load_kw = np.asarray(profiles.load_kw(window.start, window.stop), dtype=float)
     pv_kw = np.clip(np.asarray(profiles.pv_kw(window.start, window.stop), dtype=float), 0.0, engine.pv_pmpp_kw)
 
     qsts_s, bare_s = [], []
-    tap_changes = 0
+    tap_changes = cap_switches = 0
     for _ in range(repeats):
-        engine.set_taps(taps0)
+        _restore(engine, taps0, caps0)
         qsts = Qsts(engine, profiles, start_step=window.start, chunk_steps=len(window))
         taps = np.empty((len(window), len(taps0)), dtype=int)
-        tap_changes = 0
+        caps = np.empty((len(window), len(caps0)), dtype=int)
+        tap_changes = cap_switches = 0
         t = time.perf_counter()
         for j in range(len(window)):
             res = qsts.step()
-            taps[j] = res.taps
+            taps[j], caps[j] = engine.control_taps(), engine.control_cap_states()
             tap_changes += int(res.tap_changes.sum())
+            cap_switches += int(res.cap_switches.sum())
         qsts_s.append(time.perf_counter() - t)
-        engine.set_taps(taps0)
-        bare_s.append(engine.bare_steps_s(load_kw, pv_kw, taps))
+        _restore(engine, taps0, caps0)
+        bare_s.append(engine.bare_steps_s(load_kw, pv_kw, taps, caps))
     engine.close()
     n = len(window)
     return {
@@ -93,11 +97,19 @@ def bench_qsts(device_map_path: str | Path, steps: int, *, seed: int = 1, month:
         "bare_steps_per_s": n / min(bare_s),
         "ratio": min(qsts_s) / min(bare_s),
         "tap_changes": tap_changes,
+        "cap_switches": cap_switches,
         "qsts_s": qsts_s,
         "bare_s": bare_s,
         "compile_s": compile_s,
         "profiles_s": profiles_s,
     }
+
+
+def _restore(engine: FeederEngine, taps: np.ndarray, caps: np.ndarray) -> None:
+    for r, tap in enumerate(taps):
+        engine.set_control_tap(r, int(tap))
+    for j, n in enumerate(caps):
+        engine.set_control_cap_state(j, int(n))
 
 
 if __name__ == "__main__":  # pragma: no cover - manual use: python -m simulator_bridge.bench MAP STEPS

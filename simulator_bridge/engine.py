@@ -1,9 +1,11 @@
 """The feeder engine: the only module that imports ``opendssdirect``.
 
 One :class:`FeederEngine` holds one OpenDSS context (``dss.NewContext()``), compiled from a device map.
-It sets loads, PV plants and regulator taps, solves one power flow, and reads what field devices would
-measure (:class:`FieldReadings`) and the truth (every node's voltage). Device physics that spans time
-(regulator local control, volt-var, night behaviour) lives in ``qsts.py``; this module is one snapshot.
+It sets loads, PV plants, regulator taps and capacitor banks, solves one power flow, and reads what field
+devices would measure (:class:`FieldReadings`), what every RegControl and CapControl of the model samples
+(:meth:`FeederEngine.sense`) and the truth (every node's voltage). Device physics that spans time (the local
+controls' event clock, volt-var, night behaviour) lives in ``qsts.py`` and ``controls.py``; this module is one
+snapshot. :func:`opendss_control_loop` runs OpenDSS's own time-driven control loop as the reference.
 
 Every OpenDSS name and unit is translated to ours here:
 
@@ -21,7 +23,7 @@ ours                        OpenDSS
 
 Conventions (see ``docs/simulation.md``): voltages are line-to-neutral; ``q_kvar > 0`` injects reactive
 power at PV plants (generator convention); at the feeder head P and Q are positive into the feeder.
-OpenDSS's own controls are off (``set controlmode=off``); regulator behaviour is ``qsts.py``'s.
+OpenDSS's own controls are off (``set controlmode=off``); every control's behaviour is ``controls.py``'s.
 """
 
 from __future__ import annotations
@@ -202,6 +204,10 @@ class FeederEngine:
     cap_steps : (C,) int, number of steps of each bank.
     cap_control_type : per bank, its CapControl's type: ``"voltage"``, ``"kvar"``, ``"current"``, ``"pf"``,
         ``"time"``, ``"follow"``, or ``"none"`` (no CapControl).
+    reg_controls : every RegControl of the model with its own settings (the map's regulators first, map order).
+    cap_controls : every CapControl of the model with its own settings (model order).
+    cap_control_index : (C,) each map bank's CapControl (index into ``cap_controls``), -1 without one.
+    cap_control_bank : (NC,) each CapControl's bank (the map's banks are 0..C-1).
     """
 
     def __init__(self, device_map: DeviceMap, *, tolerance: float = 1e-6) -> None:
@@ -477,7 +483,9 @@ class FeederEngine:
             d.Capacitors.Name(b)
             kvar.append(float(d.Capacitors.kvar()))
             steps.append(int(d.Capacitors.NumSteps()))
-            states.append(int(sum(d.Capacitors.States())))
+            closed_steps = int(sum(d.Capacitors.States()))
+            d.Circuit.SetActiveElement(f"Capacitor.{b}")
+            states.append(0 if d.CktElement.IsOpen(1, 0) else closed_steps)  # an open terminal: no step in
             conn_delta.append(bool(d.Capacitors.IsDelta()))
         n = len(specs)
         self._banks = tuple(banks)
@@ -571,6 +579,9 @@ class FeederEngine:
         self._reg_ldc = np.array([complex(r.ldc_r_v, r.ldc_x_v) / r.ct_primary_a if r.remote_node < 0 else 0j
                                   for r in self._regs])
         self._reg_pt_mode = np.array([r.pt_mode for r in self._regs], dtype=int)
+        self._reg_rows = np.arange(n_reg)
+        self._reg_sel_fixed = self._reg_pt_mode - 1 if np.all(self._reg_pt_mode > 0) else None
+        self._reg_v: tuple[np.ndarray, np.ndarray] | None = None  # this solution's, once computed
         self._reg_fixed = np.flatnonzero(self._reg_pt_mode > 0)
         self._reg_remote = np.flatnonzero(np.array([r.remote_node >= 0 for r in self._regs], dtype=bool))
         # a bank's voltage: mean over its phases of |V(phase) - V(neutral)|; absent phases are masked out
@@ -596,6 +607,8 @@ class FeederEngine:
         kinds = [c.kind for c in self.cap_controls]
         self._cc_kind = {k: np.array([x == k for x in kinds], dtype=bool) for k in ("current", "voltage", "kvar",
                                                                                       "pf", "time")}
+        self._cc_is_v = self._cc_kind["voltage"]
+        self._cc_any = {k: bool(m.any()) for k, m in self._cc_kind.items()}
         self._batch: tuple[np.ndarray, np.ndarray] | None = None
 
     def _conductor_range(self, element: str, terminal: int, offset: int, *, with_conductors: bool = False):
@@ -793,9 +806,16 @@ class FeederEngine:
             self._set_bank(c, int(st[c]))
 
     def _set_bank(self, b: int, n: int) -> None:
+        # The steps' states and the terminal's switch, as OpenDSS's CapControl moves them: a bank its own
+        # control opened at compile time has an open terminal, and closing steps alone would leave it open.
         cap = self._dss.Capacitors
         cap.Name(self._banks[b])
         cap.States([1] * n + [0] * (int(self._bank_steps[b]) - n))
+        self._dss.Circuit.SetActiveElement(f"Capacitor.{self._banks[b]}")
+        if n > 0:
+            self._dss.CktElement.Close(1, 0)
+        else:
+            self._dss.CktElement.Open(1, 0)
         self._bank_states[b] = n
 
     def cap_states(self) -> np.ndarray:
@@ -822,7 +842,7 @@ class FeederEngine:
         EngineError
             OpenDSS did not converge.
         """
-        self._batch = None
+        self._batch = self._reg_v = None
         try:
             self._dss.Solution.Solve()
         except dss.DSSException as e:
@@ -857,11 +877,19 @@ class FeederEngine:
         the PT phase's winding voltage (MAX/MIN: the highest/lowest phase) over PTratio plus ``(R + jX)·I/CTprim``
         (current into the winding, same phase); a remote bus: that node's voltage over its PT ratio, no LDC.
         """
-        w = (v[self._reg_cond_all] - v[self._reg_neutral][:, None]) * self._reg_phase_mask
-        rows = np.arange(len(w))
-        sel = _select_phase_index(np.abs(w), self._reg_phase_mask, self._reg_pt_mode)
-        v_sec = w[rows, sel] / self._reg_ratio
-        compared = np.abs(v_sec + self._reg_ldc * i[self._reg_cond_all[rows, sel]])
+        if self._reg_v is not None:
+            return self._reg_v
+        rows = self._reg_rows
+        if self._reg_sel_fixed is not None:  # every PT reads one fixed phase: no phase comparison needed
+            sel = self._reg_sel_fixed
+            cond = self._reg_cond_all[rows, sel]
+            v_sec = (v[cond] - v[self._reg_neutral]) / self._reg_ratio
+        else:
+            w = (v[self._reg_cond_all] - v[self._reg_neutral][:, None]) * self._reg_phase_mask
+            sel = _select_phase_index(np.abs(w), self._reg_phase_mask, self._reg_pt_mode)
+            cond = self._reg_cond_all[rows, sel]
+            v_sec = w[rows, sel] / self._reg_ratio
+        compared = np.abs(v_sec + self._reg_ldc * i[cond])
         raw = np.abs(v_sec)
         for r in self._reg_remote:
             reg = self._regs[r]
@@ -869,6 +897,7 @@ class FeederEngine:
             self._dss.Circuit.SetActiveBus(bus)
             pos = list(self._dss.Bus.Nodes()).index(int(node))
             raw[r] = compared[r] = self._dss.Bus.VMagAngle()[2 * pos] / reg.remote_pt_ratio
+        self._reg_v = (raw, compared)
         return raw, compared
 
     def sense(self, tod_h: float = float("nan")) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -906,9 +935,12 @@ class FeederEngine:
         s_abs = np.abs(s)
         pf = np.where(s_abs > 0, np.abs(s.real) / np.where(s_abs > 0, s_abs, 1.0), 1.0)
         pf = np.where(s.imag < 0, 2.0 - pf, pf)  # OpenDSS's 0..2 scale: above 1 is leading
-        k = self._cc_kind
-        value = np.select([k["voltage"], k["current"], k["kvar"], k["pf"], k["time"]],
-                          [volts, amps, q_kvar, pf, np.full(len(pf), tod_h)], np.nan)
+        value = np.where(self._cc_is_v, volts, np.nan)
+        for kind, x in (("current", amps), ("kvar", q_kvar), ("pf", pf)):
+            if self._cc_any[kind]:
+                value = np.where(self._cc_kind[kind], x, value)
+        if self._cc_any["time"]:
+            value = np.where(self._cc_kind["time"], tod_h, value)
         self._cap_value = value
         return reg, value, volts, q_kvar
 
@@ -1000,30 +1032,41 @@ class FeederEngine:
         return Sensitivities(dv_dq=dv_dq, dv_dtap=dv_dtap, dv_dp=dv_dp)
 
     # ------------------------------------------------------------------ bench support
-    def bare_steps_s(self, load_kw: np.ndarray, pv_kw: np.ndarray, taps: np.ndarray | None = None) -> float:
-        """Wall time of bare OpenDSS steps [s]: per row set loads, PV output (and taps), solve; nothing else.
+    def bare_steps_s(self, load_kw: np.ndarray, pv_kw: np.ndarray, taps: np.ndarray | None = None,
+                     cap_states: np.ndarray | None = None) -> float:
+        """Wall time of bare OpenDSS steps [s]: per row set loads, PV output (and taps, banks), solve; nothing else.
 
-        The reference for the QSTS overhead ratio (``bench.py``). ``taps`` (n_rows, R), when given, replays
-        a tap sequence: a row's taps are set before its solve when they differ from the previous row's.
-        Leaves the last row applied.
+        The reference for the QSTS overhead ratio (``bench.py``). ``taps`` (n_rows, NR) and ``cap_states``
+        (n_rows, NC), when given, replay the positions of every RegControl / CapControl bank of the model
+        (``control_taps`` / ``control_cap_states`` order): a row's positions are set before its solve where
+        they differ from the previous row's. Leaves the last row applied.
         """
         pv = self._dss.PVsystems
         solve = self._dss.Solution.Solve
-        tap_rows = np.asarray(taps, dtype=int) if taps is not None else np.tile(self._taps, (len(load_kw), 1))
-        prev = tap_rows[0].copy()
-        self.set_taps(prev)
+        n_rows = len(load_kw)
+        tap_rows = np.asarray(taps, dtype=int) if taps is not None else np.tile(self._all_taps, (n_rows, 1))
+        cap_rows = np.asarray(cap_states, dtype=int) if cap_states is not None else np.tile(
+            self.control_cap_states(), (n_rows, 1))
+        for r, tap in enumerate(tap_rows[0]):
+            self.set_control_tap(r, int(tap))
+        for j, n in enumerate(cap_rows[0]):
+            self.set_control_cap_state(j, int(n))
+        prev, prev_cap = tap_rows[0].copy(), cap_rows[0].copy()
         pv_kw = np.clip(np.asarray(pv_kw, dtype=float), 0.0, self.pv_pmpp_kw)
         t = time.perf_counter()
-        for row, pv_row, tap_row in zip(load_kw, pv_kw, tap_rows, strict=True):
+        for row, pv_row, tap_row, cap_row in zip(load_kw, pv_kw, tap_rows, cap_rows, strict=True):
             self.set_loads_kw(row)
             for k, name in enumerate(self._pv_names):
                 pv.Name(name)
                 pv.Irradiance(pv_row[k] / self.pv_pmpp_kw[k])
             for r in np.flatnonzero(tap_row != prev):
                 self._set_tap(r, int(tap_row[r]))
-            prev = tap_row
+            for j in np.flatnonzero(cap_row != prev_cap):
+                self.set_control_cap_state(j, int(cap_row[j]))
+            prev, prev_cap = tap_row, cap_row
             solve()
         elapsed = time.perf_counter() - t
+        self._batch = self._reg_v = None
         if len(pv_kw):
             self._pv_p_kw = pv_kw[-1].copy()  # keep set_pv's record of what OpenDSS holds
         return elapsed

@@ -129,13 +129,15 @@ def tap_direction(v_compared_v120: np.ndarray, setpoint_v120: np.ndarray, band_v
 
 
 class Qsts:
-    """Steps an engine through profiles with regulator local control and PV reactive power.
+    """Steps an engine through profiles with every RegControl's and CapControl's local control (an event
+    clock inside each step, ``controls.py``) and PV reactive power.
 
     Parameters
     ----------
     engine : FeederEngine
     profiles : YearProfiles (or anything with ``n_steps``, ``n_loads``, ``n_pv``, ``t_ns``, ``load_kw``,
-        ``pv_kw``), columns in ``engine.load_names`` / ``engine.pv_ids`` order.
+        ``pv_kw``), columns in ``engine.load_names`` / ``engine.pv_ids`` order; its ``step_s`` (else the map's
+        ``feeder.step_s``) is the step's length [s] for the event clock.
     start_step : first profile step to simulate.
     pv_local : local default of a PV plant without a commanded Q: ``"unity"`` or ``"volt_var"``.
     pv_q_at_night : allow reactive power (commanded or volt-var) when available P is 0.
