@@ -81,6 +81,7 @@ def plausibility_problem(frame: m.HeadFrame | m.PvFrame | m.RegFrame) -> str | N
 
 
 _Frame = m.HeadFrame | m.PvFrame | m.RegFrame
+_FRAME_TYPES = (m.HeadFrame, m.PvFrame, m.RegFrame)
 
 
 @dataclass
@@ -104,6 +105,7 @@ class FrameAligner:
         self.rejected: Counter[str] = Counter()
         self.last_reject: dict[str, str] = {}
         self.accepted = 0
+        self.ignored = 0  # device frames of a kind the agent does not use
         self.seq_resets = 0
         self._last_seq: dict[str, int] = {}
         self._last_t_ns: dict[str, int] = {}
@@ -117,7 +119,13 @@ class FrameAligner:
 
     # ---------------------------------------------------------------------------------------- input
     def add(self, key: str, frame: _Frame) -> list[AlignedFrames]:
-        """Add one decoded frame; returns the control-step groups this frame completes or closes."""
+        """Add one decoded frame; returns the control-step groups this frame completes or closes.
+
+        A device frame the agent does not use (a capacitor bank's ``CapFrame``) is counted in ``ignored``.
+        """
+        if not isinstance(frame, _FRAME_TYPES):
+            self.ignored += 1
+            return []
         why = self._check_static(key, frame)
         if why is not None:
             self._reject(*why)

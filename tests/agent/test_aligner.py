@@ -164,3 +164,14 @@ def test_a_forged_huge_seq_locks_a_source_out_for_at_most_one_period(aligner):
     assert aligner.rejected["out_of_order"] == 4  # the real head at +2..+5 min
     assert aligner.seq_resets == 1  # at +6 min, one period after the forgery
     assert [(a.t_ns, a.head is not None) for a in released] == [(T0 + 5 * MINUTE, False), (T0 + 10 * MINUTE, True)]
+
+
+def test_capacitor_bank_frames_are_ignored_not_fatal(aligner):
+    """A map with banks publishes CapFrames under meas/**: the agent does not use them yet and must not crash."""
+    cap = msgspec.structs.replace(EX[m.CapFrame], t_ns=T0, seq=1)
+    assert aligner.add(keys.meas_cap("rural", cap.capacitor_id), cap) == []
+    assert aligner.ignored == 1 and sum(aligner.rejected.values()) == 0
+    for k, f in (head(T0, 1), pv(T0, 1)):
+        aligner.add(k, f)
+    (out,) = aligner.add(*vr(T0, 1))
+    assert out.complete

@@ -1,8 +1,8 @@
 """One short ``cvvc run`` per EPRI feeder through the real bus (real processes, Zenoh, OpenDSS, MCAP).
 
 Case ``local`` (regulators and capacitors as the model states them, PV on IEEE 1547 volt-var): no model is
-trained, so each run takes seconds once the feeder's year profiles are made. epri-m1 runs without its substation
-LTC, whose remote sensing the simulator does not support yet (``without_remote_ltc``).
+trained, so each run takes seconds once the feeder's year profiles are made. epri-m1 runs with its substation
+LTC, which senses a remote bus.
 """
 
 from __future__ import annotations
@@ -15,8 +15,6 @@ from pathlib import Path
 
 import pytest
 from mcap.reader import make_reader
-
-from tests.simulator_bridge.test_scaffold import without_remote_ltc
 
 REPO = Path(__file__).resolve().parents[2]
 STEPS = 12  # minutes from 11:00 on a summer day
@@ -36,8 +34,6 @@ def cache(tmp_path_factory) -> Path:
 @pytest.mark.parametrize("name", ["epri-k1", "epri-m1", "epri-ckt5", "epri-ckt24"])
 def test_short_local_run(tmp_path, cache, name):
     path = REPO / "feeders" / f"{name}.toml"
-    if name == "epri-m1":
-        path = without_remote_ltc(path, tmp_path / "epri-m1.toml")
     work = tmp_path / "cwd"
     work.mkdir()
     proc = _cvvc("run", "--feeder", str(path), "--case", "local", "--days", str(STEPS / 1440),

@@ -8,8 +8,6 @@ head's voltage class inside the zone, sized together to 100 % of the zone's peak
 from __future__ import annotations
 
 import math
-import re
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -31,19 +29,6 @@ FEEDERS = [
     ("epri-ckt5", "Master_ckt5.dss", "Line.mdv201_connector", (), ()),
     ("epri-ckt24", "master_ckt24.dss", "Line.fdr_05410", ("other_feeders",), ("subxfmr_regulator",)),
 ]
-
-
-def without_remote_ltc(path: Path, out: Path) -> Path:
-    """A copy of a map without regulators that sense a remote bus (epri-m1's LTC), master made absolute.
-
-    The engine does not simulate remote sensing yet (the physics branch adds it); this lets the rest of the
-    feeder run meanwhile.
-    """
-    dm = load_device_map(path)
-    text = path.read_text().replace(f'master = "{dm.feeder.master}"', f'master = "{dm.master_path.as_posix()}"')
-    text = re.sub(r'\[\[regulator\]\]\nid = "m1_xfmr_regulator"\nregcontrol = "m1_xfmr_regulator"\n', "", text)
-    out.write_text(text)
-    return out
 
 
 @pytest.mark.parametrize(("folder", "master", "head", "others", "regs"), FEEDERS, ids=[f[0] for f in FEEDERS])
@@ -80,9 +65,8 @@ def test_scaffold_drafts_a_map_that_loads_fits_and_compiles(tmp_path, folder, ma
     assert fractions == sorted(fractions) and fractions[0] < 0.5 < fractions[-1] and fractions[-1] > 0.85
     # every line of the draft that sets a value is explained by a comment above it or beside it
     assert out.read_text().count("#") >= 3 + len(dm.regulator) + len(dm.capacitor) + 3
-    # and it compiles in the simulator (epri-m1's remote-sensing LTC aside, see without_remote_ltc)
-    path = without_remote_ltc(out, tmp_path / "m1.toml") if folder == "epri-m1" else out
-    engine = FeederEngine(load_device_map(path))
+    # and it compiles in the simulator (epri-m1's LTC with its remote sensing too)
+    engine = FeederEngine(load_device_map(out))
     try:
         assert engine.zone_peak_load_kw == pytest.approx(r.zone.peak_load_kw, rel=1e-9)
         outside = [n for n, inside in zip(engine.load_names, engine.load_in_feeder, strict=True) if not inside]
