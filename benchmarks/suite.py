@@ -40,24 +40,9 @@ def _rural() -> Path:
     return ensure_default_feeder(cache_root(None))
 
 
-# The EPRI feeders (feeder section only: every RegControl and CapControl of the model is simulated anyway),
-# used while feeders/ has no map for them: (name, master under ../shared/feeders, head element, source bus).
-_EPRI = (("epri-k1", "epri-k1/Master_NoPV.dss", "Line.K21_feeder", "Trans_equiv"),
-         ("epri-m1", "epri-m1/Master_NoPV.dss", "Line.temp2", "SourceBus"),
-         ("epri-ckt5", "epri-ckt5/Master_ckt5.dss", "Line.MDV201_connector", "SourceBus"),
-         ("epri-ckt24", "epri-ckt24/master_ckt24.dss", "Line.fdr_05410", "SourceBus"))
-
-
-def _epri_map(name: str, master: str, head: str, source: str) -> Path:
-    """feeders/NAME.toml if it exists, else a minimal map written into the cache."""
-    path = FEEDERS / f"{name}.toml"
-    if path.is_file():
-        return path
-    out = CACHE / "bench-maps" / f"{name}.toml"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(f'[feeder]\nname = "{name}"\nmaster = "{(REPO.parent / "shared" / "feeders" / master).as_posix()}"\n'
-                   f'head_element = "{head}"\nsource_bus = "{source}"\n')
-    return out
+# The EPRI feeders, through their device maps in feeders/ (every RegControl and CapControl of the model is
+# simulated whether the map lists it or not).
+_EPRI = ("epri-k1", "epri-m1", "epri-ckt5", "epri-ckt24")
 
 
 def bench_qsts_all(quick: bool) -> dict[str, Any]:
@@ -66,7 +51,7 @@ def bench_qsts_all(quick: bool) -> dict[str, Any]:
     steps = 240 if quick else 1440
     out = {}
     feeders = [("rural", _rural()), ("ieee123", FEEDERS / "ieee123.toml"), ("ieee8500", FEEDERS / "ieee8500.toml")]
-    feeders += [(e[0], _epri_map(*e)) for e in _EPRI]
+    feeders += [(name, FEEDERS / f"{name}.toml") for name in _EPRI]
     for name, path in feeders:
         big = name != "rural" and name != "ieee123"
         out[name] = bench_qsts(path, steps // 4 if big else steps)
