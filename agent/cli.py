@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from pathlib import Path
 from typing import Any
 
 __all__ = ["register"]
@@ -40,6 +41,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--agent-id", default="agent")
     p.add_argument("--stale-after-s", type=float, default=10.0)
     p.add_argument("--json", action="store_true", help="print a JSON summary at exit")
+    p.add_argument("--summary-out", metavar="FILE", help="write the JSON summary at exit to FILE (the launcher "
+                   "reads the run's decision counts from the agent itself, not from the bus)")
     add_bus_arguments(p)
     p.set_defaults(func=_agent)
 
@@ -89,4 +92,6 @@ def _agent(args: argparse.Namespace) -> int:
     summary = run_agent(model, settings, bus_config_from_args(args, role="agent"))
     if args.json:
         print(json.dumps(msgspec.to_builtins(summary)))
+    if args.summary_out:
+        Path(args.summary_out).write_bytes(msgspec.json.encode(summary))
     return 0

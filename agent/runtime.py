@@ -76,6 +76,8 @@ class AgentSummary(msgspec.Struct, frozen=True, kw_only=True):
     rejected: dict[str, int]
     clamped: int = 0
     log_suppressed: dict[str, int] = {}
+    soft: int = 0
+    reasons: dict[str, int] = {}  # why decisions were soft or held, by reason (the first 120 characters)
 
 
 def snapshot_from(aligned: AlignedFrames, model: CvvcModel) -> MeasurementSnapshot:
@@ -158,6 +160,8 @@ class DecisionMaker:
         self.holds = 0
         self.commands_sent = 0
         self.clamped = 0  # set points / bands brought into the regulators' accepted range
+        self.soft = 0
+        self.reasons: Counter[str] = Counter()  # of soft and hold decisions
         self._dv_dtap = _within_array(np.asarray(model.dv_dtap_pu, float), -1.0, 1.0, 12)  # a model constant
 
     def on_frame(self, key: str, msg: Any) -> list[tuple[AlignedFrames, ControllerDecision]]:
@@ -202,6 +206,9 @@ class DecisionMaker:
                 commands.append(m.RegCommand(regulator_id=reg.id, action=action, **header(reg.id)))
         else:
             self.holds += 1
+        if d.status in ("soft", "hold"):
+            self.soft += d.status == "soft"
+            self.reasons[d.reason[:120]] += 1
         self.commands_sent += len(commands)
         estimates = []
         if d.v_pu is not None:
@@ -356,7 +363,8 @@ def run_agent(model: CvvcModel, settings: AgentSettings, bus, *, stop: threading
     for k, n in maker.aligner.rejected.items():
         rejected[k] = rejected.get(k, 0) + n
     return AgentSummary(decisions=maker.seq, holds=maker.holds, commands=maker.commands_sent, acks=dict(acks),
-                        rejected=rejected, clamped=maker.clamped, log_suppressed=dict(rlog.suppressed))
+                        rejected=rejected, clamped=maker.clamped, log_suppressed=dict(rlog.suppressed),
+                        soft=maker.soft, reasons=dict(maker.reasons.most_common(20)))
 
 
 class _FrameHealth:

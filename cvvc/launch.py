@@ -28,20 +28,22 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from types import MappingProxyType
-from typing import TYPE_CHECKING, Literal
+from typing import TYPE_CHECKING, Literal, TypeVar
 
 import msgspec
 
+from agent.runtime import AgentSummary
 from cvvc.errors import CommandError
 from schemas import messages as m
 from schemas.cache import cache_root, profiles_dir
+from simulator_bridge.bridge import BridgeSummary
 from simulator_bridge.metrics import Metrics
 
 if TYPE_CHECKING:
     from agent.runtime import AgentSettings
 
 __all__ = ["CASES", "CASE_AGENT", "CaseAgent", "LaunchError", "RunConfig", "RunSummary", "agent_settings_args",
-           "case_agent_settings", "run"]
+           "case_agent_settings", "check_mostly_held", "run"]
 
 Case = Literal["A", "B", "C", "D", "none", "local"]
 CASES: tuple[Case, ...] = ("A", "B", "C", "D", "none", "local")
@@ -101,6 +103,9 @@ class RunSummary(msgspec.Struct, frozen=True, kw_only=True):
     out_dir: str
     recording: str | None
     model: str | None
+    holds: int = 0  # decisions with status 'hold' (no command sent), as the agent counted them
+    soft: int = 0  # decisions on the soft form (eq. 17)
+    reasons: dict[str, int] = {}  # the reasons of soft and hold decisions, most frequent first
 
 
 class CaseAgent(msgspec.Struct, frozen=True, kw_only=True):
@@ -277,16 +282,15 @@ def run(config: RunConfig) -> RunSummary:
         init_security_dir(security_dir, ca_dir=config.ca_dir)
         connect += ["--secure-dir", security_dir]
     children: list[_Child] = []
-    final: m.MetricsFrame | None = None
-    status: m.BridgeStatus | None = None
-    decisions = 0
+    # The run's figures come from the processes the launcher started, never from the bus, where any session
+    # could publish a metrics frame or a decision (issue "Robust by default" (c)): each writes its own summary.
+    agent_summary_path, bridge_summary_path = out / "agent-summary.json", out / "bridge-summary.json"
+    agent_summary: AgentSummary | None = None
     try:
         with open_session(BusConfig(mode="router", listen=(endpoint,), tls_dir=security_dir,
                                     role="router" if security_dir else None)) as session:
             inbox = Inbox(maxsize=100_000)
-            inbox.subscribe(session, keys.sim_metrics(feeder_id), m.MetricsFrame)
-            inbox.subscribe(session, keys.sim_status(feeder_id), m.BridgeStatus)
-            inbox.subscribe(session, keys.agent_decision(feeder_id), m.Decision)
+            inbox.subscribe(session, keys.sim_status(feeder_id), m.BridgeStatus)  # progress only
             if config.record:
                 children.append(_spawn("recorder", [
                     "record", "--out", str(mcap_path), "--keys", f"cvvc/{feeder_id}/**",
@@ -298,7 +302,8 @@ def run(config: RunConfig) -> RunSummary:
                 probe.undeclare()
             if agent_settings is not None:
                 children.append(_spawn("agent", [
-                    "agent", "--model", str(kept_model), *agent_settings_args(agent_settings), *connect], out))
+                    "agent", "--model", str(kept_model), *agent_settings_args(agent_settings),
+                    "--summary-out", str(agent_summary_path), *connect], out))
                 agent_key = keys.alive(feeder_id, "agent", "agent")
                 agents = LivelinessWatcher(session, agent_key)
                 if not wait_for(lambda: agents.is_alive(agent_key), 60.0):
@@ -316,7 +321,8 @@ def run(config: RunConfig) -> RunSummary:
             bridge = _spawn("bridge", [
                 "bridge", "--feeder", str(dm_path), "--feeder-id", feeder_id, "--start", start_text,
                 "--steps", str(steps), "--year-seed", str(config.year_seed),
-                "--pv-local", "volt_var" if config.case == "local" else "unity", *clock, *realism, *connect], out)
+                "--pv-local", "volt_var" if config.case == "local" else "unity",
+                "--summary-out", str(bridge_summary_path), *clock, *realism, *connect], out)
             children.append(bridge)
 
             bar = _progress(steps, config.progress, config.progress_label)
@@ -328,34 +334,16 @@ def run(config: RunConfig) -> RunSummary:
                                           f"{_tail(out / f'{child.name}.log')}")
                 item = inbox.get(timeout_s=0.2)
                 while item is not None:
-                    match item.msg:
-                        case m.MetricsFrame() as mf:
-                            if mf.final:
-                                final = mf
-                        case m.BridgeStatus() as st:
-                            status = st
-                            if bar is not None:
-                                bar.n = st.step
-                                bar.refresh()
-                        case m.Decision():
-                            decisions += 1
+                    if isinstance(item.msg, m.BridgeStatus) and bar is not None:
+                        bar.n = item.msg.step
+                        bar.refresh()
                     item = inbox.get(timeout_s=0.0)
                 if bridge.proc.poll() is not None:
-                    # the bridge is done: collect what it published last (bounded)
-                    if final is None:
-                        wait_for(lambda: not inbox.queue.empty(), 5.0)
-                    for item in inbox.drain():
-                        if isinstance(item.msg, m.MetricsFrame) and item.msg.final:
-                            final = item.msg
-                        elif isinstance(item.msg, m.Decision):
-                            decisions += 1
                     break
             if bar is not None:
                 bar.close()
             if bridge.proc.returncode != 0:
                 raise LaunchError(f"the bridge exited with {bridge.proc.returncode}:\n{_tail(out / 'bridge.log')}")
-            if final is None:
-                raise LaunchError("the bridge finished without publishing its final metrics frame")
             for child in children:
                 if child is not bridge:
                     _stop(child)
@@ -363,6 +351,12 @@ def run(config: RunConfig) -> RunSummary:
         for child in children:
             _stop(child)
     wall_s = time.monotonic() - t_wall0
+    bridge_summary = _read_summary(bridge_summary_path, BridgeSummary, "bridge")
+    final = bridge_summary.metrics
+    if final is None:
+        raise LaunchError(f"the bridge finished without final metrics:\n{_tail(out / 'bridge.log')}")
+    if agent_settings is not None:
+        agent_summary = _read_summary(agent_summary_path, AgentSummary, "agent")
 
     baseline = None
     if config.baseline and config.case != "none":
@@ -371,12 +365,43 @@ def run(config: RunConfig) -> RunSummary:
     summary = RunSummary(
         feeder=str(dm_path), feeder_id=feeder_id, case=config.case, start=start_text, days=config.days,
         steps=steps, wall_s=round(wall_s, 2), metrics=final, baseline=baseline,
-        lockstep_misses=status.lockstep_misses if status else 0, decisions=decisions, out_dir=str(out),
+        lockstep_misses=bridge_summary.lockstep_misses,
+        decisions=agent_summary.decisions if agent_summary else 0, out_dir=str(out),
         recording=str(mcap_path) if config.record else None,
-        model=str(kept_model) if agent_settings is not None else None)
+        model=str(kept_model) if agent_settings is not None else None,
+        holds=agent_summary.holds if agent_summary else 0, soft=agent_summary.soft if agent_summary else 0,
+        reasons=dict(agent_summary.reasons) if agent_summary else {})
     (out / "summary.json").write_bytes(msgspec.json.format(msgspec.json.encode(summary), indent=2))
     (out / "report.md").write_text(render_summary(summary))
+    check_mostly_held(summary)
     return summary
+
+
+def check_mostly_held(summary: RunSummary) -> None:
+    """Raise ``LaunchError`` when most of a run's decisions were ``hold``: such a run did not control the feeder,
+    and its metrics must not read as a result (issue "Real utility feeders (2/2)": 288 of 288 held, silently).
+    """
+    if summary.decisions and 2 * summary.holds > summary.decisions:
+        raise LaunchError(f"{summary.holds} of {summary.decisions} decisions were 'hold' (no command sent): the run "
+                          f"did not control the feeder; most frequent reasons: {_top_reasons(summary.reasons)} "
+                          f"(the whole summary: {Path(summary.out_dir) / 'summary.json'})")
+
+
+_S = TypeVar("_S", AgentSummary, BridgeSummary)
+
+
+def _read_summary(path: Path, kind: type[_S], who: str) -> _S:
+    """The JSON summary a child process wrote at exit, decoded, or a clear error."""
+    try:
+        return msgspec.json.decode(path.read_bytes(), type=kind)
+    except (OSError, msgspec.DecodeError, msgspec.ValidationError) as e:
+        raise LaunchError(f"the {who} left no readable summary ({path}: {e}):\n"
+                          f"{_tail(path.parent / f'{who}.log')}") from e
+
+
+def _top_reasons(reasons: dict[str, int], n: int = 3) -> str:
+    top = sorted(reasons.items(), key=lambda kv: -kv[1])[:n]
+    return "; ".join(f"{count} x {reason!r}" for reason, count in top) or "none given"
 
 
 def _recorder_agent_args(settings: AgentSettings | None, model: Path) -> list[str]:
@@ -427,7 +452,9 @@ def render_summary(s: RunSummary) -> str:
     for label, key in rows:
         b = "" if base is None else _fmt(getattr(base, key))
         lines.append(f"| {label} | {_fmt(getattr(mt, key))} | {b} |")
-    lines += ["", f"- decisions: {s.decisions}; lockstep misses: {s.lockstep_misses}; wall time {s.wall_s:.1f} s",
+    why = f"; most frequent reasons: {_top_reasons(s.reasons)}" if s.holds or s.soft else ""
+    lines += ["", f"- decisions: {s.decisions} (soft {s.soft}, hold {s.holds}{why}); lockstep misses: "
+              f"{s.lockstep_misses}; wall time {s.wall_s:.1f} s",
               f"- recording: `{s.recording}`" if s.recording else "- recording: off",
               f"- model: `{s.model}`" if s.model else "- model: none (baseline case)", ""]
     return "\n".join(lines)

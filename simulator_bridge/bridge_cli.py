@@ -11,6 +11,7 @@ import argparse
 import signal
 import sys
 import threading
+from pathlib import Path
 
 __all__ = ["register_bridge"]
 
@@ -53,6 +54,8 @@ def _bridge(args: argparse.Namespace) -> int:
     except CvvcError as e:
         print(f"cvvc bridge: error: {e}", file=sys.stderr)
         return 2
+    if args.summary_out:
+        Path(args.summary_out).write_bytes(msgspec.json.encode(summary))
     if args.json:
         print(msgspec.json.format(msgspec.json.encode(summary), indent=2).decode())
     else:
@@ -106,5 +109,7 @@ def register_bridge(subparsers: argparse._SubParsersAction) -> None:
                         "of 200 nodes or more, without --latency-s, with --connect/--listen and no "
                         "--zenoh-config (docs/bridge.md)")
     p.add_argument("--json", action="store_true", help="print the run summary as JSON")
+    p.add_argument("--summary-out", metavar="FILE", help="write the run summary as JSON to FILE at exit (the "
+                   "launcher takes the run's final metrics from the bridge itself, not from the bus)")
     add_bus_arguments(p)
     p.set_defaults(func=_bridge)

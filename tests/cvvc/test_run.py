@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 
+from schemas import messages as m
 from schemas.devicemap import load_device_map
 from simulator_bridge.engine import FeederEngine
 from simulator_bridge.metrics import MetricsAccumulator
@@ -140,6 +141,26 @@ def test_no_process_left_behind_and_outputs_written(one_hour_run):
     for name in ("summary.json", "report.md", "model.json", "session.mcap"):
         assert (out / name).is_file(), name
     assert json.loads((out / "summary.json").read_text())["metrics"] == summary["metrics"]
+    # issue 17 (c): the run's figures are the processes' own (their summaries), not whatever the bus carried
+    bridge, agent = (json.loads((out / f"{who}-summary.json").read_text()) for who in ("bridge", "agent"))
+    assert bridge["metrics"] == summary["metrics"]
+    assert agent["decisions"] == summary["decisions"] and agent["holds"] == summary["holds"]
+    assert summary["soft"] + summary["holds"] == sum(summary["reasons"].values())
+
+
+def test_a_run_whose_decisions_mostly_held_ends_with_a_clear_error():
+    """Issue 16: 288 of 288 decisions 'hold' printed like a result; now the run ends with the reasons."""
+    import msgspec
+
+    from cvvc.launch import LaunchError, RunSummary, check_mostly_held
+    from schemas.examples import example
+
+    base = RunSummary(feeder="f.toml", feeder_id="f", case="A", start="2023-01-01", days=1.0, steps=1440,
+                      wall_s=1.0, metrics=example(m.MetricsFrame),
+                      baseline=None, lockstep_misses=0, decisions=288, out_dir="out", recording=None, model=None)
+    check_mostly_held(msgspec.structs.replace(base, holds=144))  # half: not most
+    with pytest.raises(LaunchError, match="288 of 288 decisions were 'hold'.*288 x 'case A: no oracle reply'"):
+        check_mostly_held(msgspec.structs.replace(base, holds=288, reasons={"case A: no oracle reply": 288}))
 
 
 def test_offline_replay_reproduces_every_decision(one_hour_run):
