@@ -322,6 +322,7 @@ def run(config: RunConfig) -> RunSummary:
                 "bridge", "--feeder", str(dm_path), "--feeder-id", feeder_id, "--start", start_text,
                 "--steps", str(steps), "--year-seed", str(config.year_seed),
                 "--pv-local", "volt_var" if config.case == "local" else "unity",
+                *(["--oracle"] if agent_settings is not None and agent_settings.full_visibility else []),
                 "--summary-out", str(bridge_summary_path), *clock, *realism, *connect], out)
             children.append(bridge)
 

@@ -98,6 +98,10 @@ class BridgeError(SimulatorError):
     """The bridge cannot run as configured (bad dates, step counts, speeds, feeders)."""
 
 
+ORACLE_REPLIES_PER_STEP = 2
+"""Case-A oracle replies the bridge gives per simulated step (the agent asks once per control step; one retry)."""
+
+
 class BridgeConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
     """Everything a bridge run needs (built by the ``cvvc bridge`` handler, or by tests and launchers).
 
@@ -120,6 +124,10 @@ class BridgeConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fie
         stepping thread solves the next step (not with ``latency_s``; the bus must have connect or listen
         endpoints and no config file); ``auto`` (default) the process on feeders of 200 nodes or more when it
         can, inline otherwise. The messages are the same.
+    oracle : serve the case-A oracle (``sim/oracle``: every node's true voltage and perturbation sensitivities).
+        Off by default: it exists only when case A asks for it (``cvvc run --case A`` sets it), and then answers
+        at most ``ORACLE_REPLIES_PER_STEP`` queries per simulated step; the rest are refused and counted
+        (``oracle_rate``): each reply costs the stepping thread K + R + 2 power flows.
     """
 
     device_map_path: str
@@ -140,6 +148,7 @@ class BridgeConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fie
     noise_seed: int = 0
     cache_dir: str | None = None  # year-profile cache folder; None: no cache (the CLI passes its --cache's)
     publisher: Literal["auto", "inline", "process"] = "auto"
+    oracle: bool = False
 
 
 class BridgeSummary(msgspec.Struct, frozen=True, kw_only=True):
@@ -362,7 +371,9 @@ class _Runtime:
         self.inbox.subscribe(s, keys.agent_decision(f), m.Decision)
         self.agents = LivelinessWatcher(s, f"{keys.ROOT}/{f}/alive/agent/*", self._on_agent)
         self.bridges = LivelinessWatcher(s, f"{keys.ROOT}/*/alive/bridge/*")
-        self.queryable = s.declare_queryable(keys.sim_oracle(f), self._on_query, complete=True)
+        self.queryable = (s.declare_queryable(keys.sim_oracle(f), self._on_query, complete=True)
+                          if self.config.oracle else None)
+        self._oracle_step_t_ns, self._oracle_step_replies = -1, 0
 
     def close(self) -> None:
         """Withdraw every token and declaration (the session is closed by the caller's ``with``); oracle
@@ -370,7 +381,8 @@ class _Runtime:
         """
         if self.child is not None:
             self.child.close(None)  # nothing more when the run closed it already
-        for undeclare in [self.queryable.undeclare, self.inbox.undeclare, self.agents.undeclare,
+        declared = [self.queryable] if self.queryable is not None else []
+        for undeclare in [*(q.undeclare for q in declared), self.inbox.undeclare, self.agents.undeclare,
                           self.bridges.undeclare, *(t.undeclare for t in self.tokens)]:
             try:
                 undeclare()
@@ -599,6 +611,15 @@ class _Runtime:
     # ---------------------------------------------------------------- oracle
     def _answer_oracle(self, item: _OracleQuery) -> None:
         q = item.query
+        if self._oracle_step_t_ns != self.now_t_ns:
+            self._oracle_step_t_ns, self._oracle_step_replies = self.now_t_ns, 0
+        if self._oracle_step_replies >= ORACLE_REPLIES_PER_STEP:
+            self.rejected["oracle_rate"] += 1
+            q.reply_err(f"rate limited: at most {ORACLE_REPLIES_PER_STEP} oracle replies per simulated step; "
+                        "ask again after the next step".encode())
+            q.drop()
+            return
+        self._oracle_step_replies += 1
         try:
             self.qsts.unstage_loads()  # the oracle's flows are of the present state
             # Only the feeder's own nodes (the head meter's side): the transmission side of the substation

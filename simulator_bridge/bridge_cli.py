@@ -41,6 +41,7 @@ def _bridge(args: argparse.Namespace) -> int:
             drop_prob=args.drop_prob, latency_s=args.latency_s, noise_seed=args.noise_seed,
             cache_dir=(str(profiles_dir(args.cache)) if args.cache_dir is None
                        else None if args.cache_dir == "" else args.cache_dir), publisher=args.publisher,
+            oracle=args.oracle,
         )
         default_mode = "router" if args.listen and not args.connect else "peer"
         bus = bus_config_from_args(args, default_mode=default_mode, role="devices")
@@ -108,6 +109,8 @@ def register_bridge(subparsers: argparse._SubParsersAction) -> None:
                         "a publisher process with its own Zenoh session (process), or auto: the process on feeders "
                         "of 200 nodes or more, without --latency-s, with --connect/--listen and no "
                         "--zenoh-config (docs/bridge.md)")
+    p.add_argument("--oracle", action="store_true", help="serve the case-A oracle on sim/oracle (true voltages "
+                   "and sensitivities of every node; off unless case A needs it)")
     p.add_argument("--json", action="store_true", help="print the run summary as JSON")
     p.add_argument("--summary-out", metavar="FILE", help="write the run summary as JSON to FILE at exit (the "
                    "launcher takes the run's final metrics from the bridge itself, not from the bus)")

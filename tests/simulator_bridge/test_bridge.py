@@ -339,11 +339,16 @@ def test_every_bad_command_is_rejected_with_a_reason_and_counted(
 def test_oracle_answers_from_the_stepping_thread(client: Client, router_endpoint: str, device_map_path: Path,
                                                  cache_dir: Path) -> None:
     client.be_agent()  # alive before the bridge starts, and the bridge is not told to wait for it:
-    th, stop, out = _bridge_thread(_config(device_map_path, cache_dir, steps=1, wait_agent_s=0.0), router_endpoint)
+    th, stop, out = _bridge_thread(_config(device_map_path, cache_dir, steps=1, wait_agent_s=0.0, oracle=True),
+                                   router_endpoint)
     try:
         t0 = client.head().t_ns
         replies = list(client.session.get(f"cvvc/{FEEDER}/sim/oracle",
                                           payload=msgspec.json.encode(m.OracleRequest(t_ns=t0)), timeout=10.0))
+        # issue 17 (i): at most two replies per simulated step; the third query is refused, not computed
+        more = [list(client.session.get(f"cvvc/{FEEDER}/sim/oracle",
+                                        payload=msgspec.json.encode(m.OracleRequest(t_ns=t0)), timeout=10.0))
+                for _ in range(2)]
         client.decide(t0)
         summary = _finish(th, stop, out)
     finally:
@@ -362,8 +367,27 @@ def test_oracle_answers_from_the_stepping_thread(client: Client, router_endpoint
         for sens in (rep.dv_dq_pu_per_kvar, rep.dv_dp_pu_per_kw):
             at_plant = [sens[i][k] for i, name in enumerate(rep.node_names) if name.startswith(bus + ".")]
             assert at_plant and min(at_plant) > 0
-    assert summary.oracle_replies == 1 and summary.lockstep_misses == 0
+    assert more[0][0].ok is not None and more[1][0].err is not None
+    assert b"rate limited" in more[1][0].err.payload.to_bytes()
+    assert summary.oracle_replies == 2 and summary.rejected.get("oracle_rate") == 1 and summary.lockstep_misses == 0
     assert summary.lockstep_skipped == 0 and summary.decisions == 1  # it found the agent before step 0
+
+
+def test_no_oracle_unless_asked_for(client: Client, router_endpoint: str, device_map_path: Path,
+                                    cache_dir: Path) -> None:
+    """Issue 17 (i): the oracle answered any session with every node's true voltage; now only case A has one."""
+    client.be_agent()
+    th, stop, out = _bridge_thread(_config(device_map_path, cache_dir, steps=1, wait_agent_s=0.0), router_endpoint)
+    try:
+        t0 = client.head().t_ns
+        replies = list(client.session.get(f"cvvc/{FEEDER}/sim/oracle",
+                                          payload=msgspec.json.encode(m.OracleRequest(t_ns=t0)), timeout=1.0))
+        client.decide(t0)
+        summary = _finish(th, stop, out)
+    finally:
+        stop.set()
+        th.join(timeout=30)
+    assert replies == [] and summary.oracle_replies == 0
 
 
 def _bridge_cmd(endpoint: str, device_map_path: Path, cache_dir: Path, *extra: str) -> list[str]:
