@@ -29,6 +29,12 @@ def _start(procs: Procs, watcher: Watcher):
     return agent, bridge
 
 
+def _head_publisher(session: zenoh.Session, watcher: Watcher) -> zenoh.Publisher:
+    pub = session.declare_publisher(HEAD_KEY, congestion_control=zenoh.CongestionControl.BLOCK)
+    watcher.wait(lambda: pub.matching_status.matching, 10, "the head key's subscribers")
+    return pub
+
+
 def _real_head(watcher: Watcher) -> m.HeadFrame:
     return watcher.messages(m.HeadFrame, lambda f: f.source == "head" and f.t_ns < YEAR_2100_NS
                             and f.seq < 2**62)[-1]
@@ -44,8 +50,7 @@ def test_a_head_frame_from_2100_does_not_blind_the_agent(procs: Procs, watcher: 
                                                          router_endpoint: str) -> None:
     agent, bridge = _start(procs, watcher)
     with plain_session(router_endpoint, mode="client") as session:
-        pub = session.declare_publisher(HEAD_KEY, congestion_control=zenoh.CongestionControl.BLOCK)
-        watcher.wait(lambda: pub.matching_status.matching, 10, "the head key's subscribers")
+        pub = _head_publisher(session, watcher)
         real = _real_head(watcher)
         pub.put(msgspec.json.encode(msgspec.structs.replace(real, t_ns=YEAR_2100_NS, seq=real.seq + 1)))
         # three more real control steps are decided (before the fix: every real frame 'stale' from here on)
@@ -60,8 +65,7 @@ def test_a_head_frame_with_the_largest_seq_does_not_stall_the_agent(procs: Procs
                                                                     router_endpoint: str) -> None:
     agent, bridge = _start(procs, watcher)
     with plain_session(router_endpoint, mode="client") as session:
-        pub = session.declare_publisher(HEAD_KEY, congestion_control=zenoh.CongestionControl.BLOCK)
-        watcher.wait(lambda: pub.matching_status.matching, 10, "the head key's subscribers")
+        pub = _head_publisher(session, watcher)
         real = _real_head(watcher)
         pub.put(msgspec.json.encode(msgspec.structs.replace(real, seq=2**63 - 1, t_ns=real.t_ns + 1)))
         # within one control period the real head is taken again: decisions with the head frame come back
@@ -74,8 +78,7 @@ def test_the_status_says_degraded_while_most_frames_are_refused(procs: Procs, wa
                                                                 router_endpoint: str) -> None:
     agent, bridge = _start(procs, watcher)
     with plain_session(router_endpoint, mode="client") as session:
-        pub = session.declare_publisher(HEAD_KEY, congestion_control=zenoh.CongestionControl.BLOCK)
-        watcher.wait(lambda: pub.matching_status.matching, 10, "the head key's subscribers")
+        pub = _head_publisher(session, watcher)
         real = _real_head(watcher)
         last_seq = watcher.messages(m.AgentStatus)[-1].seq
         watcher.skip = ("/meas/head",)  # do not keep the flood
