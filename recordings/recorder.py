@@ -5,7 +5,7 @@ File layout (docs/recordings.md):
 - one channel per concrete Zenoh key (the topic is the key, e.g. ``cvvc/rural/meas/pv/pv1``), message
   encoding ``json``, with the JSON Schema of the key's message type (schema encoding ``jsonschema``, name
   ``cvvc.<Type>``, top-level ``"type": "object"`` so Foxglove can plot it). Only payloads that decode into
-  their key's message type (the shared typed codec: bounds, finiteness, unknown fields) reach these channels;
+  their key's message type (msgspec's typed decode: types, bounds, unknown fields) reach these channels;
 - everything else goes to the **quarantine** channel ``cvvc.quarantine`` (schema ``cvvc.Quarantined``): the
   key, the reason and the payload (base64), so nothing is lost and nothing junk sits on a real channel: a key
   outside the cvvc layout, a payload that does not decode, or a new key past ``max_channels`` (a flood of
@@ -40,7 +40,7 @@ import zenoh
 from mcap.writer import LIBRARY_IDENTIFIER, CompressionType, Writer
 
 from recordings.errors import RecordingError
-from schemas.bus import BadMessage, BusConfig, codec_for, open_session
+from schemas.bus import MAX_PAYLOAD_BYTES, BusConfig, open_session
 from schemas.jsonschema import schema_bytes, schema_name
 from schemas.keys import message_type_for_key
 
@@ -126,6 +126,7 @@ class McapSink:
         self._header_decoder = msgspec.json.Decoder(_Header)
         self._add = self._writer.add_message
         self._max_channels = max_channels
+        self._decoders: dict[type, msgspec.json.Decoder] = {}
         self._quarantine_channel = 0
         self.quarantined = 0
         self.messages = 0
@@ -148,13 +149,30 @@ class McapSink:
             return self._quarantine(raw, key, recv_ns, "not a key of the cvvc layout")
         if channel_id is None and len(self._channels) >= self._max_channels:
             return self._quarantine(raw, key, recv_ns, f"channel limit: already {self._max_channels} channels")
-        try:
-            codec_for(msg_type).decode(raw)
-        except BadMessage as e:
-            return self._quarantine(raw, key, recv_ns, f"not a {msg_type.__name__}: {e}")
+        why = self._schema_problem(msg_type, raw)
+        if why is not None:
+            return self._quarantine(raw, key, recv_ns, f"not a {msg_type.__name__}: {why}")
         if channel_id is None:
             channel_id = self._register_channel(key, msg_type)
         self._write(channel_id, raw, recv_ns)
+
+    def _schema_problem(self, msg_type: type, raw: bytes) -> str | None:
+        """Why ``raw`` does not decode as ``msg_type`` (types, ``Meta`` bounds, unknown or missing fields), or None.
+
+        msgspec's typed decode alone, without the bus codec's walk for non-finite numbers: bounded fields refuse
+        inf already, and the walk tripled the cost per message on the writer thread (measured: 18 vs 5 us for a
+        head frame; the recording bench fell from 0.64 to 0.21 of the bare writer).
+        """
+        if len(raw) > MAX_PAYLOAD_BYTES:
+            return f"oversize: {len(raw)} bytes > {MAX_PAYLOAD_BYTES}"
+        decoder = self._decoders.get(msg_type)
+        if decoder is None:
+            decoder = self._decoders[msg_type] = msgspec.json.Decoder(msg_type)
+        try:
+            decoder.decode(raw)
+        except (msgspec.DecodeError, UnicodeDecodeError, RecursionError) as e:  # ValidationError is a DecodeError
+            return str(e) or type(e).__name__
+        return None
 
     def _quarantine(self, raw: bytes, key: str, recv_ns: int, reason: str) -> None:
         if not self._quarantine_channel:

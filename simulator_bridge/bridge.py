@@ -307,16 +307,16 @@ class _Runtime:
         self.now_t_ns = int(profiles.t_ns(start_step)) - self.step_s * _NS  # nothing simulated yet
         self.pv_p_kw = engine.pv_setpoints()[0]
         local: Literal["unity_pf", "volt_var"] = "volt_var" if c.pv_local == "volt_var" else "unity_pf"
-        self.pvs = {pid: dv.PvInverter(pid, k, float(engine.pv_kva[k]), local) for k, pid in enumerate(engine.pv_ids)}
+        period_ns = int(dm.feeder.control_period_s) * _NS  # the unit of the commands' time windows
+        self.pvs = {pid: dv.PvInverter(pid, k, float(engine.pv_kva[k]), local, period_ns=period_ns)
+                    for k, pid in enumerate(engine.pv_ids)}
         self.regs = {rid: dv.RegulatorController(rid, r, int(engine.reg_tap_max[r]),
                                                  float(engine.reg_default_setpoint_v120[r]),
-                                                 float(engine.reg_default_band_v120[r]))
+                                                 float(engine.reg_default_band_v120[r]), period_ns=period_ns)
                      for r, rid in enumerate(engine.regulator_ids)}
         self.caps = {cid: dv.CapBankController(cid, c, int(engine.cap_steps[c]), float(engine.cap_kvar[c]),
-                                               engine.cap_control_type[c])
+                                               engine.cap_control_type[c], period_ns=period_ns)
                      for c, cid in enumerate(engine.capacitor_ids)}
-        for device in (*self.pvs.values(), *self.regs.values(), *self.caps.values()):
-            device.guard.period_ns = int(dm.feeder.control_period_s) * _NS  # the commands' time windows
         self.reg_phase = ["abc"[int(engine.node_names[n].split(".")[1]) - 1] for n in engine.reg_secondary_node]
         self.spec = FramerSpec(
             feeder_id=self.fid, step_s=self.step_s, control_every=self.control_every,

@@ -213,12 +213,12 @@ class PvInverter:
     """
 
     def __init__(self, plant_id: str, index: int, s_rated_kva: float,
-                 local_mode: Literal["unity_pf", "volt_var"]) -> None:
+                 local_mode: Literal["unity_pf", "volt_var"], *, period_ns: int = DEFAULT_PERIOD_NS) -> None:
         self.plant_id = plant_id
         self.index = index
         self.s_rated_kva = float(s_rated_kva)
         self.local_mode = local_mode
-        self.guard = CommandGuard(plant_id)
+        self.guard = CommandGuard(plant_id, period_ns=period_ns)
 
     def check(self, cmd: m.PvCommand, *, now_t_ns: int) -> Verdict | None:
         """Reject ``cmd`` (see the module docstring) or None: then apply it and build its verdict."""
@@ -241,13 +241,14 @@ class RegulatorController:
     """
 
     def __init__(self, regulator_id: str, index: int, tap_max: int,
-                 default_setpoint_v120: float, default_band_v120: float) -> None:
+                 default_setpoint_v120: float, default_band_v120: float, *,
+                 period_ns: int = DEFAULT_PERIOD_NS) -> None:
         self.regulator_id = regulator_id
         self.index = index
         self.tap_max = int(tap_max)
         self.default_setpoint_v120 = float(default_setpoint_v120)
         self.default_band_v120 = float(default_band_v120)
-        self.guard = CommandGuard(regulator_id)
+        self.guard = CommandGuard(regulator_id, period_ns=period_ns)
         self.action: m.TapAction | m.SetpointAction | None = None
 
     def check(self, cmd: m.RegCommand, *, now_t_ns: int) -> Verdict | None:
@@ -314,7 +315,7 @@ class CapBankController:
     """
 
     def __init__(self, capacitor_id: str, index: int, steps: int, kvar_rated: float,
-                 control_type: m.CapControlType) -> None:
+                 control_type: m.CapControlType, *, period_ns: int = DEFAULT_PERIOD_NS) -> None:
         self.capacitor_id = capacitor_id
         self.index = index
         self.steps = int(steps)
@@ -323,7 +324,7 @@ class CapBankController:
             raise DeviceError(f"capacitor bank {capacitor_id!r}: control type {control_type!r} is none of "
                               f"{get_args(m.CapControlType)}; the engine must translate OpenDSS's CapControl type")
         self.control_type: m.CapControlType = control_type
-        self.guard = CommandGuard(capacitor_id)
+        self.guard = CommandGuard(capacitor_id, period_ns=period_ns)
 
     def check(self, cmd: m.CapCommand, *, now_t_ns: int) -> Verdict | None:
         """Reject ``cmd`` by the generic checks or the bank's range, or None (then :meth:`apply` it)."""
