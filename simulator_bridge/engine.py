@@ -1,6 +1,6 @@
 """The feeder engine: the only module that imports ``opendssdirect``.
 
-One :class:`FeederEngine` holds one OpenDSS context (``dss.NewContext()``), compiled from a device map.
+One :class:`FeederEngine` holds one OpenDSS context (:func:`new_context`), compiled from a device map.
 It sets loads, PV plants, regulator taps and capacitor banks, solves one power flow, and reads what field
 devices would measure (:class:`FieldReadings`), what every RegControl and CapControl of the model samples
 (:meth:`FeederEngine.sense`) and the truth (every node's voltage). Device physics that spans time (the local
@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import os
 import tempfile
+import threading
 import time
 from collections import deque
 from dataclasses import dataclass
@@ -217,10 +218,11 @@ class FeederEngine:
         self.device_map = device_map
         self.tolerance = float(tolerance)
         self._where = f"device map of feeder {device_map.feeder.name!r} (in {device_map.root})"
-        self._dss = dss.NewContext()
-        self._compile(device_map.master_path)
-        for cmd in device_map.feeder.extra_commands:
-            self._command(cmd, what=f"{self._where}: extra command")
+        self._dss = new_context()
+        with DSS_LIFECYCLE:
+            self._compile(device_map.master_path)
+            for cmd in device_map.feeder.extra_commands:
+                self._command(cmd, what=f"{self._where}: extra command")
         self._check_names()
         self._add_pv_plants()
         self._command("set controlmode=off", what="engine setup")
@@ -1145,10 +1147,11 @@ def opendss_snapshot(master: str | Path, *, tolerance: float = 1e-8) -> OpenDssS
     EngineError
         The model does not compile or the snapshot does not converge.
     """
-    ctx = dss.NewContext()
+    ctx = new_context()
     cwd = os.getcwd()
     try:
-        ctx.Text.Command(f'compile "{Path(master).resolve()}"')
+        with DSS_LIFECYCLE:
+            ctx.Text.Command(f'compile "{Path(master).resolve()}"')
         ctx.Text.Command(f"set tolerance={tolerance:.3g}")
         ctx.Text.Command("set maxcontroliter=100")
         ctx.Text.Command("set maxiterations=100")
@@ -1278,12 +1281,13 @@ def survey_circuit(master: str | Path, *, extra_commands: tuple[str, ...] | list
     )
 
     master = Path(master).resolve()
-    d = dss.NewContext()
+    d = new_context()
     cwd = os.getcwd()
     try:
-        _compile_read_only(d, master)
-        for cmd in extra_commands:
-            d.Text.Command(cmd)
+        with DSS_LIFECYCLE:
+            _compile_read_only(d, master)
+            for cmd in extra_commands:
+                d.Text.Command(cmd)
     except dss.DSSException as e:
         raise EngineError(f"{master}: the feeder does not compile: {e}; fix the OpenDSS model") from e
     finally:
@@ -1393,6 +1397,41 @@ def survey_circuit(master: str | Path, *, extra_commands: tuple[str, ...] | list
         capacitors=tuple(caps), pvsystems=tuple(pvs), loads=tuple(loads), meters=tuple(meters),
         node_count=len(d.Circuit.AllNodeNames()),
     )
+
+
+DSS_LIFECYCLE = threading.RLock()
+"""Held while an OpenDSS context is created, compiled or disposed.
+
+Contexts solve in parallel threads, but their birth and death are not safe to overlap: ``ctx_New`` segfaulted
+once in CI in a bridge thread while the test's main thread let go of an earlier engine (cffi disposes a context
+from whichever thread drops the last reference), and ``compile``/``redirect`` change the process's working
+directory, so two compiles at once read each other's relative ``redirect`` files ("Redirect file not found",
+reproduced with two threads compiling IEEE 13). Re-entrant: a disposal that the garbage collector starts inside
+a locked section of the same thread goes through.
+"""
+
+
+def new_context():
+    """A fresh OpenDSS context whose creation and disposal hold :data:`DSS_LIFECYCLE`.
+
+    ``dss.NewContext()`` attaches ``ctx_Dispose`` to the context pointer as a bare cffi destructor; it is
+    replaced by one that takes the lock, owned by the context's own API object (so it runs after that object's
+    callbacks are unregistered, as before).
+    """
+    with DSS_LIFECYCLE:
+        d = dss.NewContext()
+    util = d._api_util
+    ffi, lib = util.ffi, util.lib_unpatched
+    ffi.gc(util.ctx, None)  # detach the unlocked destructor
+    util._cvvc_disposer = ffi.gc(util.ctx, _locked_dispose(lib))
+    return d
+
+
+def _locked_dispose(lib):
+    def dispose(ctx) -> None:
+        with DSS_LIFECYCLE:
+            lib.ctx_Dispose(ctx)
+    return dispose
 
 
 def _compile_read_only(d, master: Path) -> None:
