@@ -2,6 +2,6 @@
 
 ``python -m benchmarks [--only NAME ...] [--quick] [--json FILE]`` (``make bench``) runs every benchmark
 (``suite``); each module also runs alone (``python -m benchmarks.bench_solver`` ...). ``synthetic`` makes
-paper-size CVVC problems and models for the solver benchmark and the tests. The bridge's own benchmarks are
-still ``simulator_bridge/bench.py`` and ``simulator_bridge/bench_bridge.py``.
+paper-size CVVC problems and models for the solver benchmark and the tests. ``bench_qsts`` (the QSTS against
+bare OpenDSS) and ``bench_bridge`` (lockstep bridge against the bare QSTS) measure the simulator.
 """

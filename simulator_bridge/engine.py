@@ -1042,7 +1042,7 @@ class FeederEngine:
                      cap_states: np.ndarray | None = None) -> float:
         """Wall time of bare OpenDSS steps [s]: per row set loads, PV output (and taps, banks), solve; nothing else.
 
-        The reference for the QSTS overhead ratio (``bench.py``). ``taps`` (n_rows, NR) and ``cap_states``
+        The reference for the QSTS overhead ratio (``benchmarks.bench_qsts``). ``taps`` (n_rows, NR) and ``cap_states``
         (n_rows, NC), when given, replay the positions of every RegControl / CapControl bank of the model
         (``control_taps`` / ``control_cap_states`` order): a row's positions are set before its solve where
         they differ from the previous row's. Leaves the last row applied.

@@ -4,7 +4,7 @@ from pathlib import Path
 
 import pytest
 
-from simulator_bridge.bench_bridge import bench_bridge
+from benchmarks.bench_bridge import bench_bridge
 
 REPO = Path(__file__).resolve().parents[2]
 

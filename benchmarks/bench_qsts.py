@@ -112,7 +112,7 @@ def _restore(engine: FeederEngine, taps: np.ndarray, caps: np.ndarray) -> None:
         engine.set_control_cap_state(j, int(n))
 
 
-if __name__ == "__main__":  # pragma: no cover - manual use: python -m simulator_bridge.bench MAP STEPS
+if __name__ == "__main__":  # pragma: no cover - manual use: python -m benchmarks.bench_qsts MAP STEPS
     import sys
 
     print(bench_qsts(sys.argv[1], int(sys.argv[2])))

@@ -10,7 +10,7 @@
 It reports both rates, ``overhead = bare rate / lockstep rate − 1`` (goal: under 20 % on the rural feeder),
 and the round trip from the publication of a control step's head frame to the reception of the decision
 (p50, p99, measured by the bridge). The two are timed alternately, ``repeats`` times, and medians compared.
-Run ``python -m simulator_bridge.bench_bridge [STEPS [PUBLISHER ...]]`` for IEEE 123 and the rural feeder, once per
+Run ``python -m benchmarks.bench_bridge [STEPS [PUBLISHER ...]]`` for IEEE 123 and the rural feeder, once per
 ``BridgeConfig.publisher`` setting (default: ``inline``, then ``process``).
 """
 
