@@ -10,7 +10,6 @@ from __future__ import annotations
 import json
 import queue
 import threading
-import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -19,6 +18,7 @@ import msgspec
 import numpy as np
 import pytest
 import zenoh
+from busclient import BusClient as Client
 
 from schemas import keys
 from schemas import messages as m
@@ -67,84 +67,9 @@ def cache_dir(tmp_path_factory: pytest.TempPathFactory, cap_map: Path) -> Path:
     return out
 
 
-class Client:
-    """A plain-zenoh peer that sees every sample of the test feeder and can play the agent."""
-
-    def __init__(self, endpoint: str) -> None:
-        conf = zenoh.Config()
-        conf.insert_json5("mode", '"peer"')
-        conf.insert_json5("scouting/multicast/enabled", "false")
-        conf.insert_json5("listen/endpoints", '["tcp/127.0.0.1:0"]')
-        conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
-        self.session = zenoh.open(conf)
-        self.q: queue.Queue[tuple[str, bytes]] = queue.Queue()
-        self.seen: list[tuple[str, Any]] = []
-        self.sub = self.session.declare_subscriber(
-            f"cvvc/{FEEDER}/**", lambda s: self.q.put((str(s.key_expr), s.payload.to_bytes())))
-        self.token: Any = None
-        self.seq = 0
-
-    def close(self) -> None:
-        if self.token is not None:
-            self.token.undeclare()
-        self.sub.undeclare()
-        self.session.close()
-
-    def be_agent(self) -> None:
-        self.token = self.session.liveliness().declare_token(f"cvvc/{FEEDER}/alive/agent/test")
-
-    def next(self, pred: Callable[[str, Any], bool], timeout_s: float = 20.0) -> Any:
-        """The first sample seen so far, or the next to arrive, for which ``pred(key, msg)`` holds."""
-        for key, msg in self.seen:
-            if pred(key, msg):
-                return msg
-        deadline = time.monotonic() + timeout_s
-        while True:
-            remaining = deadline - time.monotonic()
-            if remaining <= 0:
-                raise AssertionError("no matching sample within the deadline")
-            try:
-                key, raw = self.q.get(timeout=remaining)
-            except queue.Empty:
-                continue
-            mtype = keys.message_type_for_key(key)
-            if mtype is None or "/cmd/" in key or key.endswith("/agent/decision"):
-                continue
-            msg = msgspec.json.decode(raw, type=mtype)
-            self.seen.append((key, msg))
-            if pred(key, msg):
-                return msg
-
-    def cap(self, cap_id: str, t_ns: int) -> m.CapFrame:
-        return self.next(lambda k, x: isinstance(x, m.CapFrame) and x.capacitor_id == cap_id and x.t_ns == t_ns)
-
-    def ack(self, cmd_id: str, status: str | None = None) -> m.Ack:
-        return self.next(lambda k, x: isinstance(x, m.Ack) and x.cmd_id == cmd_id
-                         and (status is None or x.status == status))
-
-    def put(self, key: str, payload: bytes | msgspec.Struct) -> None:
-        data = payload if isinstance(payload, bytes) else msgspec.json.encode(payload)
-        self.session.put(key, data, congestion_control=zenoh.CongestionControl.BLOCK)
-
-    def cap_cmd(self, cap_id: str, steps: int | None, now_t_ns: int, *, valid_s: float = 3600,
-                seq: int | None = None, key_cap: str | None = None) -> m.CapCommand:
-        self.seq += 1
-        c = m.CapCommand(t_ns=now_t_ns, seq=self.seq if seq is None else seq, source="test-agent",
-                         cmd_id=f"c{self.seq}-{cap_id}", in_reply_to=0,
-                         valid_until_t_ns=now_t_ns + int(valid_s * 1e9), capacitor_id=cap_id, closed_steps=steps)
-        self.put(keys.cmd(FEEDER, "cap", key_cap or cap_id), c)
-        return c
-
-    def decide(self, t_ns: int, commands: list[Any] | None = None) -> None:
-        self.seq += 1
-        self.put(keys.agent_decision(FEEDER), m.Decision(
-            t_ns=t_ns, seq=self.seq, source="test-agent", feeder_id=FEEDER, step_t_ns=t_ns, in_reply_to=0,
-            status="optimal" if commands else "hold", commands=commands or []))
-
-
 @pytest.fixture
 def client(router_endpoint: str) -> Iterator[Client]:
-    c = Client(router_endpoint)
+    c = Client(router_endpoint, FEEDER)
     try:
         yield c
     finally:
@@ -255,7 +180,7 @@ def test_cap_commands_acked_applied_expired_and_counted(client: Client, router_e
     assert (got["release"].status, got["release"].applied_value) == ("accepted", None)
     assert (got["f6"].mode, got["f6"].cmd_id, got["f6"].closed_steps) == ("local", None, 0)  # no control: holds
 
-    truth = [x for _, x in client.seen if isinstance(x, m.TruthFrame)]
+    truth = [x for _, x, _ in client.seen if isinstance(x, m.TruthFrame)]
     by_t = {tr.t_ns: tr.cap_states for tr in truth}
     assert by_t[t0] == [1, 1] and by_t[t0 + STEP_NS] == [0, 0]
     final = got["final"]
@@ -304,7 +229,7 @@ def test_cap_tokens_and_frames_every_step(client: Client, router_endpoint: str, 
     finally:
         watcher.undeclare()
     assert sorted(set(tokens)) == [f"cvvc/{FEEDER}/alive/cap/cap1", f"cvvc/{FEEDER}/alive/cap/cap2"]
-    frames = sorted((x for _, x in client.seen if isinstance(x, m.CapFrame) and x.capacitor_id == "cap1"),
+    frames = sorted((x for _, x, _ in client.seen if isinstance(x, m.CapFrame) and x.capacitor_id == "cap1"),
                     key=lambda f: f.seq)
     assert [f.seq for f in frames] == list(range(1, summary.steps + 1))
     assert np.all(np.diff([f.t_ns for f in frames]) == STEP_NS)
@@ -346,7 +271,7 @@ def test_inline_and_process_publish_the_same_cap_frames(router_endpoint: str, ca
     process: every bank frame both received, the truth, the metrics and the acks are the same."""
     runs: dict[str, dict[str, dict[int, Any]]] = {}
     for publisher in ("inline", "process"):
-        client = Client(router_endpoint)
+        client = Client(router_endpoint, FEEDER, also=("cvvc/otherfeeder/ack/**",))
         try:
             client.be_agent()
 
@@ -361,7 +286,7 @@ def test_inline_and_process_publish_the_same_cap_frames(router_endpoint: str, ca
             _run(_config(cap_map, cache_dir, steps=10, noise_scada_pct=1.0, drop_prob=0.1, noise_seed=5,
                          publisher=publisher), router_endpoint, drive)
             by_key: dict[str, dict[int, Any]] = {}
-            for key, msg in client.seen:
+            for key, msg, _ in client.seen:
                 if not key.endswith("/sim/status"):
                     by_key.setdefault(key, {})[msg.seq] = msg
             runs[publisher] = by_key
@@ -408,7 +333,7 @@ def test_recorded_banks_in_recordings_info_and_the_run_report(client: Client, ro
 
     with open_session(bus) as session, Recorder(session, RecorderConfig(out_path=str(rec_path), bus=bus)) as rec:
         summary = _run(_config(cap_map, cache_dir, steps=8), router_endpoint, drive)
-        n_seen = sum(1 for k, _ in client.seen if "/cmd/" not in k)  # the recorder sees what the client saw
+        n_seen = sum(1 for k, _, _ in client.seen if "/cmd/" not in k)  # the recorder sees what the client saw
         assert wait_for(lambda: rec.stats().messages >= n_seen, 10.0), rec.stats()
 
     info = recording_info(rec_path)
