@@ -30,6 +30,7 @@ import zenoh
 
 from schemas.errors import CvvcError
 from schemas.keys import message_type_for_key
+from schemas.messages import OracleReply
 
 __all__ = [
     "BadMessage",
@@ -57,6 +58,10 @@ log = logging.getLogger(__name__)
 T = TypeVar("T", bound=msgspec.Struct)
 Mode = Literal["peer", "router", "client"]
 MAX_PAYLOAD_BYTES = 1 << 20  # 1 MiB: the largest frame (8500-node truth) is ~200 kB
+#: The case-A oracle's reply, a query reply from the bridge alone (in secure mode, the access policy's): every zone
+#: node's voltage and sensitivities to every plant and regulator, about 2.4 MB as JSON on epri-ckt24 (7,522 nodes).
+MAX_ORACLE_REPLY_BYTES = 64 << 20
+_MAX_BYTES: dict[type, int] = {OracleReply: MAX_ORACLE_REPLY_BYTES}
 _LOOPBACK = "127.0.0.1"
 
 
@@ -297,7 +302,7 @@ def codec_for(msg_type: type[T]) -> Codec[T]:
     with _CODECS_LOCK:
         codec = _CODECS.get(msg_type)
         if codec is None:
-            codec = _CODECS[msg_type] = Codec(msg_type)
+            codec = _CODECS[msg_type] = Codec(msg_type, max_bytes=_MAX_BYTES.get(msg_type, MAX_PAYLOAD_BYTES))
         return codec
 
 

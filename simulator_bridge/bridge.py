@@ -297,9 +297,11 @@ class _Runtime:
     def __init__(self, config: BridgeConfig, bus: BusConfig, session: zenoh.Session, dm: DeviceMap, engine: Any,
                  profiles: Any, qsts: Any, start_step: int) -> None:
         from simulator_bridge.metrics import MetricsAccumulator
+        from simulator_bridge.oracle import Oracle
 
         c = self.config = config
         self.session, self.dm, self.engine, self.profiles, self.qsts = session, dm, engine, profiles, qsts
+        self.oracle = Oracle(engine) if c.oracle else None  # compiles its twin engine now, not at the first query
         self.fid = c.feeder_id or dm.feeder.name
         self.step_s = int(profiles.step_s)
         self.control_every = max(1, dm.feeder.control_period_s // self.step_s)
@@ -372,7 +374,7 @@ class _Runtime:
         self.agents = LivelinessWatcher(s, f"{keys.ROOT}/{f}/alive/agent/*", self._on_agent)
         self.bridges = LivelinessWatcher(s, f"{keys.ROOT}/*/alive/bridge/*")
         self.queryable = (s.declare_queryable(keys.sim_oracle(f), self._on_query, complete=True)
-                          if self.config.oracle else None)
+                          if self.oracle is not None else None)
         self._oracle_step_t_ns, self._oracle_step_replies = -1, 0
 
     def close(self) -> None:
@@ -395,6 +397,8 @@ class _Runtime:
                     item.msg.query.drop()
                 except Exception as e:  # the getter may be gone already
                     log.info("could not answer an oracle query at shutdown: %s", e)
+        if self.oracle is not None:
+            self.oracle.close()
 
     # ---------------------------------------------------------------- callbacks (Zenoh threads)
     def _on_agent(self, key: str, up: bool) -> None:
@@ -622,22 +626,10 @@ class _Runtime:
         self._oracle_step_replies += 1
         try:
             self.qsts.unstage_loads()  # the oracle's flows are of the present state
-            # Only the feeder's own nodes (the head meter's side): the transmission side of the substation
-            # is no control target, and constraining it made case A trade Q and taps for an unfixable node.
-            feeder = np.flatnonzero(self.engine.node_in_feeder)
-            v = self.engine.node_voltages_pu()[feeder]
-            dq: list[list[float]] = []
-            dtap: list[list[float]] = []
-            dp: list[list[float]] = []
-            if item.request.include_sensitivities:
-                s = self.engine.perturbation_sensitivities()
-                dq, dtap, dp = (np.clip(np.nan_to_num(a[feeder], nan=0.0), -1.0, 1.0).tolist()
-                                for a in (s.dv_dq, s.dv_dtap, s.dv_dp))
+            assert self.oracle is not None  # queries are only taken with an oracle
             self.seqs["oracle"] += 1
-            reply = m.OracleReply(t_ns=max(self.now_t_ns, 0), seq=self.seqs["oracle"], source="bridge",
-                                  feeder_id=self.fid, node_names=[self.engine.node_names[i] for i in feeder],
-                                  v_pu=np.clip(v, 0.0, 3.0).tolist(), dv_dq_pu_per_kvar=dq, dv_dtap_pu=dtap,
-                                  taps=[int(t) for t in self.engine.taps()], dv_dp_pu_per_kw=dp)
+            reply = self.oracle.reply(t_ns=self.now_t_ns, seq=self.seqs["oracle"], feeder_id=self.fid,
+                                      include_sensitivities=item.request.include_sensitivities)
             q.reply(q.key_expr, codec_for(m.OracleReply).encode(reply), encoding=zenoh.Encoding.APPLICATION_JSON)
             self.oracle_replies += 1
         except CvvcError as e:

@@ -46,6 +46,7 @@ from simulator_bridge.errors import SimulatorError
 
 __all__ = [
     "EngineError",
+    "EngineState",
     "FeederEngine",
     "FieldReadings",
     "OpenDssControlRun",
@@ -120,6 +121,25 @@ class Sensitivities:
     dv_dq: np.ndarray
     dv_dtap: np.ndarray
     dv_dp: np.ndarray
+
+
+@dataclass(frozen=True)
+class EngineState:
+    """Everything a power flow of an engine depends on besides its circuit (``FeederEngine.state``).
+
+    Attributes
+    ----------
+    load_kw : (n_loads,) every load's active power, ``load_names`` order [kW].
+    pv_p_kw, pv_q_kvar : (K,) each plant's available active power [kW] and applied reactive power [kvar].
+    control_taps : (NR,) tap of every RegControl of the model, ``reg_controls`` order (the map's first).
+    bank_states : (NB,) closed steps of every capacitor bank of the model (the map's first).
+    """
+
+    load_kw: np.ndarray
+    pv_p_kw: np.ndarray
+    pv_q_kvar: np.ndarray
+    control_taps: np.ndarray
+    bank_states: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -350,6 +370,7 @@ class FeederEngine:
             i = d.Loads.Next()
         self.load_names: tuple[str, ...] = tuple(names)
         self.load_kw_nominal = np.array(kw, dtype=float)
+        self._load_kw = self.load_kw_nominal.copy()  # as last set (``state``)
         self._load_buses = tuple(buses)
         self._tan_phi = float(np.tan(np.arccos(self.device_map.feeder.load_pf)))
         # Batch handle over every load, in the same order as Loads.First/Next (class order).
@@ -724,6 +745,7 @@ class FeederEngine:
         if not np.all(np.isfinite(p)):
             raise EngineError("set_loads_kw: non-finite load power; check the profiles")
         q = np.ascontiguousarray(p * self._tan_phi)
+        self._load_kw[:] = p
         batch = self._load_batch_ptr[0]
         self._lib.Batch_Float64Array(batch, self._n_batch, self._kw_prop, _BATCH_SET,
                                      self._ffi.from_buffer("double[]", p), _LOAD_SETTER_FLAGS)
@@ -838,6 +860,28 @@ class FeederEngine:
         n = max(0, min(int(self._bank_steps[b]), int(n)))
         if n != self._bank_states[b]:
             self._set_bank(b, n)
+
+    def state(self) -> EngineState:
+        """A copy of everything the next power flow depends on besides the circuit (loads, PV, taps, banks)."""
+        return EngineState(load_kw=self._load_kw.copy(), pv_p_kw=self._pv_p_kw.copy(),
+                           pv_q_kvar=self._pv_q_kvar.copy(), control_taps=self._all_taps.copy(),
+                           bank_states=self._bank_states.copy())
+
+    def set_state(self, state: EngineState) -> None:
+        """Put this engine in ``state`` (another engine's of the same device map, see :meth:`state`); only what
+        differs is set. The next :meth:`solve` then solves what the other engine's did.
+        """
+        if state.control_taps.shape != self._all_taps.shape or state.bank_states.shape != self._bank_states.shape:
+            raise EngineError("set_state: the state is of another circuit "
+                              f"({state.control_taps.size} RegControls, {state.bank_states.size} banks; this one has "
+                              f"{self._all_taps.size}, {self._bank_states.size})")
+        if not np.array_equal(state.load_kw, self._load_kw):
+            self.set_loads_kw(state.load_kw)
+        self.set_pv(state.pv_p_kw, state.pv_q_kvar)
+        for r in np.flatnonzero(state.control_taps != self._all_taps):
+            self._set_tap(int(r), int(state.control_taps[r]))
+        for b in np.flatnonzero(state.bank_states != self._bank_states):
+            self._set_bank(int(b), int(state.bank_states[b]))
 
     # ------------------------------------------------------------------ solve and read
     def solve(self) -> None:
@@ -979,7 +1023,8 @@ class FeederEngine:
         )
 
     # ------------------------------------------------------------------ oracle
-    def perturbation_sensitivities(self, dq_kvar: float = 100.0, dp_kw: float = 100.0) -> Sensitivities:
+    def perturbation_sensitivities(self, dq_kvar: float = 100.0, dp_kw: float = 100.0, *,
+                                   restore: bool = True) -> Sensitivities:
         """Voltage sensitivities by perturbation from the present state (the case-A oracle).
 
         Each plant's Q is moved by ``dq_kvar`` (upwards, or downwards when the headroom is short), each
@@ -987,7 +1032,8 @@ class FeederEngine:
         by one tap (up, or down at the top tap), one at a time; each is solved and differenced against the
         present solution, then undone. ``dv_dp`` is per kW of the plant's measured output change; when the
         raised output clips the plant's Q to its headroom, the Q change's share is taken off by ``dv_dq``.
-        The state (set points, taps, voltages) is restored and checked.
+        With ``restore`` the state (set points, taps, voltages) is restored and checked; without it the engine is
+        left in its last perturbed state (the oracle's twin, which is put in state before every use).
         """
         self.solve()
         v0 = self.node_voltages_pu()
@@ -1028,6 +1074,8 @@ class FeederEngine:
             self.set_taps(t)
             self.solve()
             dv_dtap[:, r] = (self.node_voltages_pu() - v0) / step
+        if not restore:
+            return Sensitivities(dv_dq=dv_dq, dv_dtap=dv_dtap, dv_dp=dv_dp)
         self.set_taps(t0)
         self.solve()
         drift = float(np.max(np.abs(self.node_voltages_pu() - v0))) if len(v0) else 0.0

@@ -20,9 +20,9 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from schemas.bus import MAX_PAYLOAD_BYTES, BadMessage, codec_for
+from schemas.bus import MAX_ORACLE_REPLY_BYTES, MAX_PAYLOAD_BYTES, BadMessage, codec_for
 from schemas.examples import examples
-from schemas.messages import MESSAGE_TYPES
+from schemas.messages import MESSAGE_TYPES, OracleReply
 
 KINDS = {"oversize", "malformed", "unknown_field", "missing_field", "wrong_type", "out_of_range", "non_finite",
          "invalid"}
@@ -215,10 +215,11 @@ def test_deep_nesting(msg_type: type, depth: int) -> None:
 
 @TYPES
 def test_oversize_is_refused_before_parsing(msg_type: type) -> None:
-    valid = _valid(msg_type)
-    padded = valid[:-1] + b" " * (MAX_PAYLOAD_BYTES - len(valid) + 1) + b"}"
-    assert len(padded) > MAX_PAYLOAD_BYTES and _check(msg_type, padded) == "oversize"
-    assert _check(msg_type, valid[:-1] + b" " * (MAX_PAYLOAD_BYTES - len(valid)) + b"}") == "ok"  # at the limit
+    valid, limit = _valid(msg_type), codec_for(msg_type).max_bytes  # 1 MiB; the oracle's reply has its own
+    assert limit == (MAX_ORACLE_REPLY_BYTES if msg_type is OracleReply else MAX_PAYLOAD_BYTES)
+    padded = valid[:-1] + b" " * (limit - len(valid) + 1) + b"}"
+    assert len(padded) > limit and _check(msg_type, padded) == "oversize"
+    assert _check(msg_type, valid[:-1] + b" " * (limit - len(valid)) + b"}") == "ok"  # at the limit
 
 
 @TYPES
