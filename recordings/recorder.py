@@ -10,9 +10,10 @@ File layout (docs/recordings.md):
   key, the reason and the payload (base64), so nothing is lost and nothing junk sits on a real channel: a key
   outside the cvvc layout, a payload that does not decode, or a new key past ``max_channels`` (a flood of
   made-up device ids cannot open unbounded channels);
-- each message: ``log_time`` = the message's own ``t_ns`` (measurement time; the receive time when the
-  payload has no valid ``t_ns``, counted), ``publish_time`` = receive wall time [ns], ``sequence`` = the
-  message's ``seq`` modulo 2**32 (MCAP sequences are 32-bit);
+- each message: ``log_time`` = the message's own ``t_ns`` (measurement time); a payload with no time of its own
+  (``t_ns`` 0, as an agent's status before its first frame, or no valid ``t_ns``; counted) is logged at the latest
+  time seen, and those before any at the first, so the file's span is the session's; ``publish_time`` = receive
+  wall time [ns], ``sequence`` = the message's ``seq`` modulo 2**32 (MCAP sequences are 32-bit);
 - a metadata record ``cvvc.recording`` at the start (project version, feeder fingerprint, model path, bus
   config, keys) and ``cvvc.recorder_stats`` at the end (written only when the file is finished cleanly);
 - zstd chunks, closed and flushed to the OS every ``flush_period_s``: a recorder killed hard loses at
@@ -57,6 +58,7 @@ MAX_CHANNELS = 512
 """Default bound on the real channels of one recording (the largest feeder here has under 40 devices)."""
 _U32 = 0xFFFFFFFF
 _U64_MAX = 2**64 - 1
+_MAX_TIMELESS = 10_000  # messages held until the first timed one; past that, logged at their receive time
 
 
 class RecorderConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
@@ -87,7 +89,7 @@ class RecorderStats(msgspec.Struct, frozen=True, kw_only=True):
     payload_bytes: int
     channels: int
     dropped_queue_full: int
-    log_time_fallbacks: int  # payloads without a valid integer t_ns: log_time = receive time
+    log_time_fallbacks: int  # payloads without a time of their own (t_ns 0 or invalid): logged at the session's
     callback_errors: int
     flushes: int
     quarantined: int = 0  # samples written to the quarantine channel instead of their key's channel
@@ -133,6 +135,8 @@ class McapSink:
         self.payload_bytes = 0
         self.log_time_fallbacks = 0
         self.flushes = 0
+        self._clock_ns = 0  # the latest valid log time: the session's clock as far as the file knows it
+        self._timeless: list[tuple[int, bytes, int, int]] = []  # (channel, raw, recv_ns, seq) before any clock
 
     @property
     def channels(self) -> int:
@@ -191,12 +195,24 @@ class McapSink:
         except (msgspec.DecodeError, UnicodeDecodeError, RecursionError):  # not a JSON object, t_ns/seq not
             # integers, bad UTF-8, or nested too deeply: msgspec raises the last two as they are
             log_time, seq = -1, 0
-        if not 0 <= log_time <= _U64_MAX:
-            log_time = recv_ns
-            self.log_time_fallbacks += 1
-        self._add(channel_id, log_time, raw, recv_ns, seq & _U32)  # positional: (channel, log, data, pub, seq)
         self.messages += 1
         self.payload_bytes += len(raw)
+        if 0 < log_time <= _U64_MAX:
+            self._clock_ns = max(self._clock_ns, log_time)
+            self._add(channel_id, log_time, raw, recv_ns, seq & _U32)  # positional: (channel, log, data, pub, seq)
+            for held in self._timeless:  # what came before the session's first instant is logged at it
+                self._add(held[0], log_time, held[1], held[2], held[3])
+            self._timeless.clear()
+            return
+        # No time of its own (t_ns 0: an agent's status before its first frame; or no valid t_ns at all): logged
+        # at the session's latest instant, so a lockstep recording of 2023 does not span to the epoch or to today.
+        self.log_time_fallbacks += 1
+        if self._clock_ns:
+            self._add(channel_id, self._clock_ns, raw, recv_ns, seq & _U32)
+        elif len(self._timeless) < _MAX_TIMELESS:
+            self._timeless.append((channel_id, raw, recv_ns, seq & _U32))
+        else:
+            self._add(channel_id, recv_ns, raw, recv_ns, seq & _U32)
 
     def flush(self) -> None:
         """Close the open chunk and hand everything to the OS (survives the process being killed)."""
@@ -205,6 +221,9 @@ class McapSink:
 
     def finish(self, stats: dict[str, str] | None = None) -> None:
         """Write the ``cvvc.recorder_stats`` metadata (if given), the summary and the index."""
+        for channel_id, raw, recv_ns, seq in self._timeless:  # no message ever had a time: receive time
+            self._add(channel_id, recv_ns, raw, recv_ns, seq)
+        self._timeless.clear()
         if stats is not None:
             self._writer.add_metadata(STATS_METADATA_NAME, stats)
         self._writer.finish()

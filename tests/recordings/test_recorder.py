@@ -55,7 +55,7 @@ def test_round_trip_every_message_type(router_endpoint: str, tmp_path: Path) -> 
                     raw = encode(msg)
                     pubs[key].put(raw)
                     sent.setdefault(key, []).append(raw)
-            pubs["test/oracle_request"].put(b'{"no_time": 1}')  # JSON without t_ns: receive time, counted
+            pubs["test/oracle_request"].put(b'{"no_time": 1}')  # JSON without t_ns: the latest time, counted
             sent["test/oracle_request"].append(b'{"no_time": 1}')
             n = sum(len(v) for v in sent.values())
             assert wait_for(lambda: recorder.stats().messages == n, 10.0), recorder.stats()
@@ -79,8 +79,8 @@ def test_round_trip_every_message_type(router_endpoint: str, tmp_path: Path) -> 
             got.setdefault(key, []).append(data)
             msg_type = next(t for t, k in EXAMPLE_KEYS.items() if k == key)
             assert wall0 <= message.publish_time <= wall1
-            if data == b'{"no_time": 1}':
-                assert message.log_time == message.publish_time
+            if data == b'{"no_time": 1}':  # no time of its own: logged at the session's latest instant
+                assert message.log_time == 1_700_000_000_000_000_000 + 2 * 60_000_000_000
                 continue
             decoded = codec_for(msg_type).decode(data)
             assert message.log_time == decoded.t_ns
@@ -250,3 +250,36 @@ def test_junk_goes_to_quarantine_and_channels_are_bounded(router_endpoint: str, 
     quarantined = [msgspec.json.decode(d, type=Quarantined) for d in by_topic[QUARANTINE_TOPIC]]
     assert [base64.b64decode(q.payload_b64) for q in quarantined[:3]] == junk  # nothing lost
     assert [q.reason.split(":")[0] for q in quarantined] == ["not a HeadFrame"] * 3 + ["channel limit"] * 3
+
+
+def test_the_time_span_is_the_sessions_not_the_epochs(router_endpoint: str, tmp_path: Path) -> None:
+    """Issue "Scale out" item 4: an agent's status before its first frame (t_ns 0) and a payload with no t_ns are
+    logged at the session's instants, so the file spans the simulated session, not 1970 (or today) to 2023."""
+    from schemas import messages as m
+    from schemas.examples import T0_NS
+
+    out = tmp_path / "span.mcap"
+    bus = BusConfig(mode="peer", connect=(router_endpoint,))
+    status_key, head_key = EXAMPLE_KEYS[m.AgentStatus], EXAMPLE_KEYS[m.HeadFrame]
+    starting = msgspec.structs.replace(examples(t_ns=0, seq=1)[m.AgentStatus], state="starting", last_frame_t_ns=0)
+    with open_session(bus) as rec_session, open_session(bus) as pub_session:
+        with Recorder(rec_session, RecorderConfig(out_path=str(out), bus=bus)) as recorder:
+            status, head = _publisher(pub_session, status_key), _publisher(pub_session, head_key)
+            assert wait_for(lambda: status.matching_status.matching and head.matching_status.matching, 10.0)
+            status.put(encode(starting))  # before any timed message: held, then logged at the first instant
+            assert wait_for(lambda: recorder.stats().messages == 1, 10.0)
+            head.put(encode(head_frame(0)))
+            head.put(b'{"seq": 5}')  # no t_ns: quarantined, logged at the latest instant
+            head.put(encode(head_frame(3)))
+            assert wait_for(lambda: recorder.stats().messages == 4, 10.0), recorder.stats()
+    assert recorder.stats().log_time_fallbacks == 2
+    with open(out, "rb") as f:
+        reader = make_reader(f)
+        summary = reader.get_summary()
+        assert summary is not None and summary.statistics is not None
+        assert summary.statistics.message_start_time == T0_NS
+        assert summary.statistics.message_end_time == T0_NS + 3 * 60_000_000_000
+        times = [(ch.topic, msg.log_time) for _, ch, msg in reader.iter_messages()]
+    assert (status_key, T0_NS) in times
+    assert sorted(t for _, t in times) == [T0_NS, T0_NS, T0_NS, T0_NS + 3 * 60_000_000_000]
+    assert recording_info(out).start_ns == T0_NS
