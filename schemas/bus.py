@@ -265,6 +265,7 @@ class Codec(Generic[T]):
         self._encoder = msgspec.json.Encoder()
 
     def encode(self, msg: T) -> bytes:
+        """The JSON bytes of ``msg``, after checking that every number in it is finite (``NonFiniteError``)."""
         check_finite(msg)
         return self._encoder.encode(msg)
 
@@ -333,6 +334,7 @@ class TypedPublisher(Generic[T]):
 
     @property
     def matched(self) -> bool:
+        """Whether a subscriber matches this publisher now."""
         return bool(self._pub.matching_status.matching)  # type: ignore[attr-defined]  # stub says bool
 
     def wait_matched(self, timeout_s: float) -> bool:
@@ -340,6 +342,7 @@ class TypedPublisher(Generic[T]):
         return wait_for(lambda: self.matched, timeout_s)
 
     def undeclare(self) -> None:
+        """Withdraw the publisher."""
         self._pub.undeclare()
 
 
@@ -353,6 +356,7 @@ class RejectCounter:
         self._log = logging.getLogger(f"{__name__}.{name}")
 
     def reject(self, topic: str, kind: str, detail: str) -> None:
+        """Count one rejected message on ``topic``; the first of each (topic, kind) is logged, the rest only counted."""
         with self._lock:
             self._counts[(topic, kind)] += 1
             first = self._counts[(topic, kind)] == 1
@@ -361,10 +365,12 @@ class RejectCounter:
                               topic, kind, detail[:300])
 
     def total(self, kind: str | None = None) -> int:
+        """Rejections counted so far, of ``kind`` or of every kind."""
         with self._lock:
             return sum(n for (_, k), n in self._counts.items() if kind is None or k == kind)
 
     def by_kind(self) -> dict[str, int]:
+        """Rejections counted so far, by kind."""
         with self._lock:
             out: Counter[str] = Counter()
             for (_, k), n in self._counts.items():
@@ -372,6 +378,7 @@ class RejectCounter:
             return dict(out)
 
     def by_topic(self) -> dict[str, dict[str, int]]:
+        """Rejections counted so far, by topic and kind."""
         with self._lock:
             out: dict[str, dict[str, int]] = {}
             for (t, k), n in self._counts.items():
@@ -458,6 +465,7 @@ class Inbox:
             return None
 
     def drain(self) -> Iterator[Received]:
+        """Every message received and not yet taken, without waiting."""
         while True:
             try:
                 yield self.queue.get_nowait()
@@ -465,6 +473,7 @@ class Inbox:
                 return
 
     def undeclare(self) -> None:
+        """Withdraw every subscriber of this inbox."""
         for s in self._subs:
             s.undeclare()
         self._subs.clear()
@@ -493,14 +502,17 @@ class LivelinessWatcher:
         self._sub = session.liveliness().declare_subscriber(key_expr, cb, history=True)
 
     def alive(self) -> set[str]:
+        """The keys whose liveliness tokens are alive now."""
         with self._lock:
             return set(self._alive)
 
     def is_alive(self, key: str) -> bool:
+        """Whether the token ``key`` is alive now."""
         with self._lock:
             return key in self._alive
 
     def undeclare(self) -> None:
+        """Withdraw the liveliness subscriber."""
         self._sub.undeclare()
 
 

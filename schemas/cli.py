@@ -8,6 +8,7 @@ __all__ = ["register"]
 
 
 def register(sub: argparse._SubParsersAction) -> None:
+    """Add the ``schemas`` and ``security`` verbs to the ``cvvc`` command line."""
     p = sub.add_parser("schemas", help="message schemas of the bus")
     ssub = p.add_subparsers(dest="schemas_verb", metavar="SUBVERB")
     e = ssub.add_parser("export", help="write one JSON Schema per message type into DIR")

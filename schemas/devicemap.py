@@ -135,6 +135,7 @@ class DeviceMap(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields
 
     @property
     def master_path(self) -> Path:
+        """The feeder's OpenDSS master file, absolute (``feeder.master`` is relative to the map's folder)."""
         return (Path(self.root) / self.feeder.master).resolve()
 
     def fingerprint(self) -> str:

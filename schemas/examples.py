@@ -78,4 +78,5 @@ def examples(t_ns: int = T0_NS, seq: int = 1) -> dict[type[msgspec.Struct], msgs
 
 
 def example(msg_type: type[msgspec.Struct], t_ns: int = T0_NS, seq: int = 1) -> msgspec.Struct:
+    """One valid example of ``msg_type`` stamped ``t_ns`` [ns] and ``seq``."""
     return examples(t_ns, seq)[msg_type]

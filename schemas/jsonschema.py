@@ -18,6 +18,7 @@ __all__ = ["export_schemas", "json_schema", "schema_bytes", "schema_name"]
 
 
 def schema_name(msg_type: type) -> str:
+    """The schema name of ``msg_type`` in recordings: ``cvvc.<Type>``."""
     return f"cvvc.{msg_type.__name__}"
 
 
@@ -38,6 +39,7 @@ def json_schema(msg_type: type) -> dict[str, Any]:
 
 
 def schema_bytes(msg_type: type) -> bytes:
+    """The JSON Schema of ``msg_type`` as canonical bytes (sorted keys), as MCAP schemas store it."""
     return json.dumps(json_schema(msg_type), sort_keys=True).encode()
 
 

@@ -68,62 +68,77 @@ def _id(value: str) -> str:
 
 
 def feeder_all(feeder: str) -> str:
+    """Every key of one feeder (a subscription pattern)."""
     return f"{ROOT}/{_id(feeder)}/**"
 
 
 def meas_head(feeder: str) -> str:
+    """The head meter's ``HeadFrame`` (bridge -> agent)."""
     return f"{ROOT}/{_id(feeder)}/meas/head"
 
 
 def meas_pv(feeder: str, plant: str = "*") -> str:
+    """A PV plant's ``PvFrame`` (bridge -> agent); ``*`` for every plant."""
     return f"{ROOT}/{_id(feeder)}/meas/pv/{plant if plant == '*' else _id(plant)}"
 
 
 def meas_vr(feeder: str, regulator: str = "*") -> str:
+    """A regulator controller's ``RegFrame`` (bridge -> agent); ``*`` for every regulator."""
     return f"{ROOT}/{_id(feeder)}/meas/vr/{regulator if regulator == '*' else _id(regulator)}"
 
 
 def meas_cap(feeder: str, capacitor: str = "*") -> str:
+    """A capacitor bank's ``CapFrame`` (bridge -> agent); ``*`` for every bank."""
     return f"{ROOT}/{_id(feeder)}/meas/cap/{capacitor if capacitor == '*' else _id(capacitor)}"
 
 
 def cmd(feeder: str, kind: DeviceKind, device: str = "*") -> str:
+    """Commands to a device of ``kind`` (``PvCommand``, ``RegCommand``, ``CapCommand``; agent -> bridge)."""
     return f"{ROOT}/{_id(feeder)}/cmd/{kind}/{device if device == '*' else _id(device)}"
 
 
 def ack(feeder: str, kind: DeviceKind, device: str = "*") -> str:
+    """A device's ``Ack`` of each command it got (bridge -> agent)."""
     return f"{ROOT}/{_id(feeder)}/ack/{kind}/{device if device == '*' else _id(device)}"
 
 
 def agent_decision(feeder: str) -> str:
+    """The agent's ``Decision`` of each control step (agent -> bridge, recorder)."""
     return f"{ROOT}/{_id(feeder)}/agent/decision"
 
 
 def agent_status(feeder: str) -> str:
+    """The agent's ``AgentStatus``, about once a second."""
     return f"{ROOT}/{_id(feeder)}/agent/status"
 
 
 def sim_truth(feeder: str) -> str:
+    """The simulator's ``TruthFrame``: every node's true voltage (simulation only; never used by the agent)."""
     return f"{ROOT}/{_id(feeder)}/sim/truth"
 
 
 def sim_metrics(feeder: str) -> str:
+    """The simulator's running and final ``MetricsFrame``."""
     return f"{ROOT}/{_id(feeder)}/sim/metrics"
 
 
 def sim_status(feeder: str) -> str:
+    """The bridge's ``BridgeStatus``."""
     return f"{ROOT}/{_id(feeder)}/sim/status"
 
 
 def sim_oracle(feeder: str) -> str:
+    """The case-A oracle's queryable (``OracleRequest`` -> ``OracleReply``; simulation only)."""
     return f"{ROOT}/{_id(feeder)}/sim/oracle"
 
 
 def alive(feeder: str, role: Role, ident: str) -> str:
+    """A liveliness token of one participant (``role``: a process, or a field device of a kind) on one feeder."""
     return f"{ROOT}/{_id(feeder)}/alive/{role}/{_id(ident)}"
 
 
 def alive_all(feeder: str) -> str:
+    """Every liveliness token of one feeder (a subscription pattern)."""
     return f"{ROOT}/{_id(feeder)}/alive/**"
 
 

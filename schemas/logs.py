@@ -50,7 +50,9 @@ class RateLimitedLog:
         return True
 
     def warning(self, kind: str, msg: str, *args: object) -> bool:
+        """``log`` at WARNING level: written unless ``kind`` is over its rate; returns whether it was."""
         return self.log(logging.WARNING, kind, msg, *args)
 
     def info(self, kind: str, msg: str, *args: object) -> bool:
+        """``log`` at INFO level."""
         return self.log(logging.INFO, kind, msg, *args)
