@@ -46,6 +46,7 @@ class AlignedFrames:
 
     @property
     def complete(self) -> bool:
+        """Whether every frame of the step arrived."""
         return not self.missing
 
 
@@ -186,6 +187,7 @@ class FrameAligner:
 
     @property
     def pending(self) -> bool:
+        """Whether a step is waiting for frames."""
         return bool(self._groups)
 
     # ------------------------------------------------------------------------------------- internals

@@ -171,14 +171,17 @@ class CvvcInputs:
 
     @property
     def n_nodes(self) -> int:
+        """Number of constrained nodes N."""
         return int(self.v0_pu.shape[0])
 
     @property
     def n_pv(self) -> int:
+        """Number of PV plants K."""
         return int(self.q0_kvar.shape[0])
 
     @property
     def n_reg(self) -> int:
+        """Number of regulators R."""
         return int(self.taps.shape[0])
 
     def predict_v_pu(self, d_tap: np.ndarray, q_new_kvar: np.ndarray) -> np.ndarray:

@@ -165,9 +165,11 @@ class DecisionMaker:
         self._dv_dtap = _within_array(np.asarray(model.dv_dtap_pu, float), -1.0, 1.0, 12)  # a model constant
 
     def on_frame(self, key: str, msg: Any) -> list[tuple[AlignedFrames, ControllerDecision]]:
+        """Add a received frame; the decisions of the steps it completes."""
         return [(a, self._decide(a)) for a in self.aligner.add(key, msg)]
 
     def close_pending(self) -> list[tuple[AlignedFrames, ControllerDecision]]:
+        """Decide the steps still waiting for frames with what arrived (the late window passed)."""
         return [(a, self._decide(a)) for a in self.aligner.close_pending()]
 
     def _decide(self, aligned: AlignedFrames) -> ControllerDecision:

@@ -211,6 +211,7 @@ class ModelArrays:
 
     @classmethod
     def of(cls, model: CvvcModel) -> ModelArrays:
+        """The model's coefficients as numpy arrays, for evaluation."""
         n_reg = len(model.regulators)
         return cls(
             alpha=np.asarray(model.alpha, float),
