@@ -28,6 +28,7 @@ OpenDSS's own controls are off (``set controlmode=off``); every control's behavi
 
 from __future__ import annotations
 
+import logging
 import os
 import tempfile
 import threading
@@ -43,6 +44,8 @@ import opendssdirect as dss
 from schemas.devicemap import DeviceMap, DeviceMapError
 from simulator_bridge.controls import CapControlSettings, RegControlSettings
 from simulator_bridge.errors import SimulatorError
+
+log = logging.getLogger(__name__)
 
 __all__ = [
     "EngineError",
@@ -116,11 +119,16 @@ class Sensitivities:
     dv_dtap : (n_nodes, R) to each regulator's tap [pu/step].
     dv_dp : (n_nodes, K) to each plant's active power output, per kW of its measured output [pu/kW]; a
         column is NaN when the plant's output could not be moved by 1 kW.
+    restore_drift_pu : largest difference of the node voltages solved after the moves were undone from those
+        before [pu]. The set points and taps are restored exactly, but a power flow need not land on the same
+        solution: on epri-ckt24 at night (PV off; exponential CVR loads on the secondaries) a +100 kvar excursion
+        and back moved it by 3.3e-4 pu, and one tap by 6.8e-4 pu, both converged (training saw this).
     """
 
     dv_dq: np.ndarray
     dv_dtap: np.ndarray
     dv_dp: np.ndarray
+    restore_drift_pu: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -1032,7 +1040,8 @@ class FeederEngine:
         by one tap (up, or down at the top tap), one at a time; each is solved and differenced against the
         present solution, then undone. ``dv_dp`` is per kW of the plant's measured output change; when the
         raised output clips the plant's Q to its headroom, the Q change's share is taken off by ``dv_dq``.
-        With ``restore`` the state (set points, taps, voltages) is restored and checked; without it the engine is
+        With ``restore`` the set points and taps are restored (checked; ``EngineError`` otherwise) and solved again,
+        and how far the voltages landed from before is returned (``restore_drift_pu``); without it the engine is
         left in its last perturbed state (the oracle's twin, which is put in state before every use).
         """
         self.solve()
@@ -1080,10 +1089,11 @@ class FeederEngine:
         self.solve()
         drift = float(np.max(np.abs(self.node_voltages_pu() - v0))) if len(v0) else 0.0
         p1, q1 = self.pv_setpoints()
-        if not (np.array_equal(self.taps(), t0) and np.array_equal(q1, q0) and np.array_equal(p1, p0)
-                and drift < 100 * self.tolerance):
-            raise EngineError(f"perturbation_sensitivities: state not restored (voltage drift {drift:.2e} pu)")
-        return Sensitivities(dv_dq=dv_dq, dv_dtap=dv_dtap, dv_dp=dv_dp)
+        if not (np.array_equal(self.taps(), t0) and np.array_equal(q1, q0) and np.array_equal(p1, p0)):
+            raise EngineError("perturbation_sensitivities: set points or taps not restored")
+        if drift >= 100 * self.tolerance:
+            log.info("perturbation_sensitivities: the restored state solved %.2e pu away from before", drift)
+        return Sensitivities(dv_dq=dv_dq, dv_dtap=dv_dtap, dv_dp=dv_dp, restore_drift_pu=drift)
 
     # ------------------------------------------------------------------ bench support
     def bare_steps_s(self, load_kw: np.ndarray, pv_kw: np.ndarray, taps: np.ndarray | None = None,
