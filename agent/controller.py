@@ -33,13 +33,15 @@ from agent.setpoints import expected_compared_v120, setpoint_for_tap_change
 from agent.solve import CvvcSolution, WarmStart, solve_cvvc
 from agent.state import GridState, OracleSource, estimated_state, oracle_state
 from regression.estimator import SensitivityTable, dv_dp_pu_per_kw, pv_variability_margins_pu
-from regression.model import CvvcModel, ModelArrays
+from regression.model import CvvcModel, ModelArrays, features
 
 __all__ = ["CvvcController", "Decision", "DecisionTimings", "MeasurementSnapshot"]
 
 #: Plausible ranges; a value outside makes its frame invalid (the schemas bound the wire values already).
 _V120_RANGE = (60.0, 180.0)
 _POWER_LIMIT_KW = 1e6
+OUT_OF_ENVELOPE_WIDEN = 2.0
+"""Factor on the calibrated estimate bounds when the inputs are outside the training envelope (extrapolation)."""
 
 
 @dataclass(frozen=True)
@@ -113,6 +115,9 @@ class Decision:
     iterations, objective : solver iterations and eq. (9) cost of the actions [cost units].
     solver_status : the solver's status (``optimal``/``soft``/``hold``), ``not run`` when it was not called.
     timings : per-stage wall time (not deterministic).
+    v_bound_low_pu, v_bound_high_pu : (N,) the estimate's calibrated bounds as applied (widened out of the
+        envelope): the true voltage is expected within ``[v_pu - low, v_pu + high]``; None without bounds.
+    out_of_envelope : the features outside what training covered ("" when inside, or without bounds).
     """
 
     t_ns: int
@@ -133,6 +138,9 @@ class Decision:
     objective: float
     solver_status: str
     timings: DecisionTimings
+    v_bound_low_pu: np.ndarray | None = None
+    v_bound_high_pu: np.ndarray | None = None
+    out_of_envelope: str = ""
 
     def same_content(self, other: Decision) -> bool:
         """Bit-identical in every field but ``timings`` (what replay compares)."""
@@ -224,6 +232,29 @@ class CvvcController:
         self.setpoint_hold = bool(setpoint_hold)
         self._setpoint_hold_ns = 2 * int(model.control_period_s) * 1_000_000_000  # commands' validity
         self._last_setpoint: list[tuple[int, float] | None] = [None] * n_reg  # (t_ns, V on 120 V) last sent
+        b = model.bounds  # calibrated estimate bounds and the training envelope (training.calibration)
+        self._bound_lo = None if b is None else np.asarray(b.lower_pu, float)
+        self._bound_hi = None if b is None else np.asarray(b.upper_pu, float)
+        self._env = None if b is None else (np.asarray(b.envelope_lo, float), np.asarray(b.envelope_hi, float))
+
+    # ------------------------------------------------------------------------------------------ bounds
+    def bounds_pu(self, out_of_envelope: bool) -> tuple[np.ndarray, np.ndarray] | None:
+        """``(low, high)`` bounds [pu] of the critical-node estimates as applied: the calibrated ones, widened by
+        :data:`OUT_OF_ENVELOPE_WIDEN` when the inputs are outside the training envelope; None without bounds.
+        """
+        if self._bound_lo is None or self._bound_hi is None:
+            return None
+        widen = OUT_OF_ENVELOPE_WIDEN if out_of_envelope else 1.0
+        return widen * self._bound_lo, widen * self._bound_hi
+
+    def envelope_problem(self, x: np.ndarray) -> str:
+        """The features of ``x`` (M,) outside the training envelope, as text ("" when inside or no envelope)."""
+        if self._env is None:
+            return ""
+        lo, hi = self._env
+        out = np.flatnonzero((x < lo) | (x > hi))
+        return ", ".join(f"{self.model.feature_names[i]} {x[i]:.0f} outside [{lo[i]:.0f}, {hi[i]:.0f}]"
+                         for i in out[:4]) + (f" and {out.size - 4} more" if out.size > 4 else "")
 
     # ------------------------------------------------------------------------------------------ helpers
     def _hold(
@@ -307,12 +338,13 @@ class CvvcController:
             recent.popleft()
         recent.append((t_ns, pv_p_kw.copy()))
 
-    def problem(self, snap: MeasurementSnapshot, state: GridState) -> CvvcInputs:
+    def problem(self, snap: MeasurementSnapshot, state: GridState, *, out_of_envelope: bool = False) -> CvvcInputs:
         """The CVVC problem (eq. 9-17) of a snapshot the controller has taken in, over ``state``'s nodes.
 
         The one inputs builder, whichever the state's source: missing plants fixed at their last Q, missing
         regulators frozen; the optimization limits tightened by the PV variability margin of ``state``'s
-        dV/dP over the window recorded so far. No state changes. Raises ``AgentInputError`` on unusable inputs.
+        dV/dP over the window recorded so far and, for estimated critical nodes, by the estimate's calibrated bounds
+        (widened ``out_of_envelope``). No state changes. Raises ``AgentInputError`` on unusable inputs.
         """
         _, pv_ok, reg_ok = self._usable(snap)
         pv_p = np.array(self._pv_last_p_kw, float)
@@ -324,6 +356,9 @@ class CvvcController:
         if self._margin_window_ns > 0:
             rise, fall = self.pv_margins_pu(state.dv_dp_pu_per_kw, pv_p)
             v_min_pu, v_max_pu = lo_pu + fall, hi_pu - rise
+        bounds = self.bounds_pu(out_of_envelope) if state.critical else None
+        if bounds is not None:
+            v_min_pu, v_max_pu = v_min_pu + bounds[0], v_max_pu - bounds[1]
         return CvvcInputs(
             v0_pu=state.v0_pu,
             dv_dq_pu_per_kvar=state.dv_dq_pu_per_kvar,
@@ -417,8 +452,10 @@ class CvvcController:
                               estimate_s=t_est - t0)
 
         self._remember_pv_p(int(snap.t_ns), pv_p)
+        outside = "" if not state.critical else self.envelope_problem(
+            features(np.asarray(snap.head_p_kw, float), np.asarray(snap.head_q_kvar, float), pv_p, pv_q))
         try:
-            inputs = self.problem(snap, state)
+            inputs = self.problem(snap, state, out_of_envelope=bool(outside))
         except AgentInputError as e:
             return self._hold(snap, f"{prefix}unusable optimization inputs: {e}", missing, t0, state=state,
                               estimate_s=t_est - t0)
@@ -453,10 +490,16 @@ class CvvcController:
                 for r in np.flatnonzero(reg_ok):
                     self._last_setpoint[r] = (t_now, float(setpoints[r]))
             bands = np.full(n_reg, self.bandwidth_v120)
+        applied = self.bounds_pu(bool(outside)) if state.critical else None
+        reason = solution.reason
+        if outside:
+            note = (f"inputs outside the training envelope ({outside}): estimate bounds widened "
+                    f"x{OUT_OF_ENVELOPE_WIDEN:g}")
+            reason = f"{reason}; {note}" if reason else note
         return Decision(
             t_ns=int(snap.t_ns),
             status=solution.status,
-            reason=solution.reason,
+            reason=reason,
             pv_q_kvar=solution.q_new_kvar.copy(),
             pv_command=pv_ok.copy(),
             reg_tap=solution.taps_new.copy(),
@@ -477,4 +520,7 @@ class CvvcController:
                 round_s=sec.rounding_s,
                 total_s=time.perf_counter() - t0,
             ),
+            v_bound_low_pu=None if applied is None else applied[0],
+            v_bound_high_pu=None if applied is None else applied[1],
+            out_of_envelope=outside,
         )

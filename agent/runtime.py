@@ -215,9 +215,12 @@ class DecisionMaker:
         estimates = []
         if d.v_pu is not None:
             pred = d.v_pred_pu if d.v_pred_pu is not None else d.v_pu
-            estimates = [m.NodeEstimate(node=c.name, v_pu=v, v_predicted_pu=p)
-                         for c, v, p in zip(self.model.critical_nodes, _within_array(d.v_pu, 0.0, 3.0, 9),
-                                            _within_array(pred, 0.0, 3.0, 9), strict=True)]
+            n = len(self.model.critical_nodes)
+            lows = [0.0] * n if d.v_bound_low_pu is None else _within_array(d.v_bound_low_pu, 0.0, 3.0, 6)
+            highs = [0.0] * n if d.v_bound_high_pu is None else _within_array(d.v_bound_high_pu, 0.0, 3.0, 6)
+            estimates = [m.NodeEstimate(node=c.name, v_pu=v, v_predicted_pu=p, bound_low_pu=lo, bound_high_pu=hi)
+                         for c, v, p, lo, hi in zip(self.model.critical_nodes, _within_array(d.v_pu, 0.0, 3.0, 9),
+                                                    _within_array(pred, 0.0, 3.0, 9), lows, highs, strict=True)]
         dv_dq = [] if d.dv_dq_pu_per_kvar is None else _within_array(d.dv_dq_pu_per_kvar, -1.0, 1.0, 12)
         tm = d.timings
         return m.Decision(
@@ -231,6 +234,7 @@ class DecisionMaker:
             timings=m.Timings(align_s=align_s, estimate_s=tm.estimate_s, solve_s=tm.solve_s, round_s=tm.round_s,
                               total_s=tm.total_s + align_s),
             corrected=d.corrected, missing=list(aligned.missing) + [x for x in d.missing if x not in aligned.missing],
+            out_of_envelope=bool(d.out_of_envelope),
         )
 
 

@@ -27,6 +27,7 @@ __all__ = [
     "MODEL_FORMAT_VERSION",
     "CriticalNode",
     "CvvcModel",
+    "EstimateBounds",
     "FitStats",
     "ModelArrays",
     "ModelError",
@@ -137,6 +138,26 @@ class FitStats(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=
     condition_number: float = 0.0  # of the standardised eq. (5) design matrix
 
 
+class EstimateBounds(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """Calibrated error bounds of the corrected estimates and the envelope of the training inputs.
+
+    Split conformal on minutes of the training year that no training scenario used (``training.calibration``):
+    for critical node ``n``, ``true - estimate <= upper_pu[n]`` and ``estimate - true <= lower_pu[n]`` each held in
+    at least ``1 - alpha / 2`` of the calibration minutes' exchangeable draws, so the interval
+    ``[estimate - lower, estimate + upper]`` holds the true voltage with probability ``>= 1 - alpha`` (minutes are
+    correlated in time: the guarantee is approximate, and ``cvvc report accuracy`` measures it out of sample).
+    ``envelope_lo``/``envelope_hi``: the range of each regression feature over the training power flows; inputs
+    outside it are extrapolation.
+    """
+
+    alpha: float
+    upper_pu: list[Finite]
+    lower_pu: list[Finite]
+    calibration_minutes: int
+    envelope_lo: list[Finite]
+    envelope_hi: list[Finite]
+
+
 class CvvcModel(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
     """Everything the online agent needs. See the module docstring for index conventions.
 
@@ -164,6 +185,7 @@ class CvvcModel(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields
     control_period_s: int = 300
     node_count: int = 0  # single-phase nodes in the whole feeder, for reporting the critical share
     fit: FitStats | None = None
+    bounds: EstimateBounds | None = None  # calibrated estimate bounds (None: a model trained without them)
 
 
 def feature_names(n_pv: int) -> list[str]:

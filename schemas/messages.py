@@ -246,11 +246,13 @@ class Ack(Message, frozen=True, kw_only=True, forbid_unknown_fields=True):
 
 # ------------------------------------------------------------------------------------------ decisions
 class NodeEstimate(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
-    """A critical node's estimated voltage and the voltage predicted after the decided actions [pu]."""
+    """A critical node's estimated voltage, its calibrated bounds and the voltage predicted after the actions [pu]."""
 
     node: Annotated[str, Meta(max_length=128)]
     v_pu: Pu
     v_predicted_pu: Pu  # after the decided actions (linear model)
+    bound_low_pu: Pu = 0.0  # calibrated bounds as applied: the true voltage is expected in [v - low, v + high]
+    bound_high_pu: Pu = 0.0
 
 
 class SolverStats(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
@@ -292,6 +294,7 @@ class Decision(Message, frozen=True, kw_only=True, forbid_unknown_fields=True):
     timings: Timings = Timings()
     corrected: bool = False
     missing: list[Ident] = []  # devices whose frames were missing, stale or invalid
+    out_of_envelope: bool = False  # the inputs left what training covered: bounds widened (``reason`` says which)
 
 
 class AgentStatus(Message, frozen=True, kw_only=True, forbid_unknown_fields=True):

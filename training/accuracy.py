@@ -62,6 +62,8 @@ class AccuracyReport(msgspec.Struct, frozen=True, kw_only=True):
     extreme_gap_max_pu: dict[str, float]  # per model: worst (true feeder extreme - critical-node extreme)
     extreme_gap_p99_pu: dict[str, float]
     png: str | None = None
+    bound_alpha: dict[str, float] = {}  # per model with calibrated bounds: the promised miscoverage
+    bound_miss_rate: dict[str, float] = {}  # ... and the realised share of (minute, node) outside the bounds
 
 
 def error_stats(label: str, err_pu: np.ndarray) -> ErrorStats:
@@ -233,6 +235,8 @@ def accuracy_report(
     capture: dict[str, float] = {}
     gap_max: dict[str, float] = {}
     gap_p99: dict[str, float] = {}
+    bound_alpha: dict[str, float] = {}
+    bound_miss: dict[str, float] = {}
     curves: dict[str, np.ndarray] = {}
     labels: list[str] = []
     for m, path, mn in zip(models, paths, model_nodes, strict=True):
@@ -243,6 +247,10 @@ def accuracy_report(
         v_true = truth.v_pu[:, cols]
         plain = estimate_v_pu(arrays, truth.features, truth.taps) - v_true
         corr = estimate_v_pu(arrays, truth.features, truth.taps, truth.reg_v120) - v_true
+        if m.bounds is not None:  # predicted against realised: the share of corrected estimates outside the bounds
+            up, lo = np.asarray(m.bounds.upper_pu), np.asarray(m.bounds.lower_pu)
+            bound_alpha[label] = m.bounds.alpha
+            bound_miss[label] = float(np.mean((-corr > up) | (corr > lo)))
         errors.append(error_stats(f"{label}, no correction", plain))
         errors.append(error_stats(f"{label}, with correction", corr))
         curves[f"{label}, no correction"] = plain.ravel()
@@ -271,6 +279,8 @@ def accuracy_report(
         extreme_gap_max_pu=gap_max,
         extreme_gap_p99_pu=gap_p99,
         png=png,
+        bound_alpha=bound_alpha,
+        bound_miss_rate=bound_miss,
     )
 
 

@@ -47,6 +47,7 @@ def _train(args: argparse.Namespace) -> int:
         workers=args.workers,
         combined_pct=() if args.no_combined else DEFAULT_COMBINED_PCT,
         progress=not args.json,
+        calibration_minutes=args.calibration_minutes,
     )
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -70,6 +71,9 @@ def _train(args: argparse.Namespace) -> int:
         f"  sensitivities:   median rel. error {100 * s.sensitivity_median_rel_err:.1f} %, forms "
         f"{s.sensitivity_forms}; c = {s.c_kvar:.0f} kvar"
     )
+    if s.calibration_minutes:
+        print(f"  estimate bounds: median ±{s.bound_p50_pu:.4f} pu, calibrated on {s.calibration_minutes} held-out "
+              f"minutes in {s.seconds_calibration:.1f} s")
     print(f"  seconds:         {s.seconds:.1f}")
     return 0
 
@@ -111,6 +115,9 @@ def _accuracy(args: argparse.Namespace) -> int:
             f"the feeder's and the critical nodes' extremes {report.extreme_gap_max_pu[label]:.5f} pu "
             f"(p99 {report.extreme_gap_p99_pu[label]:.5f})"
         )
+    for label, alpha in report.bound_alpha.items():
+        print(f"calibrated bounds ({label}): {100 * report.bound_miss_rate[label]:.3f} % of node-minutes outside them "
+              f"(promised at most {100 * alpha:.1f} %)")
     if report.png:
         print(f"figure: {report.png}")
     return 0
@@ -128,6 +135,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--workers", type=int, default=None, help="power-flow processes (default: one per core)")
     p.add_argument("--no-combined", action="store_true", help="only the paper's one-plant-at-a-time Q perturbations")
+    p.add_argument("--calibration-minutes", type=int, default=1440,
+                   help="held-out minutes of the training year for the calibrated estimate bounds (0: none)")
     p.add_argument("--json", action="store_true", help="print the summary as JSON (no progress bar)")
     p.add_argument("--cache", default=None, help=CACHE_HELP)
     p.set_defaults(func=_train)

@@ -310,3 +310,38 @@ def test_setpoint_hold_resends_the_last_set_point_when_no_tap_change_is_decided(
     # an old set point (beyond two control periods) is not held
     late = held.decide(snapshot(30 * minute, reading_error_pu=np.full(R, 0.004)))
     assert np.all(late.reg_setpoint_v120[unchanged] != first[0].reg_setpoint_v120[unchanged])
+
+
+def _bounded_model(upper: float, lower: float, head_p_range: tuple[float, float] = (0.0, 5000.0)):
+    """MODEL with calibrated bounds on every node and an envelope that admits ``head_p_range`` per phase."""
+    from regression.model import EstimateBounds
+
+    n, names = len(MODEL.critical_nodes), MODEL.feature_names
+    lo = [head_p_range[0] if n_.startswith("head_p") else -1e9 for n_ in names]
+    hi = [head_p_range[1] if n_.startswith("head_p") else 1e9 for n_ in names]
+    return msgspec.structs.replace(MODEL, bounds=EstimateBounds(
+        alpha=0.01, upper_pu=[upper] * n, lower_pu=[lower] * n, calibration_minutes=1440, envelope_lo=lo,
+        envelope_hi=hi))
+
+
+def test_calibrated_bounds_tighten_the_estimated_nodes_limits():
+    """Issue 16 item 2: each critical node's limits are tightened by its estimate's calibrated bounds."""
+    plain = controller().decide(snapshot(reading_error_pu=HIGH))
+    bounded = CvvcController(_bounded_model(0.004, 0.003), mode="taps", correction=True, bandwidth_v120=4.0)
+    d = bounded.decide(snapshot(reading_error_pu=HIGH))
+    lo, hi = MODEL.optimization_limits_pu
+    assert plain.v_pred_pu.max() == pytest.approx(hi, abs=1e-5)  # without bounds the plain limit binds
+    assert d.status == "optimal" and d.v_pred_pu.max() <= hi - 0.004 + 1e-5  # the tightened limit holds
+    assert d.v_pred_pu.min() >= lo + 0.003 - 1e-5
+    np.testing.assert_array_equal(d.v_bound_high_pu, 0.004)
+    np.testing.assert_array_equal(d.v_bound_low_pu, 0.003)
+    assert d.out_of_envelope == "" and d.reason == ""
+
+
+def test_inputs_outside_the_training_envelope_widen_the_bounds_and_say_so():
+    model = _bounded_model(0.004, 0.003, head_p_range=(0.0, 500.0))  # the snapshot's 800 kW per phase is outside
+    d = CvvcController(model, mode="taps", correction=True, bandwidth_v120=4.0).decide(snapshot(reading_error_pu=HIGH))
+    _, hi = MODEL.optimization_limits_pu
+    assert d.status == "optimal" and d.v_pred_pu.max() <= hi - 0.008 + 1e-5  # twice the bound
+    np.testing.assert_array_equal(d.v_bound_high_pu, 0.008)
+    assert "head_p" in d.out_of_envelope and "outside the training envelope" in d.reason

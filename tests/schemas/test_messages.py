@@ -46,7 +46,7 @@ def _mutations(msg_type) -> list[tuple[str, bytes, str]]:
         ("missing t_ns", json.dumps({k: v for k, v in good.items() if k != "t_ns"}).encode(), "missing_field"),
         ("t_ns as string", json.dumps({**good, "t_ns": "soon"}).encode(), "wrong_type"),
         ("negative t_ns", json.dumps({**good, "t_ns": -1}).encode(), "out_of_range"),
-        ("oversize", b"{" + b" " * (2 << 20) + b"}", "oversize"),
+        ("oversize", b"{" + b" " * (codec_for(msg_type).max_bytes + 1) + b"}", "oversize"),
     ]
     floats = [k for k, v in good.items() if isinstance(v, float)]
     if floats:

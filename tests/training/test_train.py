@@ -120,6 +120,32 @@ def test_accuracy_report_on_a_short_window(trained_123, profile_cache, tmp_path)
         assert e.max_abs_pu < 0.01 and e.within_001 == 1.0
     assert rep.sensitivities[0].minutes == 3 and rep.sensitivities[0].median_rel_err < 0.05
     assert (tmp_path / "fig8.png").stat().st_size > 10_000
+    # issue 16 item 2: the calibrated bounds, predicted against realised out of sample (a July the training never saw)
+    assert rep.bound_alpha == {"guided": 0.01}
+    assert rep.bound_miss_rate["guided"] < 0.05, rep.bound_miss_rate  # zero-width bounds would miss about half
+
+
+def test_the_model_carries_calibrated_bounds_and_the_training_envelope(trained_123):
+    """Split conformal on held-out minutes of the training year (``training.calibration``)."""
+    s, m = trained_123.summary, trained_123.model
+    b = m.bounds
+    assert b is not None and b.alpha == 0.01
+    assert 1400 <= b.calibration_minutes == s.calibration_minutes <= 1440  # less the training scenarios
+    up, lo = np.asarray(b.upper_pu), np.asarray(b.lower_pu)
+    assert up.shape == lo.shape == (len(m.critical_nodes),)
+    assert np.all(up >= 0) and np.all(lo >= 0) and (up + lo).max() > 0
+    assert (up + lo).max() < 0.02  # IEEE 123's estimates hold to a few thousandths of a pu
+    env_lo, env_hi = np.asarray(b.envelope_lo), np.asarray(b.envelope_hi)
+    assert env_lo.shape == (len(m.feature_names),) and np.all(env_lo < env_hi)
+
+
+def test_conformal_quantile_is_the_ceil_n_plus_1_level_th_score():
+    from training.calibration import conformal_quantile
+
+    scores = np.arange(1.0, 100.0)[:, None]  # 1..99
+    assert conformal_quantile(scores, 0.9)[0] == 90.0  # ceil(100 * 0.9) = 90th smallest
+    assert conformal_quantile(scores, 0.999)[0] == 99.0  # too few samples: the largest
+    assert conformal_quantile(-scores, 0.5)[0] == 0.0  # never below 0
 
 
 def _map(tmp_path, *, pv: bool, regulator: bool):

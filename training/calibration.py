@@ -1,0 +1,97 @@
+"""Calibrated estimate bounds (issue 16, item 2): split conformal on held-out minutes of the training year.
+
+After the regressions are fitted, the feeder is simulated (QSTS, regulators on local control, PV at unity power
+factor) over a few windows of the training year that no training scenario used: one per season, at different times
+of day. The corrected estimate (eq. 5-7, as the agent computes it) of every critical node is compared with
+OpenDSS's voltage, minute by minute. Each node's one-sided error quantiles are its bounds:
+
+    upper[n] = the ceil((T + 1)(1 - alpha / 2))-th smallest of (true - estimate)   (0 at least)
+    lower[n] = the same of (estimate - true)
+
+so ``[estimate - lower, estimate + upper]`` holds the true voltage in at least ``1 - alpha`` of exchangeable
+minutes (split conformal prediction; Lei et al. 2018). Minutes of one window are correlated, so the guarantee is
+approximate: ``cvvc report accuracy`` reports the realised rate on another year. The agent tightens each critical
+node's limits by its bounds (``agent.controller``), and widens them when its inputs leave the training envelope.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from regression.batch import estimate_v_pu
+from regression.model import CvvcModel, EstimateBounds, ModelArrays
+
+__all__ = ["CALIBRATION_WINDOWS", "calibrate_bounds", "conformal_quantile", "envelope"]
+
+#: (month, day, local hour) of the calibration windows: one per season, at different times of day.
+CALIBRATION_WINDOWS = ((1, 15, 6), (4, 15, 10), (7, 15, 12), (10, 15, 15))
+_WARMUP_MIN = 30  # minutes simulated and dropped before each window: the regulators settle from training's taps
+_ENVELOPE_SLACK = 0.05  # the envelope is the training range widened by this share of it on each side
+
+
+def conformal_quantile(scores: np.ndarray, level: float) -> np.ndarray:
+    """Split-conformal quantile of ``scores`` (T, N) along axis 0: the ceil((T + 1) level)-th smallest.
+
+    With too few samples for the level (``ceil((T + 1) level) > T``) it is the largest score (the exact conformal
+    bound would be infinite). Never below 0.
+    """
+    s = np.sort(np.asarray(scores, float), axis=0)
+    t = s.shape[0]
+    if t == 0:
+        raise ValueError("conformal_quantile: no calibration samples")
+    k = min(t, math.ceil((t + 1) * level))
+    return np.maximum(s[k - 1], 0.0)
+
+
+def envelope(features: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(lo, hi) of each feature over ``features`` (F, M), widened by 5 % of its range on each side."""
+    lo, hi = features.min(axis=0), features.max(axis=0)
+    pad = _ENVELOPE_SLACK * np.maximum(hi - lo, 1e-9)
+    return lo - pad, hi + pad
+
+
+def calibrate_bounds(model: CvvcModel, engine, profiles, *, training_steps: np.ndarray,
+                     training_features: np.ndarray, minutes: int = 1440, alpha: float = 0.01,
+                     progress: bool = False) -> EstimateBounds:
+    """The bounds of ``model``'s corrected estimates, calibrated on ``minutes`` held-out minutes of ``profiles``.
+
+    Parameters
+    ----------
+    model : the model just trained (critical nodes, regressions).
+    engine : the training ``FeederEngine`` (its taps are the starting point of each window's local control).
+    profiles : the training year.
+    training_steps : the steps the training scenarios used: left out of the calibration.
+    training_features : (F, M) features of the training power flows (the envelope).
+    minutes : calibration minutes in all, split over the windows of :data:`CALIBRATION_WINDOWS`.
+    alpha : miscoverage of the two-sided interval (0 < alpha < 1).
+    """
+    from simulator_bridge.profiles import month_steps
+    from training.accuracy import simulate_month
+
+    if not 0.0 < alpha < 1.0:
+        raise ValueError(f"alpha {alpha} must be in (0, 1)")
+    per_window = max(1, int(minutes) // len(CALIBRATION_WINDOWS))
+    names = {n: i for i, n in enumerate(engine.node_names)}
+    nodes = np.asarray([names[c.name] for c in model.critical_nodes], int)
+    arrays = ModelArrays.of(model)
+    held_out = set(np.asarray(training_steps, int).tolist())
+    residuals = []
+    for month, day, hour in CALIBRATION_WINDOWS:
+        first = month_steps(profiles, month).start + (day - 1) * 1440 + hour * 60
+        steps = range(first - _WARMUP_MIN, min(first + per_window, profiles.n_steps))
+        truth = simulate_month(engine, profiles, steps, nodes, sens_minutes=0, progress=progress)
+        keep = np.array([s >= first and s not in held_out for s in truth.steps])
+        est = estimate_v_pu(arrays, truth.features[keep], truth.taps[keep], truth.reg_v120[keep])
+        residuals.append(truth.v_pu[keep] - est)
+    r = np.concatenate(residuals)
+    lo, hi = envelope(np.asarray(training_features, float))
+    return EstimateBounds(
+        alpha=float(alpha),
+        upper_pu=[float(x) for x in conformal_quantile(r, 1.0 - alpha / 2.0)],
+        lower_pu=[float(x) for x in conformal_quantile(-r, 1.0 - alpha / 2.0)],
+        calibration_minutes=int(r.shape[0]),
+        envelope_lo=[float(x) for x in lo],
+        envelope_hi=[float(x) for x in hi],
+    )
