@@ -1,9 +1,10 @@
 """Calibrated estimate bounds (issue 16, item 2): split conformal on held-out minutes of the training year.
 
 After the regressions are fitted, the feeder is simulated (QSTS, regulators on local control, PV at unity power
-factor) over a few windows of the training year that no training scenario used: one per season, at different times
-of day. The corrected estimate (eq. 5-7, as the agent computes it) of every critical node is compared with
-OpenDSS's voltage, minute by minute. Each node's one-sided error quantiles are its bounds:
+factor) over windows of the training year that no training scenario used: one per month, the hour of day moving
+through the day (four seasonal windows under-covered: 4.0 % of January's node-minutes outside 1 % bounds on the rural
+feeder, against 0.6 % with twelve). The corrected estimate (eq. 5-7, as the agent computes it) of every critical
+node is compared with OpenDSS's voltage, minute by minute. Each node's one-sided error quantiles are its bounds:
 
     upper[n] = the ceil((T + 1)(1 - alpha / 2))-th smallest of (true - estimate)   (0 at least)
     lower[n] = the same of (estimate - true)
@@ -25,8 +26,8 @@ from regression.model import CvvcModel, EstimateBounds, ModelArrays
 
 __all__ = ["CALIBRATION_WINDOWS", "calibrate_bounds", "conformal_quantile", "envelope"]
 
-#: (month, day, local hour) of the calibration windows: one per season, at different times of day.
-CALIBRATION_WINDOWS = ((1, 15, 6), (4, 15, 10), (7, 15, 12), (10, 15, 15))
+#: (month, day, local hour) of the calibration windows: one per month, the hour moving through the day.
+CALIBRATION_WINDOWS = tuple((month, 10 + month, (5 + 2 * month) % 24) for month in range(1, 13))
 _WARMUP_MIN = 30  # minutes simulated and dropped before each window: the regulators settle from training's taps
 _ENVELOPE_SLACK = 0.05  # the envelope is the training range widened by this share of it on each side
 
