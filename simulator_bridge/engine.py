@@ -872,9 +872,20 @@ class FeederEngine:
         """
         for cmd in ("set controlmode=time", "set maxcontroliter=100", f"set mode=daily stepsize={step_s:g}s number=1"):
             self._command(cmd, what=f"{self.device_map.feeder.name}: OpenDSS control loop")
-        d = self._dss
-        d.Solution.Hour(int(start_tod_s // 3600))
-        d.Solution.Seconds(start_tod_s % 3600 - step_s)  # the clock moves by one step before each solve
+        self.set_time_control_clock(start_tod_s - step_s)  # the clock moves by one step before each solve
+
+    def set_time_control_clock(self, t_s: float) -> None:
+        """Set OpenDSS's clock to ``t_s`` [s from the first day's midnight; beyond a day as OpenDSS counts, hours
+        past 24; below 0 in the first hour]: the next :meth:`time_control_solve` is one step later.
+        """
+        t = float(t_s)
+        hour = max(int(t // 3600), 0)
+        self._dss.Solution.Hour(hour)
+        self._dss.Solution.Seconds(t - 3600.0 * hour)
+
+    def time_control_pending(self) -> int:
+        """Control actions on OpenDSS's queue (armed, due later) after the last :meth:`time_control_solve`."""
+        return int(self._dss.CtrlQueue.QueueSize())
 
     def time_control_solve(self) -> None:
         """One step of OpenDSS's own control loop (after :meth:`start_time_control`): move its clock, solve with

@@ -68,9 +68,17 @@ class OpenDssLoop:
     engine : a fresh :class:`FeederEngine` (its setters must not be used afterwards; this object owns it).
     step_s : OpenDSS's time step [s], a divisor of 60.
     start_tod_s : time of day of the first minute [s].
+    skip_quiet : skip the rest of a minute's solves once OpenDSS's control queue is empty (see below).
+
+    Quiet minutes: loads and PV are held within a minute, so once a solve leaves OpenDSS's control queue empty
+    (no RegControl or CapControl armed; an armed control, a ``DeadTime`` included, is an action on the queue) the
+    minute's remaining solves would each find the same solution and arm nothing; they are skipped and the clock
+    set to the minute's last step. Not with a time-type CapControl (its condition is the clock itself). The
+    counts equal the unskipped loop's, the voltages within the solver's tolerance (a repeated solve only refines
+    the solution; ``tests/simulator_bridge/test_opendss_loop.py``).
     """
 
-    def __init__(self, engine: FeederEngine, *, step_s: float, start_tod_s: float) -> None:
+    def __init__(self, engine: FeederEngine, *, step_s: float, start_tod_s: float, skip_quiet: bool = True) -> None:
         if step_s <= 0 or abs(60.0 / step_s - round(60.0 / step_s)) > 1e-9:
             raise EngineError(f"OpenDSS control loop: step_s {step_s} must divide 60 s")
         self.engine = engine
@@ -79,6 +87,10 @@ class OpenDssLoop:
         self._zero_q = np.zeros(len(engine.pv_ids))
         engine.start_time_control(self.step_s, start_tod_s)
         self._minute = 0
+        self._tod0_s = float(start_tod_s)
+        # a time-type CapControl acts on the clock alone: every solve counts there
+        self.skip_quiet = bool(skip_quiet) and not any(c.kind == "time" for c in engine.cap_controls)
+        self.skipped = 0  # solves skipped so far
 
     def step(self, load_kw: np.ndarray, pv_kw: np.ndarray) -> MinuteResult:
         """Hold ``load_kw`` (n_loads,) [kW] and PV available power ``pv_kw`` (K,) [kW] at unity power factor
@@ -91,7 +103,7 @@ class OpenDssLoop:
         taps, caps = e.taps(), e.cap_states()
         tap_changes = np.zeros(n_reg, dtype=np.int64)
         cap_switches = np.zeros(n_cap, dtype=np.int64)
-        for _ in range(self._n_sub):
+        for k in range(self._n_sub):
             try:
                 e.time_control_solve()
             except EngineError as err:
@@ -100,6 +112,12 @@ class OpenDssLoop:
             tap_changes += np.abs(new_taps - taps)
             cap_switches += np.abs(new_caps - caps)
             taps, caps = new_taps, new_caps
+            if self.skip_quiet and k < self._n_sub - 1 and e.time_control_pending() == 0:
+                # nothing armed and nothing changes until the next minute's loads: the rest of the minute's
+                # solves would find this solution again; the clock goes to the minute's last step
+                e.set_time_control_clock(self._tod0_s + 60.0 * self._minute + 60.0 - self.step_s)
+                self.skipped += self._n_sub - 1 - k
+                break
         self._minute += 1
         return MinuteResult(v_pu=e.node_voltages_pu(), tap_changes=tap_changes, cap_switches=cap_switches,
                             pv_q_kvar=q, taps=e.control_taps(), cap_states=e.control_cap_states())
@@ -110,11 +128,12 @@ class OpenDssLoop:
 
 
 def reference_metrics(device_map: DeviceMap, profiles: Profiles, *, start_step: int, steps: int,
-                      step_s: float) -> Metrics:
+                      step_s: float, skip_quiet: bool = True) -> Metrics:
     """The ``opendss`` reference case: ``steps`` minutes of ``profiles`` from ``start_step`` through OpenDSS's own
     control loop at ``step_s`` [s], measured with the same IV.F metrics as every run (``MetricsAccumulator``).
 
-    ``profiles`` must be the feeder's (columns in the engine's load and plant order) at 60 s per row.
+    ``profiles`` must be the feeder's (columns in the engine's load and plant order) at 60 s per row;
+    ``skip_quiet``: see :class:`OpenDssLoop`.
     """
     from simulator_bridge.metrics import MetricsAccumulator
 
@@ -125,7 +144,8 @@ def reference_metrics(device_map: DeviceMap, profiles: Profiles, *, start_step: 
     engine = FeederEngine(device_map)
     try:
         acc = MetricsAccumulator.for_feeder(device_map, engine, step_s=60)
-        loop = OpenDssLoop(engine, step_s=step_s, start_tod_s=(profiles.t_ns(start_step) / 1e9) % _DAY_S)
+        loop = OpenDssLoop(engine, step_s=step_s, start_tod_s=(profiles.t_ns(start_step) / 1e9) % _DAY_S,
+                           skip_quiet=skip_quiet)
         load, pv = profiles.load_kw(start_step, start_step + steps), profiles.pv_kw(start_step, start_step + steps)
         for m in range(steps):
             r = loop.step(load[m], pv[m])
