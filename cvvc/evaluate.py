@@ -9,6 +9,9 @@ Outputs in ``--out``: one folder per run (``summary.json``, ``session.mcap`` ...
 metrics and summary) and ``results.md`` with the paper's Table II/III layout (Season | Case | MVVM | NVV | NTC |
 Q cost | T cost | Total), Table IV (per-PV reactive energy) and Table V (per-regulator tap changes).
 
+The ``opendss`` case (``--cases none,local,opendss``) is not a bus run but OpenDSS's own control loop on the same
+days, loads and PV (``cvvc/reference.py``), at ``--reference-step-s`` steps, measured with the same metrics.
+
 ``--robustness`` ("beyond the paper", its stated future work) runs case D under variants instead:
 measurement noise of PMU class (0.1 %, the bridge applies it to the feeder-head meter) and SCADA class (1 %, PV
 plants and regulators), dropped frames (1 %, 5 %), and model error (the
@@ -33,10 +36,12 @@ import msgspec
 import numpy as np
 
 from cvvc.launch import CASES, LaunchError, RunConfig, RunSummary
+from cvvc.reference import REFERENCE_CASE, ReferenceConfig
 from schemas import messages as m
 from schemas.errors import CvvcError
 
 __all__ = [
+    "EVALUATE_CASES",
     "EVALUATION_YEAR",
     "ROBUSTNESS_VARIANTS",
     "SEASONS",
@@ -54,6 +59,8 @@ __all__ = [
     "season_window",
 ]
 
+#: Every case ``--cases`` accepts: the bus runs (``cvvc.launch.CASES``) and OpenDSS's own loop (``opendss``).
+EVALUATE_CASES: tuple[str, ...] = (*CASES, REFERENCE_CASE)
 Season = Literal["winter", "spring", "summer", "fall"]
 SEASONS: tuple[Season, ...] = ("winter", "spring", "summer", "fall")
 EVALUATION_YEAR = 2023  # the calendar year of the generated profiles (``make_profiles`` default)
@@ -94,6 +101,7 @@ class EvaluateConfig(msgspec.Struct, frozen=True, kw_only=True):
     perturbation_pct: float = 10.0
     perturbation_seed: int = 7
     progress: bool = True
+    reference_step_s: float = 5.0  # OpenDSS's time step in the ``opendss`` case [s] (docs/simulation.md)
 
 
 def longest_first(specs: list[RunSpec]) -> list[RunSpec]:
@@ -163,9 +171,10 @@ class Evaluation(msgspec.Struct, frozen=True, kw_only=True):
 def parse_cases(text: str) -> tuple[str, ...]:
     """``"A,B,D"`` -> ``("A", "B", "D")``; an unknown case raises :class:`EvaluateError`."""
     cases = tuple(c.strip() for c in text.split(",") if c.strip())
-    bad = [c for c in cases if c not in CASES]
+    bad = [c for c in cases if c not in EVALUATE_CASES]
     if bad or not cases:
-        raise EvaluateError(f"unknown case(s) {', '.join(bad) or '(none given)'}; choose from {','.join(CASES)}")
+        raise EvaluateError(f"unknown case(s) {', '.join(bad) or '(none given)'}; "
+                            f"choose from {','.join(EVALUATE_CASES)}")
     return cases
 
 
@@ -290,6 +299,25 @@ def _run_one(spec: RunSpec, run_config: RunConfig) -> RunResult:
                      lockstep_misses=s.lockstep_misses, out_dir=s.out_dir, recording=s.recording)
 
 
+def _run_reference(spec: RunSpec, config: EvaluateConfig, dm_path: Path, out: Path) -> RunResult:
+    """Worker: the ``opendss`` reference case (OpenDSS's own control loop, no bus) on the spec's window."""
+    from cvvc.reference import run_reference
+    from schemas.cache import profiles_dir
+
+    s = run_reference(ReferenceConfig(feeder=str(dm_path), start=spec.start, days=spec.days,
+                                      year_seed=config.year_seed, cache=str(profiles_dir(config.cache)),
+                                      out=str(out / spec.name), step_s=config.reference_step_s))
+    return RunResult(spec=spec, metrics=s.metrics, wall_s=s.wall_s, steps=s.steps, decisions=0, lockstep_misses=0,
+                     out_dir=s.out_dir, recording=None)
+
+
+def _submit(pool: cf.Executor, spec: RunSpec, config: EvaluateConfig, dm_path: Path, model: Path, out: Path,
+            perturbed: Path | None) -> cf.Future:
+    if spec.case == REFERENCE_CASE:
+        return pool.submit(_run_reference, spec, config, dm_path, out)
+    return pool.submit(_run_one, spec, _run_config(spec, config, dm_path, model, out, perturbed))
+
+
 def _finished(spec: RunSpec, run_dir: Path) -> RunResult | None:
     """The result of a run already finished in ``run_dir`` with the same case and window (``--resume``)."""
     path = run_dir / "summary.json"
@@ -321,8 +349,14 @@ def evaluate(config: EvaluateConfig) -> Evaluation:
     from schemas.devicemap import load_device_map
 
     for c in config.cases:
-        if c not in CASES:
-            raise EvaluateError(f"unknown case {c!r}; choose from {','.join(CASES)}")
+        if c not in EVALUATE_CASES:
+            raise EvaluateError(f"unknown case {c!r}; choose from {','.join(EVALUATE_CASES)}")
+    if not (config.reference_step_s > 0 and abs(60.0 / config.reference_step_s
+                                                 - round(60.0 / config.reference_step_s)) < 1e-9):
+        raise EvaluateError(f"--reference-step-s {config.reference_step_s:g} must divide 60 s")
+    if config.robustness and REFERENCE_CASE in config.cases:
+        raise EvaluateError(f"--robustness studies case D under noise and model error; the {REFERENCE_CASE} case "
+                            "has no bus to add them to: run it without --robustness")
     for s in config.seasons:
         if s not in SEASONS:
             raise EvaluateError(f"unknown season {s!r}; choose from {','.join(SEASONS)}")
@@ -333,8 +367,8 @@ def evaluate(config: EvaluateConfig) -> Evaluation:
     out = Path(config.out)
     out.mkdir(parents=True, exist_ok=True)
     # the feeder and model once, here, so parallel runs never train the same model twice; none when no case runs
-    # an agent (none, local: e.g. epri-ckt5, which has no regulator to train for)
-    agent_case = any(c not in ("none", "local") for c in config.cases)
+    # an agent (none, local, opendss: e.g. epri-ckt5, which has no regulator to train for)
+    agent_case = any(c not in ("none", "local", REFERENCE_CASE) for c in config.cases)
     dm_path, model = prepare_feeder_and_model(RunConfig(feeder=config.feeder, model=config.model,
                                                         train_seed=config.train_seed, cache=config.cache,
                                                         case="D" if agent_case else "none",
@@ -367,8 +401,7 @@ def evaluate(config: EvaluateConfig) -> Evaluation:
     todo = longest_first(todo)
     ctx = multiprocessing.get_context("spawn")
     with cf.ProcessPoolExecutor(max_workers=config.jobs, mp_context=ctx) as pool:
-        futures = {pool.submit(_run_one, spec, _run_config(spec, config, dm_path, model, out, perturbed)): spec
-                   for spec in todo}
+        futures = {_submit(pool, spec, config, dm_path, model, out, perturbed): spec for spec in todo}
         try:
             for fut in cf.as_completed(futures):
                 spec = futures[fut]
@@ -432,7 +465,10 @@ def render_results_md(ev: Evaluation) -> str:
     lines = [f"# cvvc evaluate: {ev.feeder_id}", "",
              f"Evaluation year seed {ev.config.year_seed}, model trained on year seed {ev.config.train_seed}; "
              f"{', '.join(f'{d:g}' for d in days)} day(s) per season from the first of the season's month; "
-             f"{len(ev.runs)} runs in {ev.wall_s:.0f} s wall time (jobs={ev.config.jobs}).", "",
+             f"{len(ev.runs)} runs in {ev.wall_s:.0f} s wall time (jobs={ev.config.jobs})."
+             + (f" Case {REFERENCE_CASE}: OpenDSS's own control loop at {ev.config.reference_step_s:g} s steps on "
+                "the same loads and PV (unity power factor), not through the bus."
+                if any(r.spec.case == REFERENCE_CASE for r in ev.runs) else ""), "",
              "## Voltage violations and costs (paper Tables II/III layout)", "",
              "| " + " | ".join(head + ["MVVM [pu]", "NVV", "NTC"] + cap_head[:1] + ["Q Cost", "T Cost"] + cap_head[1:]
                                + ["Total", "wall [s]"]) + " |",

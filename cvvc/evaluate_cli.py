@@ -19,7 +19,8 @@ def register_evaluate(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--feeder", default=None, help="device map TOML or folder (default: embedded rural feeder)")
     p.add_argument("--model", default=None, help="model file (default: train once on --train-seed and cache)")
     p.add_argument("--cases", default=None,
-                   help="comma-separated cases among A,B,C,D,none,local (default: all; D with --robustness)")
+                   help="comma-separated cases among A,B,C,D,none,local and opendss (OpenDSS's own control loop on "
+                        "the same days, no bus) (default: A,B,C,D,none,local; D with --robustness)")
     p.add_argument("--seasons", default="winter,spring,summer,fall", help="comma-separated seasons")
     p.add_argument("--bandwidth-v", default="4", help="comma-separated regulator bands on 120 V for cases C/D")
     p.add_argument("--year-seed", type=int, default=2, help="profile year evaluated (default 2: out of sample)")
@@ -27,6 +28,8 @@ def register_evaluate(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--days-per-season", type=float, default=None,
                    help="days from the first of each season's month (default: the whole month)")
     p.add_argument("--jobs", type=int, default=1, help="runs at a time, each in its own process (default 1)")
+    p.add_argument("--reference-step-s", type=float, default=5.0,
+                   help="OpenDSS's time step in the opendss case [s], a divisor of 60 (default 5; docs/simulation.md)")
     add_agent_option_arguments(p)
     p.add_argument("--robustness", action="store_true",
                    help="case D under PMU/SCADA noise, 1 %% and 5 %% dropped frames, and +-10 %% model error")
@@ -52,6 +55,7 @@ def _evaluate(args: argparse.Namespace) -> int:
                             year_seed=args.year_seed, train_seed=args.train_seed,
                             days_per_season=args.days_per_season, jobs=args.jobs, out=args.out, cache=args.cache,
                             robustness=args.robustness, resume=args.resume,
+                            reference_step_s=args.reference_step_s,
                             pv_margin_window_s=args.pv_margin_window_s, setpoint_hold=args.setpoint_hold, **kw)
     try:
         ev = evaluate(config)

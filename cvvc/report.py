@@ -374,6 +374,8 @@ def plot_evaluation(eval_dir: str | Path, *, out: str | Path | None = None) -> l
     groups: dict[str, dict[str, RunTrace]] = {}
     for r in ev["runs"]:
         spec = r["spec"]
+        if not r.get("recording"):  # the opendss reference case: OpenDSS's own loop, nothing recorded
+            continue
         run_dir = Path(r["out_dir"])
         if not run_dir.is_dir():
             run_dir = d / Path(r["out_dir"]).name

@@ -2,7 +2,7 @@
 
 ``python -m simulator_bridge.control_check MAP.toml [--minutes 1440] [--step-s 1] [--low 0.3 --high 1.1]``
 runs a day of a sinusoidal load multiplier (``low`` at 04:00, ``high`` at 16:00; every load scaled, PV at 0)
-through :class:`~simulator_bridge.qsts.Qsts` and through :func:`~simulator_bridge.engine.opendss_control_loop`
+through :class:`~simulator_bridge.qsts.Qsts` and through :func:`~simulator_bridge.opendss_loop.opendss_control_loop`
 (OpenDSS steps of ``step_s``, loads held per minute), and prints, per RegControl and CapControl, the
 position changes seen minute by minute on each side and the largest offset, in minutes, between matching
 changes. A device *matches* when both sides make the same sequence of positions, each change within
@@ -18,7 +18,8 @@ from pathlib import Path
 import numpy as np
 
 from schemas.devicemap import DeviceMap, load_device_map
-from simulator_bridge.engine import FeederEngine, opendss_control_loop
+from simulator_bridge.engine import FeederEngine
+from simulator_bridge.opendss_loop import opendss_control_loop
 from simulator_bridge.qsts import Qsts
 
 __all__ = ["ControlComparison", "DeviceComparison", "MinuteProfiles", "compare_with_opendss", "day_multiplier"]

@@ -5,7 +5,8 @@ It sets loads, PV plants, regulator taps and capacitor banks, solves one power f
 devices would measure (:class:`FieldReadings`), what every RegControl and CapControl of the model samples
 (:meth:`FeederEngine.sense`) and the truth (every node's voltage). Device physics that spans time (the local
 controls' event clock, volt-var, night behaviour) lives in ``qsts.py`` and ``controls.py``; this module is one
-snapshot. :func:`opendss_control_loop` runs OpenDSS's own time-driven control loop as the reference.
+snapshot. :meth:`FeederEngine.start_time_control` and :meth:`FeederEngine.time_control_solve` hand the controls
+to OpenDSS's own time-driven loop instead, the reference ``opendss_loop.py`` steps.
 
 Every OpenDSS name and unit is translated to ours here:
 
@@ -23,7 +24,8 @@ ours                        OpenDSS
 
 Conventions (see ``docs/simulation.md``): voltages are line-to-neutral; ``q_kvar > 0`` injects reactive
 power at PV plants (generator convention); at the feeder head P and Q are positive into the feeder.
-OpenDSS's own controls are off (``set controlmode=off``); every control's behaviour is ``controls.py``'s.
+OpenDSS's own controls are off (``set controlmode=off``); every control's behaviour is ``controls.py``'s (but for
+an engine handed to OpenDSS's loop with ``start_time_control``).
 """
 
 from __future__ import annotations
@@ -52,10 +54,8 @@ __all__ = [
     "EngineState",
     "FeederEngine",
     "FieldReadings",
-    "OpenDssControlRun",
     "OpenDssSnapshot",
     "Sensitivities",
-    "opendss_control_loop",
     "opendss_snapshot",
     "survey_circuit",
 ]
@@ -909,6 +909,61 @@ class FeederEngine:
             raise EngineError(f"{self.device_map.feeder.name}: power flow did not converge; check loads/PV "
                               "for unrealistic values")
 
+    # ------------------------------------------------------------------ OpenDSS's own control loop
+    def start_time_control(self, step_s: float, start_tod_s: float) -> None:
+        """Hand every RegControl and CapControl to OpenDSS's own time-driven control loop from now on.
+
+        ``set controlmode=time`` and ``set mode=daily stepsize=step_s number=1``: each
+        :meth:`time_control_solve` then moves OpenDSS's clock by ``step_s`` [s] and solves, its controls acting
+        with their own delays on its time-stamped queue. The clock is set so that the first solve is at
+        ``start_tod_s`` [s of the day]. Loads and PV keep the values this engine sets (no model here gives a
+        load or PV system a ``daily`` shape, the only one daily mode applies; ``tests/simulator_bridge/
+        test_opendss_loop.py`` checks the first solve against a snapshot).
+        The engine's own taps and bank states follow OpenDSS's after every :meth:`time_control_solve`; its
+        setters must not be used any more (a tap set through the transformer bypasses the RegControl).
+        """
+        for cmd in ("set controlmode=time", "set maxcontroliter=100", f"set mode=daily stepsize={step_s:g}s number=1"):
+            self._command(cmd, what=f"{self.device_map.feeder.name}: OpenDSS control loop")
+        self.set_time_control_clock(start_tod_s - step_s)  # the clock moves by one step before each solve
+
+    def set_time_control_clock(self, t_s: float) -> None:
+        """Set OpenDSS's clock to ``t_s`` [s from the first day's midnight; beyond a day as OpenDSS counts, hours
+        past 24; below 0 in the first hour]: the next :meth:`time_control_solve` is one step later.
+        """
+        t = float(t_s)
+        hour = max(int(t // 3600), 0)
+        self._dss.Solution.Hour(hour)
+        self._dss.Solution.Seconds(t - 3600.0 * hour)
+
+    def time_control_pending(self) -> int:
+        """Control actions on OpenDSS's queue (armed, due later) after the last :meth:`time_control_solve`."""
+        return int(self._dss.CtrlQueue.QueueSize())
+
+    def time_control_solve(self) -> None:
+        """One step of OpenDSS's own control loop (after :meth:`start_time_control`): move its clock, solve with
+        its controls, and read every RegControl's tap and every bank's closed steps back from OpenDSS.
+
+        Raises
+        ------
+        EngineError
+            OpenDSS failed or did not converge.
+        """
+        self._batch = self._reg_v = None
+        d = self._dss
+        try:
+            d.Solution.Solve()
+        except dss.DSSException as e:
+            raise EngineError(f"{self.device_map.feeder.name}: OpenDSS control loop failed: {e}") from e
+        if not d.Solution.Converged():
+            raise EngineError(f"{self.device_map.feeder.name}: OpenDSS control loop did not converge")
+        rc, cap = d.RegControls, d.Capacitors
+        for r, reg in enumerate(self._regs):
+            rc.Name(reg.regcontrol)
+            self._all_taps[r] = rc.TapNumber()
+        for b, name in enumerate(self._banks):
+            cap.Name(name)
+            self._bank_states[b] = sum(cap.States())
+
     def node_voltages_pu(self) -> np.ndarray:
         """(n_nodes,) voltage magnitude of every node, in ``node_names`` order [pu of its bus's L-N base]."""
         return np.array(self._circuit.AllBusVmagPu, dtype=float)
@@ -1230,79 +1285,6 @@ def opendss_snapshot(master: str | Path, *, tolerance: float = 1e-8) -> OpenDssS
         v_pu=np.asarray(ctx.Circuit.AllBusMagPu(), dtype=float),
         taps=taps,
     )
-
-
-@dataclass(frozen=True)
-class OpenDssControlRun:
-    """OpenDSS's own time-driven control loop over per-minute loads (:func:`opendss_control_loop`).
-
-    Attributes
-    ----------
-    regcontrol_names : every RegControl of the model, ``FeederEngine.reg_controls`` order (the map's first).
-    capcontrol_names : every CapControl of the model, ``FeederEngine.cap_controls`` order.
-    taps : (n_minutes, NR) int, each RegControl's tap at the end of each minute.
-    cap_states : (n_minutes, NC) int, closed steps of each CapControl's bank at the end of each minute.
-    step_s : OpenDSS's time step [s]. elapsed_s : wall time of the loop [s].
-    """
-
-    regcontrol_names: tuple[str, ...]
-    capcontrol_names: tuple[str, ...]
-    taps: np.ndarray
-    cap_states: np.ndarray
-    step_s: float
-    elapsed_s: float
-
-
-def opendss_control_loop(device_map: DeviceMap, load_kw: np.ndarray, *, step_s: float = 60.0,
-                         start_tod_s: float = 0.0, tolerance: float = 1e-6) -> OpenDssControlRun:
-    """Run OpenDSS's own control loop (``set controlmode=time``) over per-minute loads: the reference that
-    ``qsts.py``'s local device physics is checked against.
-
-    The circuit is the engine's (same compile, ``extra_commands``, PV plants at zero output, tolerance);
-    then ``set controlmode=time``, ``set mode=daily stepsize=step_s number=1``, and the clock is set so the
-    first solve is at ``start_tod_s``. Minute ``m``'s loads are set once, then ``60 / step_s`` solves follow at
-    ``start + 60 m + k · step_s``; the taps and bank states are read after the minute's last solve.
-
-    Parameters
-    ----------
-    load_kw : (n_minutes, n_loads) every load's kW per minute (``FeederEngine.load_names`` order).
-    step_s : OpenDSS's step [s], a divisor of 60. start_tod_s : time of day of the first minute [s].
-    """
-    if step_s <= 0 or abs(60.0 / step_s - round(60.0 / step_s)) > 1e-9:
-        raise EngineError(f"opendss_control_loop: step_s {step_s} must divide 60 s")
-    eng = FeederEngine(device_map, tolerance=tolerance)
-    try:
-        d = eng._dss
-        eng._command("set controlmode=time", what="control loop")
-        eng._command("set maxcontroliter=100", what="control loop")
-        eng._command(f"set mode=daily stepsize={step_s:g}s number=1", what="control loop")
-        d.Solution.Hour(int(start_tod_s // 3600))
-        d.Solution.Seconds(start_tod_s % 3600 - step_s)  # the clock moves by one step before each solve
-        n_sub = int(round(60.0 / step_s))
-        regs = [r.regcontrol for r in eng._regs]
-        banks = [eng._banks[b] for b in eng.cap_control_bank]
-        taps = np.zeros((len(load_kw), len(regs)), dtype=int)
-        states = np.zeros((len(load_kw), len(banks)), dtype=int)
-        solve, rc, cap = d.Solution.Solve, d.RegControls, d.Capacitors
-        t = time.perf_counter()
-        for m, row in enumerate(np.asarray(load_kw, dtype=float)):
-            eng.set_loads_kw(row)
-            try:
-                for _ in range(n_sub):
-                    solve()
-            except dss.DSSException as e:
-                raise EngineError(f"{device_map.feeder.name}: OpenDSS control loop failed at minute {m}: {e}") from e
-            for r, name in enumerate(regs):
-                rc.Name(name)
-                taps[m, r] = rc.TapNumber()
-            for j, name in enumerate(banks):
-                cap.Name(name)
-                states[m, j] = sum(cap.States())
-        elapsed = time.perf_counter() - t
-    finally:
-        eng.close()
-    return OpenDssControlRun(regcontrol_names=tuple(regs), capcontrol_names=tuple(c.name for c in eng.cap_controls),
-                             taps=taps, cap_states=states, step_s=float(step_s), elapsed_s=elapsed)
 
 
 # ---------------------------------------------------------------------------------------------------------------

@@ -41,6 +41,7 @@ from schemas.bus import BusConfig, open_session, wait_for
 from simulator_bridge import devices as dv
 from simulator_bridge.engine import FieldReadings
 from simulator_bridge.errors import SimulatorError
+from simulator_bridge.metrics import Metrics
 
 __all__ = [
     "DeviceSettings",
@@ -53,6 +54,7 @@ __all__ = [
     "READING_FIELDS",
     "StepFramer",
     "StepPacker",
+    "metrics_frame",
 ]
 
 log = logging.getLogger(__name__)
@@ -302,25 +304,31 @@ class StepFramer:
 
     def metrics_frame(self, t_ns: int, *, final: bool) -> m.MetricsFrame:
         """Cumulative paper IV.F metrics since the first step (``simulator_bridge.metrics``), at ``t_ns``."""
-        r = self.metrics.result()
         self.seqs["metrics"] += 1
-        return m.MetricsFrame(
-            t_ns=max(t_ns, 0), seq=self.seqs["metrics"], source="bridge", feeder_id=self.spec.feeder_id,
-            start_t_ns=self.spec.run_start_t_ns, steps=r.n_steps,
-            mvvm_pu=min(float(r.mvvm_pu), 3.0), nvv=int(r.nvv),
-            minutes_in_violation=int(round(r.minutes_in_violation)), ntc=int(r.ntc), q_cost=float(r.q_cost),
-            t_cost=float(r.t_cost), total_cost=float(r.total_cost),
-            v_min_pu=min(max(r.v_min_pu if r.v_min_pu is not None else 0.0, 0.0), 3.0),
-            v_max_pu=min(max(r.v_max_pu if r.v_max_pu is not None else 0.0, 0.0), 3.0),
-            taps_changes=dict(zip(r.regulator_ids, r.tap_changes_per_regulator, strict=True)),
-            q_mvar_intervals=dict(zip(r.pv_ids, r.q_mvar_intervals_per_plant, strict=True)),
-            final=final, cap_switches=int(r.cap_switches), cap_cost=float(r.cap_cost),
-            cap_switches_per_bank=dict(zip(r.capacitor_ids, r.cap_switches_per_bank, strict=True)))
+        return metrics_frame(self.metrics.result(), t_ns=t_ns, seq=self.seqs["metrics"],
+                             feeder_id=self.spec.feeder_id, start_t_ns=self.spec.run_start_t_ns, final=final)
 
     def publish_metrics(self, t_ns: int, *, final: bool) -> m.MetricsFrame:
         frame = self.metrics_frame(t_ns, final=final)
         self.pub_metrics.put(frame)
         return frame
+
+
+def metrics_frame(r: Metrics, *, t_ns: int, seq: int, feeder_id: str, start_t_ns: int,
+                  final: bool) -> m.MetricsFrame:
+    """The bus's form of metrics ``r`` (values clipped to the message's ranges); ``t_ns`` [ns] its time."""
+    return m.MetricsFrame(
+        t_ns=max(t_ns, 0), seq=seq, source="bridge", feeder_id=feeder_id,
+        start_t_ns=start_t_ns, steps=r.n_steps,
+        mvvm_pu=min(float(r.mvvm_pu), 3.0), nvv=int(r.nvv),
+        minutes_in_violation=int(round(r.minutes_in_violation)), ntc=int(r.ntc), q_cost=float(r.q_cost),
+        t_cost=float(r.t_cost), total_cost=float(r.total_cost),
+        v_min_pu=min(max(r.v_min_pu if r.v_min_pu is not None else 0.0, 0.0), 3.0),
+        v_max_pu=min(max(r.v_max_pu if r.v_max_pu is not None else 0.0, 0.0), 3.0),
+        taps_changes=dict(zip(r.regulator_ids, r.tap_changes_per_regulator, strict=True)),
+        q_mvar_intervals=dict(zip(r.pv_ids, r.q_mvar_intervals_per_plant, strict=True)),
+        final=final, cap_switches=int(r.cap_switches), cap_cost=float(r.cap_cost),
+        cap_switches_per_bank=dict(zip(r.capacitor_ids, r.cap_switches_per_bank, strict=True)))
 
 
 # ------------------------------------------------------------------------------------------ packing

@@ -8,6 +8,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import msgspec
 import numpy as np
 import pytest
 
@@ -165,3 +166,35 @@ def test_a_failed_run_is_listed_and_the_others_kept(tmp_path, profile_cache):
     assert [f["spec"]["case"] for f in data["failures"]] == ["D"]
     md = (out / "results.md").read_text()
     assert "| winter | none |" in md and "## Failed runs" in md and "winter-D-bw4" in md
+
+
+def test_opendss_reference_case_beside_none(tmp_path, profile_cache):
+    """The opendss case (OpenDSS's own control loop, no bus) gives the same table rows as a bus run, and, being the
+    same local control physics of the same model on the same loads and PV (tests/simulator_bridge/
+    test_opendss_loop.py), each regulator's tap count within one of the none case's; --resume reuses it."""
+    out = tmp_path / "out"
+    config = EvaluateConfig(feeder=str(IEEE13), cases=("none", "opendss"), seasons=("summer",), days_per_season=0.25,
+                            out=str(out), cache=str(profile_cache.parent), progress=False)
+    ev = evaluate(config)
+    none, ref = ev.runs
+    assert (none.spec.case, ref.spec.case) == ("none", "opendss")
+    assert ref.recording is None and ref.steps == none.steps == 360
+    assert none.metrics.ntc >= 5, "the window must move taps for the comparison to mean something"
+    for g, n in none.metrics.taps_changes.items():
+        assert abs(ref.metrics.taps_changes[g] - n) <= 1, (ref.metrics.taps_changes, none.metrics.taps_changes)
+    assert ref.metrics.nvv == none.metrics.nvv and ref.metrics.q_cost == 0.0
+    md = (out / "results.md").read_text()
+    mt = ref.metrics
+    assert f"| summer | opendss | {mt.mvvm_pu:.4f} | {mt.nvv} | {mt.ntc} |" in md
+    assert "Case opendss: OpenDSS's own control loop at 5 s steps" in md
+    stamp = (Path(ref.out_dir) / "summary.json").stat().st_mtime_ns
+    again = evaluate(msgspec.structs.replace(config, resume=True))
+    assert again.runs[1].metrics == mt and (Path(ref.out_dir) / "summary.json").stat().st_mtime_ns == stamp
+
+
+def test_opendss_case_is_not_a_robustness_variant_and_needs_a_step_dividing_a_minute(tmp_path):
+    assert parse_cases("none,opendss") == ("none", "opendss")
+    with pytest.raises(EvaluateError, match="without --robustness"):
+        evaluate(EvaluateConfig(feeder=str(IEEE13), cases=("opendss",), robustness=True, out=str(tmp_path)))
+    with pytest.raises(EvaluateError, match="--reference-step-s 7 must divide 60"):
+        evaluate(EvaluateConfig(feeder=str(IEEE13), cases=("opendss",), reference_step_s=7.0, out=str(tmp_path)))
