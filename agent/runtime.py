@@ -370,10 +370,16 @@ def run_agent(model: CvvcModel, settings: AgentSettings, bus, *, stop: threading
     for k, n in maker.aligner.rejected.items():
         rejected[k] = rejected.get(k, 0) + n
     return AgentSummary(decisions=maker.seq, holds=maker.holds, commands=maker.commands_sent, acks=dict(acks),
-                        rejected=rejected, clamped=maker.clamped, log_suppressed=dict(rlog.suppressed),
+                        rejected=rejected, clamped=maker.clamped,
+                        log_suppressed=_suppressed(rlog, inbox.rejects.log_suppressed()),
                         soft=maker.soft, reasons=dict(maker.reasons.most_common(20)),
                         step_ends=maker.aligner.step_ends, released_by_step_end=maker.aligner.released_by_step_end,
                         decided_after_late_window=late_decided)
+
+
+def _suppressed(rlog: RateLimitedLog, rejects: dict[str, int]) -> dict[str, int]:
+    """Log lines not written, by kind: the process's own and the bus's rejections (``rejected_<kind>``)."""
+    return dict(rlog.suppressed) | {f"rejected_{k}": n for k, n in rejects.items()}
 
 
 class _FrameHealth:

@@ -58,6 +58,7 @@ from schemas.bus import (
 )
 from schemas.devicemap import DeviceMap, load_device_map
 from schemas.errors import CvvcError
+from schemas.logs import RateLimitedLog
 from simulator_bridge import devices as dv
 from simulator_bridge.errors import SimulatorError
 from simulator_bridge.publishing import (
@@ -194,6 +195,7 @@ class BridgeSummary(msgspec.Struct, frozen=True, kw_only=True):
     publisher_cpu_s: float = 0.0
     decision_wait_s: float = 0.0
     publisher: Literal["inline", "process"] = "inline"
+    log_suppressed: dict[str, int] = {}  # log lines not written by the rate limit, by kind (rejected_<kind>: bus)
 
 
 # ------------------------------------------------------------------------------------------ helpers
@@ -330,6 +332,7 @@ class _Runtime:
             noise_seed=c.noise_seed, metrics=MetricsAccumulator.for_feeder(dm, engine, step_s=self.step_s),
             caps=tuple((k.capacitor_id, k.index, k.steps, k.kvar_rated, k.control_type) for k in self.caps.values()))
         # counters
+        self.rlog = RateLimitedLog(log)  # every line a peer can provoke (issue "Robust by default" (f))
         self.seqs: Counter[str] = Counter()  # acks, oracle, status
         self.acks: Counter[str] = Counter()
         self.rejected: Counter[str] = Counter()
@@ -401,12 +404,12 @@ class _Runtime:
         if up:
             log.info("agent liveliness token up: %s", key)
         else:
-            log.warning("agent liveliness lost: %s", key)
+            self.rlog.warning("agent_lost", "agent liveliness lost: %s", key)
             # in order with its commands: a restarted agent's sequence starts again at 1 (see _forget_sender)
             try:
                 self.inbox.queue.put_nowait(Received(key, _SenderGone(key.rsplit("/", 1)[-1]), time.time_ns(), b""))
             except queue.Full:
-                log.warning("queue full: the devices keep the lost agent's command sequence")
+                self.rlog.warning("queue_full", "queue full: the devices keep the lost agent's command sequence")
 
     def _on_query(self, query: zenoh.Query) -> None:
         """Decode the request and enqueue it for the stepping thread; never compute here."""
@@ -504,7 +507,7 @@ class _Runtime:
             self._settings = None  # accepted, clipped or expired: a device's settings changed
         if verdict.status == "rejected":
             self.rejected[verdict.reason_kind] += 1
-            log.info("rejected command %s for %s: %s", cmd_id, device_id, verdict.reason)
+            self.rlog.info("command_rejected", "rejected command %s for %s: %s", cmd_id, device_id, verdict.reason)
         if isinstance(pub_or_key, TypedPublisher):
             pub_or_key.put(ack)
         else:
@@ -642,7 +645,7 @@ class _Runtime:
             self.oracle_replies += 1
         except CvvcError as e:
             self.oracle_rejected += 1
-            log.warning("oracle query failed: %s", e)
+            self.rlog.warning("oracle_failed", "oracle query failed: %s", e)
             q.reply_err(f"oracle failed: {e}".encode())
         finally:
             q.drop()
@@ -815,7 +818,9 @@ def _loop(rt: _Runtime, stop: threading.Event, on_ready: Any) -> BridgeSummary:
         round_trip_p50_s=_percentile(rt.round_trips, 50), round_trip_p99_s=_percentile(rt.round_trips, 99),
         agent_alive=rt.agent_alive, stopped_early=rt.steps < c.steps, metrics=final,
         publisher_cpu_s=pub_cpu_s, decision_wait_s=rt.decision_wait_s,
-        publisher="inline" if rt.child is None else "process")
+        publisher="inline" if rt.child is None else "process",
+        log_suppressed=dict(rt.rlog.suppressed) | {f"rejected_{k}": n
+                                                   for k, n in rt.inbox.rejects.log_suppressed().items()})
 
 
 def _startup(rt: _Runtime, stop: threading.Event) -> None:
@@ -858,5 +863,5 @@ def _await_decision(rt: _Runtime, t_ns: int, stop: threading.Event) -> None:
         d = rt._decision
         why = ("no decision" if d is None or d.step_t_ns != t_ns
                else "decision arrived but not all of its commands")
-        log.warning("lockstep miss at t_ns=%d: %s within %.3f s; going on under local control "
+        rt.rlog.warning("lockstep_miss", "lockstep miss at t_ns=%d: %s within %.3f s; going on under local control "
                     "(%d misses so far)", t_ns, why, rt.config.timeout_s, rt.misses)
