@@ -59,6 +59,7 @@ from schemas.bus import (
 from schemas.devicemap import DeviceMap, load_device_map
 from schemas.errors import CvvcError
 from schemas.logs import RateLimitedLog
+from schemas.security import COMMAND_ROLE
 from simulator_bridge import devices as dv
 from simulator_bridge.errors import SimulatorError
 from simulator_bridge.publishing import (
@@ -310,14 +311,19 @@ class _Runtime:
         self.pv_p_kw = engine.pv_setpoints()[0]
         local: Literal["unity_pf", "volt_var"] = "volt_var" if c.pv_local == "volt_var" else "unity_pf"
         period_ns = int(dm.feeder.control_period_s) * _NS  # the unit of the commands' time windows
-        self.pvs = {pid: dv.PvInverter(pid, k, float(engine.pv_kva[k]), local, period_ns=period_ns)
+        # secure: only the command role's certificate can put commands, so replay protection is keyed on it
+        sender = COMMAND_ROLE if bus.tls_dir is not None else None
+        self.pvs = {pid: dv.PvInverter(pid, k, float(engine.pv_kva[k]), local, period_ns=period_ns,
+                                       sender_identity=sender)
                     for k, pid in enumerate(engine.pv_ids)}
         self.regs = {rid: dv.RegulatorController(rid, r, int(engine.reg_tap_max[r]),
                                                  float(engine.reg_default_setpoint_v120[r]),
-                                                 float(engine.reg_default_band_v120[r]), period_ns=period_ns)
+                                                 float(engine.reg_default_band_v120[r]), period_ns=period_ns,
+                                                 sender_identity=sender)
                      for r, rid in enumerate(engine.regulator_ids)}
         self.caps = {cid: dv.CapBankController(cid, c, int(engine.cap_steps[c]), float(engine.cap_kvar[c]),
-                                               engine.cap_control_type[c], period_ns=period_ns)
+                                               engine.cap_control_type[c], period_ns=period_ns,
+                                               sender_identity=sender)
                      for c, cid in enumerate(engine.capacitor_ids)}
         self.reg_phase = ["abc"[int(engine.node_names[n].split(".")[1]) - 1] for n in engine.reg_secondary_node]
         self.spec = FramerSpec(
