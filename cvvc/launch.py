@@ -274,8 +274,10 @@ class _RecorderSupervisor:
         return self.child
 
     def finish(self) -> list[RecorderGap]:
-        """After every recorder stopped: join the parts into ``path`` (the parts are removed); the gaps."""
-        if not self.reasons:
+        """After every recorder stopped: join the parts into ``path`` (the parts are removed), so the recording
+        is one finished file even when the last recorder died; the gaps. Nothing to do when none died.
+        """
+        if not self.reasons and not self.gave_up:
             return []
         from recordings.join import join_parts
 

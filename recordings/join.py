@@ -51,7 +51,11 @@ class _Part(msgspec.Struct, kw_only=True):
 
 
 def _finished(path: Path) -> _Part | None:
-    """``path`` itself when it is a finished MCAP file, else a recovered copy beside it; None when unreadable."""
+    """``path`` itself when it is a finished MCAP file, else a recovered copy beside it; None when the recorder
+    left nothing readable (no file, an empty one, not even a complete header).
+    """
+    if not path.is_file() or path.stat().st_size == 0:
+        return None
     try:
         if recording_info(path).complete:
             return _Part(path=path, lost_tail_bytes=0, temporary=False)
