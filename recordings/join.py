@@ -24,6 +24,7 @@ from pathlib import Path
 
 import msgspec
 from mcap.reader import make_reader
+from mcap.records import Channel, Schema
 from mcap.writer import CompressionType, Writer
 
 from recordings.errors import RecordingError, UnreadableError
@@ -78,9 +79,11 @@ class _Joiner:
         self.messages = 0
 
     def copy(self, path: Path) -> tuple[tuple[int, int] | None, tuple[int, int] | None, dict[str, dict[str, str]]]:
-        """Copy ``path``'s messages; returns its first and last message as (publish_time, log_time) and its
-        metadata.
+        """Copy ``path``'s messages; returns its first and last message on a real channel as (publish_time,
+        log_time) and its metadata. Quarantined samples are copied but bound no gap: their times are anyone's.
         """
+        from recordings.recorder import QUARANTINE_TOPIC
+
         first: tuple[int, int] | None = None
         last: tuple[int, int] | None = None
         with open(path, "rb") as f:
@@ -90,13 +93,15 @@ class _Joiner:
                 self._w.add_message(cid, log_time=msg.log_time, data=msg.data, publish_time=msg.publish_time,
                                     sequence=msg.sequence)
                 self.messages += 1
+                if channel.topic in (QUARANTINE_TOPIC, GAP_TOPIC):
+                    continue
                 stamp = (msg.publish_time, msg.log_time)
                 first = stamp if first is None or stamp < first else first
                 last = stamp if last is None or stamp > last else last
             metadata = {md.name: dict(md.metadata) for md in reader.iter_metadata()}
         return first, last, metadata
 
-    def _channel(self, schema, channel) -> int:
+    def _channel(self, schema: Schema | None, channel: Channel) -> int:
         cid = self._channels.get(channel.topic)
         if cid is not None:
             return cid

@@ -7,11 +7,12 @@ from pathlib import Path
 
 import pytest
 from mcap.reader import make_reader
-from recutil import EXAMPLE_KEYS, head_frame, write_recording
+from recutil import EXAMPLE_KEYS, encode, head_frame, write_recording
 
 from recordings.errors import RecordingError
 from recordings.info import recording_info
 from recordings.join import GAP_TOPIC, join_parts
+from recordings.recorder import McapSink
 from schemas import messages as m
 
 HEAD = EXAMPLE_KEYS[m.HeadFrame]
@@ -23,6 +24,20 @@ def _cut(path: Path, keep_bytes: int) -> Path:
     return path
 
 
+def _first_part(path: Path) -> Path:
+    """Ten head frames, then, received last, a forged one stamped 2100-01-01 (quarantined: an extra field)."""
+    with open(path, "wb") as f:
+        sink = McapSink(f, metadata={"model_path": "m.json"})
+        for i in range(10):
+            frame = head_frame(i)
+            sink.write(encode(frame), HEAD, frame.t_ns + 1_000_000)
+            if i in (4, 9):
+                sink.flush()
+        sink.write(b'{"t_ns": 4102444800000000000, "seq": 1, "x": 1}', HEAD, head_frame(10).t_ns)
+        sink.finish()
+    return path
+
+
 def _heads(path: Path) -> list[int]:
     with path.open("rb") as f:
         return [json.loads(msg.data)["seq"] for _, ch, msg in make_reader(f).iter_messages(log_time_order=False)
@@ -30,10 +45,8 @@ def _heads(path: Path) -> list[int]:
 
 
 def test_parts_are_joined_with_the_gap_between_them(tmp_path: Path) -> None:
-    first = write_recording(tmp_path / "a.mcap", [(HEAD, head_frame(i)) for i in range(10)], flush_every=5,
-                            metadata={"model_path": "m.json"})
-    complete = recording_info(first).size_bytes
-    _cut(first, complete - 200)  # the summary is gone, the flushed chunks stay
+    first = _first_part(tmp_path / "a.mcap")
+    _cut(first, recording_info(first).size_bytes - 200)  # the summary is gone, the flushed chunks stay
     second = write_recording(tmp_path / "b.mcap", [(HEAD, head_frame(i)) for i in range(20, 30)])
     out = tmp_path / "joined.mcap"
 
@@ -46,10 +59,13 @@ def test_parts_are_joined_with_the_gap_between_them(tmp_path: Path) -> None:
     assert result.gaps == info.gaps
     [gap] = result.gaps
     assert gap.restart == 1 and "signal 9" in gap.reason
+    # the gap is bounded by real messages: the forged time, received last, is copied (quarantined) but ignored
     assert gap.from_t_ns == head_frame(heads[-11] - 1).t_ns and gap.to_t_ns == head_frame(20).t_ns
     assert gap.from_wall_ns < gap.to_wall_ns
     assert [c.messages for c in info.channels if c.topic == GAP_TOPIC] == [1]
-    assert result.messages == info.messages == len(heads) + 1
+    quarantined = sum(c.messages for c in info.channels if c.topic == "cvvc.quarantine")
+    assert quarantined == 1  # the forged sample survived the cut: it is what the gap must not be bounded by
+    assert result.messages == info.messages == len(heads) + quarantined + 1
     assert not list(tmp_path.glob("*.recovered"))  # the rebuilt copy of the cut part is removed
 
 
