@@ -85,9 +85,10 @@ GAPS_METADATA_NAME = "cvvc.recorder_gaps"
 class RecorderGap(msgspec.Struct, frozen=True, kw_only=True):
     """What a recording misses between two parts: its recorder ended and a new one was started.
 
-    ``from_t_ns`` / ``to_t_ns`` [ns]: message time (``log_time``) of the last message recorded before the gap and
-    of the first after it; ``from_wall_ns`` / ``to_wall_ns`` [ns]: their receive wall times (-1: the part held no
-    message). ``lost_tail_bytes``: bytes of the ended recorder's file after its last complete record.
+    ``from_t_ns`` / ``to_t_ns`` [ns]: the latest message time (``log_time``) recorded before the gap and the earliest
+    later one recorded after it: no recorded message lies strictly between. ``from_wall_ns`` / ``to_wall_ns``
+    [ns]: receive wall time of the last message before and of the first after (-1: the part held none).
+    ``lost_tail_bytes``: bytes of the ended recorder's file after its last complete record.
     """
 
     restart: int  # 1 for the first restart

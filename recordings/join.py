@@ -7,9 +7,10 @@ one finished MCAP file:
 - every message of every part, bytes, ``log_time``, ``publish_time`` and ``sequence`` unchanged (a part whose
   recorder died unfinished is first rebuilt with :func:`recordings.info.recover`; its unflushed tail is lost);
 - channels and schemas merged by topic and by (name, encoding, data);
-- between two parts, one :class:`RecorderGap` on the channel ``cvvc.recorder_gap`` (not a Zenoh key): the last
-  message recorded before and the first after, in message time (``log_time``) and in receive wall time
-  (``publish_time``), and how the recorder ended; the same list in the metadata ``cvvc.recorder_gaps``, which
+- between two parts, one :class:`RecorderGap` on the channel ``cvvc.recorder_gap`` (not a Zenoh key): in message
+  time (``log_time``) the latest time recorded before and the earliest later one recorded after, so nothing
+  recorded lies strictly between them; in receive wall time (``publish_time``) the last message received before
+  and the first after; and how the recorder ended; the same list in the metadata ``cvvc.recorder_gaps``, which
   ``cvvc recordings info`` prints;
 - the metadata ``cvvc.recording`` of the first part and ``cvvc.recorder_stats`` of the last one.
 
@@ -20,6 +21,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import msgspec
@@ -43,6 +45,23 @@ class JoinResult(msgspec.Struct, frozen=True, kw_only=True):
     out_path: str
     messages: int
     gaps: list[RecorderGap]
+
+
+@dataclass
+class _Span:
+    """When one part's real messages were received (wall [ns]) and what times they carry (message time [ns])."""
+
+    first_wall_ns: int = -1
+    last_wall_ns: int = -1
+    last_t_ns: int = -1  # the latest message time of the part
+    first_t_ns_after: int = -1  # its earliest message time later than the previous part's latest
+
+    def add(self, t_ns: int, wall_ns: int, after_t_ns: int) -> None:
+        self.first_wall_ns = wall_ns if self.first_wall_ns < 0 else min(self.first_wall_ns, wall_ns)
+        self.last_wall_ns = max(self.last_wall_ns, wall_ns)
+        self.last_t_ns = max(self.last_t_ns, t_ns)
+        if t_ns > after_t_ns and (self.first_t_ns_after < 0 or t_ns < self.first_t_ns_after):
+            self.first_t_ns_after = t_ns
 
 
 class _Part(msgspec.Struct, kw_only=True):
@@ -78,14 +97,14 @@ class _Joiner:
         self._channels: dict[str, int] = {}
         self.messages = 0
 
-    def copy(self, path: Path) -> tuple[tuple[int, int] | None, tuple[int, int] | None, dict[str, dict[str, str]]]:
-        """Copy ``path``'s messages; returns its first and last message on a real channel as (publish_time,
-        log_time) and its metadata. Quarantined samples are copied but bound no gap: their times are anyone's.
+    def copy(self, path: Path, after_t_ns: int) -> tuple[_Span, dict[str, dict[str, str]]]:
+        """Copy ``path``'s messages; returns the span of its real messages (``after_t_ns``: the previous part's
+        latest message time) and its metadata. Quarantined samples are copied but bound no gap: their times are
+        their senders' word.
         """
         from recordings.recorder import QUARANTINE_TOPIC
 
-        first: tuple[int, int] | None = None
-        last: tuple[int, int] | None = None
+        span = _Span()
         with open(path, "rb") as f:
             reader = make_reader(f)
             for schema, channel, msg in reader.iter_messages(log_time_order=False):
@@ -93,13 +112,10 @@ class _Joiner:
                 self._w.add_message(cid, log_time=msg.log_time, data=msg.data, publish_time=msg.publish_time,
                                     sequence=msg.sequence)
                 self.messages += 1
-                if channel.topic in (QUARANTINE_TOPIC, GAP_TOPIC):
-                    continue
-                stamp = (msg.publish_time, msg.log_time)
-                first = stamp if first is None or stamp < first else first
-                last = stamp if last is None or stamp > last else last
+                if channel.topic not in (QUARANTINE_TOPIC, GAP_TOPIC):
+                    span.add(msg.log_time, msg.publish_time, after_t_ns)
             metadata = {md.name: dict(md.metadata) for md in reader.iter_metadata()}
-        return first, last, metadata
+        return span, metadata
 
     def _channel(self, schema: Schema | None, channel: Channel) -> int:
         cid = self._channels.get(channel.topic)
@@ -140,18 +156,19 @@ def _write(parts: list[_Part | None], reasons: Sequence[str], out: Path) -> Join
         writer = Writer(f, compression=CompressionType.ZSTD)
         writer.start(profile="", library=_library())
         joiner = _Joiner(writer)
-        spans = []
+        spans: list[_Span] = []
         kept: dict[str, dict[str, str]] = {}
         for i, part in enumerate(parts):
-            first, last, metadata = (None, None, {}) if part is None else joiner.copy(part.path)
-            spans.append((first, last))
+            after_t_ns = spans[-1].last_t_ns if spans else -1
+            span, metadata = (_Span(), {}) if part is None else joiner.copy(part.path, after_t_ns)
+            spans.append(span)
             for name in _KEEP_METADATA:
                 if name in metadata and name not in kept:
                     kept[name] = metadata[name]
             if STATS_METADATA_NAME in metadata:
                 kept[STATS_METADATA_NAME] = metadata[STATS_METADATA_NAME]
             if i:
-                gaps.append(_gap(i, reasons[i - 1], spans[i - 1][1], first, parts[i - 1]))
+                gaps.append(_gap(i, reasons[i - 1], spans[i - 1], span, parts[i - 1]))
         _write_gaps(writer, gaps)
         for name, record in kept.items():
             writer.add_metadata(name, record)
@@ -162,11 +179,10 @@ def _write(parts: list[_Part | None], reasons: Sequence[str], out: Path) -> Join
     return JoinResult(out_path=str(out), messages=joiner.messages + len(gaps), gaps=gaps)
 
 
-def _gap(restart: int, reason: str, before: tuple[int, int] | None, after: tuple[int, int] | None,
-         dead: _Part | None) -> RecorderGap:
-    return RecorderGap(restart=restart, reason=reason[:500], from_t_ns=before[1] if before else -1,
-                       to_t_ns=after[1] if after else -1, from_wall_ns=before[0] if before else -1,
-                       to_wall_ns=after[0] if after else -1, lost_tail_bytes=dead.lost_tail_bytes if dead else 0)
+def _gap(restart: int, reason: str, before: _Span, after: _Span, dead: _Part | None) -> RecorderGap:
+    return RecorderGap(restart=restart, reason=reason[:500], from_t_ns=before.last_t_ns,
+                       to_t_ns=after.first_t_ns_after, from_wall_ns=before.last_wall_ns,
+                       to_wall_ns=after.first_wall_ns, lost_tail_bytes=dead.lost_tail_bytes if dead else 0)
 
 
 def _write_gaps(writer: Writer, gaps: list[RecorderGap]) -> None:

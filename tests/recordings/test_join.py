@@ -86,3 +86,14 @@ def test_one_reason_per_gap_is_required(tmp_path: Path) -> None:
     part = write_recording(tmp_path / "a.mcap", [(HEAD, head_frame(0))])
     with pytest.raises(RecordingError, match="2 parts need 1 reasons, got 0"):
         join_parts([part, part], [], tmp_path / "out.mcap")
+
+
+def test_a_late_message_after_the_restart_does_not_shrink_the_gap(tmp_path: Path) -> None:
+    """The new recorder's first message may carry an older time (a status lagging behind the frames): the gap
+    runs from the latest time recorded before to the earliest *later* one after, so nothing recorded is inside.
+    """
+    first = write_recording(tmp_path / "a.mcap", [(HEAD, head_frame(i)) for i in range(5)])
+    second = write_recording(tmp_path / "b.mcap", [(HEAD, head_frame(2)), (HEAD, head_frame(9))])
+    [gap] = join_parts([first, second], ["died"], tmp_path / "out.mcap").gaps
+    assert (gap.from_t_ns, gap.to_t_ns) == (head_frame(4).t_ns, head_frame(9).t_ns)
+    assert gap.to_wall_ns == head_frame(2).t_ns + 1_000_000  # received first after the restart
