@@ -357,7 +357,8 @@ def run_agent(model: CvvcModel, settings: AgentSettings, bus, *, stop: threading
                     status_pub.put(m.AgentStatus(
                         t_ns=last_frame_t_ns, seq=status_seq, source=settings.agent_id, feeder_id=f, state=state,
                         last_frame_t_ns=last_frame_t_ns, seconds_since_frame=min(since, 1e6),
-                        decisions=maker.seq, rejected=rejected, reason=(degraded or "")[:500]))
+                        decisions=maker.seq, rejected=rejected, reason=(degraded or "")[:500],
+                        log_suppressed=_suppressed(rlog, inbox.rejects.log_suppressed())))
                     if state == "stale":
                         rlog.warning("stale", "no frames for %.0f s: inputs stale, sending nothing", since)
                     elif degraded:

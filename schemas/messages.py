@@ -308,6 +308,7 @@ class AgentStatus(Message, frozen=True, kw_only=True, forbid_unknown_fields=True
     decisions: Count = 0
     rejected: dict[str, Count] = {}
     reason: Reason = ""
+    log_suppressed: dict[str, Count] = {}  # log lines not written by the rate limit so far, by kind
 
 
 # ----------------------------------------------------------------------------------- simulation only
@@ -358,6 +359,7 @@ class BridgeStatus(Message, frozen=True, kw_only=True, forbid_unknown_fields=Tru
     agent_alive: bool = False
     rejected: dict[str, Count] = {}
     done: bool = False
+    log_suppressed: dict[str, Count] = {}  # log lines not written by the rate limit so far, by kind
 
 
 class StepEnd(Message, frozen=True, kw_only=True, forbid_unknown_fields=True):

@@ -685,7 +685,11 @@ class _Runtime:
         return m.BridgeStatus(t_ns=max(self.now_t_ns, 0), seq=self.seqs["status"], source="bridge",
                               feeder_id=self.fid, step=self.steps, steps_total=self.config.steps,
                               clock=self.config.clock, lockstep_misses=self.misses, agent_alive=self.agent_alive,
-                              rejected=self.all_rejected(), done=done)
+                              rejected=self.all_rejected(), done=done, log_suppressed=self.log_suppressed())
+
+    def log_suppressed(self) -> dict[str, int]:
+        """Log lines not written by the rate limits, by kind (``rejected_<kind>``: the bus's rejections)."""
+        return dict(self.rlog.suppressed) | {f"rejected_{k}": n for k, n in self.inbox.rejects.log_suppressed().items()}
 
     def all_rejected(self) -> dict[str, int]:
         out = dict(self.rejected)
@@ -825,8 +829,7 @@ def _loop(rt: _Runtime, stop: threading.Event, on_ready: Any) -> BridgeSummary:
         agent_alive=rt.agent_alive, stopped_early=rt.steps < c.steps, metrics=final,
         publisher_cpu_s=pub_cpu_s, decision_wait_s=rt.decision_wait_s,
         publisher="inline" if rt.child is None else "process",
-        log_suppressed=dict(rt.rlog.suppressed) | {f"rejected_{k}": n
-                                                   for k, n in rt.inbox.rejects.log_suppressed().items()})
+        log_suppressed=rt.log_suppressed())
 
 
 def _startup(rt: _Runtime, stop: threading.Event) -> None:

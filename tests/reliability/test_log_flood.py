@@ -44,6 +44,10 @@ def test_a_flood_of_bad_input_writes_few_lines_and_counts_the_rest(procs: Procs,
         watcher.wait(lambda: _rejected(watcher.messages(m.AgentStatus)) >= N, 60, f"the agent counting {N} rejections")
         watcher.wait(lambda: _rejected(watcher.messages(m.BridgeStatus), "decode_") >= N, 60,
                      f"the bridge counting {N} rejections")
+        # the statuses say it live too
+        for status_type in (m.AgentStatus, m.BridgeStatus):
+            watcher.first(status_type, lambda s: sum(s.log_suppressed.values()) >= N - MAX_LINES, 60,
+                          f"a {status_type.__name__} counting the suppressed lines")
     assert bridge.stop() == 0, bridge.log()[-2000:]
     assert agent.stop() == 0, agent.log()[-2000:]
 
