@@ -20,6 +20,12 @@ produce the same aligned sets. The rule, documented in docs/agent.md:
 - No single frame locks a source out: a frame whose ``seq`` is not above its source's last but whose ``t_ns`` is
   at least one control period past that source's last accepted frame is taken (a restarted device, or a forged
   high ``seq`` earlier) and counted in ``seq_resets``.
+- A scan's end marker (``StepEnd``, sent after a step's frames by whoever collects them) names the devices that
+  sent a frame for its time: once those have arrived, the group is released at once, the rest listed as
+  ``missing``, instead of waiting for the late-frame window (issue "Robust by default", item 7: a lost frame
+  cost a 2 s stall per control step in lockstep). A marker never moves the clock, never releases a group that
+  has no frame, and never makes a group wait longer; at most ``_EXPECT_MAX`` are kept ahead of their frames, so
+  a forged marker can at worst have one step decided early on the frames that had arrived.
 - Only groups on a control step (``t_ns`` a multiple of the control period) are released as decisions to
   make; the others only refresh the last-known state.
 """
@@ -83,6 +89,7 @@ def plausibility_problem(frame: m.HeadFrame | m.PvFrame | m.RegFrame) -> str | N
 
 _Frame = m.HeadFrame | m.PvFrame | m.RegFrame
 _FRAME_TYPES = (m.HeadFrame, m.PvFrame, m.RegFrame)
+_EXPECT_MAX = 64  # scan-end markers kept ahead of their frames (the oldest goes first)
 
 
 @dataclass
@@ -108,6 +115,9 @@ class FrameAligner:
         self.accepted = 0
         self.ignored = 0  # device frames of a kind the agent does not use
         self.seq_resets = 0
+        self.step_ends = 0  # scan-end markers taken
+        self.released_by_step_end = 0  # incomplete groups released at once because a marker said all had come
+        self._expected: dict[int, frozenset[str]] = {}  # t_ns -> the devices a marker says sent a frame
         self._last_seq: dict[str, int] = {}
         self._last_t_ns: dict[str, int] = {}
         self._groups: dict[int, _Group] = {}
@@ -119,11 +129,13 @@ class FrameAligner:
         self._hold_max = 4 * n_sources
 
     # ---------------------------------------------------------------------------------------- input
-    def add(self, key: str, frame: _Frame) -> list[AlignedFrames]:
-        """Add one decoded frame; returns the control-step groups this frame completes or closes.
+    def add(self, key: str, frame: _Frame | m.StepEnd) -> list[AlignedFrames]:
+        """Add one decoded frame or scan-end marker; returns the control-step groups this frame completes or closes.
 
         A device frame the agent does not use (a capacitor bank's ``CapFrame``) is counted in ``ignored``.
         """
+        if isinstance(frame, m.StepEnd):
+            return self._step_end(key, frame)
         if not isinstance(frame, _FRAME_TYPES):
             self.ignored += 1
             return []
@@ -176,9 +188,39 @@ class FrameAligner:
                 g.pv[frame.plant_id] = frame
             case m.RegFrame():
                 g.vr[frame.regulator_id] = frame
-        if self._missing(g) == ():
+        if self._all_sent_arrived(g):
             out.append(self._release(frame.t_ns))
         return [a for a in out if a.t_ns % self.control_period_ns == 0]
+
+    def _step_end(self, key: str, end: m.StepEnd) -> list[AlignedFrames]:
+        """Note which devices sent a frame for ``end.t_ns``; release that group if they all arrived."""
+        parts = key.split("/")
+        if len(parts) != 4 or parts[1] != self.feeder_id or end.feeder_id != self.feeder_id:
+            self._reject("wrong_feeder", f"{key}: scan end for feeder {end.feeder_id!r}, not {self.feeder_id!r}")
+            return []
+        if end.t_ns <= self._released_t_ns:
+            return []  # that step was decided already (every frame had come)
+        self.step_ends += 1
+        sent = [*(["head"] if end.head else []), *end.pv, *end.vr]
+        self._expected[end.t_ns] = frozenset(sent)
+        while len(self._expected) > _EXPECT_MAX:
+            del self._expected[min(self._expected)]
+        g = self._groups.get(end.t_ns)
+        if g is None or not self._all_sent_arrived(g):
+            return []
+        out = [self._release(t) for t in sorted(self._groups) if t <= end.t_ns]
+        return [a for a in out if a.t_ns % self.control_period_ns == 0]
+
+    def _all_sent_arrived(self, g: _Group) -> bool:
+        """Every device reported, or every device a scan-end marker says sent a frame did (counted)."""
+        missing = self._missing(g)
+        if not missing:
+            return True
+        expected = self._expected.get(g.t_ns)
+        if expected is None or any(x in expected for x in missing):
+            return False
+        self.released_by_step_end += 1
+        return True
 
     def close_pending(self) -> list[AlignedFrames]:
         """Release every open group (late-frame window over, or end of input); control steps only."""
@@ -233,4 +275,6 @@ class FrameAligner:
     def _release(self, t_ns: int) -> AlignedFrames:
         g = self._groups.pop(t_ns)
         self._released_t_ns = max(self._released_t_ns, t_ns)
+        for t in [t for t in self._expected if t <= self._released_t_ns]:
+            del self._expected[t]
         return AlignedFrames(t_ns=g.t_ns, head=g.head, pv=dict(g.pv), vr=dict(g.vr), missing=self._missing(g))

@@ -78,6 +78,9 @@ class AgentSummary(msgspec.Struct, frozen=True, kw_only=True):
     log_suppressed: dict[str, int] = {}
     soft: int = 0
     reasons: dict[str, int] = {}  # why decisions were soft or held, by reason (the first 120 characters)
+    step_ends: int = 0  # scan-end markers taken (``StepEnd``)
+    released_by_step_end: int = 0  # steps with lost frames decided at once, on a marker, not after the late window
+    decided_after_late_window: int = 0  # live: control steps decided only once the late-frame window was over
 
 
 def snapshot_from(aligned: AlignedFrames, model: CvvcModel) -> MeasurementSnapshot:
@@ -250,7 +253,7 @@ class DecisionMaker:
         return c
 
 
-_FRAME_TYPES = (m.HeadFrame, m.PvFrame, m.RegFrame)
+_FRAME_TYPES = (m.HeadFrame, m.PvFrame, m.RegFrame, m.StepEnd)  # what the aligner takes (markers too)
 
 
 def decide_offline(model: CvvcModel, settings: AgentSettings | None,
@@ -312,6 +315,7 @@ def run_agent(model: CvvcModel, settings: AgentSettings, bus, *, stop: threading
         last_frame_wall = time.monotonic()
         last_frame_t_ns = 0
         pending_since: float | None = None
+        late_decided = 0
         next_status = time.monotonic()
         status_seq = 0
 
@@ -334,13 +338,16 @@ def run_agent(model: CvvcModel, settings: AgentSettings, bus, *, stop: threading
                             rlog.warning("command_rejected", "command %s rejected by %s: %s", msg.cmd_id,
                                          msg.device_id, msg.reason)
                     else:
-                        last_frame_wall, last_frame_t_ns = now, msg.t_ns
+                        if not isinstance(msg, m.StepEnd):  # a marker alone does not make the inputs fresh
+                            last_frame_wall, last_frame_t_ns = now, msg.t_ns
                         publish(maker.on_frame(item.key, msg), now)
                         pending_since = (pending_since or now) if maker.aligner.pending else None
                 # frames already received are not late: close only once the queue is drained (under a burst,
                 # closing earlier would decide an incomplete step and reject its queued frames as stale)
                 if pending_since is not None and now - pending_since > settings.late_window_s and inbox.queue.empty():
-                    publish(maker.close_pending(), now)
+                    late = maker.close_pending()
+                    late_decided += len(late)
+                    publish(late, now)
                     pending_since = None
                 if now >= next_status:
                     next_status = now + 1.0
@@ -356,7 +363,8 @@ def run_agent(model: CvvcModel, settings: AgentSettings, bus, *, stop: threading
                     status_pub.put(m.AgentStatus(
                         t_ns=last_frame_t_ns, seq=status_seq, source=settings.agent_id, feeder_id=f, state=state,
                         last_frame_t_ns=last_frame_t_ns, seconds_since_frame=min(since, 1e6),
-                        decisions=maker.seq, rejected=rejected, reason=(degraded or "")[:500]))
+                        decisions=maker.seq, rejected=rejected, reason=(degraded or "")[:500],
+                        log_suppressed=_suppressed(rlog, inbox.rejects.log_suppressed())))
                     if state == "stale":
                         rlog.warning("stale", "no frames for %.0f s: inputs stale, sending nothing", since)
                     elif degraded:
@@ -369,8 +377,16 @@ def run_agent(model: CvvcModel, settings: AgentSettings, bus, *, stop: threading
     for k, n in maker.aligner.rejected.items():
         rejected[k] = rejected.get(k, 0) + n
     return AgentSummary(decisions=maker.seq, holds=maker.holds, commands=maker.commands_sent, acks=dict(acks),
-                        rejected=rejected, clamped=maker.clamped, log_suppressed=dict(rlog.suppressed),
-                        soft=maker.soft, reasons=dict(maker.reasons.most_common(20)))
+                        rejected=rejected, clamped=maker.clamped,
+                        log_suppressed=_suppressed(rlog, inbox.rejects.log_suppressed()),
+                        soft=maker.soft, reasons=dict(maker.reasons.most_common(20)),
+                        step_ends=maker.aligner.step_ends, released_by_step_end=maker.aligner.released_by_step_end,
+                        decided_after_late_window=late_decided)
+
+
+def _suppressed(rlog: RateLimitedLog, rejects: dict[str, int]) -> dict[str, int]:
+    """Log lines not written, by kind: the process's own and the bus's rejections (``rejected_<kind>``)."""
+    return dict(rlog.suppressed) | {f"rejected_{k}": n for k, n in rejects.items()}
 
 
 class _FrameHealth:
@@ -410,7 +426,7 @@ def _command_device(c: m.DecisionCommand) -> str:
 
 def _frame_key_problem(key: str, msg: Any) -> str | None:
     """Why a decoded sample under ``meas/**`` is not a device frame key of its type, or None."""
-    depth = 4 if isinstance(msg, m.HeadFrame) else 5
+    depth = 4 if isinstance(msg, m.HeadFrame | m.StepEnd) else 5
     return None if key.count("/") + 1 == depth else f"{key}: not a {type(msg).__name__} key"
 
 

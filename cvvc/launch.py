@@ -12,7 +12,11 @@ What it does, in order:
 7. the no-control baseline of the same days, simulated in this process (no bus, the same physics);
 8. a summary (printed, ``summary.json``, ``report.md``) with where the MCAP and the model are.
 
-A child that dies early stops everything: the others are stopped, the recording finished, exit 1.
+A bridge or agent that dies early stops everything: the others are stopped, the recording finished, exit 1.
+The recorder is off the control path (issue "Robust by default", item 2): when it dies, the crash is logged, a
+new recorder writes the next part of the recording (at most ``recorder_restarts_max`` times), control goes on,
+and at the end the parts are joined into one file where each span the recording missed is a ``RecorderGap``
+(``recordings.join``); the summary says how many restarts there were.
 """
 
 from __future__ import annotations
@@ -24,7 +28,7 @@ import signal
 import subprocess
 import sys
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from types import MappingProxyType
@@ -34,6 +38,7 @@ import msgspec
 
 from agent.runtime import AgentSummary
 from cvvc.errors import CommandError
+from recordings.info import RecorderGap
 from schemas import messages as m
 from schemas.cache import cache_root, profiles_dir
 from simulator_bridge.bridge import BridgeSummary
@@ -84,6 +89,7 @@ class RunConfig(msgspec.Struct, frozen=True, kw_only=True):
     # False only for the model-error study (``cvvc evaluate --robustness``): the simulated feeder is deliberately
     # not the one the model was trained on, so its fingerprint differs from the model's.
     check_model_fingerprint: bool = True
+    recorder_restarts_max: int = 3  # a recorder that dies is restarted at most this many times per run
 
 
 class RunSummary(msgspec.Struct, frozen=True, kw_only=True):
@@ -106,6 +112,9 @@ class RunSummary(msgspec.Struct, frozen=True, kw_only=True):
     holds: int = 0  # decisions with status 'hold' (no command sent), as the agent counted them
     soft: int = 0  # decisions on the soft form (eq. 17)
     reasons: dict[str, int] = {}  # the reasons of soft and hold decisions, most frequent first
+    recorder_restarts: int = 0  # the recorder died and was restarted this many times; control went on
+    recording_gaps: list[RecorderGap] = []  # what the recording misses because of it (also in the MCAP file)
+    recorder_gave_up: bool = False  # the recorder died more than recorder_restarts_max times: recording stopped
 
 
 class CaseAgent(msgspec.Struct, frozen=True, kw_only=True):
@@ -225,6 +234,63 @@ def _stop(child: _Child, timeout_s: float = 15.0) -> int:
     return int(child.proc.returncode)
 
 
+class _RecorderSupervisor:
+    """The run's recorder, restarted when it dies: each recorder writes its own part of the recording.
+
+    ``check`` (called by the launcher's loop) notices a dead recorder, logs why and starts the next one, at most
+    ``max_restarts`` times; ``finish`` joins the parts into the first part's path, with the gaps between them.
+    """
+
+    def __init__(self, args_for: Callable[[Path], list[str]], path: Path, log_dir: Path, max_restarts: int) -> None:
+        self._args_for, self._log_dir, self._max = args_for, log_dir, max_restarts
+        self.path = path
+        self.parts: list[Path] = [path]
+        self.reasons: list[str] = []
+        self.gave_up = False
+        self.child = _spawn("recorder", args_for(path), log_dir, essential=False)
+
+    @property
+    def restarts(self) -> int:
+        return len(self.parts) - 1
+
+    def check(self) -> _Child | None:
+        """Restart the recorder if it died; returns the new child (to be stopped with the others), or None."""
+        code = self.child.proc.poll()
+        if code is None or self.gave_up:
+            return None
+        how = f"killed by signal {-code}" if code < 0 else f"exited with {code}"
+        last = _tail(self._log_dir / f"{self.child.name}.log", 1)
+        reason = f"the recorder (pid {self.child.proc.pid}) {how}" + (f": {last}" if last else "")
+        if self.restarts >= self._max:
+            self.gave_up = True
+            _log(f"{reason}; it died {self.restarts + 1} times: recording stops here, control goes on")
+            return None
+        n = len(self.parts)
+        part = self.path.with_name(f"{self.path.stem}.r{n}{self.path.suffix}")
+        _log(f"{reason}; restarting it ({n} of at most {self._max}) into {part.name}; control goes on")
+        self.parts.append(part)
+        self.reasons.append(reason)
+        self.child = _spawn(f"recorder.r{n}", self._args_for(part), self._log_dir, essential=False)
+        return self.child
+
+    def finish(self) -> list[RecorderGap]:
+        """After every recorder stopped: join the parts into ``path`` (the parts are removed), so the recording
+        is one finished file even when the last recorder died; the gaps. Nothing to do when none died.
+        """
+        if not self.reasons and not self.gave_up:
+            return []
+        from recordings.join import join_parts
+
+        joined = self.path.with_name(f"{self.path.stem}.joined{self.path.suffix}")
+        result = join_parts(self.parts, self.reasons, joined)
+        for part in self.parts:
+            part.unlink(missing_ok=True)
+        os.replace(joined, self.path)
+        _log(f"recording joined from {len(self.parts)} parts: {result.messages} messages, "
+             f"{len(result.gaps)} gap(s) recorded on {len(result.gaps) and 'cvvc.recorder_gap'}")
+        return result.gaps
+
+
 def _tail(path: Path, n: int = 15) -> str:
     try:
         return "\n".join(path.read_text(errors="replace").splitlines()[-n:])
@@ -286,16 +352,18 @@ def run(config: RunConfig) -> RunSummary:
     # could publish a metrics frame or a decision (issue "Robust by default" (c)): each writes its own summary.
     agent_summary_path, bridge_summary_path = out / "agent-summary.json", out / "bridge-summary.json"
     agent_summary: AgentSummary | None = None
+    recorder: _RecorderSupervisor | None = None
     try:
         with open_session(BusConfig(mode="router", listen=(endpoint,), tls_dir=security_dir,
                                     role="router" if security_dir else None)) as session:
             inbox = Inbox(maxsize=100_000)
             inbox.subscribe(session, keys.sim_status(feeder_id), m.BridgeStatus)  # progress only
             if config.record:
-                children.append(_spawn("recorder", [
-                    "record", "--out", str(mcap_path), "--keys", f"cvvc/{feeder_id}/**",
-                    "--feeder-fingerprint", fingerprint, *_recorder_agent_args(agent_settings, kept_model),
-                    *connect], out))
+                recorder_args = ["--keys", f"cvvc/{feeder_id}/**", "--feeder-fingerprint", fingerprint,
+                                 *_recorder_agent_args(agent_settings, kept_model), *connect]
+                recorder = _RecorderSupervisor(lambda path: ["record", "--out", str(path), *recorder_args],
+                                               mcap_path, out, config.recorder_restarts_max)
+                children.append(recorder.child)
                 probe = session.declare_publisher(keys.sim_status(feeder_id))
                 if not wait_for(lambda: bool(probe.matching_status.matching), 30.0):  # type: ignore[attr-defined]
                     raise LaunchError(f"the recorder did not subscribe within 30 s:\n{_tail(out / 'recorder.log')}")
@@ -328,6 +396,9 @@ def run(config: RunConfig) -> RunSummary:
 
             bar = _progress(steps, config.progress, config.progress_label)
             while True:
+                restarted = recorder.check() if recorder is not None else None
+                if restarted is not None:
+                    children.append(restarted)
                 for child in children:
                     code = child.proc.poll()
                     if code is not None and child is not bridge and child.essential:
@@ -358,6 +429,7 @@ def run(config: RunConfig) -> RunSummary:
         raise LaunchError(f"the bridge finished without final metrics:\n{_tail(out / 'bridge.log')}")
     if agent_settings is not None:
         agent_summary = _read_summary(agent_summary_path, AgentSummary, "agent")
+    gaps = recorder.finish() if recorder is not None else []
 
     baseline = None
     if config.baseline and config.case != "none":
@@ -371,7 +443,9 @@ def run(config: RunConfig) -> RunSummary:
         recording=str(mcap_path) if config.record else None,
         model=str(kept_model) if agent_settings is not None else None,
         holds=agent_summary.holds if agent_summary else 0, soft=agent_summary.soft if agent_summary else 0,
-        reasons=dict(agent_summary.reasons) if agent_summary else {})
+        reasons=dict(agent_summary.reasons) if agent_summary else {},
+        recorder_restarts=recorder.restarts if recorder is not None else 0, recording_gaps=gaps,
+        recorder_gave_up=recorder.gave_up if recorder is not None else False)
     (out / "summary.json").write_bytes(msgspec.json.format(msgspec.json.encode(summary), indent=2))
     (out / "report.md").write_text(render_summary(summary))
     check_mostly_held(summary)
@@ -456,9 +530,21 @@ def render_summary(s: RunSummary) -> str:
     why = f"; most frequent reasons: {_top_reasons(s.reasons)}" if s.holds or s.soft else ""
     lines += ["", f"- decisions: {s.decisions} (soft {s.soft}, hold {s.holds}{why}); lockstep misses: "
               f"{s.lockstep_misses}; wall time {s.wall_s:.1f} s",
-              f"- recording: `{s.recording}`" if s.recording else "- recording: off",
+              f"- recording: `{s.recording}`" if s.recording else "- recording: off", *_recorder_lines(s),
               f"- model: `{s.model}`" if s.model else "- model: none (baseline case)", ""]
     return "\n".join(lines)
+
+
+def _recorder_lines(s: RunSummary) -> list[str]:
+    """The report's lines on recorder restarts and the gaps they left (none when the recorder never died)."""
+    lines = [f"- the recorder died and was restarted {s.recorder_restarts} time(s); control went on"
+             ] if s.recorder_restarts else []
+    for g in s.recording_gaps:
+        span = (g.to_t_ns - g.from_t_ns) / 1e9 if g.from_t_ns >= 0 and g.to_t_ns >= 0 else float("nan")
+        lines.append(f"  - gap {g.restart}: {span:.0f} s of simulated time not recorded ({g.reason[:200]})")
+    if s.recorder_gave_up:
+        lines.append("- the recorder died once more than its restarts allow: the recording ends early")
+    return lines
 
 
 def _fmt(v: object) -> str:

@@ -29,6 +29,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--train-seed", type=int, default=1, help="profile year used for training (default 1)")
     p.add_argument("--bandwidth-v", type=float, default=4.0, help="regulator band on 120 V in cases C/D")
     add_agent_option_arguments(p)
+    p.add_argument("--drop-prob", type=float, default=0.0, metavar="P",
+                   help="the bridge drops each measurement frame with probability P (robustness runs; default 0)")
+    p.add_argument("--noise-scada-pct", type=float, default=0.0, metavar="PCT",
+                   help="SCADA-class noise on PV, regulator and capacitor readings [%%] (default 0)")
+    p.add_argument("--noise-pmu-pct", type=float, default=0.0, metavar="PCT",
+                   help="PMU-class noise on the feeder-head meter [%%] (default 0)")
     p.add_argument("--no-record", action="store_true", help="do not record the session to MCAP")
     p.add_argument("--no-baseline", action="store_true", help="skip the no-control baseline")
     p.add_argument("--cache", default=None, help=CACHE_HELP)
@@ -55,7 +61,8 @@ def _run(args: argparse.Namespace) -> int:
                        year_seed=args.year_seed, bandwidth_v120=args.bandwidth_v, record=not args.no_record,
                        pv_margin_window_s=args.pv_margin_window_s, setpoint_hold=args.setpoint_hold,
                        baseline=not args.no_baseline, cache=args.cache, progress=not args.json,
-                       secure=args.secure, ca_dir=args.ca_dir)
+                       secure=args.secure, ca_dir=args.ca_dir, drop_prob=args.drop_prob,
+                       noise_scada_pct=args.noise_scada_pct, noise_pmu_pct=args.noise_pmu_pct)
     summary = run(config)
     if args.json:
         sys.stdout.write(msgspec.json.format(msgspec.json.encode(summary), indent=2).decode() + "\n")

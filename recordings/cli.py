@@ -121,9 +121,17 @@ def _info(args: argparse.Namespace) -> int:
             print(f"  metadata {name}:")
             for k, v in meta.items():
                 print(f"    {k} = {v}")
+        for gap in info.gaps:
+            print(f"  gap: recorder restart {gap.restart}: nothing recorded from {_iso(gap.from_t_ns)} to "
+                  f"{_iso(gap.to_t_ns)} (message time; received {_wall_span_s(gap.from_wall_ns, gap.to_wall_ns):.1f} "
+                  f"s apart): {gap.reason}")
         for problem in info.problems:
             print(f"  problem: {problem}")
     return 0 if info.complete else 1
+
+
+def _wall_span_s(a: int, b: int) -> float:
+    return (b - a) / 1e9 if a >= 0 and b >= 0 else float("nan")
 
 
 def _recover(args: argparse.Namespace) -> int:

@@ -56,10 +56,13 @@ __all__ = [
     "MCAP_READ_ERRORS",
     "ChannelInfo",
     "CorruptChunk",
+    "GAPS_METADATA_NAME",
+    "RecorderGap",
     "RecordingInfo",
     "RecoverResult",
     "check_mcap_file",
     "devices_of",
+    "gaps_of",
     "recording_info",
     "recover",
 ]
@@ -75,6 +78,39 @@ MCAP_READ_ERRORS = (McapError, struct.error, ValueError, EOFError, IndexError, z
 
 
 # ----------------------------------------------------------------------------------------- results
+GAPS_METADATA_NAME = "cvvc.recorder_gaps"
+"""The metadata record that lists a joined recording's gaps (``recordings.join``)."""
+
+
+class RecorderGap(msgspec.Struct, frozen=True, kw_only=True):
+    """What a recording misses between two parts: its recorder ended and a new one was started.
+
+    ``from_t_ns`` / ``to_t_ns`` [ns]: the latest message time (``log_time``) recorded before the gap and the earliest
+    later one recorded after it: no recorded message lies strictly between. ``from_wall_ns`` / ``to_wall_ns``
+    [ns]: receive wall time of the last message before and of the first after (-1: the part held none).
+    ``lost_tail_bytes``: bytes of the ended recorder's file after its last complete record.
+    """
+
+    restart: int  # 1 for the first restart
+    reason: str  # how the recorder ended, as its supervisor saw it
+    from_t_ns: int
+    to_t_ns: int
+    from_wall_ns: int
+    to_wall_ns: int
+    lost_tail_bytes: int = 0
+
+
+def gaps_of(metadata: dict[str, dict[str, str]]) -> list[RecorderGap]:
+    """The recorder gaps a recording's metadata lists (none for a recording of one recorder)."""
+    raw = metadata.get(GAPS_METADATA_NAME, {}).get("gaps")
+    if not raw:
+        return []
+    try:
+        return msgspec.json.decode(raw, type=list[RecorderGap])
+    except msgspec.DecodeError as e:
+        raise RecordingError(f"the metadata {GAPS_METADATA_NAME} is not a list of gaps: {e}") from e
+
+
 class ChannelInfo(msgspec.Struct, frozen=True, kw_only=True):
     """One channel. The per-channel time span [ns] is known only after a linear scan (None otherwise)."""
 
@@ -121,6 +157,7 @@ class RecordingInfo(msgspec.Struct, frozen=True, kw_only=True):
     problems: list[str] = []
     corrupt_chunks: list[CorruptChunk] = []
     devices: dict[str, list[str]] = {}  # field devices by kind ("pv", "vr", "cap"), from the meas/<kind>/<id> channels
+    gaps: list[RecorderGap] = []  # spans missed because the recorder ended and was restarted (recordings.join)
 
 
 def devices_of(channels: list[ChannelInfo]) -> dict[str, list[str]]:
@@ -308,7 +345,8 @@ def _info_from_summary(path: str | Path, size: int) -> RecordingInfo:
     return RecordingInfo(path=str(path), size_bytes=size, source="summary", complete=True, library=header.library,
                          profile=header.profile, messages=stats.message_count, start_ns=start, end_ns=end,
                          duration_s=_span_s(start, end), channels=channels, metadata=metadata,
-                         chunks=stats.chunk_count, readable_bytes=size, devices=devices_of(channels))
+                         chunks=stats.chunk_count, readable_bytes=size, devices=devices_of(channels),
+                         gaps=_gaps(metadata))
 
 
 def _tail_magic(f: IO[bytes]) -> bytes:
@@ -377,7 +415,15 @@ def _info_from_scan(path: str | Path, size: int, problems: list[str]) -> Recordi
                          library=header.library if header else "", profile=header.profile if header else "",
                          messages=sum(counts.values()), start_ns=start, end_ns=end, duration_s=_span_s(start, end),
                          channels=infos, metadata=metadata, chunks=chunks, readable_bytes=state.end,
-                         problems=problems, corrupt_chunks=corrupt, devices=devices_of(infos))
+                         problems=problems, corrupt_chunks=corrupt, devices=devices_of(infos), gaps=_gaps(metadata))
+
+
+def _gaps(metadata: dict[str, dict[str, str]]) -> list[RecorderGap]:
+    """The recorder gaps of the metadata, or none with a problem noted when that metadata is unreadable."""
+    try:
+        return gaps_of(metadata)
+    except RecordingError:
+        return []
 
 
 # ----------------------------------------------------------------------------------------- recover

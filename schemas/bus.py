@@ -30,6 +30,7 @@ import zenoh
 
 from schemas.errors import CvvcError
 from schemas.keys import message_type_for_key
+from schemas.logs import RateLimitedLog
 from schemas.messages import OracleReply
 
 __all__ = [
@@ -348,21 +349,27 @@ class TypedPublisher(Generic[T]):
 
 # ---------------------------------------------------------------------------------------- receiving
 class RejectCounter:
-    """Thread-safe counts of rejected messages per (topic, kind); logs the first of each kind per topic."""
+    """Thread-safe counts of rejected messages per (topic, kind).
 
-    def __init__(self, name: str = "bus") -> None:
+    Logs at most one line per kind per ``log_period_s`` whatever the topic (a flood on made-up keys wrote one line
+    per key: issue "Robust by default" (f)); :meth:`log_suppressed` counts the lines not written, by kind.
+    """
+
+    def __init__(self, name: str = "bus", *, log_period_s: float = 10.0) -> None:
         self._lock = threading.Lock()
         self._counts: Counter[tuple[str, str]] = Counter()
-        self._log = logging.getLogger(f"{__name__}.{name}")
+        self._rlog = RateLimitedLog(logging.getLogger(f"{__name__}.{name}"), period_s=log_period_s)
 
     def reject(self, topic: str, kind: str, detail: str) -> None:
-        """Count one rejected message on ``topic``; the first of each (topic, kind) is logged, the rest only counted."""
+        """Count one rejected message on ``topic``; logged at most once per kind per ``log_period_s``."""
         with self._lock:
             self._counts[(topic, kind)] += 1
-            first = self._counts[(topic, kind)] == 1
-        if first:
-            self._log.warning("rejected message on %s (%s): %s; further ones of this kind are only counted",
-                              topic, kind, detail[:300])
+            self._rlog.warning(kind, "rejected message on %s (%s): %s", topic[:200], kind, detail[:300])
+
+    def log_suppressed(self) -> dict[str, int]:
+        """Warning lines not written by the rate limit, by kind of rejection."""
+        with self._lock:
+            return dict(self._rlog.suppressed)
 
     def total(self, kind: str | None = None) -> int:
         """Rejections counted so far, of ``kind`` or of every kind."""

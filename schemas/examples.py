@@ -74,6 +74,8 @@ def examples(t_ns: int = T0_NS, seq: int = 1) -> dict[type[msgspec.Struct], msgs
                                      node_names=["b0001.1"], v_pu=[1.01], dv_dq_pu_per_kvar=[[1e-5]],
                                      dv_dtap_pu=[[0.00625]], taps=[3],
                                      dv_dp_pu_per_kw=[[3e-5]]),
+        m.StepEnd: m.StepEnd(t_ns=t_ns, seq=seq, source="bridge", feeder_id="rural", head=True, pv=["pv1"],
+                             vr=["vr1a"], cap=[]),
     }
 
 

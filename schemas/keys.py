@@ -6,6 +6,7 @@ Layout, for a feeder id ``F`` and a device id ``D``::
     cvvc/F/meas/pv/D            PvFrame          PV plant inverter
     cvvc/F/meas/vr/D            RegFrame         regulator controller
     cvvc/F/meas/cap/D           CapFrame         capacitor bank (its switch and local control)
+    cvvc/F/meas/step            StepEnd          end of a scan: which devices sent a frame for that time
     cvvc/F/cmd/pv/D             PvCommand        agent -> inverter
     cvvc/F/cmd/vr/D             RegCommand       agent -> regulator controller
     cvvc/F/cmd/cap/D            CapCommand       agent -> capacitor bank
@@ -42,6 +43,7 @@ __all__ = [
     "meas_cap",
     "meas_head",
     "meas_pv",
+    "meas_step",
     "meas_vr",
     "message_type_for_key",
     "parse_device_key",
@@ -90,6 +92,11 @@ def meas_vr(feeder: str, regulator: str = "*") -> str:
 def meas_cap(feeder: str, capacitor: str = "*") -> str:
     """A capacitor bank's ``CapFrame`` (bridge -> agent); ``*`` for every bank."""
     return f"{ROOT}/{_id(feeder)}/meas/cap/{capacitor if capacitor == '*' else _id(capacitor)}"
+
+
+def meas_step(feeder: str) -> str:
+    """The bridge's ``StepEnd`` marker: every frame of a step was put (bridge -> agent, lockstep)."""
+    return f"{ROOT}/{_id(feeder)}/meas/step"
 
 
 def cmd(feeder: str, kind: DeviceKind, device: str = "*") -> str:
@@ -155,6 +162,7 @@ _BY_SUFFIX: dict[tuple[str, ...], type[msgspec.Struct]] = {
     ("meas", "pv"): m.PvFrame,
     ("meas", "vr"): m.RegFrame,
     ("meas", "cap"): m.CapFrame,
+    ("meas", "step"): m.StepEnd,
     ("cmd", "pv"): m.PvCommand,
     ("cmd", "vr"): m.RegCommand,
     ("cmd", "cap"): m.CapCommand,

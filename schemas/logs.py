@@ -9,6 +9,7 @@ many were suppressed since the last one, and :attr:`RateLimitedLog.suppressed` k
 from __future__ import annotations
 
 import logging
+import threading
 import time
 from collections import Counter
 from collections.abc import Callable
@@ -34,16 +35,18 @@ class RateLimitedLog:
         self._clock = clock
         self._next: dict[str, float] = {}
         self._pending: Counter[str] = Counter()
+        self._lock = threading.Lock()  # Zenoh callbacks log from several threads
 
     def log(self, level: int, kind: str, msg: str, *args: object) -> bool:
         """Write ``msg % args`` at ``level`` unless ``kind`` wrote within the period; True if written."""
         now = self._clock()
-        if now < self._next.get(kind, -float("inf")):
-            self._pending[kind] += 1
-            self.suppressed[kind] += 1
-            return False
-        self._next[kind] = now + self.period_s
-        n = self._pending.pop(kind, 0)
+        with self._lock:
+            if now < self._next.get(kind, -float("inf")):
+                self._pending[kind] += 1
+                self.suppressed[kind] += 1
+                return False
+            self._next[kind] = now + self.period_s
+            n = self._pending.pop(kind, 0)
         if n:
             msg += f" ({n} more like this in the last {self.period_s:g} s not logged)"
         self.logger.log(level, msg, *args)

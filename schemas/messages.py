@@ -48,6 +48,7 @@ __all__ = [
     "SETPOINT_RANGE_V120",
     "SetpointAction",
     "SolverStats",
+    "StepEnd",
     "TapAction",
     "Timings",
     "TruthFrame",
@@ -310,6 +311,7 @@ class AgentStatus(Message, frozen=True, kw_only=True, forbid_unknown_fields=True
     decisions: Count = 0
     rejected: dict[str, Count] = {}
     reason: Reason = ""
+    log_suppressed: dict[str, Count] = {}  # log lines not written by the rate limit so far, by kind
 
 
 # ----------------------------------------------------------------------------------- simulation only
@@ -360,6 +362,23 @@ class BridgeStatus(Message, frozen=True, kw_only=True, forbid_unknown_fields=Tru
     agent_alive: bool = False
     rejected: dict[str, Count] = {}
     done: bool = False
+    log_suppressed: dict[str, Count] = {}  # log lines not written by the rate limit so far, by kind
+
+
+class StepEnd(Message, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """The end of one scan: which devices sent a frame for ``t_ns``, from whoever collects the frames (the bridge
+    in simulation), after those frames.
+
+    Lets a receiver decide on a step as soon as every frame that was sent has arrived, instead of waiting out a
+    late-frame window for frames that were lost (issue "Robust by default", item 7). A device of the feeder not
+    listed sent nothing for this step.
+    """
+
+    feeder_id: Ident
+    head: bool  # the feeder-head meter sent its frame
+    pv: Annotated[list[Ident], Meta(max_length=4096)] = []  # PV plants that sent a frame
+    vr: Annotated[list[Ident], Meta(max_length=4096)] = []  # regulator controllers that sent a frame
+    cap: Annotated[list[Ident], Meta(max_length=4096)] = []  # capacitor banks that sent a frame
 
 
 class OracleRequest(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
@@ -397,4 +416,5 @@ MESSAGE_TYPES: tuple[type[msgspec.Struct], ...] = (
     OracleReply,
     CapFrame,
     CapCommand,
+    StepEnd,
 )

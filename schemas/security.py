@@ -37,6 +37,7 @@ from typing import Any, Literal
 from schemas.errors import CvvcError
 
 __all__ = [
+    "COMMAND_ROLE",
     "ROLES",
     "SecurityError",
     "SecurityRole",
@@ -50,6 +51,9 @@ __all__ = [
 
 SecurityRole = Literal["agent", "devices", "recorder", "router"]
 ROLES: tuple[SecurityRole, ...] = ("agent", "devices", "recorder", "router")
+COMMAND_ROLE: SecurityRole = "agent"
+"""The one certificate (common name) the access policy lets publish commands (``cvvc/*/cmd/**``): in secure mode
+the devices key their replay protection on it rather than on the ``source`` a command names itself."""
 _CA_DAYS = 3650
 _CERT_DAYS = 825
 _ROOT = "cvvc"
@@ -266,7 +270,8 @@ def access_control_policy() -> dict[str, Any]:
     r = _ROOT
     alive = f"{r}/*/alive/**"
     rules = [
-        # agent: commands, decisions and status out; frames and acks in; the oracle (case A)
+        # agent: commands, decisions and status out; frames and acks in; the oracle (case A). The only role that
+        # may put on cmd/** (COMMAND_ROLE: the devices' replay protection is keyed on it in secure mode)
         _rule("agent-send", ["put"], ["ingress"],
               [f"{r}/*/cmd/**", f"{r}/*/agent/decision", f"{r}/*/agent/status"]),
         _rule("agent-subscribe", ["declare_subscriber"], ["ingress"],

@@ -58,6 +58,8 @@ from schemas.bus import (
 )
 from schemas.devicemap import DeviceMap, load_device_map
 from schemas.errors import CvvcError
+from schemas.logs import RateLimitedLog
+from schemas.security import COMMAND_ROLE
 from simulator_bridge import devices as dv
 from simulator_bridge.errors import SimulatorError
 from simulator_bridge.publishing import (
@@ -194,6 +196,7 @@ class BridgeSummary(msgspec.Struct, frozen=True, kw_only=True):
     publisher_cpu_s: float = 0.0
     decision_wait_s: float = 0.0
     publisher: Literal["inline", "process"] = "inline"
+    log_suppressed: dict[str, int] = {}  # log lines not written by the rate limit, by kind (rejected_<kind>: bus)
 
 
 # ------------------------------------------------------------------------------------------ helpers
@@ -310,14 +313,19 @@ class _Runtime:
         self.pv_p_kw = engine.pv_setpoints()[0]
         local: Literal["unity_pf", "volt_var"] = "volt_var" if c.pv_local == "volt_var" else "unity_pf"
         period_ns = int(dm.feeder.control_period_s) * _NS  # the unit of the commands' time windows
-        self.pvs = {pid: dv.PvInverter(pid, k, float(engine.pv_kva[k]), local, period_ns=period_ns)
+        # secure: only the command role's certificate can put commands, so replay protection is keyed on it
+        sender = COMMAND_ROLE if bus.tls_dir is not None else None
+        self.pvs = {pid: dv.PvInverter(pid, k, float(engine.pv_kva[k]), local, period_ns=period_ns,
+                                       sender_identity=sender)
                     for k, pid in enumerate(engine.pv_ids)}
         self.regs = {rid: dv.RegulatorController(rid, r, int(engine.reg_tap_max[r]),
                                                  float(engine.reg_default_setpoint_v120[r]),
-                                                 float(engine.reg_default_band_v120[r]), period_ns=period_ns)
+                                                 float(engine.reg_default_band_v120[r]), period_ns=period_ns,
+                                                 sender_identity=sender)
                      for r, rid in enumerate(engine.regulator_ids)}
         self.caps = {cid: dv.CapBankController(cid, c, int(engine.cap_steps[c]), float(engine.cap_kvar[c]),
-                                               engine.cap_control_type[c], period_ns=period_ns)
+                                               engine.cap_control_type[c], period_ns=period_ns,
+                                               sender_identity=sender)
                      for c, cid in enumerate(engine.capacitor_ids)}
         self.reg_phase = ["abc"[int(engine.node_names[n].split(".")[1]) - 1] for n in engine.reg_secondary_node]
         self.spec = FramerSpec(
@@ -332,6 +340,7 @@ class _Runtime:
             noise_seed=c.noise_seed, metrics=MetricsAccumulator.for_feeder(dm, engine, step_s=self.step_s),
             caps=tuple((k.capacitor_id, k.index, k.steps, k.kvar_rated, k.control_type) for k in self.caps.values()))
         # counters
+        self.rlog = RateLimitedLog(log)  # every line a peer can provoke (issue "Robust by default" (f))
         self.seqs: Counter[str] = Counter()  # acks, oracle, status
         self.acks: Counter[str] = Counter()
         self.rejected: Counter[str] = Counter()
@@ -405,12 +414,12 @@ class _Runtime:
         if up:
             log.info("agent liveliness token up: %s", key)
         else:
-            log.warning("agent liveliness lost: %s", key)
+            self.rlog.warning("agent_lost", "agent liveliness lost: %s", key)
             # in order with its commands: a restarted agent's sequence starts again at 1 (see _forget_sender)
             try:
                 self.inbox.queue.put_nowait(Received(key, _SenderGone(key.rsplit("/", 1)[-1]), time.time_ns(), b""))
             except queue.Full:
-                log.warning("queue full: the devices keep the lost agent's command sequence")
+                self.rlog.warning("queue_full", "queue full: the devices keep the lost agent's command sequence")
 
     def _on_query(self, query: zenoh.Query) -> None:
         """Decode the request and enqueue it for the stepping thread; never compute here."""
@@ -508,7 +517,7 @@ class _Runtime:
             self._settings = None  # accepted, clipped or expired: a device's settings changed
         if verdict.status == "rejected":
             self.rejected[verdict.reason_kind] += 1
-            log.info("rejected command %s for %s: %s", cmd_id, device_id, verdict.reason)
+            self.rlog.info("command_rejected", "rejected command %s for %s: %s", cmd_id, device_id, verdict.reason)
         if isinstance(pub_or_key, TypedPublisher):
             pub_or_key.put(ack)
         else:
@@ -634,7 +643,7 @@ class _Runtime:
             self.oracle_replies += 1
         except CvvcError as e:
             self.oracle_rejected += 1
-            log.warning("oracle query failed: %s", e)
+            self.rlog.warning("oracle_failed", "oracle query failed: %s", e)
             q.reply_err(f"oracle failed: {e}".encode())
         finally:
             q.drop()
@@ -668,7 +677,11 @@ class _Runtime:
         return m.BridgeStatus(t_ns=max(self.now_t_ns, 0), seq=self.seqs["status"], source="bridge",
                               feeder_id=self.fid, step=self.steps, steps_total=self.config.steps,
                               clock=self.config.clock, lockstep_misses=self.misses, agent_alive=self.agent_alive,
-                              rejected=self.all_rejected(), done=done)
+                              rejected=self.all_rejected(), done=done, log_suppressed=self.log_suppressed())
+
+    def log_suppressed(self) -> dict[str, int]:
+        """Log lines not written by the rate limits, by kind (``rejected_<kind>``: the bus's rejections)."""
+        return dict(self.rlog.suppressed) | {f"rejected_{k}": n for k, n in self.inbox.rejects.log_suppressed().items()}
 
     def all_rejected(self) -> dict[str, int]:
         out = dict(self.rejected)
@@ -807,7 +820,8 @@ def _loop(rt: _Runtime, stop: threading.Event, on_ready: Any) -> BridgeSummary:
         round_trip_p50_s=_percentile(rt.round_trips, 50), round_trip_p99_s=_percentile(rt.round_trips, 99),
         agent_alive=rt.agent_alive, stopped_early=rt.steps < c.steps, metrics=final,
         publisher_cpu_s=pub_cpu_s, decision_wait_s=rt.decision_wait_s,
-        publisher="inline" if rt.child is None else "process")
+        publisher="inline" if rt.child is None else "process",
+        log_suppressed=rt.log_suppressed())
 
 
 def _startup(rt: _Runtime, stop: threading.Event) -> None:
@@ -850,5 +864,5 @@ def _await_decision(rt: _Runtime, t_ns: int, stop: threading.Event) -> None:
         d = rt._decision
         why = ("no decision" if d is None or d.step_t_ns != t_ns
                else "decision arrived but not all of its commands")
-        log.warning("lockstep miss at t_ns=%d: %s within %.3f s; going on under local control "
+        rt.rlog.warning("lockstep_miss", "lockstep miss at t_ns=%d: %s within %.3f s; going on under local control "
                     "(%d misses so far)", t_ns, why, rt.config.timeout_s, rt.misses)

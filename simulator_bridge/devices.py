@@ -10,10 +10,11 @@ Command handling, the same for every device (:class:`CommandGuard`):
    device's present simulation time (``expired``: ``valid_until_t_ns <= now_t_ns``); its times are within
    the device's window (``out_of_window``: ``t_ns`` at most one control period ahead of the device's time,
    ``valid_until_t_ns`` at most :data:`MAX_VALIDITY_PERIODS` periods ahead); its ``seq`` is greater than the
-   last applied one from the same ``source`` (``replay``), unless its ``t_ns`` is at least one control
-   period past that source's last applied command (the sender restarted, or a forged huge ``seq`` came
-   earlier: no command locks a source out for longer than one period); the value is within the device's own
-   range (``out_of_range``). ``unknown_device`` and ``wrong_feeder`` are decided by the
+   last applied one from the same sender (``replay``; the sender is the payload's ``source``, or in secure
+   mode the authenticated identity every command comes from: see :class:`CommandGuard`), unless its ``t_ns``
+   is at least one control period past that sender's last applied command (the sender restarted, or a forged
+   huge ``seq`` came earlier: no command locks a sender out for longer than one period); the value is within
+   the device's own range (``out_of_range``). ``unknown_device`` and ``wrong_feeder`` are decided by the
    bridge, which owns the key space. A rejected command changes nothing.
 2. **Apply**: the command becomes the device's active command until ``valid_until_t_ns``.
 3. **Watchdog**: before a step at simulation time ``t_ns`` is simulated, an active command with
@@ -133,13 +134,21 @@ class ActiveCommand:
 class CommandGuard:
     """Replay protection and the watchdog of one device.
 
-    Keeps the last applied ``seq`` per source and the active command. Not thread safe: the bridge's
+    Keeps the last applied ``seq`` per sender and the active command. Not thread safe: the bridge's
     stepping thread is its only user.
+
+    ``sender_identity``: None keys the replay state on each command's ``source``, which the sender writes
+    itself. In secure mode the bus's access policy lets one certificate alone publish commands
+    (``schemas.security.COMMAND_ROLE``), so every command that reaches the device was sent under that
+    identity: the state is keyed on it, and a command cannot escape the sequence by naming another ``source``
+    (issue "Robust by default", item 1).
     """
 
-    def __init__(self, device_id: str, *, period_ns: int = DEFAULT_PERIOD_NS) -> None:
+    def __init__(self, device_id: str, *, period_ns: int = DEFAULT_PERIOD_NS,
+                 sender_identity: str | None = None) -> None:
         self.device_id = device_id
         self.period_ns = int(period_ns)  # the feeder's control period [ns]: the unit of the time windows
+        self.sender_identity = sender_identity
         self.active: ActiveCommand | None = None
         self._last_seq: dict[str, int] = {}
         self._last_t_ns: dict[str, int] = {}
@@ -160,25 +169,31 @@ class CommandGuard:
         if cmd.valid_until_t_ns > now_t_ns + MAX_VALIDITY_PERIODS * self.period_ns:
             return reject("out_of_window", f"valid_until_t_ns {cmd.valid_until_t_ns} is more than "
                           f"{MAX_VALIDITY_PERIODS} control periods past the device's time {now_t_ns}")
-        last = self._last_seq.get(cmd.source)
-        if last is not None and cmd.seq <= last and cmd.t_ns < self._last_t_ns[cmd.source] + self.period_ns:
-            return reject("replay", f"seq {cmd.seq} from {cmd.source!r} is not greater than the last "
+        sender = self._sender(cmd.source)
+        last = self._last_seq.get(sender)
+        if last is not None and cmd.seq <= last and cmd.t_ns < self._last_t_ns[sender] + self.period_ns:
+            return reject("replay", f"seq {cmd.seq} from {sender!r} is not greater than the last "
                           f"applied {last}; every command needs a new, increasing seq")
         return None
 
+    def _sender(self, source: str) -> str:
+        """Who a command counts as sent by: the authenticated identity when there is one, else its ``source``."""
+        return self.sender_identity if self.sender_identity is not None else source
+
     def apply(self, cmd: m.Command, value: float) -> None:
         """Record ``cmd`` as applied: it becomes the active command and its seq the last from its source."""
-        self._last_seq[cmd.source] = cmd.seq
-        self._last_t_ns[cmd.source] = cmd.t_ns
+        self._last_seq[self._sender(cmd.source)] = cmd.seq
+        self._last_t_ns[self._sender(cmd.source)] = cmd.t_ns
         self.active = ActiveCommand(cmd_id=cmd.cmd_id, source=cmd.source, seq=cmd.seq,
                                     valid_until_t_ns=cmd.valid_until_t_ns, value=float(value))
 
     def forget_source(self, source: str) -> None:
         """Forget the last applied ``seq`` of ``source``: that sender's session ended (its liveliness token
         was withdrawn), and a restarted sender counts again from 1. Its active command stays until it expires.
+        With an authenticated identity, the identity's state is forgotten: its sessions have one sequence.
         """
-        self._last_seq.pop(source, None)
-        self._last_t_ns.pop(source, None)
+        self._last_seq.pop(self._sender(source), None)
+        self._last_t_ns.pop(self._sender(source), None)
 
     def expire(self, t_ns: int) -> ActiveCommand | None:
         """Before simulating time ``t_ns``: drop and return the active command if it has expired."""
@@ -213,12 +228,13 @@ class PvInverter:
     """
 
     def __init__(self, plant_id: str, index: int, s_rated_kva: float,
-                 local_mode: Literal["unity_pf", "volt_var"], *, period_ns: int = DEFAULT_PERIOD_NS) -> None:
+                 local_mode: Literal["unity_pf", "volt_var"], *, period_ns: int = DEFAULT_PERIOD_NS,
+                 sender_identity: str | None = None) -> None:
         self.plant_id = plant_id
         self.index = index
         self.s_rated_kva = float(s_rated_kva)
         self.local_mode = local_mode
-        self.guard = CommandGuard(plant_id, period_ns=period_ns)
+        self.guard = CommandGuard(plant_id, period_ns=period_ns, sender_identity=sender_identity)
 
     def check(self, cmd: m.PvCommand, *, now_t_ns: int) -> Verdict | None:
         """Reject ``cmd`` (see the module docstring) or None: then apply it and build its verdict."""
@@ -242,13 +258,13 @@ class RegulatorController:
 
     def __init__(self, regulator_id: str, index: int, tap_max: int,
                  default_setpoint_v120: float, default_band_v120: float, *,
-                 period_ns: int = DEFAULT_PERIOD_NS) -> None:
+                 period_ns: int = DEFAULT_PERIOD_NS, sender_identity: str | None = None) -> None:
         self.regulator_id = regulator_id
         self.index = index
         self.tap_max = int(tap_max)
         self.default_setpoint_v120 = float(default_setpoint_v120)
         self.default_band_v120 = float(default_band_v120)
-        self.guard = CommandGuard(regulator_id, period_ns=period_ns)
+        self.guard = CommandGuard(regulator_id, period_ns=period_ns, sender_identity=sender_identity)
         self.action: m.TapAction | m.SetpointAction | None = None
 
     def check(self, cmd: m.RegCommand, *, now_t_ns: int) -> Verdict | None:
@@ -315,7 +331,8 @@ class CapBankController:
     """
 
     def __init__(self, capacitor_id: str, index: int, steps: int, kvar_rated: float,
-                 control_type: m.CapControlType, *, period_ns: int = DEFAULT_PERIOD_NS) -> None:
+                 control_type: m.CapControlType, *, period_ns: int = DEFAULT_PERIOD_NS,
+                 sender_identity: str | None = None) -> None:
         self.capacitor_id = capacitor_id
         self.index = index
         self.steps = int(steps)
@@ -324,7 +341,7 @@ class CapBankController:
             raise DeviceError(f"capacitor bank {capacitor_id!r}: control type {control_type!r} is none of "
                               f"{get_args(m.CapControlType)}; the engine must translate OpenDSS's CapControl type")
         self.control_type: m.CapControlType = control_type
-        self.guard = CommandGuard(capacitor_id, period_ns=period_ns)
+        self.guard = CommandGuard(capacitor_id, period_ns=period_ns, sender_identity=sender_identity)
 
     def check(self, cmd: m.CapCommand, *, now_t_ns: int) -> Verdict | None:
         """Reject ``cmd`` by the generic checks or the bank's range, or None (then :meth:`apply` it)."""

@@ -179,6 +179,7 @@ class StepFramer:
         self.pub_pv = [FramePublisher(session, keys.meas_pv(f, pv.plant_id)) for pv in self.pvs]
         self.pub_vr = [FramePublisher(session, keys.meas_vr(f, reg.regulator_id)) for reg in self.regs]
         self.pub_cap = [FramePublisher(session, keys.meas_cap(f, cap.capacitor_id)) for cap in self.caps]
+        self.pub_step = FramePublisher(session, keys.meas_step(f))  # same QoS as the frames: queued behind them
         self.pub_truth = FramePublisher(session, keys.sim_truth(f), reliable=True)
         self.pub_metrics = FramePublisher(session, keys.sim_metrics(f), reliable=True)
         self.seqs: Counter[str] = Counter()
@@ -204,19 +205,33 @@ class StepFramer:
         if pub is self.pub_head and self.on_control_head is not None and self.spec.is_control_t(msg.t_ns):  # type: ignore[attr-defined]
             self.on_control_head(msg.t_ns, time.time_ns())  # type: ignore[attr-defined]  # before put: the answer may beat put's return
         pub.put(msg)
-        self.frames_published += 1
+        self.frames_published += pub is not self.pub_step  # a scan's end marker is not a frame
 
-    def _send(self, pub: FramePublisher, msg: msgspec.Struct, now_s: float) -> None:
+    def _send(self, pub: FramePublisher, msg: msgspec.Struct, now_s: float) -> bool:
+        """Drop ``msg`` (False) or put it, through the latency line if any (True)."""
         if self.dropper.drop():
             self.frames_dropped += 1
-        elif self.delay.latency_s > 0.0:
+            return False
+        if self.delay.latency_s > 0.0:
             self.delay.put((pub, msg), now_s)
         else:
             self._publish(pub, msg)
+        return True
 
-    def _send_now(self, pub: FramePublisher, msg: msgspec.Struct, now_s: float) -> None:
+    def _send_now(self, pub: FramePublisher, msg: msgspec.Struct, now_s: float) -> bool:
         """:meth:`_send` without drops or latency configured."""
         self._publish(pub, msg)
+        return True
+
+    def _step_end(self, t_ns: int, head: bool, sent: dict[str, list[str]], now_s: float) -> None:
+        """The scan's end marker after its frames (through the latency line too, so it stays behind them)."""
+        self.seqs["step_end"] += 1
+        msg = m.StepEnd(t_ns=t_ns, seq=self.seqs["step_end"], source="bridge", feeder_id=self.spec.feeder_id,
+                        head=head, pv=sent["pv"], vr=sent["vr"], cap=sent["cap"])
+        if self.delay.latency_s > 0.0:
+            self.delay.put((self.pub_step, msg), now_s)
+        else:
+            self.pub_step.put(msg)
 
     def publish_frames(self, res: Any, settings: DeviceSettings, now_s: float) -> None:
         """Schedule the frames of one step (noise, drops, latency applied).
@@ -232,8 +247,10 @@ class StepFramer:
             head = noise.head(*head)
         hv, ha, hi, hia, hp, hq = (x.tolist() for x in head)
         seqs["head"] += 1
-        send(self.pub_head, dv.head_frame(feeder_id=self.spec.feeder_id, t_ns=t, seq=seqs["head"], v_mag_v=hv,
-                                          v_ang_deg=ha, i_mag_a=hi, i_ang_deg=hia, p_kw=hp, q_kvar=hq), now_s)
+        sent: dict[str, list[str]] = {"pv": [], "vr": [], "cap": []}
+        head = dv.head_frame(feeder_id=self.spec.feeder_id, t_ns=t, seq=seqs["head"], v_mag_v=hv, v_ang_deg=ha,
+                             i_mag_a=hi, i_ang_deg=hia, p_kw=hp, q_kvar=hq)
+        head_sent = send(self.pub_head, head, now_s)
         pv_p, pv_q, pv_v = rd.pv_p_kw, rd.pv_q_kvar, rd.pv_v_v
         if noise is None:
             pv_p, pv_q, pv_v = pv_p.tolist(), pv_q.tolist(), pv_v.tolist()
@@ -244,9 +261,10 @@ class StepFramer:
             if noise is not None:
                 p, q, v = (x.tolist() for x in noise.pv(p, q, v, pv.s_rated_kva))
             seqs[pv.plant_id] += 1
-            send(pub, dv.pv_frame(plant=pv, t_ns=t, seq=seqs[pv.plant_id], p_kw=p, q_kvar=q, v_v=v,
-                                  available_p_kw=available[k], q_setpoint_kvar=q_set, q_at_night=q_at_night),
-                 now_s)
+            if send(pub, dv.pv_frame(plant=pv, t_ns=t, seq=seqs[pv.plant_id], p_kw=p, q_kvar=q, v_v=v,
+                                     available_p_kw=available[k], q_setpoint_kvar=q_set, q_at_night=q_at_night),
+                    now_s):
+                sent["pv"].append(pv.plant_id)
         v120s = np.asarray(rd.reg_v120, dtype=float).tolist()
         vcs = np.asarray(rd.reg_v120_compared, dtype=float).tolist()
         taps = np.asarray(res.taps).tolist()
@@ -257,16 +275,21 @@ class StepFramer:
             if noise is not None:
                 v120, vc = noise.regulator(v120, vc)
             seqs[reg.regulator_id] += 1
-            send(pub, dv.reg_frame(reg=reg, t_ns=t, seq=seqs[reg.regulator_id], phase=self.spec.reg_phase[r],
-                                   v120=min(v120, 200.0), v_compared_120=min(vc, 200.0), tap=int(taps[r]),
-                                   setpoint_v120=sp, band_v120=bw, mode=mode), now_s)
+            if send(pub, dv.reg_frame(reg=reg, t_ns=t, seq=seqs[reg.regulator_id], phase=self.spec.reg_phase[r],
+                                      v120=min(v120, 200.0), v_compared_120=min(vc, 200.0), tap=int(taps[r]),
+                                      setpoint_v120=sp, band_v120=bw, mode=mode), now_s):
+                sent["vr"].append(reg.regulator_id)
         if self.caps:
-            self._cap_frames(rd, t, settings, send, now_s)
+            sent["cap"] = self._cap_frames(rd, t, settings, send, now_s)
+        self._step_end(t, head_sent, sent, now_s)
         if len(self.delay):
             self.flush(now_s)
 
-    def _cap_frames(self, rd: Any, t: int, settings: DeviceSettings, send: Any, now_s: float) -> None:
-        """The capacitor banks' frames of one step (states exact; voltage and control reading SCADA class)."""
+    def _cap_frames(self, rd: Any, t: int, settings: DeviceSettings, send: Any, now_s: float) -> list[str]:
+        """The capacitor banks' frames of one step (states exact; voltage and control reading SCADA class); the
+        ids of the banks whose frame was sent.
+        """
+        sent = []
         states = np.asarray(rd.cap_states).tolist()
         volts = np.asarray(rd.cap_v_v, dtype=float).tolist()
         values = np.asarray(rd.cap_control_value, dtype=float).tolist()
@@ -280,8 +303,10 @@ class StepFramer:
             active = None if command is None else dv.ActiveCommand(
                 cmd_id=command[0], source="", seq=0, valid_until_t_ns=command[1], value=float(states[c]))
             self.seqs[f"cap:{cap.capacitor_id}"] += 1
-            send(pub, dv.cap_frame(cap=cap, t_ns=t, seq=self.seqs[f"cap:{cap.capacitor_id}"],
-                                   closed_steps=int(states[c]), v_v=v, control_value=cv, active=active), now_s)
+            if send(pub, dv.cap_frame(cap=cap, t_ns=t, seq=self.seqs[f"cap:{cap.capacitor_id}"],
+                                      closed_steps=int(states[c]), v_v=v, control_value=cv, active=active), now_s):
+                sent.append(cap.capacitor_id)
+        return sent
 
     def publish_truth(self, res: Any, n_step: int, v_lo_pu: float, v_hi_pu: float) -> None:
         """The TruthFrame of the ``n_step``-th step of the run (from 1), if it has one.

@@ -175,3 +175,55 @@ def test_capacitor_bank_frames_are_ignored_not_fatal(aligner):
         aligner.add(k, f)
     (out,) = aligner.add(*vr(T0, 1))
     assert out.complete
+
+
+# ------------------------------------------------------------------ scan-end markers (issue 17, item 7)
+def step_end(t_ns, *, head=True, pvs=(), vrs=(), feeder="rural", key_feeder="rural"):
+    return keys.meas_step(key_feeder), m.StepEnd(t_ns=t_ns, seq=1, source="bridge", feeder_id=feeder, head=head,
+                                                 pv=list(pvs), vr=list(vrs))
+
+
+def test_a_step_end_releases_a_group_with_a_lost_frame_at_once(aligner):
+    """The PV frame was lost: the marker says only the head and the regulator sent, so no late window is waited."""
+    aligner.add(*head(T0, 1))
+    aligner.add(*vr(T0, 1))
+    assert aligner.pending
+    out = aligner.add(*step_end(T0, vrs=["vr1a"]))
+    assert [a.t_ns for a in out] == [T0] and out[0].missing == ("pv1",)
+    assert not aligner.pending and aligner.released_by_step_end == 1 and aligner.step_ends == 1
+
+
+def test_a_step_end_before_its_frames_releases_when_the_sent_ones_arrive(aligner):
+    assert aligner.add(*head(T0, 1)) == []
+    assert aligner.add(*step_end(T0, vrs=["vr1a"])) == []  # the regulator's frame is still on its way
+    out = aligner.add(*vr(T0, 1))
+    assert [a.t_ns for a in out] == [T0] and out[0].missing == ("pv1",)
+
+
+def test_a_step_end_of_a_complete_or_decided_step_changes_nothing(aligner):
+    for k, f in (head(T0, 1), pv(T0, 1), vr(T0, 1)):
+        aligner.add(k, f)
+    assert aligner.add(*step_end(T0, pvs=["pv1"], vrs=["vr1a"])) == []
+    assert aligner.step_ends == 0 and aligner.released_by_step_end == 0
+
+
+def test_a_forged_step_end_neither_moves_the_clock_nor_releases_a_group_without_frames(aligner):
+    aligner.add(*head(T0, 1))
+    aligner.add(*vr(T0, 1))
+    far = T0 + 1000 * PERIOD_NS
+    assert aligner.add(*step_end(far, head=False)) == []  # nothing arrived for that time: nothing to decide
+    assert aligner.add(*step_end(T0 + PERIOD_NS, head=False)) == []
+    assert aligner.pending  # the real step still waits for its frame
+    out = aligner.add(*pv(T0, 1))
+    assert [a.t_ns for a in out] == [T0] and out[0].complete
+    assert aligner.add(*step_end(T0, feeder="other")) == [] and aligner.rejected["wrong_feeder"] == 1
+    assert aligner.add(*step_end(T0, key_feeder="other")) == [] and aligner.rejected["wrong_feeder"] == 2
+
+
+def test_step_end_markers_ahead_of_their_frames_are_bounded(aligner):
+    from agent.aligner import _EXPECT_MAX
+
+    aligner.add(*head(T0, 1))
+    for i in range(1, 3 * _EXPECT_MAX):
+        aligner.add(*step_end(T0 + i * MINUTE, head=False))
+    assert len(aligner._expected) == _EXPECT_MAX

@@ -85,6 +85,30 @@ def test_a_forged_huge_seq_locks_a_source_out_for_at_most_one_period(pv: dv.PvIn
     assert pv.check(_pv_cmd(seq=2**63 - 1), now_t_ns=t) is not None  # the old forgery replayed: refused
 
 
+def test_without_an_identity_each_source_has_its_own_sequence(pv: dv.PvInverter) -> None:
+    pv.guard.apply(_pv_cmd(seq=5), 1.0)
+    assert pv.check(_pv_cmd(seq=1, source="agent2"), now_t_ns=NOW) is None  # another sender, by its own word
+
+
+def test_with_an_authenticated_identity_naming_another_source_does_not_escape_replay_protection() -> None:
+    """Issue 17 item 1: in secure mode every command comes under the one certificate that may command, so the
+    sequence is that identity's, whatever ``source`` a command names; forgetting a lost sender forgets it.
+    """
+    from schemas.security import COMMAND_ROLE
+
+    pv = dv.PvInverter("pv1", 0, 100.0, "unity_pf", sender_identity=COMMAND_ROLE)
+    pv.guard.apply(_pv_cmd(seq=5), 1.0)
+    for source in ("agent2", "bridge", "agent"):
+        v = pv.check(_pv_cmd(seq=5, source=source), now_t_ns=NOW)
+        assert v is not None and v.reason_kind == "replay" and repr(COMMAND_ROLE) in v.reason, source
+    assert pv.check(_pv_cmd(seq=6, source="agent2"), now_t_ns=NOW) is None
+    pv.guard.forget_source("agent2")  # an agent's liveliness token went: the identity counts from 1 again
+    assert pv.check(_pv_cmd(seq=1), now_t_ns=NOW) is None
+    t = NOW + 5 * MIN  # and a forged huge seq still locks it out for at most one control period
+    pv.guard.apply(_pv_cmd(seq=2**63 - 1, source="x"), 1.0)
+    assert pv.check(_pv_cmd(seq=2, t_ns=t, valid_until=t + 10 * MIN), now_t_ns=t) is None
+
+
 def test_a_rejected_command_does_not_advance_the_seq(pv: dv.PvInverter) -> None:
     pv.guard.apply(_pv_cmd(seq=1), 1.0)
     assert pv.check(_pv_cmd(seq=7, valid_until=NOW), now_t_ns=NOW) is not None  # expired, not applied
