@@ -41,6 +41,7 @@ __all__ = ["CvvcController", "Decision", "DecisionTimings", "MeasurementSnapshot
 _V120_RANGE = (60.0, 180.0)
 _POWER_LIMIT_KW = 1e6
 OUT_OF_ENVELOPE_WIDEN = 2.0
+_MIN_BAND_PU = 1e-3  # the narrowest band the estimate bounds leave between a node's limits [pu]
 """Factor on the calibrated estimate bounds when the inputs are outside the training envelope (extrapolation)."""
 
 
@@ -358,7 +359,13 @@ class CvvcController:
             v_min_pu, v_max_pu = lo_pu + fall, hi_pu - rise
         bounds = self.bounds_pu(out_of_envelope) if state.critical else None
         if bounds is not None:
-            v_min_pu, v_max_pu = v_min_pu + bounds[0], v_max_pu - bounds[1]
+            # never past an empty band: a node whose limits are closer than its bounds keeps half its gap (or
+            # 1 mV/V) between them, and the soft form then says the hard limits cannot be met
+            gap = np.asarray(v_max_pu, float) - np.asarray(v_min_pu, float)
+            room = gap - np.minimum(_MIN_BAND_PU, gap / 2.0)
+            total = bounds[0] + bounds[1]
+            scale = np.where(total > room, room / np.maximum(total, 1e-12), 1.0)
+            v_min_pu, v_max_pu = v_min_pu + scale * bounds[0], v_max_pu - scale * bounds[1]
         return CvvcInputs(
             v0_pu=state.v0_pu,
             dv_dq_pu_per_kvar=state.dv_dq_pu_per_kvar,
