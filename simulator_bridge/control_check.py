@@ -29,13 +29,18 @@ _DAY0_NS = 1_704_067_200 * _NS  # 2024-01-01 00:00 UTC: minute 0 is midnight (th
 
 
 class MinuteProfiles:
-    """Per-minute load rows (PV at 0) with the interface ``Qsts`` reads; minute 0 at ``start_t_ns``."""
+    """Per-minute load rows and PV available power [kW] (PV at 0 unless ``pv_kw`` is given) with the interface
+    ``Qsts`` and ``opendss_loop.reference_metrics`` read; minute 0 at ``start_t_ns``.
+    """
 
-    def __init__(self, load_kw: np.ndarray, n_pv: int, *, start_t_ns: int = _DAY0_NS) -> None:
+    def __init__(self, load_kw: np.ndarray, n_pv: int, *, start_t_ns: int = _DAY0_NS,
+                 pv_kw: np.ndarray | None = None) -> None:
         self._load = np.asarray(load_kw, dtype=float)
         self.n_steps, self.n_loads = self._load.shape
         self.n_pv, self.step_s, self.start_t_ns = n_pv, 60, start_t_ns
-        self._pv = np.zeros((self.n_steps, n_pv))
+        self._pv = np.zeros((self.n_steps, n_pv)) if pv_kw is None else np.asarray(pv_kw, dtype=float)
+        if self._pv.shape != (self.n_steps, n_pv):
+            raise ValueError(f"pv_kw has shape {self._pv.shape}, expected ({self.n_steps}, {n_pv})")
 
     def t_ns(self, step: int) -> int:
         return self.start_t_ns + step * 60 * _NS

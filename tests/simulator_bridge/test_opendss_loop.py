@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 from schemas.devicemap import load_device_map
+from simulator_bridge.control_check import MinuteProfiles
 from simulator_bridge.engine import EngineError, FeederEngine
 from simulator_bridge.metrics import MetricsAccumulator
 from simulator_bridge.opendss_loop import OpenDssLoop, reference_metrics
@@ -26,28 +27,7 @@ _T0_NS = 1_704_067_200 * _NS + 8 * 3600 * _NS  # 2024-01-01 08:00 UTC
 MINUTES = 180
 
 
-class _Profiles:
-    """Per-minute loads and PV available power [kW] with the interface Qsts and reference_metrics read."""
-
-    step_s = 60
-    start_t_ns = _T0_NS
-
-    def __init__(self, load_kw: np.ndarray, pv_kw: np.ndarray) -> None:
-        self._load, self._pv = load_kw, pv_kw
-        self.n_steps, self.n_loads = load_kw.shape
-        self.n_pv = pv_kw.shape[1]
-
-    def t_ns(self, step: int) -> int:
-        return self.start_t_ns + step * 60 * _NS
-
-    def load_kw(self, start: int, stop: int) -> np.ndarray:
-        return self._load[start:stop]
-
-    def pv_kw(self, start: int, stop: int) -> np.ndarray:
-        return self._pv[start:stop]
-
-
-def _swing_profiles(dm) -> _Profiles:
+def _swing_profiles(dm) -> MinuteProfiles:
     """Every load 0.2 -> 1.3 -> 0.2 of nominal over three hours; PV a half-sine peaking at 80 % of Pmpp."""
     eng = FeederEngine(dm)
     base, pmpp = eng.load_kw_nominal.copy(), eng.pv_pmpp_kw.copy()
@@ -55,10 +35,11 @@ def _swing_profiles(dm) -> _Profiles:
     half = MINUTES // 2
     mult = np.concatenate([np.linspace(0.2, 1.3, half), np.linspace(1.3, 0.2, MINUTES - half)])
     sun = 0.8 * np.sin(np.pi * np.arange(MINUTES) / (MINUTES - 1))
-    return _Profiles(mult[:, None] * base[None, :], sun[:, None] * pmpp[None, :])
+    return MinuteProfiles(mult[:, None] * base[None, :], len(pmpp), start_t_ns=_T0_NS,
+                          pv_kw=sun[:, None] * pmpp[None, :])
 
 
-def _none_case(dm, profiles: _Profiles):
+def _none_case(dm, profiles: MinuteProfiles):
     eng = FeederEngine(dm)
     try:
         sim = Qsts(eng, profiles, start_step=0, pv_local="unity")
