@@ -209,3 +209,43 @@ def test_model_with_banks_round_trips_and_a_bad_grid_fails_clearly(tmp_path):
     write_model(msgspec.structs.replace(MODEL, dv_dcap_pu=MODEL.dv_dcap_pu[:-1]), bad)
     with pytest.raises(ModelError, match="dv_dcap_pu has shape"):
         read_model(bad)
+
+
+# ------------------------------------------------------------------------------------------- aligner
+PERIOD_NS = 300_000_000_000
+T0 = 1_672_549_200_000_000_000  # a control step
+
+
+def _frames(t_ns: int, seq: int, *, bank: str = "cap1", closed: int = 1, steps: int = 1):
+    from schemas import keys
+    from schemas.examples import examples
+
+    ex = examples()
+    return [
+        (keys.meas_head("rural"), msgspec.structs.replace(ex[m.HeadFrame], t_ns=t_ns, seq=seq)),
+        (keys.meas_pv("rural", "pv1"), msgspec.structs.replace(ex[m.PvFrame], t_ns=t_ns, seq=seq, plant_id="pv1",
+                                                               source="pv1")),
+        (keys.meas_cap("rural", bank), m.CapFrame(t_ns=t_ns, seq=seq, source=bank, capacitor_id=bank,
+                                                  closed_steps=closed, steps=steps, kvar_rated=600.0, v_v=7200.0)),
+    ]
+
+
+def test_aligner_waits_for_the_banks_and_rejects_unknown_or_impossible_ones():
+    from agent.aligner import FrameAligner
+
+    al = FrameAligner(feeder_id="rural", pv_ids=("pv1",), regulator_ids=(), control_period_ns=PERIOD_NS,
+                      capacitor_ids=("cap1",))
+    head, plant, bank = _frames(T0, 1)
+    assert al.add(*head) == [] and al.add(*plant) == []  # not complete without the bank
+    out = al.add(*bank)
+    assert len(out) == 1 and out[0].complete and out[0].cap["cap1"].closed_steps == 1
+    assert al.add(*_frames(T0 + PERIOD_NS, 2, bank="capX")[2]) == []
+    assert al.rejected["unknown_device"] == 1
+    assert al.add(*_frames(T0 + PERIOD_NS, 2, closed=2, steps=1)[2]) == []
+    assert al.rejected["implausible"] == 1
+    for key, frame in _frames(T0 + PERIOD_NS, 2)[:2]:
+        al.add(key, frame)
+    late = al.close_pending()
+    assert len(late) == 1 and late[0].missing == ("cap1",)  # a stale bank is named missing
+    without = FrameAligner(feeder_id="rural", pv_ids=("pv1",), regulator_ids=(), control_period_ns=PERIOD_NS)
+    assert without.add(*bank) == [] and without.ignored == 1  # a model without banks ignores their frames
