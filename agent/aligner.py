@@ -1,10 +1,11 @@
-"""Frame aligner: gathers the feeder-head, PV and regulator frames of one timestamp.
+"""Frame aligner: gathers the feeder-head, PV, regulator and capacitor-bank frames of one timestamp.
 
 Driven by frame timestamps only (never a clock), so a live run and an offline replay of the same frames
 produce the same aligned sets. The rule, documented in docs/agent.md:
 
-- Frames are grouped by their ``t_ns``. A group is *complete* when the head meter, every PV plant and every
-  regulator of the model have reported; a complete group is released at once.
+- Frames are grouped by their ``t_ns``. A group is *complete* when the head meter, every PV plant, every
+  regulator and every capacitor bank of the model have reported; a complete group is released at once. A
+  model without banks ignores ``CapFrame`` s (counted in ``ignored``).
 - An incomplete group is released when a frame of a *newer* timestamp arrives, or when the runtime closes it
   after its late-frame window (``close_pending``); devices that did not report are listed as ``missing``.
 - Rejected, never stored (and counted by reason): a frame for another feeder, from a device the model does
@@ -49,6 +50,7 @@ class AlignedFrames:
     pv: dict[str, m.PvFrame]
     vr: dict[str, m.RegFrame]
     missing: tuple[str, ...]
+    cap: dict[str, m.CapFrame] = field(default_factory=dict)
 
     @property
     def complete(self) -> bool:
@@ -56,12 +58,18 @@ class AlignedFrames:
         return not self.missing
 
 
-def plausibility_problem(frame: m.HeadFrame | m.PvFrame | m.RegFrame) -> str | None:
+def plausibility_problem(frame: m.HeadFrame | m.PvFrame | m.RegFrame | m.CapFrame) -> str | None:
     """Why a schema-valid frame is physically impossible, or None.
 
     The schema bounds catch absurd numbers; these catch values that are representable but cannot be:
     phases repeated, a total that is not the sum of its phases, PV output above its rating.
     """
+    if isinstance(frame, m.CapFrame):
+        if "invalid" in frame.quality:
+            return "quality flag 'invalid'"
+        if frame.closed_steps > frame.steps:
+            return f"capacitor bank {frame.closed_steps} closed steps of {frame.steps}"
+        return None
     phases = [p.phase for p in frame.phases]
     if len(set(phases)) != len(phases):
         return f"phase listed twice: {phases}"
@@ -87,8 +95,8 @@ def plausibility_problem(frame: m.HeadFrame | m.PvFrame | m.RegFrame) -> str | N
     return None
 
 
-_Frame = m.HeadFrame | m.PvFrame | m.RegFrame
-_FRAME_TYPES = (m.HeadFrame, m.PvFrame, m.RegFrame)
+_Frame = m.HeadFrame | m.PvFrame | m.RegFrame | m.CapFrame
+_FRAME_TYPES = (m.HeadFrame, m.PvFrame, m.RegFrame, m.CapFrame)
 _EXPECT_MAX = 64  # scan-end markers kept ahead of their frames (the oldest goes first)
 
 
@@ -98,16 +106,19 @@ class _Group:
     head: m.HeadFrame | None = None
     pv: dict[str, m.PvFrame] = field(default_factory=dict)
     vr: dict[str, m.RegFrame] = field(default_factory=dict)
+    cap: dict[str, m.CapFrame] = field(default_factory=dict)
 
 
 class FrameAligner:
     """Stateful grouping of frames by timestamp; see the module docstring for the rule."""
 
     def __init__(self, *, feeder_id: str, pv_ids: tuple[str, ...], regulator_ids: tuple[str, ...],
-                 control_period_ns: int, max_jump_ns: int | None = None) -> None:
+                 control_period_ns: int, max_jump_ns: int | None = None,
+                 capacitor_ids: tuple[str, ...] = ()) -> None:
         self.feeder_id = feeder_id
         self.pv_ids = pv_ids
         self.regulator_ids = regulator_ids
+        self.capacitor_ids = capacitor_ids
         self.control_period_ns = control_period_ns
         self.max_jump_ns = control_period_ns if max_jump_ns is None else int(max_jump_ns)
         self.rejected: Counter[str] = Counter()
@@ -124,7 +135,7 @@ class FrameAligner:
         self._released_t_ns = -1
         self._newest_t_ns: int | None = None  # newest accepted frame time; None before the first
         self._held: list[tuple[str, _Frame]] = []  # frames ahead of the clock, awaiting a second source
-        n_sources = 1 + len(pv_ids) + len(regulator_ids)
+        n_sources = 1 + len(pv_ids) + len(regulator_ids) + len(capacitor_ids)
         self._sources_needed = min(2, n_sources)
         self._hold_max = 4 * n_sources
 
@@ -132,11 +143,11 @@ class FrameAligner:
     def add(self, key: str, frame: _Frame | m.StepEnd) -> list[AlignedFrames]:
         """Add one decoded frame or scan-end marker; returns the control-step groups this frame completes or closes.
 
-        A device frame the agent does not use (a capacitor bank's ``CapFrame``) is counted in ``ignored``.
+        A device frame the agent does not use (a ``CapFrame`` when the model has no bank) is counted in ``ignored``.
         """
         if isinstance(frame, m.StepEnd):
             return self._step_end(key, frame)
-        if not isinstance(frame, _FRAME_TYPES):
+        if not isinstance(frame, _FRAME_TYPES) or (isinstance(frame, m.CapFrame) and not self.capacitor_ids):
             self.ignored += 1
             return []
         why = self._check_static(key, frame)
@@ -188,6 +199,8 @@ class FrameAligner:
                 g.pv[frame.plant_id] = frame
             case m.RegFrame():
                 g.vr[frame.regulator_id] = frame
+            case m.CapFrame():
+                g.cap[frame.capacitor_id] = frame
         if self._all_sent_arrived(g):
             out.append(self._release(frame.t_ns))
         return [a for a in out if a.t_ns % self.control_period_ns == 0]
@@ -201,7 +214,7 @@ class FrameAligner:
         if end.t_ns <= self._released_t_ns:
             return []  # that step was decided already (every frame had come)
         self.step_ends += 1
-        sent = [*(["head"] if end.head else []), *end.pv, *end.vr]
+        sent = [*(["head"] if end.head else []), *end.pv, *end.vr, *end.cap]
         self._expected[end.t_ns] = frozenset(sent)
         while len(self._expected) > _EXPECT_MAX:
             del self._expected[min(self._expected)]
@@ -248,6 +261,9 @@ class FrameAligner:
             case m.RegFrame():
                 if frame.regulator_id not in self.regulator_ids or parts[-1] != frame.regulator_id:
                     return "unknown_device", f"regulator {frame.regulator_id!r} on {key}"
+            case m.CapFrame():
+                if frame.capacitor_id not in self.capacitor_ids or parts[-1] != frame.capacitor_id:
+                    return "unknown_device", f"capacitor bank {frame.capacitor_id!r} on {key}"
         problem = plausibility_problem(frame)
         if problem is not None:
             return "implausible", f"{frame.source}: {problem}"
@@ -270,6 +286,7 @@ class FrameAligner:
         miss = [] if g.head is not None else ["head"]
         miss += [k for k in self.pv_ids if k not in g.pv]
         miss += [r for r in self.regulator_ids if r not in g.vr]
+        miss += [c for c in self.capacitor_ids if c not in g.cap]
         return tuple(miss)
 
     def _release(self, t_ns: int) -> AlignedFrames:
@@ -277,4 +294,5 @@ class FrameAligner:
         self._released_t_ns = max(self._released_t_ns, t_ns)
         for t in [t for t in self._expected if t <= self._released_t_ns]:
             del self._expected[t]
-        return AlignedFrames(t_ns=g.t_ns, head=g.head, pv=dict(g.pv), vr=dict(g.vr), missing=self._missing(g))
+        return AlignedFrames(t_ns=g.t_ns, head=g.head, pv=dict(g.pv), vr=dict(g.vr), missing=self._missing(g),
+                             cap=dict(g.cap))

@@ -11,7 +11,15 @@ or impossible value is treated as invalid and listed in ``Decision.missing``):
 - PV plant frame missing/invalid -> the plant's last known P and Q stand in for the estimate, its Q is fixed
   at that last known value in the optimization and it gets no command; never seen yet -> ``hold``;
 - regulator frame missing/invalid -> its last known tap stands in for the estimate, it is not moved
-  (``max_taps_per_interval`` 0), gives no correction (eq. 6) and gets no command; never seen yet -> ``hold``.
+  (``max_taps_per_interval`` 0), gives no correction (eq. 6) and gets no command; never seen yet -> ``hold``;
+- capacitor bank frame missing/invalid (stale), or its last command refused (``refuse_bank``) -> the bank is
+  held: its last known state (the training state before any frame) stands in, it is not switched and gets no
+  command. A bank never blocks the decision.
+
+Capacitor banks (beyond the paper, docs/method.md "Capacitor decisions") enter the CVVC problem as integer
+devices beside the taps: closed steps within ``0..steps``, at most ``max_switches_per_interval`` switchings,
+``cost_per_switch`` per step switched, their voltage effect ``dv_dcap_pu`` per step. They are relaxed and
+rounded with the taps (``agent.solve``), and the decided states are sent as ``CapCommand`` s.
 
 Determinism: same snapshots in the same order give bit-identical decisions (``Decision.same_content``),
 timings aside. The solver is warm-started only from the previous decision's solution and has fixed
@@ -22,7 +30,7 @@ from __future__ import annotations
 
 import time
 from collections import deque
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields, replace
 from typing import Literal
 
 import numpy as np
@@ -32,6 +40,7 @@ from agent.errors import AgentInputError
 from agent.setpoints import expected_compared_v120, setpoint_for_tap_change
 from agent.solve import CvvcSolution, WarmStart, solve_cvvc
 from agent.state import GridState, OracleSource, estimated_state, oracle_state
+from regression.capbanks import bank_voltage_pu, head_q_at_training_banks
 from regression.estimator import SensitivityTable, dv_dp_pu_per_kw, pv_variability_margins_pu
 from regression.model import CvvcModel, ModelArrays, features
 
@@ -65,6 +74,8 @@ class MeasurementSnapshot:
     head_valid : the head frame arrived and passed the runtime's checks.
     pv_valid : (K,) bool, same per plant.
     reg_valid : (R,) bool, same per regulator.
+    cap_steps : (C,) closed steps of each capacitor bank (the model's ``capacitors`` order).
+    cap_valid : (C,) bool, the bank's frame arrived and passed the checks.
     """
 
     t_ns: int
@@ -80,6 +91,8 @@ class MeasurementSnapshot:
     head_valid: bool
     pv_valid: np.ndarray
     reg_valid: np.ndarray
+    cap_steps: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
+    cap_valid: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
 
 
 @dataclass(frozen=True)
@@ -119,6 +132,8 @@ class Decision:
     v_bound_low_pu, v_bound_high_pu : (N,) the estimate's calibrated bounds as applied (widened out of the
         envelope): the true voltage is expected within ``[v_pu - low, v_pu + high]``; None without bounds.
     out_of_envelope : the features outside what training covered ("" when inside, or without bounds).
+    cap_steps : (C,) int, closed steps decided for each capacitor bank, or None on hold.
+    cap_command : (C,) bool, banks to command.
     """
 
     t_ns: int
@@ -142,6 +157,8 @@ class Decision:
     v_bound_low_pu: np.ndarray | None = None
     v_bound_high_pu: np.ndarray | None = None
     out_of_envelope: str = ""
+    cap_steps: np.ndarray | None = None
+    cap_command: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
 
     def same_content(self, other: Decision) -> bool:
         """Bit-identical in every field but ``timings`` (what replay compares)."""
@@ -177,6 +194,8 @@ class CvvcController:
         plants went back to their highest or lowest output of this many recent seconds (control steps seen);
         0 turns it off (the paper's method). See ``regression.estimator.pv_variability_margins_pu``.
     pv_margin_cap_pu : largest such margin on either side [pu].
+    control_banks : beyond the paper: decide and command the model's capacitor banks (integer devices of the CVVC
+        problem). Off, the banks stay on their local control; their measured state still corrects the estimate.
     setpoint_hold : beyond the paper, ``setpoints`` mode: when no tap change is decided for a regulator and the
         set point sent to it at most two control periods ago is still in force, send that set point again
         instead of eq. (8)'s re-centred one (a noisy regulator reading then cannot move the band).
@@ -192,6 +211,7 @@ class CvvcController:
         pv_margin_window_s: float = 0.0,
         pv_margin_cap_pu: float = 0.01,
         setpoint_hold: bool = False,
+        control_banks: bool = False,
     ) -> None:
         if mode not in ("taps", "setpoints"):
             raise AgentInputError(f"mode must be 'taps' or 'setpoints', not {mode!r}")
@@ -231,12 +251,21 @@ class CvvcController:
         self._reg_last_tap: list[int | None] = [None] * n_reg
         self._warm: WarmStart | None = None
         self.setpoint_hold = bool(setpoint_hold)
+        self.control_banks = bool(control_banks)
         self._setpoint_hold_ns = 2 * int(model.control_period_s) * 1_000_000_000  # commands' validity
         self._last_setpoint: list[tuple[int, float] | None] = [None] * n_reg  # (t_ns, V on 120 V) last sent
         b = model.bounds  # calibrated estimate bounds and the training envelope (training.calibration)
         self._bound_lo = None if b is None else np.asarray(b.lower_pu, float)
         self._bound_hi = None if b is None else np.asarray(b.upper_pu, float)
         self._env = None if b is None else (np.asarray(b.envelope_lo, float), np.asarray(b.envelope_hi, float))
+        banks = model.capacitors
+        self._cap_ids = tuple(c.id for c in banks)
+        self._cap_steps_max = np.array([c.steps for c in banks], int)
+        self._cap_max_sw = np.array([c.max_switches_per_interval for c in banks], int)
+        self._cap_cost = np.array([c.cost_per_switch for c in banks], float)
+        self._cap_last = np.array([c.closed0 for c in banks], int)  # last known state (training state at first)
+        self._cap_refused_until = np.full(len(banks), -1, dtype=np.int64)  # t_ns until which a bank is held
+        self._period_ns = int(model.control_period_s) * 1_000_000_000
 
     # ------------------------------------------------------------------------------------------ bounds
     def bounds_pu(self, out_of_envelope: bool) -> tuple[np.ndarray, np.ndarray] | None:
@@ -256,6 +285,17 @@ class CvvcController:
         out = np.flatnonzero((x < lo) | (x > hi))
         return ", ".join(f"{self.model.feature_names[i]} {x[i]:.0f} outside [{lo[i]:.0f}, {hi[i]:.0f}]"
                          for i in out[:4]) + (f" and {out.size - 4} more" if out.size > 4 else "")
+
+    def refuse_bank(self, capacitor_id: str, t_ns: int) -> bool:
+        """A bank refused the command of step ``t_ns``: hold it (no switching, no command) for two periods.
+
+        Returns False for an id the model does not know (nothing changes).
+        """
+        if capacitor_id not in self._cap_ids:
+            return False
+        c = self._cap_ids.index(capacitor_id)
+        self._cap_refused_until[c] = max(int(self._cap_refused_until[c]), int(t_ns) + 2 * self._period_ns)
+        return True
 
     # ------------------------------------------------------------------------------------------ helpers
     def _hold(
@@ -296,6 +336,7 @@ class CvvcController:
             iterations=solution.iterations if solution is not None else 0,
             objective=0.0,
             solver_status=solution.status if solution is not None else "not run",
+            cap_command=np.zeros(len(self._cap_ids), bool),
             timings=DecisionTimings(
                 estimate_s=float(estimate_s),
                 solve_s=sec.build_s + sec.relaxed_s if sec is not None else 0.0,
@@ -327,6 +368,18 @@ class CvvcController:
                 and self._tap_min[r] <= snap.reg_tap[r] <= self._tap_max[r]
             )
         return head_ok, pv_ok, reg_ok
+
+    def _cap_usable(self, snap: MeasurementSnapshot) -> np.ndarray:
+        """(C,) bool: banks whose frame is valid with a whole number of closed steps within the bank's."""
+        steps = np.asarray(snap.cap_steps, float)
+        ok = np.asarray(snap.cap_valid, bool) & np.isfinite(steps)
+        ok &= (steps == np.round(steps)) & (steps >= 0) & (steps <= self._cap_steps_max)
+        return ok
+
+    def _cap_movable(self, snap: MeasurementSnapshot, state: GridState) -> np.ndarray:
+        """(C,) bool: banks the decision may switch and command (usable, not refused lately, estimator state)."""
+        ok = self._cap_usable(snap) & (self._cap_refused_until < int(snap.t_ns))
+        return ok & bool(state.critical) & self.control_banks
 
     def _remember_pv_p(self, t_ns: int, pv_p_kw: np.ndarray) -> None:
         """Record the plants' output of this step in the PV variability margin's window [kW]."""
@@ -366,19 +419,25 @@ class CvvcController:
             total = bounds[0] + bounds[1]
             scale = np.where(total > room, room / np.maximum(total, 1e-12), 1.0)
             v_min_pu, v_max_pu = v_min_pu + scale * bounds[0], v_max_pu - scale * bounds[1]
+        # Capacitor banks are integer devices after the regulators: closed steps 0..steps, cost per switching.
+        movable = self._cap_movable(snap, state)
+        n = state.v0_pu.shape[0]
+        dv_dcap = self._arrays.dv_dcap_pu if state.critical and self._arrays.dv_dcap_pu is not None else None
+        dv_dcap = np.zeros((n, len(self._cap_ids))) if dv_dcap is None else dv_dcap
         return CvvcInputs(
             v0_pu=state.v0_pu,
             dv_dq_pu_per_kvar=state.dv_dq_pu_per_kvar,
-            dv_dtap_pu=state.dv_dtap_pu,
+            dv_dtap_pu=np.hstack([np.reshape(state.dv_dtap_pu, (n, -1)), dv_dcap]),
             q0_kvar=pv_q,
             q_min_kvar=np.where(pv_ok, -headroom, pv_q),
             q_max_kvar=np.where(pv_ok, headroom, pv_q),
             q_rating_kvar=np.maximum(self._pv_rating_kva, 1.0),
-            taps=state.taps,
-            tap_min=self._tap_min,
-            tap_max=self._tap_max,
-            max_taps_per_interval=np.where(reg_ok, self._max_taps, 0),
-            cost_per_tap=self._tap_cost,
+            taps=np.concatenate([state.taps, self._cap_last]).astype(int),
+            tap_min=np.concatenate([self._tap_min, np.zeros(len(self._cap_ids), int)]),
+            tap_max=np.concatenate([self._tap_max, self._cap_steps_max]),
+            max_taps_per_interval=np.concatenate([np.where(reg_ok, self._max_taps, 0),
+                                                  np.where(movable, self._cap_max_sw, 0)]),
+            cost_per_tap=np.concatenate([self._tap_cost, self._cap_cost]),
             cost_per_kvar=self._pv_cost,
             v_min_pu=v_min_pu,
             v_max_pu=v_max_pu,
@@ -411,16 +470,19 @@ class CvvcController:
             "pv_kva_available": (snap.pv_kva_available, n_pv), "pv_valid": (snap.pv_valid, n_pv),
             "reg_v120": (snap.reg_v120, n_reg), "reg_v120_compared": (snap.reg_v120_compared, n_reg),
             "reg_tap": (snap.reg_tap, n_reg), "reg_valid": (snap.reg_valid, n_reg),
+            "cap_steps": (snap.cap_steps, len(self._cap_ids)), "cap_valid": (snap.cap_valid, len(self._cap_ids)),
         }  # fmt: skip
         for name, (arr, size) in shapes.items():
             if np.shape(arr) != (size,):
                 return self._hold(snap, f"snapshot.{name} has shape {np.shape(arr)}, expected ({size},)", (), t0)
 
         head_ok, pv_ok, reg_ok = self._usable(snap)
+        cap_ok = self._cap_usable(snap)
         missing = tuple(
             (["head"] if not head_ok else [])
             + [self._pv_ids[k] for k in range(n_pv) if not pv_ok[k]]
             + [self._reg_ids[r] for r in range(n_reg) if not reg_ok[r]]
+            + [self._cap_ids[c] for c in range(len(self._cap_ids)) if not cap_ok[c]]
         )
         # Remember what is usable now (before any hold: last known values are facts, not decisions).
         for k in np.flatnonzero(pv_ok):
@@ -428,6 +490,8 @@ class CvvcController:
             self._pv_last_q_kvar[k] = float(snap.pv_q_kvar[k])
         for r in np.flatnonzero(reg_ok):
             self._reg_last_tap[r] = int(snap.reg_tap[r])
+        for c in np.flatnonzero(cap_ok):
+            self._cap_last[c] = int(snap.cap_steps[c])
         if not head_ok:
             return self._hold(snap, "no valid feeder-head frame: holding (no commands)", missing, t0)
         never_pv = [self._pv_ids[k] for k in range(n_pv) if self._pv_last_p_kw[k] is None]
@@ -441,10 +505,14 @@ class CvvcController:
         taps = np.array(self._reg_last_tap, int)
         prefix = "" if oracle is None else "case A: "
         if oracle is None:
+            # Banks switched since training: the head's Q as eq. (5) knew it, then the banks' own voltage effect.
+            head_q = head_q_at_training_banks(self._arrays, self.model.capacitors, snap.head_q_kvar, self._cap_last)
             state = estimated_state(
-                self._arrays, self._sens, self._dv_dp, head_p_kw=snap.head_p_kw, head_q_kvar=snap.head_q_kvar,
+                self._arrays, self._sens, self._dv_dp, head_p_kw=snap.head_p_kw, head_q_kvar=head_q,
                 pv_p_kw=pv_p, pv_q_kvar=pv_q, taps=taps, reg_v120=snap.reg_v120 if self.correction else None,
                 reg_ok=reg_ok)
+            if self._cap_ids:
+                state = replace(state, v0_pu=state.v0_pu + bank_voltage_pu(self._arrays, self._cap_last))
         else:
             reply = oracle(int(snap.t_ns))
             if reply is None:
@@ -481,7 +549,7 @@ class CvvcController:
             sec_node = self._arrays.reg_secondary_node
             dv_sec = solution.v_pred_pu[sec_node] - state.v0_pu[sec_node]
             v_s1 = expected_compared_v120(snap.reg_v120_compared, dv_sec, self._arrays.reg_pu_per_v120)
-            d_tap = solution.taps_new - state.taps
+            d_tap = solution.taps_new[:n_reg] - state.taps
             band, step = self.bandwidth_v120, self._step_v120
             setpoints = np.array(
                 [setpoint_for_tap_change(float(v_s1[r]), int(d_tap[r]), band, float(step[r])) for r in range(n_reg)]
@@ -509,7 +577,7 @@ class CvvcController:
             reason=reason,
             pv_q_kvar=solution.q_new_kvar.copy(),
             pv_command=pv_ok.copy(),
-            reg_tap=solution.taps_new.copy(),
+            reg_tap=solution.taps_new[:n_reg].copy(),
             reg_setpoint_v120=setpoints,
             reg_band_v120=bands,
             reg_command=reg_ok.copy(),
@@ -521,6 +589,8 @@ class CvvcController:
             iterations=solution.iterations,
             objective=solution.cost,
             solver_status=solution.status,
+            cap_steps=solution.taps_new[n_reg:].copy(),
+            cap_command=self._cap_movable(snap, state),
             timings=DecisionTimings(
                 estimate_s=t_est - t0,
                 solve_s=sec.build_s + sec.relaxed_s,

@@ -59,6 +59,7 @@ class AgentSettings(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fi
     pv_margin_window_s: float = 1800.0  # beyond the paper: PV variability margin window, 0 = off [s]
     pv_margin_cap_pu: float = 0.01  # its largest value on either side [pu]
     setpoint_hold: bool = False  # beyond the paper: re-send the last set point when no tap change is decided
+    control_banks: bool = False  # beyond the paper: decide and command the model's capacitor banks
 
 
 class AgentSummary(msgspec.Struct, frozen=True, kw_only=True):
@@ -115,10 +116,17 @@ def snapshot_from(aligned: AlignedFrames, model: CvvcModel) -> MeasurementSnapsh
         reg_vc[r] = f.v_compared_120
         reg_tap[r] = f.tap
         reg_ok[r] = True
+    cap_steps = np.zeros(len(model.capacitors), int)
+    cap_ok = np.zeros(len(model.capacitors), bool)
+    for c, bank in enumerate(model.capacitors):
+        cf = aligned.cap.get(bank.id)
+        if cf is not None and cf.steps == bank.steps:  # a bank reporting another number of steps is not the model's
+            cap_steps[c], cap_ok[c] = cf.closed_steps, True
     return MeasurementSnapshot(
         t_ns=aligned.t_ns, head_p_kw=head_p, head_q_kvar=head_q, pv_p_kw=pv_p, pv_q_kvar=pv_q,
         pv_kva_available=pv_kva, pv_q_setpoint_kvar=pv_sp, reg_v120=reg_v, reg_v120_compared=reg_vc,
-        reg_tap=reg_tap, head_valid=aligned.head is not None, pv_valid=pv_ok, reg_valid=reg_ok)
+        reg_tap=reg_tap, head_valid=aligned.head is not None, pv_valid=pv_ok, reg_valid=reg_ok,
+        cap_steps=cap_steps, cap_valid=cap_ok)
 
 
 def _round(x: float, digits: int = 9) -> float:
@@ -152,12 +160,14 @@ class DecisionMaker:
         self.period_ns = int(model.control_period_s) * 1_000_000_000
         self.aligner = FrameAligner(feeder_id=settings.feeder_id, pv_ids=tuple(p.id for p in model.pv),
                                     regulator_ids=tuple(r.id for r in model.regulators),
-                                    control_period_ns=self.period_ns)
+                                    control_period_ns=self.period_ns,
+                                    capacitor_ids=tuple(c.id for c in model.capacitors))
         self.controller = CvvcController(model, mode=settings.mode, correction=settings.correction,
                                          bandwidth_v120=settings.bandwidth_v120,
                                          pv_margin_window_s=settings.pv_margin_window_s,
                                          pv_margin_cap_pu=settings.pv_margin_cap_pu,
-                                         setpoint_hold=settings.setpoint_hold)
+                                         setpoint_hold=settings.setpoint_hold,
+                                         control_banks=settings.control_banks)
         self.oracle: OracleSource | None = None  # case A: set by the live runtime once its session is open
         self.seq = 0
         self.holds = 0
@@ -209,6 +219,11 @@ class DecisionMaker:
                 else:
                     continue
                 commands.append(m.RegCommand(regulator_id=reg.id, action=action, **header(reg.id)))
+            if d.cap_steps is not None:
+                for c, bank in enumerate(self.model.capacitors):
+                    if d.cap_command[c]:
+                        commands.append(m.CapCommand(capacitor_id=bank.id, closed_steps=int(d.cap_steps[c]),
+                                                     **header(bank.id)))
         else:
             self.holds += 1
         if d.status in ("soft", "hold"):
@@ -253,7 +268,7 @@ class DecisionMaker:
         return c
 
 
-_FRAME_TYPES = (m.HeadFrame, m.PvFrame, m.RegFrame, m.StepEnd)  # what the aligner takes (markers too)
+_FRAME_TYPES = (m.HeadFrame, m.PvFrame, m.RegFrame, m.CapFrame, m.StepEnd)  # what the aligner takes (markers too)
 
 
 def decide_offline(model: CvvcModel, settings: AgentSettings | None,
@@ -309,6 +324,8 @@ def run_agent(model: CvvcModel, settings: AgentSettings, bus, *, stop: threading
             cmd_pubs[p.id] = TypedPublisher(session, keys.cmd(f, "pv", p.id), m.PvCommand, reliable=True)
         for r in model.regulators:
             cmd_pubs[r.id] = TypedPublisher(session, keys.cmd(f, "vr", r.id), m.RegCommand, reliable=True)
+        for c in model.capacitors:
+            cmd_pubs[c.id] = TypedPublisher(session, keys.cmd(f, "cap", c.id), m.CapCommand, reliable=True)
         if settings.full_visibility:
             maker.oracle = _Oracle(session, f, settings.oracle_timeout_s, rlog).reply
 
@@ -337,6 +354,7 @@ def run_agent(model: CvvcModel, settings: AgentSettings, bus, *, stop: threading
                         if msg.status == "rejected":
                             rlog.warning("command_rejected", "command %s rejected by %s: %s", msg.cmd_id,
                                          msg.device_id, msg.reason)
+                            maker.controller.refuse_bank(msg.device_id, msg.t_ns)  # a bank is then held
                     else:
                         if not isinstance(msg, m.StepEnd):  # a marker alone does not make the inputs fresh
                             last_frame_wall, last_frame_t_ns = now, msg.t_ns

@@ -69,6 +69,11 @@ def bench_decision(
         dv.RegulatorController(r.id, i, 16, r.default_setpoint_v120, r.default_band_v120)
         for i, r in enumerate(model.regulators)
     ]
+    caps = [  # the model's banks report too (the aligner waits for them), on their local control
+        dv.CapBankController(c.id, i, int(engine.cap_steps[i]), float(engine.cap_kvar[i]),
+                             engine.cap_control_type[i])  # type: ignore[arg-type]
+        for i, c in enumerate(model.capacitors)
+    ]
     steps: list[list[tuple[str, Any]]] = []
     case_a_s, oracle_s, sizes = [], [], []
     oracle_dv: list[float] = []  # the oracle engine's voltages against the simulation's [pu]
@@ -130,16 +135,27 @@ def bench_decision(
             )
             for r, reg in enumerate(regs)
         ]
+        frames += [
+            (
+                keys.meas_cap(fid, cap.capacitor_id),
+                dv.cap_frame(cap=cap, t_ns=t, seq=seq, closed_steps=int(res.cap_states[i]),
+                             v_v=float(rd.cap_v_v[i]), control_value=None, active=None),
+            )
+            for i, cap in enumerate(caps)
+        ]
         steps.append(frames)
         aligned_now = [a for key, frame in frames for a, _ in reference.on_frame(key, frame)]
         if not aligned_now:
             continue
-        t0 = time.perf_counter()
         oracle.set_loads_kw(profiles.load_kw(res.step, res.step + 1)[0])
         oracle.set_pv(res.pv_p_kw, res.pv_q_kvar)
         oracle.set_taps(res.taps)
-        sens = oracle.perturbation_sensitivities()  # solves the state first
-        v = oracle.node_voltages_pu()
+        oracle.set_cap_states(res.cap_states)
+        oracle.solve()
+        v = oracle.node_voltages_pu()  # the state, before the perturbations (not timed: they solve it again)
+        t0 = time.perf_counter()
+        # not restored in place (the next step sets the state again; on large feeders undoing the moves drifts)
+        sens = oracle.perturbation_sensitivities(restore=False)  # solves the state first
         t1 = time.perf_counter()
         oracle_dv.append(float(np.max(np.abs(v - res.v_pu))))
         reply = m.OracleReply(

@@ -14,3 +14,6 @@ def add_agent_option_arguments(p: argparse.ArgumentParser) -> None:
                         "0 = the paper's method)")
     p.add_argument("--setpoint-hold", action="store_true",
                    help="the agent re-sends its last set point when no tap change is decided (cases C/D)")
+    p.add_argument("--control-banks", action="store_true",
+                   help="the agent decides and commands the capacitor banks (cases B-D; default: they stay on "
+                        "their local control)")

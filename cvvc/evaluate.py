@@ -97,6 +97,7 @@ class EvaluateConfig(msgspec.Struct, frozen=True, kw_only=True):
     robustness: bool = False
     pv_margin_window_s: float | None = None  # the agent's PV variability margin window; None: its default, 0: off
     setpoint_hold: bool = False  # the agent's opt-in set-point hold (cases C/D)
+    control_banks: bool = False  # the agent's opt-in capacitor-bank decisions
     resume: bool = False  # reuse a run whose folder already holds a finished summary.json of the same spec
     perturbation_pct: float = 10.0
     perturbation_seed: int = 7
@@ -283,6 +284,7 @@ def _run_config(spec: RunSpec, config: EvaluateConfig, dm_path: Path, model: Pat
         start=spec.start, case=spec.case, out=str(out / spec.name), train_seed=config.train_seed,  # type: ignore[arg-type]
         year_seed=config.year_seed, bandwidth_v120=spec.bandwidth_v120, cache=config.cache, baseline=False,
         pv_margin_window_s=config.pv_margin_window_s, setpoint_hold=config.setpoint_hold,
+        control_banks=config.control_banks,
         progress=config.progress, progress_label=spec.name,
         noise_pmu_pct=0.1 if spec.variant == "noise-pmu" else 0.0,
         noise_scada_pct=1.0 if spec.variant == "noise-scada" else 0.0,

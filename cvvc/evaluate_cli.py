@@ -56,7 +56,8 @@ def _evaluate(args: argparse.Namespace) -> int:
                             days_per_season=args.days_per_season, jobs=args.jobs, out=args.out, cache=args.cache,
                             robustness=args.robustness, resume=args.resume,
                             reference_step_s=args.reference_step_s,
-                            pv_margin_window_s=args.pv_margin_window_s, setpoint_hold=args.setpoint_hold, **kw)
+                            pv_margin_window_s=args.pv_margin_window_s, setpoint_hold=args.setpoint_hold,
+                            control_banks=args.control_banks, **kw)
     try:
         ev = evaluate(config)
     except EvaluateError as e:

@@ -74,6 +74,7 @@ class RunConfig(msgspec.Struct, frozen=True, kw_only=True):
     bandwidth_v120: float = 4.0
     pv_margin_window_s: float | None = None  # the agent's PV variability margin window; None: its default, 0: off
     setpoint_hold: bool = False  # the agent's opt-in set-point hold (cases C/D)
+    control_banks: bool = False  # the agent's opt-in capacitor-bank decisions (cases B-D)
     lockstep_timeout_s: float = 10.0
     cache: str | None = None  # cache root; None: schemas.cache.default_cache_root()
     record: bool = True
@@ -138,7 +139,7 @@ CASE_AGENT: Mapping[Case, CaseAgent | None] = MappingProxyType({
 
 
 def case_agent_settings(case: Case, feeder_id: str, bandwidth_v120: float, pv_margin_window_s: float | None = None,
-                        setpoint_hold: bool = False) -> AgentSettings | None:
+                        setpoint_hold: bool = False, control_banks: bool = False) -> AgentSettings | None:
     """The agent's settings of a case (``CASE_AGENT``), or None when the case runs no agent.
 
     ``pv_margin_window_s`` [s] (None: the agent's default) and ``setpoint_hold`` (cases C/D) are the agent's
@@ -154,6 +155,8 @@ def case_agent_settings(case: Case, feeder_id: str, bandwidth_v120: float, pv_ma
                              full_visibility=row.full_visibility)
     if pv_margin_window_s is not None:
         settings = msgspec.structs.replace(settings, pv_margin_window_s=float(pv_margin_window_s))
+    if control_banks and not row.full_visibility:  # case A never switches banks (the oracle has no bank terms)
+        settings = msgspec.structs.replace(settings, control_banks=True)
     if row.setpoints:
         settings = msgspec.structs.replace(settings, bandwidth_v120=float(bandwidth_v120),
                                            setpoint_hold=bool(setpoint_hold))
@@ -320,7 +323,7 @@ def run(config: RunConfig) -> RunSummary:
     feeder_id = dm.feeder.name
     fingerprint = dm.fingerprint()
     agent_settings = case_agent_settings(config.case, feeder_id, config.bandwidth_v120, config.pv_margin_window_s,
-                                         config.setpoint_hold)
+                                         config.setpoint_hold, config.control_banks)
     if agent_settings is not None and config.check_model_fingerprint:
         from regression.model import read_model
 

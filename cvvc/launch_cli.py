@@ -60,6 +60,7 @@ def _run(args: argparse.Namespace) -> int:
                        realtime=args.realtime, speed=args.speed, out=args.out, train_seed=args.train_seed,
                        year_seed=args.year_seed, bandwidth_v120=args.bandwidth_v, record=not args.no_record,
                        pv_margin_window_s=args.pv_margin_window_s, setpoint_hold=args.setpoint_hold,
+                       control_banks=args.control_banks,
                        baseline=not args.no_baseline, cache=args.cache, progress=not args.json,
                        secure=args.secure, ca_dir=args.ca_dir, drop_prob=args.drop_prob,
                        noise_scada_pct=args.noise_scada_pct, noise_pmu_pct=args.noise_pmu_pct)

@@ -8,7 +8,9 @@ Index conventions used by every array:
 - ``n`` = critical node, in ``critical_nodes`` order;
 - ``k`` = PV plant, in ``pv`` order;
 - ``r`` = regulator (one tap changer), in ``regulators`` order;
-- ``m`` = regression feature, in ``feature_names`` order (see ``features``).
+- ``m`` = regression feature, in ``feature_names`` order (see ``features``);
+- ``c`` = switched capacitor bank the agent controls, in ``capacitors`` order (models written before banks
+  were controlled have none: they load with an empty list).
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ from regression.errors import ModelError
 
 __all__ = [
     "MODEL_FORMAT_VERSION",
+    "CapacitorInfo",
     "CriticalNode",
     "CvvcModel",
     "EstimateBounds",
@@ -80,6 +83,23 @@ class RegulatorInfo(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fi
     max_taps_per_interval: int = 4
     default_setpoint_v120: float = 120.0
     default_band_v120: float = 2.0
+
+
+class CapacitorInfo(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """A switched capacitor bank the agent controls (beyond the paper; docs/method.md "Capacitor decisions").
+
+    ``steps`` of ``kvar_rated / steps`` each; ``closed0`` is the number of closed steps every training power
+    flow ran at (the state eq. (5) has built in); ``phases`` are the bank's phases (1-3), over which its
+    kvar is spread. ``cost_per_switch`` is per step opened or closed (the device map's).
+    """
+
+    id: str
+    steps: Annotated[int, Meta(ge=1, le=64)]
+    kvar_rated: Annotated[float, Meta(gt=0.0, le=1e6)]
+    phases: list[Literal[1, 2, 3]]
+    closed0: Annotated[int, Meta(ge=0, le=64)]
+    cost_per_switch: Annotated[float, Meta(ge=0.0, le=1e6)] = 1.0
+    max_switches_per_interval: Annotated[int, Meta(ge=0, le=64)] = 1
 
 
 class PvInfo(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
@@ -165,6 +185,8 @@ class CvvcModel(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields
     - ``tap0[r]``: the taps the training power flows ran at (eq. 5's T_r^0).
     - ``dv_dtap_pu[n][r]``: static voltage change per tap step (eq. 4) [pu/step].
     - ``sens_q[n][k]``: dV_n/dQ_k fits (eq. 3) [pu/kvar].
+    - ``dv_dcap_pu[n][c]``: static voltage change per closed step of bank ``c`` [pu/step] (beyond the paper;
+      empty in models without ``capacitors``).
     """
 
     format_version: int = MODEL_FORMAT_VERSION
@@ -186,6 +208,9 @@ class CvvcModel(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields
     node_count: int = 0  # single-phase nodes in the whole feeder, for reporting the critical share
     fit: FitStats | None = None
     bounds: EstimateBounds | None = None  # calibrated estimate bounds (None: a model trained without them)
+    # added for capacitor decisions (additive, with defaults: older models load with no banks)
+    capacitors: list[CapacitorInfo] = []
+    dv_dcap_pu: list[list[Finite]] = []
 
 
 def feature_names(n_pv: int) -> list[str]:
@@ -230,6 +255,8 @@ class ModelArrays:
     upstream_regulator: np.ndarray  # (N,) int, -1 where none
     reg_secondary_node: np.ndarray  # (R,) int
     reg_pu_per_v120: np.ndarray  # (R,)
+    dv_dcap_pu: np.ndarray | None = None  # (N, C) [pu/step]; None = no bank
+    cap0: np.ndarray | None = None  # (C,) closed steps of the training flows
 
     @classmethod
     def of(cls, model: CvvcModel) -> ModelArrays:
@@ -245,12 +272,26 @@ class ModelArrays:
             ),
             reg_secondary_node=np.asarray([r.secondary_node for r in model.regulators], int),
             reg_pu_per_v120=np.asarray([r.pu_per_v120 for r in model.regulators], float),
+            dv_dcap_pu=_dv_dcap(model),
+            cap0=np.asarray([c.closed0 for c in model.capacitors], float),
         )
+
+
+def _dv_dcap(model: CvvcModel) -> np.ndarray:
+    """(N, C) per-step bank sensitivities of ``model``; a clear error when the grid does not fit its banks."""
+    n, c = len(model.critical_nodes), len(model.capacitors)
+    a = np.asarray(model.dv_dcap_pu, float)
+    if c == 0 and a.size == 0:
+        return np.zeros((n, 0))
+    if a.shape != (n, c):
+        raise ModelError(f"model has {c} capacitor bank(s) but dv_dcap_pu has shape {a.shape}, expected ({n}, {c}); "
+                         "retrain with `cvvc train`")
+    return a
 
 
 def write_model(model: CvvcModel, path: str | Path) -> None:
     """Write ``model`` as JSON, refusing non-finite numbers (msgspec would write them as null)."""
-    for row in model.alpha + model.dv_dtap_pu:
+    for row in model.alpha + model.dv_dtap_pu + model.dv_dcap_pu:
         if not np.all(np.isfinite(row)):
             raise ModelError("refusing to write a model with non-finite coefficients")
     Path(path).write_bytes(msgspec.json.format(msgspec.json.encode(model), indent=1))
@@ -277,6 +318,7 @@ def read_model(path: str | Path, *, expect_fingerprint: str | None = None) -> Cv
         model = msgspec.json.decode(raw, type=CvvcModel)
     except msgspec.ValidationError as e:
         raise ModelError(f"{path}: invalid model file: {e}") from e
+    _dv_dcap(model)  # banks and their sensitivities agree, or a clear error now rather than in the agent
     if expect_fingerprint is not None and model.fingerprint != expect_fingerprint:
         raise ModelError(
             f"{path}: model was trained for feeder {model.feeder_name!r} (fingerprint {model.fingerprint}), "

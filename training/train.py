@@ -25,6 +25,7 @@ from regression.model import (
     TrainingSettings,
     feature_names,
 )
+from training.capbanks import bank_infos, bank_sensitivities
 from training.critical import extreme_nodes, movable_nodes, node_phase, select_critical, upstream_regulators
 from training.errors import TrainingError
 from training.fits import (
@@ -46,7 +47,7 @@ from training.scenarios import ScenarioSet, select_scenarios, summarize_year
 __all__ = ["DEFAULT_Q_STEPS_PCT", "TRAINING_REVISION", "TrainResult", "TrainSummary", "load_profiles", "train"]
 
 #: Bump when training changes what it produces, so cached models (``cvvc run``'s cache) are retrained.
-TRAINING_REVISION = 4  # 3: critical nodes in the feeder zone and movable only; 4: calibrated estimate bounds
+TRAINING_REVISION = 5  # 3: critical nodes in the feeder zone and movable only; 4: estimate bounds; 5: capacitor banks
 
 DEFAULT_Q_STEPS_PCT = tuple(float(p) for p in range(-100, 101, 20))
 DEFAULT_COMBINED_PCT = (-100.0, -50.0, 50.0, 100.0)
@@ -107,10 +108,11 @@ def _check_device_map(dm) -> None:
             f"feeder {dm.feeder.name!r}: the device map has no PV plant; add at least one [[pv]] entry "
             "(the estimator regresses on PV plant measurements)"
         )
-    if not dm.regulator:
+    if not dm.regulator and not dm.capacitor:
         raise TrainingError(
-            f"feeder {dm.feeder.name!r}: the device map has no regulator; add at least one [[regulator]] "
-            "entry (the correction of eq. (6)-(7) needs a regulator secondary measurement)"
+            f"feeder {dm.feeder.name!r}: the device map has no regulator and no capacitor bank; add a "
+            "[[regulator]] (the correction of eq. (6)-(7) needs a regulator secondary measurement) or a "
+            "[[capacitor]] entry"
         )
 
 
@@ -150,7 +152,12 @@ def _q_sensitivities(engine, first: ScenarioInput, tap0: np.ndarray) -> np.ndarr
     engine.set_loads_kw(first.load_kw)
     engine.set_pv(first.pv_kw, np.zeros(len(first.pv_kw)))
     engine.set_taps(tap0)
-    return engine.perturbation_sensitivities().dv_dq
+    # Not restored in place (on a large feeder, undoing the moves leaves ~1e-4 pu, which the check refuses):
+    # every later stage sets loads, PV and taps itself.
+    dv_dq = engine.perturbation_sensitivities(restore=False).dv_dq
+    engine.set_pv(first.pv_kw, np.zeros(len(first.pv_kw)))
+    engine.set_taps(tap0)
+    return dv_dq
 
 
 def _critical(engine, dm, flows: PowerFlowSet, dv_dtap_all: np.ndarray, dv_dq_all: np.ndarray):
@@ -252,6 +259,7 @@ def train(
     engine.set_pv(summary.mean_pv_kw, np.zeros(len(engine.pv_kva)))
     engine.set_taps(np.zeros(len(engine.regulator_ids), int))
     tap0 = settle_taps(engine)
+    cap0 = engine.cap_states()  # every training flow keeps the banks here (the engine's compile-time state)
 
     # Algorithm 1 lines 2-6 (eq. 4), then the Q sweeps
     _, dv_dtap_all = _tap_perturbation(engine, inputs[0], tap0)
@@ -273,6 +281,7 @@ def train(
 
     # II.C: critical nodes
     dv_dq_all = _q_sensitivities(engine, inputs[0], tap0)
+    dv_dcap_all = bank_sensitivities(engine, inputs, tap0, cap0)
     crit, upstream_all, phases = _critical(engine, dm, flows, dv_dtap_all, dv_dq_all)
     nodes = crit.nodes
     pos = {int(n): i for i, n in enumerate(nodes)}
@@ -359,6 +368,8 @@ def train(
         control_period_s=dm.feeder.control_period_s,
         node_count=len(engine.node_names),
         fit=fit_stats,
+        capacitors=bank_infos(engine, dm, cap0),
+        dv_dcap_pu=dv_dcap_all[nodes].tolist(),
     )
     t_cal = time.perf_counter()
     if calibration_minutes > 0:
@@ -472,6 +483,8 @@ def _check_finite(model: CvvcModel) -> None:
         bad.append("alpha")
     if not np.all(np.isfinite(np.asarray(model.dv_dtap_pu, float))):
         bad.append("dv_dtap_pu")
+    if not np.all(np.isfinite(np.asarray(model.dv_dcap_pu, float))):
+        bad.append("dv_dcap_pu")
     if not all(np.isfinite([f.a, f.b, f.c]).all() for row in model.sens_q for f in row):
         bad.append("sens_q")
     if bad:
