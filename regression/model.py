@@ -8,12 +8,18 @@ Index conventions used by every array:
 - ``n`` = critical node, in ``critical_nodes`` order;
 - ``k`` = PV plant, in ``pv`` order;
 - ``r`` = regulator (one tap changer), in ``regulators`` order;
-- ``m`` = regression feature, in ``feature_names`` order (see ``features``).
+- ``m`` = regression feature, in ``feature_names`` order (see ``features``);
+- ``c`` = capacitor bank, in ``capacitors`` order;
+- ``j`` = field reading used as a feature (``feature_set == "extended"``), in ``readings`` order.
+
+Format versions: 1 (the paper's features only) and 2 (adds the optional ``extended`` feature set: field-device
+voltage readings as regressors and the capacitor banks' state term, docs/method.md). A version-1 file reads as
+a version-2 model with ``feature_set = "paper"``; any other version is refused with a clear error.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated, Literal
 
@@ -25,27 +31,37 @@ from regression.errors import ModelError
 
 __all__ = [
     "MODEL_FORMAT_VERSION",
+    "READABLE_FORMAT_VERSIONS",
+    "CapacitorInfo",
     "CriticalNode",
     "CvvcModel",
     "FitStats",
     "ModelArrays",
+    "FeatureSet",
     "ModelError",
     "PvInfo",
     "RegulatorInfo",
     "SensitivityFit",
     "TrainingSettings",
     "features",
+    "extended_feature_names",
     "feature_names",
     "read_model",
     "write_model",
 ]
 
-MODEL_FORMAT_VERSION = 1
+MODEL_FORMAT_VERSION = 2
+READABLE_FORMAT_VERSIONS = (1, 2)  # 1: written before the extended feature set; reads with its defaults
 
 Finite = Annotated[float, Meta(ge=-1e12, le=1e12)]
 
 
-NodeKind = Literal["head", "reg_primary", "reg_secondary", "pv", "extreme"]
+NodeKind = Literal["head", "reg_primary", "reg_secondary", "pv", "extreme", "near_extreme"]
+
+#: ``paper``: eq. (5) on the feeder head's and the plants' P and Q (the paper's limited measurement set).
+#: ``extended``: those plus the field devices' own voltage readings (regulator secondaries, capacitor buses) as
+#: regressors, and a capacitor-state term like eq. (4)'s tap term (beyond the paper, docs/method.md).
+FeatureSet = Literal["paper", "extended"]
 
 
 class CriticalNode(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
@@ -91,6 +107,19 @@ class PvInfo(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=Tr
     phases: int = 3
 
 
+class CapacitorInfo(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """A switched capacitor bank as the estimator sees it (``feature_set == "extended"``).
+
+    ``v_ref_v`` divides the bank's bus voltage reading (``CapFrame.v_v``, line-to-neutral [V]) into the
+    per-unit reading the regression uses: the median reading over the training power flows [V].
+    """
+
+    id: str
+    steps: int
+    kvar: float
+    v_ref_v: float
+
+
 class SensitivityFit(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
     """dV/dQ of one critical node to one plant's Q [pu/kvar], as a function of feeder-head Q [kvar].
 
@@ -122,6 +151,7 @@ class TrainingSettings(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown
     combined_pct: list[float] = []  # all-plant Q perturbations [% of each plant's headroom]
     rcond: float = 0.0  # truncation of the eq. (5) least squares (0: not recorded)
     tolerance: float = 0.0  # OpenDSS solve tolerance of the training flows (0: not recorded)
+    critical_margin_pu: float = 0.0  # near-extreme nodes within this of a flow's extreme are critical (0: none)
 
 
 class FitStats(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
@@ -144,6 +174,20 @@ class CvvcModel(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields
     - ``tap0[r]``: the taps the training power flows ran at (eq. 5's T_r^0).
     - ``dv_dtap_pu[n][r]``: static voltage change per tap step (eq. 4) [pu/step].
     - ``sens_q[n][k]``: dV_n/dQ_k fits (eq. 3) [pu/kvar].
+
+    Extended feature set only (empty for ``paper``):
+
+    - ``readings[j]``: ``"reg:<id>"`` (the regulator's raw secondary voltage in pu of its secondary node) or
+      ``"cap:<id>"`` (the bank's bus voltage over ``CapacitorInfo.v_ref_v``); they enter eq. (5) after the
+      paper features (``extended_feature_names``).
+    - ``cap0[c]``, ``dv_dcap_pu[n][c]``: the banks' closed steps in training and the voltage change per closed
+      step (a static perturbation like eq. (4)) [pu/step].
+    - ``feature_dtap[m][r]``, ``feature_dcap[m][c]``: each feature's change per tap step / closed step, from
+      the same perturbations [kW, kvar or pu per step]: features are mapped back to ``tap0``/``cap0`` before
+      eq. (5), so that a tap or a bank acts only through its own static term (a bank's kvar at the head would
+      otherwise read as a load change).
+    - ``reading_alpha[j]``: each (mapped) reading regressed on the (mapped) paper features (coefficients then
+      intercept), used in place of a reading that is missing.
     """
 
     format_version: int = MODEL_FORMAT_VERSION
@@ -164,6 +208,15 @@ class CvvcModel(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields
     control_period_s: int = 300
     node_count: int = 0  # single-phase nodes in the whole feeder, for reporting the critical share
     fit: FitStats | None = None
+    # format 2 (additive, with defaults): the extended feature set
+    feature_set: FeatureSet = "paper"
+    capacitors: list[CapacitorInfo] = []
+    cap0: list[int] = []
+    dv_dcap_pu: list[list[Finite]] = []
+    readings: list[str] = []
+    feature_dtap: list[list[Finite]] = []
+    feature_dcap: list[list[Finite]] = []
+    reading_alpha: list[list[Finite]] = []
 
 
 def feature_names(n_pv: int) -> list[str]:
@@ -176,6 +229,11 @@ def feature_names(n_pv: int) -> list[str]:
     for k in range(n_pv):
         names += [f"pv{k}_p_kw", f"pv{k}_q_kvar"]
     return names
+
+
+def extended_feature_names(n_pv: int, readings: list[str]) -> list[str]:
+    """Features of the ``extended`` set: the paper's (``feature_names``) then one per field reading."""
+    return feature_names(n_pv) + [f"reading_{r}" for r in readings]
 
 
 def features(
@@ -208,10 +266,26 @@ class ModelArrays:
     upstream_regulator: np.ndarray  # (N,) int, -1 where none
     reg_secondary_node: np.ndarray  # (R,) int
     reg_pu_per_v120: np.ndarray  # (R,)
+    # the extended feature set (defaults: none, as for a paper model)
+    cap0: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (C,) closed steps in training
+    cap_v_ref_v: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (C,) each bank's reading reference [V]
+    dv_dcap_pu: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))  # (N, C) [pu/step]
+    feature_dtap: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))  # (M, R) per tap step
+    feature_dcap: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))  # (M, C) per closed step
+    reading_alpha: np.ndarray = field(default_factory=lambda: np.zeros((0, 1)))  # (J, M_paper + 1)
+
+    @property
+    def n_readings(self) -> int:
+        """Field readings among the features (0 for the paper's feature set)."""
+        return int(self.reading_alpha.shape[0])
 
     @classmethod
     def of(cls, model: CvvcModel) -> ModelArrays:
         n_reg = len(model.regulators)
+        n_node, n_cap, n_read = len(model.critical_nodes), len(model.cap0), len(model.readings)
+        n_paper = len(feature_names(len(model.pv)))
+        n_feat = n_paper + n_read
+        extended = model.feature_set == "extended"
         return cls(
             alpha=np.asarray(model.alpha, float),
             tap0=np.asarray(model.tap0, float),
@@ -222,12 +296,20 @@ class ModelArrays:
             ),
             reg_secondary_node=np.asarray([r.secondary_node for r in model.regulators], int),
             reg_pu_per_v120=np.asarray([r.pu_per_v120 for r in model.regulators], float),
+            cap0=np.asarray(model.cap0, float),
+            cap_v_ref_v=np.asarray([c.v_ref_v for c in model.capacitors], float),
+            dv_dcap_pu=np.asarray(model.dv_dcap_pu, float).reshape(n_node, n_cap),
+            feature_dtap=np.asarray(model.feature_dtap, float).reshape(n_feat, n_reg) if extended
+            else np.zeros((n_feat, n_reg)),
+            feature_dcap=np.asarray(model.feature_dcap, float).reshape(n_feat, n_cap) if extended
+            else np.zeros((n_feat, n_cap)),
+            reading_alpha=np.asarray(model.reading_alpha, float).reshape(n_read, n_paper + 1),
         )
 
 
 def write_model(model: CvvcModel, path: str | Path) -> None:
     """Write ``model`` as JSON, refusing non-finite numbers (msgspec would write them as null)."""
-    for row in model.alpha + model.dv_dtap_pu:
+    for row in model.alpha + model.dv_dtap_pu + model.dv_dcap_pu + model.reading_alpha:
         if not np.all(np.isfinite(row)):
             raise ModelError("refusing to write a model with non-finite coefficients")
     Path(path).write_bytes(msgspec.json.format(msgspec.json.encode(model), indent=1))
@@ -245,18 +327,46 @@ def read_model(path: str | Path, *, expect_fingerprint: str | None = None) -> Cv
     except msgspec.DecodeError as e:
         raise ModelError(f"{path}: not a model file (invalid JSON): {e}") from e
     version = head.get("format_version")
-    if version != MODEL_FORMAT_VERSION:
+    if version not in READABLE_FORMAT_VERSIONS:
         raise ModelError(
-            f"{path}: model format {version!r}, this cvvc-edge reads {MODEL_FORMAT_VERSION}; retrain with "
-            "`cvvc train`"
+            f"{path}: model format {version!r}, this cvvc-edge reads formats {list(READABLE_FORMAT_VERSIONS)}; "
+            "retrain with `cvvc train`"
         )
     try:
         model = msgspec.json.decode(raw, type=CvvcModel)
     except msgspec.ValidationError as e:
         raise ModelError(f"{path}: invalid model file: {e}") from e
+    _check_extended(model, path)
     if expect_fingerprint is not None and model.fingerprint != expect_fingerprint:
         raise ModelError(
             f"{path}: model was trained for feeder {model.feeder_name!r} (fingerprint {model.fingerprint}), "
             f"not this feeder (fingerprint {expect_fingerprint}); train a model for it with `cvvc train`"
         )
     return model
+
+
+def _check_extended(model: CvvcModel, path: Path) -> None:
+    """Refuse a model whose extended-feature arrays do not agree in size with each other."""
+    n_node, n_reg = len(model.critical_nodes), len(model.regulators)
+    n_cap, n_read = len(model.cap0), len(model.readings)
+    n_paper = len(feature_names(len(model.pv)))
+    n_feat = n_paper + n_read
+    checks = [
+        (len(model.feature_names) == n_feat, f"{len(model.feature_names)} feature names for {n_feat} features"),
+        (all(len(a) == n_feat + 1 for a in model.alpha), f"alpha rows are not {n_feat} + 1 long"),
+        (len(model.capacitors) == n_cap, f"{len(model.capacitors)} capacitors for {n_cap} cap0 entries"),
+        (n_cap == 0 or (len(model.dv_dcap_pu) == n_node and all(len(r) == n_cap for r in model.dv_dcap_pu)),
+         "dv_dcap_pu is not (nodes x capacitors)"),
+        (model.feature_set == "paper" or (len(model.feature_dtap) == n_feat
+                                           and all(len(r) == n_reg for r in model.feature_dtap)),
+         "feature_dtap is not (features x regulators)"),
+        (model.feature_set == "paper" or (len(model.feature_dcap) == n_feat
+                                           and all(len(r) == n_cap for r in model.feature_dcap)),
+         "feature_dcap is not (features x capacitors)"),
+        (len(model.reading_alpha) == n_read and all(len(r) == n_paper + 1 for r in model.reading_alpha),
+         "reading_alpha is not (readings x paper features + 1)"),
+        (model.feature_set == "extended" or n_read == 0, "a paper model with field readings"),
+    ]
+    bad = [what for ok, what in checks if not ok]
+    if bad:
+        raise ModelError(f"{path}: inconsistent model file ({'; '.join(bad)}); retrain with `cvvc train`")

@@ -16,6 +16,7 @@ import msgspec
 import numpy as np
 
 from regression.model import (
+    CapacitorInfo,
     CriticalNode,
     CvvcModel,
     FitStats,
@@ -23,10 +24,12 @@ from regression.model import (
     RegulatorInfo,
     SensitivityFit,
     TrainingSettings,
+    extended_feature_names,
     feature_names,
 )
 from training.critical import extreme_nodes, movable_nodes, node_phase, select_critical, upstream_regulators
 from training.errors import TrainingError
+from training.extended import near_extreme_cover, perturb_devices, reading_matrix
 from training.fits import (
     SensitivitySamples,
     choose_c_kvar,
@@ -46,7 +49,7 @@ from training.scenarios import ScenarioSet, select_scenarios, summarize_year
 __all__ = ["DEFAULT_Q_STEPS_PCT", "TRAINING_REVISION", "TrainResult", "TrainSummary", "load_profiles", "train"]
 
 #: Bump when training changes what it produces, so cached models (``cvvc run``'s cache) are retrained.
-TRAINING_REVISION = 3  # 3: critical nodes in the feeder zone and movable only
+TRAINING_REVISION = 4  # 3: critical nodes in the feeder zone and movable only; 4: format 2 (extended option)
 
 DEFAULT_Q_STEPS_PCT = tuple(float(p) for p in range(-100, 101, 20))
 DEFAULT_COMBINED_PCT = (-100.0, -50.0, 50.0, 100.0)
@@ -98,16 +101,17 @@ def load_profiles(device_map, engine, *, seed: int, cache_dir: str | Path | None
     return feeder_profiles(device_map, engine, seed=seed, cache_dir=cache_dir)
 
 
-def _check_device_map(dm) -> None:
+def _check_device_map(dm, feature_set: str = "paper") -> None:
     if not dm.pv:
         raise TrainingError(
             f"feeder {dm.feeder.name!r}: the device map has no PV plant; add at least one [[pv]] entry "
             "(the estimator regresses on PV plant measurements)"
         )
-    if not dm.regulator:
+    if not dm.regulator and not (feature_set == "extended" and dm.capacitor):
         raise TrainingError(
             f"feeder {dm.feeder.name!r}: the device map has no regulator; add at least one [[regulator]] "
-            "entry (the correction of eq. (6)-(7) needs a regulator secondary measurement)"
+            "entry (the correction of eq. (6)-(7) needs a regulator secondary measurement), or train the "
+            "extended feature set, which reads the capacitor banks' voltages"
         )
 
 
@@ -150,7 +154,7 @@ def _q_sensitivities(engine, first: ScenarioInput, tap0: np.ndarray) -> np.ndarr
     return engine.perturbation_sensitivities().dv_dq
 
 
-def _critical(engine, dm, flows: PowerFlowSet, dv_dtap_all: np.ndarray, dv_dq_all: np.ndarray):
+def _critical(engine, dm, flows: PowerFlowSet, dv_dtap_all: np.ndarray, dv_dq_all: np.ndarray, margin_pu: float):
     names = engine.node_names
     phases = np.asarray([node_phase(n) for n in names])
     v_ref = np.median(flows.v_pu, axis=0)
@@ -170,6 +174,8 @@ def _critical(engine, dm, flows: PowerFlowSet, dv_dtap_all: np.ndarray, dv_dq_al
         "reg_secondary": np.asarray(engine.reg_secondary_node, int),  # always: the correction reads them
         "pv": pv_nodes[eligible[pv_nodes]] if pv_nodes.size else pv_nodes,
     }
+    if margin_pu > 0:
+        required["near_extreme"] = near_extreme_cover(flows.v_pu, eligible, margin_pu)
     crit = select_critical(required, extreme_nodes(flows.v_pu, eligible=eligible))
     upstream = upstream_regulators(dv_dtap_all, engine.reg_secondary_node)
     return crit, upstream, phases
@@ -189,6 +195,8 @@ def train(
     cache_dir: str | Path | None = None,
     profiles=None,
     progress: bool = True,
+    feature_set: Literal["paper", "extended"] = "paper",
+    critical_margin_pu: float = 0.0,
 ) -> TrainResult:
     """Train the estimator of one feeder (paper II.A-II.D).
 
@@ -206,6 +214,10 @@ def train(
     cache_dir : where to cache the year profiles (None: no cache; the CLI passes ``schemas.cache.profiles_dir``).
     profiles : use these ``YearProfiles`` instead of generating them (tests).
     progress : progress bar on stderr when it is a terminal.
+    feature_set : "paper" (eq. (5) on head and plant P, Q) or "extended" (plus the field devices' voltage
+        readings and the capacitor banks' state term; ``training.extended``).
+    critical_margin_pu : > 0 adds a greedy cover of the nodes within this of each flow's extremes to the
+        critical nodes (``training.extended.near_extreme_cover``); 0: the paper's extremes only.
 
     Raises
     ------
@@ -218,7 +230,7 @@ def train(
     t_start = time.perf_counter()
     device_map_path = Path(device_map_path)
     dm = load_device_map(device_map_path)
-    _check_device_map(dm)
+    _check_device_map(dm, feature_set)
     engine = FeederEngine(dm, tolerance=tolerance)
     for what, d in (("load", engine.load_distance_ohm), ("PV plant", engine.pv_distance_ohm)):
         if not np.all(np.isfinite(d)):
@@ -247,6 +259,8 @@ def train(
 
     # Algorithm 1 lines 2-6 (eq. 4), then the Q sweeps
     _, dv_dtap_all = _tap_perturbation(engine, inputs[0], tap0)
+    cap0 = engine.cap_states()
+    pert = perturb_devices(engine, inputs[0].load_kw, inputs[0].pv_kw, tap0) if feature_set == "extended" else None
     t_pf = time.perf_counter()
     n_workers = max(1, min((os.cpu_count() or 1) if workers is None else workers, len(inputs)))
     flows = run_power_flows(
@@ -265,13 +279,15 @@ def train(
 
     # II.C: critical nodes
     dv_dq_all = _q_sensitivities(engine, inputs[0], tap0)
-    crit, upstream_all, phases = _critical(engine, dm, flows, dv_dtap_all, dv_dq_all)
+    crit, upstream_all, phases = _critical(engine, dm, flows, dv_dtap_all, dv_dq_all, critical_margin_pu)
     nodes = crit.nodes
     pos = {int(n): i for i, n in enumerate(nodes)}
 
     # II.D: eq. (5) on the critical nodes (the target is the voltage at tap0: identity for frozen-tap flows)
     v_crit = flows.v_pu[:, nodes] - (flows.taps - tap0) @ dv_dtap_all[nodes].T
-    vfit, val_rmse, val_max = _fit_voltages(flows, v_crit, rcond)
+    ext = _extended(dm, engine, flows, pert, nodes, cap0, rcond) if pert is not None else None
+    x = flows.features if ext is None else np.concatenate([flows.features, ext.readings], axis=1)
+    vfit, val_rmse, val_max = _fit_voltages(flows, x, v_crit, rcond)
     # eq. (3): samples from single-plant sweeps, form chosen on held-out scenarios
     samples = sensitivity_samples(flows.scenario, flows.plant, flows.pv_q_kvar, flows.q_head_kvar, v_crit)
     q_range = (float(flows.q_head_kvar.min()), float(flows.q_head_kvar.max()))
@@ -337,8 +353,9 @@ def train(
             combined_pct=list(combined_pct),
             rcond=rcond,
             tolerance=tolerance,
+            critical_margin_pu=critical_margin_pu,
         ),
-        feature_names=feature_names(len(dm.pv)),
+        feature_names=feature_names(len(dm.pv)) if ext is None else extended_feature_names(len(dm.pv), ext.names),
         critical_nodes=crit_nodes,
         regulators=regs,
         pv=pvs,
@@ -351,6 +368,7 @@ def train(
         control_period_s=dm.feeder.control_period_s,
         node_count=len(engine.node_names),
         fit=fit_stats,
+        **({} if ext is None else ext.model_fields),
     )
     _check_finite(model)
     summ = TrainSummary(
@@ -383,15 +401,53 @@ def train(
     return TrainResult(model=model, summary=summ)
 
 
-def _fit_voltages(flows: PowerFlowSet, v_crit: np.ndarray, rcond: float):
-    """Eq. (5) fit on every flow, plus its error on held-out scenarios (fitted on the others)."""
+def _fit_voltages(flows: PowerFlowSet, x: np.ndarray, v_crit: np.ndarray, rcond: float):
+    """Eq. (5) fit of ``x`` (F, M) on every flow, plus its error on held-out scenarios (fitted on the others)."""
     holdout = (flows.scenario % _HOLDOUT_EVERY) == _HOLDOUT_EVERY - 1
     val_rmse, val_max = float("nan"), float("nan")
-    if holdout.any() and (~holdout).sum() > flows.features.shape[1] + 1:
-        part = fit_voltage_regression(flows.features[~holdout], v_crit[~holdout], rcond=rcond)
-        err = flows.features[holdout] @ part.alpha[:, :-1].T + part.alpha[:, -1] - v_crit[holdout]
+    if holdout.any() and (~holdout).sum() > x.shape[1] + 1:
+        part = fit_voltage_regression(x[~holdout], v_crit[~holdout], rcond=rcond)
+        err = x[holdout] @ part.alpha[:, :-1].T + part.alpha[:, -1] - v_crit[holdout]
         val_rmse, val_max = float(np.sqrt(np.mean(err**2))), float(np.max(np.abs(err)))
-    return fit_voltage_regression(flows.features, v_crit, rcond=rcond), val_rmse, val_max
+    return fit_voltage_regression(x, v_crit, rcond=rcond), val_rmse, val_max
+
+
+@dataclass(frozen=True)
+class _Extended:
+    """The extended feature set's training products."""
+
+    names: list[str]  # the readings, model order
+    readings: np.ndarray  # (F, J) readings of every flow [pu]
+    model_fields: dict  # the CvvcModel fields of the extended set
+
+
+def _extended(dm, engine, flows: PowerFlowSet, pert, nodes: np.ndarray, cap0: np.ndarray, rcond: float) -> _Extended:
+    """Readings as regressors, the banks' static term and the feature mapping (``training.extended``)."""
+    n_reg = flows.reg_pu.shape[1]
+    v_ref = np.median(flows.cap_v_v, axis=0) if flows.cap_v_v.size else np.zeros(0)
+    if np.any(v_ref <= 0):
+        raise TrainingError("a capacitor bank's bus reads 0 V in training; check its bus in the device map")
+    readings = reading_matrix(flows.reg_pu, flows.cap_v_v, v_ref)
+    # the bank readings' perturbations are in V: per unit of v_ref like the readings
+    scale = np.concatenate([np.ones(pert.feature_dtap.shape[0] - v_ref.size), 1.0 / v_ref])
+    f_tap, f_cap = pert.feature_dtap * scale[:, None], pert.feature_dcap * scale[:, None]
+    reading_fit = fit_voltage_regression(flows.features, readings, rcond=rcond)
+    names = [f"reg:{r.id}" for r in dm.regulator] + [f"cap:{c.id}" for c in dm.capacitor]
+    if len(names) != n_reg + v_ref.size:
+        raise TrainingError("the device map's regulators and banks do not match the engine's")
+    caps = [CapacitorInfo(id=c.id, steps=int(s), kvar=float(k), v_ref_v=float(v))
+            for c, s, k, v in zip(dm.capacitor, engine.cap_steps, engine.cap_kvar, v_ref, strict=True)]
+    fields = {
+        "feature_set": "extended",
+        "capacitors": caps,
+        "cap0": [int(c) for c in cap0],
+        "dv_dcap_pu": pert.dv_dcap_pu[nodes].tolist() if cap0.size else [],
+        "readings": names,
+        "feature_dtap": f_tap.tolist(),
+        "feature_dcap": f_cap.tolist(),
+        "reading_alpha": reading_fit.alpha.tolist(),
+    }
+    return _Extended(names=names, readings=readings, model_fields=fields)
 
 
 def _fit_sensitivities(
