@@ -54,9 +54,9 @@ def estimate_v_pu(
     """
     f = np.atleast_2d(np.asarray(features, float))
     t = np.atleast_2d(np.asarray(taps, float))
-    if arrays.n_readings:
+    if arrays.extended:
         c = np.tile(arrays.cap0, (f.shape[0], 1)) if caps is None else np.atleast_2d(np.asarray(caps, float))
-        if reg_v120 is None:
+        if reg_v120 is None or arrays.n_readings == 0:
             readings = np.full((f.shape[0], arrays.n_readings), np.nan)
         else:
             reg = np.atleast_2d(np.asarray(reg_v120, float)) * arrays.reg_pu_per_v120

@@ -59,9 +59,11 @@ Finite = Annotated[float, Meta(ge=-1e12, le=1e12)]
 NodeKind = Literal["head", "reg_primary", "reg_secondary", "pv", "extreme", "near_extreme"]
 
 #: ``paper``: eq. (5) on the feeder head's and the plants' P and Q (the paper's limited measurement set).
-#: ``extended``: those plus the field devices' own voltage readings (regulator secondaries, capacitor buses) as
-#: regressors, and a capacitor-state term like eq. (4)'s tap term (beyond the paper, docs/method.md).
-FeatureSet = Literal["paper", "extended"]
+#: ``extended``: those plus a capacitor-state term like eq. (4)'s tap term, with every feature mapped back to the
+#: training taps and banks (beyond the paper, docs/method.md).
+#: ``extended_readings``: ``extended`` plus the field devices' voltage readings (regulator secondaries, capacitor
+#: buses) as regressors: measured fragile, a reading outside its training range extrapolates badly.
+FeatureSet = Literal["paper", "extended", "extended_readings"]
 
 
 class CriticalNode(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
@@ -266,6 +268,7 @@ class ModelArrays:
     upstream_regulator: np.ndarray  # (N,) int, -1 where none
     reg_secondary_node: np.ndarray  # (R,) int
     reg_pu_per_v120: np.ndarray  # (R,)
+    extended: bool = False  # features are mapped back to tap0/cap0 (``regression.estimator.extended_features``)
     # the extended feature set (defaults: none, as for a paper model)
     cap0: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (C,) closed steps in training
     cap_v_ref_v: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (C,) each bank's reading reference [V]
@@ -285,7 +288,7 @@ class ModelArrays:
         n_node, n_cap, n_read = len(model.critical_nodes), len(model.cap0), len(model.readings)
         n_paper = len(feature_names(len(model.pv)))
         n_feat = n_paper + n_read
-        extended = model.feature_set == "extended"
+        extended = model.feature_set != "paper"
         return cls(
             alpha=np.asarray(model.alpha, float),
             tap0=np.asarray(model.tap0, float),
@@ -296,6 +299,7 @@ class ModelArrays:
             ),
             reg_secondary_node=np.asarray([r.secondary_node for r in model.regulators], int),
             reg_pu_per_v120=np.asarray([r.pu_per_v120 for r in model.regulators], float),
+            extended=extended,
             cap0=np.asarray(model.cap0, float),
             cap_v_ref_v=np.asarray([c.v_ref_v for c in model.capacitors], float),
             dv_dcap_pu=np.asarray(model.dv_dcap_pu, float).reshape(n_node, n_cap),
@@ -365,7 +369,7 @@ def _check_extended(model: CvvcModel, path: Path) -> None:
          "feature_dcap is not (features x capacitors)"),
         (len(model.reading_alpha) == n_read and all(len(r) == n_paper + 1 for r in model.reading_alpha),
          "reading_alpha is not (readings x paper features + 1)"),
-        (model.feature_set == "extended" or n_read == 0, "a paper model with field readings"),
+        (model.feature_set == "extended_readings" or n_read == 0, "field readings in a model without them"),
     ]
     bad = [what for ok, what in checks if not ok]
     if bad:

@@ -166,7 +166,9 @@ def simulate_month(
 
 
 def _label(model: CvvcModel, path: Path, labels: list[str]) -> str:
-    base = model.settings.selection if model.feature_set == "paper" else f"{model.settings.selection} extended"
+    base = model.settings.selection
+    if model.feature_set != "paper":
+        base = f"{base} {model.feature_set}"
     return base if base not in labels else f"{base} ({path.name})"
 
 

@@ -133,9 +133,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--workers", type=int, default=None, help="power-flow processes (default: one per core)")
     p.add_argument("--no-combined", action="store_true", help="only the paper's one-plant-at-a-time Q perturbations")
     p.add_argument(
-        "--features", choices=("paper", "extended"), default="paper",
-        help="paper: eq. (5) on head and plant P, Q; extended: plus the regulators' and capacitor banks' voltage "
-        "readings and the banks' states (docs/method.md)",
+        "--features", choices=("paper", "extended", "extended_readings"), default="paper",
+        help="paper: eq. (5) on head and plant P, Q; extended: plus the capacitor banks' states, features mapped "
+        "back to the training taps and banks; extended_readings: plus the regulators' and banks' voltage readings "
+        "as regressors (docs/method.md)",
     )
     p.add_argument(
         "--critical-margin-pu", type=float, default=0.0,

@@ -107,7 +107,7 @@ def _check_device_map(dm, feature_set: str = "paper") -> None:
             f"feeder {dm.feeder.name!r}: the device map has no PV plant; add at least one [[pv]] entry "
             "(the estimator regresses on PV plant measurements)"
         )
-    if not dm.regulator and not (feature_set == "extended" and dm.capacitor):
+    if not dm.regulator and not (feature_set == "extended_readings" and dm.capacitor):
         raise TrainingError(
             f"feeder {dm.feeder.name!r}: the device map has no regulator; add at least one [[regulator]] "
             "entry (the correction of eq. (6)-(7) needs a regulator secondary measurement), or train the "
@@ -195,7 +195,7 @@ def train(
     cache_dir: str | Path | None = None,
     profiles=None,
     progress: bool = True,
-    feature_set: Literal["paper", "extended"] = "paper",
+    feature_set: Literal["paper", "extended", "extended_readings"] = "paper",
     critical_margin_pu: float = 0.0,
 ) -> TrainResult:
     """Train the estimator of one feeder (paper II.A-II.D).
@@ -214,8 +214,9 @@ def train(
     cache_dir : where to cache the year profiles (None: no cache; the CLI passes ``schemas.cache.profiles_dir``).
     profiles : use these ``YearProfiles`` instead of generating them (tests).
     progress : progress bar on stderr when it is a terminal.
-    feature_set : "paper" (eq. (5) on head and plant P, Q) or "extended" (plus the field devices' voltage
-        readings and the capacitor banks' state term; ``training.extended``).
+    feature_set : "paper" (eq. (5) on head and plant P, Q), "extended" (plus the capacitor banks' state term,
+        features mapped back to ``tap0``/``cap0``) or "extended_readings" (plus the field devices' voltage
+        readings as regressors); ``training.extended``.
     critical_margin_pu : > 0 adds a greedy cover of the nodes within this of each flow's extremes to the
         critical nodes (``training.extended.near_extreme_cover``); 0: the paper's extremes only.
 
@@ -260,7 +261,7 @@ def train(
     # Algorithm 1 lines 2-6 (eq. 4), then the Q sweeps
     _, dv_dtap_all = _tap_perturbation(engine, inputs[0], tap0)
     cap0 = engine.cap_states()
-    pert = perturb_devices(engine, inputs[0].load_kw, inputs[0].pv_kw, tap0) if feature_set == "extended" else None
+    pert = perturb_devices(engine, inputs[0].load_kw, inputs[0].pv_kw, tap0) if feature_set != "paper" else None
     t_pf = time.perf_counter()
     n_workers = max(1, min((os.cpu_count() or 1) if workers is None else workers, len(inputs)))
     flows = run_power_flows(
@@ -285,7 +286,7 @@ def train(
 
     # II.D: eq. (5) on the critical nodes (the target is the voltage at tap0: identity for frozen-tap flows)
     v_crit = flows.v_pu[:, nodes] - (flows.taps - tap0) @ dv_dtap_all[nodes].T
-    ext = _extended(dm, engine, flows, pert, nodes, cap0, rcond) if pert is not None else None
+    ext = _extended(dm, engine, flows, pert, nodes, cap0, rcond, feature_set) if pert is not None else None
     x = flows.features if ext is None else np.concatenate([flows.features, ext.readings], axis=1)
     vfit, val_rmse, val_max = _fit_voltages(flows, x, v_crit, rcond)
     # eq. (3): samples from single-plant sweeps, form chosen on held-out scenarios
@@ -421,13 +422,16 @@ class _Extended:
     model_fields: dict  # the CvvcModel fields of the extended set
 
 
-def _extended(dm, engine, flows: PowerFlowSet, pert, nodes: np.ndarray, cap0: np.ndarray, rcond: float) -> _Extended:
-    """Readings as regressors, the banks' static term and the feature mapping (``training.extended``)."""
+def _extended(
+    dm, engine, flows: PowerFlowSet, pert, nodes: np.ndarray, cap0: np.ndarray, rcond: float, feature_set: str
+) -> _Extended:
+    """The banks' static term, the feature mapping and (``extended_readings``) the readings as regressors."""
     n_reg = flows.reg_pu.shape[1]
     v_ref = np.median(flows.cap_v_v, axis=0) if flows.cap_v_v.size else np.zeros(0)
     if np.any(v_ref <= 0):
         raise TrainingError("a capacitor bank's bus reads 0 V in training; check its bus in the device map")
     readings = reading_matrix(flows.reg_pu, flows.cap_v_v, v_ref)
+    use = feature_set == "extended_readings"
     # the bank readings' perturbations are in V: per unit of v_ref like the readings
     scale = np.concatenate([np.ones(pert.feature_dtap.shape[0] - v_ref.size), 1.0 / v_ref])
     f_tap, f_cap = pert.feature_dtap * scale[:, None], pert.feature_dcap * scale[:, None]
@@ -435,17 +439,21 @@ def _extended(dm, engine, flows: PowerFlowSet, pert, nodes: np.ndarray, cap0: np
     names = [f"reg:{r.id}" for r in dm.regulator] + [f"cap:{c.id}" for c in dm.capacitor]
     if len(names) != n_reg + v_ref.size:
         raise TrainingError("the device map's regulators and banks do not match the engine's")
+    n_paper = flows.features.shape[1]
+    if not use:  # no readings: the mapping of the paper features only
+        names, readings = [], readings[:, :0]
+        f_tap, f_cap = f_tap[:n_paper], f_cap[:n_paper]
     caps = [CapacitorInfo(id=c.id, steps=int(s), kvar=float(k), v_ref_v=float(v))
             for c, s, k, v in zip(dm.capacitor, engine.cap_steps, engine.cap_kvar, v_ref, strict=True)]
     fields = {
-        "feature_set": "extended",
+        "feature_set": feature_set,
         "capacitors": caps,
         "cap0": [int(c) for c in cap0],
         "dv_dcap_pu": pert.dv_dcap_pu[nodes].tolist() if cap0.size else [],
         "readings": names,
         "feature_dtap": f_tap.tolist(),
         "feature_dcap": f_cap.tolist(),
-        "reading_alpha": reading_fit.alpha.tolist(),
+        "reading_alpha": reading_fit.alpha.tolist() if use else [],
     }
     return _Extended(names=names, readings=readings, model_fields=fields)
 
