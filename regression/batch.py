@@ -19,7 +19,7 @@ from regression.estimator import (
     estimate_voltages_pu,
     extended_features,
 )
-from regression.model import ModelArrays, SensitivityFit
+from regression.model import ModelArrays, SensitivityFit, calendar_features
 
 __all__ = ["estimate_v_pu", "eval_sensitivities", "sensitivity_arrays"]
 
@@ -32,6 +32,7 @@ def estimate_v_pu(
     *,
     caps: np.ndarray | None = None,
     cap_v_v: np.ndarray | None = None,
+    t_ns: np.ndarray | None = None,
 ) -> np.ndarray:
     """Critical-node voltages, paper eq. (5), corrected by eq. (6)-(7) when ``reg_v120`` is given.
 
@@ -47,6 +48,7 @@ def estimate_v_pu(
     reg_v120 : (T, R) measured raw regulator secondary voltages [V on the 120 V base], or None.
     caps : (T, C) closed steps of each capacitor bank (extended models; None: as in training).
     cap_v_v : (T, C) the banks' bus voltage readings [V] (extended models with readings).
+    t_ns : (T,) UTC epoch nanoseconds of each minute (models with calendar features).
 
     Returns
     -------
@@ -64,7 +66,8 @@ def estimate_v_pu(
             cap = np.full((f.shape[0], n_cap), np.nan) if cap_v_v is None \
                 else np.atleast_2d(np.asarray(cap_v_v, float)) / arrays.cap_v_ref_v  # NaN: not given, fallback
             readings = np.concatenate([reg, cap], axis=1)
-        f = extended_features(arrays, f, readings, t, c)
+        cal = None if t_ns is None else calendar_features(np.asarray(t_ns), arrays.utc_offset_h)
+        f = extended_features(arrays, f, readings, t, c, calendar=cal)
         v = estimate_voltages_pu(arrays, f, t, c)
     else:
         v = estimate_voltages_pu(arrays, f, t)

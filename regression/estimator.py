@@ -80,9 +80,10 @@ def extended_features(
     taps: np.ndarray,
     caps: np.ndarray,
     *,
+    calendar: np.ndarray | None = None,
     valid: np.ndarray | None = None,
 ) -> np.ndarray:
-    """Features of an extended model: the paper's and the field readings, mapped back to ``tap0``/``cap0``.
+    """Features of an extended model: the paper's, the calendar's and the readings, mapped to ``tap0``/``cap0``.
 
     Beyond the paper (docs/method.md, "extended features"): ``M' = [M, R] - feature_dtap @ (T - T0) -
     feature_dcap @ (C - C0)``: the regression was fitted at the training taps and banks, so a tap or a bank
@@ -98,11 +99,12 @@ def extended_features(
         voltage times ``pu_per_v120``, a bank's bus voltage over its ``v_ref_v``.
     taps : (..., R) present taps [steps].
     caps : (..., C) closed steps of each bank.
+    calendar : (..., 6) ``regression.model.calendar_features`` of the minute, for a model with ``n_calendar``.
     valid : (..., J) bool, optional.
 
     Returns
     -------
-    (..., M_paper + J) features [kW, kvar, pu].
+    (..., M_paper + n_calendar + J) features [kW, kvar, 1, pu].
     """
     m = np.asarray(paper_features, float)
     r = np.asarray(readings_pu, float)
@@ -115,13 +117,20 @@ def extended_features(
     ok = np.isfinite(r)
     if valid is not None:
         ok &= np.asarray(valid, bool)
-    raw = np.concatenate([m, np.where(ok, r, 0.0)], axis=-1)
+    if arrays.n_calendar:
+        if calendar is None or np.shape(calendar)[-1] != arrays.n_calendar:
+            raise ModelInputError(f"the model needs {arrays.n_calendar} calendar features of the minute")
+        cal = np.broadcast_to(np.asarray(calendar, float), (*m.shape[:-1], arrays.n_calendar))
+    else:
+        cal = np.zeros((*m.shape[:-1], 0))
+    raw = np.concatenate([m, cal, np.where(ok, r, 0.0)], axis=-1)
     shift = (np.asarray(taps, float) - arrays.tap0) @ arrays.feature_dtap.T
     if arrays.cap0.size:
         shift = shift + (np.asarray(caps, float) - arrays.cap0) @ arrays.feature_dcap.T
     mapped = raw - shift
     fallback = mapped[..., :n_paper] @ arrays.reading_alpha[:, :-1].T + arrays.reading_alpha[:, -1]
-    mapped[..., n_paper:] = np.where(ok, mapped[..., n_paper:], fallback)
+    first = n_paper + arrays.n_calendar
+    mapped[..., first:] = np.where(ok, mapped[..., first:], fallback)
     return mapped
 
 

@@ -44,6 +44,8 @@ __all__ = [
     "SensitivityFit",
     "TrainingSettings",
     "features",
+    "CALENDAR_FEATURES",
+    "calendar_features",
     "extended_feature_names",
     "feature_names",
     "read_model",
@@ -219,6 +221,8 @@ class CvvcModel(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields
     feature_dtap: list[list[Finite]] = []
     feature_dcap: list[list[Finite]] = []
     reading_alpha: list[list[Finite]] = []
+    calendar: bool = False  # the calendar features follow the paper's (``CALENDAR_FEATURES``)
+    utc_offset_h: float = 0.0  # local standard time of the feeder minus UTC [h], for the calendar features
 
 
 def feature_names(n_pv: int) -> list[str]:
@@ -233,9 +237,31 @@ def feature_names(n_pv: int) -> list[str]:
     return names
 
 
-def extended_feature_names(n_pv: int, readings: list[str]) -> list[str]:
-    """Features of the ``extended`` set: the paper's (``feature_names``) then one per field reading."""
-    return feature_names(n_pv) + [f"reading_{r}" for r in readings]
+CALENDAR_FEATURES = ("tod_cos1", "tod_sin1", "tod_cos2", "tod_sin2", "doy_cos", "doy_sin")
+"""Calendar features of the extended sets: time of day (two harmonics) and day of year (one)."""
+
+
+def extended_feature_names(n_pv: int, readings: list[str], calendar: bool = False) -> list[str]:
+    """Features of the extended sets: the paper's (``feature_names``), the calendar's, one per field reading."""
+    return feature_names(n_pv) + (list(CALENDAR_FEATURES) if calendar else []) + [f"reading_{r}" for r in readings]
+
+
+def calendar_features(t_ns: np.ndarray, utc_offset_h: float) -> np.ndarray:
+    """Time of day and day of year as harmonics, ``CALENDAR_FEATURES`` order (beyond the paper).
+
+    Parameters
+    ----------
+    t_ns : (...,) UTC epoch nanoseconds.
+    utc_offset_h : the feeder's local standard time minus UTC [h] (the load follows local time).
+
+    Returns
+    -------
+    (..., 6) array in [-1, 1].
+    """
+    local_s = np.asarray(t_ns, float) / 1e9 + float(utc_offset_h) * 3600.0
+    day = 2.0 * np.pi * (local_s % 86400.0) / 86400.0
+    year = 2.0 * np.pi * (local_s % (365.2425 * 86400.0)) / (365.2425 * 86400.0)
+    return np.stack([np.cos(day), np.sin(day), np.cos(2 * day), np.sin(2 * day), np.cos(year), np.sin(year)], axis=-1)
 
 
 def features(
@@ -269,6 +295,8 @@ class ModelArrays:
     reg_secondary_node: np.ndarray  # (R,) int
     reg_pu_per_v120: np.ndarray  # (R,)
     extended: bool = False  # features are mapped back to tap0/cap0 (``regression.estimator.extended_features``)
+    n_calendar: int = 0  # calendar features after the paper's (0 or len(CALENDAR_FEATURES))
+    utc_offset_h: float = 0.0
     # the extended feature set (defaults: none, as for a paper model)
     cap0: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (C,) closed steps in training
     cap_v_ref_v: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (C,) each bank's reading reference [V]
@@ -287,7 +315,7 @@ class ModelArrays:
         n_reg = len(model.regulators)
         n_node, n_cap, n_read = len(model.critical_nodes), len(model.cap0), len(model.readings)
         n_paper = len(feature_names(len(model.pv)))
-        n_feat = n_paper + n_read
+        n_feat = n_paper + n_read + (len(CALENDAR_FEATURES) if model.calendar else 0)
         extended = model.feature_set != "paper"
         return cls(
             alpha=np.asarray(model.alpha, float),
@@ -300,6 +328,8 @@ class ModelArrays:
             reg_secondary_node=np.asarray([r.secondary_node for r in model.regulators], int),
             reg_pu_per_v120=np.asarray([r.pu_per_v120 for r in model.regulators], float),
             extended=extended,
+            n_calendar=len(CALENDAR_FEATURES) if model.calendar else 0,
+            utc_offset_h=model.utc_offset_h,
             cap0=np.asarray(model.cap0, float),
             cap_v_ref_v=np.asarray([c.v_ref_v for c in model.capacitors], float),
             dv_dcap_pu=np.asarray(model.dv_dcap_pu, float).reshape(n_node, n_cap),
@@ -354,7 +384,7 @@ def _check_extended(model: CvvcModel, path: Path) -> None:
     n_node, n_reg = len(model.critical_nodes), len(model.regulators)
     n_cap, n_read = len(model.cap0), len(model.readings)
     n_paper = len(feature_names(len(model.pv)))
-    n_feat = n_paper + n_read
+    n_feat = n_paper + n_read + (len(CALENDAR_FEATURES) if model.calendar else 0)
     checks = [
         (len(model.feature_names) == n_feat, f"{len(model.feature_names)} feature names for {n_feat} features"),
         (all(len(a) == n_feat + 1 for a in model.alpha), f"alpha rows are not {n_feat} + 1 long"),
@@ -370,6 +400,7 @@ def _check_extended(model: CvvcModel, path: Path) -> None:
         (len(model.reading_alpha) == n_read and all(len(r) == n_paper + 1 for r in model.reading_alpha),
          "reading_alpha is not (readings x paper features + 1)"),
         (model.feature_set == "extended_readings" or n_read == 0, "field readings in a model without them"),
+        (model.feature_set != "paper" or not model.calendar, "calendar features in a paper model"),
     ]
     bad = [what for ok, what in checks if not ok]
     if bad:

@@ -88,6 +88,7 @@ class MonthTruth:
     """What the month simulation recorded (T minutes)."""
 
     steps: np.ndarray  # (T,)
+    t_ns: np.ndarray  # (T,) UTC epoch nanoseconds of each minute
     features: np.ndarray  # (T, M)
     q_head_kvar: np.ndarray  # (T,)
     taps: np.ndarray  # (T, R)
@@ -148,6 +149,7 @@ def simulate_month(
     k = len(engine.pv_ids)
     return MonthTruth(
         steps=np.asarray(steps, int),
+        t_ns=np.asarray([profiles.t_ns(int(s)) for s in steps], np.int64),
         features=np.asarray(feats),
         q_head_kvar=np.asarray(qh),
         taps=np.asarray(taps, float),
@@ -253,9 +255,9 @@ def accuracy_report(
         arrays = ModelArrays.of(m)
         cols = [col[int(n)] for n in mn]
         v_true = truth.v_pu[:, cols]
-        plain = estimate_v_pu(arrays, truth.features, truth.taps, caps=truth.cap_states) - v_true
+        plain = estimate_v_pu(arrays, truth.features, truth.taps, caps=truth.cap_states, t_ns=truth.t_ns) - v_true
         corr = estimate_v_pu(arrays, truth.features, truth.taps, truth.reg_v120, caps=truth.cap_states,
-                             cap_v_v=truth.cap_v_v) - v_true
+                             cap_v_v=truth.cap_v_v, t_ns=truth.t_ns) - v_true
         errors.append(error_stats(f"{label}, no correction", plain))
         errors.append(error_stats(f"{label}, with correction", corr))
         curves[f"{label}, no correction"] = plain.ravel()

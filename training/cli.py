@@ -50,6 +50,7 @@ def _train(args: argparse.Namespace) -> int:
         progress=not args.json,
         feature_set=args.features,
         critical_margin_pu=args.critical_margin_pu,
+        calendar=args.calendar,
     )
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -142,6 +143,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--critical-margin-pu", type=float, default=0.0,
         help="also make critical a small cover of the nodes within this of each training flow's extremes [pu] "
         "(default 0: the paper's extremes only)",
+    )
+    p.add_argument(
+        "--calendar", action="store_true",
+        help="extended sets: time of day and day of year among the regression features (docs/method.md)",
     )
     p.add_argument("--json", action="store_true", help="print the summary as JSON (no progress bar)")
     p.add_argument("--cache", default=None, help=CACHE_HELP)

@@ -24,6 +24,7 @@ from regression.model import (
     RegulatorInfo,
     SensitivityFit,
     TrainingSettings,
+    calendar_features,
     extended_feature_names,
     feature_names,
 )
@@ -197,6 +198,7 @@ def train(
     progress: bool = True,
     feature_set: Literal["paper", "extended", "extended_readings"] = "paper",
     critical_margin_pu: float = 0.0,
+    calendar: bool = False,
 ) -> TrainResult:
     """Train the estimator of one feeder (paper II.A-II.D).
 
@@ -219,6 +221,7 @@ def train(
         readings as regressors); ``training.extended``.
     critical_margin_pu : > 0 adds a greedy cover of the nodes within this of each flow's extremes to the
         critical nodes (``training.extended.near_extreme_cover``); 0: the paper's extremes only.
+    calendar : extended sets only: time of day and day of year among the features (``calendar_features``).
 
     Raises
     ------
@@ -227,6 +230,7 @@ def train(
     """
     from schemas.devicemap import load_device_map
     from simulator_bridge.engine import FeederEngine
+    from simulator_bridge.profiles import UTC_OFFSET_H
 
     t_start = time.perf_counter()
     device_map_path = Path(device_map_path)
@@ -286,8 +290,13 @@ def train(
 
     # II.D: eq. (5) on the critical nodes (the target is the voltage at tap0: identity for frozen-tap flows)
     v_crit = flows.v_pu[:, nodes] - (flows.taps - tap0) @ dv_dtap_all[nodes].T
-    ext = _extended(dm, engine, flows, pert, nodes, cap0, rcond, feature_set) if pert is not None else None
-    x = flows.features if ext is None else np.concatenate([flows.features, ext.readings], axis=1)
+    if calendar and feature_set == "paper":
+        raise TrainingError("calendar features belong to the extended feature sets; add --features extended")
+    cal = calendar_features(np.asarray([profiles.t_ns(int(scen.steps[i])) for i in flows.scenario], np.int64),
+                            UTC_OFFSET_H) if calendar else np.zeros((flows.n, 0))
+    ext = None if pert is None else _extended(dm, engine, flows, pert, nodes, cap0, rcond, feature_set, cal.shape[1],
+                                           float(UTC_OFFSET_H))
+    x = flows.features if ext is None else np.concatenate([flows.features, cal, ext.readings], axis=1)
     vfit, val_rmse, val_max = _fit_voltages(flows, x, v_crit, rcond)
     # eq. (3): samples from single-plant sweeps, form chosen on held-out scenarios
     samples = sensitivity_samples(flows.scenario, flows.plant, flows.pv_q_kvar, flows.q_head_kvar, v_crit)
@@ -356,7 +365,8 @@ def train(
             tolerance=tolerance,
             critical_margin_pu=critical_margin_pu,
         ),
-        feature_names=feature_names(len(dm.pv)) if ext is None else extended_feature_names(len(dm.pv), ext.names),
+        feature_names=feature_names(len(dm.pv)) if ext is None
+        else extended_feature_names(len(dm.pv), ext.names, calendar),
         critical_nodes=crit_nodes,
         regulators=regs,
         pv=pvs,
@@ -423,7 +433,8 @@ class _Extended:
 
 
 def _extended(
-    dm, engine, flows: PowerFlowSet, pert, nodes: np.ndarray, cap0: np.ndarray, rcond: float, feature_set: str
+    dm, engine, flows: PowerFlowSet, pert, nodes: np.ndarray, cap0: np.ndarray, rcond: float, feature_set: str,
+    n_calendar: int, utc_offset_h: float,
 ) -> _Extended:
     """The banks' static term, the feature mapping and (``extended_readings``) the readings as regressors."""
     n_reg = flows.reg_pu.shape[1]
@@ -443,6 +454,9 @@ def _extended(
     if not use:  # no readings: the mapping of the paper features only
         names, readings = [], readings[:, :0]
         f_tap, f_cap = f_tap[:n_paper], f_cap[:n_paper]
+    # the calendar features follow the paper's; no device moves them
+    f_tap = np.insert(f_tap, [n_paper] * n_calendar, 0.0, axis=0)
+    f_cap = np.insert(f_cap, [n_paper] * n_calendar, 0.0, axis=0)
     caps = [CapacitorInfo(id=c.id, steps=int(s), kvar=float(k), v_ref_v=float(v))
             for c, s, k, v in zip(dm.capacitor, engine.cap_steps, engine.cap_kvar, v_ref, strict=True)]
     fields = {
@@ -454,6 +468,8 @@ def _extended(
         "feature_dtap": f_tap.tolist(),
         "feature_dcap": f_cap.tolist(),
         "reading_alpha": reading_fit.alpha.tolist() if use else [],
+        "calendar": n_calendar > 0,
+        "utc_offset_h": utc_offset_h,
     }
     return _Extended(names=names, readings=readings, model_fields=fields)
 

@@ -59,7 +59,7 @@ def models(ieee13_caps, profile_cache):
 
     kw = dict(year_seed=1, blocks=(3, 3), workers=1, cache_dir=profile_cache, progress=False)
     return (train(ieee13_caps, **kw).model,
-            train(ieee13_caps, feature_set="extended", critical_margin_pu=0.002, **kw).model,
+            train(ieee13_caps, feature_set="extended", critical_margin_pu=0.002, calendar=True, **kw).model,
             train(ieee13_caps, feature_set="extended_readings", **kw).model)
 
 
@@ -82,18 +82,20 @@ def _state(path, model, *, caps, step=None):
     names = {n: i for i, n in enumerate(engine.node_names)}
     v = engine.node_voltages_pu()[[names[c.name] for c in model.critical_nodes]]
     f = features(r.head_p_kw, r.head_q_kvar, r.pv_p_kw.sum(axis=1), r.pv_q_kvar.sum(axis=1))
-    return v, f[None], np.asarray(model.tap0, float)[None], r.reg_v120[None], r.cap_states[None], r.cap_v_v[None]
+    return (v, f[None], np.asarray(model.tap0, float)[None], r.reg_v120[None], r.cap_states[None], r.cap_v_v[None],
+            np.asarray([prof.t_ns(s)]))
 
 
-def _err(model, v, f, taps, v120, caps, cap_v, *, readings=True) -> float:
-    est = estimate_v_pu(ModelArrays.of(model), f, taps, v120 if readings else None, caps=caps, cap_v_v=cap_v)
+def _err(model, v, f, taps, v120, caps, cap_v, t_ns, *, readings=True) -> float:
+    est = estimate_v_pu(ModelArrays.of(model), f, taps, v120 if readings else None, caps=caps, cap_v_v=cap_v,
+                        t_ns=t_ns)
     return float(np.max(np.abs(est[0] - v)))
 
 
 def test_extended_model_has_the_banks_and_readings(models):
     paper, ext, er = models
     assert paper.feature_set == "paper" and paper.readings == [] and paper.cap0 == []
-    assert ext.feature_set == "extended" and ext.readings == [] and ext.feature_names == paper.feature_names
+    assert ext.feature_set == "extended" and ext.readings == [] and ext.feature_names[:12] == paper.feature_names
     assert er.readings == ["reg:reg1", "reg:reg2", "reg:reg3", "cap:cap1", "cap:cap2"]
     assert len(er.alpha[0]) == len(er.feature_names) + 1 == len(paper.feature_names) + 5 + 1
     assert ext.cap0 == [1, 1]  # both banks closed as compiled
@@ -132,7 +134,7 @@ def test_missing_reading_falls_back_to_its_regression(ieee13_caps, models):
 
     _, _, er = models
     a = ModelArrays.of(er)
-    _, f, taps, v120, caps, cap_v = _state(ieee13_caps, er, caps=[1, 1])
+    _, f, taps, v120, caps, cap_v, _ = _state(ieee13_caps, er, caps=[1, 1])
     readings = np.concatenate([v120 * a.reg_pu_per_v120, cap_v / a.cap_v_ref_v], axis=1)
     full = extended_features(a, f, readings, taps, caps)
     gone = readings.copy()
@@ -140,6 +142,26 @@ def test_missing_reading_falls_back_to_its_regression(ieee13_caps, models):
     part = extended_features(a, f, gone, taps, caps)
     np.testing.assert_allclose(part[0, :-2], full[0, :-2])
     assert part[0, -2] != full[0, -2] and abs(part[0, -2] - full[0, -2]) < 0.01  # its regression, close by
+
+
+def test_calendar_features_enter_the_estimate(ieee13_caps, models):
+    from regression.errors import ModelInputError
+    from regression.model import CALENDAR_FEATURES, calendar_features
+
+    # local midnight, 06:00 and noon of 1 January at UTC-5: the time-of-day harmonics
+    t0 = 1672549200 * 10**9  # 2023-01-01 05:00 UTC
+    cal = calendar_features(np.array([t0, t0 + 6 * 3600 * 10**9, t0 + 12 * 3600 * 10**9]), -5.0)
+    np.testing.assert_allclose(cal[:, :4], [[1, 0, 1, 0], [0, 1, -1, 0], [-1, 0, 1, 0]], atol=1e-9)
+    assert abs(cal[0, 4] - 1.0) < 1e-3  # day of year ~0
+    _, ext, _ = models
+    assert ext.calendar and ext.feature_names[12:18] == list(CALENDAR_FEATURES)
+    v, f, taps, v120, caps, cap_v, t_ns = _state(ieee13_caps, ext, caps=[1, 1])
+    a = ModelArrays.of(ext)
+    noon = estimate_v_pu(a, f, taps, v120, caps=caps, cap_v_v=cap_v, t_ns=t_ns)
+    night = estimate_v_pu(a, f, taps, v120, caps=caps, cap_v_v=cap_v, t_ns=t_ns + 12 * 3600 * 10**9)
+    assert np.max(np.abs(noon - night)) > 1e-5  # the time of day moves the estimate
+    with pytest.raises(ModelInputError, match="calendar"):
+        estimate_v_pu(a, f, taps, v120, caps=caps, cap_v_v=cap_v)
 
 
 def test_near_extreme_cover_takes_a_node_near_each_flows_extremes():
