@@ -1,16 +1,18 @@
-"""The extended feature set (beyond the paper, docs/method.md "Extended features"): field readings and banks.
+"""The extended feature sets (beyond the paper, docs/method.md "Extended features"): banks, readings, cover.
 
 The paper's eq. (5) regresses each critical node's voltage on the feeder head's and the PV plants' P and Q, with
-regulators frozen at ``tap0`` and eq. (4)'s static tap term. On real feeders two things break that:
+regulators frozen at ``tap0`` and eq. (4)'s static tap term. On real feeders this breaks:
 
-- **Switched capacitor banks** under local control: a bank of 1200 kvar switching changes the head's Q by as much
-  and the regression, which learned Q from the plants' sweeps, reads it as a large voltage change (epri-m1: the
-  estimate fell by 0.15 pu when one bank opened). A bank enters here like a regulator: a static perturbation per
-  closed step (``dv_dcap``), and every feature is mapped back to the training state of the banks and the taps.
-- **What the features cannot see**: load beside the head meter (another feeder on the substation bus), the
-  source voltage, the spread of load along the feeder. The field devices' own voltage readings (regulator
-  secondaries, capacitor bus voltages; the agent receives them in ``RegFrame``/``CapFrame``) see it, and
-  enter eq. (5) as regressors.
+- **Switched capacitor banks** under local control (``extended``): a bank of 1200 kvar switching changes the
+  head's Q by as much and the regression, which learned Q from the plants' sweeps, reads it as a large voltage
+  change (epri-m1: the estimate fell by 0.15 pu when one bank opened). A bank enters like a regulator: a static
+  perturbation per closed step (``dv_dcap``), and every feature is mapped back to the training state of the banks
+  and the taps (a tap step also moves the head's P and Q a little through voltage-dependent loads).
+- **What the features cannot see** (``extended_readings``): load beside the head meter, the source voltage. The
+  field devices' own voltage readings (regulator secondaries, capacitor bus voltages; ``RegFrame``/``CapFrame``)
+  enter eq. (5) as regressors. Measured fragile: in training the readings barely move apart from the other
+  features, and a reading outside that range extrapolates badly; eq. (6)-(7)'s correction is the robust use.
+- **The extreme node moves among many secondaries** (``near_extreme_cover``): more critical nodes.
 
 Pure functions of arrays plus one function that drives the engine for the perturbations.
 """
@@ -23,7 +25,12 @@ import numpy as np
 
 from regression.model import features
 
-__all__ = ["Perturbations", "near_extreme_cover", "perturb_devices", "reading_matrix"]
+__all__ = ["TAP_SHIFTS", "Perturbations", "device_shifted_voltages", "near_extreme_cover", "perturb_devices",
+           "reading_matrix"]
+
+#: Tap offsets from ``tap0`` (every regulator at once) under which the near-extreme cover also looks for extremes:
+#: out of training, local control runs the regulators several steps from ``tap0`` (IEEE 8500: 3-7).
+TAP_SHIFTS = (-6, -3, 3, 6)
 
 
 @dataclass(frozen=True)
@@ -115,3 +122,43 @@ def near_extreme_cover(v_pu: np.ndarray, eligible: np.ndarray, margin_pu: float)
             chosen.add(best)
             open_rows &= ~near[:, best]
     return np.asarray(sorted(chosen), int)
+
+
+def device_shifted_voltages(
+    v_pu: np.ndarray,
+    dv_dtap_pu: np.ndarray,
+    tap0: np.ndarray,
+    tap_max: np.ndarray,
+    dv_dcap_pu: np.ndarray | None = None,
+    tap_shifts: tuple[int, ...] = TAP_SHIFTS,
+) -> np.ndarray:
+    """Training voltages as they would be at other taps and with each bank switched, by the static terms.
+
+    Beyond the paper: the critical nodes are chosen among training flows at ``tap0`` and the banks as compiled, but
+    the extreme node depends on which regulator zone is boosted and which bank is closed. Each flow is repeated with
+    every regulator moved by each of ``tap_shifts`` (clipped to its range) and with each bank one step switched, by
+    eq. (4)'s ``dv_dtap`` and the banks' ``dv_dcap`` (linear, first order).
+
+    Parameters
+    ----------
+    v_pu : (F, n) flows' voltages [pu]. dv_dtap_pu : (n, R) [pu/step]. tap0, tap_max : (R,) int.
+    dv_dcap_pu : (n, C) [pu per closed step], or None (no banks).
+    tap_shifts : offsets from ``tap0`` applied to every regulator at once [steps].
+
+    Returns
+    -------
+    ((1 + len(tap_shifts) + 2 C) F, n) float32 voltages [pu]: the flows themselves first.
+    """
+    v = np.asarray(v_pu, np.float32)
+    d_tap = np.asarray(dv_dtap_pu, np.float32)
+    t0 = np.asarray(tap0, int)
+    out = [v]
+    if d_tap.shape[1]:
+        for s in tap_shifts:
+            delta = np.clip(t0 + s, -np.asarray(tap_max), np.asarray(tap_max)) - t0
+            out.append(v + (d_tap @ delta.astype(np.float32))[None, :])
+    if dv_dcap_pu is not None:
+        d_cap = np.asarray(dv_dcap_pu, np.float32)
+        for c in range(d_cap.shape[1]):
+            out += [v + d_cap[None, :, c], v - d_cap[None, :, c]]
+    return np.concatenate(out, axis=0)

@@ -30,7 +30,7 @@ from regression.model import (
 )
 from training.critical import extreme_nodes, movable_nodes, node_phase, select_critical, upstream_regulators
 from training.errors import TrainingError
-from training.extended import near_extreme_cover, perturb_devices, reading_matrix
+from training.extended import device_shifted_voltages, near_extreme_cover, perturb_devices, reading_matrix
 from training.fits import (
     SensitivitySamples,
     choose_c_kvar,
@@ -40,6 +40,7 @@ from training.fits import (
     tap_sensitivities,
 )
 from training.powerflows import (
+    BASE,
     PowerFlowSet,
     ScenarioInput,
     run_power_flows,
@@ -108,11 +109,11 @@ def _check_device_map(dm, feature_set: str = "paper") -> None:
             f"feeder {dm.feeder.name!r}: the device map has no PV plant; add at least one [[pv]] entry "
             "(the estimator regresses on PV plant measurements)"
         )
-    if not dm.regulator and not (feature_set == "extended_readings" and dm.capacitor):
+    if not dm.regulator and not (feature_set != "paper" and dm.capacitor):
         raise TrainingError(
             f"feeder {dm.feeder.name!r}: the device map has no regulator; add at least one [[regulator]] "
-            "entry (the correction of eq. (6)-(7) needs a regulator secondary measurement), or train the "
-            "extended feature set, which reads the capacitor banks' voltages"
+            "entry (the correction of eq. (6)-(7) needs a regulator secondary measurement), or train an "
+            "extended feature set (--features extended), which models the capacitor banks instead"
         )
 
 
@@ -155,7 +156,8 @@ def _q_sensitivities(engine, first: ScenarioInput, tap0: np.ndarray) -> np.ndarr
     return engine.perturbation_sensitivities().dv_dq
 
 
-def _critical(engine, dm, flows: PowerFlowSet, dv_dtap_all: np.ndarray, dv_dq_all: np.ndarray, margin_pu: float):
+def _critical(engine, dm, flows: PowerFlowSet, dv_dtap_all: np.ndarray, dv_dq_all: np.ndarray, margin_pu: float,
+              tap0: np.ndarray, dv_dcap_all: np.ndarray | None):
     names = engine.node_names
     phases = np.asarray([node_phase(n) for n in names])
     v_ref = np.median(flows.v_pu, axis=0)
@@ -176,7 +178,9 @@ def _critical(engine, dm, flows: PowerFlowSet, dv_dtap_all: np.ndarray, dv_dq_al
         "pv": pv_nodes[eligible[pv_nodes]] if pv_nodes.size else pv_nodes,
     }
     if margin_pu > 0:
-        required["near_extreme"] = near_extreme_cover(flows.v_pu, eligible, margin_pu)
+        base = flows.v_pu[flows.plant == BASE]  # one flow per scenario: the Q sweeps move the extremes little
+        shifted = device_shifted_voltages(base, dv_dtap_all, tap0, engine.reg_tap_max, dv_dcap_all)
+        required["near_extreme"] = near_extreme_cover(np.concatenate([flows.v_pu, shifted]), eligible, margin_pu)
     crit = select_critical(required, extreme_nodes(flows.v_pu, eligible=eligible))
     upstream = upstream_regulators(dv_dtap_all, engine.reg_secondary_node)
     return crit, upstream, phases
@@ -284,7 +288,8 @@ def train(
 
     # II.C: critical nodes
     dv_dq_all = _q_sensitivities(engine, inputs[0], tap0)
-    crit, upstream_all, phases = _critical(engine, dm, flows, dv_dtap_all, dv_dq_all, critical_margin_pu)
+    crit, upstream_all, phases = _critical(engine, dm, flows, dv_dtap_all, dv_dq_all, critical_margin_pu, tap0,
+                                           None if pert is None else pert.dv_dcap_pu)
     nodes = crit.nodes
     pos = {int(n): i for i, n in enumerate(nodes)}
 

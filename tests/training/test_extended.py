@@ -13,7 +13,7 @@ import pytest
 from regression.batch import estimate_v_pu
 from regression.model import ModelArrays, ModelError, features, read_model, write_model
 from tests.training.conftest import REPO
-from training.extended import near_extreme_cover
+from training.extended import device_shifted_voltages, near_extreme_cover
 
 _BANKS = '''
 [[capacitor]]
@@ -173,6 +173,23 @@ def test_near_extreme_cover_takes_a_node_near_each_flows_extremes():
     assert near_extreme_cover(v, eligible, 0.002).tolist() == [2, 3]
     assert near_extreme_cover(v, eligible, 0.0).tolist() == [1, 2, 3]
     assert near_extreme_cover(v, np.array([True, True, False, True]), 0.002).tolist() == [1, 3]
+
+
+def test_shifted_voltages_move_the_extreme_into_a_boosted_zone():
+    # node 0 behind regulator 0 (2 mV/step), node 2 behind regulator 1 (6 mV/step), node 1 the lowest
+    v = np.array([[1.02, 1.00, 1.01]])
+    dv_dtap = np.array([[0.002, 0.0], [0.0, 0.0], [0.0, 0.006]])
+    dv_dcap = np.array([[0.0], [0.0], [0.004]])
+    out = device_shifted_voltages(v, dv_dtap, np.array([0, 14]), np.array([16, 16]), dv_dcap, tap_shifts=(-3, 3))
+    assert out.shape == (1 + 2 + 2, 3)
+    # +3 steps: regulator 1 is clipped at its top tap 16 (+2 steps)
+    np.testing.assert_allclose(out[2], [1.026, 1.00, 1.022], atol=1e-6)
+    np.testing.assert_allclose(out[3:], [[1.02, 1.00, 1.014], [1.02, 1.00, 1.006]], atol=1e-6)
+    eligible = np.ones(3, bool)
+    assert near_extreme_cover(v, eligible, 0.001).tolist() == [0, 1]  # at tap0 node 2 is never near the top
+    out2 = device_shifted_voltages(v, dv_dtap, np.array([0, 0]), np.array([16, 16]), None, tap_shifts=(3,))
+    np.testing.assert_allclose(out2[1], [1.026, 1.00, 1.028], atol=1e-6)  # node 2 now the highest
+    assert near_extreme_cover(np.concatenate([v, out2]), eligible, 0.001).tolist() == [0, 1, 2]
 
 
 def test_format_1_models_still_load_and_others_are_refused(models, tmp_path):
