@@ -25,12 +25,14 @@ import numpy as np
 
 from regression.model import features
 
-__all__ = ["TAP_SHIFTS", "Perturbations", "device_shifted_voltages", "near_extreme_cover", "perturb_devices",
-           "reading_matrix"]
+__all__ = ["SINGLE_TAP_SHIFTS", "TAP_SHIFTS", "Perturbations", "device_shifted_voltages", "near_extreme_cover",
+           "perturb_devices", "reading_matrix"]
 
 #: Tap offsets from ``tap0`` (every regulator at once) under which the near-extreme cover also looks for extremes:
 #: out of training, local control runs the regulators several steps from ``tap0`` (IEEE 8500: 3-7).
 TAP_SHIFTS = (-6, -3, 3, 6)
+#: Offsets of one regulator at a time (the others at ``tap0``): a zone boosted alone moves the extreme there.
+SINGLE_TAP_SHIFTS = (-4, 4)
 
 
 @dataclass(frozen=True)
@@ -109,7 +111,9 @@ def near_extreme_cover(v_pu: np.ndarray, eligible: np.ndarray, margin_pu: float)
     -------
     Sorted unique node indices.
     """
-    v = np.where(np.asarray(eligible, bool)[None, :], np.asarray(v_pu, float), np.nan)
+    v = np.asarray(v_pu)
+    v = np.where(np.asarray(eligible, bool)[None, :], v if np.issubdtype(v.dtype, np.floating) else v.astype(float),
+                 np.nan)
     chosen: set[int] = set()
     for near in (v >= np.nanmax(v, axis=1, keepdims=True) - margin_pu,
                  v <= np.nanmin(v, axis=1, keepdims=True) + margin_pu):
@@ -131,12 +135,14 @@ def device_shifted_voltages(
     tap_max: np.ndarray,
     dv_dcap_pu: np.ndarray | None = None,
     tap_shifts: tuple[int, ...] = TAP_SHIFTS,
+    single_shifts: tuple[int, ...] = (),
 ) -> np.ndarray:
     """Training voltages as they would be at other taps and with each bank switched, by the static terms.
 
     Beyond the paper: the critical nodes are chosen among training flows at ``tap0`` and the banks as compiled, but
     the extreme node depends on which regulator zone is boosted and which bank is closed. Each flow is repeated with
-    every regulator moved by each of ``tap_shifts`` (clipped to its range) and with each bank one step switched, by
+    every regulator moved by each of ``tap_shifts`` (clipped to its range), then with one regulator at a time moved
+    by each of ``single_shifts`` (when there are several), and with each bank one step switched either way, by
     eq. (4)'s ``dv_dtap`` and the banks' ``dv_dcap`` (linear, first order).
 
     Parameters
@@ -147,7 +153,8 @@ def device_shifted_voltages(
 
     Returns
     -------
-    ((1 + len(tap_shifts) + 2 C) F, n) float32 voltages [pu]: the flows themselves first.
+    ((1 + len(tap_shifts) + R len(single_shifts) + 2 C) F, n) float32 voltages [pu]: the flows themselves
+    first (the single shifts only when R > 1).
     """
     v = np.asarray(v_pu, np.float32)
     d_tap = np.asarray(dv_dtap_pu, np.float32)
@@ -157,6 +164,11 @@ def device_shifted_voltages(
         for s in tap_shifts:
             delta = np.clip(t0 + s, -np.asarray(tap_max), np.asarray(tap_max)) - t0
             out.append(v + (d_tap @ delta.astype(np.float32))[None, :])
+    if d_tap.shape[1] > 1:
+        for r in range(d_tap.shape[1]):
+            for s in single_shifts:
+                step = int(np.clip(t0[r] + s, -tap_max[r], tap_max[r]) - t0[r])
+                out.append(v + step * d_tap[None, :, r])
     if dv_dcap_pu is not None:
         d_cap = np.asarray(dv_dcap_pu, np.float32)
         for c in range(d_cap.shape[1]):

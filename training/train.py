@@ -30,7 +30,13 @@ from regression.model import (
 )
 from training.critical import extreme_nodes, movable_nodes, node_phase, select_critical, upstream_regulators
 from training.errors import TrainingError
-from training.extended import device_shifted_voltages, near_extreme_cover, perturb_devices, reading_matrix
+from training.extended import (
+    SINGLE_TAP_SHIFTS,
+    device_shifted_voltages,
+    near_extreme_cover,
+    perturb_devices,
+    reading_matrix,
+)
 from training.fits import (
     SensitivitySamples,
     choose_c_kvar,
@@ -179,8 +185,10 @@ def _critical(engine, dm, flows: PowerFlowSet, dv_dtap_all: np.ndarray, dv_dq_al
     }
     if margin_pu > 0:
         base = flows.v_pu[flows.plant == BASE]  # one flow per scenario: the Q sweeps move the extremes little
-        shifted = device_shifted_voltages(base, dv_dtap_all, tap0, engine.reg_tap_max, dv_dcap_all)
-        required["near_extreme"] = near_extreme_cover(np.concatenate([flows.v_pu, shifted]), eligible, margin_pu)
+        shifted = device_shifted_voltages(base, dv_dtap_all, tap0, engine.reg_tap_max, dv_dcap_all,
+                                          single_shifts=SINGLE_TAP_SHIFTS)
+        required["near_extreme"] = near_extreme_cover(
+            np.concatenate([flows.v_pu.astype(np.float32), shifted]), eligible, margin_pu)
     crit = select_critical(required, extreme_nodes(flows.v_pu, eligible=eligible))
     upstream = upstream_regulators(dv_dtap_all, engine.reg_secondary_node)
     return crit, upstream, phases

@@ -190,6 +190,10 @@ def test_shifted_voltages_move_the_extreme_into_a_boosted_zone():
     out2 = device_shifted_voltages(v, dv_dtap, np.array([0, 0]), np.array([16, 16]), None, tap_shifts=(3,))
     np.testing.assert_allclose(out2[1], [1.026, 1.00, 1.028], atol=1e-6)  # node 2 now the highest
     assert near_extreme_cover(np.concatenate([v, out2]), eligible, 0.001).tolist() == [0, 1, 2]
+    # one regulator at a time: regulator 1 alone +3 steps boosts node 2 only
+    out3 = device_shifted_voltages(v, dv_dtap, np.array([0, 0]), np.array([16, 16]), None, tap_shifts=(),
+                                   single_shifts=(3,))
+    np.testing.assert_allclose(out3[1:], [[1.026, 1.00, 1.01], [1.02, 1.00, 1.028]], atol=1e-6)
 
 
 def test_format_1_models_still_load_and_others_are_refused(models, tmp_path):
