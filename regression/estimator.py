@@ -22,8 +22,8 @@ __all__ = [
     "dv_dp_pu_per_kw",
     "dv_dq_pu_per_kvar",
     "estimate_voltages_pu",
-    "pv_variability_margins_pu",
     "extended_features",
+    "pv_variability_margins_pu",
 ]
 
 #: Smallest ``c + q_head_kvar`` [kvar] the power form of eq. (3) is evaluated at (guard against a fit whose
@@ -47,7 +47,7 @@ def estimate_voltages_pu(
     ----------
     arrays : model arrays (``alpha`` (N, M+1) with trailing intercept, ``dv_dtap_pu`` (N, R), ``tap0`` (R,)).
     features : (..., M) regression features in the model's ``feature_names`` order [kW, kvar; pu for
-        readings, see ``reading_features``].
+        calendar and readings of an extended model, see ``extended_features``].
     taps : (..., R) present tap positions [steps].
     caps : (..., C) closed steps of each capacitor bank; None: as in training (no capacitor term).
 

@@ -10,11 +10,12 @@ Index conventions used by every array:
 - ``r`` = regulator (one tap changer), in ``regulators`` order;
 - ``m`` = regression feature, in ``feature_names`` order (see ``features``);
 - ``c`` = capacitor bank, in ``capacitors`` order;
-- ``j`` = field reading used as a feature (``feature_set == "extended"``), in ``readings`` order.
+- ``j`` = field reading used as a feature (``feature_set == "extended_readings"``), in ``readings`` order.
 
-Format versions: 1 (the paper's features only) and 2 (adds the optional ``extended`` feature set: field-device
-voltage readings as regressors and the capacitor banks' state term, docs/method.md). A version-1 file reads as
-a version-2 model with ``feature_set = "paper"``; any other version is refused with a clear error.
+Format versions: 1 (the paper's features only) and 2 (adds the optional extended feature sets: the capacitor
+banks' state term, the tap/bank feature mapping, calendar features, field-device readings as regressors;
+docs/method.md). A version-1 file reads as a version-2 model with ``feature_set = "paper"``; any other version
+is refused with a clear error.
 """
 
 from __future__ import annotations
@@ -112,7 +113,7 @@ class PvInfo(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=Tr
 
 
 class CapacitorInfo(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
-    """A switched capacitor bank as the estimator sees it (``feature_set == "extended"``).
+    """A switched capacitor bank as the estimator sees it (the extended feature sets).
 
     ``v_ref_v`` divides the bank's bus voltage reading (``CapFrame.v_v``, line-to-neutral [V]) into the
     per-unit reading the regression uses: the median reading over the training power flows [V].
@@ -179,7 +180,7 @@ class CvvcModel(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields
     - ``dv_dtap_pu[n][r]``: static voltage change per tap step (eq. 4) [pu/step].
     - ``sens_q[n][k]``: dV_n/dQ_k fits (eq. 3) [pu/kvar].
 
-    Extended feature set only (empty for ``paper``):
+    Extended feature sets only (empty for ``paper``):
 
     - ``readings[j]``: ``"reg:<id>"`` (the regulator's raw secondary voltage in pu of its secondary node) or
       ``"cap:<id>"`` (the bank's bus voltage over ``CapacitorInfo.v_ref_v``); they enter eq. (5) after the
@@ -212,7 +213,7 @@ class CvvcModel(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields
     control_period_s: int = 300
     node_count: int = 0  # single-phase nodes in the whole feeder, for reporting the critical share
     fit: FitStats | None = None
-    # format 2 (additive, with defaults): the extended feature set
+    # format 2 (additive, with defaults): the extended feature sets
     feature_set: FeatureSet = "paper"
     capacitors: list[CapacitorInfo] = []
     cap0: list[int] = []

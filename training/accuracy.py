@@ -59,7 +59,7 @@ class AccuracyReport(msgspec.Struct, frozen=True, kw_only=True):
     minutes: int
     errors: list[ErrorStats]
     sensitivities: list[SensitivityStats]
-    extreme_capture: dict[str, float]  # per model: share of minutes whose true max and min node are critical
+    extreme_capture: dict[str, float]  # per model: share of minutes whose true max and min zone node are critical
     extreme_gap_max_pu: dict[str, float]  # per model: worst (true feeder extreme - critical-node extreme)
     extreme_gap_p99_pu: dict[str, float]
     extreme_within_gap: dict[str, float] = {}  # per model: share of minutes with both gaps <= EXTREME_GAP_PU
