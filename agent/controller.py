@@ -224,6 +224,11 @@ class CvvcController:
             raise AgentInputError(f"pv_margin_window_s must be >= 0, not {pv_margin_window_s}")
         if not (np.isfinite(pv_margin_cap_pu) and 0.0 <= pv_margin_cap_pu <= 0.05):
             raise AgentInputError(f"pv_margin_cap_pu must be within 0 to 0.05 pu, not {pv_margin_cap_pu}")
+        if model.feature_set != "paper":
+            raise AgentInputError(
+                f"the model's feature set is {model.feature_set!r}: it needs the capacitor banks' states, which the "
+                "agent does not track yet; train the agent's model with `cvvc train --features paper`"
+            )
         self.model = model
         self.mode = mode
         self.correction = correction

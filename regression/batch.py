@@ -17,8 +17,9 @@ from regression.estimator import (
     correction_pu,
     dv_dq_pu_per_kvar,
     estimate_voltages_pu,
+    extended_features,
 )
-from regression.model import ModelArrays, SensitivityFit
+from regression.model import ModelArrays, SensitivityFit, calendar_features
 
 __all__ = ["estimate_v_pu", "eval_sensitivities", "sensitivity_arrays"]
 
@@ -28,21 +29,48 @@ def estimate_v_pu(
     features: np.ndarray,
     taps: np.ndarray,
     reg_v120: np.ndarray | None = None,
+    *,
+    caps: np.ndarray | None = None,
+    cap_v_v: np.ndarray | None = None,
+    t_ns: np.ndarray | None = None,
 ) -> np.ndarray:
     """Critical-node voltages, paper eq. (5), corrected by eq. (6)-(7) when ``reg_v120`` is given.
+
+    An extended model (``arrays.n_readings > 0``) also takes the readings as regressors when ``reg_v120`` is
+    given (its "with correction"); without them every reading is replaced by its regression on the paper
+    features (``regression.estimator.extended_features``).
 
     Parameters
     ----------
     arrays : the model's arrays.
-    features : (T, M) feature vectors (``regression.model.features``) [kW, kvar].
+    features : (T, M_paper) feature vectors (``regression.model.features``) [kW, kvar].
     taps : (T, R) present tap positions [steps].
     reg_v120 : (T, R) measured raw regulator secondary voltages [V on the 120 V base], or None.
+    caps : (T, C) closed steps of each capacitor bank (extended models; None: as in training).
+    cap_v_v : (T, C) the banks' bus voltage readings [V] (extended models with readings).
+    t_ns : (T,) UTC epoch nanoseconds of each minute (models with calendar features).
 
     Returns
     -------
     (T, N) estimated voltages [pu of each node's base].
     """
-    v = estimate_voltages_pu(arrays, np.atleast_2d(features), np.atleast_2d(taps))
+    f = np.atleast_2d(np.asarray(features, float))
+    t = np.atleast_2d(np.asarray(taps, float))
+    if arrays.extended:
+        c = np.tile(arrays.cap0, (f.shape[0], 1)) if caps is None else np.atleast_2d(np.asarray(caps, float))
+        if reg_v120 is None or arrays.n_readings == 0:
+            readings = np.full((f.shape[0], arrays.n_readings), np.nan)
+        else:
+            reg = np.atleast_2d(np.asarray(reg_v120, float)) * arrays.reg_pu_per_v120
+            n_cap = arrays.cap0.size
+            cap = np.full((f.shape[0], n_cap), np.nan) if cap_v_v is None \
+                else np.atleast_2d(np.asarray(cap_v_v, float)) / arrays.cap_v_ref_v  # NaN: not given, fallback
+            readings = np.concatenate([reg, cap], axis=1)
+        cal = None if t_ns is None else calendar_features(np.asarray(t_ns), arrays.utc_offset_h)
+        f = extended_features(arrays, f, readings, t, c, calendar=cal)
+        v = estimate_voltages_pu(arrays, f, t, c)
+    else:
+        v = estimate_voltages_pu(arrays, f, t)
     if reg_v120 is None or arrays.tap0.size == 0:
         return v
     measured = np.atleast_2d(np.asarray(reg_v120, float)) * arrays.reg_pu_per_v120

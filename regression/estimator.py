@@ -22,6 +22,7 @@ __all__ = [
     "dv_dp_pu_per_kw",
     "dv_dq_pu_per_kvar",
     "estimate_voltages_pu",
+    "extended_features",
     "pv_variability_margins_pu",
 ]
 
@@ -32,16 +33,24 @@ POWER_BASE_FLOOR_KVAR = 1.0
 _FORM_CODE = {"constant": 0, "linear": 1, "power": 2}
 
 
-def estimate_voltages_pu(arrays: ModelArrays, features: np.ndarray, taps: np.ndarray) -> np.ndarray:
+def estimate_voltages_pu(
+    arrays: ModelArrays, features: np.ndarray, taps: np.ndarray, caps: np.ndarray | None = None
+) -> np.ndarray:
     """Critical-node voltages from measurements and tap positions, paper eq. (5).
 
-    ``v_hat = alpha[:, :-1] @ M + alpha[:, -1] + dv_dtap_pu @ (T - T0)``.
+    ``v_hat = alpha[:, :-1] @ M + alpha[:, -1] + dv_dtap_pu @ (T - T0) [+ dv_dcap_pu @ (C - C0)]``.
+
+    The capacitor term is beyond the paper (extended feature set, docs/method.md): a static perturbation per
+    closed step, like eq. (4)'s tap term. A paper model ignores ``caps`` here (the agent adds its banks' terms
+    with ``regression.capbanks``).
 
     Parameters
     ----------
     arrays : model arrays (``alpha`` (N, M+1) with trailing intercept, ``dv_dtap_pu`` (N, R), ``tap0`` (R,)).
-    features : (..., M) regression features in ``regression.model.feature_names`` order [kW, kvar].
+    features : (..., M) regression features in the model's ``feature_names`` order [kW, kvar; pu for
+        calendar and readings of an extended model, see ``extended_features``].
     taps : (..., R) present tap positions [steps].
+    caps : (..., C) closed steps of each capacitor bank; None: as in training (no capacitor term).
 
     Returns
     -------
@@ -56,7 +65,74 @@ def estimate_voltages_pu(arrays: ModelArrays, features: np.ndarray, taps: np.nda
         )
     if t.shape[-1] != arrays.tap0.shape[0]:
         raise ModelInputError(f"taps have {t.shape[-1]} entries but the model has {arrays.tap0.shape[0]} regulators")
-    return m @ arrays.alpha[:, :-1].T + arrays.alpha[:, -1] + (t - arrays.tap0) @ arrays.dv_dtap_pu.T
+    v = m @ arrays.alpha[:, :-1].T + arrays.alpha[:, -1] + (t - arrays.tap0) @ arrays.dv_dtap_pu.T
+    if caps is None or not arrays.extended or arrays.cap0.size == 0:
+        return v
+    c = np.asarray(caps, float)
+    if c.shape[-1] != arrays.cap0.shape[0]:
+        raise ModelInputError(f"caps have {c.shape[-1]} entries but the model has {arrays.cap0.shape[0]} capacitors")
+    return v + (c - arrays.cap0) @ arrays.dv_dcap_pu.T
+
+
+def extended_features(
+    arrays: ModelArrays,
+    paper_features: np.ndarray,
+    readings_pu: np.ndarray,
+    taps: np.ndarray,
+    caps: np.ndarray,
+    *,
+    calendar: np.ndarray | None = None,
+    valid: np.ndarray | None = None,
+) -> np.ndarray:
+    """Features of an extended model: the paper's, the calendar's and the readings, mapped to ``tap0``/``cap0``.
+
+    Beyond the paper (docs/method.md, "extended features"): ``M' = [M, R] - feature_dtap @ (T - T0) -
+    feature_dcap @ (C - C0)``: the regression was fitted at the training taps and banks, so a tap or a bank
+    step must reach it only through eq. (4)'s static term and the bank term of ``estimate_voltages_pu`` (a
+    switched bank's kvar at the head would otherwise read as a load change). A missing reading (``valid``
+    False or non-finite) is replaced by its regression on the mapped paper features (``reading_alpha``).
+
+    Parameters
+    ----------
+    arrays : model arrays of an extended model.
+    paper_features : (..., M_paper) ``regression.model.features`` [kW, kvar].
+    readings_pu : (..., J) readings in the model's ``readings`` order [pu]: a regulator's raw secondary
+        voltage times ``pu_per_v120``, a bank's bus voltage over its ``v_ref_v``.
+    taps : (..., R) present taps [steps].
+    caps : (..., C) closed steps of each bank.
+    calendar : (..., 6) ``regression.model.calendar_features`` of the minute, for a model with ``n_calendar``.
+    valid : (..., J) bool, optional.
+
+    Returns
+    -------
+    (..., M_paper + n_calendar + J) features [kW, kvar, 1, pu].
+    """
+    m = np.asarray(paper_features, float)
+    r = np.asarray(readings_pu, float)
+    n_paper = arrays.reading_alpha.shape[1] - 1
+    if r.shape[-1] != arrays.n_readings or m.shape[-1] != n_paper:
+        raise ModelInputError(
+            f"{r.shape[-1]} readings and {m.shape[-1]} paper features; the model expects {arrays.n_readings} "
+            f"and {n_paper}"
+        )
+    ok = np.isfinite(r)
+    if valid is not None:
+        ok &= np.asarray(valid, bool)
+    if arrays.n_calendar:
+        if calendar is None or np.shape(calendar)[-1] != arrays.n_calendar:
+            raise ModelInputError(f"the model needs {arrays.n_calendar} calendar features of the minute")
+        cal = np.broadcast_to(np.asarray(calendar, float), (*m.shape[:-1], arrays.n_calendar))
+    else:
+        cal = np.zeros((*m.shape[:-1], 0))
+    raw = np.concatenate([m, cal, np.where(ok, r, 0.0)], axis=-1)
+    shift = (np.asarray(taps, float) - arrays.tap0) @ arrays.feature_dtap.T
+    if arrays.cap0.size:
+        shift = shift + (np.asarray(caps, float) - arrays.cap0) @ arrays.feature_dcap.T
+    mapped = raw - shift
+    fallback = mapped[..., :n_paper] @ arrays.reading_alpha[:, :-1].T + arrays.reading_alpha[:, -1]
+    first = n_paper + arrays.n_calendar
+    mapped[..., first:] = np.where(ok, mapped[..., first:], fallback)
+    return mapped
 
 
 def correction_pu(

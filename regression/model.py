@@ -9,13 +9,18 @@ Index conventions used by every array:
 - ``k`` = PV plant, in ``pv`` order;
 - ``r`` = regulator (one tap changer), in ``regulators`` order;
 - ``m`` = regression feature, in ``feature_names`` order (see ``features``);
-- ``c`` = switched capacitor bank the agent controls, in ``capacitors`` order (models written before banks
-  were controlled have none: they load with an empty list).
+- ``c`` = capacitor bank, in ``capacitors`` order;
+- ``j`` = field reading used as a feature (``feature_set == "extended_readings"``), in ``readings`` order.
+
+Format versions: 1 (the paper's features only) and 2 (adds the optional extended feature sets: the capacitor
+banks' state term, the tap/bank feature mapping, calendar features, field-device readings as regressors;
+docs/method.md). A version-1 file reads as a version-2 model with ``feature_set = "paper"``; any other version
+is refused with a clear error.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated, Literal
 
@@ -27,29 +32,42 @@ from regression.errors import ModelError
 
 __all__ = [
     "MODEL_FORMAT_VERSION",
+    "READABLE_FORMAT_VERSIONS",
     "CapacitorInfo",
     "CriticalNode",
     "CvvcModel",
     "EstimateBounds",
     "FitStats",
     "ModelArrays",
+    "FeatureSet",
     "ModelError",
     "PvInfo",
     "RegulatorInfo",
     "SensitivityFit",
     "TrainingSettings",
     "features",
+    "CALENDAR_FEATURES",
+    "calendar_features",
+    "extended_feature_names",
     "feature_names",
     "read_model",
     "write_model",
 ]
 
-MODEL_FORMAT_VERSION = 1
+MODEL_FORMAT_VERSION = 2
+READABLE_FORMAT_VERSIONS = (1, 2)  # 1: written before the extended feature set; reads with its defaults
 
 Finite = Annotated[float, Meta(ge=-1e12, le=1e12)]
 
 
-NodeKind = Literal["head", "reg_primary", "reg_secondary", "pv", "extreme"]
+NodeKind = Literal["head", "reg_primary", "reg_secondary", "pv", "extreme", "near_extreme"]
+
+#: ``paper``: eq. (5) on the feeder head's and the plants' P and Q (the paper's limited measurement set).
+#: ``extended``: those plus a capacitor-state term like eq. (4)'s tap term, with every feature mapped back to the
+#: training taps and banks (beyond the paper, docs/method.md).
+#: ``extended_readings``: ``extended`` plus the field devices' voltage readings (regulator secondaries, capacitor
+#: buses) as regressors: measured fragile, a reading outside its training range extrapolates badly.
+FeatureSet = Literal["paper", "extended", "extended_readings"]
 
 
 class CriticalNode(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
@@ -90,7 +108,9 @@ class CapacitorInfo(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fi
 
     ``steps`` of ``kvar_rated / steps`` each; ``closed0`` is the number of closed steps every training power
     flow ran at (the state eq. (5) has built in); ``phases`` are the bank's phases (1-3), over which its
-    kvar is spread. ``cost_per_switch`` is per step opened or closed (the device map's).
+    kvar is spread. ``cost_per_switch`` is per step opened or closed (the device map's). ``v_ref_v`` divides the
+    bank's bus voltage reading (``CapFrame.v_v``, line-to-neutral [V]) into the per-unit reading that the
+    ``extended_readings`` feature set regresses on (0 otherwise).
     """
 
     id: str
@@ -100,6 +120,7 @@ class CapacitorInfo(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fi
     closed0: Annotated[int, Meta(ge=0, le=64)]
     cost_per_switch: Annotated[float, Meta(ge=0.0, le=1e6)] = 1.0
     max_switches_per_interval: Annotated[int, Meta(ge=0, le=64)] = 1
+    v_ref_v: float = 0.0  # extended_readings: the bank's median bus voltage over the training flows [V]
 
 
 class PvInfo(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
@@ -143,6 +164,7 @@ class TrainingSettings(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown
     combined_pct: list[float] = []  # all-plant Q perturbations [% of each plant's headroom]
     rcond: float = 0.0  # truncation of the eq. (5) least squares (0: not recorded)
     tolerance: float = 0.0  # OpenDSS solve tolerance of the training flows (0: not recorded)
+    critical_margin_pu: float = 0.0  # near-extreme nodes within this of a flow's extreme are critical (0: none)
 
 
 class FitStats(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
@@ -187,6 +209,19 @@ class CvvcModel(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields
     - ``sens_q[n][k]``: dV_n/dQ_k fits (eq. 3) [pu/kvar].
     - ``dv_dcap_pu[n][c]``: static voltage change per closed step of bank ``c`` [pu/step] (beyond the paper;
       empty in models without ``capacitors``).
+
+    Extended feature sets only (empty for ``paper``):
+
+    - ``readings[j]``: ``"reg:<id>"`` (the regulator's raw secondary voltage in pu of its secondary node) or
+      ``"cap:<id>"`` (the bank's bus voltage over ``CapacitorInfo.v_ref_v``); they enter eq. (5) after the
+      paper features (``extended_feature_names``).
+    - ``cap0[c]``: the banks' closed steps in training (each bank's ``closed0``; empty in paper models).
+    - ``feature_dtap[m][r]``, ``feature_dcap[m][c]``: each feature's change per tap step / closed step, from
+      the same perturbations [kW, kvar or pu per step]: features are mapped back to ``tap0``/``cap0`` before
+      eq. (5), so that a tap or a bank acts only through its own static term (a bank's kvar at the head would
+      otherwise read as a load change).
+    - ``reading_alpha[j]``: each (mapped) reading regressed on the (mapped) paper features (coefficients then
+      intercept), used in place of a reading that is missing.
     """
 
     format_version: int = MODEL_FORMAT_VERSION
@@ -208,9 +243,17 @@ class CvvcModel(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields
     node_count: int = 0  # single-phase nodes in the whole feeder, for reporting the critical share
     fit: FitStats | None = None
     bounds: EstimateBounds | None = None  # calibrated estimate bounds (None: a model trained without them)
-    # added for capacitor decisions (additive, with defaults: older models load with no banks)
+    # format 2 (additive, with defaults): the extended feature sets
+    feature_set: FeatureSet = "paper"
     capacitors: list[CapacitorInfo] = []
+    cap0: list[int] = []
     dv_dcap_pu: list[list[Finite]] = []
+    readings: list[str] = []
+    feature_dtap: list[list[Finite]] = []
+    feature_dcap: list[list[Finite]] = []
+    reading_alpha: list[list[Finite]] = []
+    calendar: bool = False  # the calendar features follow the paper's (``CALENDAR_FEATURES``)
+    utc_offset_h: float = 0.0  # local standard time of the feeder minus UTC [h], for the calendar features
 
 
 def feature_names(n_pv: int) -> list[str]:
@@ -223,6 +266,33 @@ def feature_names(n_pv: int) -> list[str]:
     for k in range(n_pv):
         names += [f"pv{k}_p_kw", f"pv{k}_q_kvar"]
     return names
+
+
+CALENDAR_FEATURES = ("tod_cos1", "tod_sin1", "tod_cos2", "tod_sin2", "doy_cos", "doy_sin")
+"""Calendar features of the extended sets: time of day (two harmonics) and day of year (one)."""
+
+
+def extended_feature_names(n_pv: int, readings: list[str], calendar: bool = False) -> list[str]:
+    """Features of the extended sets: the paper's (``feature_names``), the calendar's, one per field reading."""
+    return feature_names(n_pv) + (list(CALENDAR_FEATURES) if calendar else []) + [f"reading_{r}" for r in readings]
+
+
+def calendar_features(t_ns: np.ndarray, utc_offset_h: float) -> np.ndarray:
+    """Time of day and day of year as harmonics, ``CALENDAR_FEATURES`` order (beyond the paper).
+
+    Parameters
+    ----------
+    t_ns : (...,) UTC epoch nanoseconds.
+    utc_offset_h : the feeder's local standard time minus UTC [h] (the load follows local time).
+
+    Returns
+    -------
+    (..., 6) array in [-1, 1].
+    """
+    local_s = np.asarray(t_ns, float) / 1e9 + float(utc_offset_h) * 3600.0
+    day = 2.0 * np.pi * (local_s % 86400.0) / 86400.0
+    year = 2.0 * np.pi * (local_s % (365.2425 * 86400.0)) / (365.2425 * 86400.0)
+    return np.stack([np.cos(day), np.sin(day), np.cos(2 * day), np.sin(2 * day), np.cos(year), np.sin(year)], axis=-1)
 
 
 def features(
@@ -255,13 +325,30 @@ class ModelArrays:
     upstream_regulator: np.ndarray  # (N,) int, -1 where none
     reg_secondary_node: np.ndarray  # (R,) int
     reg_pu_per_v120: np.ndarray  # (R,)
-    dv_dcap_pu: np.ndarray | None = None  # (N, C) [pu/step]; None = no bank
-    cap0: np.ndarray | None = None  # (C,) closed steps of the training flows
+    extended: bool = False  # features are mapped back to tap0/cap0 (``regression.estimator.extended_features``)
+    n_calendar: int = 0  # calendar features after the paper's (0 or len(CALENDAR_FEATURES))
+    utc_offset_h: float = 0.0
+    # the extended feature set (defaults: none, as for a paper model)
+    cap0: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (C,) closed steps in training (closed0)
+    cap_v_ref_v: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (C,) each bank's reading reference [V]
+    dv_dcap_pu: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))  # (N, C) [pu/step]
+    feature_dtap: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))  # (M, R) per tap step
+    feature_dcap: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))  # (M, C) per closed step
+    reading_alpha: np.ndarray = field(default_factory=lambda: np.zeros((0, 1)))  # (J, M_paper + 1)
+
+    @property
+    def n_readings(self) -> int:
+        """Field readings among the features (0 for the paper's feature set)."""
+        return int(self.reading_alpha.shape[0])
 
     @classmethod
     def of(cls, model: CvvcModel) -> ModelArrays:
         """The model's coefficients as numpy arrays, for evaluation."""
         n_reg = len(model.regulators)
+        n_cap, n_read = len(model.capacitors), len(model.readings)
+        n_paper = len(feature_names(len(model.pv)))
+        n_feat = n_paper + n_read + (len(CALENDAR_FEATURES) if model.calendar else 0)
+        extended = model.feature_set != "paper"
         return cls(
             alpha=np.asarray(model.alpha, float),
             tap0=np.asarray(model.tap0, float),
@@ -272,8 +359,17 @@ class ModelArrays:
             ),
             reg_secondary_node=np.asarray([r.secondary_node for r in model.regulators], int),
             reg_pu_per_v120=np.asarray([r.pu_per_v120 for r in model.regulators], float),
-            dv_dcap_pu=_dv_dcap(model),
+            extended=extended,
+            n_calendar=len(CALENDAR_FEATURES) if model.calendar else 0,
+            utc_offset_h=model.utc_offset_h,
             cap0=np.asarray([c.closed0 for c in model.capacitors], float),
+            cap_v_ref_v=np.asarray([c.v_ref_v for c in model.capacitors], float),
+            dv_dcap_pu=_dv_dcap(model),
+            feature_dtap=np.asarray(model.feature_dtap, float).reshape(n_feat, n_reg) if extended
+            else np.zeros((n_feat, n_reg)),
+            feature_dcap=np.asarray(model.feature_dcap, float).reshape(n_feat, n_cap) if extended
+            else np.zeros((n_feat, n_cap)),
+            reading_alpha=np.asarray(model.reading_alpha, float).reshape(n_read, n_paper + 1),
         )
 
 
@@ -291,7 +387,7 @@ def _dv_dcap(model: CvvcModel) -> np.ndarray:
 
 def write_model(model: CvvcModel, path: str | Path) -> None:
     """Write ``model`` as JSON, refusing non-finite numbers (msgspec would write them as null)."""
-    for row in model.alpha + model.dv_dtap_pu + model.dv_dcap_pu:
+    for row in model.alpha + model.dv_dtap_pu + model.dv_dcap_pu + model.reading_alpha:
         if not np.all(np.isfinite(row)):
             raise ModelError("refusing to write a model with non-finite coefficients")
     Path(path).write_bytes(msgspec.json.format(msgspec.json.encode(model), indent=1))
@@ -309,19 +405,49 @@ def read_model(path: str | Path, *, expect_fingerprint: str | None = None) -> Cv
     except msgspec.DecodeError as e:
         raise ModelError(f"{path}: not a model file (invalid JSON): {e}") from e
     version = head.get("format_version")
-    if version != MODEL_FORMAT_VERSION:
+    if version not in READABLE_FORMAT_VERSIONS:
         raise ModelError(
-            f"{path}: model format {version!r}, this cvvc-edge reads {MODEL_FORMAT_VERSION}; retrain with "
-            "`cvvc train`"
+            f"{path}: model format {version!r}, this cvvc-edge reads formats {list(READABLE_FORMAT_VERSIONS)}; "
+            "retrain with `cvvc train`"
         )
     try:
         model = msgspec.json.decode(raw, type=CvvcModel)
     except msgspec.ValidationError as e:
         raise ModelError(f"{path}: invalid model file: {e}") from e
     _dv_dcap(model)  # banks and their sensitivities agree, or a clear error now rather than in the agent
+    _check_extended(model, path)
     if expect_fingerprint is not None and model.fingerprint != expect_fingerprint:
         raise ModelError(
             f"{path}: model was trained for feeder {model.feeder_name!r} (fingerprint {model.fingerprint}), "
             f"not this feeder (fingerprint {expect_fingerprint}); train a model for it with `cvvc train`"
         )
     return model
+
+
+def _check_extended(model: CvvcModel, path: Path) -> None:
+    """Refuse a model whose extended-feature arrays do not agree in size with each other."""
+    n_node, n_reg = len(model.critical_nodes), len(model.regulators)
+    n_cap, n_read = len(model.capacitors), len(model.readings)
+    n_paper = len(feature_names(len(model.pv)))
+    n_feat = n_paper + n_read + (len(CALENDAR_FEATURES) if model.calendar else 0)
+    checks = [
+        (len(model.feature_names) == n_feat, f"{len(model.feature_names)} feature names for {n_feat} features"),
+        (all(len(a) == n_feat + 1 for a in model.alpha), f"alpha rows are not {n_feat} + 1 long"),
+        (not model.cap0 or model.cap0 == [c.closed0 for c in model.capacitors],
+         "cap0 differs from the banks' closed0"),
+        (n_cap == 0 or (len(model.dv_dcap_pu) == n_node and all(len(r) == n_cap for r in model.dv_dcap_pu)),
+         "dv_dcap_pu is not (nodes x capacitors)"),
+        (model.feature_set == "paper" or (len(model.feature_dtap) == n_feat
+                                           and all(len(r) == n_reg for r in model.feature_dtap)),
+         "feature_dtap is not (features x regulators)"),
+        (model.feature_set == "paper" or (len(model.feature_dcap) == n_feat
+                                           and all(len(r) == n_cap for r in model.feature_dcap)),
+         "feature_dcap is not (features x capacitors)"),
+        (len(model.reading_alpha) == n_read and all(len(r) == n_paper + 1 for r in model.reading_alpha),
+         "reading_alpha is not (readings x paper features + 1)"),
+        (model.feature_set == "extended_readings" or n_read == 0, "field readings in a model without them"),
+        (model.feature_set != "paper" or not model.calendar, "calendar features in a paper model"),
+    ]
+    bad = [what for ok, what in checks if not ok]
+    if bad:
+        raise ModelError(f"{path}: inconsistent model file ({'; '.join(bad)}); retrain with `cvvc train`")

@@ -84,7 +84,8 @@ def calibrate_bounds(model: CvvcModel, engine, profiles, *, training_steps: np.n
         steps = range(first - _WARMUP_MIN, min(first + per_window, profiles.n_steps))
         truth = simulate_month(engine, profiles, steps, nodes, sens_minutes=0, progress=progress)
         keep = np.array([s >= first and s not in held_out for s in truth.steps])
-        est = estimate_v_pu(arrays, truth.features[keep], truth.taps[keep], truth.reg_v120[keep])
+        est = estimate_v_pu(arrays, truth.features[keep], truth.taps[keep], truth.reg_v120[keep],
+                            caps=truth.cap_states[keep], cap_v_v=truth.cap_v_v[keep], t_ns=truth.t_ns[keep])
         residuals.append(truth.v_pu[keep] - est)
     r = np.concatenate(residuals)
     lo, hi = envelope(np.asarray(training_features, float))

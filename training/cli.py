@@ -3,7 +3,8 @@
 Verbs::
 
     cvvc train [--feeder FEEDER] --out MODEL [--year-seed S] [--selection guided|random]
-               [--blocks NL NPV] [--workers N] [--no-combined] [--cache DIR] [--json]
+               [--blocks NL NPV] [--workers N] [--no-combined] [--features paper|extended]
+               [--critical-margin-pu PU] [--cache DIR] [--json]
     cvvc report accuracy --model MODEL [--model MODEL2] [--feeder FEEDER] --month M [--year-seed S]
                [--png PATH] [--max-minutes N] [--cache DIR] [--json]
 
@@ -48,6 +49,9 @@ def _train(args: argparse.Namespace) -> int:
         combined_pct=() if args.no_combined else DEFAULT_COMBINED_PCT,
         progress=not args.json,
         calibration_minutes=args.calibration_minutes,
+        feature_set=args.features,
+        critical_margin_pu=args.critical_margin_pu,
+        calendar=args.calendar,
     )
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -113,7 +117,8 @@ def _accuracy(args: argparse.Namespace) -> int:
         print(
             f"true max and min node critical ({label}): {100 * share:.2f} % of minutes; worst gap between "
             f"the feeder's and the critical nodes' extremes {report.extreme_gap_max_pu[label]:.5f} pu "
-            f"(p99 {report.extreme_gap_p99_pu[label]:.5f})"
+            f"(p99 {report.extreme_gap_p99_pu[label]:.5f}); within 0.002 pu in "
+            f"{100 * report.extreme_within_gap.get(label, float('nan')):.2f} % of minutes"
         )
     for label, alpha in report.bound_alpha.items():
         print(f"calibrated bounds ({label}): {100 * report.bound_miss_rate[label]:.3f} % of node-minutes outside them "
@@ -137,6 +142,21 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--no-combined", action="store_true", help="only the paper's one-plant-at-a-time Q perturbations")
     p.add_argument("--calibration-minutes", type=int, default=1440,
                    help="held-out minutes of the training year for the calibrated estimate bounds (0: none)")
+    p.add_argument(
+        "--features", choices=("paper", "extended", "extended_readings"), default="paper",
+        help="paper: eq. (5) on head and plant P, Q; extended: plus the capacitor banks' states, features mapped "
+        "back to the training taps and banks; extended_readings: plus the regulators' and banks' voltage readings "
+        "as regressors (docs/method.md)",
+    )
+    p.add_argument(
+        "--critical-margin-pu", type=float, default=0.0,
+        help="also make critical a small cover of the nodes within this of each training flow's extremes [pu] "
+        "(default 0: the paper's extremes only)",
+    )
+    p.add_argument(
+        "--calendar", action="store_true",
+        help="extended sets: time of day and day of year among the regression features (docs/method.md)",
+    )
     p.add_argument("--json", action="store_true", help="print the summary as JSON (no progress bar)")
     p.add_argument("--cache", default=None, help=CACHE_HELP)
     p.set_defaults(func=_train)

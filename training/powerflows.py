@@ -66,6 +66,8 @@ class PowerFlowSet:
     pv_q_kvar: np.ndarray  # (F, K) applied plant Q [kvar], generator convention
     v_pu: np.ndarray  # (F, n_nodes) every node voltage [pu]
     taps: np.ndarray  # (F, R) tap positions of each flow
+    reg_pu: np.ndarray  # (F, R) each regulator's raw secondary reading [pu of its secondary node]
+    cap_v_v: np.ndarray  # (F, C) each map capacitor bank's bus voltage reading, line-to-neutral [V]
     failed: int  # power flows that did not converge (skipped)
     workers: int = 1  # processes that ran them
 
@@ -85,6 +87,8 @@ class PowerFlowSet:
             pv_q_kvar=np.concatenate([p.pv_q_kvar for p in parts]),
             v_pu=np.concatenate([p.v_pu for p in parts]),
             taps=np.concatenate([p.taps for p in parts]),
+            reg_pu=np.concatenate([p.reg_pu for p in parts]),
+            cap_v_v=np.concatenate([p.cap_v_v for p in parts]),
             failed=sum(p.failed for p in parts),
         )
 
@@ -146,7 +150,8 @@ def solve_scenario(
         except CvvcError:
             failed += 1
             if plant == BASE:  # no base flow: the sweeps have no reference, drop the scenario
-                return _empty(len(kva), len(engine.node_names), len(taps), failed=len(plan))
+                return _empty(len(kva), len(engine.node_names), len(taps), len(engine.capacitor_ids),
+                              failed=len(plan))
             continue
         r = engine.readings()
         feat = features(r.head_p_kw, r.head_q_kvar, r.pv_p_kw.sum(axis=1), r.pv_q_kvar.sum(axis=1))
@@ -158,6 +163,8 @@ def solve_scenario(
                 float(np.sum(r.head_q_kvar)),
                 np.asarray(applied, float),
                 engine.node_voltages_pu(),
+                np.asarray(r.reg_v120, float) * np.asarray(engine.reg_pu_per_v120, float),
+                np.asarray(r.cap_v_v, float),
             )
         )
     engine.set_pv(scenario.pv_kw, np.zeros(len(kva)))  # line 18: revert PV Q to 0
@@ -170,11 +177,13 @@ def solve_scenario(
         pv_q_kvar=np.asarray([r[4] for r in rows], float).reshape(len(rows), len(kva)),
         v_pu=np.asarray([r[5] for r in rows], float).reshape(len(rows), len(engine.node_names)),
         taps=np.tile(taps, (len(rows), 1)),
+        reg_pu=np.asarray([r[6] for r in rows], float).reshape(len(rows), len(taps)),
+        cap_v_v=np.asarray([r[7] for r in rows], float).reshape(len(rows), len(engine.capacitor_ids)),
         failed=failed,
     )
 
 
-def _empty(n_pv: int, n_nodes: int, n_reg: int, *, failed: int = 0) -> PowerFlowSet:
+def _empty(n_pv: int, n_nodes: int, n_reg: int, n_cap: int = 0, *, failed: int = 0) -> PowerFlowSet:
     return PowerFlowSet(
         scenario=np.zeros(0, int),
         plant=np.zeros(0, int),
@@ -184,6 +193,8 @@ def _empty(n_pv: int, n_nodes: int, n_reg: int, *, failed: int = 0) -> PowerFlow
         pv_q_kvar=np.zeros((0, n_pv)),
         v_pu=np.zeros((0, n_nodes)),
         taps=np.zeros((0, n_reg), int),
+        reg_pu=np.zeros((0, n_reg)),
+        cap_v_v=np.zeros((0, n_cap)),
         failed=failed,
     )
 

@@ -23,11 +23,20 @@ from regression.model import (
     RegulatorInfo,
     SensitivityFit,
     TrainingSettings,
+    calendar_features,
+    extended_feature_names,
     feature_names,
 )
 from training.capbanks import bank_infos, bank_sensitivities
 from training.critical import extreme_nodes, movable_nodes, node_phase, select_critical, upstream_regulators
 from training.errors import TrainingError
+from training.extended import (
+    SINGLE_TAP_SHIFTS,
+    device_shifted_voltages,
+    near_extreme_cover,
+    perturb_devices,
+    reading_matrix,
+)
 from training.fits import (
     SensitivitySamples,
     choose_c_kvar,
@@ -37,6 +46,7 @@ from training.fits import (
     tap_sensitivities,
 )
 from training.powerflows import (
+    BASE,
     PowerFlowSet,
     ScenarioInput,
     run_power_flows,
@@ -47,7 +57,7 @@ from training.scenarios import ScenarioSet, select_scenarios, summarize_year
 __all__ = ["DEFAULT_Q_STEPS_PCT", "TRAINING_REVISION", "TrainResult", "TrainSummary", "load_profiles", "train"]
 
 #: Bump when training changes what it produces, so cached models (``cvvc run``'s cache) are retrained.
-TRAINING_REVISION = 5  # 3: critical nodes in the feeder zone and movable only; 4: estimate bounds; 5: capacitor banks
+TRAINING_REVISION = 5  # 3: critical nodes in the zone, movable only; 4: model format 2; 5: bounds and banks
 
 DEFAULT_Q_STEPS_PCT = tuple(float(p) for p in range(-100, 101, 20))
 DEFAULT_COMBINED_PCT = (-100.0, -50.0, 50.0, 100.0)
@@ -102,7 +112,7 @@ def load_profiles(device_map, engine, *, seed: int, cache_dir: str | Path | None
     return feeder_profiles(device_map, engine, seed=seed, cache_dir=cache_dir)
 
 
-def _check_device_map(dm) -> None:
+def _check_device_map(dm, feature_set: str = "paper") -> None:
     if not dm.pv:
         raise TrainingError(
             f"feeder {dm.feeder.name!r}: the device map has no PV plant; add at least one [[pv]] entry "
@@ -160,7 +170,8 @@ def _q_sensitivities(engine, first: ScenarioInput, tap0: np.ndarray) -> np.ndarr
     return dv_dq
 
 
-def _critical(engine, dm, flows: PowerFlowSet, dv_dtap_all: np.ndarray, dv_dq_all: np.ndarray):
+def _critical(engine, dm, flows: PowerFlowSet, dv_dtap_all: np.ndarray, dv_dq_all: np.ndarray, margin_pu: float,
+              tap0: np.ndarray, dv_dcap_all: np.ndarray | None):
     names = engine.node_names
     phases = np.asarray([node_phase(n) for n in names])
     v_ref = np.median(flows.v_pu, axis=0)
@@ -180,6 +191,12 @@ def _critical(engine, dm, flows: PowerFlowSet, dv_dtap_all: np.ndarray, dv_dq_al
         "reg_secondary": np.asarray(engine.reg_secondary_node, int),  # always: the correction reads them
         "pv": pv_nodes[eligible[pv_nodes]] if pv_nodes.size else pv_nodes,
     }
+    if margin_pu > 0:
+        base = flows.v_pu[flows.plant == BASE]  # one flow per scenario: the Q sweeps move the extremes little
+        shifted = device_shifted_voltages(base, dv_dtap_all, tap0, engine.reg_tap_max, dv_dcap_all,
+                                          single_shifts=SINGLE_TAP_SHIFTS)
+        required["near_extreme"] = near_extreme_cover(
+            np.concatenate([flows.v_pu.astype(np.float32), shifted]), eligible, margin_pu)
     crit = select_critical(required, extreme_nodes(flows.v_pu, eligible=eligible))
     upstream = upstream_regulators(dv_dtap_all, engine.reg_secondary_node)
     return crit, upstream, phases
@@ -201,6 +218,9 @@ def train(
     progress: bool = True,
     calibration_minutes: int = 1440,
     bound_alpha: float = 0.01,
+    feature_set: Literal["paper", "extended", "extended_readings"] = "paper",
+    critical_margin_pu: float = 0.0,
+    calendar: bool = False,
 ) -> TrainResult:
     """Train the estimator of one feeder (paper II.A-II.D).
 
@@ -221,6 +241,12 @@ def train(
     calibration_minutes : held-out minutes of the training year on which the estimate bounds are calibrated
         (``training.calibration``; 0: a model without bounds, as the paper's).
     bound_alpha : miscoverage of the calibrated two-sided bounds (0.01: the true voltage within them in 99 %).
+    feature_set : "paper" (eq. (5) on head and plant P, Q), "extended" (plus the capacitor banks' state term,
+        features mapped back to ``tap0``/``cap0``) or "extended_readings" (plus the field devices' voltage
+        readings as regressors); ``training.extended``.
+    critical_margin_pu : > 0 adds a greedy cover of the nodes within this of each flow's extremes to the
+        critical nodes (``training.extended.near_extreme_cover``); 0: the paper's extremes only.
+    calendar : extended sets only: time of day and day of year among the features (``calendar_features``).
 
     Raises
     ------
@@ -229,11 +255,12 @@ def train(
     """
     from schemas.devicemap import load_device_map
     from simulator_bridge.engine import FeederEngine
+    from simulator_bridge.profiles import UTC_OFFSET_H
 
     t_start = time.perf_counter()
     device_map_path = Path(device_map_path)
     dm = load_device_map(device_map_path)
-    _check_device_map(dm)
+    _check_device_map(dm, feature_set)
     engine = FeederEngine(dm, tolerance=tolerance)
     for what, d in (("load", engine.load_distance_ohm), ("PV plant", engine.pv_distance_ohm)):
         if not np.all(np.isfinite(d)):
@@ -263,6 +290,7 @@ def train(
 
     # Algorithm 1 lines 2-6 (eq. 4), then the Q sweeps
     _, dv_dtap_all = _tap_perturbation(engine, inputs[0], tap0)
+    pert = perturb_devices(engine, inputs[0].load_kw, inputs[0].pv_kw, tap0) if feature_set != "paper" else None
     t_pf = time.perf_counter()
     n_workers = max(1, min((os.cpu_count() or 1) if workers is None else workers, len(inputs)))
     flows = run_power_flows(
@@ -282,13 +310,21 @@ def train(
     # II.C: critical nodes
     dv_dq_all = _q_sensitivities(engine, inputs[0], tap0)
     dv_dcap_all = bank_sensitivities(engine, inputs, tap0, cap0)
-    crit, upstream_all, phases = _critical(engine, dm, flows, dv_dtap_all, dv_dq_all)
+    crit, upstream_all, phases = _critical(engine, dm, flows, dv_dtap_all, dv_dq_all, critical_margin_pu, tap0,
+                                           None if pert is None else pert.dv_dcap_pu)
     nodes = crit.nodes
     pos = {int(n): i for i, n in enumerate(nodes)}
 
     # II.D: eq. (5) on the critical nodes (the target is the voltage at tap0: identity for frozen-tap flows)
     v_crit = flows.v_pu[:, nodes] - (flows.taps - tap0) @ dv_dtap_all[nodes].T
-    vfit, val_rmse, val_max = _fit_voltages(flows, v_crit, rcond)
+    if calendar and feature_set == "paper":
+        raise TrainingError("calendar features belong to the extended feature sets; add --features extended")
+    cal = calendar_features(np.asarray([profiles.t_ns(int(scen.steps[i])) for i in flows.scenario], np.int64),
+                            UTC_OFFSET_H) if calendar else np.zeros((flows.n, 0))
+    ext = None if pert is None else _extended(dm, engine, flows, pert, nodes, cap0, rcond, feature_set, cal.shape[1],
+                                           float(UTC_OFFSET_H))
+    x = flows.features if ext is None else np.concatenate([flows.features, cal, ext.readings], axis=1)
+    vfit, val_rmse, val_max = _fit_voltages(flows, x, v_crit, rcond)
     # eq. (3): samples from single-plant sweeps, form chosen on held-out scenarios
     samples = sensitivity_samples(flows.scenario, flows.plant, flows.pv_q_kvar, flows.q_head_kvar, v_crit)
     q_range = (float(flows.q_head_kvar.min()), float(flows.q_head_kvar.max()))
@@ -354,8 +390,10 @@ def train(
             combined_pct=list(combined_pct),
             rcond=rcond,
             tolerance=tolerance,
+            critical_margin_pu=critical_margin_pu,
         ),
-        feature_names=feature_names(len(dm.pv)),
+        feature_names=feature_names(len(dm.pv)) if ext is None
+        else extended_feature_names(len(dm.pv), ext.names, calendar),
         critical_nodes=crit_nodes,
         regulators=regs,
         pv=pvs,
@@ -368,8 +406,7 @@ def train(
         control_period_s=dm.feeder.control_period_s,
         node_count=len(engine.node_names),
         fit=fit_stats,
-        capacitors=bank_infos(engine, dm, cap0),
-        dv_dcap_pu=dv_dcap_all[nodes].tolist(),
+        **_bank_fields(bank_infos(engine, dm, cap0), dv_dcap_all[nodes], ext),
     )
     t_cal = time.perf_counter()
     if calibration_minutes > 0:
@@ -415,15 +452,77 @@ def train(
     return TrainResult(model=model, summary=summ)
 
 
-def _fit_voltages(flows: PowerFlowSet, v_crit: np.ndarray, rcond: float):
-    """Eq. (5) fit on every flow, plus its error on held-out scenarios (fitted on the others)."""
+def _fit_voltages(flows: PowerFlowSet, x: np.ndarray, v_crit: np.ndarray, rcond: float):
+    """Eq. (5) fit of ``x`` (F, M) on every flow, plus its error on held-out scenarios (fitted on the others)."""
     holdout = (flows.scenario % _HOLDOUT_EVERY) == _HOLDOUT_EVERY - 1
     val_rmse, val_max = float("nan"), float("nan")
-    if holdout.any() and (~holdout).sum() > flows.features.shape[1] + 1:
-        part = fit_voltage_regression(flows.features[~holdout], v_crit[~holdout], rcond=rcond)
-        err = flows.features[holdout] @ part.alpha[:, :-1].T + part.alpha[:, -1] - v_crit[holdout]
+    if holdout.any() and (~holdout).sum() > x.shape[1] + 1:
+        part = fit_voltage_regression(x[~holdout], v_crit[~holdout], rcond=rcond)
+        err = x[holdout] @ part.alpha[:, :-1].T + part.alpha[:, -1] - v_crit[holdout]
         val_rmse, val_max = float(np.sqrt(np.mean(err**2))), float(np.max(np.abs(err)))
-    return fit_voltage_regression(flows.features, v_crit, rcond=rcond), val_rmse, val_max
+    return fit_voltage_regression(x, v_crit, rcond=rcond), val_rmse, val_max
+
+
+@dataclass(frozen=True)
+class _Extended:
+    """The extended feature set's training products."""
+
+    names: list[str]  # the readings, model order
+    readings: np.ndarray  # (F, J) readings of every flow [pu]
+    model_fields: dict  # the CvvcModel fields of the extended set
+
+
+def _bank_fields(banks: list, dv_dcap_pu: np.ndarray, ext: _Extended | None) -> dict:
+    """The model's bank fields: the banks and their per-step sensitivities (``training.capbanks``), or the
+    extended feature set's, which carry the same banks with their reading references and their own
+    perturbations (``training.extended``).
+    """
+    fields: dict = {"capacitors": banks, "dv_dcap_pu": dv_dcap_pu.tolist() if banks else []}
+    if ext is not None:
+        fields.update(ext.model_fields)
+    return fields
+
+
+def _extended(
+    dm, engine, flows: PowerFlowSet, pert, nodes: np.ndarray, cap0: np.ndarray, rcond: float, feature_set: str,
+    n_calendar: int, utc_offset_h: float,
+) -> _Extended:
+    """The banks' static term, the feature mapping and (``extended_readings``) the readings as regressors."""
+    n_reg = flows.reg_pu.shape[1]
+    v_ref = np.median(flows.cap_v_v, axis=0) if flows.cap_v_v.size else np.zeros(0)
+    if np.any(v_ref <= 0):
+        raise TrainingError("a capacitor bank's bus reads 0 V in training; check its bus in the device map")
+    readings = reading_matrix(flows.reg_pu, flows.cap_v_v, v_ref)
+    use = feature_set == "extended_readings"
+    # the bank readings' perturbations are in V: per unit of v_ref like the readings
+    scale = np.concatenate([np.ones(pert.feature_dtap.shape[0] - v_ref.size), 1.0 / v_ref])
+    f_tap, f_cap = pert.feature_dtap * scale[:, None], pert.feature_dcap * scale[:, None]
+    reading_fit = fit_voltage_regression(flows.features, readings, rcond=rcond)
+    names = [f"reg:{r.id}" for r in dm.regulator] + [f"cap:{c.id}" for c in dm.capacitor]
+    if len(names) != n_reg + v_ref.size:
+        raise TrainingError("the device map's regulators and banks do not match the engine's")
+    n_paper = flows.features.shape[1]
+    if not use:  # no readings: the mapping of the paper features only
+        names, readings = [], readings[:, :0]
+        f_tap, f_cap = f_tap[:n_paper], f_cap[:n_paper]
+    # the calendar features follow the paper's; no device moves them
+    f_tap = np.insert(f_tap, [n_paper] * n_calendar, 0.0, axis=0)
+    f_cap = np.insert(f_cap, [n_paper] * n_calendar, 0.0, axis=0)
+    caps = [msgspec.structs.replace(c, v_ref_v=float(v)) for c, v in zip(bank_infos(engine, dm, cap0), v_ref,
+                                                                                 strict=True)]
+    fields = {
+        "feature_set": feature_set,
+        "capacitors": caps,
+        "cap0": [int(c) for c in cap0],
+        "dv_dcap_pu": pert.dv_dcap_pu[nodes].tolist() if cap0.size else [],
+        "readings": names,
+        "feature_dtap": f_tap.tolist(),
+        "feature_dcap": f_cap.tolist(),
+        "reading_alpha": reading_fit.alpha.tolist() if use else [],
+        "calendar": n_calendar > 0,
+        "utc_offset_h": utc_offset_h,
+    }
+    return _Extended(names=names, readings=readings, model_fields=fields)
 
 
 def _fit_sensitivities(

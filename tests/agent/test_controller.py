@@ -189,6 +189,10 @@ def test_bad_shapes_hold_and_bad_configuration_is_refused():
         controller(mode="setpoints", bandwidth_v120=0.5)
     with pytest.raises(AgentInputError, match="mode"):
         controller(mode="tap")
+    # an extended model needs the banks' states, which the agent does not track: refused, not misread
+    with pytest.raises(AgentInputError, match="--features paper"):
+        CvvcController(msgspec.structs.replace(MODEL, feature_set="extended"), mode="taps", correction=True,
+                       bandwidth_v120=4.0)
 
 
 @pytest.mark.parametrize(
