@@ -33,7 +33,7 @@ produce the same aligned sets. The rule, documented in docs/agent.md:
 
 from __future__ import annotations
 
-from collections import Counter
+from collections import Counter, deque
 from dataclasses import dataclass, field
 
 from schemas import messages as m
@@ -51,6 +51,7 @@ class AlignedFrames:
     vr: dict[str, m.RegFrame]
     missing: tuple[str, ...]
     cap: dict[str, m.CapFrame] = field(default_factory=dict)
+    vr_recent: dict[str, tuple[m.RegFrame, ...]] = field(default_factory=dict)  # the period's frames, oldest first
 
     @property
     def complete(self) -> bool:
@@ -98,6 +99,7 @@ def plausibility_problem(frame: m.HeadFrame | m.PvFrame | m.RegFrame | m.CapFram
 _Frame = m.HeadFrame | m.PvFrame | m.RegFrame | m.CapFrame
 _FRAME_TYPES = (m.HeadFrame, m.PvFrame, m.RegFrame, m.CapFrame)
 _EXPECT_MAX = 64  # scan-end markers kept ahead of their frames (the oldest goes first)
+_VR_HISTORY = 64  # frames kept per regulator for the control period's readings (one per minute: a 5-minute period)
 
 
 @dataclass
@@ -133,6 +135,8 @@ class FrameAligner:
         self._last_t_ns: dict[str, int] = {}
         self._groups: dict[int, _Group] = {}
         self._released_t_ns = -1
+        # every regulator's frames released lately (control steps or not): the readings of a control period
+        self._vr_history: dict[str, deque[m.RegFrame]] = {r: deque(maxlen=_VR_HISTORY) for r in regulator_ids}
         self._newest_t_ns: int | None = None  # newest accepted frame time; None before the first
         self._held: list[tuple[str, _Frame]] = []  # frames ahead of the clock, awaiting a second source
         n_sources = 1 + len(pv_ids) + len(regulator_ids) + len(capacitor_ids)
@@ -294,5 +298,10 @@ class FrameAligner:
         self._released_t_ns = max(self._released_t_ns, t_ns)
         for t in [t for t in self._expected if t <= self._released_t_ns]:
             del self._expected[t]
+        recent: dict[str, tuple[m.RegFrame, ...]] = {}
+        for reg_id, frame in g.vr.items():
+            history = self._vr_history[reg_id]
+            history.append(frame)
+            recent[reg_id] = tuple(f for f in history if t_ns - self.control_period_ns < f.t_ns <= t_ns)
         return AlignedFrames(t_ns=g.t_ns, head=g.head, pv=dict(g.pv), vr=dict(g.vr), missing=self._missing(g),
-                             cap=dict(g.cap))
+                             cap=dict(g.cap), vr_recent=recent)
