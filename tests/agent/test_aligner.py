@@ -227,3 +227,33 @@ def test_step_end_markers_ahead_of_their_frames_are_bounded(aligner):
     for i in range(1, 3 * _EXPECT_MAX):
         aligner.add(*step_end(T0 + i * MINUTE, head=False))
     assert len(aligner._expected) == _EXPECT_MAX
+
+
+def test_a_control_step_carries_its_regulators_readings_of_the_period_and_the_snapshot_averages_them(aligner):
+    """Issue "Robust by default" item 7: the regulator readings of the snapshot are the mean of the control
+    period's frames at the present tap (a noisy single reading made the set points hunt)."""
+    from agent.runtime import snapshot_from
+    from benchmarks.synthetic import synthetic_model
+
+    base = EX[m.RegFrame]
+    readings = [121.0, 119.0, 122.0, 118.0, 120.5, 119.5]  # minutes -5 .. 0 before the control step T0 + PERIOD
+    taps = [2, 3, 3, 3, 3, 3]  # a tap change after the first: that reading is not averaged in
+    out = []
+    t1 = T0 + PERIOD_NS
+    for i, (v, tap) in enumerate(zip(readings, taps, strict=True)):
+        t = t1 - (len(readings) - 1 - i) * MINUTE
+        ph = [msgspec.structs.replace(base.phases[0], v_120=v)]
+        for k, f in (head(t, i + 1), pv(t, i + 1),
+                     vr(t, i + 1, phases=ph, v_compared_120=v + 1.0, tap=tap)):
+            out += aligner.add(k, f)
+    assert [a.t_ns for a in out] == [T0, t1]  # two control steps: T0 (its period's one frame) and t1
+    recent = out[1].vr_recent["vr1a"]
+    assert [f.phases[0].v_120 for f in recent] == readings[1:]  # the period (t1 - 5 min, t1]
+    model = synthetic_model(0)
+    model = msgspec.structs.replace(model, regulators=[msgspec.structs.replace(model.regulators[0], id="vr1a")],
+                                    pv=[msgspec.structs.replace(model.pv[0], id="pv1")])
+    snap = snapshot_from(out[1], model)
+    assert snap.reg_v120[0] == pytest.approx(sum(readings[1:]) / 5)  # same tap (3) for all five
+    assert snap.reg_v120_compared[0] == pytest.approx(sum(readings[1:]) / 5 + 1.0)
+    last = snapshot_from(out[1], model, average_readings=False)
+    assert last.reg_v120[0] == readings[-1]
