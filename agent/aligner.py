@@ -51,7 +51,7 @@ class AlignedFrames:
     vr: dict[str, m.RegFrame]
     missing: tuple[str, ...]
     cap: dict[str, m.CapFrame] = field(default_factory=dict)
-    vr_recent: dict[str, tuple[m.RegFrame, ...]] = field(default_factory=dict)  # the period's frames, oldest first
+    vr_recent: dict[str, tuple[m.RegFrame, ...]] = field(default_factory=dict)  # recent frames, oldest first
 
     @property
     def complete(self) -> bool:
@@ -99,7 +99,7 @@ def plausibility_problem(frame: m.HeadFrame | m.PvFrame | m.RegFrame | m.CapFram
 _Frame = m.HeadFrame | m.PvFrame | m.RegFrame | m.CapFrame
 _FRAME_TYPES = (m.HeadFrame, m.PvFrame, m.RegFrame, m.CapFrame)
 _EXPECT_MAX = 64  # scan-end markers kept ahead of their frames (the oldest goes first)
-_VR_HISTORY = 64  # frames kept per regulator for the control period's readings (one per minute: a 5-minute period)
+_VR_HISTORY = 64  # frames kept per regulator for the averaged readings (one per minute: an hour)
 
 
 @dataclass
@@ -302,6 +302,6 @@ class FrameAligner:
         for reg_id, frame in g.vr.items():
             history = self._vr_history[reg_id]
             history.append(frame)
-            recent[reg_id] = tuple(f for f in history if t_ns - self.control_period_ns < f.t_ns <= t_ns)
+            recent[reg_id] = tuple(f for f in history if f.t_ns <= t_ns)
         return AlignedFrames(t_ns=g.t_ns, head=g.head, pv=dict(g.pv), vr=dict(g.vr), missing=self._missing(g),
                              cap=dict(g.cap), vr_recent=recent)

@@ -248,12 +248,13 @@ def test_a_control_step_carries_its_regulators_readings_of_the_period_and_the_sn
             out += aligner.add(k, f)
     assert [a.t_ns for a in out] == [T0, t1]  # two control steps: T0 (its period's one frame) and t1
     recent = out[1].vr_recent["vr1a"]
-    assert [f.phases[0].v_120 for f in recent] == readings[1:]  # the period (t1 - 5 min, t1]
+    assert [f.phases[0].v_120 for f in recent] == readings  # every recent frame; the window is the snapshot's
     model = synthetic_model(0)
     model = msgspec.structs.replace(model, regulators=[msgspec.structs.replace(model.regulators[0], id="vr1a")],
                                     pv=[msgspec.structs.replace(model.pv[0], id="pv1")])
-    snap = snapshot_from(out[1], model)
-    assert snap.reg_v120[0] == pytest.approx(sum(readings[1:]) / 5)  # same tap (3) for all five
+    snap = snapshot_from(out[1], model)  # 10-minute window: the six frames, five at the present tap (3)
+    assert snap.reg_v120[0] == pytest.approx(sum(readings[1:]) / 5)
+    assert snapshot_from(out[1], model, reading_window_s=150).reg_v120[0] == pytest.approx(sum(readings[-3:]) / 3)
     assert snap.reg_v120_compared[0] == pytest.approx(sum(readings[1:]) / 5 + 1.0)
     last = snapshot_from(out[1], model, average_readings=False)
     assert last.reg_v120[0] == readings[-1]
