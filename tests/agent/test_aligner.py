@@ -252,9 +252,10 @@ def test_a_control_step_carries_its_regulators_readings_of_the_period_and_the_sn
     model = synthetic_model(0)
     model = msgspec.structs.replace(model, regulators=[msgspec.structs.replace(model.regulators[0], id="vr1a")],
                                     pv=[msgspec.structs.replace(model.pv[0], id="pv1")])
-    snap = snapshot_from(out[1], model)  # 10-minute window: the six frames, five at the present tap (3)
+    snap = snapshot_from(out[1], model)  # 5-minute window: the five frames after t1 - 300 s, all at tap 3
     assert snap.reg_v120[0] == pytest.approx(sum(readings[1:]) / 5)
     assert snapshot_from(out[1], model, reading_window_s=150).reg_v120[0] == pytest.approx(sum(readings[-3:]) / 3)
     assert snap.reg_v120_compared[0] == pytest.approx(sum(readings[1:]) / 5 + 1.0)
+    assert snapshot_from(out[1], model, reading_window_s=600).reg_v120[0] == pytest.approx(sum(readings[1:]) / 5)
     last = snapshot_from(out[1], model, average_readings=False)
     assert last.reg_v120[0] == readings[-1]
