@@ -52,6 +52,7 @@ class AlignedFrames:
     missing: tuple[str, ...]
     cap: dict[str, m.CapFrame] = field(default_factory=dict)
     vr_recent: dict[str, tuple[m.RegFrame, ...]] = field(default_factory=dict)  # recent frames, oldest first
+    head_recent: m.HeadFrame | None = None  # the latest head frame released up to this step (this one's, if any)
 
     @property
     def complete(self) -> bool:
@@ -137,6 +138,7 @@ class FrameAligner:
         self._released_t_ns = -1
         # every regulator's frames released lately (control steps or not): the readings of a control period
         self._vr_history: dict[str, deque[m.RegFrame]] = {r: deque(maxlen=_VR_HISTORY) for r in regulator_ids}
+        self._head_latest: m.HeadFrame | None = None
         self._newest_t_ns: int | None = None  # newest accepted frame time; None before the first
         self._held: list[tuple[str, _Frame]] = []  # frames ahead of the clock, awaiting a second source
         n_sources = 1 + len(pv_ids) + len(regulator_ids) + len(capacitor_ids)
@@ -298,10 +300,10 @@ class FrameAligner:
         self._released_t_ns = max(self._released_t_ns, t_ns)
         for t in [t for t in self._expected if t <= self._released_t_ns]:
             del self._expected[t]
-        recent: dict[str, tuple[m.RegFrame, ...]] = {}
         for reg_id, frame in g.vr.items():
-            history = self._vr_history[reg_id]
-            history.append(frame)
-            recent[reg_id] = tuple(f for f in history if f.t_ns <= t_ns)
+            self._vr_history[reg_id].append(frame)
+        recent = {r: tuple(f for f in h if f.t_ns <= t_ns) for r, h in self._vr_history.items() if h}
+        if g.head is not None:
+            self._head_latest = g.head
         return AlignedFrames(t_ns=g.t_ns, head=g.head, pv=dict(g.pv), vr=dict(g.vr), missing=self._missing(g),
-                             cap=dict(g.cap), vr_recent=recent)
+                             cap=dict(g.cap), vr_recent=recent, head_recent=self._head_latest)

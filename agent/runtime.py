@@ -62,6 +62,7 @@ class AgentSettings(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fi
     control_banks: bool = False  # beyond the paper: decide and command the model's capacitor banks
     average_readings: bool = True  # regulator readings averaged over reading_window_s at the present tap
     reading_window_s: float = 300.0  # that window [s] (600 s let the nominal rural winter week violate: NVV 8)
+    last_good_s: float = 240.0  # a head/regulator frame lost at a control step: its latest within this [s]
 
 
 class AgentSummary(msgspec.Struct, frozen=True, kw_only=True):
@@ -87,19 +88,27 @@ class AgentSummary(msgspec.Struct, frozen=True, kw_only=True):
 
 
 def snapshot_from(aligned: AlignedFrames, model: CvvcModel, *, average_readings: bool = True,
-                  reading_window_s: float = 300.0) -> MeasurementSnapshot:
+                  reading_window_s: float = 300.0, last_good_s: float = 0.0) -> MeasurementSnapshot:
     """The controller's snapshot of one aligned step, in the model's device order.
 
     ``average_readings``: each regulator's voltage readings are the mean of its frames of the last
     ``reading_window_s`` at the present tap (``AlignedFrames.vr_recent``), not the last frame's alone: 1 %
     SCADA-class noise on one reading made eq. (8)'s set points hunt (6,076 tap changes in a rural winter week); the
     mean of five 1-minute frames has a noise 2.2 times smaller, and the step a tap change makes is never averaged in.
+
+    ``last_good_s`` > 0: a feeder-head or regulator frame lost at the control step is replaced by the latest one
+    of the same device received within that many seconds before it (last good value), instead of a hold (head) or
+    a frozen regulator without correction.
     """
+    good_since = aligned.t_ns - int(last_good_s * 1e9)
+    head = aligned.head
+    if head is None and last_good_s > 0 and aligned.head_recent is not None and aligned.head_recent.t_ns > good_since:
+        head = aligned.head_recent
     n_pv, n_reg = len(model.pv), len(model.regulators)
     head_p = np.zeros(3)
     head_q = np.zeros(3)
-    if aligned.head is not None:
-        for ph in aligned.head.phases:
+    if head is not None:
+        for ph in head.phases:
             head_p[_PHASE_INDEX[ph.phase]] = ph.p_kw
             head_q[_PHASE_INDEX[ph.phase]] = ph.q_kvar
     pv_p, pv_q, pv_kva, pv_sp = (np.zeros(n_pv) for _ in range(4))
@@ -119,13 +128,16 @@ def snapshot_from(aligned: AlignedFrames, model: CvvcModel, *, average_readings:
     reg_ok = np.zeros(n_reg, bool)
     for r, reg in enumerate(model.regulators):
         f = aligned.vr.get(reg.id)
+        recent = aligned.vr_recent.get(reg.id, ())
+        if f is None and last_good_s > 0 and recent and recent[-1].t_ns > good_since:
+            f = recent[-1]
         if f is None:
             continue
         reg_v[r] = f.phases[0].v_120
         reg_vc[r] = f.v_compared_120
         reg_tap[r] = f.tap
         since = aligned.t_ns - int(reading_window_s * 1e9)
-        same_tap = [x for x in aligned.vr_recent.get(reg.id, ()) if x.t_ns > since and x.tap == f.tap and x.phases]
+        same_tap = [x for x in recent if x.t_ns > since and x.tap == f.tap and x.phases]
         if average_readings and len(same_tap) > 1:
             reg_v[r] = float(np.mean([x.phases[0].v_120 for x in same_tap]))
             reg_vc[r] = float(np.mean([x.v_compared_120 for x in same_tap]))
@@ -139,7 +151,7 @@ def snapshot_from(aligned: AlignedFrames, model: CvvcModel, *, average_readings:
     return MeasurementSnapshot(
         t_ns=aligned.t_ns, head_p_kw=head_p, head_q_kvar=head_q, pv_p_kw=pv_p, pv_q_kvar=pv_q,
         pv_kva_available=pv_kva, pv_q_setpoint_kvar=pv_sp, reg_v120=reg_v, reg_v120_compared=reg_vc,
-        reg_tap=reg_tap, head_valid=aligned.head is not None, pv_valid=pv_ok, reg_valid=reg_ok,
+        reg_tap=reg_tap, head_valid=head is not None, pv_valid=pv_ok, reg_valid=reg_ok,
         cap_steps=cap_steps, cap_valid=cap_ok)
 
 
@@ -201,7 +213,7 @@ class DecisionMaker:
 
     def _decide(self, aligned: AlignedFrames) -> ControllerDecision:
         snap = snapshot_from(aligned, self.model, average_readings=self.settings.average_readings,
-                             reading_window_s=self.settings.reading_window_s)
+                             reading_window_s=self.settings.reading_window_s, last_good_s=self.settings.last_good_s)
         return self.controller.decide(snap, oracle=self.oracle)
 
     def to_message(self, aligned: AlignedFrames, d: ControllerDecision, *, align_s: float = 0.0) -> m.Decision:
