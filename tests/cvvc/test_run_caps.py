@@ -16,24 +16,15 @@ from pathlib import Path
 import pytest
 from mcap.reader import make_reader
 
+from tests.capmap import write_ieee13_caps_map
+
 REPO = Path(__file__).resolve().parents[2]
 FEEDER = "ieee13caps"
 STEP_NS = 60_000_000_000
 
 
 def _cap_map(folder: Path) -> Path:
-    """IEEE 13's map plus its banks: cap1 (600 kvar, three-phase, a voltage CapControl) and cap2 (100 kvar)."""
-    base = (REPO / "feeders" / "ieee13.toml").read_text()
-    shared = (REPO.parent / "shared" / "feeders" / "ieee13" / "IEEE13Nodeckt.dss").resolve()
-    text = base.replace('name = "ieee13"', f'name = "{FEEDER}"').replace(
-        'master = "../../shared/feeders/ieee13/IEEE13Nodeckt.dss"',
-        f'master = "{shared.as_posix()}"\nextra_commands = ["New CapControl.cc1 Capacitor=Cap1 Element=Line.692675 '
-        'Terminal=1 Type=Voltage PTratio=20 ON=140 OFF=150 Delay=30 DelayOFF=30"]')
-    text += ('\n[[capacitor]]\nid = "cap1"\ncapacitor = "Cap1"\ncapcontrol = "cc1"\ncost_per_switch = 2.0\n'
-             '\n[[capacitor]]\nid = "cap2"\ncapacitor = "Cap2"\n')
-    path = folder / f"{FEEDER}.toml"
-    path.write_text(text)
-    return path
+    return write_ieee13_caps_map(folder)
 
 
 @pytest.fixture(scope="module")

@@ -24,6 +24,7 @@ from schemas import keys
 from schemas import messages as m
 from schemas.bus import BusConfig
 from schemas.devicemap import load_device_map
+from tests.capmap import write_ieee13_caps_map
 
 FEEDER = "ieee13caps"
 T0 = "2023-07-01T12:00"
@@ -32,23 +33,8 @@ STEP_NS = 60 * 1_000_000_000
 
 @pytest.fixture(scope="module")
 def cap_map(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """IEEE 13's own map plus its banks: cap1 (600 kvar, three-phase) and cap2 (100 kvar, one phase, no control).
-
-    cap1's voltage CapControl (on a 120 V PT base) switches ON below 140 V and OFF above 150 V: on this feeder it
-    always wants the bank closed, so a bank opened by a command that expires closes again under local control.
-    """
-    repo = Path(__file__).resolve().parents[2]
-    base = (repo / "feeders" / "ieee13.toml").read_text()
-    shared = (repo.parent / "shared" / "feeders" / "ieee13" / "IEEE13Nodeckt.dss").resolve()
-    text = base.replace('name = "ieee13"', f'name = "{FEEDER}"').replace(
-        'master = "../../shared/feeders/ieee13/IEEE13Nodeckt.dss"',
-        f'master = "{shared.as_posix()}"\nextra_commands = ["New CapControl.cc1 Capacitor=Cap1 Element=Line.692675 '
-        'Terminal=1 Type=Voltage PTratio=20 ON=140 OFF=150 Delay=30 DelayOFF=30"]')
-    text += ('\n[[capacitor]]\nid = "cap1"\ncapacitor = "Cap1"\ncapcontrol = "cc1"\ncost_per_switch = 2.0\n'
-             '\n[[capacitor]]\nid = "cap2"\ncapacitor = "Cap2"\n')
-    path = tmp_path_factory.mktemp("capmap") / "ieee13caps.toml"
-    path.write_text(text)
-    return path
+    """IEEE 13's own map plus its banks (``tests.capmap``)."""
+    return write_ieee13_caps_map(tmp_path_factory.mktemp("capmap"))
 
 
 @pytest.fixture(scope="module")
