@@ -53,6 +53,7 @@ class AlignedFrames:
     cap: dict[str, m.CapFrame] = field(default_factory=dict)
     vr_recent: dict[str, tuple[m.RegFrame, ...]] = field(default_factory=dict)  # recent frames, oldest first
     head_recent: m.HeadFrame | None = None  # the latest head frame released up to this step (this one's, if any)
+    pv_recent: dict[str, m.PvFrame] = field(default_factory=dict)  # each plant's latest frame up to this step
 
     @property
     def complete(self) -> bool:
@@ -139,6 +140,7 @@ class FrameAligner:
         # every regulator's frames released lately (control steps or not): the readings of a control period
         self._vr_history: dict[str, deque[m.RegFrame]] = {r: deque(maxlen=_VR_HISTORY) for r in regulator_ids}
         self._head_latest: m.HeadFrame | None = None
+        self._pv_latest: dict[str, m.PvFrame] = {}
         self._newest_t_ns: int | None = None  # newest accepted frame time; None before the first
         self._held: list[tuple[str, _Frame]] = []  # frames ahead of the clock, awaiting a second source
         n_sources = 1 + len(pv_ids) + len(regulator_ids) + len(capacitor_ids)
@@ -305,5 +307,7 @@ class FrameAligner:
         recent = {r: tuple(f for f in h if f.t_ns <= t_ns) for r, h in self._vr_history.items() if h}
         if g.head is not None:
             self._head_latest = g.head
+        self._pv_latest.update(g.pv)
         return AlignedFrames(t_ns=g.t_ns, head=g.head, pv=dict(g.pv), vr=dict(g.vr), missing=self._missing(g),
-                             cap=dict(g.cap), vr_recent=recent, head_recent=self._head_latest)
+                             cap=dict(g.cap), vr_recent=recent, head_recent=self._head_latest,
+                             pv_recent=dict(self._pv_latest))

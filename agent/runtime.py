@@ -62,7 +62,7 @@ class AgentSettings(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fi
     control_banks: bool = False  # beyond the paper: decide and command the model's capacitor banks
     average_readings: bool = True  # regulator readings averaged over reading_window_s at the present tap
     reading_window_s: float = 300.0  # that window [s] (600 s let the nominal rural winter week violate: NVV 8)
-    last_good_s: float = 240.0  # a head/regulator frame lost at a control step: its latest within this [s]
+    last_good_s: float = 240.0  # a head/PV/regulator frame lost at a control step: its latest within this [s]
 
 
 class AgentSummary(msgspec.Struct, frozen=True, kw_only=True):
@@ -96,9 +96,11 @@ def snapshot_from(aligned: AlignedFrames, model: CvvcModel, *, average_readings:
     SCADA-class noise on one reading made eq. (8)'s set points hunt (6,076 tap changes in a rural winter week); the
     mean of five 1-minute frames has a noise 2.2 times smaller, and the step a tap change makes is never averaged in.
 
-    ``last_good_s`` > 0: a feeder-head or regulator frame lost at the control step is replaced by the latest one
-    of the same device received within that many seconds before it (last good value), instead of a hold (head) or
-    a frozen regulator without correction.
+    ``last_good_s`` > 0: a feeder-head, PV or regulator frame lost at the control step is replaced by the latest
+    one of the same device received within that many seconds before it (last good value), instead of a hold
+    (head), a plant left uncommanded (its command expired after two lost frames and it went back to unity power
+    factor: a 1.8 V jump at the regulators and NVV 188 in five minutes of a rural winter week at 5 % lost frames)
+    or a frozen regulator without correction.
     """
     good_since = aligned.t_ns - int(last_good_s * 1e9)
     head = aligned.head
@@ -115,6 +117,9 @@ def snapshot_from(aligned: AlignedFrames, model: CvvcModel, *, average_readings:
     pv_ok = np.zeros(n_pv, bool)
     for k, plant in enumerate(model.pv):
         pf = aligned.pv.get(plant.id)
+        last = aligned.pv_recent.get(plant.id)
+        if pf is None and last_good_s > 0 and last is not None and last.t_ns > good_since:
+            pf = last  # a plant left without a command for two periods goes back to its local mode
         if pf is None:
             pv_sp[k] = np.nan
             continue
