@@ -30,6 +30,7 @@ an engine handed to OpenDSS's loop with ``start_time_control``).
 
 from __future__ import annotations
 
+import gc
 import logging
 import os
 import tempfile
@@ -1459,7 +1460,19 @@ def new_context():
     callbacks are unregistered, as before).
     """
     with DSS_LIFECYCLE:
-        d = dss.NewContext()
+        # The cyclic garbage collector disposes contexts left in reference cycles from whichever thread it runs
+        # in; inside this section that is this thread, which holds the (re-entrant) lock, so a collection
+        # triggered by the wrapper's own allocations would dispose an old context in the middle of creating the
+        # new one (the segfault in ctx_New seen twice in test_bridge, right after a fixture dropped an engine).
+        # Collect first, then keep the collector off while the context is made.
+        gc.collect()
+        enabled = gc.isenabled()
+        gc.disable()
+        try:
+            d = dss.NewContext()
+        finally:
+            if enabled:
+                gc.enable()
     util = d._api_util
     ffi, lib = util.ffi, util.lib_unpatched
     ffi.gc(util.ctx, None)  # detach the unlocked destructor
