@@ -304,10 +304,12 @@ class FrameAligner:
             del self._expected[t]
         for reg_id, frame in g.vr.items():
             self._vr_history[reg_id].append(frame)
-        recent = {r: tuple(f for f in h if f.t_ns <= t_ns) for r, h in self._vr_history.items() if h}
         if g.head is not None:
             self._head_latest = g.head
         self._pv_latest.update(g.pv)
+        if t_ns % self.control_period_ns:  # a minute between control steps: nobody decides on it
+            return AlignedFrames(t_ns=g.t_ns, head=g.head, pv=g.pv, vr=g.vr, missing=(), cap=g.cap)
+        recent = {r: tuple(f for f in h if f.t_ns <= t_ns) for r, h in self._vr_history.items() if h}
         return AlignedFrames(t_ns=g.t_ns, head=g.head, pv=dict(g.pv), vr=dict(g.vr), missing=self._missing(g),
                              cap=dict(g.cap), vr_recent=recent, head_recent=self._head_latest,
                              pv_recent=dict(self._pv_latest))

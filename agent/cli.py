@@ -40,9 +40,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--control-banks", choices=["on", "off"], default=None,
                    help="beyond the paper: decide and command the capacitor banks (else they stay on their local "
                         "control) [default: off]")
-    p.add_argument("--average-readings", choices=["on", "off"], default=None,
-                   help="regulator readings averaged over the control period at the present tap (robust to "
-                        "SCADA-class noise) [default: on]")
+    p.add_argument("--reading-window-s", type=float, default=None,
+                   help="regulator readings averaged over this many seconds at the present tap (robust to "
+                        "SCADA-class noise); 0: the last reading alone [default: AgentSettings, 300]")
     p.add_argument("--full-visibility", action="store_true",
                    help="case A: true voltages and sensitivities of every node from the bridge's oracle")
     p.add_argument("--agent-id", default="agent")
@@ -73,7 +73,7 @@ def settings_from_args(args: argparse.Namespace):
     given = {"pv_margin_window_s": args.pv_margin_window_s, "pv_margin_cap_pu": args.pv_margin_cap_pu,
              "setpoint_hold": None if args.setpoint_hold is None else args.setpoint_hold == "on",
              "control_banks": None if args.control_banks is None else args.control_banks == "on",
-             "average_readings": None if args.average_readings is None else args.average_readings == "on"}
+             "reading_window_s": args.reading_window_s}
     optional: dict[str, Any] = {name: value for name, value in given.items() if value is not None}
     return AgentSettings(feeder_id=args.feeder_id, agent_id=args.agent_id, mode=args.mode,
                          correction=args.correction == "on", bandwidth_v120=args.bandwidth_v,

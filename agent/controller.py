@@ -427,8 +427,7 @@ class CvvcController:
         # Capacitor banks are integer devices after the regulators: closed steps 0..steps, cost per switching.
         movable = self._cap_movable(snap, state)
         n = state.v0_pu.shape[0]
-        dv_dcap = self._arrays.dv_dcap_pu if state.critical and self._arrays.dv_dcap_pu is not None else None
-        dv_dcap = np.zeros((n, len(self._cap_ids))) if dv_dcap is None else dv_dcap
+        dv_dcap = self._arrays.dv_dcap_pu if state.critical else np.zeros((n, len(self._cap_ids)))
         return CvvcInputs(
             v0_pu=state.v0_pu,
             dv_dq_pu_per_kvar=state.dv_dq_pu_per_kvar,
@@ -511,7 +510,7 @@ class CvvcController:
         prefix = "" if oracle is None else "case A: "
         if oracle is None:
             # Banks switched since training: the head's Q as eq. (5) knew it, then the banks' own voltage effect.
-            head_q = head_q_at_training_banks(self._arrays, self.model.capacitors, snap.head_q_kvar, self._cap_last)
+            head_q = head_q_at_training_banks(self._arrays, snap.head_q_kvar, self._cap_last)
             state = estimated_state(
                 self._arrays, self._sens, self._dv_dp, head_p_kw=snap.head_p_kw, head_q_kvar=head_q,
                 pv_p_kw=pv_p, pv_q_kvar=pv_q, taps=taps, reg_v120=snap.reg_v120 if self.correction else None,

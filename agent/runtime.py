@@ -60,8 +60,8 @@ class AgentSettings(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fi
     pv_margin_cap_pu: float = 0.01  # its largest value on either side [pu]
     setpoint_hold: bool = False  # beyond the paper: re-send the last set point when no tap change is decided
     control_banks: bool = False  # beyond the paper: decide and command the model's capacitor banks
-    average_readings: bool = True  # regulator readings averaged over reading_window_s at the present tap
-    reading_window_s: float = 300.0  # that window [s] (600 s let the nominal rural winter week violate: NVV 8)
+    reading_window_s: float = 300.0  # regulator readings averaged over this at the present tap [s]; 0: last reading
+    # (600 s let the nominal rural winter week violate: NVV 8)
     last_good_s: float = 240.0  # a head/PV/regulator frame lost at a control step: its latest within this [s]
 
 
@@ -87,11 +87,11 @@ class AgentSummary(msgspec.Struct, frozen=True, kw_only=True):
     decided_after_late_window: int = 0  # live: control steps decided only once the late-frame window was over
 
 
-def snapshot_from(aligned: AlignedFrames, model: CvvcModel, *, average_readings: bool = True,
-                  reading_window_s: float = 300.0, last_good_s: float = 0.0) -> MeasurementSnapshot:
+def snapshot_from(aligned: AlignedFrames, model: CvvcModel, *, reading_window_s: float = 300.0,
+                  last_good_s: float = 0.0) -> MeasurementSnapshot:
     """The controller's snapshot of one aligned step, in the model's device order.
 
-    ``average_readings``: each regulator's voltage readings are the mean of its frames of the last
+    ``reading_window_s`` > 0: each regulator's voltage readings are the mean of its frames of the last
     ``reading_window_s`` at the present tap (``AlignedFrames.vr_recent``), not the last frame's alone: 1 %
     SCADA-class noise on one reading made eq. (8)'s set points hunt (6,076 tap changes in a rural winter week); the
     mean of five 1-minute frames has a noise 2.2 times smaller, and the step a tap change makes is never averaged in.
@@ -143,7 +143,7 @@ def snapshot_from(aligned: AlignedFrames, model: CvvcModel, *, average_readings:
         reg_tap[r] = f.tap
         since = aligned.t_ns - int(reading_window_s * 1e9)
         same_tap = [x for x in recent if x.t_ns > since and x.tap == f.tap and x.phases]
-        if average_readings and len(same_tap) > 1:
+        if reading_window_s > 0 and len(same_tap) > 1:
             reg_v[r] = float(np.mean([x.phases[0].v_120 for x in same_tap]))
             reg_vc[r] = float(np.mean([x.v_compared_120 for x in same_tap]))
         reg_ok[r] = True
@@ -217,8 +217,8 @@ class DecisionMaker:
         return [(a, self._decide(a)) for a in self.aligner.close_pending()]
 
     def _decide(self, aligned: AlignedFrames) -> ControllerDecision:
-        snap = snapshot_from(aligned, self.model, average_readings=self.settings.average_readings,
-                             reading_window_s=self.settings.reading_window_s, last_good_s=self.settings.last_good_s)
+        snap = snapshot_from(aligned, self.model, reading_window_s=self.settings.reading_window_s,
+                             last_good_s=self.settings.last_good_s)
         return self.controller.decide(snap, oracle=self.oracle)
 
     def to_message(self, aligned: AlignedFrames, d: ControllerDecision, *, align_s: float = 0.0) -> m.Decision:

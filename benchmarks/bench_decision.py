@@ -147,10 +147,7 @@ def bench_decision(
         aligned_now = [a for key, frame in frames for a, _ in reference.on_frame(key, frame)]
         if not aligned_now:
             continue
-        oracle.set_loads_kw(profiles.load_kw(res.step, res.step + 1)[0])
-        oracle.set_pv(res.pv_p_kw, res.pv_q_kvar)
-        oracle.set_taps(res.taps)
-        oracle.set_cap_states(res.cap_states)
+        oracle.set_state(engine.state())  # loads, PV, every RegControl's tap and every bank, as the bridge's twin
         oracle.solve()
         v = oracle.node_voltages_pu()  # the state, before the perturbations (not timed: they solve it again)
         t0 = time.perf_counter()

@@ -59,7 +59,7 @@ def estimate_errors(run: Path) -> dict[str, tuple[float, float, float]]:
         v = np.asarray(tr["v_pu"])[[index[e["node"]] for e in d["estimates"]]]
         est = np.array([e["v_pu"] for e in d["estimates"]])
         closed = np.array([banks[t][i] for i in ids])
-        dq = head_q_at_training_banks(arrays, model.capacitors, np.zeros(3), closed)
+        dq = head_q_at_training_banks(arrays, np.zeros(3), closed)
         head_q = [model.feature_names.index(f"head_q_kvar_{p}") for p in "abc"]
         without = est - bank_voltage_pu(arrays, closed) - arrays.alpha[:, head_q] @ dq
         err["with"].append(est - v)

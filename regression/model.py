@@ -331,6 +331,8 @@ class ModelArrays:
     # the extended feature set (defaults: none, as for a paper model)
     cap0: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (C,) closed steps in training (closed0)
     cap_v_ref_v: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (C,) each bank's reading reference [V]
+    cap_head_q_kvar: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # (C, 3) kvar per closed step,
+    # spread evenly over the bank's phases: what a step does to the feeder head's Q per phase
     dv_dcap_pu: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))  # (N, C) [pu/step]
     feature_dtap: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))  # (M, R) per tap step
     feature_dcap: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))  # (M, C) per closed step
@@ -364,6 +366,8 @@ class ModelArrays:
             utc_offset_h=model.utc_offset_h,
             cap0=np.asarray([c.closed0 for c in model.capacitors], float),
             cap_v_ref_v=np.asarray([c.v_ref_v for c in model.capacitors], float),
+            cap_head_q_kvar=np.array([[c.kvar_rated / c.steps / len(c.phases) if ph in c.phases else 0.0
+                                       for ph in (1, 2, 3)] for c in model.capacitors], float).reshape(n_cap, 3),
             dv_dcap_pu=_dv_dcap(model),
             feature_dtap=np.asarray(model.feature_dtap, float).reshape(n_feat, n_reg) if extended
             else np.zeros((n_feat, n_reg)),

@@ -5,8 +5,9 @@ and, in secure mode, the access policy admits only the agent. The voltages are t
 solution. The perturbation power flows run on a *twin*: a second engine of the same device map, compiled when the
 oracle is made, put in the stepping engine's state (loads, PV, every tap and bank) before each answer. The
 simulation is never disturbed, so its next step solves from exactly the state it left. (Perturbing the stepping
-engine and undoing the moves did not restore it on epri-ckt24: the voltages came back 2.5e-4 pu away, since
-loads whose model changes below ``vminpu`` make the solution depend on where the iteration starts.)
+engine and undoing the moves does not restore it on the EPRI feeders: on epri-ckt24 the voltages came back 3.3e-4 pu
+away after a +100 kvar move and 6.8e-4 pu after a tap, both solves converged; on epri-ckt5 the node that moved most
+sat at 1.0514 pu, just above the loads' ``Vmaxpu`` of 1.05, where their model changes.)
 
 Replies carry only the feeder zone's nodes (the head meter's side): the transmission side of the substation is
 no control target. Sensitivities are clipped to ±1 pu per unit moved and NaN (a plant with no headroom) sent as 0.

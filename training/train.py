@@ -309,9 +309,10 @@ def train(
 
     # II.C: critical nodes
     dv_dq_all = _q_sensitivities(engine, inputs[0], tap0)
-    dv_dcap_all = bank_sensitivities(engine, inputs, tap0, cap0)
+    # the banks' per-step sensitivities: the extended set's perturbations have them already
+    dv_dcap_all = bank_sensitivities(engine, inputs, tap0, cap0) if pert is None else pert.dv_dcap_pu
     crit, upstream_all, phases = _critical(engine, dm, flows, dv_dtap_all, dv_dq_all, critical_margin_pu, tap0,
-                                           None if pert is None else pert.dv_dcap_pu)
+                                           None if pert is None else dv_dcap_all)
     nodes = crit.nodes
     pos = {int(n): i for i, n in enumerate(nodes)}
 

@@ -257,7 +257,7 @@ def test_a_control_step_carries_its_regulators_readings_of_the_period_and_the_sn
     assert snapshot_from(out[1], model, reading_window_s=150).reg_v120[0] == pytest.approx(sum(readings[-3:]) / 3)
     assert snap.reg_v120_compared[0] == pytest.approx(sum(readings[1:]) / 5 + 1.0)
     assert snapshot_from(out[1], model, reading_window_s=600).reg_v120[0] == pytest.approx(sum(readings[1:]) / 5)
-    last = snapshot_from(out[1], model, average_readings=False)
+    last = snapshot_from(out[1], model, reading_window_s=0)
     assert last.reg_v120[0] == readings[-1]
 
 

@@ -204,7 +204,7 @@ def test_a_stale_or_refused_bank_is_held_without_a_command(why):
 
 def test_estimate_accounts_for_banks_switched_since_training():
     head_q = np.array([100.0, 100.0, 100.0])
-    adj = head_q_at_training_banks(ARRAYS, BANKS, head_q, np.array([1, 2]))
+    adj = head_q_at_training_banks(ARRAYS, head_q, np.array([1, 2]))
     np.testing.assert_allclose(adj, [300.0, 300.0, 450.0])  # cap1 +600 over 3 phases, cap2 +150 on phase c
     np.testing.assert_allclose(bank_voltage_pu(ARRAYS, np.array([1, 2])), np.full(N, 0.014))
 

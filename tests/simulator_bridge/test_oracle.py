@@ -94,7 +94,7 @@ def test_the_oracle_leaves_the_simulation_untouched_and_answers_as_perturbing_it
 
 
 def test_the_oracle_reply_has_its_own_size_limit() -> None:
-    """Issue 16: epri-ckt24's reply (7,522 nodes) is about 2.4 MB; every other message keeps the 1 MiB bound."""
+    """Issue 16: epri-ckt24's reply (7,516 zone nodes) was 1.49 MB; every other message keeps the 1 MiB bound."""
     n, cols = 7522, 12
     reply = OracleReply(t_ns=1, seq=1, source="bridge", feeder_id="f", node_names=[f"bus{i}.1" for i in range(n)],
                         v_pu=[1.0123456789] * n, dv_dq_pu_per_kvar=[[1.23456789e-5] * 3] * n,
