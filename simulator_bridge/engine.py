@@ -1458,6 +1458,10 @@ def new_context():
     ``dss.NewContext()`` attaches ``ctx_Dispose`` to the context pointer as a bare cffi destructor; it is
     replaced by one that takes the lock, owned by the context's own API object (so it runs after that object's
     callbacks are unregistered, as before).
+
+    Make, use and drop an engine in a thread that lives as long as it does (a process's main thread, a worker's
+    pool thread): DSS C-API is FreePascal, which sets up a foreign thread's own state and heap the first time the
+    thread calls in; ``ctx_New`` segfaulted in a fresh, short-lived test thread (tests/simulator_bridge/dssthread.py).
     """
     with DSS_LIFECYCLE:
         # The cyclic garbage collector disposes contexts left in reference cycles from whichever thread it runs

@@ -3,7 +3,7 @@
 The test client is plain ``zenoh`` + ``msgspec`` with the message structs of ``schemas.messages``: it
 subscribes to every device, plays the agent by hand (liveliness token, commands, decisions) and checks
 acks and their effect on the next frames. Runs that must exit cleanly are subprocesses of
-``python -m cvvc bridge``; the others run ``run_bridge`` in a thread.
+``python -m cvvc bridge``; the others run ``run_bridge`` on one long-lived thread (``dssthread``).
 """
 
 from __future__ import annotations
@@ -26,6 +26,7 @@ import numpy as np
 import pytest
 import zenoh
 from busclient import BusClient as Client
+from dssthread import Job, run_in_dss_thread
 
 from schemas import messages as m
 from schemas.bus import BusConfig
@@ -78,23 +79,16 @@ def client(router_endpoint: str) -> Iterator[Client]:
         c.close()
 
 
-def _bridge_thread(config: Any, endpoint: str) -> tuple[threading.Thread, threading.Event, list[Any]]:
+def _bridge_thread(config: Any, endpoint: str) -> tuple[Job, threading.Event, list[Any]]:
+    """``run_bridge`` on the session's OpenDSS thread (``dssthread``); the job's ``out`` gets its summary."""
     from simulator_bridge.bridge import run_bridge
 
-    stop, out = threading.Event(), []
-
-    def target() -> None:
-        try:
-            out.append(run_bridge(config, BusConfig(mode="peer", connect=(endpoint,)), stop=stop))
-        except Exception as e:  # surfaced by the test through ``out``
-            out.append(e)
-
-    th = threading.Thread(target=target, daemon=True)
-    th.start()
-    return th, stop, out
+    stop = threading.Event()
+    job = run_in_dss_thread(lambda: run_bridge(config, BusConfig(mode="peer", connect=(endpoint,)), stop=stop))
+    return job, stop, job.out
 
 
-def _finish(th: threading.Thread, stop: threading.Event, out: list[Any], *, stop_now: bool = False) -> Any:
+def _finish(th: Job, stop: threading.Event, out: list[Any], *, stop_now: bool = False) -> Any:
     if stop_now:
         stop.set()
     th.join(timeout=30)

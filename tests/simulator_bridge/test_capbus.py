@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 import zenoh
 from busclient import BusClient as Client
+from dssthread import run_in_dss_thread
 
 from schemas import keys
 from schemas import messages as m
@@ -72,19 +73,13 @@ def _config(cap_map: Path, cache_dir: Path, **kw: Any) -> Any:
 
 
 def _run(config: Any, endpoint: str, drive: Callable[[], None]) -> Any:
-    """Run the bridge in a thread while ``drive()`` plays the agent; returns the bridge's summary."""
+    """Run the bridge on the session's OpenDSS thread (``dssthread``) while ``drive()`` plays the agent; returns
+    the bridge's summary."""
     from simulator_bridge.bridge import run_bridge
 
-    stop, out = threading.Event(), []
-
-    def target() -> None:
-        try:
-            out.append(run_bridge(config, BusConfig(mode="peer", connect=(endpoint,)), stop=stop))
-        except Exception as e:  # surfaced below
-            out.append(e)
-
-    th = threading.Thread(target=target, daemon=True)
-    th.start()
+    stop = threading.Event()
+    th = run_in_dss_thread(lambda: run_bridge(config, BusConfig(mode="peer", connect=(endpoint,)), stop=stop))
+    out = th.out
     try:
         drive()
         th.join(timeout=60)
