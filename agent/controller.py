@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import time
 from collections import deque
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, field, fields
 from typing import Literal
 
 import numpy as np
@@ -40,7 +40,6 @@ from agent.errors import AgentInputError
 from agent.setpoints import expected_compared_v120, setpoint_for_tap_change
 from agent.solve import CvvcSolution, WarmStart, solve_cvvc
 from agent.state import GridState, OracleSource, estimated_state, oracle_state
-from regression.capbanks import bank_voltage_pu, head_q_at_training_banks
 from regression.estimator import SensitivityTable, dv_dp_pu_per_kw, pv_variability_margins_pu
 from regression.model import CvvcModel, ModelArrays, features
 
@@ -76,6 +75,7 @@ class MeasurementSnapshot:
     reg_valid : (R,) bool, same per regulator.
     cap_steps : (C,) closed steps of each capacitor bank (the model's ``capacitors`` order).
     cap_valid : (C,) bool, the bank's frame arrived and passed the checks.
+    cap_v_v : (C,) the bank's bus voltage [V] (a regressor of models with readings); NaN where missing.
     """
 
     t_ns: int
@@ -93,6 +93,7 @@ class MeasurementSnapshot:
     reg_valid: np.ndarray
     cap_steps: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
     cap_valid: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+    cap_v_v: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
 
 @dataclass(frozen=True)
@@ -224,11 +225,6 @@ class CvvcController:
             raise AgentInputError(f"pv_margin_window_s must be >= 0, not {pv_margin_window_s}")
         if not (np.isfinite(pv_margin_cap_pu) and 0.0 <= pv_margin_cap_pu <= 0.05):
             raise AgentInputError(f"pv_margin_cap_pu must be within 0 to 0.05 pu, not {pv_margin_cap_pu}")
-        if model.feature_set != "paper":
-            raise AgentInputError(
-                f"the model's feature set is {model.feature_set!r}: it needs the capacitor banks' states, which the "
-                "agent does not track yet; train the agent's model with `cvvc train --features paper`"
-            )
         self.model = model
         self.mode = mode
         self.correction = correction
@@ -381,6 +377,13 @@ class CvvcController:
         ok &= (steps == np.round(steps)) & (steps >= 0) & (steps <= self._cap_steps_max)
         return ok
 
+    def _cap_readings(self, snap: MeasurementSnapshot, cap_ok: np.ndarray) -> np.ndarray:
+        """(C,) the usable banks' bus voltage readings [V], NaN elsewhere (and where the snapshot has none)."""
+        v = np.asarray(snap.cap_v_v, float)
+        if v.shape != cap_ok.shape:
+            return np.full(cap_ok.shape, np.nan)
+        return np.where(cap_ok, v, np.nan)
+
     def _cap_movable(self, snap: MeasurementSnapshot, state: GridState) -> np.ndarray:
         """(C,) bool: banks the decision may switch and command (usable, not refused lately, estimator state)."""
         ok = self._cap_usable(snap) & (self._cap_refused_until < int(snap.t_ns))
@@ -509,14 +512,11 @@ class CvvcController:
         taps = np.array(self._reg_last_tap, int)
         prefix = "" if oracle is None else "case A: "
         if oracle is None:
-            # Banks switched since training: the head's Q as eq. (5) knew it, then the banks' own voltage effect.
-            head_q = head_q_at_training_banks(self._arrays, snap.head_q_kvar, self._cap_last)
             state = estimated_state(
-                self._arrays, self._sens, self._dv_dp, head_p_kw=snap.head_p_kw, head_q_kvar=head_q,
-                pv_p_kw=pv_p, pv_q_kvar=pv_q, taps=taps, reg_v120=snap.reg_v120 if self.correction else None,
-                reg_ok=reg_ok)
-            if self._cap_ids:
-                state = replace(state, v0_pu=state.v0_pu + bank_voltage_pu(self._arrays, self._cap_last))
+                self._arrays, self._sens, self._dv_dp, t_ns=int(snap.t_ns), head_p_kw=snap.head_p_kw,
+                head_q_kvar=snap.head_q_kvar, pv_p_kw=pv_p, pv_q_kvar=pv_q, taps=taps, caps=self._cap_last,
+                reg_v120=snap.reg_v120 if self.correction else None, reg_ok=reg_ok,
+                cap_v_v=self._cap_readings(snap, cap_ok))
         else:
             reply = oracle(int(snap.t_ns))
             if reply is None:

@@ -149,15 +149,16 @@ def snapshot_from(aligned: AlignedFrames, model: CvvcModel, *, reading_window_s:
         reg_ok[r] = True
     cap_steps = np.zeros(len(model.capacitors), int)
     cap_ok = np.zeros(len(model.capacitors), bool)
+    cap_v = np.full(len(model.capacitors), np.nan)
     for c, bank in enumerate(model.capacitors):
         cf = aligned.cap.get(bank.id)
         if cf is not None and cf.steps == bank.steps:  # a bank reporting another number of steps is not the model's
-            cap_steps[c], cap_ok[c] = cf.closed_steps, True
+            cap_steps[c], cap_ok[c], cap_v[c] = cf.closed_steps, True, cf.v_v
     return MeasurementSnapshot(
         t_ns=aligned.t_ns, head_p_kw=head_p, head_q_kvar=head_q, pv_p_kw=pv_p, pv_q_kvar=pv_q,
         pv_kva_available=pv_kva, pv_q_setpoint_kvar=pv_sp, reg_v120=reg_v, reg_v120_compared=reg_vc,
         reg_tap=reg_tap, head_valid=head is not None, pv_valid=pv_ok, reg_valid=reg_ok,
-        cap_steps=cap_steps, cap_valid=cap_ok)
+        cap_steps=cap_steps, cap_valid=cap_ok, cap_v_v=cap_v)
 
 
 def _round(x: float, digits: int = 9) -> float:

@@ -13,13 +13,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from agent.errors import AgentInputError
-from regression.estimator import (
-    SensitivityTable,
-    apply_correction,
-    correction_pu,
-    dv_dq_pu_per_kvar,
-    estimate_voltages_pu,
-)
+from regression.capbanks import head_q_at_training_banks
+from regression.estimator import SensitivityTable, dv_dq_pu_per_kvar, estimate_critical_pu
 from regression.model import CvvcModel, ModelArrays, features
 from schemas import messages as m
 
@@ -59,33 +54,40 @@ def estimated_state(
     sens: SensitivityTable,
     dv_dp_pu_per_kw: np.ndarray,
     *,
+    t_ns: int,
     head_p_kw: np.ndarray,
     head_q_kvar: np.ndarray,
     pv_p_kw: np.ndarray,
     pv_q_kvar: np.ndarray,
     taps: np.ndarray,
+    caps: np.ndarray,
     reg_v120: np.ndarray | None,
     reg_ok: np.ndarray,
+    cap_v_v: np.ndarray,
 ) -> GridState:
-    """The critical nodes by the estimator: eq. (5), corrected by eq. (6)-(7) when ``reg_v120`` is given, eq. (3).
+    """The critical nodes by the estimator (``regression.estimator.estimate_critical_pu``) and eq. (3).
+
+    Eq. (5) of the model's feature set with its bank terms, corrected by eq. (6)-(7) when ``reg_v120`` is given;
+    eq. (3)'s sensitivities at the head's Q as training knew it (the kvar of banks switched since added back).
 
     Parameters
     ----------
     arrays, sens, dv_dp_pu_per_kw : the model's arrays, eq. (3) fits and (N, K) dV/dP [pu/kW].
-    head_p_kw, head_q_kvar : (3,) feeder-head P [kW] and Q [kvar] per phase.
+    t_ns : the minute [ns since epoch] (calendar features).
+    head_p_kw, head_q_kvar : (3,) feeder-head P [kW] and Q [kvar] per phase, as measured.
     pv_p_kw, pv_q_kvar : (K,) plant output (last known where missing) [kW], [kvar].
     taps : (R,) taps (last known where missing) [steps].
+    caps : (C,) closed steps of each bank (last known where missing).
     reg_v120 : (R,) raw regulator secondary voltages [V on the 120 V base], or None (no correction).
     reg_ok : (R,) bool, regulators whose reading is usable.
+    cap_v_v : (C,) the banks' bus voltage readings [V], NaN where missing (models with readings).
     """
-    v_hat = estimate_voltages_pu(arrays, features(head_p_kw, head_q_kvar, pv_p_kw, pv_q_kvar), taps)
-    corrected = False
-    if reg_v120 is not None:
-        measured = np.asarray(reg_v120, float) * arrays.reg_pu_per_v120
-        eps = correction_pu(v_hat, arrays.reg_secondary_node, measured, valid=reg_ok)
-        v_hat = apply_correction(v_hat, eps, arrays.upstream_regulator)
-        corrected = bool(np.any(reg_ok))
-    dv_dq = dv_dq_pu_per_kvar(sens, float(np.sum(head_q_kvar)))
+    paper = features(head_p_kw, head_q_kvar, pv_p_kw, pv_q_kvar)
+    v_hat = estimate_critical_pu(arrays, paper, taps, caps=caps, reg_v120=reg_v120, reg_ok=reg_ok, cap_v_v=cap_v_v,
+                                 t_ns=t_ns)
+    corrected = reg_v120 is not None and bool(np.any(reg_ok))
+    head_q = head_q_at_training_banks(arrays, head_q_kvar, caps) if arrays.cap0.size else head_q_kvar
+    dv_dq = dv_dq_pu_per_kvar(sens, float(np.sum(head_q)))
     return GridState(v0_pu=v_hat, dv_dq_pu_per_kvar=dv_dq, dv_dtap_pu=arrays.dv_dtap_pu,
                      dv_dp_pu_per_kw=dv_dp_pu_per_kw, taps=taps, corrected=corrected, critical=True)
 

@@ -11,15 +11,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from regression.estimator import (
-    SensitivityTable,
-    apply_correction,
-    correction_pu,
-    dv_dq_pu_per_kvar,
-    estimate_voltages_pu,
-    extended_features,
-)
-from regression.model import ModelArrays, SensitivityFit, calendar_features
+from regression.estimator import SensitivityTable, dv_dq_pu_per_kvar, estimate_critical_pu
+from regression.model import ModelArrays, SensitivityFit
 
 __all__ = ["estimate_v_pu", "eval_sensitivities", "sensitivity_arrays"]
 
@@ -34,11 +27,11 @@ def estimate_v_pu(
     cap_v_v: np.ndarray | None = None,
     t_ns: np.ndarray | None = None,
 ) -> np.ndarray:
-    """Critical-node voltages, paper eq. (5), corrected by eq. (6)-(7) when ``reg_v120`` is given.
+    """Critical-node voltages of (T,) minutes: ``regression.estimator.estimate_critical_pu`` (the agent's estimate).
 
-    An extended model (``arrays.n_readings > 0``) also takes the readings as regressors when ``reg_v120`` is
-    given (its "with correction"); without them every reading is replaced by its regression on the paper
-    features (``regression.estimator.extended_features``).
+    Eq. (5) with the model's bank terms (a paper model's as the agent applies them: head-Q add-back and
+    ``dv_dcap``), corrected by eq. (6)-(7) when ``reg_v120`` is given; an extended model then also takes the
+    readings as regressors.
 
     Parameters
     ----------
@@ -46,7 +39,7 @@ def estimate_v_pu(
     features : (T, M_paper) feature vectors (``regression.model.features``) [kW, kvar].
     taps : (T, R) present tap positions [steps].
     reg_v120 : (T, R) measured raw regulator secondary voltages [V on the 120 V base], or None.
-    caps : (T, C) closed steps of each capacitor bank (extended models; None: as in training).
+    caps : (T, C) closed steps of each capacitor bank (None: as in training).
     cap_v_v : (T, C) the banks' bus voltage readings [V] (extended models with readings).
     t_ns : (T,) UTC epoch nanoseconds of each minute (models with calendar features).
 
@@ -55,28 +48,8 @@ def estimate_v_pu(
     (T, N) estimated voltages [pu of each node's base].
     """
     f = np.atleast_2d(np.asarray(features, float))
-    t = np.atleast_2d(np.asarray(taps, float))
-    if arrays.extended:
-        c = np.tile(arrays.cap0, (f.shape[0], 1)) if caps is None else np.atleast_2d(np.asarray(caps, float))
-        if reg_v120 is None or arrays.n_readings == 0:
-            readings = np.full((f.shape[0], arrays.n_readings), np.nan)
-        else:
-            reg = np.atleast_2d(np.asarray(reg_v120, float)) * arrays.reg_pu_per_v120
-            n_cap = arrays.cap0.size
-            cap = np.full((f.shape[0], n_cap), np.nan) if cap_v_v is None \
-                else np.atleast_2d(np.asarray(cap_v_v, float)) / arrays.cap_v_ref_v  # NaN: not given, fallback
-            readings = np.concatenate([reg, cap], axis=1)
-        cal = None if t_ns is None else calendar_features(np.asarray(t_ns), arrays.utc_offset_h)
-        f = extended_features(arrays, f, readings, t, c, calendar=cal)
-        v = estimate_voltages_pu(arrays, f, t, c)
-    else:
-        v = estimate_voltages_pu(arrays, f, t)
-    if reg_v120 is None or arrays.tap0.size == 0:
-        return v
-    measured = np.atleast_2d(np.asarray(reg_v120, float)) * arrays.reg_pu_per_v120
-    # the agent's functions index nodes / regulators on axis 0: pass (N, T) and (R, T)
-    eps = correction_pu(v.T, arrays.reg_secondary_node, measured.T)
-    return apply_correction(v.T, eps, arrays.upstream_regulator).T
+    return estimate_critical_pu(arrays, f, np.atleast_2d(np.asarray(taps, float)), caps=caps, reg_v120=reg_v120,
+                                cap_v_v=cap_v_v, t_ns=t_ns)
 
 
 def sensitivity_arrays(fits: Sequence[Sequence[SensitivityFit]]) -> SensitivityTable:

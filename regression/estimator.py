@@ -12,8 +12,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from regression.capbanks import bank_voltage_pu, head_q_at_training_banks
 from regression.errors import ModelInputError
-from regression.model import ModelArrays, SensitivityFit
+from regression.model import ModelArrays, SensitivityFit, calendar_features
 
 __all__ = [
     "SensitivityTable",
@@ -21,6 +22,7 @@ __all__ = [
     "correction_pu",
     "dv_dp_pu_per_kw",
     "dv_dq_pu_per_kvar",
+    "estimate_critical_pu",
     "estimate_voltages_pu",
     "extended_features",
     "pv_variability_margins_pu",
@@ -31,6 +33,9 @@ __all__ = [
 POWER_BASE_FLOOR_KVAR = 1.0
 
 _FORM_CODE = {"constant": 0, "linear": 1, "power": 2}
+
+#: Columns of the feeder head's Q per phase among ``regression.model.features`` (head P, head Q, then the plants).
+_HEAD_Q = slice(3, 6)
 
 
 def estimate_voltages_pu(
@@ -133,6 +138,73 @@ def extended_features(
     first = n_paper + arrays.n_calendar
     mapped[..., first:] = np.where(ok, mapped[..., first:], fallback)
     return mapped
+
+
+def estimate_critical_pu(
+    arrays: ModelArrays,
+    paper_features: np.ndarray,
+    taps: np.ndarray,
+    *,
+    caps: np.ndarray | None = None,
+    reg_v120: np.ndarray | None = None,
+    reg_ok: np.ndarray | None = None,
+    cap_v_v: np.ndarray | None = None,
+    t_ns: np.ndarray | int | None = None,
+) -> np.ndarray:
+    """Critical-node voltages of any model, with its bank terms, corrected by eq. (6)-(7) when ``reg_v120`` is given.
+
+    The one estimate of the project: the online agent calls it for one minute, the training reports (accuracy,
+    calibration) for many (leading axes). Per feature set:
+
+    - ``paper``: eq. (5) on the paper's features. Banks switched since training (``caps`` differs from ``cap0``)
+      enter as ``regression.capbanks`` says: the head's Q with their kvar added back, then their own ``dv_dcap``
+      term (beyond the paper);
+    - ``extended`` / ``extended_readings``: the features mapped back to ``tap0``/``cap0`` with the calendar and the
+      readings (``extended_features``), then the same ``dv_dcap`` term. The readings are regressors only with the
+      correction (``reg_v120`` given): without it every reading takes its fallback regression.
+
+    Parameters
+    ----------
+    arrays : the model's arrays.
+    paper_features : (..., M_paper) ``regression.model.features`` of the measurements [kW, kvar].
+    taps : (..., R) present taps [steps].
+    caps : (..., C) closed steps of each bank; None: as in training.
+    reg_v120 : (..., R) raw regulator secondary voltages [V on the 120 V base]; None: no correction.
+    reg_ok : (..., R) bool, regulators whose reading is usable (default: every finite one).
+    cap_v_v : (..., C) the banks' bus voltage readings [V] (NaN where missing; models with readings).
+    t_ns : (...) UTC epoch nanoseconds of each minute (models with calendar features).
+
+    Returns
+    -------
+    (..., N) estimated voltages [pu of each node's base].
+    """
+    f = np.asarray(paper_features, float)
+    lead = f.shape[:-1]
+    n_cap = arrays.cap0.size
+    c = None if caps is None or n_cap == 0 else np.broadcast_to(np.asarray(caps, float), (*lead, n_cap))
+    ok = None if reg_v120 is None else np.broadcast_to(
+        np.ones(arrays.tap0.size, bool) if reg_ok is None else np.asarray(reg_ok, bool), (*lead, arrays.tap0.size))
+    if arrays.extended:
+        readings = np.full((*lead, arrays.n_readings), np.nan)  # the readings' order: regulators, then banks
+        if arrays.n_readings and reg_v120 is not None and ok is not None:
+            readings[..., : arrays.tap0.size] = np.where(ok, np.asarray(reg_v120, float) * arrays.reg_pu_per_v120,
+                                                          np.nan)
+            if cap_v_v is not None:
+                readings[..., arrays.tap0.size :] = np.asarray(cap_v_v, float) / arrays.cap_v_ref_v
+        calendar = None if t_ns is None else calendar_features(np.asarray(t_ns), arrays.utc_offset_h)
+        f = extended_features(arrays, f, readings, taps, arrays.cap0 if c is None else c, calendar=calendar)
+    elif c is not None:
+        f = f.copy()
+        f[..., _HEAD_Q] = head_q_at_training_banks(arrays, f[..., _HEAD_Q], c)
+    v = estimate_voltages_pu(arrays, f, taps)
+    if c is not None:
+        v = v + bank_voltage_pu(arrays, c)
+    if reg_v120 is None or ok is None or arrays.tap0.size == 0:
+        return v
+    measured = np.asarray(reg_v120, float) * arrays.reg_pu_per_v120
+    # eq. (6)-(7) index nodes / regulators on axis 0: pass (N, T) and (R, T)
+    eps = correction_pu(v.T, arrays.reg_secondary_node, np.broadcast_to(measured, ok.shape).T, valid=ok.T)
+    return apply_correction(v.T, eps, arrays.upstream_regulator).T
 
 
 def correction_pu(

@@ -351,6 +351,16 @@ class ModelArrays:
         n_paper = len(feature_names(len(model.pv)))
         n_feat = n_paper + n_read + (len(CALENDAR_FEATURES) if model.calendar else 0)
         extended = model.feature_set != "paper"
+        try:
+            return cls._of(model, n_reg, n_cap, n_read, n_paper, n_feat, extended)
+        except ValueError as e:  # a reshape: the coefficient lists do not fit the model's devices and features
+            raise ModelError(f"the model's arrays do not fit its {len(model.critical_nodes)} critical nodes, "
+                             f"{n_reg} regulators, {n_cap} banks and {n_feat} features ({e}); retrain it "
+                             "with `cvvc train`") from e
+
+    @classmethod
+    def _of(cls, model: CvvcModel, n_reg: int, n_cap: int, n_read: int, n_paper: int, n_feat: int,
+            extended: bool) -> ModelArrays:
         return cls(
             alpha=np.asarray(model.alpha, float),
             tap0=np.asarray(model.tap0, float),

@@ -11,7 +11,7 @@ from agent.errors import AgentInputError
 from agent.state import oracle_state
 from benchmarks.synthetic import synthetic_model
 from regression.estimator import dv_dp_pu_per_kw, estimate_voltages_pu, pv_variability_margins_pu
-from regression.model import ModelArrays, features
+from regression.model import ModelArrays, ModelError, features
 from schemas import messages as m
 
 MODEL = synthetic_model(0)
@@ -189,8 +189,8 @@ def test_bad_shapes_hold_and_bad_configuration_is_refused():
         controller(mode="setpoints", bandwidth_v120=0.5)
     with pytest.raises(AgentInputError, match="mode"):
         controller(mode="tap")
-    # an extended model needs the banks' states, which the agent does not track: refused, not misread
-    with pytest.raises(AgentInputError, match="--features paper"):
+    # a model whose extended arrays do not fit its features: refused with a clear error, not misread
+    with pytest.raises(ModelError, match="do not fit"):
         CvvcController(msgspec.structs.replace(MODEL, feature_set="extended"), mode="taps", correction=True,
                        bandwidth_v120=4.0)
 
