@@ -192,12 +192,15 @@ def prepare_feeder_and_model(config: RunConfig) -> tuple[Path, Path]:
     model_path = cache / "models" / name
     if not model_path.is_file() and CASE_AGENT[config.case] is not None:  # cases without an agent need none
         from regression.model import write_model
+        from training.extended import default_feature_options
         from training.train import train
 
         _log(f"training a model for {dm.feeder.name} (year seed {config.train_seed}); cached afterwards")
         t0 = time.monotonic()
-        result = train(dm_path, year_seed=config.train_seed, selection="guided",
-                       cache_dir=cache / "profiles", progress=config.progress)
+        opts = default_feature_options(dm)
+        result = train(dm_path, year_seed=config.train_seed, selection="guided", cache_dir=cache / "profiles",
+                       progress=config.progress, feature_set=opts.feature_set, calendar=opts.calendar,
+                       critical_margin_pu=opts.critical_margin_pu)
         model_path.parent.mkdir(parents=True, exist_ok=True)
         tmp = model_path.with_suffix(".tmp")
         write_model(result.model, tmp)

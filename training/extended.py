@@ -23,10 +23,39 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from regression.model import features
+from regression.model import FeatureSet, features
 
-__all__ = ["SINGLE_TAP_SHIFTS", "TAP_SHIFTS", "Perturbations", "device_shifted_voltages", "near_extreme_cover",
-           "perturb_devices", "reading_matrix"]
+__all__ = ["EXTENDED_OPTIONS", "PAPER_OPTIONS", "SINGLE_TAP_SHIFTS", "TAP_SHIFTS", "FeatureOptions", "Perturbations",
+           "default_feature_options", "device_shifted_voltages", "near_extreme_cover", "perturb_devices",
+           "reading_matrix"]
+
+
+@dataclass(frozen=True)
+class FeatureOptions:
+    """The feature set of a model and its two companions (``training.train.train``'s keywords of the same names)."""
+
+    feature_set: FeatureSet
+    calendar: bool
+    critical_margin_pu: float
+
+
+#: The paper's method (eq. (5) on head and plant P, Q; the paper's extreme nodes).
+PAPER_OPTIONS = FeatureOptions("paper", False, 0.0)
+#: The extended set as measured on the real feeders (docs/method.md): banks, tap/bank mapping, calendar and the
+#: near-extreme cover at 0.001 pu.
+EXTENDED_OPTIONS = FeatureOptions("extended", True, 0.001)
+
+
+def default_feature_options(device_map) -> FeatureOptions:
+    """What ``cvvc train --features auto`` and ``cvvc run``/``evaluate`` train: the extended set on a feeder whose
+    device map lists capacitor banks, the paper's method otherwise.
+
+    The extended set exists for switched banks (the paper's eq. (5) reads a bank's kvar at the head as load);
+    measured through the bus, case D, first 3 days (docs/results.md): IEEE 8500 NVV 19,980 against 70,668 in
+    winter and 5,769 against 783,718 in summer; epri-m1 NVV 0 with both. A feeder without banks keeps the paper's
+    method and the results measured with it (the rural feeder, IEEE 13).
+    """
+    return EXTENDED_OPTIONS if device_map.capacitor else PAPER_OPTIONS
 
 #: Tap offsets from ``tap0`` (every regulator at once) under which the near-extreme cover also looks for extremes:
 #: out of training, local control runs the regulators several steps from ``tap0`` (IEEE 8500: 3-7).
