@@ -17,7 +17,8 @@ The inverter's own logic (its "firmware"), run on every Modbus request:
   injecting, over-excited: the project's generator convention), clipped to its headroom ``sqrt(VAMax² − P²)``
   (0 at night, as the simulated plants); otherwise it is on its local default (:meth:`q_command_kvar` is None).
 * **Revert timer**: writing ``VarSetRvrtTms`` > 0 (or a new ``VarSet`` while it is > 0) starts the timer on the
-  inverter's own clock; ``VarSetRvrtRem`` counts down. When it runs out, the set point reverts: to
+  inverter's own clock; ``VarSetRvrtRem`` counts down. Once it has run out (the set point is in force up to and
+  including the deadline, as a bus command up to its ``valid_until_t_ns``), the set point reverts: to
   ``VarSetRvrt`` if ``VarSetEnaRvrt = 1``, else the function is disabled (``VarSetEna = 0``: the local default).
   So a command that expires reverts *in the inverter*, whether or not anyone is still talking to it.
 
@@ -45,6 +46,14 @@ _PHASES = ("a", "b", "c")
 _VARS_MODE = 4  # 704 VarSetMod symbol VARS: the set point is in vars
 _MAX_REVERT_S = 86_400
 _INT16_MAX = 32767
+
+
+def _close_all(transports: list[Any]) -> None:
+    """Close every transport not closed yet (pymodbus closes those it saw connected; not one accepted late)."""
+    for transport in transports:
+        if not transport.is_closing():
+            transport.close()
+    transports.clear()
 
 
 class SunSpecSimError(SimulatorError):
@@ -116,6 +125,7 @@ class SimulatedSunSpecInverter:
         self._thread: threading.Thread | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._server: Any = None
+        self._conns: list[Any] = []
 
     # ---------------------------------------------------------------------------------- register image
     def _init_points(self) -> None:
@@ -187,7 +197,7 @@ class SimulatedSunSpecInverter:
             return
         ctl = self._models[704].points
         now = self._clock()
-        if now >= self._deadline_ns:
+        if now > self._deadline_ns:
             self._deadline_ns = None
             self.reverts += 1
             if ctl["VarSetEnaRvrt"].value == 1:
@@ -346,9 +356,27 @@ class SimulatedSunSpecInverter:
         ready = threading.Event()
         failure: list[BaseException] = []
 
+        conns: list[Any] = []
+        self._conns = conns
+
         async def serve() -> None:
-            self._server = ModbusTcpServer(dev, address=(self.host, self.port))
-            await self._server.serve_forever(background=True)
+            server = ModbusTcpServer(dev, address=(self.host, self.port))
+            make = server.callback_new_connection
+
+            def tracked() -> Any:  # every connection's transport, so stop() can close what pymodbus left open
+                proto = make()
+                made = proto.connection_made
+
+                def connection_made(transport: Any) -> None:
+                    conns.append(transport)
+                    made(transport)
+
+                proto.connection_made = connection_made
+                return proto
+
+            server.callback_new_connection = tracked  # type: ignore[method-assign]
+            self._server = server
+            await server.serve_forever(background=True)
 
         def run() -> None:
             asyncio.set_event_loop(loop)
@@ -375,8 +403,24 @@ class SimulatedSunSpecInverter:
         if self._thread is None or self._loop is None:
             return
         loop = self._loop
-        if self._server is not None and loop.is_running():
-            fut = asyncio.run_coroutine_threadsafe(self._server.shutdown(), loop)
+        server = self._server
+
+        conns = self._conns
+
+        async def shutdown() -> None:
+            # accept what the kernel has queued first: asyncio fails (and leaks the socket of) a connection
+            # whose accept is still on its way when the listener closes
+            for _ in range(3):
+                await asyncio.sleep(0.01)
+            await server.shutdown()
+            for _ in range(3):  # a connection accepted just before: its connection_made is still queued
+                await asyncio.sleep(0.005)
+            _close_all(conns)
+            for _ in range(3):  # let the closed transports close their sockets
+                await asyncio.sleep(0.005)
+
+        if server is not None and loop.is_running():
+            fut = asyncio.run_coroutine_threadsafe(shutdown(), loop)
             try:
                 fut.result(5.0)
             except Exception:  # already closing: stop the loop anyway
@@ -390,6 +434,10 @@ class SimulatedSunSpecInverter:
                 loop.call_soon_threadsafe(loop.stop)
             thread.join(10.0)
             if not loop.is_running():
+                # a connection accepted while the loop was stopping: let its connection_made run, then close it
+                loop.run_until_complete(asyncio.sleep(0.01))
+                _close_all(self._conns)
+                loop.run_until_complete(asyncio.sleep(0.01))
                 loop.close()
         self._loop = self._thread = self._server = None
 

@@ -20,7 +20,7 @@ PERIOD_NS = 300 * S
 
 
 def _plant(inverter) -> SunSpecPlant:
-    link = SunSpecLink("127.0.0.1", inverter.port, timeout_s=0.5)
+    link = SunSpecLink("127.0.0.1", inverter.port, timeout_s=2.0)
     return SunSpecPlant(PlantSettings(feeder_id="f1", device_id="pv1", control_period_ns=PERIOD_NS), link)
 
 
@@ -139,7 +139,7 @@ def test_an_expired_command_reverts_in_the_inverter_and_is_acked_expired(plant, 
 
 
 def test_no_inverter_at_the_endpoint_is_a_clear_link_error():
-    link = SunSpecLink("127.0.0.1", free_port(), timeout_s=0.5)
+    link = SunSpecLink("127.0.0.1", free_port(), timeout_s=2.0)
     with pytest.raises(LinkDownError, match="no SunSpec device at tcp/127.0.0.1"):
         link.read()
 

@@ -51,7 +51,7 @@ class Running:
 @pytest.fixture
 def adapter(inverter, router_endpoint) -> Iterator[Running]:
     config = AdapterConfig(feeder_id=F, device_id=D, modbus=f"tcp/127.0.0.1:{inverter.port}", scan_period_s=0.2,
-                           status_period_s=0.5, timeout_s=0.3)
+                           status_period_s=0.5, timeout_s=1.0)
     with open_session(BusConfig(mode="peer", connect=(router_endpoint,))) as session:
         inbox = Inbox()
         for key in (keys.meas_pv(F, D), keys.ack(F, "pv", D), keys.link(F, "pv", D)):

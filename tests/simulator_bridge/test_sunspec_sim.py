@@ -116,7 +116,9 @@ def test_the_revert_timer_returns_the_inverter_to_its_default_by_itself(client, 
     ctl = client.DERCtlAC[0]
     ctl.read()
     assert ctl.VarSetRvrtRem.value == 1
-    clock.t_ns += 1_000_000_000  # the timer runs out: nobody wrote anything
+    clock.t_ns += 1_000_000_000  # the deadline itself: still in force, as a command up to its valid_until
+    assert inverter.q_command_kvar() == pytest.approx(250.0)
+    clock.t_ns += 1  # past it: the timer has run out, and nobody wrote anything
     assert inverter.q_command_kvar() is None
     assert inverter.reverts == 1
     ctl.read()
@@ -129,7 +131,7 @@ def test_the_reversion_value_is_taken_when_reversion_is_enabled(client, inverter
     ctl.VarSetEnaRvrt.value = 1
     ctl.write()
     _set_var(client, 250_000.0, revert_s=10)
-    clock.t_ns += 10_000_000_000
+    clock.t_ns += 10_000_000_001
     assert inverter.q_command_kvar() == pytest.approx(-50.0)
 
 
