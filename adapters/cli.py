@@ -10,11 +10,16 @@ import argparse
 import signal
 import sys
 import threading
+from collections.abc import Callable
+from typing import TypeVar
 
 __all__ = ["register"]
 
+T = TypeVar("T")
 
-def _with_stop(fn):  # type: ignore[no-untyped-def]
+
+def _with_stop(fn: Callable[[threading.Event], T]) -> T:
+    """Run ``fn(stop)`` with SIGINT and SIGTERM setting ``stop``; the previous handlers come back after."""
     stop = threading.Event()
     previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)}
     try:

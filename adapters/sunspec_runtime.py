@@ -10,7 +10,9 @@ On the bus, for feeder ``F`` and device ``D`` (as the simulated plants, so the a
   of the scan period on the adapter's clock (UTC), so frames of devices scanned on the same period align;
 * ``cvvc/F/cmd/pv/D`` ``PvCommand`` in, ``cvvc/F/ack/pv/D`` ``Ack`` out (``adapters.sunspec_plant``);
 * ``cvvc/F/link/pv/D`` ``LinkStatus`` when the link's state changes and on the status period;
-* the liveliness token ``cvvc/F/alive/pv/D`` while the adapter runs.
+* the liveliness token ``cvvc/F/alive/pv/D`` while the adapter runs; an agent's token withdrawn
+  (``cvvc/F/alive/agent/A``) makes the plant forget that sender's command sequence, as the bridge's devices do
+  (a restarted agent counts from 1 again).
 
 Loss of the Modbus link: no frames (the state is ``down`` with the reason), commands are acknowledged
 ``rejected`` (``link_down``), and every scan tries to connect again. Nothing raises out of the loop but a bus
@@ -34,7 +36,7 @@ from adapters.sunspec import SunSpecLink
 from adapters.sunspec_plant import PlantSettings, SunSpecPlant
 from schemas import keys
 from schemas import messages as m
-from schemas.bus import BusConfig, Inbox, TypedPublisher, open_session
+from schemas.bus import BusConfig, Inbox, LivelinessWatcher, Received, TypedPublisher, open_session
 
 __all__ = ["AdapterConfig", "parse_modbus_endpoint", "run_adapter"]
 
@@ -61,6 +63,12 @@ class AdapterConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fi
     timeout_s: Annotated[float, Meta(gt=0.0, le=60.0)] = 1.0
     local_mode: Literal["unity_pf", "volt_var"] = "unity_pf"
     q_at_night: bool = False
+
+
+class _SenderGone(msgspec.Struct, frozen=True):
+    """An agent's liveliness token was withdrawn: its command sequence ends."""
+
+    source: str
 
 
 def parse_modbus_endpoint(text: str) -> tuple[str, int]:
@@ -98,6 +106,12 @@ def run_adapter(config: AdapterConfig, bus: BusConfig, *, stop: threading.Event,
         inbox = Inbox(maxsize=256)
         inbox.subscribe(session, keys.cmd(f, "pv", d), m.PvCommand)
         token = session.liveliness().declare_token(keys.alive(f, "pv", d))
+
+        def on_agent(key: str, up: bool) -> None:  # a Zenoh thread: only enqueue, in order with the commands
+            if not up:
+                inbox.queue.put(Received(key, _SenderGone(key.rsplit("/", 1)[-1]), time.time_ns(), b""))
+
+        agents = LivelinessWatcher(session, f"{keys.ROOT}/{f}/alive/agent/*", on_agent)
         status = plant.status(clock_ns())
         pub_status.put(status)
         if ready is not None:
@@ -122,9 +136,14 @@ def run_adapter(config: AdapterConfig, bus: BusConfig, *, stop: threading.Event,
                     last_state, status_due = plant.state, time.monotonic() + config.status_period_s
                 wait_s = min(max((next_scan - clock_ns()) / 1e9, 0.0), _MAX_WAIT_S)
                 item = inbox.get(timeout_s=wait_s)
-                if item is not None:
+                if item is None:
+                    continue
+                if isinstance(item.msg, _SenderGone):
+                    plant.plant.guard.forget_source(item.msg.source)
+                else:
                     pub_ack.put(plant.command(item.msg, clock_ns()))
         finally:
+            agents.undeclare()
             token.undeclare()
             inbox.undeclare()
             link.close()

@@ -144,3 +144,21 @@ def test_a_malformed_register_value_is_refused_counted_in_the_status_and_sends_n
     n_frames = len(adapter.received(m.PvFrame))
     assert adapter.wait(lambda: any(s.refused.get("701.V_SF", 0) >= 3 for s in adapter.received(m.LinkStatus)))
     assert len(adapter.received(m.PvFrame)) == n_frames
+
+
+def test_a_restarted_agent_counts_from_one_again_once_its_token_is_gone(adapter, router_endpoint):
+    # the agent's token and commands from one session: the router passes them on in the order they were sent
+    with open_session(BusConfig(mode="peer", connect=(router_endpoint,))) as agent_session:
+        token = agent_session.liveliness().declare_token(keys.alive(F, "agent", "agent"))
+        commands = TypedPublisher(agent_session, keys.cmd(F, "pv", D), m.PvCommand, reliable=True)
+        assert commands.wait_matched(10.0)
+        commands.put(_cmd(-50.0, seq=40, valid_s=600.0))
+        assert adapter.wait(lambda: len(adapter.received(m.Ack)) == 1)
+        commands.put(_cmd(-60.0, seq=1, valid_s=600.0))  # the same agent going backwards: a replay
+        assert adapter.wait(lambda: len(adapter.received(m.Ack)) == 2)
+        assert adapter.received(m.Ack)[1].reason.startswith("replay")
+        token.undeclare()  # the agent stops; a new one starts its sequence at 1
+        commands.put(_cmd(-70.0, seq=1, valid_s=600.0))
+        assert adapter.wait(lambda: len(adapter.received(m.Ack)) == 3)
+        assert (adapter.received(m.Ack)[2].status, adapter.received(m.Ack)[2].applied_value) == ("accepted", -70.0)
+        commands.undeclare()
