@@ -7,7 +7,8 @@ scans, in their order of arrival (Zenoh's callbacks only decode them into a boun
 On the bus, for feeder ``F`` and device ``D`` (as the simulated plants, so the agent cannot tell the difference):
 
 * ``cvvc/F/meas/pv/D`` ``PvFrame`` at every scan that read valid values, stamped with the scan's time: a multiple
-  of the scan period on the adapter's clock (UTC), so frames of devices scanned on the same period align;
+  of the scan period on the adapter's clock (UTC), so frames of devices scanned on the same period align; or, with
+  the head clock, at each newer feeder-head frame, stamped with its ``t_ns``;
 * ``cvvc/F/cmd/pv/D`` ``PvCommand`` in, ``cvvc/F/ack/pv/D`` ``Ack`` out (``adapters.sunspec_plant``);
 * ``cvvc/F/link/pv/D`` ``LinkStatus`` when the link's state changes and on the status period;
 * the liveliness token ``cvvc/F/alive/pv/D`` while the adapter runs; an agent's token withdrawn
@@ -51,6 +52,9 @@ class AdapterConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fi
     ``modbus`` is ``tcp/HOST:PORT``; ``unit`` the Modbus unit id. ``scan_period_s`` [s]: frames at its multiples;
     ``control_period_s`` [s]: the feeder's control period, the unit of the command windows (as the bridge's);
     ``status_period_s`` [s]: ``LinkStatus`` at least this often; ``timeout_s`` [s]: one Modbus request.
+    ``clock``: ``wall`` scans on the scan period of ``clock_ns``; ``head`` scans when a newer feeder-head frame
+    arrives (``cvvc/F/meas/head``) and takes its ``t_ns`` as the adapter's time: frames, command windows and
+    revert timers then follow the feeder's scan (a simulation in lockstep, or a SCADA poll cycle).
     """
 
     feeder_id: Annotated[str, Meta(pattern=r"^[A-Za-z0-9_.\-]{1,64}$")]
@@ -63,6 +67,7 @@ class AdapterConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fi
     timeout_s: Annotated[float, Meta(gt=0.0, le=60.0)] = 1.0
     local_mode: Literal["unity_pf", "volt_var"] = "unity_pf"
     q_at_night: bool = False
+    clock: Literal["wall", "head"] = "wall"
 
 
 class _SenderGone(msgspec.Struct, frozen=True):
@@ -112,7 +117,23 @@ def run_adapter(config: AdapterConfig, bus: BusConfig, *, stop: threading.Event,
                 inbox.queue.put(Received(key, _SenderGone(key.rsplit("/", 1)[-1]), time.time_ns(), b""))
 
         agents = LivelinessWatcher(session, f"{keys.ROOT}/{f}/alive/agent/*", on_agent)
-        status = plant.status(clock_ns())
+        head_mode = config.clock == "head"
+        head_t = [0]  # the newest feeder-head frame's time [ns] (head clock)
+        if head_mode:
+            inbox.subscribe(session, keys.meas_head(f), m.HeadFrame)
+
+        def device_now() -> int:
+            return head_t[0] if head_mode else clock_ns()
+
+        def scan(t: int) -> None:
+            expired = plant.expired(t)
+            if expired is not None:
+                pub_ack.put(expired)
+            frame = plant.scan(t)
+            if frame is not None:
+                pub_frame.put(frame)
+
+        status = plant.status(device_now())
         pub_status.put(status)
         if ready is not None:
             ready.set()
@@ -121,32 +142,32 @@ def run_adapter(config: AdapterConfig, bus: BusConfig, *, stop: threading.Event,
         try:
             while not stop.is_set():
                 now = clock_ns()
-                if now >= next_scan:
+                if not head_mode and now >= next_scan:
                     t = max(next_scan, now // period_ns * period_ns)  # a late loop skips to the present scan
-                    expired = plant.expired(t)
-                    if expired is not None:
-                        pub_ack.put(expired)
-                    frame = plant.scan(t)
-                    if frame is not None:
-                        pub_frame.put(frame)
+                    scan(t)
                     next_scan = t + period_ns
                 if plant.state != last_state or time.monotonic() >= status_due:
-                    status = plant.status(clock_ns())
+                    status = plant.status(device_now())
                     pub_status.put(status)
                     last_state, status_due = plant.state, time.monotonic() + config.status_period_s
-                wait_s = min(max((next_scan - clock_ns()) / 1e9, 0.0), _MAX_WAIT_S)
+                wait_s = _MAX_WAIT_S if head_mode else min(max((next_scan - clock_ns()) / 1e9, 0.0), _MAX_WAIT_S)
                 item = inbox.get(timeout_s=wait_s)
                 if item is None:
                     continue
-                if isinstance(item.msg, _SenderGone):
-                    plant.plant.guard.forget_source(item.msg.source)
+                msg = item.msg
+                if isinstance(msg, _SenderGone):
+                    plant.plant.guard.forget_source(msg.source)
+                elif isinstance(msg, m.HeadFrame):
+                    if msg.t_ns > head_t[0]:  # a repeated or older head frame moves nothing
+                        head_t[0] = msg.t_ns
+                        scan(msg.t_ns)
                 else:
-                    pub_ack.put(plant.command(item.msg, clock_ns()))
+                    pub_ack.put(plant.command(msg, device_now()))
         finally:
             agents.undeclare()
             token.undeclare()
             inbox.undeclare()
             link.close()
-            status = plant.status(clock_ns())
+            status = plant.status(device_now())
             pub_status.put(status)
     return status

@@ -10,6 +10,7 @@ import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 
+import msgspec
 import pytest
 
 from adapters.sunspec_runtime import AdapterConfig, run_adapter
@@ -162,3 +163,49 @@ def test_a_restarted_agent_counts_from_one_again_once_its_token_is_gone(adapter,
         assert adapter.wait(lambda: len(adapter.received(m.Ack)) == 3)
         assert (adapter.received(m.Ack)[2].status, adapter.received(m.Ack)[2].applied_value) == ("accepted", -70.0)
         commands.undeclare()
+
+
+def test_the_head_clock_scans_at_each_new_head_frame_and_times_commands_by_it(inverter, router_endpoint):
+    from schemas.examples import example
+
+    config = AdapterConfig(feeder_id=F, device_id=D, modbus=f"tcp/127.0.0.1:{inverter.port}", clock="head",
+                           status_period_s=0.5, timeout_s=1.0)
+    t0 = 1_672_549_200 * S  # a simulated day, far from the wall clock
+    with open_session(BusConfig(mode="peer", connect=(router_endpoint,))) as session:
+        inbox = Inbox()
+        for key in (keys.meas_pv(F, D), keys.ack(F, "pv", D)):
+            inbox.subscribe(session, key)
+        heads = TypedPublisher(session, keys.meas_head(F), m.HeadFrame, reliable=True)
+        commands = TypedPublisher(session, keys.cmd(F, "pv", D), m.PvCommand, reliable=True)
+        stop, ready = threading.Event(), threading.Event()
+        bus = BusConfig(mode="peer", connect=(router_endpoint,))
+        thread = threading.Thread(target=run_adapter, args=(config, bus), kwargs=dict(stop=stop, ready=ready),
+                                  daemon=True)
+        thread.start()
+        try:
+            assert ready.wait(20.0) and heads.wait_matched(10.0) and commands.wait_matched(10.0)
+            got: list = []
+
+            def seen(pred) -> bool:
+                def check() -> bool:
+                    got.extend(r.msg for r in inbox.drain())
+                    return bool(pred())
+                return wait_for(check, 10.0, poll_s=0.02)
+
+            head = example(m.HeadFrame)
+            for i, seq in ((0, 1), (0, 2), (60, 3)):  # the repeated time makes no second scan
+                heads.put(msgspec.structs.replace(head, feeder_id=F, t_ns=t0 + i * S, seq=seq))
+            assert seen(lambda: [x.t_ns for x in got if isinstance(x, m.PvFrame)] == [t0, t0 + 60 * S])
+            cmd = m.PvCommand(t_ns=t0 + 60 * S, seq=1, source="agent", cmd_id="agent:1:pv1", in_reply_to=3,
+                              valid_until_t_ns=t0 + 180 * S, plant_id=D, q_kvar=-80.0)
+            commands.put(cmd)  # valid for 120 s of the feeder's time: far in the wall clock's past
+            assert seen(lambda: any(isinstance(x, m.Ack) for x in got))
+            ack = next(x for x in got if isinstance(x, m.Ack))
+            assert (ack.status, ack.applied_value, ack.t_ns) == ("accepted", -80.0, t0 + 60 * S)
+            assert inverter.control_state()["VarSetRvrtTms"] == 120
+            heads.put(msgspec.structs.replace(head, feeder_id=F, t_ns=t0 + 181 * S, seq=4))
+            assert seen(lambda: any(isinstance(x, m.Ack) and x.status == "expired" for x in got))
+        finally:
+            stop.set()
+            thread.join(20.0)
+        assert not thread.is_alive()
