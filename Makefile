@@ -22,7 +22,7 @@ test: $(STAMP)
 
 lint: $(STAMP)
 	$(BIN)/ruff check .
-	$(BIN)/mypy schemas agent regression
+	$(BIN)/mypy schemas agent regression adapters
 
 bench: $(STAMP)
 	$(BIN)/python -m benchmarks
