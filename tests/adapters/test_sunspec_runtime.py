@@ -159,9 +159,18 @@ def test_a_restarted_agent_counts_from_one_again_once_its_token_is_gone(adapter,
         assert adapter.wait(lambda: len(adapter.received(m.Ack)) == 2)
         assert adapter.received(m.Ack)[1].reason.startswith("replay")
         token.undeclare()  # the agent stops; a new one starts its sequence at 1
-        commands.put(_cmd(-70.0, seq=1, valid_s=600.0))
-        assert adapter.wait(lambda: len(adapter.received(m.Ack)) == 3)
-        assert (adapter.received(m.Ack)[2].status, adapter.received(m.Ack)[2].applied_value) == ("accepted", -70.0)
+        # the token's withdrawal and the command travel apart (liveliness vs put): resend until the adapter has
+        # seen the withdrawal; without it every resend stays a replay
+        deadline = time.monotonic() + 10.0
+        while True:
+            n = len(adapter.received(m.Ack))
+            commands.put(_cmd(-70.0, seq=1, valid_s=600.0))
+            assert adapter.wait(lambda n=n: len(adapter.received(m.Ack)) == n + 1)
+            last = adapter.received(m.Ack)[-1]
+            if last.status == "accepted" or time.monotonic() > deadline:
+                break
+            time.sleep(0.1)
+        assert (last.status, last.applied_value) == ("accepted", -70.0), last.reason
         commands.undeclare()
 
 
