@@ -29,6 +29,10 @@ produce the same aligned sets. The rule, documented in docs/agent.md:
   a forged marker can at worst have one step decided early on the frames that had arrived.
 - Only groups on a control step (``t_ns`` a multiple of the control period) are released as decisions to
   make; the others only refresh the last-known state.
+- Field clocks off by a little (issue "Robust by default", item 7: +-2 s skew between the devices and the agent):
+  a frame or scan-end marker stamped within ``clock_tolerance_ns`` of a control step is taken as that step's
+  (its ``t_ns`` is set to the step's, counted in ``snapped``); before, a frame stamped 2 s off never fell on a
+  control step and nothing was decided. Frames between control steps keep their stamps.
 """
 
 from __future__ import annotations
@@ -36,6 +40,9 @@ from __future__ import annotations
 from collections import Counter, deque
 from dataclasses import dataclass, field
 
+import msgspec
+
+from agent.errors import AgentInputError
 from schemas import messages as m
 
 __all__ = ["AlignedFrames", "FrameAligner", "plausibility_problem"]
@@ -118,8 +125,13 @@ class FrameAligner:
 
     def __init__(self, *, feeder_id: str, pv_ids: tuple[str, ...], regulator_ids: tuple[str, ...],
                  control_period_ns: int, max_jump_ns: int | None = None,
-                 capacitor_ids: tuple[str, ...] = ()) -> None:
+                 capacitor_ids: tuple[str, ...] = (), clock_tolerance_ns: int = 0) -> None:
+        if not 0 <= clock_tolerance_ns < control_period_ns // 2:
+            raise AgentInputError(f"clock tolerance {clock_tolerance_ns} ns must be within 0 and half the control "
+                             f"period ({control_period_ns} ns)")
         self.feeder_id = feeder_id
+        self.clock_tolerance_ns = int(clock_tolerance_ns)
+        self.snapped = 0  # frames and markers stamped off a control step within the tolerance, taken as on it
         self.pv_ids = pv_ids
         self.regulator_ids = regulator_ids
         self.capacitor_ids = capacitor_ids
@@ -153,6 +165,7 @@ class FrameAligner:
 
         A device frame the agent does not use (a ``CapFrame`` when the model has no bank) is counted in ``ignored``.
         """
+        frame = self._on_control_grid(frame)
         if isinstance(frame, m.StepEnd):
             return self._step_end(key, frame)
         if not isinstance(frame, _FRAME_TYPES) or (isinstance(frame, m.CapFrame) and not self.capacitor_ids):
@@ -165,6 +178,18 @@ class FrameAligner:
         if self._newest_t_ns is None or frame.t_ns > self._newest_t_ns + self.max_jump_ns:
             return self._hold(key, frame)
         return self._take(key, frame)
+
+    def _on_control_grid(self, frame: _Frame | m.StepEnd) -> _Frame | m.StepEnd:
+        """``frame`` restamped on the nearest control step if it is off it by at most the clock tolerance."""
+        tol, period = self.clock_tolerance_ns, self.control_period_ns
+        t_ns = getattr(frame, "t_ns", None)
+        if tol <= 0 or not isinstance(t_ns, int):
+            return frame
+        off = t_ns % period
+        if off == 0 or tol < off < period - tol:
+            return frame
+        self.snapped += 1
+        return msgspec.structs.replace(frame, t_ns=t_ns - off + (period if off > tol else 0))
 
     def _reject(self, kind: str, detail: str) -> None:
         self.rejected[kind] += 1

@@ -63,6 +63,7 @@ class AgentSettings(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fi
     reading_window_s: float = 300.0  # regulator readings averaged over this at the present tap [s]; 0: last reading
     # (600 s let the nominal rural winter week violate: NVV 8)
     last_good_s: float = 240.0  # a head/PV/regulator frame lost at a control step: its latest within this [s]
+    clock_tolerance_s: float = 5.0  # a frame stamped this close to a control step is that step's (clock skew) [s]
 
 
 class AgentSummary(msgspec.Struct, frozen=True, kw_only=True):
@@ -85,6 +86,7 @@ class AgentSummary(msgspec.Struct, frozen=True, kw_only=True):
     step_ends: int = 0  # scan-end markers taken (``StepEnd``)
     released_by_step_end: int = 0  # steps with lost frames decided at once, on a marker, not after the late window
     decided_after_late_window: int = 0  # live: control steps decided only once the late-frame window was over
+    clock_snapped: int = 0  # frames stamped off a control step within ``clock_tolerance_s``, taken as on it
 
 
 def snapshot_from(aligned: AlignedFrames, model: CvvcModel, *, reading_window_s: float = 300.0,
@@ -193,7 +195,8 @@ class DecisionMaker:
         self.aligner = FrameAligner(feeder_id=settings.feeder_id, pv_ids=tuple(p.id for p in model.pv),
                                     regulator_ids=tuple(r.id for r in model.regulators),
                                     control_period_ns=self.period_ns,
-                                    capacitor_ids=tuple(c.id for c in model.capacitors))
+                                    capacitor_ids=tuple(c.id for c in model.capacitors),
+                                    clock_tolerance_ns=int(settings.clock_tolerance_s * 1e9))
         self.controller = CvvcController(model, mode=settings.mode, correction=settings.correction,
                                          bandwidth_v120=settings.bandwidth_v120,
                                          pv_margin_window_s=settings.pv_margin_window_s,
@@ -433,7 +436,7 @@ def run_agent(model: CvvcModel, settings: AgentSettings, bus, *, stop: threading
                         log_suppressed=_suppressed(rlog, inbox.rejects.log_suppressed()),
                         soft=maker.soft, reasons=dict(maker.reasons.most_common(20)),
                         step_ends=maker.aligner.step_ends, released_by_step_end=maker.aligner.released_by_step_end,
-                        decided_after_late_window=late_decided)
+                        decided_after_late_window=late_decided, clock_snapped=maker.aligner.snapped)
 
 
 def _suppressed(rlog: RateLimitedLog, rejects: dict[str, int]) -> dict[str, int]:
