@@ -61,6 +61,7 @@ class AlignedFrames:
     vr_recent: dict[str, tuple[m.RegFrame, ...]] = field(default_factory=dict)  # recent frames, oldest first
     head_recent: m.HeadFrame | None = None  # the latest head frame released up to this step (this one's, if any)
     pv_recent: dict[str, m.PvFrame] = field(default_factory=dict)  # each plant's latest frame up to this step
+    head_history: tuple[m.HeadFrame, ...] = ()  # the head frames released lately up to this step, oldest first
 
     @property
     def complete(self) -> bool:
@@ -152,6 +153,7 @@ class FrameAligner:
         # every regulator's frames released lately (control steps or not): the readings of a control period
         self._vr_history: dict[str, deque[m.RegFrame]] = {r: deque(maxlen=_VR_HISTORY) for r in regulator_ids}
         self._head_latest: m.HeadFrame | None = None
+        self._head_history: deque[m.HeadFrame] = deque(maxlen=_VR_HISTORY)
         self._pv_latest: dict[str, m.PvFrame] = {}
         self._newest_t_ns: int | None = None  # newest accepted frame time; None before the first
         self._held: list[tuple[str, _Frame]] = []  # frames ahead of the clock, awaiting a second source
@@ -331,10 +333,12 @@ class FrameAligner:
             self._vr_history[reg_id].append(frame)
         if g.head is not None:
             self._head_latest = g.head
+            self._head_history.append(g.head)
         self._pv_latest.update(g.pv)
         if t_ns % self.control_period_ns:  # a minute between control steps: nobody decides on it
             return AlignedFrames(t_ns=g.t_ns, head=g.head, pv=g.pv, vr=g.vr, missing=(), cap=g.cap)
         recent = {r: tuple(f for f in h if f.t_ns <= t_ns) for r, h in self._vr_history.items() if h}
         return AlignedFrames(t_ns=g.t_ns, head=g.head, pv=dict(g.pv), vr=dict(g.vr), missing=self._missing(g),
                              cap=dict(g.cap), vr_recent=recent, head_recent=self._head_latest,
-                             pv_recent=dict(self._pv_latest))
+                             pv_recent=dict(self._pv_latest),
+                             head_history=tuple(f for f in self._head_history if f.t_ns <= t_ns))

@@ -28,6 +28,7 @@ import numpy as np
 from agent.aligner import AlignedFrames, FrameAligner
 from agent.controller import CvvcController, MeasurementSnapshot
 from agent.controller import Decision as ControllerDecision
+from agent.readings import fitted_reading_v120
 from agent.state import OracleSource
 from regression.model import CvvcModel
 from schemas import keys
@@ -62,7 +63,9 @@ class AgentSettings(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fi
     control_banks: bool = False  # beyond the paper: decide and command the model's capacitor banks
     reading_window_s: float = 300.0  # regulator readings averaged over this at the present tap [s]; 0: last reading
     # (600 s let the nominal rural winter week violate: NVV 8)
-    last_good_s: float = 240.0  # a head/PV/regulator frame lost at a control step: its latest within this [s]
+    last_good_s: float = 900.0  # a head/PV/regulator frame lost at a control step: its latest within this [s]
+    # (240 s held 82 and 278 steps and gave NVV 597 and 1,158 with 10-minute outages in the rural winter week)
+    reading_fit_s: float = 0.0  # > 0: regulator readings of this long regressed on the head's P and Q [s]
     clock_tolerance_s: float = 5.0  # a frame stamped this close to a control step is that step's (clock skew) [s]
 
 
@@ -90,7 +93,7 @@ class AgentSummary(msgspec.Struct, frozen=True, kw_only=True):
 
 
 def snapshot_from(aligned: AlignedFrames, model: CvvcModel, *, reading_window_s: float = 300.0,
-                  last_good_s: float = 0.0) -> MeasurementSnapshot:
+                  last_good_s: float = 0.0, reading_fit_s: float = 0.0) -> MeasurementSnapshot:
     """The controller's snapshot of one aligned step, in the model's device order.
 
     ``reading_window_s`` > 0: each regulator's voltage readings are the mean of its frames of the last
@@ -103,6 +106,10 @@ def snapshot_from(aligned: AlignedFrames, model: CvvcModel, *, reading_window_s:
     (head), a plant left uncommanded (its command expired after two lost frames and it went back to unity power
     factor: a 1.8 V jump at the regulators and NVV 188 in five minutes of a rural winter week at 5 % lost frames)
     or a frozen regulator without correction.
+
+    ``reading_fit_s`` > 0: each regulator's readings of that many seconds at the present taps (every regulator's)
+    are regressed on the head's P and Q and evaluated now (``agent.readings``); with fewer than 8 such readings,
+    or no head frame now, the mean above is kept.
     """
     good_since = aligned.t_ns - int(last_good_s * 1e9)
     head = aligned.head
@@ -148,6 +155,10 @@ def snapshot_from(aligned: AlignedFrames, model: CvvcModel, *, reading_window_s:
         if reading_window_s > 0 and len(same_tap) > 1:
             reg_v[r] = float(np.mean([x.phases[0].v_120 for x in same_tap]))
             reg_vc[r] = float(np.mean([x.v_compared_120 for x in same_tap]))
+        if reading_fit_s > 0 and head is not None:
+            fitted = _fitted_readings(aligned, reg.id, f, head, reading_fit_s)
+            if fitted is not None:
+                reg_v[r], reg_vc[r] = fitted
         reg_ok[r] = True
     cap_steps = np.zeros(len(model.capacitors), int)
     cap_ok = np.zeros(len(model.capacitors), bool)
@@ -161,6 +172,30 @@ def snapshot_from(aligned: AlignedFrames, model: CvvcModel, *, reading_window_s:
         pv_kva_available=pv_kva, pv_q_setpoint_kvar=pv_sp, reg_v120=reg_v, reg_v120_compared=reg_vc,
         reg_tap=reg_tap, head_valid=head is not None, pv_valid=pv_ok, reg_valid=reg_ok,
         cap_steps=cap_steps, cap_valid=cap_ok, cap_v_v=cap_v)
+
+
+def _fitted_readings(aligned: AlignedFrames, reg_id: str, now: m.RegFrame, head: m.HeadFrame,
+                     fit_s: float) -> tuple[float, float] | None:
+    """A regulator's raw and compared readings fitted on the head's P and Q (``agent.readings``), from its frames of
+    the last ``fit_s`` at which every regulator's tap was what it is now and a head frame came; or None.
+    """
+    taps_now = {r: h[-1].tap for r, h in aligned.vr_recent.items() if h}
+    taps_now[reg_id] = now.tap
+    taps_at: dict[int, dict[str, int]] = {}
+    for r, h in aligned.vr_recent.items():
+        for x in h:
+            taps_at.setdefault(x.t_ns, {})[r] = x.tap
+    heads = {x.t_ns: x for x in aligned.head_history}
+    since = aligned.t_ns - int(fit_s * 1e9)
+    rows = [(x, heads[x.t_ns]) for x in aligned.vr_recent.get(reg_id, ())
+            if x.t_ns > since and x.phases and x.t_ns in heads
+            and all(taps_now.get(r) == t for r, t in taps_at.get(x.t_ns, {}).items())]
+    if not rows:
+        return None
+    p, q = np.array([h.p_kw for _, h in rows]), np.array([h.q_kvar for _, h in rows])
+    v = fitted_reading_v120(np.array([x.phases[0].v_120 for x, _ in rows]), p, q, head.p_kw, head.q_kvar)
+    vc = fitted_reading_v120(np.array([x.v_compared_120 for x, _ in rows]), p, q, head.p_kw, head.q_kvar)
+    return None if v is None or vc is None else (v, vc)
 
 
 def _round(x: float, digits: int = 9) -> float:
@@ -222,7 +257,7 @@ class DecisionMaker:
 
     def _decide(self, aligned: AlignedFrames) -> ControllerDecision:
         snap = snapshot_from(aligned, self.model, reading_window_s=self.settings.reading_window_s,
-                             last_good_s=self.settings.last_good_s)
+                             last_good_s=self.settings.last_good_s, reading_fit_s=self.settings.reading_fit_s)
         return self.controller.decide(snap, oracle=self.oracle)
 
     def to_message(self, aligned: AlignedFrames, d: ControllerDecision, *, align_s: float = 0.0) -> m.Decision:

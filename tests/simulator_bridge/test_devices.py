@@ -262,7 +262,8 @@ def test_delay_line_releases_in_order_after_the_latency() -> None:
 
 
 @pytest.mark.parametrize("bad", [
-    lambda: dv.DelayLine(-1.0), lambda: dv.DelayLine(math.nan), lambda: dv.FrameDropper(p=1.5, seed=0), lambda: dv.FrameDropper(p=0.1, seed=0, burst_s=-1.0),
+    lambda: dv.DelayLine(-1.0), lambda: dv.DelayLine(math.nan), lambda: dv.FrameDropper(p=1.5, seed=0),
+    lambda: dv.FrameDropper(p=0.1, seed=0, burst_s=-1.0),
     lambda: dv.MeasurementNoise(pmu_pct=-1.0, scada_pct=0.0, seed=0),
 ])
 def test_bad_realism_settings_raise(bad) -> None:  # noqa: ANN001
