@@ -42,6 +42,7 @@ log = logging.getLogger(__name__)
 DEGRADED_WINDOW_S = 10.0
 DEGRADED_MIN_REFUSED = 3
 _PHASE_INDEX = {"a": 0, "b": 1, "c": 2}
+_FIT_MIN = 16  # readings a fit needs: with four terms, fewer are noisier than the mean of five
 
 
 class AgentSettings(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
@@ -156,7 +157,7 @@ def snapshot_from(aligned: AlignedFrames, model: CvvcModel, *, reading_window_s:
             reg_v[r] = float(np.mean([x.phases[0].v_120 for x in same_tap]))
             reg_vc[r] = float(np.mean([x.v_compared_120 for x in same_tap]))
         if reading_fit_s > 0 and head is not None:
-            fitted = _fitted_readings(aligned, reg.id, f, head, reading_fit_s)
+            fitted = _fitted_readings(aligned, reg.id, f, head, reading_fit_s, reg.step_v120)
             if fitted is not None:
                 reg_v[r], reg_vc[r] = fitted
         reg_ok[r] = True
@@ -175,27 +176,31 @@ def snapshot_from(aligned: AlignedFrames, model: CvvcModel, *, reading_window_s:
 
 
 def _fitted_readings(aligned: AlignedFrames, reg_id: str, now: m.RegFrame, head: m.HeadFrame,
-                     fit_s: float) -> tuple[float, float] | None:
-    """A regulator's raw and compared readings fitted on the head's P and Q (``agent.readings``), from its frames of
-    the last ``fit_s`` at which every regulator's tap was what it is now and a head frame came; or None.
+                     fit_s: float, step_v120: float) -> tuple[float, float] | None:
+    """A regulator's raw and compared readings fitted on the head's P, Q and voltage (``agent.readings``), from its
+    frames of the last ``fit_s`` that have a head frame of the same time, each moved to the present tap
+    (``step_v120`` [V] per tap); or None.
     """
-    taps_now = {r: h[-1].tap for r, h in aligned.vr_recent.items() if h}
-    taps_now[reg_id] = now.tap
-    taps_at: dict[int, dict[str, int]] = {}
-    for r, h in aligned.vr_recent.items():
-        for x in h:
-            taps_at.setdefault(x.t_ns, {})[r] = x.tap
     heads = {x.t_ns: x for x in aligned.head_history}
     since = aligned.t_ns - int(fit_s * 1e9)
     rows = [(x, heads[x.t_ns]) for x in aligned.vr_recent.get(reg_id, ())
-            if x.t_ns > since and x.phases and x.t_ns in heads
-            and all(taps_now.get(r) == t for r, t in taps_at.get(x.t_ns, {}).items())]
+            if x.t_ns > since and x.phases and x.t_ns in heads]
     if not rows:
         return None
-    p, q = np.array([h.p_kw for _, h in rows]), np.array([h.q_kvar for _, h in rows])
-    v = fitted_reading_v120(np.array([x.phases[0].v_120 for x, _ in rows]), p, q, head.p_kw, head.q_kvar)
-    vc = fitted_reading_v120(np.array([x.v_compared_120 for x, _ in rows]), p, q, head.p_kw, head.q_kvar)
+    phase = now.phases[0].phase if now.phases else "a"
+    x = np.array([_head_regressors(h, phase) for _, h in rows])
+    x_now = np.array(_head_regressors(head, phase))
+    shift = np.array([(now.tap - f.tap) * step_v120 for f, _ in rows])
+    v = fitted_reading_v120(np.array([f.phases[0].v_120 for f, _ in rows]) + shift, x, x_now, min_points=_FIT_MIN)
+    vc = fitted_reading_v120(np.array([f.v_compared_120 for f, _ in rows]) + shift, x, x_now, min_points=_FIT_MIN)
     return None if v is None or vc is None else (v, vc)
+
+
+def _head_regressors(head: m.HeadFrame, phase: str) -> tuple[float, float, float]:
+    """The head's total P [kW], Q [kvar] and the voltage of ``phase`` (else the phases' mean) [V]."""
+    volts: dict[str, float] = {p.phase: p.v_mag_v for p in head.phases}
+    v = volts[phase] if phase in volts else float(np.mean(list(volts.values()))) if volts else 0.0
+    return head.p_kw, head.q_kvar, v
 
 
 def _round(x: float, digits: int = 9) -> float:

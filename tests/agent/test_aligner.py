@@ -346,3 +346,35 @@ def test_a_clock_tolerance_of_half_a_period_is_refused():
     with pytest.raises(AgentInputError, match="half the control period"):
         FrameAligner(feeder_id="rural", pv_ids=("pv1",), regulator_ids=("vr1a",), control_period_ns=PERIOD_NS,
                      clock_tolerance_ns=PERIOD_NS // 2)
+
+
+def test_the_snapshot_can_fit_the_regulator_readings_on_the_heads_load_and_move_them_to_the_present_tap(aligner):
+    """``reading_fit_s`` (opt-in, agent/readings.py): readings that fall as the head's load rises, with a tap change
+    half-way, give the present reading exactly, where the 5-minute mean lags the load."""
+    from agent.runtime import snapshot_from
+    from benchmarks.synthetic import synthetic_model
+
+    base, hbase = EX[m.RegFrame], EX[m.HeadFrame]
+    out = []
+    n = 30  # minutes; the last one is a control step
+    t_end = T0 + 6 * PERIOD_NS
+    for i in range(n):
+        t = t_end - (n - 1 - i) * MINUTE
+        p_total = 1000.0 + 40.0 * i
+        phases = [msgspec.structs.replace(ph, p_kw=p_total / len(hbase.phases)) for ph in hbase.phases]
+        tap = 2 if i < n // 2 else 3
+        v = 126.0 - 0.002 * p_total + 0.75 * (tap - 3)
+        ph = [msgspec.structs.replace(base.phases[0], v_120=v)]
+        for k, f in (head(t, i + 1, phases=phases, p_kw=sum(x.p_kw for x in phases)), pv(t, i + 1),
+                     vr(t, i + 1, phases=ph, v_compared_120=v, tap=tap)):
+            out += aligner.add(k, f)
+    assert out[-1].t_ns == t_end and len(out[-1].head_history) == n
+    model = synthetic_model(0)
+    model = msgspec.structs.replace(model, regulators=[msgspec.structs.replace(model.regulators[0], id="vr1a",
+                                                                               step_v120=0.75)],
+                                    pv=[msgspec.structs.replace(model.pv[0], id="pv1")])
+    now = 126.0 - 0.002 * (1000.0 + 40.0 * (n - 1))
+    fitted = snapshot_from(out[-1], model, reading_fit_s=3600)
+    assert fitted.reg_v120[0] == pytest.approx(now, abs=1e-6)
+    assert fitted.reg_v120_compared[0] == pytest.approx(now, abs=1e-6)
+    assert snapshot_from(out[-1], model).reg_v120[0] == pytest.approx(now + 0.002 * 40.0 * 2)  # the mean lags 2 min
