@@ -160,10 +160,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="held-out minutes of the training year for the calibrated estimate bounds (0: none)")
     p.add_argument(
         "--features", choices=("auto", "paper", "extended", "extended_readings"), default="auto",
-        help="auto (default): extended with --calendar and --critical-margin-pu 0.001 when the device map lists "
-        "capacitor banks, else paper; paper: eq. (5) on head and plant P, Q; extended: plus the capacitor banks' "
-        "states, features mapped back to the training taps and banks; extended_readings: plus the regulators' and "
-        "banks' voltage readings as regressors (docs/method.md)",
+        help="auto (default): extended with --calendar and --critical-margin-pu 0.001 when a bank of the device "
+        "map has a capcontrol or there is no regulator, else paper; paper: eq. (5) on head and plant P, Q; "
+        "extended: plus the capacitor banks' states, features mapped back to the training taps and banks; "
+        "extended_readings: plus the regulators' and banks' voltage readings as regressors (docs/method.md)",
     )
     p.add_argument(
         "--critical-margin-pu", type=float, default=0.0,

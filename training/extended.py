@@ -47,15 +47,20 @@ EXTENDED_OPTIONS = FeatureOptions("extended", True, 0.001)
 
 
 def default_feature_options(device_map) -> FeatureOptions:
-    """What ``cvvc train --features auto`` and ``cvvc run``/``evaluate`` train: the extended set on a feeder whose
-    device map lists capacitor banks, the paper's method otherwise.
+    """What ``cvvc train --features auto`` and ``cvvc run``/``evaluate`` train: the extended set on a feeder with a
+    bank that switches on its own (a ``[[capacitor]]`` with a ``capcontrol``) or without a regulator (the paper's
+    correction needs one), the paper's method otherwise.
 
-    The extended set exists for switched banks (the paper's eq. (5) reads a bank's kvar at the head as load);
-    measured through the bus, case D, first 3 days (docs/results.md): IEEE 8500 NVV 19,980 against 70,668 in
-    winter and 5,769 against 783,718 in summer; epri-m1 NVV 0 with both. A feeder without banks keeps the paper's
-    method and the results measured with it (the rural feeder, IEEE 13).
+    The extended set exists for banks that switch under local control (the paper's eq. (5) reads a bank's kvar at
+    the head as load). Measured through the bus, case D, first 3 days of winter and summer (docs/results.md):
+    IEEE 8500 (9 CapControls) NVV 19,980 against 70,668 and 5,769 against 783,718; epri-m1 (3) NVV 0 with both;
+    epri-ckt5 (4, no regulator) NVV 0, extended only; but epri-ckt24, whose 3 banks have no CapControl, did worse
+    with it (NVV 1,272 against 830 in winter, MVVM 0.036 against 0.014 pu), and epri-k1 (1 bank, none) the same
+    NVV 0 with more tap changes in summer (23 against 7). A feeder without such banks keeps the paper's method and
+    the results measured with it (the rural feeder, IEEE 13, IEEE 123).
     """
-    return EXTENDED_OPTIONS if device_map.capacitor else PAPER_OPTIONS
+    switching = any(c.capcontrol for c in device_map.capacitor)
+    return EXTENDED_OPTIONS if switching or (device_map.capacitor and not device_map.regulator) else PAPER_OPTIONS
 
 #: Tap offsets from ``tap0`` (every regulator at once) under which the near-extreme cover also looks for extremes:
 #: out of training, local control runs the regulators several steps from ``tap0`` (IEEE 8500: 3-7).
