@@ -62,15 +62,13 @@ from schemas.logs import RateLimitedLog
 from schemas.security import COMMAND_ROLE
 from simulator_bridge import devices as dv
 from simulator_bridge.errors import SimulatorError
+from simulator_bridge.publisher_process import PublisherProcess, StepPacker, child_bus
 from simulator_bridge.publishing import (
     FINITE_READING_FIELDS,
     DeviceSettings,
     FramePublisher,
     FramerSpec,
-    PublisherProcess,
     StepFramer,
-    StepPacker,
-    child_bus,
 )
 
 __all__ = [
@@ -299,7 +297,7 @@ class _Runtime:
 
     def __init__(self, config: BridgeConfig, bus: BusConfig, session: zenoh.Session, dm: DeviceMap, engine: Any,
                  profiles: Any, qsts: Any, start_step: int) -> None:
-        from simulator_bridge.metrics import MetricsAccumulator
+        from simulator_bridge.metrics_stream import MetricsAccumulator
         from simulator_bridge.oracle import Oracle
 
         c = self.config = config

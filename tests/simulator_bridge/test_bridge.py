@@ -476,7 +476,8 @@ def test_packed_steps_come_back_as_they_went_in(device_map_path: Path, cache_dir
     """The shared-memory slot layout: a real step and the device settings in force, packed and unpacked."""
     from simulator_bridge.bridge import cached_profiles
     from simulator_bridge.engine import FeederEngine
-    from simulator_bridge.publishing import DeviceSettings, StepPacker
+    from simulator_bridge.publisher_process import StepPacker
+    from simulator_bridge.publishing import DeviceSettings
     from simulator_bridge.qsts import Qsts
 
     engine = FeederEngine(load_device_map(device_map_path))
@@ -513,7 +514,7 @@ def test_the_publisher_process_fails_the_run_and_is_stopped(client: Client, rout
                                                             device_map_path: Path, cache_dir: Path) -> None:
     """A publisher process killed mid-run: the bridge stops with an error at its next hand-over, in bounded time,
     and withdraws its tokens (the client sees the bridge's token go)."""
-    import simulator_bridge.publishing as pub
+    import simulator_bridge.publisher_process as pub
 
     procs: list[Any] = []
     orig = pub.PublisherProcess.__init__
