@@ -31,8 +31,8 @@ import numpy as np
 
 from schemas import messages as m
 from schemas.bus import BusConfig, open_session
-from simulator_bridge.engine import FieldReadings
 from simulator_bridge.publishing import READING_FIELDS, DeviceSettings, FramerSpec, PublisherError, StepFramer
+from simulator_bridge.readout import FieldReadings
 
 __all__ = [
     "PublisherProcess",

@@ -27,9 +27,9 @@ from schemas import keys
 from schemas import messages as m
 from schemas.bus import wait_for
 from simulator_bridge import devices as dv
-from simulator_bridge.engine import FieldReadings
 from simulator_bridge.errors import SimulatorError
 from simulator_bridge.metrics import Metrics
+from simulator_bridge.readout import FieldReadings
 
 __all__ = [
     "DeviceSettings",
