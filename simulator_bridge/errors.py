@@ -2,7 +2,7 @@
 
 from schemas.errors import CvvcError
 
-__all__ = ["EngineError", "SimulatorError"]
+__all__ = ["BridgeError", "EngineError", "SimulatorError"]
 
 
 class SimulatorError(CvvcError):
@@ -11,3 +11,7 @@ class SimulatorError(CvvcError):
 
 class EngineError(SimulatorError):
     """OpenDSS could not compile or solve the feeder, or was asked for something impossible."""
+
+
+class BridgeError(SimulatorError):
+    """The bridge cannot run as configured (bad dates, step counts, speeds, feeders)."""
