@@ -13,13 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from simulator_bridge.dss_context import (
-    DSS_LIFECYCLE,
-    DssException,
-    close_debug_traces,
-    compile_read_only,
-    new_context,
-)
+from simulator_bridge.dss_context import DSS_LIFECYCLE, DssException, compile_feeder, new_context
 from simulator_bridge.errors import EngineError
 from simulator_bridge.survey import (
     CircuitSurvey,
@@ -100,19 +94,8 @@ def survey_circuit(master: str | Path, *, extra_commands: tuple[str, ...] | list
     """
     master = Path(master).resolve()
     d = new_context()
-    cwd = os.getcwd()
-    try:
-        with DSS_LIFECYCLE:
-            compile_read_only(d, master)
-            for cmd in extra_commands:
-                d.Text.Command(cmd)
-    except DssException as e:
-        raise EngineError(f"{master}: the feeder does not compile: {e}; fix the OpenDSS model") from e
-    finally:
-        os.chdir(cwd)
-    if d.Circuit.NumBuses() == 0:
-        raise EngineError(f"{master}: compiled to an empty circuit; is this an OpenDSS master file?")
-    close_debug_traces(d)
+    with DSS_LIFECYCLE:
+        compile_feeder(d, master, extra_commands)
 
     def bus_of(spec: str) -> str:
         return spec.split(".")[0].lower()

@@ -103,18 +103,20 @@ def _locked_dispose(lib):
     return dispose
 
 
-def compile_feeder(d, master: Path) -> None:
-    """Compile ``master`` into ``d`` (read only, see :func:`compile_read_only`; the working directory is restored)
-    and turn its RegControls' debug traces off.
+def compile_feeder(d, master: Path, extra_commands: tuple[str, ...] | list[str] = ()) -> None:
+    """Compile ``master`` into ``d`` (read only, see :func:`compile_read_only`; the working directory is restored),
+    run ``extra_commands``, and turn its RegControls' debug traces off. Call it holding :data:`DSS_LIFECYCLE`.
 
     Raises
     ------
     EngineError
-        The model does not compile, or compiles to an empty circuit.
+        The model does not compile, an extra command is rejected, or the model compiles to an empty circuit.
     """
     cwd = os.getcwd()
     try:
         compile_read_only(d, master)
+        for cmd in extra_commands:
+            d.Text.Command(cmd)
     except dss.DSSException as e:
         raise EngineError(f"{master}: the feeder does not compile: {e}; fix the OpenDSS model") from e
     finally:

@@ -516,16 +516,9 @@ class FeederEngine:
     # ------------------------------------------------------------------ oracle
     def perturbation_sensitivities(self, dq_kvar: float = 100.0, dp_kw: float = 100.0, *,
                                    restore: bool = True) -> Sensitivities:
-        """Voltage sensitivities by perturbation from the present state (the case-A oracle).
-
-        Each plant's Q is moved by ``dq_kvar`` (upwards, or downwards when the headroom is short), each
-        plant's available P by ``dp_kw`` (downwards, or upwards when it produces less), and each regulator
-        by one tap (up, or down at the top tap), one at a time; each is solved and differenced against the
-        present solution, then undone. ``dv_dp`` is per kW of the plant's measured output change; when the
-        raised output clips the plant's Q to its headroom, the Q change's share is taken off by ``dv_dq``.
-        With ``restore`` the set points and taps are restored (checked; ``EngineError`` otherwise) and solved again,
-        and how far the voltages landed from before is returned (``restore_drift_pu``); without it the engine is
-        left in its last perturbed state (the oracle's twin, which is put in state before every use).
+        """Voltage sensitivities by perturbation from the present state (the case-A oracle): each plant's Q by
+        ``dq_kvar`` [kvar], its available P by ``dp_kw`` [kW] and each regulator by one tap, one at a time; see
+        :func:`simulator_bridge.sensitivities.perturbation_sensitivities`.
         """
         return perturbation_sensitivities(self, dq_kvar, dp_kw, restore=restore)
 

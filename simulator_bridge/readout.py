@@ -206,19 +206,8 @@ class Readout:
         return raw, compared
 
     def sense(self, tod_h: float = float("nan")) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """What every RegControl and CapControl of the model samples at the present solution.
-
-        Parameters
-        ----------
-        tod_h : time of day [h]: the time-type CapControls' quantity (kept for :meth:`readings`).
-
-        Returns
-        -------
-        reg_v120 : (NR,) each RegControl's compared voltage (``reg_controls`` order) [V on the 120 V base].
-        cap_value : (NC,) each CapControl's quantity in its type's unit (``cap_controls`` order): V on its PT
-            base, A on its CT base, kvar, PF on OpenDSS's 0..2 scale, hour of day.
-        cap_v : (NC,) the voltage its ``VoltOverride`` tests [V on the PT base].
-        cap_q_kvar : (NC,) reactive power into its monitored terminal [kvar].
+        """What every RegControl and CapControl of the model samples at the present solution, ``tod_h`` [h] the
+        time of day (see ``FeederEngine.sense`` for the returned arrays and their units).
         """
         v, i = self._read()
         reg = self._reg_voltages(v, i)[1]
@@ -250,12 +239,8 @@ class Readout:
         return reg, value, volts, q_kvar
 
     def readings(self, taps: np.ndarray, cap_states: np.ndarray, cap_control_index: np.ndarray) -> FieldReadings:
-        """What the field devices measure at the present solution (``FeederEngine.readings``), with the map
+        """What the field devices measure at the present solution (see ``FeederEngine.readings``), with the map
         regulators' ``taps``, the map banks' ``cap_states`` and each map bank's CapControl (``cap_control_index``).
-
-        Powers are ``V·conj(I)`` per conductor with ``I`` into the element (OpenDSS's convention): into
-        the feeder at the head, negated at PV plants (generator convention). ``cap_control_value`` is what
-        :meth:`sense` last computed (NaN before the first call, and for a bank without a CapControl).
         """
         v, i = self._read()
         hv = v[self._head_cond] - v[self._head_neutral]  # index -1 reads the trailing 0
