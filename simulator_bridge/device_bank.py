@@ -12,7 +12,7 @@ from __future__ import annotations
 import math
 from collections import Counter, deque
 from dataclasses import dataclass, field
-from typing import Literal, cast
+from typing import TYPE_CHECKING, Literal, cast
 
 import zenoh
 
@@ -22,9 +22,11 @@ from schemas.bus import LivelinessWatcher, TypedPublisher, codec_for
 from schemas.errors import CvvcError
 from schemas.logs import RateLimitedLog
 from simulator_bridge import devices as dv
-from simulator_bridge.engine import FeederEngine
 from simulator_bridge.publishing import DeviceSettings
-from simulator_bridge.qsts import Qsts
+
+if TYPE_CHECKING:
+    from simulator_bridge.engine import FeederEngine
+    from simulator_bridge.qsts import Qsts
 
 __all__ = ["BridgeCounters", "DeviceBank"]
 

@@ -65,7 +65,7 @@ class Readout:
     ----------
     d : the engine's OpenDSS context. node_names, node_index : the engine's nodes and their indices.
     head_element : the feeder-head meter's element (``Class.name``). pv_names : the PVSystems, map order.
-    regs : every RegControl's wiring (the map's first). cap_names : the map's Capacitors.
+    reg_wiring : every RegControl's wiring (the map's first). cap_names : the map's Capacitors.
     cc_monitored, cap_controls : every CapControl's monitored terminal (``BankTable.monitored``) and settings.
     where : names the device map in error messages.
 
@@ -76,11 +76,11 @@ class Readout:
     """
 
     def __init__(self, d, node_names: tuple[str, ...], node_index: dict[str, int], head_element: str,
-                 pv_names: tuple[str, ...], regs: tuple[RegulatorWiring, ...], cap_names: tuple[str, ...],
+                 pv_names: tuple[str, ...], reg_wiring: tuple[RegulatorWiring, ...], cap_names: tuple[str, ...],
                  cc_monitored: tuple[tuple[str, int, int, int, float, float, bool], ...],
                  cap_controls: tuple[CapControlSettings, ...], where: str) -> None:
         self._dss, self.node_names, self._node_index, self._where = d, node_names, node_index, where
-        self._pv_names, self._regs, self._cap_names = pv_names, regs, cap_names
+        self._pv_names, self._regs, self._cap_names = pv_names, reg_wiring, cap_names
         self._cc_monitored, self.cap_controls = cc_monitored, cap_controls
         self._cap_value = np.full(len(cap_controls), np.nan)  # last sensed, for readings
         lib, ffi = self._lib, self._ffi = d.dss_lib, d.dss_ffi
