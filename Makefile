@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test lint bench clean install
+.PHONY: demo test lint bench fuzz clean install
 
 $(STAMP): pyproject.toml
 	$(PY) -m venv $(VENV)
@@ -22,10 +22,14 @@ test: $(STAMP)
 
 lint: $(STAMP)
 	$(BIN)/ruff check .
-	$(BIN)/mypy schemas agent regression
+	$(BIN)/mypy schemas agent regression adapters
 
 bench: $(STAMP)
 	$(BIN)/python -m benchmarks
+
+# >= 20,000 hostile payloads at a live agent, bridge and recorder (IEEE 13); prints what each process counted
+fuzz: $(STAMP)
+	$(BIN)/python -m benchmarks.fuzz_live 20000
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache .mypy_cache .ruff_cache

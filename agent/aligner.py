@@ -29,6 +29,10 @@ produce the same aligned sets. The rule, documented in docs/agent.md:
   a forged marker can at worst have one step decided early on the frames that had arrived.
 - Only groups on a control step (``t_ns`` a multiple of the control period) are released as decisions to
   make; the others only refresh the last-known state.
+- Field clocks off by a little (issue "Robust by default", item 7: +-2 s skew between the devices and the agent):
+  a frame or scan-end marker stamped within ``clock_tolerance_ns`` of a control step is taken as that step's
+  (its ``t_ns`` is set to the step's, counted in ``snapped``); before, a frame stamped 2 s off never fell on a
+  control step and nothing was decided. Frames between control steps keep their stamps.
 """
 
 from __future__ import annotations
@@ -36,6 +40,9 @@ from __future__ import annotations
 from collections import Counter, deque
 from dataclasses import dataclass, field
 
+import msgspec
+
+from agent.errors import AgentInputError
 from schemas import messages as m
 
 __all__ = ["AlignedFrames", "FrameAligner", "plausibility_problem"]
@@ -54,6 +61,7 @@ class AlignedFrames:
     vr_recent: dict[str, tuple[m.RegFrame, ...]] = field(default_factory=dict)  # recent frames, oldest first
     head_recent: m.HeadFrame | None = None  # the latest head frame released up to this step (this one's, if any)
     pv_recent: dict[str, m.PvFrame] = field(default_factory=dict)  # each plant's latest frame up to this step
+    head_history: tuple[m.HeadFrame, ...] = ()  # the head frames released lately up to this step, oldest first
 
     @property
     def complete(self) -> bool:
@@ -118,8 +126,13 @@ class FrameAligner:
 
     def __init__(self, *, feeder_id: str, pv_ids: tuple[str, ...], regulator_ids: tuple[str, ...],
                  control_period_ns: int, max_jump_ns: int | None = None,
-                 capacitor_ids: tuple[str, ...] = ()) -> None:
+                 capacitor_ids: tuple[str, ...] = (), clock_tolerance_ns: int = 0) -> None:
+        if not 0 <= clock_tolerance_ns < control_period_ns // 2:
+            raise AgentInputError(f"clock tolerance {clock_tolerance_ns} ns must be within 0 and half the control "
+                             f"period ({control_period_ns} ns)")
         self.feeder_id = feeder_id
+        self.clock_tolerance_ns = int(clock_tolerance_ns)
+        self.snapped = 0  # frames and markers stamped off a control step within the tolerance, taken as on it
         self.pv_ids = pv_ids
         self.regulator_ids = regulator_ids
         self.capacitor_ids = capacitor_ids
@@ -140,6 +153,7 @@ class FrameAligner:
         # every regulator's frames released lately (control steps or not): the readings of a control period
         self._vr_history: dict[str, deque[m.RegFrame]] = {r: deque(maxlen=_VR_HISTORY) for r in regulator_ids}
         self._head_latest: m.HeadFrame | None = None
+        self._head_history: deque[m.HeadFrame] = deque(maxlen=_VR_HISTORY)
         self._pv_latest: dict[str, m.PvFrame] = {}
         self._newest_t_ns: int | None = None  # newest accepted frame time; None before the first
         self._held: list[tuple[str, _Frame]] = []  # frames ahead of the clock, awaiting a second source
@@ -153,6 +167,7 @@ class FrameAligner:
 
         A device frame the agent does not use (a ``CapFrame`` when the model has no bank) is counted in ``ignored``.
         """
+        frame = self._on_control_grid(frame)
         if isinstance(frame, m.StepEnd):
             return self._step_end(key, frame)
         if not isinstance(frame, _FRAME_TYPES) or (isinstance(frame, m.CapFrame) and not self.capacitor_ids):
@@ -165,6 +180,18 @@ class FrameAligner:
         if self._newest_t_ns is None or frame.t_ns > self._newest_t_ns + self.max_jump_ns:
             return self._hold(key, frame)
         return self._take(key, frame)
+
+    def _on_control_grid(self, frame: _Frame | m.StepEnd) -> _Frame | m.StepEnd:
+        """``frame`` restamped on the nearest control step if it is off it by at most the clock tolerance."""
+        tol, period = self.clock_tolerance_ns, self.control_period_ns
+        t_ns = getattr(frame, "t_ns", None)
+        if tol <= 0 or not isinstance(t_ns, int):
+            return frame
+        off = t_ns % period
+        if off == 0 or tol < off < period - tol:
+            return frame
+        self.snapped += 1
+        return msgspec.structs.replace(frame, t_ns=t_ns - off + (period if off > tol else 0))
 
     def _reject(self, kind: str, detail: str) -> None:
         self.rejected[kind] += 1
@@ -306,10 +333,12 @@ class FrameAligner:
             self._vr_history[reg_id].append(frame)
         if g.head is not None:
             self._head_latest = g.head
+            self._head_history.append(g.head)
         self._pv_latest.update(g.pv)
         if t_ns % self.control_period_ns:  # a minute between control steps: nobody decides on it
             return AlignedFrames(t_ns=g.t_ns, head=g.head, pv=g.pv, vr=g.vr, missing=(), cap=g.cap)
         recent = {r: tuple(f for f in h if f.t_ns <= t_ns) for r, h in self._vr_history.items() if h}
         return AlignedFrames(t_ns=g.t_ns, head=g.head, pv=dict(g.pv), vr=dict(g.vr), missing=self._missing(g),
                              cap=dict(g.cap), vr_recent=recent, head_recent=self._head_latest,
-                             pv_recent=dict(self._pv_latest))
+                             pv_recent=dict(self._pv_latest),
+                             head_history=tuple(f for f in self._head_history if f.t_ns <= t_ns))

@@ -28,6 +28,7 @@ import numpy as np
 from agent.aligner import AlignedFrames, FrameAligner
 from agent.controller import CvvcController, MeasurementSnapshot
 from agent.controller import Decision as ControllerDecision
+from agent.readings import fitted_reading_v120
 from agent.state import OracleSource
 from regression.model import CvvcModel
 from schemas import keys
@@ -41,6 +42,7 @@ log = logging.getLogger(__name__)
 DEGRADED_WINDOW_S = 10.0
 DEGRADED_MIN_REFUSED = 3
 _PHASE_INDEX = {"a": 0, "b": 1, "c": 2}
+_FIT_MIN = 16  # readings a fit needs: with four terms, fewer are noisier than the mean of five
 
 
 class AgentSettings(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
@@ -62,7 +64,10 @@ class AgentSettings(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fi
     control_banks: bool = False  # beyond the paper: decide and command the model's capacitor banks
     reading_window_s: float = 300.0  # regulator readings averaged over this at the present tap [s]; 0: last reading
     # (600 s let the nominal rural winter week violate: NVV 8)
-    last_good_s: float = 240.0  # a head/PV/regulator frame lost at a control step: its latest within this [s]
+    last_good_s: float = 900.0  # a head/PV/regulator frame lost at a control step: its latest within this [s]
+    # (240 s held 82 and 278 steps and gave NVV 597 and 1,158 with 10-minute outages in the rural winter week)
+    reading_fit_s: float = 0.0  # > 0: regulator readings of this long regressed on the head's P and Q [s]
+    clock_tolerance_s: float = 5.0  # a frame stamped this close to a control step is that step's (clock skew) [s]
 
 
 class AgentSummary(msgspec.Struct, frozen=True, kw_only=True):
@@ -85,10 +90,11 @@ class AgentSummary(msgspec.Struct, frozen=True, kw_only=True):
     step_ends: int = 0  # scan-end markers taken (``StepEnd``)
     released_by_step_end: int = 0  # steps with lost frames decided at once, on a marker, not after the late window
     decided_after_late_window: int = 0  # live: control steps decided only once the late-frame window was over
+    clock_snapped: int = 0  # frames stamped off a control step within ``clock_tolerance_s``, taken as on it
 
 
 def snapshot_from(aligned: AlignedFrames, model: CvvcModel, *, reading_window_s: float = 300.0,
-                  last_good_s: float = 0.0) -> MeasurementSnapshot:
+                  last_good_s: float = 0.0, reading_fit_s: float = 0.0) -> MeasurementSnapshot:
     """The controller's snapshot of one aligned step, in the model's device order.
 
     ``reading_window_s`` > 0: each regulator's voltage readings are the mean of its frames of the last
@@ -101,6 +107,10 @@ def snapshot_from(aligned: AlignedFrames, model: CvvcModel, *, reading_window_s:
     (head), a plant left uncommanded (its command expired after two lost frames and it went back to unity power
     factor: a 1.8 V jump at the regulators and NVV 188 in five minutes of a rural winter week at 5 % lost frames)
     or a frozen regulator without correction.
+
+    ``reading_fit_s`` > 0: each regulator's readings of that many seconds at the present taps (every regulator's)
+    are regressed on the head's P and Q and evaluated now (``agent.readings``); with fewer than 8 such readings,
+    or no head frame now, the mean above is kept.
     """
     good_since = aligned.t_ns - int(last_good_s * 1e9)
     head = aligned.head
@@ -146,6 +156,10 @@ def snapshot_from(aligned: AlignedFrames, model: CvvcModel, *, reading_window_s:
         if reading_window_s > 0 and len(same_tap) > 1:
             reg_v[r] = float(np.mean([x.phases[0].v_120 for x in same_tap]))
             reg_vc[r] = float(np.mean([x.v_compared_120 for x in same_tap]))
+        if reading_fit_s > 0 and head is not None:
+            fitted = _fitted_readings(aligned, reg.id, f, head, reading_fit_s, reg.step_v120)
+            if fitted is not None:
+                reg_v[r], reg_vc[r] = fitted
         reg_ok[r] = True
     cap_steps = np.zeros(len(model.capacitors), int)
     cap_ok = np.zeros(len(model.capacitors), bool)
@@ -159,6 +173,34 @@ def snapshot_from(aligned: AlignedFrames, model: CvvcModel, *, reading_window_s:
         pv_kva_available=pv_kva, pv_q_setpoint_kvar=pv_sp, reg_v120=reg_v, reg_v120_compared=reg_vc,
         reg_tap=reg_tap, head_valid=head is not None, pv_valid=pv_ok, reg_valid=reg_ok,
         cap_steps=cap_steps, cap_valid=cap_ok, cap_v_v=cap_v)
+
+
+def _fitted_readings(aligned: AlignedFrames, reg_id: str, now: m.RegFrame, head: m.HeadFrame,
+                     fit_s: float, step_v120: float) -> tuple[float, float] | None:
+    """A regulator's raw and compared readings fitted on the head's P, Q and voltage (``agent.readings``), from its
+    frames of the last ``fit_s`` that have a head frame of the same time, each moved to the present tap
+    (``step_v120`` [V] per tap); or None.
+    """
+    heads = {x.t_ns: x for x in aligned.head_history}
+    since = aligned.t_ns - int(fit_s * 1e9)
+    rows = [(x, heads[x.t_ns]) for x in aligned.vr_recent.get(reg_id, ())
+            if x.t_ns > since and x.phases and x.t_ns in heads]
+    if not rows:
+        return None
+    phase = now.phases[0].phase if now.phases else "a"
+    x = np.array([_head_regressors(h, phase) for _, h in rows])
+    x_now = np.array(_head_regressors(head, phase))
+    shift = np.array([(now.tap - f.tap) * step_v120 for f, _ in rows])
+    v = fitted_reading_v120(np.array([f.phases[0].v_120 for f, _ in rows]) + shift, x, x_now, min_points=_FIT_MIN)
+    vc = fitted_reading_v120(np.array([f.v_compared_120 for f, _ in rows]) + shift, x, x_now, min_points=_FIT_MIN)
+    return None if v is None or vc is None else (v, vc)
+
+
+def _head_regressors(head: m.HeadFrame, phase: str) -> tuple[float, float, float]:
+    """The head's total P [kW], Q [kvar] and the voltage of ``phase`` (else the phases' mean) [V]."""
+    volts: dict[str, float] = {p.phase: p.v_mag_v for p in head.phases}
+    v = volts[phase] if phase in volts else float(np.mean(list(volts.values()))) if volts else 0.0
+    return head.p_kw, head.q_kvar, v
 
 
 def _round(x: float, digits: int = 9) -> float:
@@ -193,7 +235,8 @@ class DecisionMaker:
         self.aligner = FrameAligner(feeder_id=settings.feeder_id, pv_ids=tuple(p.id for p in model.pv),
                                     regulator_ids=tuple(r.id for r in model.regulators),
                                     control_period_ns=self.period_ns,
-                                    capacitor_ids=tuple(c.id for c in model.capacitors))
+                                    capacitor_ids=tuple(c.id for c in model.capacitors),
+                                    clock_tolerance_ns=int(settings.clock_tolerance_s * 1e9))
         self.controller = CvvcController(model, mode=settings.mode, correction=settings.correction,
                                          bandwidth_v120=settings.bandwidth_v120,
                                          pv_margin_window_s=settings.pv_margin_window_s,
@@ -219,7 +262,7 @@ class DecisionMaker:
 
     def _decide(self, aligned: AlignedFrames) -> ControllerDecision:
         snap = snapshot_from(aligned, self.model, reading_window_s=self.settings.reading_window_s,
-                             last_good_s=self.settings.last_good_s)
+                             last_good_s=self.settings.last_good_s, reading_fit_s=self.settings.reading_fit_s)
         return self.controller.decide(snap, oracle=self.oracle)
 
     def to_message(self, aligned: AlignedFrames, d: ControllerDecision, *, align_s: float = 0.0) -> m.Decision:
@@ -433,7 +476,7 @@ def run_agent(model: CvvcModel, settings: AgentSettings, bus, *, stop: threading
                         log_suppressed=_suppressed(rlog, inbox.rejects.log_suppressed()),
                         soft=maker.soft, reasons=dict(maker.reasons.most_common(20)),
                         step_ends=maker.aligner.step_ends, released_by_step_end=maker.aligner.released_by_step_end,
-                        decided_after_late_window=late_decided)
+                        decided_after_late_window=late_decided, clock_snapped=maker.aligner.snapped)
 
 
 def _suppressed(rlog: RateLimitedLog, rejects: dict[str, int]) -> dict[str, int]:

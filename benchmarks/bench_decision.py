@@ -46,6 +46,7 @@ def bench_decision(
     from simulator_bridge.engine import FeederEngine
     from simulator_bridge.profiles import month_steps
     from simulator_bridge.qsts import Qsts
+    from training.extended import default_feature_options
     from training.train import TRAINING_REVISION, load_profiles, train
 
     cache = cache_root(cache)
@@ -53,7 +54,10 @@ def bench_decision(
     model_path = cache / "models" / f"{dm.feeder.name}-{dm.fingerprint()}-y1-r{TRAINING_REVISION}.json"
     if not model_path.is_file():
         model_path.parent.mkdir(parents=True, exist_ok=True)
-        write_model(train(device_map_path, year_seed=1, cache_dir=cache / "profiles", progress=False).model, model_path)
+        opts = default_feature_options(dm)  # the model ``cvvc run`` trains
+        write_model(train(device_map_path, year_seed=1, cache_dir=cache / "profiles", progress=False,
+                          feature_set=opts.feature_set, calendar=opts.calendar,
+                          critical_margin_pu=opts.critical_margin_pu).model, model_path)
     model = read_model(model_path, expect_fingerprint=dm.fingerprint())
     engine = FeederEngine(dm)
     profiles = load_profiles(dm, engine, seed=2, cache_dir=cache / "profiles")

@@ -11,7 +11,9 @@
 - ``decision``: the agent's decision time (aligned frames in -> commands out) vs case A's per-interval
   cost (perturbation power flows + all-node problem) on the rural feeder, IEEE 8500 and epri-ckt24 (goal >= 50x);
 - ``recording``: messages/s through Zenoh into MCAP vs the bare MCAP writer (goal > 50 %), offline replay speed;
-- ``soak``: a simulated month in lockstep: memory growth of every process (goal < 10 %), dropped/late frames.
+- ``soak``: a simulated month in lockstep: memory growth of every process (goal < 10 %), dropped/late frames;
+- ``sunspec``: the round trip a PV plant behind SunSpec Modbus adds per decision (command -> ack through the
+  adapter and a simulated inverter vs the same bus round trip acked at once).
 
 The machine is shared and small (2 cores): every ratio compares runs made side by side in this process.
 """
@@ -115,6 +117,12 @@ def bench_soak(quick: bool) -> dict[str, Any]:
     return run(days=1 if quick else 30)
 
 
+def bench_sunspec(quick: bool) -> dict[str, Any]:
+    from benchmarks.bench_sunspec import bench_sunspec as run
+
+    return run(50 if quick else 200)
+
+
 BENCHES: dict[str, Callable[[bool], dict[str, Any]]] = {
     "qsts": bench_qsts_all,
     "bridge": bench_bridge_all,
@@ -123,6 +131,7 @@ BENCHES: dict[str, Callable[[bool], dict[str, Any]]] = {
     "decision": bench_decision,
     "recording": bench_recording,
     "soak": bench_soak,
+    "sunspec": bench_sunspec,
 }
 
 

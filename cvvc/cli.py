@@ -25,6 +25,7 @@ _VERB_MODULES = (
     "training.cli",
     "agent.cli",
     "recordings.cli",
+    "adapters.cli",
     "cvvc.launch_cli",
 )
 

@@ -83,6 +83,9 @@ class RunConfig(msgspec.Struct, frozen=True, kw_only=True):
     noise_pmu_pct: float = 0.0
     noise_scada_pct: float = 0.0
     drop_prob: float = 0.0
+    drop_burst_min: float = 0.0  # > 0: frames lost in per-device outages of this long, drop_prob the share [min]
+    meas_delay_s: float = 0.0  # real time only: frames reach the agent this late [simulated s]
+    clock_skew_s: float = 0.0  # the field devices' clocks this far off the bridge's and the agent's [s]
     truth_every: int = 1  # the recording keeps the truth, so metrics can be recomputed from it
     secure: bool = False  # security profile: mTLS + access control, certificates in <cache>/security
     ca_dir: str | None = None  # secure: the CA that issues them (`cvvc security init-ca`), kept out of the cache
@@ -192,12 +195,15 @@ def prepare_feeder_and_model(config: RunConfig) -> tuple[Path, Path]:
     model_path = cache / "models" / name
     if not model_path.is_file() and CASE_AGENT[config.case] is not None:  # cases without an agent need none
         from regression.model import write_model
+        from training.extended import default_feature_options
         from training.train import train
 
         _log(f"training a model for {dm.feeder.name} (year seed {config.train_seed}); cached afterwards")
         t0 = time.monotonic()
-        result = train(dm_path, year_seed=config.train_seed, selection="guided",
-                       cache_dir=cache / "profiles", progress=config.progress)
+        opts = default_feature_options(dm)
+        result = train(dm_path, year_seed=config.train_seed, selection="guided", cache_dir=cache / "profiles",
+                       progress=config.progress, feature_set=opts.feature_set, calendar=opts.calendar,
+                       critical_margin_pu=opts.critical_margin_pu)
         model_path.parent.mkdir(parents=True, exist_ok=True)
         tmp = model_path.with_suffix(".tmp")
         write_model(result.model, tmp)
@@ -316,6 +322,8 @@ def run(config: RunConfig) -> RunSummary:
         raise LaunchError(f"--start {config.start!r} is not a date (YYYY-MM-DD or YYYY-MM-DDTHH:MM)") from e
     if not 0 < config.days <= 366:
         raise LaunchError(f"--days {config.days} must be in (0, 366]")
+    if config.meas_delay_s and not config.realtime:
+        raise LaunchError("--meas-delay-s needs --realtime (in lockstep the bridge waits for each decision)")
 
     t_wall0 = time.monotonic()
     dm_path, model_path = prepare_feeder_and_model(config)
@@ -387,7 +395,11 @@ def run(config: RunConfig) -> RunSummary:
             if config.noise_scada_pct:
                 realism += ["--noise-scada-pct", str(config.noise_scada_pct)]
             if config.drop_prob:
-                realism += ["--drop-prob", str(config.drop_prob)]
+                realism += ["--drop-prob", str(config.drop_prob), "--drop-burst-min", str(config.drop_burst_min)]
+            if config.meas_delay_s:
+                realism += ["--latency-s", str(config.meas_delay_s / config.speed)]  # wall s at --speed
+            if config.clock_skew_s:
+                realism += ["--clock-skew-s", str(config.clock_skew_s)]
             realism += ["--truth-every", str(config.truth_every), "--cache-dir", str(profiles_dir(config.cache))]
             bridge = _spawn("bridge", [
                 "bridge", "--feeder", str(dm_path), "--feeder-id", feeder_id, "--start", start_text,

@@ -31,6 +31,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_agent_option_arguments(p)
     p.add_argument("--drop-prob", type=float, default=0.0, metavar="P",
                    help="the bridge drops each measurement frame with probability P (robustness runs; default 0)")
+    p.add_argument("--drop-burst-min", type=float, default=0.0, metavar="MIN",
+                   help="with --drop-prob: each device loses its frames in outages of MIN minutes, P being the "
+                        "share of frames lost (default 0: each frame independently)")
+    p.add_argument("--meas-delay-s", type=float, default=0.0, metavar="S",
+                   help="with --realtime: every measurement frame reaches the agent S simulated seconds late")
+    p.add_argument("--clock-skew-s", type=float, default=0.0, metavar="S",
+                   help="the field devices' clocks are S seconds off the bridge's and the agent's: frames "
+                        "stamped t + S (default 0)")
     p.add_argument("--noise-scada-pct", type=float, default=0.0, metavar="PCT",
                    help="SCADA-class noise on PV, regulator and capacitor readings [%%] (default 0)")
     p.add_argument("--noise-pmu-pct", type=float, default=0.0, metavar="PCT",
@@ -63,7 +71,9 @@ def _run(args: argparse.Namespace) -> int:
                        control_banks=args.control_banks,
                        baseline=not args.no_baseline, cache=args.cache, progress=not args.json,
                        secure=args.secure, ca_dir=args.ca_dir, drop_prob=args.drop_prob,
-                       noise_scada_pct=args.noise_scada_pct, noise_pmu_pct=args.noise_pmu_pct)
+                       noise_scada_pct=args.noise_scada_pct, noise_pmu_pct=args.noise_pmu_pct,
+                       drop_burst_min=args.drop_burst_min, meas_delay_s=args.meas_delay_s,
+                       clock_skew_s=args.clock_skew_s)
     summary = run(config)
     if args.json:
         sys.stdout.write(msgspec.json.format(msgspec.json.encode(summary), indent=2).decode() + "\n")

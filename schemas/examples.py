@@ -76,6 +76,9 @@ def examples(t_ns: int = T0_NS, seq: int = 1) -> dict[type[msgspec.Struct], msgs
                                      dv_dp_pu_per_kw=[[3e-5]]),
         m.StepEnd: m.StepEnd(t_ns=t_ns, seq=seq, source="bridge", feeder_id="rural", head=True, pv=["pv1"],
                              vr=["vr1a"], cap=[]),
+        m.LinkStatus: m.LinkStatus(t_ns=t_ns, seq=seq, source="sunspec-pv1", feeder_id="rural", device_id="pv1",
+                                   endpoint="tcp/127.0.0.1:1502", state="ok", scans=10, frames=9,
+                                   refused={"701.W": 1}, commands=2, last_ok_t_ns=t_ns),
     }
 
 

@@ -11,6 +11,7 @@ Layout, for a feeder id ``F`` and a device id ``D``::
     cvvc/F/cmd/vr/D             RegCommand       agent -> regulator controller
     cvvc/F/cmd/cap/D            CapCommand       agent -> capacitor bank
     cvvc/F/ack/pv/D, ack/vr/D, ack/cap/D   Ack   device -> agent
+    cvvc/F/link/pv/D            LinkStatus       a field-protocol adapter's link to its device (SunSpec)
     cvvc/F/agent/decision       Decision
     cvvc/F/agent/status         AgentStatus
     cvvc/F/sim/truth            TruthFrame       simulation only
@@ -40,6 +41,7 @@ __all__ = [
     "alive_all",
     "cmd",
     "feeder_all",
+    "link",
     "meas_cap",
     "meas_head",
     "meas_pv",
@@ -109,6 +111,11 @@ def ack(feeder: str, kind: DeviceKind, device: str = "*") -> str:
     return f"{ROOT}/{_id(feeder)}/ack/{kind}/{device if device == '*' else _id(device)}"
 
 
+def link(feeder: str, kind: DeviceKind, device: str = "*") -> str:
+    """A field-protocol adapter's ``LinkStatus`` of its device (adapter -> agent, recorder, operators)."""
+    return f"{ROOT}/{_id(feeder)}/link/{kind}/{device if device == '*' else _id(device)}"
+
+
 def agent_decision(feeder: str) -> str:
     """The agent's ``Decision`` of each control step (agent -> bridge, recorder)."""
     return f"{ROOT}/{_id(feeder)}/agent/decision"
@@ -169,6 +176,7 @@ _BY_SUFFIX: dict[tuple[str, ...], type[msgspec.Struct]] = {
     ("ack", "pv"): m.Ack,
     ("ack", "vr"): m.Ack,
     ("ack", "cap"): m.Ack,
+    ("link", "pv"): m.LinkStatus,
     ("agent", "decision"): m.Decision,
     ("agent", "status"): m.AgentStatus,
     ("sim", "truth"): m.TruthFrame,

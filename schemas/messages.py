@@ -32,6 +32,7 @@ __all__ = [
     "DecisionCommand",
     "HeadFrame",
     "HeadPhase",
+    "LinkStatus",
     "Message",
     "MetricsFrame",
     "NodeEstimate",
@@ -381,6 +382,32 @@ class StepEnd(Message, frozen=True, kw_only=True, forbid_unknown_fields=True):
     cap: Annotated[list[Ident], Meta(max_length=4096)] = []  # capacitor banks that sent a frame
 
 
+class LinkStatus(Message, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """A field-protocol adapter's link to one device (e.g. a PV inverter behind SunSpec Modbus).
+
+    Published by the adapter when the link's state changes and on a period. ``state``: ``starting`` (not yet
+    read), ``ok`` (the last scan read valid values), ``down`` (the device does not answer: no frames are sent,
+    commands are acknowledged ``rejected``), ``refusing`` (the device answers with values refused as malformed
+    or out of range: no frames are sent). ``refused`` counts refused register values by point (``701.W``);
+    ``reason`` says what happened last, in words.
+    """
+
+    feeder_id: Ident
+    device_id: Ident
+    kind: Literal["pv"] = "pv"
+    protocol: Literal["sunspec"] = "sunspec"
+    endpoint: Annotated[str, Meta(max_length=200)] = ""
+    state: Literal["starting", "ok", "down", "refusing"]
+    scans: Count = 0
+    scan_failures: Count = 0
+    frames: Count = 0
+    refused: dict[str, Count] = {}
+    commands: Count = 0
+    commands_failed: Count = 0
+    last_ok_t_ns: TimeNs = 0
+    reason: Reason = ""
+
+
 class OracleRequest(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
     """Case A: ask the bridge for true voltages and perturbation sensitivities at its present state."""
 
@@ -417,4 +444,5 @@ MESSAGE_TYPES: tuple[type[msgspec.Struct], ...] = (
     CapFrame,
     CapCommand,
     StepEnd,
+    LinkStatus,
 )

@@ -282,9 +282,10 @@ def access_control_policy() -> dict[str, Any]:
         _rule("agent-alive", ["liveliness_token"], ["ingress"], [f"{r}/*/alive/agent/*"]),
         _rule("agent-alive-watch", ["declare_liveliness_subscriber", "liveliness_query"], ["ingress"], [alive]),
         _rule("agent-alive-see", ["liveliness_token"], ["egress"], [alive]),
-        # devices (the bridge): frames, acks, simulation frames and oracle replies out; commands in
+        # devices (the bridge, protocol adapters): frames, acks, link states, simulation frames and oracle replies
+        # out; commands in
         _rule("devices-send", ["put"], ["ingress"],
-              [f"{r}/*/meas/**", f"{r}/*/ack/**", f"{r}/*/sim/**"]),
+              [f"{r}/*/meas/**", f"{r}/*/ack/**", f"{r}/*/link/**", f"{r}/*/sim/**"]),
         _rule("devices-subscribe", ["declare_subscriber"], ["ingress"],
               [f"{r}/*/cmd/**", f"{r}/*/agent/decision"]),
         _rule("devices-receive", ["put"], ["egress"], [f"{r}/*/cmd/**", f"{r}/*/agent/decision"]),

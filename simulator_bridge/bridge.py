@@ -85,6 +85,10 @@ class BridgeConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fie
     truth_every : publish a TruthFrame every N steps (0: never).
     noise_pmu_pct, noise_scada_pct : measurement noise per class [%]; drop_prob : frame drop probability;
     latency_s : fixed frame latency [s of wall time]; noise_seed : seed of noise and drops.
+    drop_burst_min : with ``drop_prob``, each device loses its frames in outages of this many minutes, ``drop_prob``
+        being the share of frames lost (0: each frame independently).
+    clock_skew_s : the field devices' clocks are this far off the bridge's (and so the agent's) [s]: frames are
+        stamped ``t + clock_skew_s``.
     cache_dir : where profiles are cached as ``.npz`` (None: no cache).
     publisher : who builds, encodes and puts a step's frames, metrics update, truth and metrics frames:
         ``inline`` the stepping thread; ``process`` a publisher process with its own Zenoh session, while the
@@ -116,6 +120,8 @@ class BridgeConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fie
     cache_dir: str | None = None  # year-profile cache folder; None: no cache (the CLI passes its --cache's)
     publisher: Literal["auto", "inline", "process"] = "auto"
     oracle: bool = False
+    drop_burst_min: float = 0.0
+    clock_skew_s: float = 0.0
 
 
 class BridgeSummary(msgspec.Struct, frozen=True, kw_only=True):
@@ -200,6 +206,10 @@ def _check_config(c: BridgeConfig) -> None:
         raise BridgeError(f"--truth-every must be >= 0 (0: no truth frames), got {c.truth_every}")
     if not (math.isfinite(c.wait_agent_s) and 0.0 <= c.wait_agent_s <= 3600.0):
         raise BridgeError(f"--wait-agent-s must be within 0..3600 s, got {c.wait_agent_s}")
+    if not (math.isfinite(c.drop_burst_min) and 0.0 <= c.drop_burst_min <= 1440.0):
+        raise BridgeError(f"--drop-burst-min must be within 0..1440 min, got {c.drop_burst_min}")
+    if not (math.isfinite(c.clock_skew_s) and abs(c.clock_skew_s) <= 600.0):
+        raise BridgeError(f"--clock-skew-s must be within -600..600 s, got {c.clock_skew_s}")
     if c.publisher == "process" and c.latency_s > 0.0:
         raise BridgeError("publisher='process' cannot hold frames for --latency-s (the stepping thread flushes "
                           "the delay line); use publisher='auto' or 'inline' with latency")

@@ -39,6 +39,7 @@ def _bridge(args: argparse.Namespace) -> int:
             wait_agent_s=args.wait_agent_s, year_seed=args.year_seed, pv_local=args.pv_local,
             truth_every=args.truth_every, noise_pmu_pct=args.noise_pmu_pct, noise_scada_pct=args.noise_scada_pct,
             drop_prob=args.drop_prob, latency_s=args.latency_s, noise_seed=args.noise_seed,
+            drop_burst_min=args.drop_burst_min, clock_skew_s=args.clock_skew_s,
             cache_dir=(str(profiles_dir(args.cache)) if args.cache_dir is None
                        else None if args.cache_dir == "" else args.cache_dir), publisher=args.publisher,
             oracle=args.oracle,
@@ -102,6 +103,11 @@ def register_bridge(subparsers: argparse._SubParsersAction) -> None:
     out.add_argument("--noise-pmu-pct", type=float, default=0.0, help="PMU-class noise, e.g. 0.1 [%%]")
     out.add_argument("--noise-scada-pct", type=float, default=0.0, help="SCADA-class noise, e.g. 1 [%%]")
     out.add_argument("--drop-prob", type=float, default=0.0, help="probability that a frame is dropped")
+    out.add_argument("--drop-burst-min", type=float, default=0.0,
+                     help="with --drop-prob: each device loses its frames in outages of this many minutes, "
+                          "--drop-prob being the share lost (default 0: each frame independently)")
+    out.add_argument("--clock-skew-s", type=float, default=0.0,
+                     help="the field devices' clocks are this far off the bridge's: frames stamped t + skew [s]")
     out.add_argument("--latency-s", type=float, default=0.0, help="fixed frame latency [s of wall time]")
     out.add_argument("--noise-seed", type=int, default=0, help="seed of noise and drops")
     p.add_argument("--publisher", choices=["auto", "inline", "process"], default="auto",

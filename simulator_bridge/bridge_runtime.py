@@ -136,6 +136,7 @@ class BridgeRuntime:
             reg_phase=tuple(self.reg_phase), q_at_night=bool(qsts.pv_q_at_night), noise_pmu_pct=c.noise_pmu_pct,
             noise_scada_pct=c.noise_scada_pct, drop_prob=c.drop_prob, latency_s=c.latency_s,
             noise_seed=c.noise_seed, metrics=MetricsAccumulator.for_feeder(dm, engine, step_s=self.step_s),
+            drop_burst_s=60.0 * c.drop_burst_min, clock_skew_s=c.clock_skew_s,
             caps=tuple((k.capacitor_id, k.index, k.steps, k.kvar_rated, k.control_type) for k in bank.caps.values()))
         self.steps = self.control_steps = self.misses = self.skipped = self.decisions = 0
         self.late_steps = 0

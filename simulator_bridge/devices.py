@@ -439,16 +439,42 @@ class MeasurementNoise:
 
 
 class FrameDropper:
-    """Drops each frame independently with probability ``p`` (seeded)."""
+    """Drops frames with a long-run share ``p``: each frame independently, or in bursts per source (seeded).
 
-    def __init__(self, *, p: float, seed: int) -> None:
+    ``burst_s`` = 0: every frame is dropped independently with probability ``p``. ``burst_s`` > 0: each source
+    (a device) loses its link for ``burst_s`` at a time: a frame of a source that is up starts an outage with
+    probability ``q = p / (L (1 - p) + p)``, ``L = burst_s / step_s`` frames, and every frame of that source
+    stamped before the outage's end is dropped. Up runs are geometric, outages last ``L`` frames, so the share of
+    frames lost is ``L / (L + (1 - q) / q) = p``. ``step_s`` [s] is the frames' cadence.
+    """
+
+    def __init__(self, *, p: float, seed: int, burst_s: float = 0.0, step_s: float = 60.0) -> None:
         if not 0.0 <= p <= 1.0:
             raise DeviceError(f"drop probability must be within 0..1, got {p}")
+        if not (math.isfinite(burst_s) and 0.0 <= burst_s <= 86_400.0):
+            raise DeviceError(f"drop burst must be within 0..86400 s, got {burst_s}")
+        if not (math.isfinite(step_s) and step_s > 0.0):
+            raise DeviceError(f"frame cadence must be > 0 s, got {step_s}")
         self.p = float(p)
+        self.burst_s = float(burst_s)
+        n_burst = max(1.0, burst_s / step_s)
+        self.q_start = self.p / (n_burst * (1.0 - self.p) + self.p) if self.p > 0.0 else 0.0
+        self._burst_ns = int(round(burst_s * 1e9))
+        self._until_ns: dict[str, int] = {}  # per source: the end of its outage (frames stamped before it drop)
         self._rng = np.random.default_rng([seed, 0xD50])
 
-    def drop(self) -> bool:
-        return self.p > 0.0 and bool(self._rng.random() < self.p)
+    def drop(self, source: str = "", t_ns: int = 0) -> bool:
+        """Whether the frame of ``source`` stamped ``t_ns`` [ns] is lost (both ignored without bursts)."""
+        if self.p <= 0.0:
+            return False
+        if self._burst_ns <= 0:
+            return bool(self._rng.random() < self.p)
+        if t_ns < self._until_ns.get(source, t_ns):
+            return True
+        if self._rng.random() < self.q_start:
+            self._until_ns[source] = t_ns + self._burst_ns
+            return True
+        return False
 
 
 class DelayLine:

@@ -94,6 +94,9 @@ class FramerSpec:
     measurement realism (``BridgeConfig``). metrics : the run's metrics accumulator, empty at the start, the
     one mutable part: the framer updates it (inline, the runtime's own; in the process, the pickled copy).
     caps : (capacitor_id, index, steps, kvar_rated, control_type) per capacitor bank.
+    drop_burst_s : with ``drop_prob``, each device loses its frames in outages of this long [s] (0: each frame
+    independently). clock_skew_s : the devices' clocks are this far off the bridge's [s]: every frame and scan
+    end marker is stamped ``t + clock_skew_s`` (the truth, metrics and command checks keep the bridge's time).
     """
 
     feeder_id: str
@@ -114,6 +117,8 @@ class FramerSpec:
     noise_seed: int
     metrics: Any  # simulator_bridge.metrics_stream.MetricsAccumulator
     caps: tuple[tuple[str, int, int, float, str], ...] = ()
+    drop_burst_s: float = 0.0
+    clock_skew_s: float = 0.0
 
     def is_control_t(self, t_ns: int) -> bool:
         return ((t_ns - self.profile_start_t_ns) // (self.step_s * _NS)) % self.control_every == 0
@@ -150,7 +155,8 @@ class StepFramer:
         self.caps = [dv.CapBankController(cid, c, steps, kvar, kind) for cid, c, steps, kvar, kind in s.caps]  # type: ignore[arg-type]
         self.noise = (dv.MeasurementNoise(pmu_pct=s.noise_pmu_pct, scada_pct=s.noise_scada_pct, seed=s.noise_seed)
                       if s.noise_pmu_pct > 0 or s.noise_scada_pct > 0 else None)
-        self.dropper = dv.FrameDropper(p=s.drop_prob, seed=s.noise_seed)
+        self.dropper = dv.FrameDropper(p=s.drop_prob, seed=s.noise_seed, burst_s=s.drop_burst_s, step_s=s.step_s)
+        self.skew_ns = int(round(s.clock_skew_s * 1e9))
         self.delay = dv.DelayLine(s.latency_s)
         self.metrics = s.metrics
         self.on_control_head = on_control_head
@@ -182,14 +188,16 @@ class StepFramer:
             self._publish(pub, msg)
 
     def _publish(self, pub: FramePublisher, msg: msgspec.Struct) -> None:
-        if pub is self.pub_head and self.on_control_head is not None and self.spec.is_control_t(msg.t_ns):  # type: ignore[attr-defined]
-            self.on_control_head(msg.t_ns, time.time_ns())  # type: ignore[attr-defined]  # before put: the answer may beat put's return
+        if pub is self.pub_head and self.on_control_head is not None:
+            t_ns = msg.t_ns - self.skew_ns  # type: ignore[attr-defined]  # the bridge's time of the step
+            if self.spec.is_control_t(t_ns):
+                self.on_control_head(t_ns, time.time_ns())  # before put: the answer may beat put's return
         pub.put(msg)
         self.frames_published += pub is not self.pub_step  # a scan's end marker is not a frame
 
     def _send(self, pub: FramePublisher, msg: msgspec.Struct, now_s: float) -> bool:
         """Drop ``msg`` (False) or put it, through the latency line if any (True)."""
-        if self.dropper.drop():
+        if self.dropper.drop(msg.source, msg.t_ns):  # type: ignore[attr-defined]
             self.frames_dropped += 1
             return False
         if self.delay.latency_s > 0.0:
@@ -219,7 +227,7 @@ class StepFramer:
         The readings are turned into Python numbers once per step (``tolist``), so the frame builders index
         lists rather than making a NumPy scalar of every value; the numbers, hence the frames, are the same.
         """
-        rd, t, seqs, noise = res.readings, int(res.t_ns), self.seqs, self.noise
+        rd, t, seqs, noise = res.readings, int(res.t_ns) + self.skew_ns, self.seqs, self.noise
         send = self._send if self.dropper.p > 0.0 or self.delay.latency_s > 0.0 else self._send_now
         head = (rd.head_v_mag_v, rd.head_v_ang_deg, rd.head_i_mag_a, rd.head_i_ang_deg, rd.head_p_kw,
                 rd.head_q_kvar)

@@ -16,8 +16,12 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from schemas.cache import CACHE_HELP
+
+if TYPE_CHECKING:
+    from training.extended import FeatureOptions
 
 __all__ = ["register", "register_accuracy"]
 
@@ -32,6 +36,16 @@ def _feeder_path(feeder: str | None, cache: str | None) -> Path:
     return resolve_device_map_path(feeder)
 
 
+def _feature_options(args: argparse.Namespace, device_map_path: Path) -> FeatureOptions:
+    """The feature options of ``--features`` (``auto``: ``training.extended.default_feature_options``)."""
+    from schemas.devicemap import load_device_map
+    from training.extended import FeatureOptions, default_feature_options
+
+    if args.features == "auto":
+        return default_feature_options(load_device_map(device_map_path))
+    return FeatureOptions(args.features, args.calendar, args.critical_margin_pu)
+
+
 def _train(args: argparse.Namespace) -> int:
     import msgspec
 
@@ -39,8 +53,10 @@ def _train(args: argparse.Namespace) -> int:
     from schemas.cache import profiles_dir
     from training.train import DEFAULT_COMBINED_PCT, train
 
+    path = _feeder_path(args.feeder, args.cache)
+    options = _feature_options(args, path)
     result = train(
-        _feeder_path(args.feeder, args.cache),
+        path,
         year_seed=args.year_seed,
         cache_dir=profiles_dir(args.cache),
         selection=args.selection,
@@ -49,9 +65,9 @@ def _train(args: argparse.Namespace) -> int:
         combined_pct=() if args.no_combined else DEFAULT_COMBINED_PCT,
         progress=not args.json,
         calibration_minutes=args.calibration_minutes,
-        feature_set=args.features,
-        critical_margin_pu=args.critical_margin_pu,
-        calendar=args.calendar,
+        feature_set=options.feature_set,
+        critical_margin_pu=options.critical_margin_pu,
+        calendar=options.calendar,
     )
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -143,19 +159,21 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--calibration-minutes", type=int, default=1440,
                    help="held-out minutes of the training year for the calibrated estimate bounds (0: none)")
     p.add_argument(
-        "--features", choices=("paper", "extended", "extended_readings"), default="paper",
-        help="paper: eq. (5) on head and plant P, Q; extended: plus the capacitor banks' states, features mapped "
-        "back to the training taps and banks; extended_readings: plus the regulators' and banks' voltage readings "
-        "as regressors (docs/method.md)",
+        "--features", choices=("auto", "paper", "extended", "extended_readings"), default="auto",
+        help="auto (default): extended with --calendar and --critical-margin-pu 0.001 when a bank of the device "
+        "map has a capcontrol or there is no regulator, else paper; paper: eq. (5) on head and plant P, Q; "
+        "extended: plus the capacitor banks' states, features mapped back to the training taps and banks; "
+        "extended_readings: plus the regulators' and banks' voltage readings as regressors (docs/method.md)",
     )
     p.add_argument(
         "--critical-margin-pu", type=float, default=0.0,
         help="also make critical a small cover of the nodes within this of each training flow's extremes [pu] "
-        "(default 0: the paper's extremes only)",
+        "(default 0: the paper's extremes only; ignored with --features auto)",
     )
     p.add_argument(
         "--calendar", action="store_true",
-        help="extended sets: time of day and day of year among the regression features (docs/method.md)",
+        help="extended sets: time of day and day of year among the regression features (docs/method.md; "
+        "ignored with --features auto)",
     )
     p.add_argument("--json", action="store_true", help="print the summary as JSON (no progress bar)")
     p.add_argument("--cache", default=None, help=CACHE_HELP)

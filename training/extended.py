@@ -23,10 +23,44 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from regression.model import features
+from regression.model import FeatureSet, features
 
-__all__ = ["SINGLE_TAP_SHIFTS", "TAP_SHIFTS", "Perturbations", "device_shifted_voltages", "near_extreme_cover",
-           "perturb_devices", "reading_matrix"]
+__all__ = ["EXTENDED_OPTIONS", "PAPER_OPTIONS", "SINGLE_TAP_SHIFTS", "TAP_SHIFTS", "FeatureOptions", "Perturbations",
+           "default_feature_options", "device_shifted_voltages", "near_extreme_cover", "perturb_devices",
+           "reading_matrix"]
+
+
+@dataclass(frozen=True)
+class FeatureOptions:
+    """The feature set of a model and its two companions (``training.train.train``'s keywords of the same names)."""
+
+    feature_set: FeatureSet
+    calendar: bool
+    critical_margin_pu: float
+
+
+#: The paper's method (eq. (5) on head and plant P, Q; the paper's extreme nodes).
+PAPER_OPTIONS = FeatureOptions("paper", False, 0.0)
+#: The extended set as measured on the real feeders (docs/method.md): banks, tap/bank mapping, calendar and the
+#: near-extreme cover at 0.001 pu.
+EXTENDED_OPTIONS = FeatureOptions("extended", True, 0.001)
+
+
+def default_feature_options(device_map) -> FeatureOptions:
+    """What ``cvvc train --features auto`` and ``cvvc run``/``evaluate`` train: the extended set on a feeder with a
+    bank that switches on its own (a ``[[capacitor]]`` with a ``capcontrol``) or without a regulator (the paper's
+    correction needs one), the paper's method otherwise.
+
+    The extended set exists for banks that switch under local control (the paper's eq. (5) reads a bank's kvar at
+    the head as load). Measured through the bus, case D, first 3 days of winter and summer (docs/results.md):
+    IEEE 8500 (9 CapControls) NVV 19,980 against 70,668 and 5,769 against 783,718; epri-m1 (3) NVV 0 with both;
+    epri-ckt5 (4, no regulator) NVV 0, extended only; but epri-ckt24, whose 3 banks have no CapControl, did worse
+    with it (NVV 1,272 against 830 in winter, MVVM 0.036 against 0.014 pu), and epri-k1 (1 bank, none) the same
+    NVV 0 with more tap changes in summer (23 against 7). A feeder without such banks keeps the paper's method and
+    the results measured with it (the rural feeder, IEEE 13, IEEE 123).
+    """
+    switching = any(c.capcontrol for c in device_map.capacitor)
+    return EXTENDED_OPTIONS if switching or (device_map.capacitor and not device_map.regulator) else PAPER_OPTIONS
 
 #: Tap offsets from ``tap0`` (every regulator at once) under which the near-extreme cover also looks for extremes:
 #: out of training, local control runs the regulators several steps from ``tap0`` (IEEE 8500: 3-7).

@@ -57,7 +57,8 @@ from training.scenarios import ScenarioSet, select_scenarios, summarize_year
 __all__ = ["DEFAULT_Q_STEPS_PCT", "TRAINING_REVISION", "TrainResult", "TrainSummary", "load_profiles", "train"]
 
 #: Bump when training changes what it produces, so cached models (``cvvc run``'s cache) are retrained.
-TRAINING_REVISION = 5  # 3: critical nodes in the zone, movable only; 4: model format 2; 5: bounds and banks
+TRAINING_REVISION = 6  # 3: critical nodes in the zone, movable only; 4: model format 2; 5: bounds and banks;
+# 6: cvvc run trains the extended set on feeders with banks (training.extended.default_feature_options)
 
 DEFAULT_Q_STEPS_PCT = tuple(float(p) for p in range(-100, 101, 20))
 DEFAULT_COMBINED_PCT = (-100.0, -50.0, 50.0, 100.0)

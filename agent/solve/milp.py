@@ -1,4 +1,9 @@
-"""The exact reference: eq. (9)-(15) with integer taps and hard limits by ``scipy.optimize.milp`` (HiGHS)."""
+"""Integer taps by ``scipy.optimize.milp`` (HiGHS): the exact reference of eq. (9)-(15) and the rounding's fallback.
+
+``solve_milp_reference`` is the exact optimum with hard limits everywhere (tests, benchmarks);
+``milp_tap_changes`` finds integer taps meeting the hard limits of the nodes that keep them when no rounding
+within one tap of the relaxation does (``agent.solve.rounding``).
+"""
 
 from __future__ import annotations
 
@@ -6,10 +11,40 @@ import numpy as np
 import scipy.optimize
 import scipy.sparse as sp
 
-from agent.cvvc_qp import CvvcInputs, build_cvvc_qp
+from agent.cvvc_qp import CvvcInputs, CvvcQp, build_cvvc_qp
+from agent.solve.settings import MILP_NODE_LIMIT
 from agent.solve.solution import MilpReference
 
-__all__ = ["solve_milp_reference"]
+__all__ = ["milp_tap_changes", "solve_milp_reference"]
+
+
+def _milp(qp: CvvcQp, n_int: int, options: dict[str, float]) -> scipy.optimize.OptimizeResult:
+    """``scipy.optimize.milp`` of ``qp``'s linear costs and rows with its first ``n_int`` variables integer."""
+    integrality = np.zeros(qp.layout.n)
+    integrality[:n_int] = 1
+    lo = np.where(np.isfinite(qp.lower), qp.lower, -np.inf)
+    hi = np.where(np.isfinite(qp.upper), qp.upper, np.inf)
+    return scipy.optimize.milp(
+        qp.c,
+        integrality=integrality,
+        bounds=scipy.optimize.Bounds(-np.inf, np.inf),
+        constraints=scipy.optimize.LinearConstraint(sp.csr_matrix(qp.A), lo, hi),
+        options=options,
+    )
+
+
+def milp_tap_changes(inputs: CvvcInputs, soft_nodes: np.ndarray, nodes: np.ndarray | None = None) -> np.ndarray | None:
+    """(R,) integer tap changes meeting the hard limits of the nodes not in ``soft_nodes``, or None if none exists.
+
+    Eq. (9)-(15)'s linear costs (no proximal or violation terms: the caller re-solves Q with these taps fixed in
+    its own form), violation variables at ``soft_nodes``, rows of ``nodes`` only (default: all). Bounded by a
+    node limit, not a time limit, so that the same inputs give the same taps.
+    """
+    qp = build_cvvc_qp(inputs, soft=soft_nodes, nodes=nodes)
+    res = _milp(qp, 2 * inputs.n_reg, {"mip_rel_gap": 1e-3, "node_limit": MILP_NODE_LIMIT})
+    if res.x is None or res.status not in (0, 1):  # 1: a limit reached with a feasible point in hand
+        return None
+    return np.round(qp.d_tap(res.x))
 
 
 def solve_milp_reference(inputs: CvvcInputs) -> MilpReference:
@@ -18,18 +53,7 @@ def solve_milp_reference(inputs: CvvcInputs) -> MilpReference:
     Same scaled constraints as the relaxation, no proximal term, ``scipy.optimize.milp`` (HiGHS).
     """
     qp = build_cvvc_qp(inputs, soft=False)
-    lay = qp.layout
-    integrality = np.zeros(lay.n)
-    integrality[: 2 * inputs.n_reg] = 1
-    lo = np.where(np.isfinite(qp.lower), qp.lower, -np.inf)
-    hi = np.where(np.isfinite(qp.upper), qp.upper, np.inf)
-    res = scipy.optimize.milp(
-        qp.c,
-        integrality=integrality,
-        bounds=scipy.optimize.Bounds(-np.inf, np.inf),
-        constraints=scipy.optimize.LinearConstraint(sp.csr_matrix(qp.A), lo, hi),
-        options={"mip_rel_gap": 1e-9},
-    )
+    res = _milp(qp, 2 * inputs.n_reg, {"mip_rel_gap": 1e-9})
     if res.status == 2:
         return MilpReference(
             status="infeasible", taps_new=inputs.taps.copy(), q_new_kvar=inputs.q0_kvar.copy(), cost=float("inf")

@@ -3,7 +3,8 @@
 Every floor/ceil combination of the (at most ``MAX_ENUMERATED_FRACTIONAL``) most fractional relaxed tap changes
 is a candidate, the other taps rounded to nearest; Q is re-solved with each candidate's taps fixed (same form),
 best-first by a dual lower bound, by the exact dual active-set method (OSQP if it fails); the cheapest candidate
-meeting the hard limits wins. If none does, the nearest rounding is re-solved in the soft form.
+meeting the hard limits wins. If none does, a MILP looks for integer taps further away that meet them
+(``agent.solve.milp``); if there are none, the nearest rounding is re-solved in the soft form.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ from typing import Literal
 import numpy as np
 
 from agent.cvvc_qp import PROX_WEIGHT, CvvcInputs, CvvcQp, build_cvvc_qp
+from agent.solve.milp import milp_tap_changes
 from agent.solve.polish import active_set_polish
 from agent.solve.relaxation import osqp_run, setup_osqp, solve_qp
 from agent.solve.rows import outside_violations, remap, row_ranges, solve_rows
@@ -144,8 +146,13 @@ def round_taps(inputs: CvvcInputs, qp: CvvcQp, run: Run, reason: str) -> Rounded
                 best = (0.0, d_int, q_keep)
                 break
     if best is None and hard_nodes.any():
-        # No integer point within one tap of the relaxation meets the hard limits: soft Q re-solve at the
-        # nearest rounding.
+        # No integer point within one tap of the relaxation meets the hard limits; one further away may (the
+        # feasible set of a regulated feeder's taps is a thin slab: IEEE 8500 went soft here in 160 of 864
+        # winter decisions): integer taps from the MILP, then Q re-solved with them fixed, in the same form.
+        best, n = _milp_fallback(inputs, qp, hard_nodes)
+        tried += n
+    if best is None and hard_nodes.any():
+        # No integer taps meet the hard limits: soft Q re-solve at the nearest rounding.
         reason = "no rounding of the relaxed taps meets the hard limits: Q re-solved in soft form (eq. 17)"
         status = "soft"
         soft_fixed = build_cvvc_qp(inputs, soft=True, fixed_d_tap=candidates[0])
@@ -163,6 +170,23 @@ def round_taps(inputs: CvvcInputs, qp: CvvcQp, run: Run, reason: str) -> Rounded
         best = (0.0, candidates[0], np.clip(q_rel, inputs.q_min_kvar, inputs.q_max_kvar))
     _, d_int, q_new = best
     return Rounded(status=status, reason=reason, d_tap=d_int, q_new_kvar=q_new, iterations=iterations, tried=tried)
+
+
+def _milp_fallback(
+    inputs: CvvcInputs, qp: CvvcQp, hard_nodes: np.ndarray
+) -> tuple[tuple[float, np.ndarray, np.ndarray] | None, int]:
+    """``(best, tried)``: the MILP's integer taps with Q re-solved (``best`` None when they fail the hard limits)."""
+    d_int = milp_tap_changes(inputs, qp.soft_nodes, qp.nodes)
+    if d_int is None:
+        return None, 0
+    fixed = build_cvvc_qp(inputs, soft=qp.soft_nodes, fixed_d_tap=d_int, nodes=qp.nodes)
+    res = active_set_polish(fixed, fixed.lower, fixed.upper, None, None, "active set") or solve_qp(fixed, None, None)
+    if not res.ok:
+        return None, 1
+    q_new = np.clip(fixed.q_kvar(res.x), inputs.q_min_kvar, inputs.q_max_kvar)
+    if np.max(violation_pu(inputs, inputs.predict_v_pu(d_int, q_new))[hard_nodes], initial=0.0) > V_TOL_PU:
+        return None, 1
+    return (0.0, d_int, q_new), 1
 
 
 def rounding_candidates(d_rel: np.ndarray) -> list[np.ndarray]:

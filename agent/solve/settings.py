@@ -58,6 +58,9 @@ MAX_ENUMERATED_FRACTIONAL = 3
 FRACTIONAL_TOL_STEPS = 1e-4
 #: A relaxed tap change this close to an integer is taken as integral: its Q needs no re-solve [steps].
 INTEGRAL_TOL_STEPS = 1e-6
+#: Branch-and-bound nodes of the MILP that looks for integer taps beyond one tap of the relaxation when no rounding
+#: meets the hard limits (``agent.solve.milp.milp_tap_changes``).
+MILP_NODE_LIMIT = 500
 #: Stop trying rounding candidates once one scores within this fraction of the relaxed objective.
 ROUNDING_GAP_REL = 0.01
 #: Row generation for large problems (every node of a big feeder): problems up to ROWGEN_MIN_NODES critical

@@ -6,6 +6,7 @@ import msgspec
 import pytest
 
 from agent.aligner import FrameAligner
+from agent.errors import AgentInputError
 from schemas import keys
 from schemas import messages as m
 from schemas.examples import examples
@@ -302,3 +303,78 @@ def test_a_pv_frame_lost_at_a_control_step_is_replaced_by_its_last_good_value(al
     snap = snapshot_from(out[0], model, last_good_s=240)
     assert snap.pv_valid[0] and snap.pv_p_kw[0] == 777.0
     assert not snapshot_from(out[0], model, last_good_s=0).pv_valid[0]
+
+
+@pytest.mark.parametrize("skew_ns", [2_000_000_000, -2_000_000_000])  # the field clocks 2 s ahead / behind
+def test_frames_stamped_a_little_off_a_control_step_are_that_steps(skew_ns):
+    tolerant = FrameAligner(feeder_id="rural", pv_ids=("pv1",), regulator_ids=("vr1a",), control_period_ns=PERIOD_NS,
+                            clock_tolerance_ns=5_000_000_000)
+    out = []
+    for n in range(11):  # two control steps and the minutes between, every frame stamped skew_ns off
+        t = T0 + n * MINUTE + skew_ns
+        for k, f in (head(t, n + 1), pv(t, n + 1), vr(t, n + 1)):
+            out += tolerant.add(k, f)
+    assert [a.t_ns for a in out] == [T0, T0 + PERIOD_NS, T0 + 2 * PERIOD_NS]  # decided on the bridge's steps
+    assert all(a.complete and a.head.t_ns == a.t_ns for a in out)
+    assert tolerant.snapped == 9 and not tolerant.rejected  # 3 control steps x 3 frames; the minutes keep stamps
+    strict = FrameAligner(feeder_id="rural", pv_ids=("pv1",), regulator_ids=("vr1a",), control_period_ns=PERIOD_NS)
+    t = T0 + skew_ns
+    assert [strict.add(k, f) for k, f in (head(t, 1), pv(t, 1), vr(t, 1))] == [[], [], []]  # never a decision
+
+
+def test_a_step_end_stamped_off_the_step_still_releases_it():
+    tolerant = FrameAligner(feeder_id="rural", pv_ids=("pv1",), regulator_ids=("vr1a",), control_period_ns=PERIOD_NS,
+                            clock_tolerance_ns=5_000_000_000)
+    t = T0 - 2_000_000_000
+    tolerant.add(*head(t, 1))
+    tolerant.add(*vr(t, 1))
+    end = m.StepEnd(t_ns=t, seq=1, source="bridge", feeder_id="rural", head=True, pv=[], vr=["vr1a"], cap=[])
+    (out,) = tolerant.add(keys.meas_step("rural"), end)
+    assert out.t_ns == T0 and out.missing == ("pv1",)
+
+
+@pytest.mark.parametrize("off_ns", [6_000_000_000, -30_000_000_000])
+def test_frames_further_off_than_the_tolerance_keep_their_stamps(off_ns):
+    tolerant = FrameAligner(feeder_id="rural", pv_ids=("pv1",), regulator_ids=("vr1a",), control_period_ns=PERIOD_NS,
+                            clock_tolerance_ns=5_000_000_000)
+    t = T0 + off_ns
+    assert [tolerant.add(k, f) for k, f in (head(t, 1), pv(t, 1), vr(t, 1))] == [[], [], []]
+    assert tolerant.snapped == 0
+
+
+def test_a_clock_tolerance_of_half_a_period_is_refused():
+    with pytest.raises(AgentInputError, match="half the control period"):
+        FrameAligner(feeder_id="rural", pv_ids=("pv1",), regulator_ids=("vr1a",), control_period_ns=PERIOD_NS,
+                     clock_tolerance_ns=PERIOD_NS // 2)
+
+
+def test_the_snapshot_can_fit_the_regulator_readings_on_the_heads_load_and_move_them_to_the_present_tap(aligner):
+    """``reading_fit_s`` (opt-in, agent/readings.py): readings that fall as the head's load rises, with a tap change
+    half-way, give the present reading exactly, where the 5-minute mean lags the load."""
+    from agent.runtime import snapshot_from
+    from benchmarks.synthetic import synthetic_model
+
+    base, hbase = EX[m.RegFrame], EX[m.HeadFrame]
+    out = []
+    n = 30  # minutes; the last one is a control step
+    t_end = T0 + 6 * PERIOD_NS
+    for i in range(n):
+        t = t_end - (n - 1 - i) * MINUTE
+        p_total = 1000.0 + 40.0 * i
+        phases = [msgspec.structs.replace(ph, p_kw=p_total / len(hbase.phases)) for ph in hbase.phases]
+        tap = 2 if i < n // 2 else 3
+        v = 126.0 - 0.002 * p_total + 0.75 * (tap - 3)
+        ph = [msgspec.structs.replace(base.phases[0], v_120=v)]
+        for k, f in (head(t, i + 1, phases=phases, p_kw=sum(x.p_kw for x in phases)), pv(t, i + 1),
+                     vr(t, i + 1, phases=ph, v_compared_120=v, tap=tap)):
+            out += aligner.add(k, f)
+    assert out[-1].t_ns == t_end and len(out[-1].head_history) == n
+    model = synthetic_model(0)
+    model = msgspec.structs.replace(model, regulators=[msgspec.structs.replace(model.regulators[0], id="vr1a",
+                                                                               step_v120=0.75)],
+                                    pv=[msgspec.structs.replace(model.pv[0], id="pv1")])
+    now = 126.0 - 0.002 * (1000.0 + 40.0 * (n - 1))
+    fitted = snapshot_from(out[-1], model, reading_fit_s=3600)
+    assert fitted.reg_v120[0] == pytest.approx(now, abs=1e-6)
+    assert fitted.reg_v120_compared[0] == pytest.approx(now, abs=1e-6)
+    assert snapshot_from(out[-1], model).reg_v120[0] == pytest.approx(now + 0.002 * 40.0 * 2)  # the mean lags 2 min

@@ -179,6 +179,9 @@ def test_bad_arguments_give_a_clear_error(tmp_path, ieee13_model):
     proc = _cvvc("run", "--feeder", str(REPO / "feeders" / "ieee13.toml"), "--start", "2023-13-01",
                  "--model", str(ieee13_model), cwd=tmp_path)
     assert proc.returncode == 2 and "not a date" in proc.stderr
+    proc = _cvvc("run", "--feeder", str(REPO / "feeders" / "ieee13.toml"), "--meas-delay-s", "30",
+                 "--model", str(ieee13_model), cwd=tmp_path)  # a delay needs a clock to be late on
+    assert proc.returncode == 2 and "--meas-delay-s needs --realtime" in proc.stderr
 
 
 @pytest.mark.parametrize(

@@ -32,6 +32,7 @@ EXAMPLE_KEYS: dict[type, str] = {
     m.CapFrame: keys.meas_cap(FEEDER, "cap1"),
     m.CapCommand: keys.cmd(FEEDER, "cap", "cap1"),
     m.StepEnd: keys.meas_step(FEEDER),
+    m.LinkStatus: keys.link(FEEDER, "pv", "pv1"),
 }
 
 

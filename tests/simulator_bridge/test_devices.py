@@ -237,6 +237,19 @@ def test_drop_rate(p: float) -> None:
     assert rate == pytest.approx(p, abs=0.02)
 
 
+@pytest.mark.parametrize("p", [0.05, 0.2])
+def test_drop_bursts_lose_the_share_in_outages_of_the_burst_length_per_device(p: float) -> None:
+    d = dv.FrameDropper(p=p, seed=3, burst_s=600.0, step_s=60.0)
+    minute = 60_000_000_000
+    lost = {src: np.array([d.drop(src, k * minute) for k in range(40_000)]) for src in ("head", "pv1")}
+    for x in lost.values():
+        assert x.mean() == pytest.approx(p, rel=0.1)
+        edges = np.flatnonzero(np.diff(np.r_[0, x.astype(int), 0]))
+        runs = (edges[1::2] - edges[::2])[:-1]  # lengths of the outages [frames] (the last may be cut short)
+        assert runs.min() >= 10 and np.mean(runs == 10) > 0.8  # 10-minute outages (back to back ones merge)
+    assert np.mean(lost["head"] & lost["pv1"]) < 2 * p * p + 0.01  # the devices lose their links independently
+
+
 def test_delay_line_releases_in_order_after_the_latency() -> None:
     line = dv.DelayLine(0.5)
     line.put("a", 10.0)
@@ -250,6 +263,7 @@ def test_delay_line_releases_in_order_after_the_latency() -> None:
 
 @pytest.mark.parametrize("bad", [
     lambda: dv.DelayLine(-1.0), lambda: dv.DelayLine(math.nan), lambda: dv.FrameDropper(p=1.5, seed=0),
+    lambda: dv.FrameDropper(p=0.1, seed=0, burst_s=-1.0),
     lambda: dv.MeasurementNoise(pmu_pct=-1.0, scada_pct=0.0, seed=0),
 ])
 def test_bad_realism_settings_raise(bad) -> None:  # noqa: ANN001

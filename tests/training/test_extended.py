@@ -246,3 +246,30 @@ def test_the_agent_runs_an_extended_model_with_the_same_estimate(ieee13_caps, mo
     offline = estimate_v_pu(ModelArrays.of(model), f, taps, v120, caps=caps, cap_v_v=cap_v, t_ns=t_ns)[0]
     np.testing.assert_allclose(d.v_pu, offline, atol=1e-12)
     assert np.max(np.abs(d.v_pu - v)) < 0.005  # and it is right (measured 0.0028 and 0.0038 pu)
+
+
+def test_auto_features_are_the_extended_set_on_a_feeder_whose_banks_switch(ieee13_caps):
+    """``cvvc train`` (``--features auto``, its default) and ``cvvc run``'s own training pick the extended set with
+    the calendar and the near-extreme cover when a bank switches on its own (``capcontrol``) or there is no
+    regulator, the paper's method otherwise; an explicit ``--features`` keeps its own flags."""
+    import msgspec
+
+    from cvvc.cli import build_parser
+    from schemas.devicemap import load_device_map
+    from training.cli import _feature_options
+    from training.extended import EXTENDED_OPTIONS, PAPER_OPTIONS, default_feature_options
+
+    fixed_banks = load_device_map(ieee13_caps)  # IEEE 13's banks have no CapControl
+    controlled = msgspec.structs.replace(fixed_banks, capacitor=[
+        msgspec.structs.replace(c, capcontrol="ctl") if i == 0 else c for i, c in enumerate(fixed_banks.capacitor)])
+    no_regulator = msgspec.structs.replace(fixed_banks, regulator=[])
+    assert default_feature_options(fixed_banks) == PAPER_OPTIONS
+    assert default_feature_options(controlled) == EXTENDED_OPTIONS == default_feature_options(no_regulator)
+    assert default_feature_options(load_device_map(REPO / "feeders" / "ieee13.toml")) == PAPER_OPTIONS
+    assert EXTENDED_OPTIONS.calendar and EXTENDED_OPTIONS.critical_margin_pu == 0.001
+    parse = build_parser().parse_args
+    m1 = REPO / "feeders" / "epri-m1.toml"  # three CapControls
+    assert _feature_options(parse(["train", "--out", "m.json"]), m1) == EXTENDED_OPTIONS
+    assert _feature_options(parse(["train", "--out", "m.json"]), ieee13_caps) == PAPER_OPTIONS
+    explicit = parse(["train", "--out", "m.json", "--features", "paper"])
+    assert _feature_options(explicit, m1) == PAPER_OPTIONS

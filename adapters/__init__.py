@@ -1,0 +1,1 @@
+"""Field-protocol adapters: real field devices (PV inverters behind SunSpec Modbus) as devices of the cvvc bus."""

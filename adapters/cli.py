@@ -1,0 +1,114 @@
+"""``cvvc adapter``: field-protocol adapters (``sunspec``) and a simulated SunSpec inverter to try them on (``sim``).
+
+Nothing heavy is imported at module level; each handler parses its flags into a typed config and calls the
+runtime. SIGINT / SIGTERM end a run cleanly (token withdrawn, last status published, link closed, exit 0).
+"""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+import threading
+from collections.abc import Callable
+from typing import TypeVar
+
+__all__ = ["register"]
+
+T = TypeVar("T")
+
+
+def _with_stop(fn: Callable[[threading.Event], T]) -> T:
+    """Run ``fn(stop)`` with SIGINT and SIGTERM setting ``stop``; the previous handlers come back after."""
+    stop = threading.Event()
+    previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        return fn(stop)
+    finally:
+        for s, h in previous.items():
+            signal.signal(s, h)
+
+
+def _sunspec(args: argparse.Namespace) -> int:
+    import msgspec
+
+    from adapters.sunspec_runtime import AdapterConfig, parse_modbus_endpoint, run_adapter
+    from schemas.bus import bus_config_from_args
+
+    try:
+        config = msgspec.convert(dict(
+            feeder_id=args.feeder_id, device_id=args.device, modbus=args.modbus, unit=args.unit,
+            scan_period_s=args.scan_period_s, control_period_s=args.control_period_s,
+            status_period_s=args.status_period_s, timeout_s=args.timeout_s, local_mode=args.local_mode,
+            q_at_night=args.q_at_night, clock=args.clock), AdapterConfig)
+    except msgspec.ValidationError as e:
+        print(f"cvvc adapter sunspec: error: {e}", file=sys.stderr)
+        return 2
+    parse_modbus_endpoint(config.modbus)  # a bad endpoint is refused before joining the bus
+    bus = bus_config_from_args(args, role="devices")
+    status = _with_stop(lambda stop: run_adapter(config, bus, stop=stop))
+    print(f"adapter {config.device_id} ({config.modbus}): {status.state}, {status.scans} scans, {status.frames} "
+          f"frames, {status.commands} commands ({status.commands_failed} failed), refused values "
+          f"{dict(status.refused) or 'none'}")
+    return 0
+
+
+def _sim(args: argparse.Namespace) -> int:
+    from adapters.sunspec_runtime import parse_modbus_endpoint
+    from simulator_bridge.sunspec_sim import SimulatedSunSpecInverter
+
+    host, port = parse_modbus_endpoint(args.modbus)
+    inv = SimulatedSunSpecInverter(plant_id=args.device, s_rated_kva=args.s_rated_kva, v_nominal_v=args.v_nominal_v,
+                                   host=host, port=port, unit=args.unit)
+    per_phase = args.p_kw / 3.0
+    inv.set_measurements(p_kw=[per_phase] * 3, v_v=[args.v_nominal_v] * 3)
+
+    def serve(stop: threading.Event) -> int:
+        with inv:
+            print(f"simulated SunSpec inverter {args.device} on {args.modbus} unit {args.unit} "
+                  f"({args.s_rated_kva} kVA, {args.p_kw} kW); Ctrl-C to stop", flush=True)
+            while not stop.wait(1.0):
+                inv.set_measurements(p_kw=[per_phase] * 3, v_v=[args.v_nominal_v] * 3)  # Q follows the set point
+        return 0
+
+    return int(_with_stop(serve))
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    """Add the ``adapter`` verb (sub-verbs ``sunspec`` and ``sim``) to the ``cvvc`` command line."""
+    from schemas.bus import add_bus_arguments
+
+    p = sub.add_parser("adapter", help="field-protocol adapters: real devices as devices of the bus")
+    verbs = p.add_subparsers(dest="adapter_verb", metavar="SUBVERB", required=True)
+    s = verbs.add_parser("sunspec", help="a PV inverter behind SunSpec Modbus TCP (models 701, 702, 704)",
+                         description="Read the inverter's SunSpec models with pysunspec2, publish its PV frames, "
+                                     "write the agent's reactive power commands as 704 set points with a revert "
+                                     "timer, and acknowledge what the inverter applied. See docs/sunspec.md.")
+    s.add_argument("--feeder-id", required=True, help="feeder id of the keys (cvvc/<ID>/...)")
+    s.add_argument("--device", required=True, metavar="PV_ID", help="the plant's id in the device map")
+    s.add_argument("--modbus", required=True, metavar="tcp/HOST:PORT", help="the inverter's Modbus TCP endpoint")
+    s.add_argument("--unit", type=int, default=1, help="Modbus unit (slave) id [default: 1]")
+    s.add_argument("--scan-period-s", type=float, default=60.0,
+                   help="read the inverter at every multiple of this period (UTC) and stamp the frame with it [s]")
+    s.add_argument("--control-period-s", type=float, default=300.0,
+                   help="the feeder's control period: the unit of the command windows [s]")
+    s.add_argument("--status-period-s", type=float, default=10.0, help="publish the link status this often [s]")
+    s.add_argument("--timeout-s", type=float, default=1.0, help="time-out of one Modbus request [s]")
+    s.add_argument("--local-mode", choices=["unity_pf", "volt_var"], default="unity_pf",
+                   help="the inverter's local default, reported in its frames")
+    s.add_argument("--q-at-night", action="store_true", help="the inverter gives reactive power at zero output")
+    s.add_argument("--clock", choices=["wall", "head"], default="wall",
+                   help="wall: scan on --scan-period-s of the UTC clock; head: scan at each new feeder-head frame and "
+                        "take its time (the feeder's scan drives the adapter)")
+    add_bus_arguments(s)
+    s.set_defaults(func=_sunspec)
+    sim = verbs.add_parser("sim", help="serve a simulated SunSpec inverter (models 1, 701, 702, 704) to try on",
+                           description="A pymodbus server holding SunSpec models built by pysunspec2, at a fixed "
+                                       "output; its reactive power follows the 704 set point and its revert timer.")
+    sim.add_argument("--modbus", required=True, metavar="tcp/HOST:PORT", help="where to serve")
+    sim.add_argument("--device", default="pv1", help="its serial number (model 1 SN)")
+    sim.add_argument("--unit", type=int, default=1, help="Modbus unit id it reports")
+    sim.add_argument("--s-rated-kva", type=float, default=1000.0, help="rating [kVA]")
+    sim.add_argument("--p-kw", type=float, default=600.0, help="active power, shared by three phases [kW]")
+    sim.add_argument("--v-nominal-v", type=float, default=7200.0, help="line-to-neutral voltage [V]")
+    sim.set_defaults(func=_sim)

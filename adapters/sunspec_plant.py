@@ -1,0 +1,193 @@
+"""A PV plant behind SunSpec Modbus as a device of the cvvc bus, without the bus: scans -> frames, commands -> acks.
+
+The command contract is the simulated plants' (``simulator_bridge.devices``: the same checks, in the same order,
+by the same :class:`~simulator_bridge.devices.PvInverter` guard), then the SunSpec hop:
+
+1. The generic checks (wrong device, non-finite, expired, out of window, replay) at the adapter's present time.
+2. The link is down: ``rejected`` with reason ``link_down`` (nothing is written).
+3. The set point is clipped to what the inverter can give: its headroom ``sqrt(S² − P²)`` at the last scan's
+   active power (0 at night unless ``q_at_night``) and 702's ``VarMaxInj``/``VarMaxAbs``.
+4. It is written as a 704 ``VarSet`` whose revert timer ``VarSetRvrtTms`` is the time left until the command's
+   ``valid_until_t_ns``, rounded up to a whole second: an expired command reverts *in the inverter*.
+5. The models are read back: the ack carries what the inverter holds (``VarSet`` with its scale factor):
+   ``accepted`` when that is the request within half a ``VarSet`` step, ``clipped`` otherwise; a Modbus exception
+   answer is ``rejected`` with reason ``device_refused``; a link failure ``rejected`` with ``link_down``.
+
+A scan reads 701/702/704 and makes a ``PvFrame`` stamped with the scan's time. Refused register values
+(``adapters.sunspec``) give no frame: they are counted by point and the link's state becomes ``refusing``.
+A command whose ``valid_until_t_ns`` has passed at a scan is answered ``expired`` (the inverter reverted itself).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections import Counter
+from dataclasses import dataclass
+from typing import Literal
+
+from adapters.errors import DeviceRefusedError, LinkDownError, ModelMissingError, RegisterValueError
+from adapters.sunspec import InverterReading, SunSpecLink
+from schemas import messages as m
+from schemas.logs import RateLimitedLog
+from simulator_bridge import devices as dv
+
+__all__ = ["PlantSettings", "SunSpecPlant"]
+
+log = logging.getLogger(__name__)
+_ROUNDING_TOL_KVAR = 1e-9
+
+
+@dataclass(frozen=True)
+class PlantSettings:
+    """What the adapter knows of the plant beyond its registers.
+
+    Parameters
+    ----------
+    feeder_id, device_id : where it is on the bus (``cvvc/<feeder_id>/.../pv/<device_id>``).
+    control_period_ns : the feeder's control period [ns]: the unit of the command windows (as the bridge's).
+    local_mode : the plant's local default, reported in its frames.
+    q_at_night : whether the inverter gives reactive power at zero active power.
+    """
+
+    feeder_id: str
+    device_id: str
+    control_period_ns: int = dv.DEFAULT_PERIOD_NS
+    local_mode: Literal["unity_pf", "volt_var"] = "unity_pf"
+    q_at_night: bool = False
+
+
+def _rejected(kind: str, why: str) -> dv.Verdict:
+    return dv.Verdict(status="rejected", reason=f"{kind}: {why}", reason_kind=kind)
+
+
+class SunSpecPlant:
+    """One inverter's scans and commands. Not thread safe: the adapter's loop is its only user."""
+
+    def __init__(self, settings: PlantSettings, link: SunSpecLink) -> None:
+        self.settings = settings
+        self.link = link
+        self.plant = dv.PvInverter(settings.device_id, 0, 1.0, settings.local_mode,
+                                   period_ns=settings.control_period_ns)
+        self.state: Literal["starting", "ok", "down", "refusing"] = "starting"
+        self.reason = ""
+        self.last: InverterReading | None = None
+        self.last_ok_t_ns = 0
+        self.scans = self.scan_failures = self.frames = 0
+        self.commands = self.commands_failed = 0
+        self.refused: Counter[str] = Counter()
+        self.acks: Counter[str] = Counter()
+        self._seq = 0
+        self._ack_seq = 0
+        self._status_seq = 0
+        self.rlog = RateLimitedLog(log, period_s=10.0)
+
+    # ------------------------------------------------------------------------------------------- scans
+    def scan(self, t_ns: int) -> m.PvFrame | None:
+        """Read the inverter for the scan at ``t_ns`` [ns]; its frame, or None (link down, values refused)."""
+        self.scans += 1
+        try:
+            reading = self.link.read()
+        except (LinkDownError, ModelMissingError) as e:
+            self._fail("down", str(e))
+            return None
+        except RegisterValueError as e:
+            self.refused[e.point] += 1
+            self._fail("refusing", f"refused register value {e}")
+            return None
+        self.last = reading
+        self.state, self.reason, self.last_ok_t_ns = "ok", "", int(t_ns)
+        return self._frame(reading, t_ns)
+
+    def _fail(self, state: Literal["down", "refusing"], why: str) -> None:
+        self.scan_failures += 1
+        self.state, self.reason = state, why
+        self.rlog.warning(state, "%s: no frame: %s", self.settings.device_id, why)
+
+    def _frame(self, r: InverterReading, t_ns: int) -> m.PvFrame:
+        by_phase = {p.phase: p for p in r.phases}
+        p = [by_phase[ph].p_kw if ph in by_phase else 0.0 for ph in "abc"]
+        q = [by_phase[ph].q_kvar if ph in by_phase else 0.0 for ph in "abc"]
+        v = [by_phase[ph].v_v if ph in by_phase else 0.0 for ph in "abc"]
+        self.plant.s_rated_kva = r.s_rated_kva
+        self._seq += 1
+        self.frames += 1
+        return dv.pv_frame(plant=self.plant, t_ns=int(t_ns), seq=self._seq, p_kw=p, q_kvar=q, v_v=v,
+                           available_p_kw=max(r.p_kw, 0.0), q_setpoint_kvar=r.q_setpoint_kvar,
+                           q_at_night=self.settings.q_at_night)
+
+    def expired(self, t_ns: int) -> m.Ack | None:
+        """The ``expired`` ack of the command whose validity ended before ``t_ns`` [ns], or None."""
+        gone = self.plant.guard.expire(t_ns)
+        if gone is None:
+            return None
+        return self._ack(gone.cmd_id, dv.Verdict(status="expired", applied_value=None,
+                                                 reason="valid_until_t_ns passed: the inverter's revert timer "
+                                                        "returned it to its local default"), t_ns)
+
+    # ---------------------------------------------------------------------------------------- commands
+    def headroom_kvar(self) -> tuple[float, float]:
+        """What the inverter can inject and absorb now [kvar] (both >= 0), from the last scan."""
+        r = self.last
+        if r is None:
+            return 0.0, 0.0
+        p = max(r.p_kw, 0.0)
+        h = math.sqrt(max(r.s_rated_kva**2 - p**2, 0.0)) if p > 0.0 or self.settings.q_at_night else 0.0
+        return min(h, r.var_max_inj_kvar), min(h, r.var_max_abs_kvar)
+
+    def command(self, cmd: m.PvCommand, now_t_ns: int) -> m.Ack:
+        """Check, write and read back one command at the adapter's time ``now_t_ns`` [ns]; its ack."""
+        self.commands += 1
+        verdict = self.plant.check(cmd, now_t_ns=now_t_ns) or self._apply(cmd, now_t_ns)
+        if verdict.status == "rejected":
+            self.commands_failed += 1
+            self.rlog.info("command_rejected", "%s: rejected command %s: %s", self.settings.device_id,
+                           cmd.cmd_id, verdict.reason)
+        return self._ack(cmd.cmd_id, verdict, now_t_ns)
+
+    def _apply(self, cmd: m.PvCommand, now_t_ns: int) -> dv.Verdict:
+        if self.state == "down" or self.last is None:
+            what = "no answer from" if self.state != "refusing" else "no valid scan yet of"
+            return _rejected("link_down", f"{what} the inverter at {self.link.endpoint}"
+                             + (f" ({self.reason})" if self.reason else "") + "; the command was not written")
+        inj, absorb = self.headroom_kvar()
+        q = min(max(float(cmd.q_kvar), -absorb), inj)
+        revert_s = max(1, math.ceil((cmd.valid_until_t_ns - now_t_ns) / 1e9))
+        try:
+            back = self.link.write_var_setpoint(q, revert_s)
+        except LinkDownError as e:
+            self.state, self.reason = "down", str(e)
+            return _rejected("link_down", f"{e}; the set point may not have been written")
+        except DeviceRefusedError as e:
+            return _rejected("device_refused", str(e))
+        except RegisterValueError as e:
+            self.refused[e.point] += 1
+            return _rejected("device_refused", f"read-back value refused: {e}")
+        self.last = back
+        applied = back.q_setpoint_kvar
+        if applied is None:
+            return _rejected("device_refused", "the inverter did not enable the reactive power set point "
+                             "(704 VarSetEna or VarSetMod read back otherwise)")
+        self.plant.guard.apply(cmd, applied)
+        if abs(applied - float(cmd.q_kvar)) <= back.var_set_step_kvar / 2 + _ROUNDING_TOL_KVAR:
+            return dv.Verdict(status="accepted", applied_value=applied)
+        return dv.Verdict(status="clipped", applied_value=applied,
+                          reason=f"{cmd.q_kvar:.3f} kvar is beyond what the inverter gives now (inject "
+                                 f"{inj:.3f}, absorb {absorb:.3f} kvar); it applied {applied:.3f} kvar")
+
+    def _ack(self, cmd_id: str, verdict: dv.Verdict, t_ns: int) -> m.Ack:
+        self._ack_seq += 1
+        self.acks[verdict.status] += 1
+        return dv.make_ack(device_id=self.settings.device_id, source=self.settings.device_id, cmd_id=cmd_id,
+                           verdict=verdict, t_ns=max(int(t_ns), 0), seq=self._ack_seq)
+
+    # ------------------------------------------------------------------------------------------ status
+    def status(self, t_ns: int) -> m.LinkStatus:
+        """The link's ``LinkStatus`` at ``t_ns`` [ns]."""
+        self._status_seq += 1
+        return m.LinkStatus(t_ns=max(int(t_ns), 0), seq=self._status_seq, source=self.settings.device_id,
+                            feeder_id=self.settings.feeder_id, device_id=self.settings.device_id,
+                            endpoint=self.link.endpoint[:200], state=self.state, scans=self.scans,
+                            scan_failures=self.scan_failures, frames=self.frames, refused=dict(self.refused),
+                            commands=self.commands, commands_failed=self.commands_failed,
+                            last_ok_t_ns=self.last_ok_t_ns, reason=self.reason[:500])

@@ -1,0 +1,38 @@
+"""Fixtures of the adapter tests: a simulated SunSpec inverter on a free loopback port, and its clock."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator
+
+import pytest
+
+from schemas.bus import free_port
+from simulator_bridge.sunspec_sim import SimulatedSunSpecInverter
+
+RATING_KVA = 1000.0
+P_PHASE_KW = 200.0  # 600 kW: headroom sqrt(1000² − 600²) = 800 kvar
+
+
+class ShiftedClock:
+    """Wall time [ns since the epoch] plus an offset the test may move forward (the inverter's revert timer)."""
+
+    def __init__(self) -> None:
+        self.offset_ns = 0
+
+    def __call__(self) -> int:
+        return time.time_ns() + self.offset_ns
+
+
+@pytest.fixture
+def inverter_clock() -> ShiftedClock:
+    return ShiftedClock()
+
+
+@pytest.fixture
+def inverter(inverter_clock) -> Iterator[SimulatedSunSpecInverter]:
+    inv = SimulatedSunSpecInverter(plant_id="pv1", s_rated_kva=RATING_KVA, v_nominal_v=7200.0, port=free_port(),
+                                   clock_ns=inverter_clock)
+    inv.set_measurements(p_kw=[P_PHASE_KW] * 3, v_v=[7250.0, 7260.0, 7270.0])
+    with inv:
+        yield inv
