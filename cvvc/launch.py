@@ -513,7 +513,7 @@ def no_control_baseline(dm_path: Path, start: dt.datetime, steps: int, year_seed
     """The same days with no central control (regulators local, PV unity PF), simulated in-process."""
     from schemas.devicemap import load_device_map
     from simulator_bridge.engine import FeederEngine
-    from simulator_bridge.metrics import MetricsAccumulator
+    from simulator_bridge.metrics_stream import MetricsAccumulator
     from simulator_bridge.qsts import Qsts
     from training.train import load_profiles
 

@@ -100,7 +100,7 @@ class FeederInfo(msgspec.Struct, frozen=True, kw_only=True):
 def check_feeder(device_map_path: str | Path) -> list[str]:
     """The problems of a device map against its circuit, one line each (empty: none); see ``mapcheck``."""
     from schemas.devicemap import load_device_map
-    from simulator_bridge.engine import survey_circuit
+    from simulator_bridge.circuit_survey import survey_circuit
     from simulator_bridge.mapcheck import check_device_map
 
     dm = load_device_map(device_map_path)
@@ -110,7 +110,8 @@ def check_feeder(device_map_path: str | Path) -> list[str]:
 def feeder_info(device_map_path: str | Path) -> FeederInfo:
     """Compile the feeder of a device map with OpenDSS and describe it (the zone's loads and peak)."""
     from schemas.devicemap import load_device_map
-    from simulator_bridge.engine import FeederEngine, survey_circuit
+    from simulator_bridge.circuit_survey import survey_circuit
+    from simulator_bridge.engine import FeederEngine
 
     dm = load_device_map(device_map_path)
     survey = survey_circuit(dm.master_path, extra_commands=dm.feeder.extra_commands)

@@ -1,6 +1,6 @@
 """Check a device map against its circuit (``cvvc feeder info``): one line per problem, saying how to mend it.
 
-Pure: works on a :class:`~simulator_bridge.survey.CircuitSurvey` (``engine.survey_circuit``), so it needs no
+Pure: works on a :class:`~simulator_bridge.survey.CircuitSurvey` (``circuit_survey.survey_circuit``), so it needs no
 ``FeederEngine`` and finds every problem at once instead of stopping at the first.
 """
 

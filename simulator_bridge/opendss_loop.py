@@ -9,7 +9,7 @@ Two uses:
   feeder's year profiles (loads *and* PV, PV at unity power factor as in the ``none`` case) stepped minute by
   minute through OpenDSS's own RegControls and CapControls (``set controlmode=time``, their own ``delay``,
   ``tapdelay``, ``Delay``, ``DelayOFF``, ``DeadTime``), with the paper's IV.F metrics computed by the same
-  :class:`~simulator_bridge.metrics.MetricsAccumulator` as every bus run (``for_feeder``: the zone's nodes).
+  :class:`~simulator_bridge.metrics_stream.MetricsAccumulator` as every bus run (``for_feeder``: the zone's nodes).
 
 Within a minute the loads and PV are held and OpenDSS solves ``60 / step_s`` times at ``start + 60 m + k step_s``
 [s]; the minute's voltages are those of its last solve (as a QSTS step reports the solution after its controls
@@ -135,7 +135,7 @@ def reference_metrics(device_map: DeviceMap, profiles: Profiles, *, start_step: 
     ``profiles`` must be the feeder's (columns in the engine's load and plant order) at 60 s per row;
     ``skip_quiet``: see :class:`OpenDssLoop`.
     """
-    from simulator_bridge.metrics import MetricsAccumulator
+    from simulator_bridge.metrics_stream import MetricsAccumulator
 
     if getattr(profiles, "step_s", 60) != 60:
         raise EngineError(f"the OpenDSS reference steps minutes; the profiles have {profiles.step_s} s rows")

@@ -36,8 +36,9 @@ from typing import Literal, Protocol
 import numpy as np
 
 from simulator_bridge.controls import LocalControls
-from simulator_bridge.engine import FeederEngine, FieldReadings
+from simulator_bridge.engine import FeederEngine
 from simulator_bridge.errors import SimulatorError
+from simulator_bridge.readout import FieldReadings
 
 __all__ = [
     "IEEE1547_CAT_B_Q_PU",

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from schemas.devicemap import DeviceMapError, load_device_map
-from simulator_bridge.engine import survey_circuit
+from simulator_bridge.circuit_survey import survey_circuit
 from simulator_bridge.mapcheck import check_device_map, suggested_head_element
 from simulator_bridge.survey import CircuitSurvey
 from simulator_bridge.zone import (

@@ -1,4 +1,5 @@
-"""What a compiled OpenDSS model holds, as plain typed data (``engine.survey_circuit`` reads it; no OpenDSS here).
+"""What a compiled OpenDSS model holds, as plain typed data (``circuit_survey.survey_circuit`` reads it; no OpenDSS
+here).
 
 Used by ``zone.py`` (the feeder zone, distances), ``mapcheck.py`` (``cvvc feeder info``'s checks) and
 ``scaffold.py`` (``cvvc feeder scaffold``). Names are OpenDSS's, lower case; buses without their node suffixes.

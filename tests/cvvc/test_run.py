@@ -15,7 +15,7 @@ from mcap.reader import make_reader
 from schemas import messages as m
 from schemas.devicemap import load_device_map
 from simulator_bridge.engine import FeederEngine
-from simulator_bridge.metrics import MetricsAccumulator
+from simulator_bridge.metrics_stream import MetricsAccumulator
 
 REPO = Path(__file__).resolve().parents[2]
 

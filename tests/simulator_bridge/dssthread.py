@@ -53,7 +53,7 @@ def _loop() -> None:
 
 
 def _warm_up() -> None:
-    from simulator_bridge.engine import new_context
+    from simulator_bridge.dss_context import new_context
 
     new_context()  # made and dropped in this thread: FreePascal's per-thread state exists from now on
 

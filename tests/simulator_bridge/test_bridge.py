@@ -476,7 +476,8 @@ def test_packed_steps_come_back_as_they_went_in(device_map_path: Path, cache_dir
     """The shared-memory slot layout: a real step and the device settings in force, packed and unpacked."""
     from simulator_bridge.bridge import cached_profiles
     from simulator_bridge.engine import FeederEngine
-    from simulator_bridge.publishing import DeviceSettings, StepPacker
+    from simulator_bridge.publisher_process import StepPacker
+    from simulator_bridge.publishing import DeviceSettings
     from simulator_bridge.qsts import Qsts
 
     engine = FeederEngine(load_device_map(device_map_path))
@@ -513,7 +514,7 @@ def test_the_publisher_process_fails_the_run_and_is_stopped(client: Client, rout
                                                             device_map_path: Path, cache_dir: Path) -> None:
     """A publisher process killed mid-run: the bridge stops with an error at its next hand-over, in bounded time,
     and withdraws its tokens (the client sees the bridge's token go)."""
-    import simulator_bridge.publishing as pub
+    import simulator_bridge.publisher_process as pub
 
     procs: list[Any] = []
     orig = pub.PublisherProcess.__init__
@@ -550,23 +551,24 @@ def test_publisher_process_cannot_hold_frames_for_latency(device_map_path: Path,
 
 def test_auto_publishes_from_a_process_where_it_pays_and_the_child_can_join(device_map_path: Path,
                                                                              cache_dir: Path) -> None:
-    from simulator_bridge.bridge import BridgeError, _publisher_bus
+    from simulator_bridge.bridge import BridgeError
+    from simulator_bridge.bridge_runtime import publisher_bus
 
     router = BusConfig(mode="peer", connect=("tcp/127.0.0.1:7447",))
     auto = _config(device_map_path, cache_dir)
-    assert _publisher_bus(auto, router, 41) is None  # IEEE 13: no faster, only a start more
-    child = _publisher_bus(auto, router, 278)
+    assert publisher_bus(auto, router, 41) is None  # IEEE 13: no faster, only a start more
+    child = publisher_bus(auto, router, 278)
     assert child is not None and child.connect == router.connect and child.listen == ()
     # a bridge that only listens: the child connects there (it cannot listen on the same port)
     listening = BusConfig(mode="peer", listen=("tcp/127.0.0.1:7448",))
-    assert _publisher_bus(auto, listening, 1283).connect == ("tcp/127.0.0.1:7448",)  # type: ignore[union-attr]
+    assert publisher_bus(auto, listening, 1283).connect == ("tcp/127.0.0.1:7448",)  # type: ignore[union-attr]
     for no in (BusConfig(mode="peer"), BusConfig(mode="peer", config_file="z.json5", connect=router.connect)):
-        assert _publisher_bus(auto, no, 1283) is None
+        assert publisher_bus(auto, no, 1283) is None
         with pytest.raises(BridgeError, match="publisher='process' needs a bus"):
-            _publisher_bus(_config(device_map_path, cache_dir, publisher="process"), no, 1283)
-    assert _publisher_bus(_config(device_map_path, cache_dir, latency_s=0.1), router, 1283) is None
-    assert _publisher_bus(_config(device_map_path, cache_dir, publisher="inline"), router, 8531) is None
-    assert _publisher_bus(_config(device_map_path, cache_dir, publisher="process"), router, 41) is not None
+            publisher_bus(_config(device_map_path, cache_dir, publisher="process"), no, 1283)
+    assert publisher_bus(_config(device_map_path, cache_dir, latency_s=0.1), router, 1283) is None
+    assert publisher_bus(_config(device_map_path, cache_dir, publisher="inline"), router, 8531) is None
+    assert publisher_bus(_config(device_map_path, cache_dir, publisher="process"), router, 41) is not None
 
 
 def _children(pid: int) -> set[int]:

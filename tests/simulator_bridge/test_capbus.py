@@ -220,7 +220,8 @@ def test_packed_cap_settings_come_back(cap_map: Path, cache_dir: Path) -> None:
     """The publisher process's slot layout carries the banks' states, switchings and the commands in force."""
     from simulator_bridge.bridge import cached_profiles
     from simulator_bridge.engine import FeederEngine
-    from simulator_bridge.publishing import DeviceSettings, StepPacker
+    from simulator_bridge.publisher_process import StepPacker
+    from simulator_bridge.publishing import DeviceSettings
     from simulator_bridge.qsts import Qsts
 
     dm = load_device_map(cap_map)

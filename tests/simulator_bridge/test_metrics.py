@@ -7,7 +7,6 @@ import pytest
 from schemas.errors import CvvcError
 from simulator_bridge.metrics import (
     Metrics,
-    MetricsAccumulator,
     MetricsError,
     combine_metrics,
     metrics_from_series,
@@ -16,6 +15,7 @@ from simulator_bridge.metrics import (
     tap_cost_per_regulator,
     violation_pu,
 )
+from simulator_bridge.metrics_stream import MetricsAccumulator
 
 REGS = ("vr1", "vr2")
 PVS = ("pv1", "pv2")

@@ -17,7 +17,7 @@ import pytest
 from schemas.devicemap import load_device_map
 from simulator_bridge.control_check import MinuteProfiles
 from simulator_bridge.engine import EngineError, FeederEngine
-from simulator_bridge.metrics import MetricsAccumulator
+from simulator_bridge.metrics_stream import MetricsAccumulator
 from simulator_bridge.opendss_loop import OpenDssLoop, reference_metrics
 from simulator_bridge.qsts import Qsts
 

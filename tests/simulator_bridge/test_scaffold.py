@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 
 from schemas.devicemap import load_device_map
-from simulator_bridge.engine import FeederEngine, survey_circuit
+from simulator_bridge.circuit_survey import survey_circuit
+from simulator_bridge.engine import FeederEngine
 from simulator_bridge.mapcheck import check_device_map
 from simulator_bridge.scaffold import PV_KVA_PER_KW, scaffold_device_map
 from simulator_bridge.zone import feeder_zone
