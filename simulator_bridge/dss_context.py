@@ -15,9 +15,12 @@ import tempfile
 import threading
 from pathlib import Path
 
-import opendssdirect as dss
-
 from simulator_bridge.errors import EngineError
+from simulator_bridge.pinned_environ import pin
+
+pin()  # before the library loads: it keeps a pointer to the C environment array (pinned_environ's docstring)
+
+import opendssdirect as dss  # noqa: E402
 
 __all__ = [
     "DSS_LIFECYCLE",
@@ -71,9 +74,9 @@ def new_context():
     replaced by one that takes the lock, owned by the context's own API object (so it runs after that object's
     callbacks are unregistered, as before).
 
-    Make, use and drop an engine in a thread that lives as long as it does (a process's main thread, a worker's
-    pool thread): DSS C-API is FreePascal, which sets up a foreign thread's own state and heap the first time the
-    thread calls in; ``ctx_New`` segfaulted in a fresh, short-lived test thread (tests/simulator_bridge/dssthread.py).
+    The segfault in ``ctx_New`` that CI met three times (in a test's bridge thread) was not about threads: the
+    library read the C environment through a pointer that glibc had freed (``pinned_environ``, applied when this
+    module loads).
     """
     with DSS_LIFECYCLE:
         # The cyclic garbage collector disposes contexts left in reference cycles from whichever thread it runs

@@ -1,14 +1,11 @@
 """One long-lived thread that runs every in-process bridge of a test session, one after another.
 
-OpenDSS (DSS C-API, a FreePascal library) segfaulted in ``ctx_New`` three times in the test suite, each time in a
-fresh short-lived thread running ``run_bridge``, the first time in the session's very first bridge thread (CI of
-2026-11-26, ``test_commands_are_acked_and_show_in_the_next_frames[inline]``). FreePascal sets up its per-thread
-state (thread variables, a per-thread heap) lazily the first time a foreign thread calls in, and a context made in
-a thread that then exits is freed later from another thread's heap; neither can be reproduced on demand (300
-contexts made in short-lived threads and dropped in the main thread ran clean here). In production every engine
-lives in a process's main thread (``cvvc bridge``, evaluation workers); the tests now match that as closely as a
-thread can: all in-process bridges run in this one thread, which is set up once, while nothing else runs, by
-making and dropping one context.
+Introduced against a segfault in OpenDSS's ``ctx_New`` met three times in CI, always in a fresh bridge thread.
+Its cause turned out to be elsewhere (the library read the C environment through a pointer glibc had freed once
+pytest set ``PYTEST_CURRENT_TEST``; fixed by ``simulator_bridge.pinned_environ``: with it, the crash that the
+re-laid simulator_bridge made deterministic, 2 of 2 runs of ``test_bridge.py`` with ``test_engine.py``, is gone,
+3 of 3). The thread stays: a bridge of the tests runs where a bridge runs in production, on one thread that
+outlives its engines, and a stuck bridge shows as a job that never ends, not as a stray thread.
 """
 
 from __future__ import annotations
