@@ -62,7 +62,8 @@ def _spawn(name: str, args: list[str], log_dir: Path) -> subprocess.Popen[bytes]
                                 stdin=subprocess.DEVNULL, env={**os.environ, "PYTHONUNBUFFERED": "1"})
 
 
-def _stop(proc: subprocess.Popen[bytes], timeout_s: float = 30.0) -> int:
+def stop_process(proc: subprocess.Popen[bytes], timeout_s: float = 30.0) -> int:
+    """SIGINT ``proc`` (every cvvc process ends cleanly on it), kill it after ``timeout_s``; its exit code."""
     if proc.poll() is None:
         proc.send_signal(signal.SIGINT)
         try:
@@ -168,10 +169,10 @@ def bench_soak(days: float = 30.0, feeder: str | None = None, *, start: str = "2
                 elif isinstance(item.msg, m.BridgeStatus):
                     last_bridge = item.msg
             wall_s = time.monotonic() - t0
-            codes = {n: _stop(p) for n, p in procs.items()}
+            codes = {n: stop_process(p) for n, p in procs.items()}
     finally:
         for p in procs.values():
-            _stop(p)
+            stop_process(p)
     log = (out / "bridge.log").read_text(errors="replace")
     try:
         summary = json.loads(log[log.rindex("\n{\n") + 1:] if not log.startswith("{") else log)

@@ -33,6 +33,7 @@ from typing import Any
 import msgspec
 import zenoh
 
+from benchmarks.bench_soak import stop_process
 from schemas import messages as m
 from schemas.bus import MAX_PAYLOAD_BYTES, BadMessage, codec_for
 from schemas.errors import CvvcError
@@ -401,17 +402,6 @@ def _spawn(name: str, args: list[str], log_dir: Path) -> subprocess.Popen[bytes]
                                 stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
 
 
-def _stop(proc: subprocess.Popen[bytes], timeout_s: float = 20.0) -> int:
-    if proc.poll() is None:
-        proc.send_signal(2)  # SIGINT: every cvvc process finishes cleanly on it
-        try:
-            proc.wait(timeout=timeout_s)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(timeout=10)
-    return int(proc.returncode)
-
-
 def _delta(now: dict[str, int], before: dict[str, int]) -> dict[str, int]:
     return {k: v - before.get(k, 0) for k, v in sorted(now.items()) if v - before.get(k, 0)}
 
@@ -490,10 +480,10 @@ def fuzz_live(n: int = 20_000, seed: int = SEED, out_dir: Path | None = None) ->
                 watcher.close()
                 for name in ("bridge", "agent", "recorder"):
                     if name in procs:
-                        _stop(procs[name])
+                        stop_process(procs[name])
     finally:
         for p in procs.values():
-            _stop(p)
+            stop_process(p)
     from mcap.reader import make_reader
 
     recorded: Counter[str] = Counter()
