@@ -370,6 +370,12 @@ class FeederEngine:
             self._dss.CktElement.Open(1, 0)
         self._bank_states[b] = n
 
+    @property
+    def cap_phases(self) -> list[list[int]]:
+        """Each map bank's phases (1-3), from its terminal's conductors (all three when none is known)."""
+        cond = self._readout.cap_conductors
+        return [[ph + 1 for ph in range(3) if row[ph] >= 0] or [1, 2, 3] for row in cond[: len(self.cap_steps)]]
+
     def cap_states(self) -> np.ndarray:
         """(C,) closed steps of each map capacitor bank."""
         return self._cap_states.copy()

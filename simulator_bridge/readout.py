@@ -156,6 +156,11 @@ class Readout:
         self._cc_any = {k: bool(m.any()) for k, m in self._cc_kind.items()}
         self._batch: tuple[np.ndarray, np.ndarray] | None = None
 
+    @property
+    def cap_conductors(self) -> np.ndarray:
+        """(C, 3) each bank's node index per phase a, b, c (-1 where the bank has no conductor on it)."""
+        return self._cap_cond
+
     def invalidate(self) -> None:
         """Forget the batch read: the circuit was solved again."""
         self._batch = self._reg_v = None

@@ -55,12 +55,8 @@ def bank_sensitivities(engine, inputs, tap0: np.ndarray, cap0: np.ndarray) -> np
 
 
 def bank_phases(engine, c: int) -> list[int]:
-    """Phases (1-3) of map bank ``c`` (from the engine's terminal map; all three if unknown)."""
-    cond = getattr(engine, "_cap_cond", None)
-    if cond is None or c >= len(cond):
-        return [1, 2, 3]
-    phases = [ph + 1 for ph in range(3) if cond[c][ph] >= 0]
-    return phases or [1, 2, 3]
+    """Phases (1-3) of map bank ``c`` (``FeederEngine.cap_phases``)."""
+    return engine.cap_phases[c]
 
 
 def bank_infos(engine, device_map, cap0: np.ndarray) -> list[CapacitorInfo]:
