@@ -39,7 +39,7 @@ from agent.cvvc_qp import CvvcInputs
 from agent.errors import AgentInputError
 from agent.setpoints import expected_compared_v120, setpoint_for_tap_change
 from agent.solve import CvvcSolution, WarmStart, solve_cvvc
-from agent.state import GridState, OracleSource, estimated_state, oracle_state
+from agent.state import CorrectionFilter, GridState, OracleSource, estimated_state, oracle_state
 from regression.estimator import SensitivityTable, dv_dp_pu_per_kw, pv_variability_margins_pu
 from regression.model import CvvcModel, ModelArrays, features
 
@@ -213,6 +213,7 @@ class CvvcController:
         pv_margin_cap_pu: float = 0.01,
         setpoint_hold: bool = False,
         control_banks: bool = False,
+        correction_window_s: float = 0.0,
     ) -> None:
         if mode not in ("taps", "setpoints"):
             raise AgentInputError(f"mode must be 'taps' or 'setpoints', not {mode!r}")
@@ -225,8 +226,13 @@ class CvvcController:
             raise AgentInputError(f"pv_margin_window_s must be >= 0, not {pv_margin_window_s}")
         if not (np.isfinite(pv_margin_cap_pu) and 0.0 <= pv_margin_cap_pu <= 0.05):
             raise AgentInputError(f"pv_margin_cap_pu must be within 0 to 0.05 pu, not {pv_margin_cap_pu}")
+        if not (np.isfinite(correction_window_s) and correction_window_s >= 0.0):
+            raise AgentInputError(f"correction_window_s must be >= 0, not {correction_window_s}")
         self.model = model
         self.mode = mode
+        self._eps_filter = (CorrectionFilter(len(model.regulators),
+                                             min(1.0, float(model.control_period_s) / correction_window_s))
+                            if correction_window_s > 0 else None)
         self.correction = correction
         self.bandwidth_v120 = float(bandwidth_v120)
         self._arrays = ModelArrays.of(model)
@@ -516,7 +522,7 @@ class CvvcController:
                 self._arrays, self._sens, self._dv_dp, t_ns=int(snap.t_ns), head_p_kw=snap.head_p_kw,
                 head_q_kvar=snap.head_q_kvar, pv_p_kw=pv_p, pv_q_kvar=pv_q, taps=taps, caps=self._cap_last,
                 reg_v120=snap.reg_v120 if self.correction else None, reg_ok=reg_ok,
-                cap_v_v=self._cap_readings(snap, cap_ok))
+                cap_v_v=self._cap_readings(snap, cap_ok), eps_filter=self._eps_filter)
         else:
             reply = oracle(int(snap.t_ns))
             if reply is None:

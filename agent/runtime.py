@@ -68,6 +68,8 @@ class AgentSettings(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fi
     # (240 s held 82 and 278 steps and gave NVV 597 and 1,158 with 10-minute outages in the rural winter week)
     reading_fit_s: float = 0.0  # > 0: regulator readings of this long regressed on the head's P and Q [s]
     clock_tolerance_s: float = 5.0  # a frame stamped this close to a control step is that step's (clock skew) [s]
+    correction_window_s: float = 3000.0  # eq. (6)'s corrections: exponential mean over about this [s]; 0: off
+    # (rural winter week with 1 % SCADA noise: NVV 10 -> 0, NTC 196 -> 66; agent.state.CorrectionFilter)
 
 
 class AgentSummary(msgspec.Struct, frozen=True, kw_only=True):
@@ -242,7 +244,8 @@ class DecisionMaker:
                                          pv_margin_window_s=settings.pv_margin_window_s,
                                          pv_margin_cap_pu=settings.pv_margin_cap_pu,
                                          setpoint_hold=settings.setpoint_hold,
-                                         control_banks=settings.control_banks)
+                                         control_banks=settings.control_banks,
+                                         correction_window_s=settings.correction_window_s)
         self.oracle: OracleSource | None = None  # case A: set by the live runtime once its session is open
         self.seq = 0
         self.holds = 0

@@ -18,7 +18,7 @@ from regression.estimator import SensitivityTable, dv_dq_pu_per_kvar, estimate_c
 from regression.model import CvvcModel, ModelArrays, features
 from schemas import messages as m
 
-__all__ = ["GridState", "OracleSource", "estimated_state", "oracle_state"]
+__all__ = ["CorrectionFilter", "GridState", "OracleSource", "estimated_state", "oracle_state"]
 
 #: Case A's source: the bridge's oracle reply for a step time [ns], or None when it did not answer.
 OracleSource = Callable[[int], "m.OracleReply | None"]
@@ -49,6 +49,36 @@ class GridState:
     critical: bool
 
 
+class CorrectionFilter:
+    """Eq. (6)'s corrections averaged over decisions: an exponential mean with weight ``weight`` per decision.
+
+    Beyond the paper. The correction ``eps_r`` is the regulator's reading minus its estimate; with SCADA-class noise
+    on the readings (1 %: 1.2 V, still 0.5 V after the 5-minute mean) each decision's ``eps`` jumps by the noise and
+    the QP moves taps after it (rural winter week: NTC 24 without noise, 196 with it, NVV 10). What ``eps`` should
+    carry, the model's error at the regulator, changes slowly; its exponential mean over the last hour or so
+    (``weight`` 0.1 per 5-minute decision) keeps it and sheds most of the noise (measured in docs/results.md). A
+    regulator without a usable reading keeps its last mean; the first reading is taken as it is.
+    """
+
+    def __init__(self, n_regulators: int, weight: float) -> None:
+        if not 0.0 < weight <= 1.0:
+            raise AgentInputError(f"correction filter weight must be in (0, 1], not {weight}")
+        self.weight = float(weight)
+        self._eps: np.ndarray | None = None
+        self._seen = np.zeros(n_regulators, bool)
+
+    def __call__(self, eps: np.ndarray, ok: np.ndarray) -> np.ndarray:
+        """The corrections to apply [pu] for this decision's ``eps`` (R,) [pu] and their validity ``ok`` (R,)."""
+        eps = np.asarray(eps, float)
+        ok = np.asarray(ok, bool) & np.isfinite(eps)
+        prev = np.zeros_like(eps) if self._eps is None else self._eps
+        mean = np.where(self._seen, self.weight * eps + (1.0 - self.weight) * prev, eps)
+        out = np.where(ok, mean, np.where(self._seen, prev, 0.0))
+        self._eps = out
+        self._seen = self._seen | ok
+        return out
+
+
 def estimated_state(
     arrays: ModelArrays,
     sens: SensitivityTable,
@@ -64,6 +94,7 @@ def estimated_state(
     reg_v120: np.ndarray | None,
     reg_ok: np.ndarray,
     cap_v_v: np.ndarray,
+    eps_filter: CorrectionFilter | None = None,
 ) -> GridState:
     """The critical nodes by the estimator (``regression.estimator.estimate_critical_pu``) and eq. (3).
 
@@ -81,10 +112,11 @@ def estimated_state(
     reg_v120 : (R,) raw regulator secondary voltages [V on the 120 V base], or None (no correction).
     reg_ok : (R,) bool, regulators whose reading is usable.
     cap_v_v : (C,) the banks' bus voltage readings [V], NaN where missing (models with readings).
+    eps_filter : the controller's ``CorrectionFilter`` (None: eq. (6) as computed).
     """
     paper = features(head_p_kw, head_q_kvar, pv_p_kw, pv_q_kvar)
     v_hat = estimate_critical_pu(arrays, paper, taps, caps=caps, reg_v120=reg_v120, reg_ok=reg_ok, cap_v_v=cap_v_v,
-                                 t_ns=t_ns)
+                                 t_ns=t_ns, eps_filter=eps_filter)
     corrected = reg_v120 is not None and bool(np.any(reg_ok))
     head_q = head_q_at_training_banks(arrays, head_q_kvar, caps) if arrays.cap0.size else head_q_kvar
     dv_dq = dv_dq_pu_per_kvar(sens, float(np.sum(head_q)))

@@ -7,7 +7,7 @@ All voltages are per unit of each critical node's own base (``_pu``).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -150,6 +150,7 @@ def estimate_critical_pu(
     reg_ok: np.ndarray | None = None,
     cap_v_v: np.ndarray | None = None,
     t_ns: np.ndarray | int | None = None,
+    eps_filter: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
 ) -> np.ndarray:
     """Critical-node voltages of any model, with its bank terms, corrected by eq. (6)-(7) when ``reg_v120`` is given.
 
@@ -173,6 +174,8 @@ def estimate_critical_pu(
     reg_ok : (..., R) bool, regulators whose reading is usable (default: every finite one).
     cap_v_v : (..., C) the banks' bus voltage readings [V] (NaN where missing; models with readings).
     t_ns : (...) UTC epoch nanoseconds of each minute (models with calendar features).
+    eps_filter : maps eq. (6)'s corrections ``(R,)`` and their validity ``(R,)`` to the corrections applied
+        (the agent's ``agent.state.CorrectionFilter``; one minute only); None: as computed.
 
     Returns
     -------
@@ -204,6 +207,8 @@ def estimate_critical_pu(
     measured = np.asarray(reg_v120, float) * arrays.reg_pu_per_v120
     # eq. (6)-(7) index nodes / regulators on axis 0: pass (N, T) and (R, T)
     eps = correction_pu(v.T, arrays.reg_secondary_node, np.broadcast_to(measured, ok.shape).T, valid=ok.T)
+    if eps_filter is not None:
+        eps = eps_filter(eps, ok)
     return apply_correction(v.T, eps, arrays.upstream_regulator).T
 
 
