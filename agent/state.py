@@ -53,10 +53,10 @@ class CorrectionFilter:
     """Eq. (6)'s corrections averaged over decisions: an exponential mean with weight ``weight`` per decision.
 
     Beyond the paper. The correction ``eps_r`` is the regulator's reading minus its estimate; with SCADA-class noise
-    on the readings (1 %: 1.2 V, still 0.5 V after the 5-minute mean) each decision's ``eps`` jumps by the noise and
-    the QP moves taps after it (rural winter week: NTC 24 without noise, 196 with it, NVV 10). What ``eps`` should
-    carry, the model's error at the regulator, changes slowly; its exponential mean over the last hour or so
-    (``weight`` 0.1 per 5-minute decision) keeps it and sheds most of the noise (measured in docs/results.md). A
+    on the readings (1 %: 1.2 V; about 0.5 V, 1.2 V / sqrt(5), after the 5-minute mean) each decision's ``eps``
+    jumps by the noise and the QP moves taps after it (rural winter week: NTC 24 without noise, 196 with it, NVV 10).
+    What ``eps`` should carry, the model's error at the regulator, changes slowly; its exponential mean over the
+    last hour or so (``weight`` 0.1 per 5-minute decision) keeps it and sheds most of the noise (docs/results.md). A
     regulator without a usable reading keeps its last mean; the first reading is taken as it is.
     """
 
@@ -64,19 +64,17 @@ class CorrectionFilter:
         if not 0.0 < weight <= 1.0:
             raise AgentInputError(f"correction filter weight must be in (0, 1], not {weight}")
         self.weight = float(weight)
-        self._eps: np.ndarray | None = None
+        self._eps = np.zeros(n_regulators)  # the mean so far (0 until a regulator's first usable reading)
         self._seen = np.zeros(n_regulators, bool)
 
     def __call__(self, eps: np.ndarray, ok: np.ndarray) -> np.ndarray:
         """The corrections to apply [pu] for this decision's ``eps`` (R,) [pu] and their validity ``ok`` (R,)."""
         eps = np.asarray(eps, float)
         ok = np.asarray(ok, bool) & np.isfinite(eps)
-        prev = np.zeros_like(eps) if self._eps is None else self._eps
-        mean = np.where(self._seen, self.weight * eps + (1.0 - self.weight) * prev, eps)
-        out = np.where(ok, mean, np.where(self._seen, prev, 0.0))
-        self._eps = out
+        mean = np.where(self._seen, self.weight * eps + (1.0 - self.weight) * self._eps, eps)
+        self._eps = np.where(ok, mean, self._eps)
         self._seen = self._seen | ok
-        return out
+        return self._eps.copy()
 
 
 def estimated_state(

@@ -14,7 +14,7 @@ import numpy as np
 
 from regression.capbanks import bank_voltage_pu, head_q_at_training_banks
 from regression.errors import ModelInputError
-from regression.model import ModelArrays, SensitivityFit, calendar_features
+from regression.model import HEAD_Q_COLUMNS, ModelArrays, SensitivityFit, calendar_features
 
 __all__ = [
     "SensitivityTable",
@@ -33,9 +33,6 @@ __all__ = [
 POWER_BASE_FLOOR_KVAR = 1.0
 
 _FORM_CODE = {"constant": 0, "linear": 1, "power": 2}
-
-#: Columns of the feeder head's Q per phase among ``regression.model.features`` (head P, head Q, then the plants).
-_HEAD_Q = slice(3, 6)
 
 
 def estimate_voltages_pu(
@@ -198,7 +195,7 @@ def estimate_critical_pu(
         f = extended_features(arrays, f, readings, taps, arrays.cap0 if c is None else c, calendar=calendar)
     elif c is not None:
         f = f.copy()
-        f[..., _HEAD_Q] = head_q_at_training_banks(arrays, f[..., _HEAD_Q], c)
+        f[..., HEAD_Q_COLUMNS] = head_q_at_training_banks(arrays, f[..., HEAD_Q_COLUMNS], c)
     v = estimate_voltages_pu(arrays, f, taps)
     if c is not None:
         v = v + bank_voltage_pu(arrays, c)

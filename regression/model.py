@@ -45,6 +45,7 @@ __all__ = [
     "RegulatorInfo",
     "SensitivityFit",
     "TrainingSettings",
+    "HEAD_Q_COLUMNS",
     "features",
     "CALENDAR_FEATURES",
     "calendar_features",
@@ -293,6 +294,10 @@ def calendar_features(t_ns: np.ndarray, utc_offset_h: float) -> np.ndarray:
     day = 2.0 * np.pi * (local_s % 86400.0) / 86400.0
     year = 2.0 * np.pi * (local_s % (365.2425 * 86400.0)) / (365.2425 * 86400.0)
     return np.stack([np.cos(day), np.sin(day), np.cos(2 * day), np.sin(2 * day), np.cos(year), np.sin(year)], axis=-1)
+
+
+#: Columns of the feeder head's Q per phase in ``features``' output (head P, head Q, then each plant's P and Q).
+HEAD_Q_COLUMNS = slice(3, 6)
 
 
 def features(

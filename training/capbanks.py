@@ -54,11 +54,6 @@ def bank_sensitivities(engine, inputs, tap0: np.ndarray, cap0: np.ndarray) -> np
     return total / max(len(picks), 1)
 
 
-def bank_phases(engine, c: int) -> list[int]:
-    """Phases (1-3) of map bank ``c`` (``FeederEngine.cap_phases``)."""
-    return engine.cap_phases[c]
-
-
 def bank_infos(engine, device_map, cap0: np.ndarray) -> list[CapacitorInfo]:
     """The model's record of every map bank: rating, steps, phases, training state and switching cost."""
     return [
@@ -66,7 +61,7 @@ def bank_infos(engine, device_map, cap0: np.ndarray) -> list[CapacitorInfo]:
             id=spec.id,
             steps=int(engine.cap_steps[c]),
             kvar_rated=float(engine.cap_kvar[c]),
-            phases=bank_phases(engine, c),  # type: ignore[arg-type]
+            phases=engine.cap_phases[c],  # type: ignore[arg-type]
             closed0=int(cap0[c]),
             cost_per_switch=float(spec.cost_per_switch),
             max_switches_per_interval=int(engine.cap_steps[c]),
