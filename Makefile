@@ -22,7 +22,7 @@ test: $(STAMP)
 
 lint: $(STAMP)
 	$(BIN)/ruff check .
-	$(BIN)/mypy schemas agent regression adapters
+	$(BIN)/mypy schemas agent regression adapters simulator_bridge recordings
 
 bench: $(STAMP)
 	$(BIN)/python -m benchmarks

@@ -47,7 +47,7 @@ import heapq
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Literal, get_args
+from typing import Generic, Literal, TypeVar, get_args
 
 import numpy as np
 
@@ -401,7 +401,8 @@ class MeasurementNoise:
         return self._rng.standard_normal(shape) * sigma if sigma > 0 else np.zeros(shape)
 
     def head(self, v_mag_v: np.ndarray, v_ang_deg: np.ndarray, i_mag_a: np.ndarray, i_ang_deg: np.ndarray,
-             p_kw: np.ndarray, q_kvar: np.ndarray) -> tuple[np.ndarray, ...]:
+             p_kw: np.ndarray, q_kvar: np.ndarray
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Noisy feeder-head phasors and powers, each (3,); PMU class. Returns new arrays."""
         e = self.pmu
         s_kva = np.hypot(p_kw, q_kvar)
@@ -477,7 +478,10 @@ class FrameDropper:
         return False
 
 
-class DelayLine:
+_Item = TypeVar("_Item")
+
+
+class DelayLine(Generic[_Item]):
     """Fixed latency: items put at wall time ``now_s`` come out at ``now_s + latency_s``, in order.
 
     Times are the caller's monotonic clock [s]; with ``latency_s = 0`` every item is due at once.
@@ -487,16 +491,16 @@ class DelayLine:
         if not (math.isfinite(latency_s) and 0.0 <= latency_s <= 3600.0):
             raise DeviceError(f"latency must be within 0..3600 s, got {latency_s}")
         self.latency_s = float(latency_s)
-        self._heap: list[tuple[float, int, object]] = []
+        self._heap: list[tuple[float, int, _Item]] = []
         self._n = 0
 
-    def put(self, item: object, now_s: float) -> None:
+    def put(self, item: _Item, now_s: float) -> None:
         self._n += 1
         heapq.heappush(self._heap, (now_s + self.latency_s, self._n, item))
 
-    def due(self, now_s: float) -> list[object]:
+    def due(self, now_s: float) -> list[_Item]:
         """Remove and return every item due at ``now_s``, oldest first."""
-        out = []
+        out: list[_Item] = []
         while self._heap and self._heap[0][0] <= now_s:
             out.append(heapq.heappop(self._heap)[2])
         return out
@@ -510,7 +514,7 @@ class DelayLine:
 
 
 # ---------------------------------------------------------------------------------------- frames
-_PHASE_NAMES = ("a", "b", "c")
+_PHASE_NAMES: tuple[m.Phase, m.Phase, m.Phase] = ("a", "b", "c")
 _Values = Sequence[float] | np.ndarray  # per-phase readings: a list (the bridge) or an array
 
 

@@ -25,7 +25,7 @@ import zenoh
 
 from schemas import keys
 from schemas import messages as m
-from schemas.bus import wait_for
+from schemas.bus import has_subscribers, wait_for
 from simulator_bridge import devices as dv
 from simulator_bridge.errors import SimulatorError
 from simulator_bridge.metrics import Metrics
@@ -76,7 +76,7 @@ class FramePublisher:
 
     def wait_matched(self, timeout_s: float) -> bool:
         """Wait until a subscriber exists (a put right after a remote declaration is often lost)."""
-        return wait_for(lambda: bool(self._pub.matching_status.matching), timeout_s)
+        return wait_for(lambda: has_subscribers(self._pub), timeout_s)
 
 
 @dataclass(frozen=True)
@@ -157,7 +157,7 @@ class StepFramer:
                       if s.noise_pmu_pct > 0 or s.noise_scada_pct > 0 else None)
         self.dropper = dv.FrameDropper(p=s.drop_prob, seed=s.noise_seed, burst_s=s.drop_burst_s, step_s=s.step_s)
         self.skew_ns = int(round(s.clock_skew_s * 1e9))
-        self.delay = dv.DelayLine(s.latency_s)
+        self.delay: dv.DelayLine[tuple[FramePublisher, msgspec.Struct]] = dv.DelayLine(s.latency_s)
         self.metrics = s.metrics
         self.on_control_head = on_control_head
         self._truth_v = np.empty(len(s.node_names))  # the clipped truth voltages, rewritten every step
@@ -184,7 +184,7 @@ class StepFramer:
 
     def flush(self, now_s: float) -> None:
         """Put the frames the latency line holds that are due at ``now_s``."""
-        for pub, msg in self.delay.due(now_s):  # type: ignore[misc]
+        for pub, msg in self.delay.due(now_s):
             self._publish(pub, msg)
 
     def _publish(self, pub: FramePublisher, msg: msgspec.Struct) -> None:
@@ -229,11 +229,11 @@ class StepFramer:
         """
         rd, t, seqs, noise = res.readings, int(res.t_ns) + self.skew_ns, self.seqs, self.noise
         send = self._send if self.dropper.p > 0.0 or self.delay.latency_s > 0.0 else self._send_now
-        head = (rd.head_v_mag_v, rd.head_v_ang_deg, rd.head_i_mag_a, rd.head_i_ang_deg, rd.head_p_kw,
-                rd.head_q_kvar)
+        head_values = (rd.head_v_mag_v, rd.head_v_ang_deg, rd.head_i_mag_a, rd.head_i_ang_deg, rd.head_p_kw,
+                       rd.head_q_kvar)
         if noise is not None:
-            head = noise.head(*head)
-        hv, ha, hi, hia, hp, hq = (x.tolist() for x in head)
+            head_values = noise.head(*head_values)
+        hv, ha, hi, hia, hp, hq = (x.tolist() for x in head_values)
         seqs["head"] += 1
         sent: dict[str, list[str]] = {"pv": [], "vr": [], "cap": []}
         head = dv.head_frame(feeder_id=self.spec.feeder_id, t_ns=t, seq=seqs["head"], v_mag_v=hv, v_ang_deg=ha,
