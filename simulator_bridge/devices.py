@@ -305,6 +305,7 @@ class RegulatorController:
 
     @property
     def mode(self) -> Literal["local", "locked"]:
+        """``"locked"`` while a tap command holds the regulator, else ``"local"`` (its own control)."""
         return "locked" if isinstance(self.action, m.TapAction) else "local"
 
     @property
@@ -371,6 +372,7 @@ class CapBankController:
 
     @property
     def mode(self) -> Literal["local", "commanded"]:
+        """``"commanded"`` while a set point is in force, else ``"local"`` (the plant's local default)."""
         return "local" if self.guard.active is None else "commanded"
 
 
@@ -495,6 +497,7 @@ class DelayLine(Generic[_Item]):
         self._n = 0
 
     def put(self, item: _Item, now_s: float) -> None:
+        """Hold ``item`` until ``now_s + latency_s`` [s, the caller's monotonic clock]."""
         self._n += 1
         heapq.heappush(self._heap, (now_s + self.latency_s, self._n, item))
 

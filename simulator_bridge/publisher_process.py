@@ -270,6 +270,7 @@ class PublisherProcess:
 
     @property
     def published(self) -> int:
+        """Steps the publisher process has published so far."""
         return int(self._state_view[0])
 
     def drain(self) -> None:

@@ -72,6 +72,7 @@ class FramePublisher:
             priority=zenoh.Priority.REAL_TIME if reliable else zenoh.Priority.DATA, express=reliable)
 
     def put(self, msg: msgspec.Struct) -> None:
+        """Encode ``msg`` as JSON and put it (no finiteness check: see the class docstring)."""
         self._pub.put(self._enc.encode(msg))
 
     def wait_matched(self, timeout_s: float) -> bool:
@@ -121,6 +122,10 @@ class FramerSpec:
     clock_skew_s: float = 0.0
 
     def is_control_t(self, t_ns: int) -> bool:
+        """Whether the step at ``t_ns`` [ns since the UTC epoch] is a control step.
+
+        Control steps are every ``control_every``-th step from profile step 0.
+        """
         return ((t_ns - self.profile_start_t_ns) // (self.step_s * _NS)) % self.control_every == 0
 
 
@@ -322,6 +327,10 @@ class StepFramer:
                              feeder_id=self.spec.feeder_id, start_t_ns=self.spec.run_start_t_ns, final=final)
 
     def publish_metrics(self, t_ns: int, *, final: bool) -> m.MetricsFrame:
+        """Put and return the metrics frame of the run so far at ``t_ns`` [ns since the UTC epoch].
+
+        ``final`` marks the run's last frame.
+        """
         frame = self.metrics_frame(t_ns, final=final)
         self.pub_metrics.put(frame)
         return frame

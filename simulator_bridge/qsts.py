@@ -70,9 +70,17 @@ class Profiles(Protocol):
     n_pv: int
     step_s: int  # a row's length [s]
 
-    def t_ns(self, step: int) -> int: ...
-    def load_kw(self, start: int, stop: int) -> np.ndarray: ...
-    def pv_kw(self, start: int, stop: int) -> np.ndarray: ...
+    def t_ns(self, step: int) -> int:
+        """Time of row ``step`` [ns since the UTC epoch]."""
+        ...
+
+    def load_kw(self, start: int, stop: int) -> np.ndarray:
+        """(stop - start, n_loads) every load's active power [kW]."""
+        ...
+
+    def pv_kw(self, start: int, stop: int) -> np.ndarray:
+        """(stop - start, n_pv) every plant's available AC power [kW]."""
+        ...
 
 
 @dataclass(frozen=True)
