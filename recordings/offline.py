@@ -89,6 +89,7 @@ class DiffReport(msgspec.Struct, frozen=True, kw_only=True):
 
     @property
     def all_identical(self) -> bool:
+        """Every recorded decision re-made identically, none missing and none extra."""
         return self.identical == self.recorded and self.missing == 0 and self.extra == 0
 
 

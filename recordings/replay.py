@@ -152,6 +152,7 @@ class RecordedMessages:
         self.close()
 
     def close(self) -> None:
+        """Close the MCAP file."""
         self._file.close()
 
     def __iter__(self) -> Iterator[RecordedMessage]:
