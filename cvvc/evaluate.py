@@ -125,6 +125,7 @@ class RunSpec(msgspec.Struct, frozen=True, kw_only=True):
 
     @property
     def name(self) -> str:
+        """The run's folder name: season, case, the band on the 120 V base [V] in cases C/D, and the variant."""
         band = f"-bw{self.bandwidth_v120:g}" if self.case in ("C", "D") else ""
         var = "" if self.variant == "nominal" else f"-{self.variant}"
         return f"{self.season}-{self.case}{band}{var}"

@@ -11,6 +11,7 @@ __all__ = ["register_evaluate", "register_report_plots"]
 
 
 def register_evaluate(sub: argparse._SubParsersAction) -> None:
+    """Add the ``evaluate`` verb to ``sub``."""
     p = sub.add_parser(
         "evaluate", help="the paper's evaluation: cases x seasons through the real bus, Tables II-V",
         description="Run each (case, season, bandwidth) through bridge, agent and recorder in lockstep, one month "
@@ -68,6 +69,7 @@ def _evaluate(args: argparse.Namespace) -> int:
 
 
 def register_report_plots(rsub: argparse._SubParsersAction) -> None:
+    """Add ``report run`` and ``report evaluate`` (PNG plots) to the ``report`` verb's ``rsub``."""
     p = rsub.add_parser("run", help="PNG plots of one cvvc run folder (voltage envelope, PV Q, taps, estimates)")
     p.add_argument("dir", help="a cvvc run output folder (with session.mcap)")
     p.add_argument("--out", default=None, help="where the PNGs go (default: DIR/plots)")
