@@ -34,6 +34,19 @@ def bench_decision(
     month: int = 7,
     repeats: int = 3,
 ) -> dict[str, Any]:
+    """Time the agent's decisions on a feeder's frames, and case A's (oracle perturbations + solve) beside them.
+
+    Parameters
+    ----------
+    device_map_path : the feeder's device map (its model is trained once into ``cache`` if absent).
+    control_steps : control steps simulated (QSTS, year seed 2) from ``start_hour`` [h] of ``month``'s first day.
+    cache : the cache root (``schemas.cache.cache_root``). repeats : runs of the agent; the fastest per step counts.
+
+    Returns
+    -------
+    The figures as a JSON-ready dict: sizes, agent per-step times [ms] (p50, p99, max, first run, cold first
+    decision), case A's mean time [ms], its oracle's share [ms], and their ratio.
+    """
     from agent.runtime import AgentSettings, DecisionMaker, snapshot_from
     from agent.solve import solve_cvvc
     from agent.state import oracle_state

@@ -73,6 +73,7 @@ def estimate_errors(run: Path) -> dict[str, tuple[float, float, float]]:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Print the table for the run folders of ``argv`` (default: ``sys.argv[1:]``); 2 without any."""
     runs = [Path(a) for a in (sys.argv[1:] if argv is None else argv)]
     if not runs:
         print(__doc__.strip().splitlines()[-1], file=sys.stderr)

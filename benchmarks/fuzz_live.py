@@ -92,6 +92,7 @@ class Fuzzer:
 
     # ------------------------------------------------------------------ payloads that must not decode
     def undecodable(self, key: str) -> bytes:
+        """A payload for ``key`` that must be refused at decode (a mutated valid message); FuzzError if none."""
         msg_type = message_type_for_key(key)
         if msg_type is None:
             raise FuzzError(f"{key} carries no message type")
@@ -322,6 +323,7 @@ class Watcher:
                                                                   history=True)
 
     def messages(self, msg_type: type, pred: Callable[[Any], bool] = lambda x: True) -> list[Any]:
+        """The messages of ``msg_type`` seen so far for which ``pred`` holds, in arrival order."""
         with self._cond:
             return [x for _, x, _ in self.seen if isinstance(x, msg_type) and pred(x)]
 
@@ -348,10 +350,12 @@ class Watcher:
         return self.wait(find, timeout_s, what)
 
     def is_alive(self, key: str) -> bool:
+        """Whether the liveliness token ``key`` is alive now."""
         with self._cond:
             return self.alive.get(key, False)
 
     def close(self) -> None:
+        """Undeclare the subscribers and close the session."""
         self._sub.undeclare()
         self._live.undeclare()
         self.session.close()
