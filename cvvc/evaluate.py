@@ -264,7 +264,8 @@ def perturbed_device_map(dm_path: Path, out_dir: Path, *, pct: float, seed: int)
     lines += [f"{k} = {json.dumps(v)}" for k, v in fields.items()]
     original = dm_path.read_text()
     rest = re.split(r"^\[feeder\]\s*$", original, maxsplit=1, flags=re.MULTILINE)[1]
-    rest = rest[re.search(r"^\[", rest, flags=re.MULTILINE).start():] if re.search(r"^\[", rest, re.MULTILINE) else ""
+    next_table = re.search(r"^\[", rest, flags=re.MULTILINE)
+    rest = rest[next_table.start():] if next_table else ""
     out_dir.mkdir(parents=True, exist_ok=True)
     path = out_dir / "devicemap.toml"
     header = f"# {f.name} with line lengths and load kW x U({1 - pct / 100:g}, {1 + pct / 100:g}), seed {seed}\n"

@@ -44,6 +44,7 @@ def register_evaluate(sub: argparse._SubParsersAction) -> None:
 def _evaluate(args: argparse.Namespace) -> int:
     from cvvc.errors import CliError
     from cvvc.evaluate import EvaluateConfig, EvaluateError, evaluate, parse_cases, parse_seasons
+    from cvvc.launch import CASES
 
     try:
         cases = parse_cases(args.cases) if args.cases else (("D",) if args.robustness else None)
@@ -51,14 +52,13 @@ def _evaluate(args: argparse.Namespace) -> int:
         bands = tuple(float(b) for b in args.bandwidth_v.split(",") if b.strip())
     except (EvaluateError, ValueError) as e:
         raise CliError(str(e)) from e
-    kw = {} if cases is None else {"cases": cases}
     config = EvaluateConfig(feeder=args.feeder, model=args.model, seasons=seasons, bandwidths_v120=bands,
                             year_seed=args.year_seed, train_seed=args.train_seed,
                             days_per_season=args.days_per_season, jobs=args.jobs, out=args.out, cache=args.cache,
                             robustness=args.robustness, resume=args.resume,
                             reference_step_s=args.reference_step_s,
                             pv_margin_window_s=args.pv_margin_window_s, setpoint_hold=args.setpoint_hold,
-                            control_banks=args.control_banks, **kw)
+                            control_banks=args.control_banks, cases=CASES if cases is None else cases)
     try:
         ev = evaluate(config)
     except EvaluateError as e:

@@ -136,8 +136,7 @@ def read_trace(mcap_path: str | Path, *, regulator_ids: tuple[str, ...] = (), pv
         node_index: dict[str, int] = {}
         t_list, step_t, vmax, vmin, taps, pvq, caps = [], [], [], [], [], [], []
         err_t, err_max, err_min, err_rms, errors = [], [], [], [], []
-        acc_v = None
-        acc_q = None
+        acc_v = acc_q = np.zeros(0)  # the window's sums, started afresh at each window's first step
         n_acc = 0
         for _, _, msg in reader.iter_messages(topics=[truth_topic]):
             tr = truth_dec.decode(msg.data)
