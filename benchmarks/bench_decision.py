@@ -88,7 +88,7 @@ def bench_decision(
     ]
     caps = [  # the model's banks report too (the aligner waits for them), on their local control
         dv.CapBankController(c.id, i, int(engine.cap_steps[i]), float(engine.cap_kvar[i]),
-                             engine.cap_control_type[i])  # type: ignore[arg-type]
+                             engine.cap_control_type[i])
         for i, c in enumerate(model.capacitors)
     ]
     steps: list[list[tuple[str, Any]]] = []

@@ -32,7 +32,7 @@ from typing import Any
 from schemas.cache import profiles_dir
 from schemas.errors import CvvcError
 
-__all__ = ["SoakError", "bench_soak", "proc_memory_kib"]
+__all__ = ["SoakError", "bench_soak", "proc_memory_kib", "run_folder", "stop_process"]
 
 _NS = 1_000_000_000
 _GOAL_GROWTH = 0.10
@@ -60,6 +60,16 @@ def _spawn(name: str, args: list[str], log_dir: Path) -> subprocess.Popen[bytes]
     with open(log_dir / f"{name}.log", "wb") as log:
         return subprocess.Popen([sys.executable, "-m", "cvvc", *args], stdout=log, stderr=subprocess.STDOUT,
                                 stdin=subprocess.DEVNULL, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+
+
+def run_folder(out_dir: str | Path | None, prefix: str) -> tuple[Path, tempfile.TemporaryDirectory[str] | None]:
+    """The folder a live benchmark writes to: ``out_dir`` (made if absent), else a temporary folder named from
+    ``prefix``, returned too so that the caller cleans it up.
+    """
+    tmp = None if out_dir else tempfile.TemporaryDirectory(prefix=prefix)
+    out = Path(tmp.name) if tmp is not None else Path(str(out_dir))
+    out.mkdir(parents=True, exist_ok=True)
+    return out, tmp
 
 
 def stop_process(proc: subprocess.Popen[bytes], timeout_s: float = 30.0) -> int:
@@ -98,7 +108,7 @@ def bench_soak(days: float = 30.0, feeder: str | None = None, *, start: str = "2
     from recordings.info import recording_info
     from schemas import keys
     from schemas import messages as m
-    from schemas.bus import BusConfig, Inbox, free_port, open_session, wait_for
+    from schemas.bus import BusConfig, Inbox, free_port, has_subscribers, open_session, wait_for
     from schemas.devicemap import load_device_map
 
     dm_path, model_path = prepare_feeder_and_model(RunConfig(feeder=feeder, cache=cache, progress=False))
@@ -107,9 +117,7 @@ def bench_soak(days: float = 30.0, feeder: str | None = None, *, start: str = "2
     steps = int(round(days * 1440))
     per_hour = 60 * 60 // dm.feeder.step_s
     warm_step = min(24 * per_hour, max(steps // 2, 1))
-    tmp = None if out_dir else tempfile.TemporaryDirectory(prefix="cvvc-soak-")
-    out = Path(out_dir or tmp.name)  # type: ignore[union-attr]
-    out.mkdir(parents=True, exist_ok=True)
+    out, tmp = run_folder(out_dir, "cvvc-soak-")
     mcap = out / "soak.mcap"
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     procs: dict[str, subprocess.Popen[bytes]] = {}
@@ -127,7 +135,7 @@ def bench_soak(days: float = 30.0, feeder: str | None = None, *, start: str = "2
             procs["recorder"] = _spawn("recorder", ["record", "--out", str(mcap), "--keys", f"cvvc/{fid}/**",
                                                     "--connect", endpoint], out)
             probe = session.declare_publisher(keys.sim_status(fid))
-            if not wait_for(lambda: bool(probe.matching_status.matching), 60.0):  # type: ignore[attr-defined]
+            if not wait_for(lambda: has_subscribers(probe), 60.0):
                 raise SoakError(f"the recorder did not subscribe within 60 s; see {out / 'recorder.log'}")
             probe.undeclare()
             case_d = case_agent_settings("D", fid, 4.0)

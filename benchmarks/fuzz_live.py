@@ -22,7 +22,6 @@ import json
 import random
 import subprocess
 import sys
-import tempfile
 import threading
 import time
 from collections import Counter
@@ -33,7 +32,7 @@ from typing import Any, TypedDict
 import msgspec
 import zenoh
 
-from benchmarks.bench_soak import stop_process
+from benchmarks.bench_soak import run_folder, stop_process
 from schemas import messages as m
 from schemas.bus import MAX_PAYLOAD_BYTES, BadMessage, codec_for, has_subscribers
 from schemas.errors import CvvcError
@@ -433,9 +432,7 @@ def fuzz_live(n: int = 20_000, seed: int = SEED, out_dir: Path | None = None) ->
     from recordings.recorder import QUARANTINE_TOPIC, Quarantined
     from schemas.bus import BusConfig, free_port, open_session
 
-    tmp = None if out_dir else tempfile.TemporaryDirectory(prefix="cvvc-fuzz-")
-    out = Path(out_dir or tmp.name)  # type: ignore[union-attr]
-    out.mkdir(parents=True, exist_ok=True)
+    out, tmp = run_folder(out_dir, "cvvc-fuzz-")
     model, mcap = out / "ieee13-model.json", out / "fuzz.mcap"
     trained = subprocess.run([sys.executable, "-m", "cvvc", "train", "--feeder", str(FEEDER_MAP), "--out",
                               str(model), "--json", "--workers", "1", "--cache", str(out / "cache")], cwd=REPO,

@@ -186,7 +186,7 @@ def parse_seasons(text: str) -> tuple[Season, ...]:
     bad = [s for s in seasons if s not in SEASONS]
     if bad or not seasons:
         raise EvaluateError(f"unknown season(s) {', '.join(bad) or '(none given)'}; choose from {','.join(SEASONS)}")
-    return seasons  # type: ignore[return-value]
+    return tuple(next(known for known in SEASONS if known == s) for s in seasons)
 
 
 def season_window(season: Season, days_per_season: float | None, year: int = EVALUATION_YEAR) -> tuple[str, float]:

@@ -213,7 +213,8 @@ def _run_meta(run_dir: Path) -> tuple[dict, tuple[str, ...], tuple[str, ...], tu
     try:
         from schemas.devicemap import load_device_map
 
-        limits = tuple(load_device_map(summary["feeder"]).feeder.judged_limits_pu)  # type: ignore[assignment]
+        lo, hi = load_device_map(summary["feeder"]).feeder.judged_limits_pu
+        limits = (float(lo), float(hi))
     except (CvvcError, KeyError, OSError):
         pass  # the paper's limits
     return summary, tuple(mt.get("taps_changes", {})), tuple(mt.get("q_mvar_intervals", {})), limits

@@ -65,6 +65,7 @@ __all__ = [
     "FrameDropper",
     "MAX_VALIDITY_PERIODS",
     "MeasurementNoise",
+    "PHASE_NAMES",
     "PvInverter",
     "RegulatorController",
     "RejectReason",
@@ -363,8 +364,9 @@ class CapBankController:
             self.guard.apply(cmd, 0.0)
             self.guard.active = None  # released: local control from now on, nothing left to expire
             return Verdict(status="accepted", reason=f"released to local control ({self.control_type})")
-        self.guard.apply(cmd, float(applied_steps if applied_steps is not None else cmd.closed_steps))
-        return Verdict(status="accepted", applied_value=self.guard.active.value)  # type: ignore[union-attr]
+        value = float(applied_steps if applied_steps is not None else cmd.closed_steps)
+        self.guard.apply(cmd, value)
+        return Verdict(status="accepted", applied_value=value)
 
     def expire(self, t_ns: int) -> ActiveCommand | None:
         """Watchdog: the expired command (then the bank is back on its local control), or None."""
@@ -517,7 +519,7 @@ class DelayLine(Generic[_Item]):
 
 
 # ---------------------------------------------------------------------------------------- frames
-_PHASE_NAMES: tuple[m.Phase, m.Phase, m.Phase] = ("a", "b", "c")
+PHASE_NAMES: tuple[m.Phase, m.Phase, m.Phase] = ("a", "b", "c")  # phases 1, 2, 3 as the messages name them
 _Values = Sequence[float] | np.ndarray  # per-phase readings: a list (the bridge) or an array
 
 
@@ -529,7 +531,7 @@ def head_frame(*, feeder_id: str, t_ns: int, seq: int, v_mag_v: _Values, v_ang_d
     may be arrays or lists (the bridge passes lists: indexing them is cheaper than making NumPy scalars).
     """
     present = [ph for ph in range(3) if v_mag_v[ph] > 0.0] or [0, 1, 2]
-    phases = [m.HeadPhase(phase=_PHASE_NAMES[ph], v_mag_v=float(v_mag_v[ph]), v_ang_deg=_wrap(v_ang_deg[ph]),
+    phases = [m.HeadPhase(phase=PHASE_NAMES[ph], v_mag_v=float(v_mag_v[ph]), v_ang_deg=_wrap(v_ang_deg[ph]),
                           i_mag_a=float(i_mag_a[ph]), i_ang_deg=_wrap(i_ang_deg[ph]), p_kw=float(p_kw[ph]),
                           q_kvar=float(q_kvar[ph])) for ph in present]
     return m.HeadFrame(t_ns=t_ns, seq=seq, source="head", feeder_id=feeder_id, phases=phases,
@@ -548,7 +550,7 @@ def pv_frame(*, plant: PvInverter, t_ns: int, seq: int, p_kw: _Values, q_kvar: _
     1,000,000 kvar on a 1,860 kVA inverter reads as its headroom, not as the request).
     """
     present = [ph for ph in range(3) if v_v[ph] > 0.0] or [0, 1, 2]
-    phases = [m.PvPhase(phase=_PHASE_NAMES[ph], p_kw=float(p_kw[ph]), q_kvar=float(q_kvar[ph]),
+    phases = [m.PvPhase(phase=PHASE_NAMES[ph], p_kw=float(p_kw[ph]), q_kvar=float(q_kvar[ph]),
                         v_mag_v=float(v_v[ph])) for ph in present]
     s_rated = plant.s_rated_kva
     p_avail = min(max(float(available_p_kw), 0.0), s_rated)
@@ -560,14 +562,14 @@ def pv_frame(*, plant: PvInverter, t_ns: int, seq: int, p_kw: _Values, q_kvar: _
                      q_available_kvar=q_avail, q_setpoint_kvar=q_applied, local_mode=plant.local_mode)
 
 
-def reg_frame(*, reg: RegulatorController, t_ns: int, seq: int, phase: str, v120: float,
+def reg_frame(*, reg: RegulatorController, t_ns: int, seq: int, phase: m.Phase, v120: float,
               v_compared_120: float, tap: int, setpoint_v120: float, band_v120: float,
               mode: Literal["local", "locked"]) -> m.RegFrame:
     """A regulator controller's frame: raw and compared secondary voltage [V, 120 V base], tap, and the
     settings in force at the step (``reg.setpoint_v120``, ``reg.band_v120``, ``reg.mode`` then).
     """
     return m.RegFrame(t_ns=t_ns, seq=seq, source=reg.regulator_id, regulator_id=reg.regulator_id,
-                      phases=[m.RegPhase(phase=phase, v_120=float(v120))],  # type: ignore[arg-type]
+                      phases=[m.RegPhase(phase=phase, v_120=float(v120))],
                       v_compared_120=float(v_compared_120), tap=int(tap), setpoint_v120=setpoint_v120,
                       band_v120=band_v120, mode=mode)
 

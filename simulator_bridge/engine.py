@@ -41,6 +41,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from schemas.devicemap import DeviceMap
+from schemas.messages import CapControlType
 from simulator_bridge.circuit_tables import (
     add_pv_plants,
     bus_distance_ohm,
@@ -256,7 +257,7 @@ class FeederEngine:
         by_name = {c.name: j for j, c in enumerate(controls)}
         self.cap_control_index = np.array([by_name[c.capcontrol.lower()] if c.capcontrol else -1 for c in specs],
                                           dtype=int)
-        self.cap_control_type: tuple[str, ...] = tuple(
+        self.cap_control_type: tuple[CapControlType, ...] = tuple(
             controls[j].kind if j >= 0 else "none" for j in self.cap_control_index)
 
     # ------------------------------------------------------------------ set

@@ -71,7 +71,7 @@ class FramePublisher:
             congestion_control=zenoh.CongestionControl.BLOCK if reliable else zenoh.CongestionControl.DROP,
             priority=zenoh.Priority.REAL_TIME if reliable else zenoh.Priority.DATA, express=reliable)
 
-    def put(self, msg: msgspec.Struct) -> None:
+    def put(self, msg: m.Message) -> None:
         """Encode ``msg`` as JSON and put it (no finiteness check: see the class docstring)."""
         self._pub.put(self._enc.encode(msg))
 
@@ -109,7 +109,7 @@ class FramerSpec:
     node_names: tuple[str, ...]
     pvs: tuple[tuple[str, int, float, Literal["unity_pf", "volt_var"]], ...]
     regs: tuple[tuple[str, int, int, float, float], ...]
-    reg_phase: tuple[str, ...]
+    reg_phase: tuple[m.Phase, ...]
     q_at_night: bool
     noise_pmu_pct: float
     noise_scada_pct: float
@@ -117,7 +117,7 @@ class FramerSpec:
     latency_s: float
     noise_seed: int
     metrics: Any  # simulator_bridge.metrics_stream.MetricsAccumulator
-    caps: tuple[tuple[str, int, int, float, str], ...] = ()
+    caps: tuple[tuple[str, int, int, float, m.CapControlType], ...] = ()
     drop_burst_s: float = 0.0
     clock_skew_s: float = 0.0
 
@@ -157,12 +157,12 @@ class StepFramer:
         self.spec = spec
         self.pvs = [dv.PvInverter(pid, k, kva, local) for pid, k, kva, local in s.pvs]
         self.regs = [dv.RegulatorController(rid, r, tmax, sp, bw) for rid, r, tmax, sp, bw in s.regs]
-        self.caps = [dv.CapBankController(cid, c, steps, kvar, kind) for cid, c, steps, kvar, kind in s.caps]  # type: ignore[arg-type]
+        self.caps = [dv.CapBankController(cid, c, steps, kvar, kind) for cid, c, steps, kvar, kind in s.caps]
         self.noise = (dv.MeasurementNoise(pmu_pct=s.noise_pmu_pct, scada_pct=s.noise_scada_pct, seed=s.noise_seed)
                       if s.noise_pmu_pct > 0 or s.noise_scada_pct > 0 else None)
         self.dropper = dv.FrameDropper(p=s.drop_prob, seed=s.noise_seed, burst_s=s.drop_burst_s, step_s=s.step_s)
         self.skew_ns = int(round(s.clock_skew_s * 1e9))
-        self.delay: dv.DelayLine[tuple[FramePublisher, msgspec.Struct]] = dv.DelayLine(s.latency_s)
+        self.delay: dv.DelayLine[tuple[FramePublisher, m.Message]] = dv.DelayLine(s.latency_s)
         self.metrics = s.metrics
         self.on_control_head = on_control_head
         self._truth_v = np.empty(len(s.node_names))  # the clipped truth voltages, rewritten every step
@@ -192,17 +192,17 @@ class StepFramer:
         for pub, msg in self.delay.due(now_s):
             self._publish(pub, msg)
 
-    def _publish(self, pub: FramePublisher, msg: msgspec.Struct) -> None:
+    def _publish(self, pub: FramePublisher, msg: m.Message) -> None:
         if pub is self.pub_head and self.on_control_head is not None:
-            t_ns = msg.t_ns - self.skew_ns  # type: ignore[attr-defined]  # the bridge's time of the step
+            t_ns = msg.t_ns - self.skew_ns  # the bridge's time of the step
             if self.spec.is_control_t(t_ns):
                 self.on_control_head(t_ns, time.time_ns())  # before put: the answer may beat put's return
         pub.put(msg)
         self.frames_published += pub is not self.pub_step  # a scan's end marker is not a frame
 
-    def _send(self, pub: FramePublisher, msg: msgspec.Struct, now_s: float) -> bool:
+    def _send(self, pub: FramePublisher, msg: m.Message, now_s: float) -> bool:
         """Drop ``msg`` (False) or put it, through the latency line if any (True)."""
-        if self.dropper.drop(msg.source, msg.t_ns):  # type: ignore[attr-defined]
+        if self.dropper.drop(msg.source, msg.t_ns):
             self.frames_dropped += 1
             return False
         if self.delay.latency_s > 0.0:
@@ -211,7 +211,7 @@ class StepFramer:
             self._publish(pub, msg)
         return True
 
-    def _send_now(self, pub: FramePublisher, msg: msgspec.Struct, now_s: float) -> bool:
+    def _send_now(self, pub: FramePublisher, msg: m.Message, now_s: float) -> bool:
         """:meth:`_send` without drops or latency configured."""
         self._publish(pub, msg)
         return True

@@ -343,7 +343,7 @@ def train(
         CriticalNode(
             name=engine.node_names[int(n)],
             phase=int(phases[int(n)]),  # type: ignore[arg-type]
-            kinds=list(crit.kinds[i]),  # type: ignore[arg-type]
+            kinds=list(crit.kinds[i]),
             upstream_regulator=None if upstream_all[int(n)] < 0 else int(upstream_all[int(n)]),
         )
         for i, n in enumerate(nodes)
