@@ -29,6 +29,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+import msgspec
+
 from schemas.cache import profiles_dir
 from schemas.errors import CvvcError
 
@@ -110,6 +112,7 @@ def bench_soak(days: float = 30.0, feeder: str | None = None, *, start: str = "2
     from schemas import messages as m
     from schemas.bus import BusConfig, Inbox, free_port, has_subscribers, open_session, wait_for
     from schemas.devicemap import load_device_map
+    from simulator_bridge.bridge import BridgeSummary
 
     dm_path, model_path = prepare_feeder_and_model(RunConfig(feeder=feeder, cache=cache, progress=False))
     dm = load_device_map(dm_path)
@@ -183,8 +186,9 @@ def bench_soak(days: float = 30.0, feeder: str | None = None, *, start: str = "2
             stop_process(p)
     log = (out / "bridge.log").read_text(errors="replace")
     try:
-        summary = json.loads(log[log.rindex("\n{\n") + 1:] if not log.startswith("{") else log)
-    except ValueError as e:
+        summary = msgspec.json.decode(log[log.rindex("\n{\n") + 1:] if not log.startswith("{") else log,
+                                      type=BridgeSummary)
+    except (ValueError, msgspec.DecodeError, msgspec.ValidationError) as e:
         raise SoakError(f"the bridge printed no summary (exit {codes.get('bridge')}); see {out / 'bridge.log'}") from e
     info = recording_info(mcap)
     rec_stats = info.metadata.get("cvvc.recorder_stats", {})
@@ -197,18 +201,17 @@ def bench_soak(days: float = 30.0, feeder: str | None = None, *, start: str = "2
                         "end_kib": s1, "rss_growth": _growth(s0, s1, "VmRSS"),
                         "hwm_growth": _growth(s0, s1, "VmHWM")}
     rejected = dict(last_agent.rejected) if last_agent else {}
-    losses = {
-        "lockstep_misses": summary.get("lockstep_misses"),
-        "lockstep_skipped": summary.get("lockstep_skipped"),
-        "bridge_frames_dropped": summary.get("frames_dropped"),
-        "control_steps": summary.get("control_steps"),
+    losses: dict[str, Any] = {
+        "lockstep_misses": summary.lockstep_misses,
+        "lockstep_skipped": summary.lockstep_skipped,
+        "bridge_frames_dropped": summary.frames_dropped,
+        "control_steps": summary.control_steps,
         "decisions_seen": decisions,
-        "control_steps_without_decision": max(0, int(summary.get("control_steps", 0))
-                                              - int(summary.get("decisions", 0))),
+        "control_steps_without_decision": max(0, summary.control_steps - summary.decisions),
         "agent_queue_full": rejected.get("queue_full", 0),
         "agent_stale": rejected.get("stale", 0),
         "agent_rejected": rejected,
-        "bridge_rejected": summary.get("rejected"),
+        "bridge_rejected": summary.rejected,
         "recorder_dropped_queue_full": int(rec_stats.get("dropped_queue_full", -1)),
         "recorder_messages": int(rec_stats.get("messages", info.messages)),
     }
@@ -219,8 +222,8 @@ def bench_soak(days: float = 30.0, feeder: str | None = None, *, start: str = "2
                                              "control_steps_without_decision", "agent_queue_full", "agent_stale"))
     lost += max(losses["recorder_dropped_queue_full"], 0)
     result = {
-        "feeder": fid, "days": days, "steps": summary.get("steps"), "start": start, "wall_s": round(wall_s, 1),
-        "steps_per_s": summary.get("steps_per_s"), "exit_codes": codes,
+        "feeder": fid, "days": days, "steps": summary.steps, "start": start, "wall_s": round(wall_s, 1),
+        "steps_per_s": summary.steps_per_s, "exit_codes": codes,
         "last_status_step": last_bridge.step if last_bridge else None, "memory": memory, "losses": losses,
         "samples": len(samples), "rss_by_day_kib": rss_by_day, "recording_complete": info.complete,
         "recording_bytes": info.size_bytes,
