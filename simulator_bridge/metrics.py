@@ -332,9 +332,8 @@ class MetricsConfig(msgspec.Struct, frozen=True, kw_only=True):
         MetricsError
             A value is out of range.
         """
-        unknown = sorted(settings.keys() - MetricsSettings.__annotations__.keys()
-                         - _RequiredSettings.__annotations__.keys())
-        missing = sorted(_RequiredSettings.__required_keys__ - settings.keys())
+        unknown = sorted(settings.keys() - MetricsSettings.__required_keys__ - MetricsSettings.__optional_keys__)
+        missing = sorted(MetricsSettings.__required_keys__ - settings.keys())
         if unknown or missing:
             raise TypeError(f"metrics settings: unexpected keyword(s) {unknown}, missing {missing}")
         regulator_ids, pv_ids = settings["regulator_ids"], settings["pv_ids"]
