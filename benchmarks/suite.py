@@ -21,13 +21,16 @@ The machine is shared and small (2 cores): every ratio compares runs made side b
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from benchmarks.results import (
+    BenchError,
+    to_json,
+)
 from schemas.cache import cache_root, profiles_dir
 
 REPO = Path(__file__).resolve().parents[1]
@@ -45,6 +48,9 @@ def _rural() -> Path:
 # The EPRI feeders, through their device maps in feeders/ (every RegControl and CapControl of the model is
 # simulated whether the map lists it or not).
 _EPRI = ("epri-k1", "epri-m1", "epri-ckt5", "epri-ckt24")
+
+#: What one benchmark of the suite returns: its result, or one result per feeder.
+Result = dict[str, Any]
 
 
 def bench_qsts_all(quick: bool) -> dict[str, Any]:
@@ -123,7 +129,7 @@ def bench_sunspec(quick: bool) -> dict[str, Any]:
     return run(50 if quick else 200)
 
 
-BENCHES: dict[str, Callable[[bool], dict[str, Any]]] = {
+BENCHES: dict[str, Callable[[bool], Result]] = {
     "qsts": bench_qsts_all,
     "bridge": bench_bridge_all,
     "training": bench_training,
@@ -145,7 +151,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--quick", action="store_true", help="shorter windows (for a smoke run)")
     parser.add_argument("--json", metavar="FILE", help="also write every figure as JSON")
     args = parser.parse_args(argv)
-    results: dict[str, Any] = {}
+    results: dict[str, Result | BenchError] = {}
     failed = []
     for name in args.only or list(BENCHES):
         print(f"== {name} ==", flush=True)
@@ -154,11 +160,11 @@ def main(argv: list[str] | None = None) -> int:
             results[name] = BENCHES[name](args.quick)
         except Exception as e:  # one broken benchmark must not hide the others' figures
             failed.append(name)
-            results[name] = {"error": f"{type(e).__name__}: {e}"}
-        print(json.dumps(results[name], indent=2, default=str), flush=True)
+            results[name] = BenchError(error=f"{type(e).__name__}: {e}")
+        print(to_json(results[name]), flush=True)
         print(f"({name}: {time.perf_counter() - t0:.1f} s)\n", flush=True)
     if args.json:
-        Path(args.json).write_text(json.dumps(results, indent=2, default=str))
+        Path(args.json).write_text(to_json(results))
     if failed:
         print(f"benchmarks that failed: {', '.join(failed)}", file=sys.stderr)
         return 1
