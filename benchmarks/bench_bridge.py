@@ -22,12 +22,15 @@ import statistics
 import sys
 import time
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
+
+import msgspec
+
+from benchmarks.results import BridgeBench, Publisher
 
 __all__ = ["bench_bridge", "main"]
 
 _START = "2023-07-01T06:00"  # local standard time: a summer morning, PV ramping up
-Publisher = Literal["auto", "inline", "process"]  # ``BridgeConfig.publisher``
 
 
 def _responder(endpoint: str, feeder_id: str, control_period_s: int, ready: Any, stop: Any) -> None:
@@ -36,7 +39,6 @@ def _responder(endpoint: str, feeder_id: str, control_period_s: int, ready: Any,
     Its session is the router the bridge connects to, as a launcher's would be: the bridge process holds only
     the bridge.
     """
-    import msgspec
     import zenoh
 
     from schemas import messages as m
@@ -73,7 +75,7 @@ def _responder(endpoint: str, feeder_id: str, control_period_s: int, ready: Any,
 
 
 def bench_bridge(device_map: str | Path, steps: int, *, seed: int = 1, truth_every: int = 1, repeats: int = 3,
-                 cache_dir: str | None = None, publisher: Publisher = "auto") -> dict:
+                 cache_dir: str | None = None, publisher: Publisher = "auto") -> BridgeBench:
     """Lockstep bridge vs bare QSTS on ``steps`` 1-minute steps of one feeder.
 
     The two are timed alternately ``repeats`` times (bare, bridge, bare, bridge, ...) on fresh engines from the
@@ -87,15 +89,15 @@ def bench_bridge(device_map: str | Path, steps: int, *, seed: int = 1, truth_eve
 
     Returns
     -------
-    dict with ``feeder``, ``n_nodes``, ``steps``, ``bare_steps_per_s``, ``lockstep_steps_per_s`` (medians),
-    ``overhead`` (median bare rate / median lockstep rate − 1), ``overheads`` (per alternation),
-    ``overhead_cpu`` (median CPU time of the bridge process's loop, Zenoh's threads included / median bare CPU
-    time − 1), ``overhead_thread_cpu`` (the same for the stepping thread alone), ``publisher_cpu_share``
-    (median CPU time of the publisher process from its first step on / median bare CPU time; 0 when publishing
-    inline), ``decision_wait_share`` (the stepping thread's waits for the decisions / median bare time: their
-    part of ``overhead``),
-    ``round_trip_p50_ms``, ``round_trip_p99_ms`` (medians over the runs), ``control_steps``,
-    ``lockstep_misses`` (total).
+    BridgeBench
+        ``feeder``, ``n_nodes``, ``steps``, ``bare_steps_per_s``, ``lockstep_steps_per_s`` (medians),
+        ``overhead`` (median bare rate / median lockstep rate − 1), ``overheads`` (per alternation),
+        ``overhead_cpu`` (median CPU time of the bridge process's loop, Zenoh's threads included / median bare
+        CPU time − 1), ``overhead_thread_cpu`` (the same for the stepping thread alone), ``publisher_cpu_share``
+        (median CPU time of the publisher process from its first step on / median bare CPU time; 0 when
+        publishing inline), ``decision_wait_share`` (the stepping thread's waits for the decisions / median bare
+        time: their part of ``overhead``), ``round_trip_p50_ms``, ``round_trip_p99_ms`` (medians over the
+        runs), ``control_steps``, ``lockstep_misses`` (total).
     """
     from schemas.bus import free_port
     from schemas.devicemap import load_device_map
@@ -127,29 +129,29 @@ def bench_bridge(device_map: str | Path, steps: int, *, seed: int = 1, truth_eve
     bare_s = steps / statistics.median(bare)  # median bare wall time [s]
     p50 = [r.round_trip_p50_s for r in runs if r.round_trip_p50_s is not None]
     p99 = [r.round_trip_p99_s for r in runs if r.round_trip_p99_s is not None]
-    return {
-        "feeder": dm.feeder.name,
-        "n_nodes": n_nodes,
-        "steps": steps,
-        "bare_steps_per_s": round(statistics.median(bare), 1),
-        "lockstep_steps_per_s": round(statistics.median(lock), 1),
-        "overhead": round(statistics.median(bare) / statistics.median(lock) - 1.0, 3),
-        "overheads": [round(b / x - 1.0, 3) for b, x in zip(bare, lock, strict=True)],
-        "overhead_cpu": round(statistics.median(r.cpu_s for r in runs) / statistics.median(bare_cpu) - 1.0, 3),
-        "overhead_thread_cpu": round(statistics.median(r.thread_cpu_s for r in runs) / statistics.median(bare_cpu)
-                                     - 1.0, 3),
-        "publisher_cpu_share": round(statistics.median(r.publisher_cpu_s for r in runs)
-                                     / statistics.median(bare_cpu), 3),
-        "decision_wait_share": round(statistics.median(r.decision_wait_s for r in runs) / bare_s, 3),
-        "round_trip_p50_ms": round(1e3 * statistics.median(p50), 3) if p50 else None,
-        "round_trip_p99_ms": round(1e3 * statistics.median(p99), 3) if p99 else None,
-        "control_steps": runs[0].control_steps,
-        "decisions": sum(r.decisions for r in runs),
-        "lockstep_misses": sum(r.lockstep_misses for r in runs),
-        "truth_every": truth_every,
-        "publisher": publisher,
-        "publisher_used": runs[0].publisher,  # what "auto" chose
-    }
+    return BridgeBench(
+        feeder=dm.feeder.name,
+        n_nodes=n_nodes,
+        steps=steps,
+        bare_steps_per_s=round(statistics.median(bare), 1),
+        lockstep_steps_per_s=round(statistics.median(lock), 1),
+        overhead=round(statistics.median(bare) / statistics.median(lock) - 1.0, 3),
+        overheads=[round(b / x - 1.0, 3) for b, x in zip(bare, lock, strict=True)],
+        overhead_cpu=round(statistics.median(r.cpu_s for r in runs) / statistics.median(bare_cpu) - 1.0, 3),
+        overhead_thread_cpu=round(statistics.median(r.thread_cpu_s for r in runs) / statistics.median(bare_cpu)
+                                  - 1.0, 3),
+        publisher_cpu_share=round(statistics.median(r.publisher_cpu_s for r in runs)
+                                  / statistics.median(bare_cpu), 3),
+        decision_wait_share=round(statistics.median(r.decision_wait_s for r in runs) / bare_s, 3),
+        round_trip_p50_ms=round(1e3 * statistics.median(p50), 3) if p50 else None,
+        round_trip_p99_ms=round(1e3 * statistics.median(p99), 3) if p99 else None,
+        control_steps=runs[0].control_steps,
+        decisions=sum(r.decisions for r in runs),
+        lockstep_misses=sum(r.lockstep_misses for r in runs),
+        truth_every=truth_every,
+        publisher=publisher,
+        publisher_used=runs[0].publisher,  # what "auto" chose
+    )
 
 
 def _bare_times(dm: Any, steps: int, *, seed: int, cache_dir: str | None) -> tuple[float, float, int]:
@@ -200,7 +202,8 @@ def main(argv: list[str] | None = None) -> int:
     for path in (repo / "feeders" / "ieee123.toml", ensure_default_feeder(cache_root(None))):
         for truth_every in (1, 0):
             for publisher in publishers:
-                print(json.dumps(bench_bridge(path, steps, truth_every=truth_every, publisher=publisher)), flush=True)
+                print(json.dumps(msgspec.to_builtins(bench_bridge(path, steps, truth_every=truth_every,
+                                                                    publisher=publisher))), flush=True)
     return 0
 
 

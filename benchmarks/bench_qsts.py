@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks.results import QstsBench, to_json
 from schemas.devicemap import load_device_map
 from simulator_bridge.engine import FeederEngine
 from simulator_bridge.profiles import make_profiles, month_steps
@@ -31,7 +32,7 @@ __all__ = ["bench_qsts"]
 
 
 def bench_qsts(device_map_path: str | Path, steps: int, *, seed: int = 1, month: int = 7,
-               start_hour: float = 6.0, warmup_steps: int = 10, repeats: int = 3) -> dict:
+               start_hour: float = 6.0, warmup_steps: int = 10, repeats: int = 3) -> QstsBench:
     """Measure QSTS steps/s for one feeder and the ratio to bare OpenDSS solves of the same steps.
 
     The window is run ``repeats`` times, QSTS and bare alternating, each from the same taps; the best
@@ -47,10 +48,10 @@ def bench_qsts(device_map_path: str | Path, steps: int, *, seed: int = 1, month:
 
     Returns
     -------
-    dict with ``feeder``, ``n_nodes``, ``steps``, ``qsts_steps_per_s``, ``bare_steps_per_s``,
-    ``ratio`` (best qsts time / best bare time), ``tap_changes`` and ``cap_switches`` (the map's devices, in
-    the window), ``qsts_s`` and
-    ``bare_s`` (every repeat's time [s]), ``compile_s``, ``profiles_s``.
+    QstsBench
+        ``feeder``, ``n_nodes``, ``steps``, ``qsts_steps_per_s``, ``bare_steps_per_s``, ``ratio`` (best qsts
+        time / best bare time), ``tap_changes`` and ``cap_switches`` (the map's devices, in the window),
+        ``qsts_s`` and ``bare_s`` (every repeat's time [s]), ``compile_s``, ``profiles_s``.
     """
     dm = load_device_map(device_map_path)
     t = time.perf_counter()
@@ -89,20 +90,20 @@ def bench_qsts(device_map_path: str | Path, steps: int, *, seed: int = 1, month:
         bare_s.append(engine.bare_steps_s(load_kw, pv_kw, taps, caps))
     engine.close()
     n = len(window)
-    return {
-        "feeder": dm.feeder.name,
-        "n_nodes": len(engine.node_names),
-        "steps": n,
-        "qsts_steps_per_s": n / min(qsts_s),
-        "bare_steps_per_s": n / min(bare_s),
-        "ratio": min(qsts_s) / min(bare_s),
-        "tap_changes": tap_changes,
-        "cap_switches": cap_switches,
-        "qsts_s": qsts_s,
-        "bare_s": bare_s,
-        "compile_s": compile_s,
-        "profiles_s": profiles_s,
-    }
+    return QstsBench(
+        feeder=dm.feeder.name,
+        n_nodes=len(engine.node_names),
+        steps=n,
+        qsts_steps_per_s=n / min(qsts_s),
+        bare_steps_per_s=n / min(bare_s),
+        ratio=min(qsts_s) / min(bare_s),
+        tap_changes=tap_changes,
+        cap_switches=cap_switches,
+        qsts_s=qsts_s,
+        bare_s=bare_s,
+        compile_s=compile_s,
+        profiles_s=profiles_s,
+    )
 
 
 def _restore(engine: FeederEngine, taps: np.ndarray, caps: np.ndarray) -> None:
@@ -115,4 +116,4 @@ def _restore(engine: FeederEngine, taps: np.ndarray, caps: np.ndarray) -> None:
 if __name__ == "__main__":  # pragma: no cover - manual use: python -m benchmarks.bench_qsts MAP STEPS
     import sys
 
-    print(bench_qsts(sys.argv[1], int(sys.argv[2])))
+    print(to_json(bench_qsts(sys.argv[1], int(sys.argv[2]))))

@@ -29,6 +29,8 @@ from typing import Any
 
 from benchmarks.results import (
     BenchError,
+    BridgeBench,
+    QstsBench,
     to_json,
 )
 from schemas.cache import cache_root, profiles_dir
@@ -50,10 +52,10 @@ def _rural() -> Path:
 _EPRI = ("epri-k1", "epri-m1", "epri-ckt5", "epri-ckt24")
 
 #: What one benchmark of the suite returns: its result, or one result per feeder.
-Result = dict[str, Any]
+Result = dict[str, QstsBench] | dict[str, BridgeBench] | dict[str, Any]
 
 
-def bench_qsts_all(quick: bool) -> dict[str, Any]:
+def bench_qsts_all(quick: bool) -> dict[str, QstsBench]:
     from benchmarks.bench_qsts import bench_qsts
 
     steps = 240 if quick else 1440
@@ -66,7 +68,7 @@ def bench_qsts_all(quick: bool) -> dict[str, Any]:
     return out
 
 
-def bench_bridge_all(quick: bool) -> dict[str, Any]:
+def bench_bridge_all(quick: bool) -> dict[str, BridgeBench]:
     from benchmarks.bench_bridge import bench_bridge
 
     steps = 240 if quick else 1440
