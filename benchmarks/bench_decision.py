@@ -22,6 +22,8 @@ from typing import Any
 
 import numpy as np
 
+from benchmarks.results import DecisionBench
+
 __all__ = ["bench_decision"]
 
 
@@ -33,7 +35,7 @@ def bench_decision(
     start_hour: float = 10.0,
     month: int = 7,
     repeats: int = 3,
-) -> dict[str, Any]:
+) -> DecisionBench:
     """Time the agent's decisions on a feeder's frames, and case A's (oracle perturbations + solve) beside them.
 
     Parameters
@@ -44,8 +46,9 @@ def bench_decision(
 
     Returns
     -------
-    The figures as a JSON-ready dict: sizes, agent per-step times [ms] (p50, p99, max, first run, cold first
-    decision), case A's mean time [ms], its oracle's share [ms], and their ratio.
+    DecisionBench
+        Sizes, agent per-step times [ms] (p50, p99, max, first run, cold first decision), case A's mean time
+        [ms], its oracle's share [ms], and their ratio.
     """
     from agent.runtime import AgentSettings, DecisionMaker, snapshot_from
     from agent.solve import solve_cvvc
@@ -205,23 +208,23 @@ def bench_decision(
     a = per_step.min(axis=0)[1:]  # the cold first decision apart
     first_run = per_step[0, 1:]
     ca = np.array(case_a_s) * 1e3
-    return {
-        "feeder": fid,
-        "critical_nodes": len(model.critical_nodes),
-        "nodes": sizes[0] if sizes else 0,
-        "plants": len(model.pv),
-        "regulators": len(model.regulators),
-        "control_steps": len(steps),
-        "agent_ms_p50": round(float(np.percentile(a, 50)), 3),
-        "agent_ms_p99": round(float(np.percentile(a, 99)), 3),
-        "agent_ms_max": round(float(a.max()), 3),
-        "agent_first_run_ms_p50": round(float(np.percentile(first_run, 50)), 3),
-        "agent_first_run_ms_p99": round(float(np.percentile(first_run, 99)), 3),
-        "agent_cold_first_decision_ms": round(float(per_step[:, 0].min()), 3),
-        "case_a_ms_mean": round(float(ca.mean()), 2),
-        "case_a_oracle_ms_mean": round(float(np.mean(oracle_s)) * 1e3, 2),
-        "case_a_state_max_dv_pu": float(f"{max(oracle_dv):.2g}"),
-        "ratio_case_a_to_agent_mean": round(float(ca.mean() / a.mean()), 1),
-        "method": f"agent: per step, the fastest of {max(repeats, 1)} runs; case A: one run",
-        "goal": "agent p99 < 2 ms at the paper's size; >= 50x faster than case A on IEEE 8500",
-    }
+    return DecisionBench(
+        feeder=fid,
+        critical_nodes=len(model.critical_nodes),
+        nodes=sizes[0] if sizes else 0,
+        plants=len(model.pv),
+        regulators=len(model.regulators),
+        control_steps=len(steps),
+        agent_p50_ms=round(float(np.percentile(a, 50)), 3),
+        agent_p99_ms=round(float(np.percentile(a, 99)), 3),
+        agent_max_ms=round(float(a.max()), 3),
+        agent_first_run_p50_ms=round(float(np.percentile(first_run, 50)), 3),
+        agent_first_run_p99_ms=round(float(np.percentile(first_run, 99)), 3),
+        agent_cold_first_decision_ms=round(float(per_step[:, 0].min()), 3),
+        case_a_mean_ms=round(float(ca.mean()), 2),
+        case_a_oracle_mean_ms=round(float(np.mean(oracle_s)) * 1e3, 2),
+        case_a_state_max_dv_pu=float(f"{max(oracle_dv):.2g}"),
+        ratio_case_a_to_agent_mean=round(float(ca.mean() / a.mean()), 1),
+        method=f"agent: per step, the fastest of {max(repeats, 1)} runs; case A: one run",
+        goal="agent p99 < 2 ms at the paper's size; >= 50x faster than case A on IEEE 8500",
+    )

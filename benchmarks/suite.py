@@ -30,6 +30,7 @@ from typing import Any
 from benchmarks.results import (
     BenchError,
     BridgeBench,
+    DecisionBench,
     QstsBench,
     to_json,
 )
@@ -52,7 +53,7 @@ def _rural() -> Path:
 _EPRI = ("epri-k1", "epri-m1", "epri-ckt5", "epri-ckt24")
 
 #: What one benchmark of the suite returns: its result, or one result per feeder.
-Result = dict[str, QstsBench] | dict[str, BridgeBench] | dict[str, Any]
+Result = dict[str, QstsBench] | dict[str, BridgeBench] | dict[str, DecisionBench] | dict[str, Any]
 
 
 def bench_qsts_all(quick: bool) -> dict[str, QstsBench]:
@@ -102,7 +103,7 @@ def bench_solver(quick: bool) -> dict[str, Any]:
     return {"exit": code, "seconds": round(time.perf_counter() - t0, 1)}
 
 
-def bench_decision(quick: bool) -> dict[str, Any]:
+def bench_decision(quick: bool) -> dict[str, DecisionBench]:
     from benchmarks.bench_decision import bench_decision as run
 
     out = {"rural": run(_rural(), control_steps=12 if quick else 96, cache=cache_root(None))}
