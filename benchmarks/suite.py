@@ -32,6 +32,8 @@ from benchmarks.results import (
     BridgeBench,
     DecisionBench,
     QstsBench,
+    SolverRun,
+    TrainingBench,
     to_json,
 )
 from schemas.cache import cache_root, profiles_dir
@@ -53,7 +55,12 @@ def _rural() -> Path:
 _EPRI = ("epri-k1", "epri-m1", "epri-ckt5", "epri-ckt24")
 
 #: What one benchmark of the suite returns: its result, or one result per feeder.
-Result = dict[str, QstsBench] | dict[str, BridgeBench] | dict[str, DecisionBench] | dict[str, Any]
+Result = (dict[str, QstsBench]
+          | dict[str, BridgeBench]
+          | dict[str, TrainingBench]
+          | SolverRun
+          | dict[str, DecisionBench]
+          | dict[str, Any])
 
 
 def bench_qsts_all(quick: bool) -> dict[str, QstsBench]:
@@ -77,7 +84,7 @@ def bench_bridge_all(quick: bool) -> dict[str, BridgeBench]:
             for name, path in (("rural", _rural()), ("ieee123", FEEDERS / "ieee123.toml"))}
 
 
-def bench_training(quick: bool) -> dict[str, Any]:
+def bench_training(quick: bool) -> dict[str, TrainingBench]:
     from training.train import train
 
     out = {}
@@ -88,19 +95,20 @@ def bench_training(quick: bool) -> dict[str, Any]:
         train(path, year_seed=1, cache_dir=profiles_dir(None), progress=False)  # profiles cached: not timed
         t0 = time.perf_counter()
         result = train(path, year_seed=1, cache_dir=profiles_dir(None), progress=False)
-        out[name] = {"seconds": round(time.perf_counter() - t0, 2), "scenarios": result.summary.scenarios,
-                     "power_flows": result.summary.power_flows, "critical_nodes": result.summary.critical_nodes,
-                     "goal_s": 60 if name != "ieee8500" else 600}
+        out[name] = TrainingBench(wall_s=round(time.perf_counter() - t0, 2), scenarios=result.summary.scenarios,
+                                  power_flows=result.summary.power_flows,
+                                  critical_nodes=result.summary.critical_nodes,
+                                  goal_s=60 if name != "ieee8500" else 600)
     return out
 
 
-def bench_solver(quick: bool) -> dict[str, Any]:
+def bench_solver(quick: bool) -> SolverRun:
     from benchmarks import bench_solver
 
     argv = ["--problems", "50" if quick else "300", "--days", "1" if quick else "3"]
     t0 = time.perf_counter()
     code = bench_solver.main(argv)
-    return {"exit": code, "seconds": round(time.perf_counter() - t0, 1)}
+    return SolverRun(exit_code=code, wall_s=round(time.perf_counter() - t0, 1))
 
 
 def bench_decision(quick: bool) -> dict[str, DecisionBench]:
