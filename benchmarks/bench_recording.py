@@ -22,6 +22,10 @@ import time
 from pathlib import Path
 from typing import Any
 
+import msgspec
+
+from benchmarks.results import OfflineRerun, RecordingBench, to_json
+
 __all__ = ["bench_recording"]
 
 
@@ -53,7 +57,6 @@ def _messages(n: int) -> list[tuple[str, bytes]]:
 
 def _bare_writer(msgs: list[tuple[str, bytes]], path: Path) -> float:
     """Messages per second of the bare MCAP writer (including ``finish``)."""
-    import msgspec
     from mcap.writer import CompressionType, Writer
 
     class _T(msgspec.Struct):
@@ -89,7 +92,17 @@ def _publisher_process(endpoint: str, n: int, go: Any) -> None:
         time.sleep(0.5)  # let the transport drain before the session closes (closing drops queued data)
 
 
-def _through_zenoh(n: int, path: Path) -> dict[str, Any]:
+class _ZenohRun(msgspec.Struct, frozen=True, kw_only=True):
+    """One run through Zenoh into MCAP: its rate [messages/s], counts and file size [bytes]."""
+
+    msg_per_s: float
+    recorded: int
+    complete: bool
+    dropped: int
+    file_bytes: int
+
+
+def _through_zenoh(n: int, path: Path) -> _ZenohRun:
     from mcap.reader import make_reader
 
     from recordings.recorder import Recorder, RecorderConfig
@@ -117,11 +130,11 @@ def _through_zenoh(n: int, path: Path) -> dict[str, Any]:
     with open(path, "rb") as f:
         first_recv = min(msg.publish_time for _, _, msg in make_reader(f).iter_messages(log_time_order=False))
     seconds = (t_end_wall - first_recv) / 1e9
-    return {"msg_per_s": stats.messages / seconds, "recorded": stats.messages, "complete": complete,
-            "dropped": stats.dropped_queue_full, "bytes": path.stat().st_size}
+    return _ZenohRun(msg_per_s=stats.messages / seconds, recorded=stats.messages, complete=complete,
+                     dropped=stats.dropped_queue_full, file_bytes=path.stat().st_size)
 
 
-def bench_recording(n: int = 20_000) -> dict[str, Any]:
+def bench_recording(n: int = 20_000) -> RecordingBench:
     """Recording throughput [messages/s] bare vs through Zenoh, their ratio, and offline replay speed.
 
     ``offline_rerun``: the offline re-run of one synthetic day (``_offline_speed``), None while
@@ -131,21 +144,21 @@ def bench_recording(n: int = 20_000) -> dict[str, Any]:
     with tempfile.TemporaryDirectory(prefix="cvvc-bench-rec-") as tmp:
         bare = max(_bare_writer(msgs, Path(tmp) / "bare.mcap") for _ in range(3))  # best of 3: conservative ratio
         zen = _through_zenoh(n, Path(tmp) / "zenoh.mcap")
-    return {
-        "n": n,
-        "bare_writer_msg_per_s": round(bare),
-        "zenoh_to_mcap_msg_per_s": round(zen["msg_per_s"]),
-        "ratio": round(zen["msg_per_s"] / bare, 3),
-        "recorded": zen["recorded"],
-        "all_recorded": zen["complete"],
-        "dropped": zen["dropped"],
-        "bytes_per_message": round(zen["bytes"] / max(1, zen["recorded"]), 1),
-        "mean_payload_bytes": round(sum(len(r) for _, r in msgs) / len(msgs), 1),
-        "offline_rerun": _offline_speed(),
-    }
+    return RecordingBench(
+        messages=n,
+        bare_writer_msg_per_s=round(bare),
+        zenoh_to_mcap_msg_per_s=round(zen.msg_per_s),
+        ratio=round(zen.msg_per_s / bare, 3),
+        recorded=zen.recorded,
+        all_recorded=zen.complete,
+        dropped=zen.dropped,
+        bytes_per_message=round(zen.file_bytes / max(1, zen.recorded), 1),
+        mean_payload_bytes=round(sum(len(r) for _, r in msgs) / len(msgs), 1),
+        offline_rerun=_offline_speed(),
+    )
 
 
-def _offline_speed(steps: int = 1440) -> dict[str, Any] | None:
+def _offline_speed(steps: int = 1440) -> OfflineRerun | None:
     """Offline re-run speed [simulated minutes per wall second] on one recorded synthetic day.
 
     The agent's synthetic feeder model (8 regulators, 3 PV plants): 1-minute frames of every device, the
@@ -158,8 +171,6 @@ def _offline_speed(steps: int = 1440) -> dict[str, Any] | None:
     except ImportError:
         return None
     import math
-
-    import msgspec
 
     from recordings.offline import run_offline
     from recordings.recorder import McapSink
@@ -206,11 +217,11 @@ def _offline_speed(steps: int = 1440) -> dict[str, Any] | None:
                 sink.write(codec_for(m.Decision).encode(d), keys.agent_decision("rural"), d.step_t_ns)
             sink.finish()
         res = run_offline(rec)
-    return {"sim_minutes_per_wall_s": round(res.sim_minutes_per_wall_s, 1), "frames": res.frames,
-            "decisions": res.diff.recorded, "identical": res.diff.identical, "wall_s": round(res.wall_s, 3)}
+    return OfflineRerun(sim_minutes_per_wall_s=round(res.sim_minutes_per_wall_s, 1), frames=res.frames,
+                        decisions=res.diff.recorded, identical=res.diff.identical, wall_s=round(res.wall_s, 3))
 
 
 if __name__ == "__main__":
-    print(bench_recording(int(sys.argv[1]) if len(sys.argv) > 1 else 20_000))
+    print(to_json(bench_recording(int(sys.argv[1]) if len(sys.argv) > 1 else 20_000)))
     sys.stdout.flush()
     os._exit(0)

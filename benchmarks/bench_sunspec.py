@@ -14,6 +14,8 @@ from typing import Any
 
 import numpy as np
 
+from benchmarks.results import RoundTrip, SunspecBench
+
 __all__ = ["bench_sunspec"]
 
 F, D = "bench", "pv1"
@@ -70,12 +72,12 @@ def _responder(bus: Any, stop: threading.Event, ready: threading.Event) -> None:
                               applied_value=c.q_kvar))
 
 
-def _stats(xs: list[float]) -> dict[str, float]:
+def _stats(xs: list[float]) -> RoundTrip:
     a = np.asarray(xs) * 1e3
-    return {"p50_ms": float(np.percentile(a, 50)), "p99_ms": float(np.percentile(a, 99))}
+    return RoundTrip(p50_ms=float(np.percentile(a, 50)), p99_ms=float(np.percentile(a, 99)))
 
 
-def bench_sunspec(n: int = 200) -> dict[str, Any]:
+def bench_sunspec(n: int = 200) -> SunspecBench:
     """Command -> ack round trips [ms] with and without the SunSpec hop, and the Modbus part alone."""
     from adapters.sunspec import SunSpecLink
     from adapters.sunspec_runtime import AdapterConfig, run_adapter
@@ -84,13 +86,12 @@ def bench_sunspec(n: int = 200) -> dict[str, Any]:
 
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     peer = BusConfig(mode="peer", connect=(endpoint,))
-    out: dict[str, Any] = {"commands": n}
     with open_session(BusConfig(mode="router", listen=(endpoint,))) as router:
         stop, ready = threading.Event(), threading.Event()
         t = threading.Thread(target=_responder, args=(peer, stop, ready), daemon=True)
         t.start()
         ready.wait(20.0)
-        out["bus_only"] = _stats(_round_trips(router, n))
+        bus_only = _stats(_round_trips(router, n))
         stop.set()
         t.join(20.0)
         inv = SimulatedSunSpecInverter(plant_id=D, s_rated_kva=1000.0, v_nominal_v=7200.0, port=free_port())
@@ -102,7 +103,7 @@ def bench_sunspec(n: int = 200) -> dict[str, Any]:
                                  daemon=True)
             t.start()
             ready.wait(20.0)
-            out["through_sunspec"] = _stats(_round_trips(router, n))
+            through_sunspec = _stats(_round_trips(router, n))
             stop.set()
             t.join(20.0)
             link = SunSpecLink("127.0.0.1", inv.port)
@@ -113,7 +114,7 @@ def bench_sunspec(n: int = 200) -> dict[str, Any]:
                 link.write_var_setpoint(-100.0 - (i % 7), 600)
                 modbus.append(time.perf_counter() - t0)
             link.close()
-            out["modbus_write_read_back"] = _stats(modbus)
-    out["extra_per_decision_p50_ms"] = out["through_sunspec"]["p50_ms"] - out["bus_only"]["p50_ms"]
-    out["extra_per_decision_p99_ms"] = out["through_sunspec"]["p99_ms"] - out["bus_only"]["p99_ms"]
-    return out
+    return SunspecBench(commands=n, bus_only=bus_only, through_sunspec=through_sunspec,
+                        modbus_write_read_back=_stats(modbus),
+                        extra_per_decision_p50_ms=through_sunspec.p50_ms - bus_only.p50_ms,
+                        extra_per_decision_p99_ms=through_sunspec.p99_ms - bus_only.p99_ms)

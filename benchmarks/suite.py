@@ -32,7 +32,9 @@ from benchmarks.results import (
     BridgeBench,
     DecisionBench,
     QstsBench,
+    RecordingBench,
     SolverRun,
+    SunspecBench,
     TrainingBench,
     to_json,
 )
@@ -60,6 +62,8 @@ Result = (dict[str, QstsBench]
           | dict[str, TrainingBench]
           | SolverRun
           | dict[str, DecisionBench]
+          | RecordingBench
+          | SunspecBench
           | dict[str, Any])
 
 
@@ -122,7 +126,7 @@ def bench_decision(quick: bool) -> dict[str, DecisionBench]:
     return out
 
 
-def bench_recording(quick: bool) -> dict[str, Any]:
+def bench_recording(quick: bool) -> RecordingBench:
     from benchmarks.bench_recording import bench_recording as run
 
     return run(5_000 if quick else 20_000)
@@ -134,7 +138,7 @@ def bench_soak(quick: bool) -> dict[str, Any]:
     return run(days=1 if quick else 30)
 
 
-def bench_sunspec(quick: bool) -> dict[str, Any]:
+def bench_sunspec(quick: bool) -> SunspecBench:
     from benchmarks.bench_sunspec import bench_sunspec as run
 
     return run(50 if quick else 200)
