@@ -19,7 +19,6 @@ Run it with ``make bench`` (``python -m benchmarks --only soak``) or ``python -m
 
 from __future__ import annotations
 
-import json
 import os
 import signal
 import subprocess
@@ -27,10 +26,10 @@ import sys
 import tempfile
 import time
 from pathlib import Path
-from typing import Any
 
 import msgspec
 
+from benchmarks.results import MemoryKib, ProcessMemory, SoakBench, SoakLosses, to_json
 from schemas.cache import profiles_dir
 from schemas.errors import CvvcError
 
@@ -44,18 +43,26 @@ class SoakError(CvvcError):
     """The soak run could not start or one of its processes died; the message names it and its log."""
 
 
-def proc_memory_kib(pid: int) -> dict[str, int]:
-    """``VmRSS`` and ``VmHWM`` of process ``pid`` from ``/proc/<pid>/status`` [KiB] (empty if it is gone)."""
-    out: dict[str, int] = {}
+class _Sample(msgspec.Struct, frozen=True, kw_only=True):
+    """Memory of every process at one simulated step (``kib``: by process name)."""
+
+    step: int
+    wall_s: float
+    kib: dict[str, MemoryKib]
+
+
+def proc_memory_kib(pid: int) -> MemoryKib:
+    """``VmHWM`` and ``VmRSS`` of process ``pid`` from ``/proc/<pid>/status`` [KiB] (both None if it is gone)."""
+    found: dict[str, int] = {}
     try:
         text = Path(f"/proc/{pid}/status").read_text()
     except OSError:
-        return out
+        return MemoryKib()
     for line in text.splitlines():
         key = line.split(":", 1)[0]
         if key in ("VmRSS", "VmHWM"):
-            out[key] = int(line.split()[1])
-    return out
+            found[key] = int(line.split()[1])
+    return MemoryKib(vm_hwm_kib=found.get("VmHWM"), vm_rss_kib=found.get("VmRSS"))
 
 
 def _spawn(name: str, args: list[str], log_dir: Path) -> subprocess.Popen[bytes]:
@@ -86,15 +93,16 @@ def stop_process(proc: subprocess.Popen[bytes], timeout_s: float = 30.0) -> int:
     return int(proc.returncode)
 
 
-def _growth(start: dict[str, int], end: dict[str, int], key: str) -> float | None:
-    if not start.get(key) or key not in end:
+def _growth(start: int | None, end: int | None) -> float | None:
+    """``end / start - 1`` rounded to 1e-4, None when either is unknown (or ``start`` is 0)."""
+    if not start or end is None:
         return None
-    return round(end[key] / start[key] - 1.0, 4)
+    return round(end / start - 1.0, 4)
 
 
 def bench_soak(days: float = 30.0, feeder: str | None = None, *, start: str = "2023-06-01",
                cache: str | None = None, out_dir: str | None = None, lockstep_timeout_s: float = 10.0,
-               truth_every: int = 60, year_seed: int = 2) -> dict[str, Any]:
+               truth_every: int = 60, year_seed: int = 2) -> SoakBench:
     """Run ``days`` simulated days in lockstep (case D) and return the memory and loss figures (module doc).
 
     Parameters
@@ -124,7 +132,7 @@ def bench_soak(days: float = 30.0, feeder: str | None = None, *, start: str = "2
     mcap = out / "soak.mcap"
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     procs: dict[str, subprocess.Popen[bytes]] = {}
-    samples: list[dict[str, Any]] = []
+    samples: list[_Sample] = []
     last_agent: m.AgentStatus | None = None
     last_bridge: m.BridgeStatus | None = None
     decisions = 0
@@ -162,9 +170,9 @@ def bench_soak(days: float = 30.0, feeder: str | None = None, *, start: str = "2
                         case m.BridgeStatus() as st:
                             last_bridge = st
                             if st.step >= next_sample_step and not st.done:
-                                samples.append({"step": st.step, "wall_s": round(time.monotonic() - t0, 1),
-                                                **{n: proc_memory_kib(p.pid) for n, p in procs.items()},
-                                                "router": proc_memory_kib(os.getpid())})
+                                kib = {n: proc_memory_kib(p.pid) for n, p in procs.items()}
+                                samples.append(_Sample(step=st.step, wall_s=round(time.monotonic() - t0, 1),
+                                                       kib=kib | {"router": proc_memory_kib(os.getpid())}))
                                 next_sample_step = st.step + per_hour
                         case m.AgentStatus() as st:
                             last_agent = st
@@ -192,45 +200,46 @@ def bench_soak(days: float = 30.0, feeder: str | None = None, *, start: str = "2
         raise SoakError(f"the bridge printed no summary (exit {codes.get('bridge')}); see {out / 'bridge.log'}") from e
     info = recording_info(mcap)
     rec_stats = info.metadata.get("cvvc.recorder_stats", {})
-    start_sample = next((s for s in samples if s["step"] >= warm_step), samples[0] if samples else {})
-    end_sample = samples[-1] if samples else {}
-    memory: dict[str, Any] = {}
+    start_sample = next((x for x in samples if x.step >= warm_step), samples[0] if samples else None)
+    end_sample = samples[-1] if samples else None
+    memory: dict[str, ProcessMemory] = {}
     for name in ("bridge", "agent", "recorder", "router"):
-        s0, s1 = start_sample.get(name, {}), end_sample.get(name, {})
-        memory[name] = {"first_hour_kib": samples[0].get(name, {}) if samples else {}, "start_kib": s0,
-                        "end_kib": s1, "rss_growth": _growth(s0, s1, "VmRSS"),
-                        "hwm_growth": _growth(s0, s1, "VmHWM")}
+        s0 = start_sample.kib.get(name, MemoryKib()) if start_sample else MemoryKib()
+        s1 = end_sample.kib.get(name, MemoryKib()) if end_sample else MemoryKib()
+        memory[name] = ProcessMemory(first_hour_kib=samples[0].kib.get(name, MemoryKib()) if samples else MemoryKib(),
+                                     start_kib=s0, end_kib=s1, rss_growth=_growth(s0.vm_rss_kib, s1.vm_rss_kib),
+                                     hwm_growth=_growth(s0.vm_hwm_kib, s1.vm_hwm_kib))
     rejected = dict(last_agent.rejected) if last_agent else {}
-    losses: dict[str, Any] = {
-        "lockstep_misses": summary.lockstep_misses,
-        "lockstep_skipped": summary.lockstep_skipped,
-        "bridge_frames_dropped": summary.frames_dropped,
-        "control_steps": summary.control_steps,
-        "decisions_seen": decisions,
-        "control_steps_without_decision": max(0, summary.control_steps - summary.decisions),
-        "agent_queue_full": rejected.get("queue_full", 0),
-        "agent_stale": rejected.get("stale", 0),
-        "agent_rejected": rejected,
-        "bridge_rejected": summary.rejected,
-        "recorder_dropped_queue_full": int(rec_stats.get("dropped_queue_full", -1)),
-        "recorder_messages": int(rec_stats.get("messages", info.messages)),
-    }
-    per_day = [x for x in samples if x["step"] % (24 * per_hour) < per_hour]  # the first sample of every day
-    rss_by_day = {name: [x.get(name, {}).get("VmRSS") for x in per_day] for name in memory}
-    growths = [g for v in memory.values() for g in (v["rss_growth"], v["hwm_growth"]) if g is not None]
-    lost = sum(int(losses[k] or 0) for k in ("lockstep_misses", "lockstep_skipped", "bridge_frames_dropped",
-                                             "control_steps_without_decision", "agent_queue_full", "agent_stale"))
-    lost += max(losses["recorder_dropped_queue_full"], 0)
-    result = {
-        "feeder": fid, "days": days, "steps": summary.steps, "start": start, "wall_s": round(wall_s, 1),
-        "steps_per_s": summary.steps_per_s, "exit_codes": codes,
-        "last_status_step": last_bridge.step if last_bridge else None, "memory": memory, "losses": losses,
-        "samples": len(samples), "rss_by_day_kib": rss_by_day, "recording_complete": info.complete,
-        "recording_bytes": info.size_bytes,
-        "max_growth": max(growths) if growths else None, "goal_growth": _GOAL_GROWTH,
-        "growth_goal_met": bool(growths) and max(growths) < _GOAL_GROWTH, "lost_or_late": lost,
-        "loss_goal_met": lost == 0, "out_dir": str(out) if out_dir else None,
-    }
+    losses = SoakLosses(
+        lockstep_misses=summary.lockstep_misses,
+        lockstep_skipped=summary.lockstep_skipped,
+        bridge_frames_dropped=summary.frames_dropped,
+        control_steps=summary.control_steps,
+        decisions_seen=decisions,
+        control_steps_without_decision=max(0, summary.control_steps - summary.decisions),
+        agent_queue_full=rejected.get("queue_full", 0),
+        agent_stale=rejected.get("stale", 0),
+        agent_rejected=rejected,
+        bridge_rejected=summary.rejected,
+        recorder_dropped_queue_full=int(rec_stats.get("dropped_queue_full", -1)),
+        recorder_messages=int(rec_stats.get("messages", info.messages)),
+    )
+    per_day = [x for x in samples if x.step % (24 * per_hour) < per_hour]  # the first sample of every day
+    rss_by_day = {name: [x.kib.get(name, MemoryKib()).vm_rss_kib for x in per_day] for name in memory}
+    growths = [g for v in memory.values() for g in (v.rss_growth, v.hwm_growth) if g is not None]
+    lost = (losses.lockstep_misses + losses.lockstep_skipped + losses.bridge_frames_dropped
+            + losses.control_steps_without_decision + losses.agent_queue_full + losses.agent_stale)
+    lost += max(losses.recorder_dropped_queue_full, 0)
+    result = SoakBench(
+        feeder=fid, days=days, steps=summary.steps, start=start, wall_s=round(wall_s, 1),
+        steps_per_s=summary.steps_per_s, exit_codes=codes,
+        last_status_step=last_bridge.step if last_bridge else None, memory=memory, losses=losses,
+        samples=len(samples), rss_by_day_kib=rss_by_day, recording_complete=info.complete,
+        recording_bytes=info.size_bytes,
+        max_growth=max(growths) if growths else None, goal_growth=_GOAL_GROWTH,
+        growth_goal_met=bool(growths) and max(growths) < _GOAL_GROWTH, lost_or_late=lost,
+        loss_goal_met=lost == 0, out_dir=str(out) if out_dir else None,
+    )
     if tmp is not None:
         tmp.cleanup()
     return result
@@ -239,4 +248,4 @@ def bench_soak(days: float = 30.0, feeder: str | None = None, *, start: str = "2
 if __name__ == "__main__":
     days_arg = float(sys.argv[1]) if len(sys.argv) > 1 else 30.0
     out_arg = sys.argv[2] if len(sys.argv) > 2 else None
-    print(json.dumps(bench_soak(days_arg, out_dir=out_arg), indent=2))
+    print(to_json(bench_soak(days_arg, out_dir=out_arg)))

@@ -25,7 +25,6 @@ import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
 
 from benchmarks.results import (
     BenchError,
@@ -33,6 +32,7 @@ from benchmarks.results import (
     DecisionBench,
     QstsBench,
     RecordingBench,
+    SoakBench,
     SolverRun,
     SunspecBench,
     TrainingBench,
@@ -57,14 +57,8 @@ def _rural() -> Path:
 _EPRI = ("epri-k1", "epri-m1", "epri-ckt5", "epri-ckt24")
 
 #: What one benchmark of the suite returns: its result, or one result per feeder.
-Result = (dict[str, QstsBench]
-          | dict[str, BridgeBench]
-          | dict[str, TrainingBench]
-          | SolverRun
-          | dict[str, DecisionBench]
-          | RecordingBench
-          | SunspecBench
-          | dict[str, Any])
+Result = (dict[str, QstsBench] | dict[str, BridgeBench] | dict[str, TrainingBench] | SolverRun
+          | dict[str, DecisionBench] | RecordingBench | SoakBench | SunspecBench)
 
 
 def bench_qsts_all(quick: bool) -> dict[str, QstsBench]:
@@ -132,7 +126,7 @@ def bench_recording(quick: bool) -> RecordingBench:
     return run(5_000 if quick else 20_000)
 
 
-def bench_soak(quick: bool) -> dict[str, Any]:
+def bench_soak(quick: bool) -> SoakBench:
     from benchmarks.bench_soak import bench_soak as run
 
     return run(days=1 if quick else 30)
