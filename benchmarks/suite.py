@@ -1,6 +1,7 @@
 """``make bench``: every benchmark of the project, each with a baseline measured in the same run.
 
-``python -m benchmarks [--only NAME ...] [--quick] [--json FILE]`` prints one block per benchmark:
+``python -m benchmarks [--only NAME ...] [--quick] [--json FILE]`` prints one block per benchmark (its typed
+result from ``benchmarks.results`` as JSON; ``read_results`` reads a ``--json`` file back into those types):
 
 - ``qsts``: QSTS steps/s on the rural feeder, IEEE 123, IEEE 8500 and the EPRI feeders vs bare OpenDSS solves
   (goal < 1.3x);
@@ -26,6 +27,8 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+import msgspec
+
 from benchmarks.results import (
     BenchError,
     BridgeBench,
@@ -43,7 +46,7 @@ from schemas.cache import cache_root, profiles_dir
 REPO = Path(__file__).resolve().parents[1]
 FEEDERS = REPO / "feeders"
 
-__all__ = ["main"]
+__all__ = ["BENCHES", "RESULT_TYPES", "Result", "main", "read_results"]
 
 
 def _rural() -> Path:
@@ -148,6 +151,49 @@ BENCHES: dict[str, Callable[[bool], Result]] = {
     "soak": bench_soak,
     "sunspec": bench_sunspec,
 }
+
+#: The type of each benchmark's result, by name (what ``read_results`` decodes).
+RESULT_TYPES: dict[str, object] = {
+    "qsts": dict[str, QstsBench],
+    "bridge": dict[str, BridgeBench],
+    "training": dict[str, TrainingBench],
+    "solver": SolverRun,
+    "decision": dict[str, DecisionBench],
+    "recording": RecordingBench,
+    "soak": SoakBench,
+    "sunspec": SunspecBench,
+}
+
+
+def read_results(path: str | Path) -> dict[str, Result | BenchError]:
+    """Read a ``--json`` file back: each benchmark's figures decoded into its result type, or its ``BenchError``.
+
+    Parameters
+    ----------
+    path : the file ``python -m benchmarks --json FILE`` wrote.
+
+    Returns
+    -------
+    dict[str, Result | BenchError]
+        By benchmark name, in the file's order.
+
+    Raises
+    ------
+    msgspec.DecodeError, msgspec.ValidationError
+        The file is not such JSON, or a benchmark's figures do not fit its type (the message says where).
+    ValueError
+        The file names a benchmark this suite does not have.
+    """
+    raw = msgspec.json.decode(Path(path).read_bytes(), type=dict[str, msgspec.Raw])
+    out: dict[str, Result | BenchError] = {}
+    for name, data in raw.items():
+        if name not in RESULT_TYPES:
+            raise ValueError(f"{path}: unknown benchmark {name!r} (known: {', '.join(RESULT_TYPES)})")
+        try:
+            out[name] = msgspec.json.decode(data, type=BenchError)
+        except msgspec.ValidationError:  # not an error record: the benchmark's own figures
+            out[name] = msgspec.json.decode(data, type=RESULT_TYPES[name])
+    return out
 
 
 def main(argv: list[str] | None = None) -> int:
