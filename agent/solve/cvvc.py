@@ -24,7 +24,15 @@ from agent.cvvc_qp import CvvcInputs, CvvcQp, build_cvvc_qp
 from agent.solve.rounding import round_taps
 from agent.solve.rows import solve_rows, start_nodes, unreachable_rows, zero_is_feasible
 from agent.solve.settings import Q_DECIMALS
-from agent.solve.solution import CvvcSolution, Run, StageSeconds, WarmStart, hold_solution, violation_pu
+from agent.solve.solution import (
+    CvvcSolution,
+    Run,
+    StageSeconds,
+    WarmStart,
+    hold_solution,
+    pinned_solution,
+    violation_pu,
+)
 
 __all__ = ["solve_cvvc"]
 
@@ -48,6 +56,9 @@ def solve_cvvc(inputs: CvvcInputs, *, warm_start: WarmStart | CvvcSolution | Non
     trouble, never contains NaN.
     """
     t_start = time.perf_counter()
+    if np.all(inputs.q_min_kvar == inputs.q_max_kvar) and np.all(inputs.max_taps_per_interval == 0):
+        t = time.perf_counter() - t_start
+        return pinned_solution(inputs, StageSeconds(t, 0.0, 0.0, t))
     warm = warm_start.warm_start if isinstance(warm_start, CvvcSolution) else warm_start
     iterations = 0
     hard = build_cvvc_qp(inputs, soft=False)

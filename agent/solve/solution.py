@@ -12,6 +12,7 @@ from typing import Literal
 import numpy as np
 
 from agent.cvvc_qp import CvvcInputs, CvvcQp
+from agent.solve.settings import V_TOL_PU
 
 __all__ = ["CvvcSolution", "MilpReference", "Run", "StageSeconds", "Status", "WarmStart", "hold_solution",
            "violation_pu"]
@@ -149,6 +150,37 @@ def hold_solution(inputs: CvvcInputs, reason: str, iterations: int, seconds: Sta
         iterations=iterations,
         relaxed_d_tap=np.zeros(inputs.n_reg),
         relaxed_q_kvar=inputs.q0_kvar.copy(),
+        relaxed_form="none",
+        relaxed_x=np.zeros(0),
+        relaxed_y=np.zeros(0),
+        relaxed_problem=None,
+        candidates_tried=0,
+        seconds=seconds,
+    )
+
+
+def pinned_solution(inputs: CvvcInputs, seconds: StageSeconds) -> CvvcSolution:
+    """Nothing can move (every plant's Q and every tap or bank fixed): the one possible point, without a solve.
+
+    OSQP declared such problems' soft form infeasible ("primal infeasible inaccurate": every variable pinned at a
+    bound, e.g. PV at night with no Q headroom and the banks frozen; epri-ckt5 case A held 135 of 864 decisions of
+    a summer run), although a violation is then simply what remains. ``soft`` when a limit stays violated.
+    """
+    q = inputs.q_min_kvar + 0.0  # a fresh array, without -0.0
+    v = inputs.predict_v_pu(np.zeros(inputs.n_reg), q)
+    worst = float(np.max(violation_pu(inputs, v), initial=0.0))
+    return CvvcSolution(
+        status="optimal" if worst <= V_TOL_PU else "soft",
+        reason="" if worst <= V_TOL_PU else (
+            f"no action available (every plant's Q and every tap fixed): {worst:.4f} pu beyond the limits stays"),
+        taps_new=inputs.taps.copy(),
+        q_new_kvar=q,
+        v_pred_pu=v,
+        cost=inputs.cost(np.zeros(inputs.n_reg), q),
+        max_violation_pu=worst,
+        iterations=0,
+        relaxed_d_tap=np.zeros(inputs.n_reg),
+        relaxed_q_kvar=q.copy(),
         relaxed_form="none",
         relaxed_x=np.zeros(0),
         relaxed_y=np.zeros(0),

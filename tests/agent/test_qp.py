@@ -323,3 +323,15 @@ def test_sensitivity_error_leaves_the_hard_form_alone():
     np.testing.assert_array_equal(hard[0].p_diag, hard[1].p_diag)
     with pytest.raises(AgentInputError, match="dv_dq_rel_error"):
         CvvcInputs(**{**inputs.__dict__, "dv_dq_rel_error": 1.5})
+
+
+def test_nothing_can_move_is_answered_without_a_solve():
+    """PV at night (no Q headroom) and every tap frozen: the only point is the present one; a violation stays
+    and is reported (OSQP called such all-pinned soft problems infeasible: epri-ckt5 case A held 135 decisions)."""
+    pinned = {"q_min_kvar": np.array([0.0]), "q_max_kvar": np.array([0.0]), "max_taps_per_interval": np.array([0])}
+    over = solve_cvvc(CvvcInputs(**{**_tiny(v0=[1.043, 1.03]).__dict__, **pinned}))
+    assert over.status == "soft" and "no action available" in over.reason and "0.0030 pu" in over.reason
+    assert over.q_new_kvar.tolist() == [0.0] and over.taps_new.tolist() == [0] and over.iterations == 0
+    assert over.max_violation_pu == pytest.approx(0.003)
+    inside = solve_cvvc(CvvcInputs(**{**_tiny(v0=[1.0, 1.0]).__dict__, **pinned}))
+    assert inside.status == "optimal" and inside.reason == "" and inside.cost == 0.0
