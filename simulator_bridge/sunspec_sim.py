@@ -229,6 +229,19 @@ class SimulatedSunSpecInverter:
             self._tick()
             return self._q_command_locked()
 
+    def var_setpoint_kvar(self) -> float | None:
+        """The 704 set point in force [kvar, + injects], not clipped; None: the function is off (local default).
+
+        What a plant model takes as its command: the plant clips it to the headroom at its own output at each
+        instant (``simulator_bridge.qsts``), as the inverter does at its present P (:meth:`q_command_kvar`).
+        """
+        with self._lock:
+            self._tick()
+            ctl = self._models[704].points
+            if ctl["VarSetEna"].value != 1 or ctl["VarSetMod"].value != _VARS_MODE:
+                return None
+            return float(ctl["VarSet"].cvalue) / 1000.0
+
     def control_state(self) -> dict[str, Any]:
         """Model 704's reactive-power points as they stand now (raw register values, after the timer)."""
         with self._lock:
