@@ -46,7 +46,7 @@ from schemas import keys
 from schemas import messages as m
 from schemas.bus import BusConfig, open_session, wait_for
 from schemas.devicemap import DeviceMap, load_device_map
-from simulator_bridge.bridge_runtime import BridgeRuntime
+from simulator_bridge.bridge_runtime import BridgeRuntime, sunspec_fleet
 from simulator_bridge.errors import BridgeError
 
 if TYPE_CHECKING:
@@ -260,8 +260,9 @@ def run_bridge(config: BridgeConfig, bus: BusConfig, *, stop: threading.Event | 
             raise BridgeError(f"{config.steps} steps from {config.start} run past the end of the profile year "
                               f"({profiles.n_steps - start} steps left); start earlier or run fewer steps")
         qsts = Qsts(engine, profiles, start_step=start, pv_local=config.pv_local)
+        fleet = sunspec_fleet(config, dm, engine, qsts)
         with open_session(bus) as session:
-            rt = BridgeRuntime(config, bus, session, dm, engine, profiles, qsts, start)
+            rt = BridgeRuntime(config, bus, session, dm, engine, profiles, qsts, start, fleet)
             try:
                 return _loop(rt, stop, on_ready)
             finally:

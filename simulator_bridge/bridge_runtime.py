@@ -41,7 +41,7 @@ if TYPE_CHECKING:
     from simulator_bridge.profiles import YearProfiles
     from simulator_bridge.qsts import Qsts, StepResult
 
-__all__ = ["BridgeRuntime", "publisher_bus"]
+__all__ = ["BridgeRuntime", "publisher_bus", "sunspec_fleet"]
 
 log = logging.getLogger("simulator_bridge.bridge")  # the bridge's log lines, under the bridge's name
 
@@ -76,6 +76,21 @@ def non_finite(res: StepResult) -> BridgeError:
                        "profiles are broken (check `cvvc feeder info`)")
 
 
+def sunspec_fleet(c: BridgeConfig, dm: DeviceMap, engine: FeederEngine, qsts: Qsts) -> SunSpecFleet | None:
+    """The simulated SunSpec inverters of ``c.pv_sunspec`` (not serving yet), or None without any.
+
+    Raises
+    ------
+    BridgeError
+        A plant the feeder does not have, an endpoint that is not ``tcp/127.0.0.1:PORT``.
+    """
+    if not c.pv_sunspec:
+        return None
+    return SunSpecFleet(c.pv_sunspec, dm, tuple(engine.pv_ids),
+                        plant_phases(tuple(engine.node_names), engine.pv_node_index),
+                        q_at_night=bool(qsts.pv_q_at_night))
+
+
 def publisher_bus(c: BridgeConfig, bus: BusConfig, n_nodes: int) -> BusConfig | None:
     """The publisher process's bus, or None to publish inline (``BridgeConfig.publisher``).
 
@@ -107,11 +122,13 @@ class BridgeRuntime:
     ----------
     config : the run. bus : the bridge's bus settings. session : its open Zenoh session. dm : the device map.
     engine, profiles, qsts : the feeder, its year profiles and the simulation. start_step : the profile step of the
-    run's first step.
+    run's first step. fleet : the simulated inverters of the plants behind SunSpec (:func:`sunspec_fleet`), not
+    started yet (started here, stopped by :meth:`close`), or None.
     """
 
     def __init__(self, config: BridgeConfig, bus: BusConfig, session: zenoh.Session, dm: DeviceMap,
-                 engine: FeederEngine, profiles: YearProfiles, qsts: Qsts, start_step: int) -> None:
+                 engine: FeederEngine, profiles: YearProfiles, qsts: Qsts, start_step: int,
+                 fleet: SunSpecFleet | None = None) -> None:
         c = self.config = config
         self.session, self.dm, self.engine, self.profiles, self.qsts = session, dm, engine, profiles, qsts
         self.counters = BridgeCounters(rlog=RateLimitedLog(log))  # every line a peer can provoke
@@ -120,11 +137,7 @@ class BridgeRuntime:
         self.control_every = max(1, dm.feeder.control_period_s // self.step_s)
         self.start_step = start_step
         local: Literal["unity_pf", "volt_var"] = "volt_var" if c.pv_local == "volt_var" else "unity_pf"
-        self.fleet: SunSpecFleet | None = None  # the plants behind SunSpec (``sunspec_fleet``), if any
-        if c.pv_sunspec:
-            self.fleet = SunSpecFleet(c.pv_sunspec, dm, tuple(engine.pv_ids),
-                                      plant_phases(tuple(engine.node_names), engine.pv_node_index),
-                                      q_at_night=bool(qsts.pv_q_at_night))
+        self.fleet = fleet  # the plants behind SunSpec (``sunspec_fleet``), if any
         external = frozenset(self.fleet.plant_ids) if self.fleet is not None else frozenset()
         # secure: only the command role's certificate can put commands, so replay protection is keyed on it
         self.bank = DeviceBank(session, self.fid, engine, qsts, local=local,

@@ -1,0 +1,160 @@
+"""The bridge with plants behind SunSpec (``BridgeConfig.pv_sunspec``): real OpenDSS (IEEE 13), real Zenoh on a
+loopback router, real Modbus TCP between each simulated inverter and its ``cvvc adapter sunspec`` (threads).
+
+The test client plays the agent by hand (``busclient``). Two of the three plants are behind SunSpec, the third stays
+the bridge's own, so each side is checked against the other in the same run.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from busclient import BusClient as Client
+from test_bridge import FEEDER, STEP_NS, _bridge_thread, _config, _finish
+
+from adapters.sunspec_runtime import AdapterConfig, run_adapter
+from schemas import messages as m
+from schemas.bus import BusConfig, free_port
+
+SUNSPEC = ("pv675", "pv633")
+PV_ORDER = ("pv675", "pv680", "pv633")  # the device map's order: the truth frame's pv_q_kvar columns
+W_STEP_KW = 0.1  # W_SF 2 for these 1.2 MVA / 0.8 MVA plants (1.5 x rating must fit an int16): 100 W steps
+
+
+@pytest.fixture(scope="module")
+def cache_dir(profile_cache: Path) -> Path:
+    return profile_cache
+
+
+@pytest.fixture(scope="module")
+def device_map_path() -> Path:
+    return Path(__file__).resolve().parents[2] / "feeders" / "ieee13.toml"
+
+
+@pytest.fixture
+def client(router_endpoint: str) -> Iterator[Client]:
+    c = Client(router_endpoint, FEEDER)
+    try:
+        yield c
+    finally:
+        c.close()
+
+
+@pytest.fixture
+def adapters(router_endpoint: str) -> Iterator[dict[str, str]]:
+    """One adapter per plant behind SunSpec (head clock), each on its own free port; yields plant -> endpoint."""
+    endpoints = {pid: f"tcp/127.0.0.1:{free_port()}" for pid in SUNSPEC}
+    stop = threading.Event()
+    threads, results = [], []
+    for pid, ep in endpoints.items():
+        config = AdapterConfig(feeder_id=FEEDER, device_id=pid, modbus=ep, clock="head", scan_period_s=60.0,
+                               control_period_s=300.0)
+        ready = threading.Event()
+
+        def run(config: AdapterConfig = config, ready: threading.Event = ready) -> None:
+            results.append(run_adapter(config, BusConfig(mode="peer", connect=(router_endpoint,)), stop=stop,
+                                       ready=ready))
+
+        th = threading.Thread(target=run, daemon=True)
+        th.start()
+        threads.append(th)
+        assert ready.wait(30.0), "adapter did not come up"
+    try:
+        yield endpoints
+    finally:
+        stop.set()
+        for th in threads:
+            th.join(timeout=30)
+        assert not any(th.is_alive() for th in threads)
+
+
+def _pv(client: Client, plant: str, t_ns: int) -> m.PvFrame:
+    return client.next(lambda k, x: isinstance(x, m.PvFrame) and x.plant_id == plant and x.t_ns == t_ns)
+
+
+def _truth_q(client: Client, plant: str, t_ns: int) -> float:
+    tr = client.next(lambda k, x: isinstance(x, m.TruthFrame) and x.t_ns == t_ns)
+    return tr.pv_q_kvar[PV_ORDER.index(plant)]
+
+
+def _on_step(x: float, step: float) -> bool:
+    return abs(x / step - round(x / step)) < 1e-6
+
+
+def test_set_points_go_through_the_inverters_and_revert_there_when_the_agent_stops(
+        client: Client, router_endpoint: str, device_map_path: Path, cache_dir: Path,
+        adapters: dict[str, str]) -> None:
+    client.be_agent()
+    config: Any = _config(device_map_path, cache_dir, steps=8, truth_every=1, publisher="inline",
+                          pv_sunspec=adapters)
+    th, stop, out = _bridge_thread(config, router_endpoint)
+    try:
+        t0 = client.head().t_ns
+        f675, f680, f633 = (_pv(client, p, t0) for p in PV_ORDER)
+        # the adapters' frames carry what the 701 registers hold: per phase, on the scale factor's 100 W step
+        assert all(_on_step(ph.p_kw, W_STEP_KW) for ph in f675.phases + f633.phases)
+        assert not all(_on_step(ph.p_kw, W_STEP_KW) for ph in f680.phases)  # the bridge's own: not rounded
+        assert f675.p_kw > 0 and f675.q_setpoint_kvar is None and f675.s_rated_kva == pytest.approx(1200.0)
+
+        c675 = client.pv_cmd("pv675", 200.0, t0, valid_s=240)  # in force up to t0 + 4 min, gone at t0 + 5 min
+        c633 = client.pv_cmd("pv633", -150.0, t0, valid_s=120)
+        c680 = client.pv_cmd("pv680", 100.0, t0)
+        client.decide(t0, [c675, c633, c680])
+        a = client.ack(c675.cmd_id)
+        assert (a.status, a.applied_value, a.source) == ("accepted", 200.0, "pv675")  # the adapter's read-back
+        assert client.ack(c633.cmd_id).status == "accepted"
+        assert client.ack(c680.cmd_id).status == "accepted"
+
+        # the set point written into the inverter is the simulated plant's command from the next step on
+        t1 = t0 + STEP_NS
+        assert _truth_q(client, "pv675", t1) == pytest.approx(200.0, abs=1e-6)
+        assert _truth_q(client, "pv633", t1) == pytest.approx(-150.0, abs=1e-6)
+        f = _pv(client, "pv675", t1)
+        assert f.q_setpoint_kvar == 200.0 and f.q_kvar == pytest.approx(200.0, abs=3 * W_STEP_KW / 2 + 1e-9)
+        client.token.undeclare()  # the agent stops: nothing more is sent
+        client.token = None
+
+        # the inverter's own timer: pv633 (valid until t0 + 2 min) is back on unity at t0 + 3 min, pv675 at + 5 min
+        assert _truth_q(client, "pv633", t0 + 2 * STEP_NS) == pytest.approx(-150.0, abs=1e-6)
+        assert _truth_q(client, "pv633", t0 + 3 * STEP_NS) == 0.0
+        assert _truth_q(client, "pv675", t0 + 4 * STEP_NS) == pytest.approx(200.0, abs=1e-6)
+        assert _truth_q(client, "pv675", t0 + 5 * STEP_NS) == 0.0
+        assert _pv(client, "pv675", t0 + 5 * STEP_NS).q_setpoint_kvar is None
+        assert client.ack(c633.cmd_id, "expired").source == "pv633"  # acked by its adapter at its next scan
+        assert client.ack(c675.cmd_id, "expired").t_ns == t0 + 5 * STEP_NS
+        summary = _finish(th, stop, out)
+    finally:
+        stop.set()
+        th.join(timeout=30)
+    assert summary.steps == 8 and summary.lockstep_misses == 0 and summary.sunspec_frame_misses == 0
+    # the bridge acked only its own plant's command: the others were the adapters'
+    assert summary.acks == {"accepted": 1}
+    t_last = t0 + 7 * STEP_NS
+    for pid in PV_ORDER:
+        _pv(client, pid, t_last)
+    client.next(lambda k, x: isinstance(x, m.StepEnd) and x.t_ns == t_last)  # frames come before their marker
+    pv_frames = [x for _, x, _ in client.seen if isinstance(x, m.PvFrame)]
+    for pid in PV_ORDER:  # one frame per plant and step: the bridge published none for the SunSpec plants
+        assert sorted(f.t_ns for f in pv_frames if f.plant_id == pid) == [t0 + i * STEP_NS for i in range(8)]
+    ends = [x for _, x, _ in client.seen if isinstance(x, m.StepEnd)]
+    assert ends and all(sorted(e.pv) == sorted(PV_ORDER) for e in ends)  # the agent waits for the adapters' frames
+
+
+def test_a_plant_that_is_not_on_the_feeder_or_a_bad_endpoint_is_refused(device_map_path: Path,
+                                                                         cache_dir: Path) -> None:
+    from simulator_bridge.bridge import BridgeError, run_bridge
+
+    for pv_sunspec, why in (({"pv999": f"tcp/127.0.0.1:{free_port()}"}, "pv999"),
+                            ({"pv675": "tcp/192.0.2.1:502"}, "127.0.0.1 only"),
+                            ({"pv675": "127.0.0.1:502"}, "tcp/HOST:PORT")):
+        with pytest.raises(BridgeError, match=why):
+            run_bridge(_config(device_map_path, cache_dir, pv_sunspec=pv_sunspec),
+                       BusConfig(mode="peer", connect=(f"tcp/127.0.0.1:{free_port()}",)))
+    with pytest.raises(BridgeError, match="no SCADA noise"):
+        run_bridge(_config(device_map_path, cache_dir, noise_scada_pct=1.0,
+                           pv_sunspec={"pv675": f"tcp/127.0.0.1:{free_port()}"}),
+                   BusConfig(mode="peer", connect=(f"tcp/127.0.0.1:{free_port()}",)))
