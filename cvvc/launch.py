@@ -332,7 +332,8 @@ def run(config: RunConfig) -> RunSummary:
 
     try:
         pvp.check_pv_protocol(config.pv_protocol, noise_scada_pct=config.noise_scada_pct, drop_prob=config.drop_prob,
-                              meas_delay_s=config.meas_delay_s, clock_skew_s=config.clock_skew_s)
+                              meas_delay_s=config.meas_delay_s, clock_skew_s=config.clock_skew_s,
+                              secure=config.secure)
     except CommandError as e:
         raise LaunchError(str(e)) from e
 
