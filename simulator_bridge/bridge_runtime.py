@@ -372,16 +372,17 @@ class BridgeRuntime:
 
     def await_sunspec_frames(self, t_ns: int, stop: threading.Event) -> None:
         """Serve the queue until every SunSpec adapter's frame of the step at ``t_ns`` [ns] arrived, at most
-        ``timeout_s``; a step whose frames did not all come is counted (``SunSpecFleet.frame_misses``).
+        ``timeout_s``; a step whose frames did not all come is counted (``SunSpecFleet.frame_misses``), and the
+        plants that missed it are not waited for again until their next frame (``SunSpecFleet.missed``).
         """
         fleet = self.fleet
         if fleet is None or self.serve(time.monotonic() + self.config.timeout_s, stop,
                                        lambda: fleet.frames_in(t_ns)) or stop.is_set():
             return
-        fleet.frame_misses += 1
-        late = [pid for pid, t in fleet.last_frame_t_ns.items() if t < t_ns]
-        self.counters.rlog.warning("sunspec_frame_miss", "no frame of %s at t_ns=%d within %.3f s (%d steps so far)",
-                                   late, t_ns, self.config.timeout_s, fleet.frame_misses)
+        late = fleet.missed(t_ns)
+        self.counters.rlog.warning("sunspec_frame_miss", "no frame of %s at t_ns=%d within %.3f s (%d steps so far); "
+                                   "not waiting for them until their next frame", late, t_ns, self.config.timeout_s,
+                                   fleet.frame_misses)
 
     def flush(self, now_s: float) -> None:
         """Frames held by the latency line (inline publishing only) that are due go out."""

@@ -62,6 +62,7 @@ class SunSpecFleet:
         self.inverters: dict[str, SimulatedSunSpecInverter] = {}
         self.last_frame_t_ns: dict[str, int] = {}
         self.frame_misses = 0  # steps whose frame of some plant did not come within the bound
+        self.lagging: set[str] = set()  # plants whose frame did not come in time: not waited for until the next
         for pid, endpoint in endpoints.items():
             try:
                 host, port = parse_modbus_endpoint(endpoint)
@@ -129,10 +130,21 @@ class SunSpecFleet:
         """An adapter's frame of ``plant_id`` at ``t_ns`` [ns] arrived (others' frames are ignored)."""
         if plant_id in self.last_frame_t_ns and t_ns > self.last_frame_t_ns[plant_id]:
             self.last_frame_t_ns[plant_id] = int(t_ns)
+            self.lagging.discard(plant_id)
 
     def frames_in(self, t_ns: int) -> bool:
-        """Whether every plant's frame of the step at ``t_ns`` [ns] (or a later one) arrived."""
-        return all(t >= t_ns for t in self.last_frame_t_ns.values())
+        """Whether the frame of the step at ``t_ns`` [ns] (or a later one) arrived from every plant not lagging."""
+        return all(t >= t_ns for pid, t in self.last_frame_t_ns.items() if pid not in self.lagging)
+
+    def missed(self, t_ns: int) -> list[str]:
+        """The step at ``t_ns`` [ns] went without some plants' frames: count it, and wait for those plants no more
+        until a frame of theirs comes again (an adapter whose link is down costs one wait, not one per step).
+        Returns the plants that missed it.
+        """
+        late = [pid for pid, t in self.last_frame_t_ns.items() if t < t_ns and pid not in self.lagging]
+        self.frame_misses += 1
+        self.lagging.update(late)
+        return late
 
 
 def plant_phases(node_names: tuple[str, ...],

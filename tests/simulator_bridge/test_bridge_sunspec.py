@@ -14,7 +14,7 @@ from typing import Any
 
 import pytest
 from busclient import BusClient as Client
-from test_bridge import FEEDER, STEP_NS, _bridge_thread, _config, _finish
+from test_bridge import FEEDER, STARTUP_S, STEP_NS, _bridge_thread, _config, _finish
 
 from adapters.sunspec_runtime import AdapterConfig, run_adapter
 from schemas import messages as m
@@ -44,32 +44,38 @@ def client(router_endpoint: str) -> Iterator[Client]:
         c.close()
 
 
-@pytest.fixture
-def adapters(router_endpoint: str) -> Iterator[dict[str, str]]:
-    """One adapter per plant behind SunSpec (head clock), each on its own free port; yields plant -> endpoint."""
-    endpoints = {pid: f"tcp/127.0.0.1:{free_port()}" for pid in SUNSPEC}
-    stop = threading.Event()
-    threads, results = [], []
-    for pid, ep in endpoints.items():
-        config = AdapterConfig(feeder_id=FEEDER, device_id=pid, modbus=ep, clock="head", scan_period_s=60.0,
-                               control_period_s=300.0)
+class _Adapter:
+    """One ``cvvc adapter sunspec --clock head`` on a thread, for plant ``pid`` at a free port's endpoint."""
+
+    def __init__(self, pid: str, router_endpoint: str) -> None:
+        self.endpoint = f"tcp/127.0.0.1:{free_port()}"
+        self.stop = threading.Event()
+        config = AdapterConfig(feeder_id=FEEDER, device_id=pid, modbus=self.endpoint, clock="head",
+                               scan_period_s=60.0, control_period_s=300.0)
         ready = threading.Event()
-
-        def run(config: AdapterConfig = config, ready: threading.Event = ready) -> None:
-            results.append(run_adapter(config, BusConfig(mode="peer", connect=(router_endpoint,)), stop=stop,
-                                       ready=ready))
-
-        th = threading.Thread(target=run, daemon=True)
-        th.start()
-        threads.append(th)
+        bus = BusConfig(mode="peer", connect=(router_endpoint,))
+        self.thread = threading.Thread(target=lambda: run_adapter(config, bus, stop=self.stop, ready=ready),
+                                       daemon=True)
+        self.thread.start()
         assert ready.wait(30.0), "adapter did not come up"
+
+    def close(self) -> None:
+        self.stop.set()
+        self.thread.join(timeout=30)
+        assert not self.thread.is_alive()
+
+
+@pytest.fixture
+def adapters(router_endpoint: str) -> Iterator[dict[str, _Adapter]]:
+    """One adapter per plant behind SunSpec, each on its own free port; yields plant -> adapter."""
+    running: dict[str, _Adapter] = {}
     try:
-        yield endpoints
+        for pid in SUNSPEC:
+            running[pid] = _Adapter(pid, router_endpoint)
+        yield running
     finally:
-        stop.set()
-        for th in threads:
-            th.join(timeout=30)
-        assert not any(th.is_alive() for th in threads)
+        for a in running.values():
+            a.close()
 
 
 def _pv(client: Client, plant: str, t_ns: int) -> m.PvFrame:
@@ -87,13 +93,13 @@ def _on_step(x: float, step: float) -> bool:
 
 def test_set_points_go_through_the_inverters_and_revert_there_when_the_agent_stops(
         client: Client, router_endpoint: str, device_map_path: Path, cache_dir: Path,
-        adapters: dict[str, str]) -> None:
+        adapters: dict[str, _Adapter]) -> None:
     client.be_agent()
     config: Any = _config(device_map_path, cache_dir, steps=8, truth_every=1, publisher="inline",
-                          pv_sunspec=adapters)
+                          pv_sunspec={pid: a.endpoint for pid, a in adapters.items()})
     th, stop, out = _bridge_thread(config, router_endpoint)
     try:
-        t0 = client.head().t_ns
+        t0 = client.next(lambda k, x: isinstance(x, m.HeadFrame), STARTUP_S).t_ns  # a loaded machine
         f675, f680, f633 = (_pv(client, p, t0) for p in PV_ORDER)
         # the adapters' frames carry what the 701 registers hold: per phase, on the scale factor's 100 W step
         assert all(_on_step(ph.p_kw, W_STEP_KW) for ph in f675.phases + f633.phases)
@@ -142,6 +148,30 @@ def test_set_points_go_through_the_inverters_and_revert_there_when_the_agent_sto
         assert sorted(f.t_ns for f in pv_frames if f.plant_id == pid) == [t0 + i * STEP_NS for i in range(8)]
     ends = [x for _, x, _ in client.seen if isinstance(x, m.StepEnd)]
     assert ends and all(sorted(e.pv) == sorted(PV_ORDER) for e in ends)  # the agent waits for the adapters' frames
+
+
+def test_an_adapter_gone_costs_the_bridge_one_bounded_wait_not_one_per_step(
+        client: Client, router_endpoint: str, device_map_path: Path, cache_dir: Path,
+        adapters: dict[str, _Adapter]) -> None:
+    client.be_agent()
+    config: Any = _config(device_map_path, cache_dir, steps=6, timeout_s=2.0, publisher="inline",
+                          pv_sunspec={pid: a.endpoint for pid, a in adapters.items()})
+    th, stop, out = _bridge_thread(config, router_endpoint)
+    try:
+        t0 = client.next(lambda k, x: isinstance(x, m.HeadFrame), STARTUP_S).t_ns  # a loaded machine
+        _pv(client, "pv633", t0)
+        adapters["pv633"].close()  # its adapter stops after the first step's frame
+        client.decide(t0)
+        client.head(t0 + 5 * STEP_NS)
+        client.decide(t0 + 5 * STEP_NS)
+        summary = _finish(th, stop, out)
+    finally:
+        stop.set()
+        th.join(timeout=30)
+    assert summary.steps == 6 and summary.lockstep_misses == 0
+    assert summary.sunspec_frame_misses == 1  # waited once (2 s) for pv633's frame, then no more
+    for i in range(6):  # the other adapter went on scanning every step
+        _pv(client, "pv675", t0 + i * STEP_NS)
 
 
 def test_a_plant_that_is_not_on_the_feeder_or_a_bad_endpoint_is_refused(device_map_path: Path,
