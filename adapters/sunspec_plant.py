@@ -13,8 +13,10 @@ by the same :class:`~simulator_bridge.devices.PvInverter` guard), then the SunSp
    ``accepted`` when that is the request within half a ``VarSet`` step, ``clipped`` otherwise; a Modbus exception
    answer is ``rejected`` with reason ``device_refused``; a link failure ``rejected`` with ``link_down``.
 
-A scan reads 701/702/704 and makes a ``PvFrame`` stamped with the scan's time. Refused register values
-(``adapters.sunspec``) give no frame: they are counted by point and the link's state becomes ``refusing``.
+A scan reads 701/702/704 (and 705, the local volt-var curve, if the inverter has it) and makes a ``PvFrame``
+stamped with the scan's time; its ``local_mode`` is 705's (volt-var when enabled) or, without 705, the setting's.
+Refused register values (``adapters.sunspec``) give no frame: they are counted by point and the link's state
+becomes ``refusing``.
 A command whose ``valid_until_t_ns`` has passed at a scan is answered ``expired`` (the inverter reverted itself).
 """
 
@@ -46,7 +48,8 @@ class PlantSettings:
     ----------
     feeder_id, device_id : where it is on the bus (``cvvc/<feeder_id>/.../pv/<device_id>``).
     control_period_ns : the feeder's control period [ns]: the unit of the command windows (as the bridge's).
-    local_mode : the plant's local default, reported in its frames.
+    local_mode : the plant's local default, reported in its frames when the inverter has no model 705 (with 705,
+        its ``Ena`` says: volt-var or unity power factor).
     q_at_night : whether the inverter gives reactive power at zero active power.
     """
 
@@ -110,6 +113,8 @@ class SunSpecPlant:
         q = [by_phase[ph].q_kvar if ph in by_phase else 0.0 for ph in "abc"]
         v = [by_phase[ph].v_v if ph in by_phase else 0.0 for ph in "abc"]
         self.plant.s_rated_kva = r.s_rated_kva
+        if r.volt_var is not None:  # the inverter says what it does on its own (705); else the configured mode
+            self.plant.local_mode = "volt_var" if r.volt_var.enabled else "unity_pf"
         self._seq += 1
         self.frames += 1
         return dv.pv_frame(plant=self.plant, t_ns=int(t_ns), seq=self._seq, p_kw=p, q_kvar=q, v_v=v,

@@ -88,7 +88,7 @@ def sunspec_fleet(c: BridgeConfig, dm: DeviceMap, engine: FeederEngine, qsts: Qs
         return None
     return SunSpecFleet(c.pv_sunspec, dm, tuple(engine.pv_ids),
                         plant_phases(tuple(engine.node_names), engine.pv_node_index),
-                        q_at_night=bool(qsts.pv_q_at_night))
+                        q_at_night=bool(qsts.pv_q_at_night), volt_var=c.pv_local == "volt_var")
 
 
 def publisher_bus(c: BridgeConfig, bus: BusConfig, n_nodes: int) -> BusConfig | None:

@@ -46,10 +46,12 @@ class SunSpecFleet:
     dm : the device map (ratings, nominal voltages). pv_ids : the engine's plant ids, in its order (the index of a
     plant in the step's arrays). pv_phases : per plant, the phases it is connected to (``a``, ``b``, ``c``).
     q_at_night : whether the plants give reactive power at zero active power.
+    volt_var : whether the plants' local default is the IEEE 1547 volt-var curve (the bridge's ``pv_local``): each
+    inverter's model 705 holds that curve, enabled or not, so its adapter reports the plant's local mode from it.
     """
 
     def __init__(self, endpoints: Mapping[str, str], dm: DeviceMap, pv_ids: tuple[str, ...],
-                 pv_phases: tuple[tuple[str, ...], ...], *, q_at_night: bool = False) -> None:
+                 pv_phases: tuple[tuple[str, ...], ...], *, q_at_night: bool = False, volt_var: bool = False) -> None:
         from adapters.sunspec_runtime import parse_modbus_endpoint
 
         unknown = sorted(set(endpoints) - set(pv_ids))
@@ -76,7 +78,8 @@ class SunSpecFleet:
             try:
                 self.inverters[pid] = SimulatedSunSpecInverter(
                     plant_id=pid, s_rated_kva=float(spec.kva), v_nominal_v=v_nominal_v, port=port,
-                    phases=pv_phases[k], host="127.0.0.1", clock_ns=self._clock, q_at_night=q_at_night)
+                    phases=pv_phases[k], host="127.0.0.1", clock_ns=self._clock, q_at_night=q_at_night,
+                    volt_var=volt_var)
             except SunSpecSimError as e:
                 raise BridgeError(f"plant {pid}: {e}") from e
             self.index[pid] = k
