@@ -172,18 +172,19 @@ class BridgeRuntime:
             self.fleet.start()  # before the adapters' first scan; stopped by close()
         try:
             self._declare()
+            self.child: PublisherProcess | None = None
+            self.framer: StepFramer | None = None
+            child = publisher_bus(c, bus, len(engine.node_names))
+            if child is None:
+                self.framer = StepFramer(self.spec, session, self._on_control_head)
+            else:
+                packer = StepPacker(len(engine.node_names), len(bank.pvs), len(bank.regs),
+                                    len(engine.capacitor_ids))
+                self.child = PublisherProcess(self.spec, packer, child)
         except BaseException:
-            if self.fleet is not None:
+            if self.fleet is not None:  # no close() follows a failed construction: the servers stop here
                 self.fleet.close()
             raise
-        self.child: PublisherProcess | None = None
-        self.framer: StepFramer | None = None
-        child = publisher_bus(c, bus, len(engine.node_names))
-        if child is None:
-            self.framer = StepFramer(self.spec, session, self._on_control_head)
-        else:
-            packer = StepPacker(len(engine.node_names), len(bank.pvs), len(bank.regs), len(engine.capacitor_ids))
-            self.child = PublisherProcess(self.spec, packer, child)
 
     @property
     def now_t_ns(self) -> int:
