@@ -9,9 +9,10 @@ factors the device reports: no register addresses are written here. The points u
   ``VA_SF``, ``Var_SF``.
 * 704 DER AC controls: ``VarSetEna``, ``VarSetMod`` (``VARS`` = 4), ``VarSet`` with ``VarSet_SF``,
   ``VarSetEnaRvrt``, ``VarSetRvrtTms``, ``VarSetRvrtRem``.
-* 705 DER volt-var, when the inverter has it (read only): ``Ena``, ``NCrv``, ``NPt``, and curve 1's ``ActPt``,
-  ``DeptRef`` (``VAR_MAX_PCT`` = 1 only), ``VRef``, points ``V`` (% of ``VRef``) and ``Var`` (% of ``VarMax``),
-  with ``V_SF``, ``DeptRef_SF``: the plant's local default (volt-var when enabled, unity power factor otherwise).
+* 705 DER volt-var, when the inverter has it: ``Ena`` (also written, to set the plant's local default),
+  ``NCrv``, ``NPt``, and curve 1's ``ActPt``, ``DeptRef`` (``VAR_MAX_PCT`` = 1 only), ``VRef``, points ``V``
+  (% of ``VRef``) and ``Var`` (% of ``VarMax``), with ``V_SF``, ``DeptRef_SF``: the plant's local default (volt-var
+  when enabled, unity power factor otherwise).
 
 Sign convention: ``Var``, ``VarL*`` and ``VarSet`` positive = injecting reactive power (over-excited), the
 project's generator convention (docs/conventions.md). Values are checked before use: a point that is not
@@ -207,6 +208,19 @@ class SunSpecLink:
                                var_max_abs_kvar=absorb / 1000.0, q_setpoint_kvar=q_set,
                                var_set_step_kvar=10.0**sf / 1000.0,
                                revert_remaining_s=None if rem is None else float(rem), volt_var=vv)
+
+    def write_volt_var_enable(self, enabled: bool) -> InverterReading:
+        """Enable or disable model 705's volt-var curve (``Ena``), then read the models back (the returned reading's
+        ``volt_var.enabled`` is what the inverter holds). RegisterValueError when the inverter has no model 705.
+        """
+        if self._dev is None:
+            self.connect()
+        if _VOLT_VAR not in self._models:
+            raise RegisterValueError("705.Ena", f"the device at {self.endpoint} has no model 705 (volt-var)")
+        pts = self._models[_VOLT_VAR].points
+        pts["Ena"].value = int(bool(enabled))
+        self._io("705 Ena", pts["Ena"].write)
+        return self.read()
 
     def write_var_setpoint(self, q_kvar: float, revert_s: int) -> InverterReading:
         """Write a 704 reactive power set point [kvar, + injects] that reverts after ``revert_s`` [s], then read

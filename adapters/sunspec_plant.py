@@ -51,6 +51,8 @@ class PlantSettings:
     local_mode : the plant's local default, reported in its frames when the inverter has no model 705 (with 705,
         its ``Ena`` says: volt-var or unity power factor).
     q_at_night : whether the inverter gives reactive power at zero active power.
+    set_local_mode : write ``local_mode`` into the inverter's model 705 (``Ena``: volt-var on or off) whenever a scan
+        finds it otherwise (at the first scan, and after the inverter changed it); nothing without 705.
     """
 
     feeder_id: str
@@ -58,6 +60,7 @@ class PlantSettings:
     control_period_ns: int = dv.DEFAULT_PERIOD_NS
     local_mode: Literal["unity_pf", "volt_var"] = "unity_pf"
     q_at_night: bool = False
+    set_local_mode: bool = False
 
 
 def _rejected(kind: str, why: str) -> dv.Verdict:
@@ -79,6 +82,7 @@ class SunSpecPlant:
         self.scans = self.scan_failures = self.frames = 0
         self.commands = self.commands_failed = 0
         self.refused: Counter[str] = Counter()
+        self.local_mode_writes = self.local_mode_failures = 0  # 705 Ena written to set the local mode (failed)
         self.acks: Counter[str] = Counter()
         self._seq = 0
         self._ack_seq = 0
@@ -98,9 +102,28 @@ class SunSpecPlant:
             self.refused[e.point] += 1
             self._fail("refusing", f"refused register value {e}")
             return None
+        reading = self._set_local_mode(reading)
         self.last = reading
         self.state, self.reason, self.last_ok_t_ns = "ok", "", int(t_ns)
         return self._frame(reading, t_ns)
+
+    def _set_local_mode(self, r: InverterReading) -> InverterReading:
+        """With ``set_local_mode``: write 705 ``Ena`` when the inverter's local default is not the configured one;
+        the reading after it (the one given when nothing is written or the write fails: the frame says what the
+        inverter does, and the failure is counted in ``local_mode_failures`` and logged).
+        """
+        want = self.settings.local_mode == "volt_var"
+        if not self.settings.set_local_mode or r.volt_var is None or r.volt_var.enabled == want:
+            return r
+        try:
+            back = self.link.write_volt_var_enable(want)
+        except (LinkDownError, DeviceRefusedError, RegisterValueError) as e:
+            self.local_mode_failures += 1
+            self.rlog.warning("local_mode", "%s: could not set the local mode %s in 705: %s",
+                              self.settings.device_id, self.settings.local_mode, e)
+            return r
+        self.local_mode_writes += 1
+        return back
 
     def _fail(self, state: Literal["down", "refusing"], why: str) -> None:
         self.scan_failures += 1

@@ -44,11 +44,13 @@ def sunspec_endpoints(dm: DeviceMap, free_port: object) -> dict[str, str]:
 
 def adapter_args(dm: DeviceMap, feeder_id: str, plant_id: str, endpoint: str, *, volt_var: bool,
                  connect: list[str]) -> list[str]:
-    """The ``cvvc adapter sunspec`` flags of one plant: scans at each head frame (the simulation's clock)."""
+    """The ``cvvc adapter sunspec`` flags of one plant: scans at each head frame (the simulation's clock) and sets
+    the plant's local default (volt-var in the ``local`` case) in the inverter's model 705.
+    """
     return ["adapter", "sunspec", "--feeder-id", feeder_id, "--device", plant_id, "--modbus", endpoint,
             "--clock", "head", "--scan-period-s", str(dm.feeder.step_s),
             "--control-period-s", str(dm.feeder.control_period_s),
-            "--local-mode", "volt_var" if volt_var else "unity_pf", *connect]
+            "--local-mode", "volt_var" if volt_var else "unity_pf", "--set-local-mode", *connect]
 
 
 def bridge_args(endpoints: dict[str, str]) -> list[str]:

@@ -344,7 +344,9 @@ class BridgeRuntime:
         """
         t_next = int(self.profiles.t_ns(self.qsts.next_step))
         self.bank.run_watchdogs(t_next)
-        if self.fleet is not None:  # the inverters' set points (their timers on the step's time) are the commands
+        if self.fleet is not None:  # the inverters' local modes (705) and set points (704, timers on the step's time)
+            for k, volt_var in self.fleet.local_modes().items():
+                self.qsts.set_pv_local(k, volt_var)
             for k, q_kvar in self.fleet.commands(t_next).items():
                 self.qsts.command_pv_q(k, q_kvar)
         res = self.qsts.step()

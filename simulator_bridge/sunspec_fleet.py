@@ -4,10 +4,12 @@ With ``BridgeConfig.pv_sunspec`` the bridge serves one :class:`~simulator_bridge
 per plant named there, on the Modbus TCP endpoint given, and a ``cvvc adapter sunspec`` (``--clock head``) per plant
 stands between that inverter and the bus, as it would in the field. The bridge then:
 
-* before each step, on the inverter's clock set to the step's time, takes each inverter's 704 set point as the
-  plant's command (:meth:`SunSpecFleet.apply_commands`; None, the function disabled or reverted by its timer: the
-  plant's local default). The plant clips it to its headroom at its own output, as for a command from the bus. The
-  bridge's own PV watchdog is not used for these plants: the inverter reverts itself;
+* before each step takes each inverter's model 705 ``Ena`` as the plant's local default (volt-var or unity power
+  factor: the adapter sets it, ``--set-local-mode``; :meth:`SunSpecFleet.local_modes`), and, on the inverter's clock
+  set to the step's time, its 704 set point as the plant's command (:meth:`SunSpecFleet.commands`; None, the
+  function disabled or reverted by its timer: the plant's local default). The plant clips it to its headroom at its
+  own output, as for a command from the bus. The bridge's own PV watchdog is not used for these plants: the
+  inverter reverts itself;
 * after each step, writes the plant's simulated output per phase (P, Q, voltage) into the inverter's 701 registers
   (:meth:`SunSpecFleet.measure`), *before* the step's head frame is put, so the adapter that scans at that head
   frame reads this step's values;
@@ -117,6 +119,12 @@ class SunSpecFleet:
         """
         self.set_clock(t_ns)
         return {self.index[pid]: inv.var_setpoint_kvar() for pid, inv in self.inverters.items()}
+
+    def local_modes(self) -> dict[int, bool]:
+        """Each plant's local default (by its index) as its inverter's model 705 holds it: volt-var enabled (True) or
+        not (False), as the adapter may have set it (``cvvc adapter sunspec --set-local-mode``).
+        """
+        return {self.index[pid]: bool(inv.volt_var_enabled()) for pid, inv in self.inverters.items()}
 
     def measure(self, t_ns: int, p_kw: np.ndarray, q_kvar: np.ndarray, v_v: np.ndarray) -> None:
         """Write the step at ``t_ns`` [ns] into the inverters' 701 registers.

@@ -8,11 +8,11 @@ SunSpec points with scale factors, and writes the 704 reactive-power controls.
 
 The inverter's own logic (its "firmware"), run on every Modbus request:
 
-* **Writes** are taken only on the read-write points of model 704 (anything else: Modbus exception 2,
-  *illegal address*). A write that leaves 704 inconsistent is refused with exception 3 (*illegal value*) and
-  changes nothing: ``VarSetEna``/``VarSetEnaRvrt`` not 0/1, ``VarSetMod`` other than ``VARS`` (4) while enabled,
-  ``VarSet`` beyond ``-VarMaxAbs..VarMaxInj`` of model 702, a reversion time beyond one day. Refused writes are
-  counted (:attr:`refused_writes`).
+* **Writes** are taken only on the read-write points of model 704 and on 705's ``Ena`` (0 or 1) when it has
+  model 705 (anything else: Modbus exception 2, *illegal address*). A write that leaves 704 inconsistent is
+  refused with exception 3 (*illegal value*) and changes nothing: ``VarSetEna``/``VarSetEnaRvrt`` not 0/1,
+  ``VarSetMod`` other than ``VARS`` (4) while enabled, ``VarSet`` beyond ``-VarMaxAbs..VarMaxInj`` of model 702,
+  a reversion time beyond one day. Refused writes are counted (:attr:`refused_writes`).
 * **Set point**: with ``VarSetEna = 1`` and ``VarSetMod = VARS`` the inverter holds ``VarSet`` [var] (positive:
   injecting, over-excited: the project's generator convention), clipped to its headroom ``sqrt(VAMax² − P²)``
   (0 at night, as the simulated plants); otherwise it is on its local default (:meth:`q_command_kvar` is None).
@@ -88,8 +88,9 @@ class SimulatedSunSpecInverter:
     clock_ns : the inverter's clock [ns] for its revert timer.
     q_at_night : whether it gives reactive power at zero active power.
     volt_var : model 705 (DER volt-var) with one curve, the IEEE 1547-2018 category B default, enabled (True: the
-        plant's local default is volt-var) or disabled (False: unity power factor); None: no model 705. Its points
-        are read-only here (writes refused as outside 704), they report what the simulated plant does.
+        plant's local default is volt-var) or disabled (False: unity power factor); None: no model 705. Of its
+        points only ``Ena`` takes writes (0 or 1; the curve is fixed here: other writes are refused as outside
+        704); :meth:`volt_var_enabled` is what the plant's driver applies.
     """
 
     def __init__(self, *, plant_id: str, s_rated_kva: float, v_nominal_v: float, port: int,
@@ -344,6 +345,29 @@ class SimulatedSunSpecInverter:
         walk(md)
         return out
 
+    def _ena_705_addr(self) -> int | None:
+        """The register of 705's ``Ena`` (its only point this inverter takes writes on), None without 705."""
+        if _VOLT_VAR not in self._models:
+            return None
+        return self._addr[_VOLT_VAR] + self._models[_VOLT_VAR].points["Ena"].offset
+
+    def _write_705_ena(self, values: list[int]) -> int | None:
+        """Enable (1) or disable (0) the volt-var curve; the Modbus exception code if refused (lock held)."""
+        if values[0] not in (0, 1):
+            self.refused_writes += 1
+            return 3  # illegal value
+        self._models[_VOLT_VAR].points["Ena"].value = values[0]
+        self.writes += 1
+        self._image = self._build_image()
+        return None
+
+    def volt_var_enabled(self) -> bool | None:
+        """Whether model 705's volt-var curve is enabled (the plant's local default); None without model 705."""
+        with self._lock:
+            if _VOLT_VAR not in self._models:
+                return None
+            return self._models[_VOLT_VAR].points["Ena"].value == 1
+
     def _write_704(self, start: int, address: int, values: list[int]) -> int | None:
         """Apply a write of ``values`` at ``address``; the Modbus exception code if refused (lock held)."""
         from sunspec2 import device
@@ -393,7 +417,9 @@ class SimulatedSunSpecInverter:
         with self._lock:
             self._tick()
             if values is not None and func_code in (6, 16):
-                code = self._write_704(start, address, [int(v) for v in values])
+                ena = self._ena_705_addr()
+                code = (self._write_705_ena([int(v) for v in values]) if ena is not None and address == ena
+                        and len(values) == 1 else self._write_704(start, address, [int(v) for v in values]))
                 if code is not None:
                     return ExcCodes(code)
             registers[:len(self._image)] = self._image

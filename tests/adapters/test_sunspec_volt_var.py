@@ -85,3 +85,66 @@ def test_a_malformed_705_value_is_refused_counted_and_gives_no_frame(vv_inverter
         assert plant.status(PERIOD_NS).refused == {refused: 1}
     finally:
         plant.link.close()
+
+
+def _setting_plant(inv: SimulatedSunSpecInverter, local_mode: str, set_local_mode: bool) -> SunSpecPlant:
+    return SunSpecPlant(PlantSettings(feeder_id="f1", device_id="pv1", control_period_ns=PERIOD_NS,
+                                      local_mode=local_mode, set_local_mode=set_local_mode),  # type: ignore[arg-type]
+                        SunSpecLink("127.0.0.1", inv.port, timeout_s=2.0))
+
+
+@pytest.mark.parametrize(("start", "configured"), [(False, "volt_var"), (True, "unity_pf")])
+def test_set_local_mode_writes_705_ena_when_the_inverter_is_otherwise(start, configured):
+    with _inverter(start) as inv:
+        plant = _setting_plant(inv, configured, True)
+        try:
+            frame = plant.scan(0)
+            assert frame is not None and frame.local_mode == configured  # the read-back, after the write
+            assert inv.volt_var_enabled() is (configured == "volt_var") and plant.local_mode_writes == 1
+            assert plant.scan(PERIOD_NS) is not None and plant.local_mode_writes == 1  # nothing to write now
+            inv.set_raw(705, "Ena", int(start))  # someone set it back at the inverter: the next scan writes again
+            assert plant.scan(2 * PERIOD_NS).local_mode == configured and plant.local_mode_writes == 2  # type: ignore[union-attr]
+        finally:
+            plant.link.close()
+
+
+def test_without_set_local_mode_705_is_only_read(vv_inverter):
+    plant = _setting_plant(vv_inverter, "unity_pf", False)
+    try:
+        assert plant.scan(0).local_mode == "volt_var"  # type: ignore[union-attr]
+        assert vv_inverter.volt_var_enabled() is True and plant.local_mode_writes == 0
+    finally:
+        plant.link.close()
+
+
+def test_set_local_mode_without_705_writes_nothing_and_fails_nothing(inverter):  # conftest's: no 705
+    plant = _setting_plant(inverter, "volt_var", True)
+    try:
+        assert plant.scan(0).local_mode == "volt_var"  # type: ignore[union-attr]
+        assert plant.local_mode_writes == plant.local_mode_failures == 0
+    finally:
+        plant.link.close()
+
+
+def test_the_inverter_takes_only_0_or_1_on_705_ena_and_nothing_else_of_705(vv_inverter):
+    from sunspec2.modbus.client import SunSpecModbusClientDeviceTCP
+    from sunspec2.modbus.modbus import ModbusClientException
+
+    dev = SunSpecModbusClientDeviceTCP(slave_id=1, ipaddr="127.0.0.1", ipport=vv_inverter.port, timeout=2.0)
+    try:
+        dev.scan()
+        vv = dev.models[705][0]
+        refused = vv_inverter.refused_writes
+        vv.Ena.value = 5
+        with pytest.raises(ModbusClientException):
+            vv.Ena.write()
+        vv.Ena.value = 1
+        vv.Crv[0].Pt[0].V.value = 90  # the curve is fixed in this simulated inverter
+        with pytest.raises(ModbusClientException):
+            vv.write()
+        assert vv_inverter.refused_writes == refused + 2 and vv_inverter.volt_var_enabled() is True
+        vv.Ena.value = 0
+        vv.Ena.write()
+        assert vv_inverter.volt_var_enabled() is False
+    finally:
+        dev.disconnect()

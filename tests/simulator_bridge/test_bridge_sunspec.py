@@ -47,11 +47,11 @@ def client(router_endpoint: str) -> Iterator[Client]:
 class _Adapter:
     """One ``cvvc adapter sunspec --clock head`` on a thread, for plant ``pid`` at a free port's endpoint."""
 
-    def __init__(self, pid: str, router_endpoint: str) -> None:
+    def __init__(self, pid: str, router_endpoint: str, **settings: Any) -> None:
         self.endpoint = f"tcp/127.0.0.1:{free_port()}"
         self.stop = threading.Event()
         config = AdapterConfig(feeder_id=FEEDER, device_id=pid, modbus=self.endpoint, clock="head",
-                               scan_period_s=60.0, control_period_s=300.0)
+                               scan_period_s=60.0, control_period_s=300.0, **settings)
         ready = threading.Event()
         bus = BusConfig(mode="peer", connect=(router_endpoint,))
         self.thread = threading.Thread(target=lambda: run_adapter(config, bus, stop=self.stop, ready=ready),
@@ -172,6 +172,36 @@ def test_an_adapter_gone_costs_the_bridge_one_bounded_wait_not_one_per_step(
     assert summary.sunspec_frame_misses == 1  # waited once (2 s) for pv633's frame, then no more
     for i in range(6):  # the other adapter went on scanning every step
         _pv(client, "pv675", t0 + i * STEP_NS)
+
+
+def test_the_plant_takes_the_local_mode_its_adapter_set_in_705(client: Client, router_endpoint: str,
+                                                                device_map_path: Path, cache_dir: Path) -> None:
+    """The bridge's plants are on unity; pv675's adapter sets volt-var in its inverter's 705 at its first scan, and
+    from the next step on the simulated plant follows the curve (above 1.02 pu at noon: it absorbs)."""
+    running = {"pv675": _Adapter("pv675", router_endpoint, local_mode="volt_var", set_local_mode=True),
+               "pv633": _Adapter("pv633", router_endpoint, set_local_mode=True)}
+    try:
+        config: Any = _config(device_map_path, cache_dir, steps=4, truth_every=1, publisher="inline",
+                              pv_sunspec={pid: a.endpoint for pid, a in running.items()})
+        th, stop, out = _bridge_thread(config, router_endpoint)
+        try:
+            t0 = client.next(lambda k, x: isinstance(x, m.HeadFrame), STARTUP_S).t_ns  # a loaded machine
+            assert _pv(client, "pv675", t0).local_mode == "volt_var"  # read back after the adapter's write
+            assert _pv(client, "pv633", t0).local_mode == "unity_pf"
+            assert _truth_q(client, "pv675", t0) == 0.0  # step t0 was simulated before the first scan
+            for i in (1, 2, 3):
+                t = t0 + i * STEP_NS
+                assert _truth_q(client, "pv675", t) < -1.0  # volt-var, absorbing
+                assert _truth_q(client, "pv633", t) == 0.0 and _truth_q(client, "pv680", t) == 0.0
+                assert _pv(client, "pv675", t).q_kvar < -1.0
+            summary = _finish(th, stop, out)
+        finally:
+            stop.set()
+            th.join(timeout=30)
+    finally:
+        for a in running.values():
+            a.close()
+    assert summary.steps == 4 and summary.sunspec_frame_misses == 0
 
 
 def test_a_plant_that_is_not_on_the_feeder_or_a_bad_endpoint_is_refused(device_map_path: Path,
