@@ -22,7 +22,7 @@ test: $(STAMP)
 
 lint: $(STAMP)
 	$(BIN)/ruff check .
-	$(BIN)/mypy schemas agent regression adapters
+	$(BIN)/mypy schemas regression simulator_bridge training agent recordings adapters cvvc benchmarks
 
 bench: $(STAMP)
 	$(BIN)/python -m benchmarks

@@ -30,12 +30,13 @@ from __future__ import annotations
 
 import time
 from collections import deque
-from dataclasses import dataclass, field, fields
+from collections.abc import Callable
 from typing import Literal
 
 import numpy as np
 
 from agent.cvvc_qp import CvvcInputs
+from agent.decision import Decision, DecisionTimings, MeasurementSnapshot
 from agent.errors import AgentInputError
 from agent.setpoints import expected_compared_v120, setpoint_for_tap_change
 from agent.solve import CvvcSolution, WarmStart, solve_cvvc
@@ -51,130 +52,6 @@ _POWER_LIMIT_KW = 1e6
 OUT_OF_ENVELOPE_WIDEN = 2.0
 _MIN_BAND_PU = 1e-3  # the narrowest band the estimate bounds leave between a node's limits [pu]
 """Factor on the calibrated estimate bounds when the inputs are outside the training envelope (extrapolation)."""
-
-
-@dataclass(frozen=True)
-class MeasurementSnapshot:
-    """The aligned measurements of one control step, as arrays (index order = the model's).
-
-    Attributes
-    ----------
-    t_ns : measurement time [ns since epoch].
-    head_p_kw, head_q_kvar : (3,) feeder-head power per phase a, b, c, into the feeder [kW], [kvar].
-    pv_p_kw, pv_q_kvar : (K,) plant output, generator convention [kW], [kvar].
-    pv_kva_available : (K,) apparent power the plant can deliver now [kVA]; Q headroom is
-        ``sqrt(kva^2 - p^2)``.
-    pv_q_setpoint_kvar : (K,) present Q set point [kvar], NaN when the plant is on its local default.
-        Informational: eq. (13) uses the measured Q, which is what the estimate reflects.
-    reg_v120 : (R,) raw secondary voltage [V on 120 V base] (for the correction, eq. 6).
-    reg_v120_compared : (R,) voltage the controller compares with its band (line-drop compensation
-        included) [V on 120 V base] (for eq. 8).
-    reg_tap : (R,) present tap [steps].
-    head_valid : the head frame arrived and passed the runtime's checks.
-    pv_valid : (K,) bool, same per plant.
-    reg_valid : (R,) bool, same per regulator.
-    cap_steps : (C,) closed steps of each capacitor bank (the model's ``capacitors`` order).
-    cap_valid : (C,) bool, the bank's frame arrived and passed the checks.
-    cap_v_v : (C,) the bank's bus voltage [V] (a regressor of models with readings); NaN where missing.
-    """
-
-    t_ns: int
-    head_p_kw: np.ndarray
-    head_q_kvar: np.ndarray
-    pv_p_kw: np.ndarray
-    pv_q_kvar: np.ndarray
-    pv_kva_available: np.ndarray
-    pv_q_setpoint_kvar: np.ndarray
-    reg_v120: np.ndarray
-    reg_v120_compared: np.ndarray
-    reg_tap: np.ndarray
-    head_valid: bool
-    pv_valid: np.ndarray
-    reg_valid: np.ndarray
-    cap_steps: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
-    cap_valid: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
-    cap_v_v: np.ndarray = field(default_factory=lambda: np.zeros(0))
-
-
-@dataclass(frozen=True)
-class DecisionTimings:
-    """Wall time per stage [s]. Diagnostics only: excluded from ``Decision.same_content``."""
-
-    estimate_s: float = 0.0
-    solve_s: float = 0.0
-    round_s: float = 0.0
-    total_s: float = 0.0
-
-
-@dataclass(frozen=True)
-class Decision:
-    """What the controller decided for one snapshot.
-
-    Attributes
-    ----------
-    t_ns : the snapshot's time [ns].
-    status : ``optimal`` / ``soft`` / ``hold`` (no commands; see ``reason``).
-    reason : why ``soft`` or ``hold`` (empty when optimal).
-    pv_q_kvar : (K,) new Q set points [kvar], or None on hold.
-    pv_command : (K,) bool, plants to command (False for missing plants and on hold).
-    reg_tap : (R,) int, taps the decision aims at [steps], or None on hold. In ``taps`` mode these are
-        the commands; in ``setpoints`` mode the set points below are.
-    reg_setpoint_v120, reg_band_v120 : (R,) eq. (8) set points and bands [V on 120 V base] in
-        ``setpoints`` mode; None in ``taps`` mode and on hold.
-    reg_command : (R,) bool, regulators to command.
-    v_pu : (N,) critical-node voltage estimates [pu] (corrected when ``corrected``), None without a head frame.
-    v_pred_pu : (N,) predicted voltages after the actions (linear model) [pu], None on hold.
-    corrected : eq. (7) correction applied (from at least one regulator).
-    dv_dq_pu_per_kvar : (N, K) sensitivities used [pu/kvar], None without a head frame.
-    missing : ids of devices whose frame was missing or invalid.
-    iterations, objective : solver iterations and eq. (9) cost of the actions [cost units].
-    solver_status : the solver's status (``optimal``/``soft``/``hold``), ``not run`` when it was not called.
-    timings : per-stage wall time (not deterministic).
-    v_bound_low_pu, v_bound_high_pu : (N,) the estimate's calibrated bounds as applied (widened out of the
-        envelope): the true voltage is expected within ``[v_pu - low, v_pu + high]``; None without bounds.
-    out_of_envelope : the features outside what training covered ("" when inside, or without bounds).
-    cap_steps : (C,) int, closed steps decided for each capacitor bank, or None on hold.
-    cap_command : (C,) bool, banks to command.
-    """
-
-    t_ns: int
-    status: Literal["optimal", "soft", "hold"]
-    reason: str
-    pv_q_kvar: np.ndarray | None
-    pv_command: np.ndarray
-    reg_tap: np.ndarray | None
-    reg_setpoint_v120: np.ndarray | None
-    reg_band_v120: np.ndarray | None
-    reg_command: np.ndarray
-    v_pu: np.ndarray | None
-    v_pred_pu: np.ndarray | None
-    corrected: bool
-    dv_dq_pu_per_kvar: np.ndarray | None
-    missing: tuple[str, ...]
-    iterations: int
-    objective: float
-    solver_status: str
-    timings: DecisionTimings
-    v_bound_low_pu: np.ndarray | None = None
-    v_bound_high_pu: np.ndarray | None = None
-    out_of_envelope: str = ""
-    cap_steps: np.ndarray | None = None
-    cap_command: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
-
-    def same_content(self, other: Decision) -> bool:
-        """Bit-identical in every field but ``timings`` (what replay compares)."""
-        for f in fields(self):
-            if f.name == "timings":
-                continue
-            a, b = getattr(self, f.name), getattr(other, f.name)
-            if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
-                if not (isinstance(a, np.ndarray) and isinstance(b, np.ndarray)):
-                    return False
-                if a.shape != b.shape or a.dtype != b.dtype or a.tobytes() != b.tobytes():
-                    return False
-            elif a != b:
-                return False
-        return True
 
 
 def _finite(*arrays: np.ndarray) -> bool:
@@ -200,6 +77,9 @@ class CvvcController:
     setpoint_hold : beyond the paper, ``setpoints`` mode: when no tap change is decided for a regulator and the
         set point sent to it at most two control periods ago is still in force, send that set point again
         instead of eq. (8)'s re-centred one (a noisy regulator reading then cannot move the band).
+    sensitivity_error : beyond the paper, soft form (eq. 17): the relative error assumed for the estimated Q
+        sensitivities [-] (see ``CvvcInputs.dv_dq_rel_error``); 0: the paper's eq. (17). Case A's oracle
+        sensitivities are the power flow's own and get none.
     """
 
     def __init__(
@@ -214,6 +94,7 @@ class CvvcController:
         setpoint_hold: bool = False,
         control_banks: bool = False,
         correction_window_s: float = 0.0,
+        sensitivity_error: float = 0.0,
     ) -> None:
         if mode not in ("taps", "setpoints"):
             raise AgentInputError(f"mode must be 'taps' or 'setpoints', not {mode!r}")
@@ -228,6 +109,9 @@ class CvvcController:
             raise AgentInputError(f"pv_margin_cap_pu must be within 0 to 0.05 pu, not {pv_margin_cap_pu}")
         if not (np.isfinite(correction_window_s) and correction_window_s >= 0.0):
             raise AgentInputError(f"correction_window_s must be >= 0, not {correction_window_s}")
+        if not (np.isfinite(sensitivity_error) and 0.0 <= sensitivity_error <= 1.0):
+            raise AgentInputError(f"sensitivity_error must be within 0 to 1, not {sensitivity_error}")
+        self.sensitivity_error = float(sensitivity_error)
         self.model = model
         self.mode = mode
         self._eps_filter = (CorrectionFilter(len(model.regulators),
@@ -376,6 +260,17 @@ class CvvcController:
             )
         return head_ok, pv_ok, reg_ok
 
+    def _correction_filter(self, snap: MeasurementSnapshot) -> Callable[[np.ndarray, np.ndarray], np.ndarray] | None:
+        """The correction filter for this step: only this step's own readings, with its own head frame, enter
+        the mean (None without a filter).
+        """
+        filt = self._eps_filter
+        if filt is None:
+            return None
+        fresh = np.full(len(self._reg_ids), True) if snap.reg_fresh is None else np.asarray(snap.reg_fresh, bool)
+        fresh = fresh & bool(snap.head_fresh)
+        return lambda eps, ok: filt(eps, ok, fresh)
+
     def _cap_usable(self, snap: MeasurementSnapshot) -> np.ndarray:
         """(C,) bool: banks whose frame is valid with a whole number of closed steps within the bank's."""
         steps = np.asarray(snap.cap_steps, float)
@@ -454,6 +349,7 @@ class CvvcController:
             cost_per_kvar=self._pv_cost,
             v_min_pu=v_min_pu,
             v_max_pu=v_max_pu,
+            dv_dq_rel_error=self.sensitivity_error if state.critical else 0.0,
         )
 
     def pv_margins_pu(self, dv_dp_pu_per_kw: np.ndarray, pv_p_kw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -522,7 +418,7 @@ class CvvcController:
                 self._arrays, self._sens, self._dv_dp, t_ns=int(snap.t_ns), head_p_kw=snap.head_p_kw,
                 head_q_kvar=snap.head_q_kvar, pv_p_kw=pv_p, pv_q_kvar=pv_q, taps=taps, caps=self._cap_last,
                 reg_v120=snap.reg_v120 if self.correction else None, reg_ok=reg_ok,
-                cap_v_v=self._cap_readings(snap, cap_ok), eps_filter=self._eps_filter)
+                cap_v_v=self._cap_readings(snap, cap_ok), eps_filter=self._correction_filter(snap))
         else:
             reply = oracle(int(snap.t_ns))
             if reply is None:

@@ -116,6 +116,10 @@ class CvvcInputs:
         (stored as (N,) arrays).
     soft_alpha : eq. (17)'s alpha (weight of the action cost) [-].
     soft_beta_per_pu2 : eq. (17)'s beta [cost units/pu^2].
+    dv_dq_rel_error : beyond the paper, soft form only: relative error of the Q sensitivities [-] (0: the paper's
+        eq. 17). Each node with a violation variable adds the expected square of its voltage error under the
+        plants' Q, ``beta * sum_k (err * dv/dq_ik * Q_k)^2``: plants then no longer pull against each other
+        on sensitivity differences a regression cannot resolve (a diagonal term in the Q variables).
     """
 
     v0_pu: np.ndarray
@@ -135,6 +139,7 @@ class CvvcInputs:
     v_max_pu: np.ndarray | float
     soft_alpha: float = DEFAULT_SOFT_ALPHA
     soft_beta_per_pu2: float = DEFAULT_SOFT_BETA_PER_PU2
+    dv_dq_rel_error: float = 0.0
 
     def __post_init__(self) -> None:
         n = np.size(self.v0_pu)
@@ -151,7 +156,7 @@ class CvvcInputs:
         put(self, "cost_per_tap", _vec("cost_per_tap", self.cost_per_tap, r))
         for name in ("v_min_pu", "v_max_pu"):
             put(self, name, _vec(name, np.broadcast_to(np.asarray(getattr(self, name), float), (n,)), n))
-        for name in ("soft_alpha", "soft_beta_per_pu2"):
+        for name in ("soft_alpha", "soft_beta_per_pu2", "dv_dq_rel_error"):
             value = float(getattr(self, name))
             if not np.isfinite(value):
                 raise AgentInputError(f"CvvcInputs.{name} is not finite")
@@ -168,6 +173,8 @@ class CvvcInputs:
             raise AgentInputError("v_min_pu must be below v_max_pu at every node")
         if self.soft_alpha < 0 or self.soft_beta_per_pu2 <= 0:
             raise AgentInputError("soft_alpha must be >= 0 and soft_beta_per_pu2 > 0")
+        if not 0.0 <= self.dv_dq_rel_error <= 1.0:
+            raise AgentInputError(f"CvvcInputs.dv_dq_rel_error must be within 0 to 1, not {self.dv_dq_rel_error}")
 
     @property
     def n_nodes(self) -> int:
@@ -390,6 +397,13 @@ def build_cvvc_qp(
     v_base = _PCT_PER_PU * inputs.v0_pu[rows_of] - s_q @ (inputs.q0_kvar / rating)
     if not with_taps:
         v_base = v_base + s_t @ np.asarray(fixed_d_tap, float)
+    if vio is not None and inputs.dv_dq_rel_error > 0.0:
+        # E[beta (err s_ik x_k)^2] summed over the soft rows, in the scaled units of the violation term above;
+        # diagonal in x+ and x- (never both non-zero at an optimum: lowering both alike keeps Q and costs less).
+        h = (2.0 * inputs.soft_beta_per_pu2 / (cost_scale * _PCT_PER_PU**2)
+             * inputs.dv_dq_rel_error**2 * np.sum(s_q[soft_idx] ** 2, axis=0))  # (K,)
+        p_diag[q_inj] += h
+        p_diag[q_abs] += h
     v_lo = _PCT_PER_PU * np.asarray(inputs.v_min_pu)[rows_of] - v_base
     v_hi = _PCT_PER_PU * np.asarray(inputs.v_max_pu)[rows_of] - v_base
 

@@ -57,7 +57,10 @@ class CorrectionFilter:
     jumps by the noise and the QP moves taps after it (rural winter week: NTC 24 without noise, 196 with it, NVV 10).
     What ``eps`` should carry, the model's error at the regulator, changes slowly; its exponential mean over the
     last hour or so (``weight`` 0.1 per 5-minute decision) keeps it and sheds most of the noise (docs/results.md). A
-    regulator without a usable reading keeps its last mean; the first reading is taken as it is.
+    regulator without a usable reading keeps its last mean; the first reading is taken as it is. A reading that is
+    usable but not this step's own (a last-good frame standing in for a lost one, or this step's head frame lost)
+    is applied through the mean without entering it: a stale reading against the present load is not the model's
+    error, and the mean would carry it for an hour.
     """
 
     def __init__(self, n_regulators: int, weight: float) -> None:
@@ -67,14 +70,18 @@ class CorrectionFilter:
         self._eps = np.zeros(n_regulators)  # the mean so far (0 until a regulator's first usable reading)
         self._seen = np.zeros(n_regulators, bool)
 
-    def __call__(self, eps: np.ndarray, ok: np.ndarray) -> np.ndarray:
-        """The corrections to apply [pu] for this decision's ``eps`` (R,) [pu] and their validity ``ok`` (R,)."""
+    def __call__(self, eps: np.ndarray, ok: np.ndarray, fresh: np.ndarray | None = None) -> np.ndarray:
+        """The corrections to apply [pu] for this decision's ``eps`` (R,) [pu] and their validity ``ok`` (R,);
+        ``fresh`` (R,) bool marks the readings that may enter the mean (default: every usable one).
+        """
         eps = np.asarray(eps, float)
         ok = np.asarray(ok, bool) & np.isfinite(eps)
+        update = ok if fresh is None else ok & np.asarray(fresh, bool)
         mean = np.where(self._seen, self.weight * eps + (1.0 - self.weight) * self._eps, eps)
-        self._eps = np.where(ok, mean, self._eps)
-        self._seen = self._seen | ok
-        return self._eps.copy()
+        self._eps = np.where(update, mean, self._eps)
+        self._seen = self._seen | update
+        # a stale reading of a regulator never seen fresh is taken as it is, without entering the mean
+        return np.where(ok & ~self._seen, eps, self._eps)
 
 
 def estimated_state(
@@ -92,7 +99,7 @@ def estimated_state(
     reg_v120: np.ndarray | None,
     reg_ok: np.ndarray,
     cap_v_v: np.ndarray,
-    eps_filter: CorrectionFilter | None = None,
+    eps_filter: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
 ) -> GridState:
     """The critical nodes by the estimator (``regression.estimator.estimate_critical_pu``) and eq. (3).
 
@@ -110,7 +117,8 @@ def estimated_state(
     reg_v120 : (R,) raw regulator secondary voltages [V on the 120 V base], or None (no correction).
     reg_ok : (R,) bool, regulators whose reading is usable.
     cap_v_v : (C,) the banks' bus voltage readings [V], NaN where missing (models with readings).
-    eps_filter : the controller's ``CorrectionFilter`` (None: eq. (6) as computed).
+    eps_filter : maps eq. (6)'s corrections and their validity to those applied (the controller's
+        ``CorrectionFilter`` for this step), None: eq. (6) as computed.
     """
     paper = features(head_p_kw, head_q_kvar, pv_p_kw, pv_q_kvar)
     v_hat = estimate_critical_pu(arrays, paper, taps, caps=caps, reg_v120=reg_v120, reg_ok=reg_ok, cap_v_v=cap_v_v,

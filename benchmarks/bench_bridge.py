@@ -22,11 +22,12 @@ import statistics
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 __all__ = ["bench_bridge", "main"]
 
 _START = "2023-07-01T06:00"  # local standard time: a summer morning, PV ramping up
+Publisher = Literal["auto", "inline", "process"]  # ``BridgeConfig.publisher``
 
 
 def _responder(endpoint: str, feeder_id: str, control_period_s: int, ready: Any, stop: Any) -> None:
@@ -72,7 +73,7 @@ def _responder(endpoint: str, feeder_id: str, control_period_s: int, ready: Any,
 
 
 def bench_bridge(device_map: str | Path, steps: int, *, seed: int = 1, truth_every: int = 1, repeats: int = 3,
-                 cache_dir: str | None = None, publisher: str = "auto") -> dict:
+                 cache_dir: str | None = None, publisher: Publisher = "auto") -> dict:
     """Lockstep bridge vs bare QSTS on ``steps`` 1-minute steps of one feeder.
 
     The two are timed alternately ``repeats`` times (bare, bridge, bare, bridge, ...) on fresh engines from the
@@ -171,7 +172,7 @@ def _bare_times(dm: Any, steps: int, *, seed: int, cache_dir: str | None) -> tup
 
 
 def _bridge_run(device_map: str | Path, endpoint: str, steps: int, *, seed: int, truth_every: int,
-                cache_dir: str | None, publisher: str) -> Any:
+                cache_dir: str | None, publisher: Publisher) -> Any:
     from schemas.bus import BusConfig
     from simulator_bridge.bridge import BridgeConfig, run_bridge
 
@@ -190,7 +191,11 @@ def main(argv: list[str] | None = None) -> int:
 
     args = sys.argv[1:] if argv is None else argv
     steps = int(args[0]) if args else 1440
-    publishers = args[1:] or ["inline", "process"]
+    known: dict[str, Publisher] = {"auto": "auto", "inline": "inline", "process": "process"}
+    if bad := [a for a in args[1:] if a not in known]:
+        print(f"unknown publisher(s) {bad}: choose from {sorted(known)}", file=sys.stderr)
+        return 2
+    publishers = [known[a] for a in args[1:]] or ["inline", "process"]
     repo = Path(__file__).resolve().parents[1]
     for path in (repo / "feeders" / "ieee123.toml", ensure_default_feeder(cache_root(None))):
         for truth_every in (1, 0):

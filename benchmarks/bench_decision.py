@@ -34,6 +34,19 @@ def bench_decision(
     month: int = 7,
     repeats: int = 3,
 ) -> dict[str, Any]:
+    """Time the agent's decisions on a feeder's frames, and case A's (oracle perturbations + solve) beside them.
+
+    Parameters
+    ----------
+    device_map_path : the feeder's device map (its model is trained once into ``cache`` if absent).
+    control_steps : control steps simulated (QSTS, year seed 2) from ``start_hour`` [h] of ``month``'s first day.
+    cache : the cache root (``schemas.cache.cache_root``). repeats : runs of the agent; the fastest per step counts.
+
+    Returns
+    -------
+    The figures as a JSON-ready dict: sizes, agent per-step times [ms] (p50, p99, max, first run, cold first
+    decision), case A's mean time [ms], its oracle's share [ms], and their ratio.
+    """
     from agent.runtime import AgentSettings, DecisionMaker, snapshot_from
     from agent.solve import solve_cvvc
     from agent.state import oracle_state
@@ -75,7 +88,7 @@ def bench_decision(
     ]
     caps = [  # the model's banks report too (the aligner waits for them), on their local control
         dv.CapBankController(c.id, i, int(engine.cap_steps[i]), float(engine.cap_kvar[i]),
-                             engine.cap_control_type[i])  # type: ignore[arg-type]
+                             engine.cap_control_type[i])
         for i, c in enumerate(model.capacitors)
     ]
     steps: list[list[tuple[str, Any]]] = []

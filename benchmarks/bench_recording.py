@@ -76,13 +76,13 @@ def _publisher_process(endpoint: str, n: int, go: Any) -> None:
     """Child process: connect, wait for the recorder's subscription, then put everything as fast as possible."""
     import zenoh
 
-    from schemas.bus import BusConfig, open_session, wait_for
+    from schemas.bus import BusConfig, has_subscribers, open_session, wait_for
 
     msgs = _messages(n)
     with open_session(BusConfig(mode="peer", connect=(endpoint,))) as session:
         pubs = {key: session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK)
                 for key in dict(msgs)}
-        wait_for(lambda: all(p.matching_status.matching for p in pubs.values()), 20.0)  # type: ignore[attr-defined]
+        wait_for(lambda: all(has_subscribers(p) for p in pubs.values()), 20.0)
         go.set()
         for key, raw in msgs:
             pubs[key].put(raw)
@@ -153,7 +153,7 @@ def _offline_speed(steps: int = 1440) -> dict[str, Any] | None:
     the MCAP file, decoding, deciding, diffing). None while ``agent.runtime.decide_offline`` is missing.
     """
     try:
-        from agent.runtime import AgentSettings, decide_offline  # type: ignore[attr-defined]
+        from agent.runtime import AgentSettings, decide_offline
         from benchmarks.synthetic import synthetic_model
     except ImportError:
         return None

@@ -29,10 +29,12 @@ import time
 from pathlib import Path
 from typing import Any
 
+import msgspec
+
 from schemas.cache import profiles_dir
 from schemas.errors import CvvcError
 
-__all__ = ["SoakError", "bench_soak", "proc_memory_kib"]
+__all__ = ["SoakError", "bench_soak", "proc_memory_kib", "run_folder", "stop_process"]
 
 _NS = 1_000_000_000
 _GOAL_GROWTH = 0.10
@@ -60,6 +62,16 @@ def _spawn(name: str, args: list[str], log_dir: Path) -> subprocess.Popen[bytes]
     with open(log_dir / f"{name}.log", "wb") as log:
         return subprocess.Popen([sys.executable, "-m", "cvvc", *args], stdout=log, stderr=subprocess.STDOUT,
                                 stdin=subprocess.DEVNULL, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+
+
+def run_folder(out_dir: str | Path | None, prefix: str) -> tuple[Path, tempfile.TemporaryDirectory[str] | None]:
+    """The folder a live benchmark writes to: ``out_dir`` (made if absent), else a temporary folder named from
+    ``prefix``, returned too so that the caller cleans it up.
+    """
+    tmp = None if out_dir else tempfile.TemporaryDirectory(prefix=prefix)
+    out = Path(tmp.name) if tmp is not None else Path(str(out_dir))
+    out.mkdir(parents=True, exist_ok=True)
+    return out, tmp
 
 
 def stop_process(proc: subprocess.Popen[bytes], timeout_s: float = 30.0) -> int:
@@ -98,8 +110,9 @@ def bench_soak(days: float = 30.0, feeder: str | None = None, *, start: str = "2
     from recordings.info import recording_info
     from schemas import keys
     from schemas import messages as m
-    from schemas.bus import BusConfig, Inbox, free_port, open_session, wait_for
+    from schemas.bus import BusConfig, Inbox, free_port, has_subscribers, open_session, wait_for
     from schemas.devicemap import load_device_map
+    from simulator_bridge.bridge import BridgeSummary
 
     dm_path, model_path = prepare_feeder_and_model(RunConfig(feeder=feeder, cache=cache, progress=False))
     dm = load_device_map(dm_path)
@@ -107,9 +120,7 @@ def bench_soak(days: float = 30.0, feeder: str | None = None, *, start: str = "2
     steps = int(round(days * 1440))
     per_hour = 60 * 60 // dm.feeder.step_s
     warm_step = min(24 * per_hour, max(steps // 2, 1))
-    tmp = None if out_dir else tempfile.TemporaryDirectory(prefix="cvvc-soak-")
-    out = Path(out_dir or tmp.name)  # type: ignore[union-attr]
-    out.mkdir(parents=True, exist_ok=True)
+    out, tmp = run_folder(out_dir, "cvvc-soak-")
     mcap = out / "soak.mcap"
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     procs: dict[str, subprocess.Popen[bytes]] = {}
@@ -127,7 +138,7 @@ def bench_soak(days: float = 30.0, feeder: str | None = None, *, start: str = "2
             procs["recorder"] = _spawn("recorder", ["record", "--out", str(mcap), "--keys", f"cvvc/{fid}/**",
                                                     "--connect", endpoint], out)
             probe = session.declare_publisher(keys.sim_status(fid))
-            if not wait_for(lambda: bool(probe.matching_status.matching), 60.0):  # type: ignore[attr-defined]
+            if not wait_for(lambda: has_subscribers(probe), 60.0):
                 raise SoakError(f"the recorder did not subscribe within 60 s; see {out / 'recorder.log'}")
             probe.undeclare()
             case_d = case_agent_settings("D", fid, 4.0)
@@ -175,8 +186,9 @@ def bench_soak(days: float = 30.0, feeder: str | None = None, *, start: str = "2
             stop_process(p)
     log = (out / "bridge.log").read_text(errors="replace")
     try:
-        summary = json.loads(log[log.rindex("\n{\n") + 1:] if not log.startswith("{") else log)
-    except ValueError as e:
+        summary = msgspec.json.decode(log[log.rindex("\n{\n") + 1:] if not log.startswith("{") else log,
+                                      type=BridgeSummary)
+    except (ValueError, msgspec.DecodeError, msgspec.ValidationError) as e:
         raise SoakError(f"the bridge printed no summary (exit {codes.get('bridge')}); see {out / 'bridge.log'}") from e
     info = recording_info(mcap)
     rec_stats = info.metadata.get("cvvc.recorder_stats", {})
@@ -189,18 +201,17 @@ def bench_soak(days: float = 30.0, feeder: str | None = None, *, start: str = "2
                         "end_kib": s1, "rss_growth": _growth(s0, s1, "VmRSS"),
                         "hwm_growth": _growth(s0, s1, "VmHWM")}
     rejected = dict(last_agent.rejected) if last_agent else {}
-    losses = {
-        "lockstep_misses": summary.get("lockstep_misses"),
-        "lockstep_skipped": summary.get("lockstep_skipped"),
-        "bridge_frames_dropped": summary.get("frames_dropped"),
-        "control_steps": summary.get("control_steps"),
+    losses: dict[str, Any] = {
+        "lockstep_misses": summary.lockstep_misses,
+        "lockstep_skipped": summary.lockstep_skipped,
+        "bridge_frames_dropped": summary.frames_dropped,
+        "control_steps": summary.control_steps,
         "decisions_seen": decisions,
-        "control_steps_without_decision": max(0, int(summary.get("control_steps", 0))
-                                              - int(summary.get("decisions", 0))),
+        "control_steps_without_decision": max(0, summary.control_steps - summary.decisions),
         "agent_queue_full": rejected.get("queue_full", 0),
         "agent_stale": rejected.get("stale", 0),
         "agent_rejected": rejected,
-        "bridge_rejected": summary.get("rejected"),
+        "bridge_rejected": summary.rejected,
         "recorder_dropped_queue_full": int(rec_stats.get("dropped_queue_full", -1)),
         "recorder_messages": int(rec_stats.get("messages", info.messages)),
     }
@@ -211,8 +222,8 @@ def bench_soak(days: float = 30.0, feeder: str | None = None, *, start: str = "2
                                              "control_steps_without_decision", "agent_queue_full", "agent_stale"))
     lost += max(losses["recorder_dropped_queue_full"], 0)
     result = {
-        "feeder": fid, "days": days, "steps": summary.get("steps"), "start": start, "wall_s": round(wall_s, 1),
-        "steps_per_s": summary.get("steps_per_s"), "exit_codes": codes,
+        "feeder": fid, "days": days, "steps": summary.steps, "start": start, "wall_s": round(wall_s, 1),
+        "steps_per_s": summary.steps_per_s, "exit_codes": codes,
         "last_status_step": last_bridge.step if last_bridge else None, "memory": memory, "losses": losses,
         "samples": len(samples), "rss_by_day_kib": rss_by_day, "recording_complete": info.complete,
         "recording_bytes": info.size_bytes,

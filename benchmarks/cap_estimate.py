@@ -10,7 +10,6 @@ Run ``python -m benchmarks.cap_estimate RUN_FOLDER [RUN_FOLDER ...]``.
 
 from __future__ import annotations
 
-import json
 import sys
 from pathlib import Path
 
@@ -19,27 +18,33 @@ from mcap.reader import make_reader
 
 from regression.capbanks import bank_voltage_pu, head_q_at_training_banks
 from regression.model import ModelArrays, read_model
+from schemas import messages as m
+from schemas.bus import codec_for
 
 __all__ = ["estimate_errors", "main"]
 
 
-def _read(run: Path) -> tuple[dict[int, dict], dict[int, dict], dict[int, dict[str, int]]]:
-    decisions: dict[int, dict] = {}
-    truth: dict[int, dict] = {}
+def _read(run: Path) -> tuple[dict[int, m.Decision], dict[int, m.TruthFrame], dict[int, dict[str, int]], list[str]]:
+    """Decisions by the step they answer, truth frames and bank states by time, and the truth's node names."""
+    decisions: dict[int, m.Decision] = {}
+    truth: dict[int, m.TruthFrame] = {}
     banks: dict[int, dict[str, int]] = {}
+    node_names: list[str] = []
+    dec, tru, cap = codec_for(m.Decision), codec_for(m.TruthFrame), codec_for(m.CapFrame)
     with (run / "session.mcap").open("rb") as f:
         for _, channel, message in make_reader(f).iter_messages(log_time_order=True):
             topic = channel.topic
             if topic.endswith("/agent/decision"):
-                d = json.loads(message.data)
-                decisions[d["step_t_ns"]] = d
+                d = dec.decode(message.data)
+                decisions[d.step_t_ns] = d
             elif topic.endswith("/sim/truth"):
-                d = json.loads(message.data)
-                truth[d["t_ns"]] = d
+                tr = tru.decode(message.data)
+                truth[tr.t_ns] = tr
+                node_names = node_names or list(tr.node_names or [])
             elif "/meas/cap/" in topic:
-                d = json.loads(message.data)
-                banks.setdefault(d["t_ns"], {})[d["capacitor_id"]] = d["closed_steps"]
-    return decisions, truth, banks
+                c = cap.decode(message.data)
+                banks.setdefault(c.t_ns, {})[c.capacitor_id] = c.closed_steps
+    return decisions, truth, banks, node_names
 
 
 def estimate_errors(run: Path) -> dict[str, tuple[float, float, float]]:
@@ -47,17 +52,15 @@ def estimate_errors(run: Path) -> dict[str, tuple[float, float, float]]:
     model = read_model(run / "model.json")
     arrays = ModelArrays.of(model)
     ids = [c.id for c in model.capacitors]
-    decisions, truth, banks = _read(run)
+    decisions, truth, banks, node_names = _read(run)
     err: dict[str, list[np.ndarray]] = {"with": [], "without": []}
-    index: dict[str, int] | None = None
+    index = {n: i for i, n in enumerate(node_names)}
     for t, d in sorted(decisions.items()):
         tr = truth.get(t)
-        if tr is None or not d["estimates"] or any(i not in banks.get(t, {}) for i in ids):
+        if tr is None or not d.estimates or any(i not in banks.get(t, {}) for i in ids):
             continue
-        if index is None:
-            index = {n: i for i, n in enumerate(tr["node_names"])}
-        v = np.asarray(tr["v_pu"])[[index[e["node"]] for e in d["estimates"]]]
-        est = np.array([e["v_pu"] for e in d["estimates"]])
+        v = np.asarray(tr.v_pu)[[index[e.node] for e in d.estimates]]
+        est = np.array([e.v_pu for e in d.estimates])
         closed = np.array([banks[t][i] for i in ids])
         dq = head_q_at_training_banks(arrays, np.zeros(3), closed)
         head_q = [model.feature_names.index(f"head_q_kvar_{p}") for p in "abc"]
@@ -73,6 +76,7 @@ def estimate_errors(run: Path) -> dict[str, tuple[float, float, float]]:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Print the table for the run folders of ``argv`` (default: ``sys.argv[1:]``); 2 without any."""
     runs = [Path(a) for a in (sys.argv[1:] if argv is None else argv)]
     if not runs:
         print(__doc__.strip().splitlines()[-1], file=sys.stderr)

@@ -22,20 +22,19 @@ import json
 import random
 import subprocess
 import sys
-import tempfile
 import threading
 import time
 from collections import Counter
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, TypedDict
 
 import msgspec
 import zenoh
 
-from benchmarks.bench_soak import stop_process
+from benchmarks.bench_soak import run_folder, stop_process
 from schemas import messages as m
-from schemas.bus import MAX_PAYLOAD_BYTES, BadMessage, codec_for
+from schemas.bus import MAX_PAYLOAD_BYTES, BadMessage, codec_for, has_subscribers
 from schemas.errors import CvvcError
 from schemas.examples import examples
 from schemas.keys import message_type_for_key
@@ -92,6 +91,7 @@ class Fuzzer:
 
     # ------------------------------------------------------------------ payloads that must not decode
     def undecodable(self, key: str) -> bytes:
+        """A payload for ``key`` that must be refused at decode (a mutated valid message); FuzzError if none."""
         msg_type = message_type_for_key(key)
         if msg_type is None:
             raise FuzzError(f"{key} carries no message type")
@@ -185,6 +185,7 @@ class Fuzzer:
                                                                    seq=FAR_FUTURE_NS + r.randrange(2**20)))
             case _:
                 fresh = dict(seq=FAR_FUTURE_NS + r.randrange(2**20), t_ns=FAR_FUTURE_NS)
+                bad: msgspec.Struct
                 if isinstance(old, m.PvFrame):
                     bad = msgspec.structs.replace(old, p_kw=2.0 * old.s_rated_kva + 10.0, **fresh)
                 elif isinstance(old, m.RegFrame):
@@ -198,8 +199,9 @@ class Fuzzer:
         r = self.rng
         parts = key.split("/")
         seq = r.randrange(1, 2**40)
-        base = dict(t_ns=1, seq=seq, source=f"fuzz{r.randrange(100)}", cmd_id=f"fuzz:{seq}", in_reply_to=0,
-                    valid_until_t_ns=FAR_FUTURE_NS)
+        base = _CommandHeader(t_ns=1, seq=seq, source=f"fuzz{r.randrange(100)}", cmd_id=f"fuzz:{seq}",
+                              in_reply_to=0, valid_until_t_ns=FAR_FUTURE_NS)
+        expired = _CommandHeader(**(base | {"valid_until_t_ns": 1}))
         if parts[2] == "agent":
             self.classes["decision_wrong_feeder"] += 1
             return msgspec.json.encode(msgspec.structs.replace(examples()[m.Decision], feeder_id="otherfeeder",
@@ -211,9 +213,9 @@ class Fuzzer:
             match choice:
                 case "replayed":
                     return self._replayed_command(m.PvCommand, device) or msgspec.json.encode(
-                        m.PvCommand(**{**base, "valid_until_t_ns": 1}, plant_id=device, q_kvar=1.0))
+                        m.PvCommand(**expired, plant_id=device, q_kvar=1.0))
                 case "expired":
-                    return msgspec.json.encode(m.PvCommand(**{**base, "valid_until_t_ns": 1}, plant_id=device,
+                    return msgspec.json.encode(m.PvCommand(**expired, plant_id=device,
                                                            q_kvar=1.0))
                 case "wrong_device":
                     other = next(p for p in PVS if p != device)
@@ -228,7 +230,7 @@ class Fuzzer:
                 old = self._replayed_command(m.RegCommand, device)
                 if old is not None:
                     return old
-                return msgspec.json.encode(m.RegCommand(**{**base, "valid_until_t_ns": 1}, regulator_id=device,
+                return msgspec.json.encode(m.RegCommand(**expired, regulator_id=device,
                                                         action=action))
             case "out_of_range":
                 action = r.choice([m.SetpointAction(setpoint_v120=135.0, band_v120=2.0),
@@ -239,7 +241,7 @@ class Fuzzer:
                 return msgspec.json.encode(m.RegCommand(**base, regulator_id=next(x for x in REGS if x != device),
                                                         action=action))
             case _:
-                return msgspec.json.encode(m.RegCommand(**{**base, "valid_until_t_ns": 1}, regulator_id=device,
+                return msgspec.json.encode(m.RegCommand(**expired, regulator_id=device,
                                                         action=action))
 
     def payload(self, key: str, i: int) -> bytes:
@@ -263,11 +265,26 @@ class Fuzzer:
                                                       plant_id="pv675", q_kvar=1.0))
         return self.undecodable(key) if payload is None else payload
 
-    def _replayed_command(self, msg_type: type, device: str) -> bytes | None:
+    def _replayed_command(self, msg_type: type[m.PvCommand] | type[m.RegCommand], device: str) -> bytes | None:
         decisions = self.seen.messages(m.Decision, lambda d: bool(d.commands))
         older = [c for d in decisions[:-1] for c in d.commands
-                 if isinstance(c, msg_type) and (getattr(c, "plant_id", None) or c.regulator_id) == device]
+                 if isinstance(c, msg_type) and _command_device(c) == device]
         return msgspec.json.encode(self.rng.choice(older)) if older else None
+
+
+class _CommandHeader(TypedDict):
+    """The fields every command has besides its device and value."""
+
+    t_ns: int
+    seq: int
+    source: str
+    cmd_id: str
+    in_reply_to: int
+    valid_until_t_ns: int
+
+
+def _command_device(cmd: m.PvCommand | m.RegCommand) -> str:
+    return cmd.plant_id if isinstance(cmd, m.PvCommand) else cmd.regulator_id
 
 
 _FRAME_TYPE = {"head": m.HeadFrame, "pv": m.PvFrame, "vr": m.RegFrame}
@@ -322,6 +339,7 @@ class Watcher:
                                                                   history=True)
 
     def messages(self, msg_type: type, pred: Callable[[Any], bool] = lambda x: True) -> list[Any]:
+        """The messages of ``msg_type`` seen so far for which ``pred`` holds, in arrival order."""
         with self._cond:
             return [x for _, x, _ in self.seen if isinstance(x, msg_type) and pred(x)]
 
@@ -348,10 +366,12 @@ class Watcher:
         return self.wait(find, timeout_s, what)
 
     def is_alive(self, key: str) -> bool:
+        """Whether the liveliness token ``key`` is alive now."""
         with self._cond:
             return self.alive.get(key, False)
 
     def close(self) -> None:
+        """Undeclare the subscribers and close the session."""
         self._sub.undeclare()
         self._live.undeclare()
         self.session.close()
@@ -412,9 +432,7 @@ def fuzz_live(n: int = 20_000, seed: int = SEED, out_dir: Path | None = None) ->
     from recordings.recorder import QUARANTINE_TOPIC, Quarantined
     from schemas.bus import BusConfig, free_port, open_session
 
-    tmp = None if out_dir else tempfile.TemporaryDirectory(prefix="cvvc-fuzz-")
-    out = Path(out_dir or tmp.name)  # type: ignore[union-attr]
-    out.mkdir(parents=True, exist_ok=True)
+    out, tmp = run_folder(out_dir, "cvvc-fuzz-")
     model, mcap = out / "ieee13-model.json", out / "fuzz.mcap"
     trained = subprocess.run([sys.executable, "-m", "cvvc", "train", "--feeder", str(FEEDER_MAP), "--out",
                               str(model), "--json", "--workers", "1", "--cache", str(out / "cache")], cwd=REPO,
@@ -449,7 +467,7 @@ def fuzz_live(n: int = 20_000, seed: int = SEED, out_dir: Path | None = None) ->
                 with plain_session(endpoint, mode="client") as session:
                     pubs = {k: session.declare_publisher(k, congestion_control=zenoh.CongestionControl.BLOCK)
                             for k in topics}
-                    watcher.wait(lambda: all(p.matching_status.matching for p in pubs.values()), 20,
+                    watcher.wait(lambda: all(has_subscribers(p) for p in pubs.values()), 20,
                                  "every topic's subscribers")
                     for i in range(n):
                         key = topics[i % len(topics)]

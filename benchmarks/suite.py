@@ -136,6 +136,10 @@ BENCHES: dict[str, Callable[[bool], dict[str, Any]]] = {
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run the benchmarks ``argv`` selects (``make bench``: all) and print each one's figures as JSON.
+
+    Returns 1 when a benchmark failed (the others still run), else 0.
+    """
     parser = argparse.ArgumentParser(prog="python -m benchmarks", description=__doc__.split("\n\n")[0])
     parser.add_argument("--only", nargs="+", choices=sorted(BENCHES), help="run only these benchmarks")
     parser.add_argument("--quick", action="store_true", help="shorter windows (for a smoke run)")

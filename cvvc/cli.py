@@ -31,6 +31,7 @@ _VERB_MODULES = (
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """The ``cvvc`` parser: global flags and every package's verbs (each ``<package>.cli.register``)."""
     parser = argparse.ArgumentParser(
         prog="cvvc",
         description="cvvc-edge: regression-based centralized volt-var control over Eclipse Zenoh.",
@@ -50,6 +51,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run the verb of ``argv`` (default: ``sys.argv[1:]``); returns the exit status (2: a ``CvvcError``)."""
     parser = build_parser()
     args = parser.parse_args(argv)
     logging.basicConfig(

@@ -35,7 +35,7 @@ from typing import Literal
 import msgspec
 import numpy as np
 
-from cvvc.launch import CASES, LaunchError, RunConfig, RunSummary
+from cvvc.launch import CASES, Case, LaunchError, RunConfig, RunSummary
 from cvvc.reference import REFERENCE_CASE, ReferenceConfig
 from schemas import messages as m
 from schemas.errors import CvvcError
@@ -61,6 +61,7 @@ __all__ = [
 
 #: Every case ``--cases`` accepts: the bus runs (``cvvc.launch.CASES``) and OpenDSS's own loop (``opendss``).
 EVALUATE_CASES: tuple[str, ...] = (*CASES, REFERENCE_CASE)
+_BUS_CASES: dict[str, Case] = {c: c for c in CASES}  # the cases run through the bus (cvvc run)
 Season = Literal["winter", "spring", "summer", "fall"]
 SEASONS: tuple[Season, ...] = ("winter", "spring", "summer", "fall")
 EVALUATION_YEAR = 2023  # the calendar year of the generated profiles (``make_profiles`` default)
@@ -125,6 +126,7 @@ class RunSpec(msgspec.Struct, frozen=True, kw_only=True):
 
     @property
     def name(self) -> str:
+        """The run's folder name: season, case, the band on the 120 V base [V] in cases C/D, and the variant."""
         band = f"-bw{self.bandwidth_v120:g}" if self.case in ("C", "D") else ""
         var = "" if self.variant == "nominal" else f"-{self.variant}"
         return f"{self.season}-{self.case}{band}{var}"
@@ -185,7 +187,7 @@ def parse_seasons(text: str) -> tuple[Season, ...]:
     bad = [s for s in seasons if s not in SEASONS]
     if bad or not seasons:
         raise EvaluateError(f"unknown season(s) {', '.join(bad) or '(none given)'}; choose from {','.join(SEASONS)}")
-    return seasons  # type: ignore[return-value]
+    return tuple(next(known for known in SEASONS if known == s) for s in seasons)
 
 
 def season_window(season: Season, days_per_season: float | None, year: int = EVALUATION_YEAR) -> tuple[str, float]:
@@ -263,7 +265,8 @@ def perturbed_device_map(dm_path: Path, out_dir: Path, *, pct: float, seed: int)
     lines += [f"{k} = {json.dumps(v)}" for k, v in fields.items()]
     original = dm_path.read_text()
     rest = re.split(r"^\[feeder\]\s*$", original, maxsplit=1, flags=re.MULTILINE)[1]
-    rest = rest[re.search(r"^\[", rest, flags=re.MULTILINE).start():] if re.search(r"^\[", rest, re.MULTILINE) else ""
+    next_table = re.search(r"^\[", rest, flags=re.MULTILINE)
+    rest = rest[next_table.start():] if next_table else ""
     out_dir.mkdir(parents=True, exist_ok=True)
     path = out_dir / "devicemap.toml"
     header = f"# {f.name} with line lengths and load kW x U({1 - pct / 100:g}, {1 + pct / 100:g}), seed {seed}\n"
@@ -279,9 +282,12 @@ def perturbed_device_map(dm_path: Path, out_dir: Path, *, pct: float, seed: int)
 
 def _run_config(spec: RunSpec, config: EvaluateConfig, dm_path: Path, model: Path, out: Path,
                 perturbed: Path | None) -> RunConfig:
+    case = _BUS_CASES.get(spec.case)
+    if case is None:  # the reference case is not a bus run (_submit runs it apart)
+        raise EvaluateError(f"{spec.name}: case {spec.case!r} is not a bus run")
     return RunConfig(
         feeder=str(perturbed if spec.variant == "model-error" else dm_path), model=str(model), days=spec.days,
-        start=spec.start, case=spec.case, out=str(out / spec.name), train_seed=config.train_seed,  # type: ignore[arg-type]
+        start=spec.start, case=case, out=str(out / spec.name), train_seed=config.train_seed,
         year_seed=config.year_seed, bandwidth_v120=spec.bandwidth_v120, cache=config.cache, baseline=False,
         pv_margin_window_s=config.pv_margin_window_s, setpoint_hold=config.setpoint_hold,
         control_banks=config.control_banks,

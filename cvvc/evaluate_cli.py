@@ -11,6 +11,7 @@ __all__ = ["register_evaluate", "register_report_plots"]
 
 
 def register_evaluate(sub: argparse._SubParsersAction) -> None:
+    """Add the ``evaluate`` verb to ``sub``."""
     p = sub.add_parser(
         "evaluate", help="the paper's evaluation: cases x seasons through the real bus, Tables II-V",
         description="Run each (case, season, bandwidth) through bridge, agent and recorder in lockstep, one month "
@@ -43,6 +44,7 @@ def register_evaluate(sub: argparse._SubParsersAction) -> None:
 def _evaluate(args: argparse.Namespace) -> int:
     from cvvc.errors import CliError
     from cvvc.evaluate import EvaluateConfig, EvaluateError, evaluate, parse_cases, parse_seasons
+    from cvvc.launch import CASES
 
     try:
         cases = parse_cases(args.cases) if args.cases else (("D",) if args.robustness else None)
@@ -50,14 +52,13 @@ def _evaluate(args: argparse.Namespace) -> int:
         bands = tuple(float(b) for b in args.bandwidth_v.split(",") if b.strip())
     except (EvaluateError, ValueError) as e:
         raise CliError(str(e)) from e
-    kw = {} if cases is None else {"cases": cases}
     config = EvaluateConfig(feeder=args.feeder, model=args.model, seasons=seasons, bandwidths_v120=bands,
                             year_seed=args.year_seed, train_seed=args.train_seed,
                             days_per_season=args.days_per_season, jobs=args.jobs, out=args.out, cache=args.cache,
                             robustness=args.robustness, resume=args.resume,
                             reference_step_s=args.reference_step_s,
                             pv_margin_window_s=args.pv_margin_window_s, setpoint_hold=args.setpoint_hold,
-                            control_banks=args.control_banks, **kw)
+                            control_banks=args.control_banks, cases=CASES if cases is None else cases)
     try:
         ev = evaluate(config)
     except EvaluateError as e:
@@ -68,6 +69,7 @@ def _evaluate(args: argparse.Namespace) -> int:
 
 
 def register_report_plots(rsub: argparse._SubParsersAction) -> None:
+    """Add ``report run`` and ``report evaluate`` (PNG plots) to the ``report`` verb's ``rsub``."""
     p = rsub.add_parser("run", help="PNG plots of one cvvc run folder (voltage envelope, PV Q, taps, estimates)")
     p.add_argument("dir", help="a cvvc run output folder (with session.mcap)")
     p.add_argument("--out", default=None, help="where the PNGs go (default: DIR/plots)")

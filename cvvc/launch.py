@@ -314,7 +314,7 @@ def _tail(path: Path, n: int = 15) -> str:
 def run(config: RunConfig) -> RunSummary:
     """Run one case end to end; see the module docstring."""
     from schemas import keys
-    from schemas.bus import BusConfig, Inbox, LivelinessWatcher, free_port, open_session, wait_for
+    from schemas.bus import BusConfig, Inbox, LivelinessWatcher, free_port, has_subscribers, open_session, wait_for
     from schemas.devicemap import load_device_map
 
     if config.case not in CASES:
@@ -388,7 +388,7 @@ def run(config: RunConfig) -> RunSummary:
                                                mcap_path, out, config.recorder_restarts_max)
                 children.append(recorder.child)
                 probe = session.declare_publisher(keys.sim_status(feeder_id))
-                if not wait_for(lambda: bool(probe.matching_status.matching), 30.0):  # type: ignore[attr-defined]
+                if not wait_for(lambda: has_subscribers(probe), 30.0):
                     raise LaunchError(f"the recorder did not subscribe within 30 s:\n{_tail(out / 'recorder.log')}")
                 probe.undeclare()
             if agent_settings is not None:

@@ -12,6 +12,7 @@ __all__ = ["register"]
 
 
 def register(sub: argparse._SubParsersAction) -> None:
+    """Add the ``run`` and ``report`` verbs to the ``cvvc`` command line's ``sub``."""
     p = sub.add_parser("run", help="the main job: bridge + agent + recorder on one simulated day (case D)",
                        description="Generate or reuse the feeder and model, then run bridge, agent and recorder "
                                    "as separate processes on loopback and print a summary.")

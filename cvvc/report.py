@@ -18,15 +18,20 @@ lean msgspec types (only the fields used). A month of truth is streamed: nothing
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING, TypeVar
 
 import msgspec
 import numpy as np
 
 from cvvc.errors import CommandError
 from schemas.errors import CvvcError
+
+if TYPE_CHECKING:
+    from cvvc.launch import RunSummary
+
+_T = TypeVar("_T")
 
 __all__ = ["ReportError", "RunTrace", "envelope_figure", "errors_figure", "plot_evaluation", "plot_run", "pv_figure",
            "read_trace", "taps_figure", "window_envelope_pu"]
@@ -136,8 +141,7 @@ def read_trace(mcap_path: str | Path, *, regulator_ids: tuple[str, ...] = (), pv
         node_index: dict[str, int] = {}
         t_list, step_t, vmax, vmin, taps, pvq, caps = [], [], [], [], [], [], []
         err_t, err_max, err_min, err_rms, errors = [], [], [], [], []
-        acc_v = None
-        acc_q = None
+        acc_v = acc_q = np.zeros(0)  # the window's sums, started afresh at each window's first step
         n_acc = 0
         for _, _, msg in reader.iter_messages(topics=[truth_topic]):
             tr = truth_dec.decode(msg.data)
@@ -204,26 +208,37 @@ def _days(t_ns: np.ndarray, t0_ns: int) -> np.ndarray:
     return (np.asarray(t_ns, dtype=np.int64) - t0_ns) / 86_400e9
 
 
-def _run_meta(run_dir: Path) -> tuple[dict, tuple[str, ...], tuple[str, ...], tuple[float, float]]:
+def _decode(path: Path, typ: type[_T], what: str) -> _T:
+    try:
+        return msgspec.json.decode(path.read_bytes(), type=typ)
+    except (msgspec.DecodeError, msgspec.ValidationError) as e:
+        raise ReportError(f"{path}: not a {what} of this version ({e}); plot it with the version that wrote it, "
+                          "or run it again") from e
+
+
+def _run_meta(run_dir: Path) -> tuple[RunSummary, tuple[str, ...], tuple[str, ...], tuple[float, float]]:
+    from cvvc.launch import RunSummary
+
     summary_path = run_dir / "summary.json"
     if not summary_path.is_file():
         raise ReportError(f"{run_dir}: no summary.json; pass a cvvc run output folder")
-    summary = json.loads(summary_path.read_text())
-    mt = summary.get("metrics", {})
+    summary = _decode(summary_path, RunSummary, "cvvc run summary")
+    mt = summary.metrics
     limits = (0.965, 1.05)
     try:
         from schemas.devicemap import load_device_map
 
-        limits = tuple(load_device_map(summary["feeder"]).feeder.judged_limits_pu)  # type: ignore[assignment]
-    except (CvvcError, KeyError, OSError):
+        lo, hi = load_device_map(summary.feeder).feeder.judged_limits_pu
+        limits = (float(lo), float(hi))
+    except (CvvcError, OSError):
         pass  # the paper's limits
-    return summary, tuple(mt.get("taps_changes", {})), tuple(mt.get("q_mvar_intervals", {})), limits
+    return summary, tuple(mt.taps_changes), tuple(mt.q_mvar_intervals), limits
 
 
-def _trace_of(run_dir: Path) -> tuple[dict, RunTrace]:
+def _trace_of(run_dir: Path) -> tuple[RunSummary, RunTrace]:
     summary, regs, pvs, limits = _run_meta(run_dir)
-    caps = tuple(summary.get("metrics", {}).get("cap_switches_per_bank", {}))
-    rec = summary.get("recording") or str(run_dir / "session.mcap")
+    caps = tuple(summary.metrics.cap_switches_per_bank)
+    rec = summary.recording or str(run_dir / "session.mcap")
     path = Path(rec) if Path(rec).is_file() else run_dir / "session.mcap"
     return summary, read_trace(path, regulator_ids=regs, pv_ids=pvs, limits_pu=limits, capacitor_ids=caps)
 
@@ -360,8 +375,8 @@ def plot_run(run_dir: str | Path, *, out: str | Path | None = None) -> list[Path
     """The PNGs of one ``cvvc run`` folder (default into ``run_dir/plots``); returns their paths."""
     d = Path(run_dir)
     summary, trace = _trace_of(d)
-    title = f"{summary.get('feeder_id', '?')} case {summary.get('case', '?')} from {summary.get('start', '?')}"
-    return _plots({f"case {summary.get('case', '?')}": trace}, title, Path(out) if out else d / "plots")
+    title = f"{summary.feeder_id} case {summary.case} from {summary.start}"
+    return _plots({f"case {summary.case}": trace}, title, Path(out) if out else d / "plots")
 
 
 def plot_evaluation(eval_dir: str | Path, *, out: str | Path | None = None) -> list[Path]:
@@ -370,27 +385,31 @@ def plot_evaluation(eval_dir: str | Path, *, out: str | Path | None = None) -> l
     results_path = d / "results.json"
     if not results_path.is_file():
         raise ReportError(f"{d}: no results.json; pass a cvvc evaluate output folder")
-    ev = json.loads(results_path.read_text())
+    from cvvc.evaluate import Evaluation
+
+    ev = _decode(results_path, Evaluation, "cvvc evaluate result")
     groups: dict[str, dict[str, RunTrace]] = {}
-    for r in ev["runs"]:
-        spec = r["spec"]
-        if not r.get("recording"):  # the opendss reference case: OpenDSS's own loop, nothing recorded
+    for r in ev.runs:
+        spec = r.spec
+        if not r.recording:  # the opendss reference case: OpenDSS's own loop, nothing recorded
             continue
-        run_dir = Path(r["out_dir"])
+        run_dir = Path(r.out_dir)
         if not run_dir.is_dir():
-            run_dir = d / Path(r["out_dir"]).name
+            run_dir = d / Path(r.out_dir).name
         _, trace = _trace_of(run_dir)
-        if spec.get("variant", "nominal") == "nominal":
-            key = spec["season"]
-            label = f"case {spec['case']}"
+        key: str
+        label: str
+        if spec.variant == "nominal":
+            key = spec.season
+            label = f"case {spec.case}"
         else:
-            key = f"{spec['season']}-robustness"
-            label = spec["variant"]
-        if spec["case"] in ("C", "D") and len(ev["config"]["bandwidths_v120"]) > 1:
-            label += f" {spec['bandwidth_v120']:g} V"
+            key = f"{spec.season}-robustness"
+            label = spec.variant
+        if spec.case in ("C", "D") and len(ev.config.bandwidths_v120) > 1:
+            label += f" {spec.bandwidth_v120:g} V"
         groups.setdefault(key, {})[label] = trace
     paths: list[Path] = []
     out_dir = Path(out) if out else d / "plots"
-    for key, traces in groups.items():
-        paths += _plots(traces, f"{ev['feeder_id']} {key}", out_dir, prefix=f"{key}-")
+    for group, traces in groups.items():
+        paths += _plots(traces, f"{ev.feeder_id} {group}", out_dir, prefix=f"{group}-")
     return paths

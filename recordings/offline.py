@@ -89,6 +89,7 @@ class DiffReport(msgspec.Struct, frozen=True, kw_only=True):
 
     @property
     def all_identical(self) -> bool:
+        """Every recorded decision re-made identically, none missing and none extra."""
         return self.identical == self.recorded and self.missing == 0 and self.extra == 0
 
 
@@ -228,7 +229,7 @@ def _track_largest(largest: dict[str, CommandChange], presence: Counter[str], ol
 def agent_decider(model_path: str | Path, settings_json: str = "") -> Decider:
     """Bind ``agent.runtime.decide_offline`` to a model file and the agent settings (JSON, may be empty)."""
     try:
-        from agent import runtime  # type: ignore[attr-defined]
+        from agent import runtime
     except ImportError as e:
         raise OfflineError(f"the agent runtime cannot be imported ({e}); offline re-run needs "
                            "agent.runtime.decide_offline") from e

@@ -140,6 +140,7 @@ class McapSink:
 
     @property
     def channels(self) -> int:
+        """Channels (keys) written so far."""
         return len(self._channels)
 
     def write(self, raw: bytes, key: str, recv_ns: int) -> None:
@@ -322,6 +323,7 @@ class Recorder:
         return self.stats()
 
     def stats(self) -> RecorderStats:
+        """The counters so far (messages, payload bytes, channels, drops, fallbacks, errors, flushes, quarantine)."""
         sink = self._sink
         return RecorderStats(messages=sink.messages if sink else 0, payload_bytes=sink.payload_bytes if sink else 0,
                              channels=sink.channels if sink else 0, dropped_queue_full=self._dropped,

@@ -25,7 +25,7 @@ import zenoh
 
 from recordings.errors import ReplayError, UnreadableError
 from recordings.info import MCAP_READ_ERRORS, check_mcap_file
-from schemas.bus import BusConfig, open_session
+from schemas.bus import BusConfig, has_subscribers, open_session
 
 __all__ = [
     "MEASUREMENT_KEYS",
@@ -152,6 +152,7 @@ class RecordedMessages:
         self.close()
 
     def close(self) -> None:
+        """Close the MCAP file."""
         self._file.close()
 
     def __iter__(self) -> Iterator[RecordedMessage]:
@@ -200,7 +201,7 @@ def _replay_topics(session: zenoh.Session, config: ReplayConfig, rec: RecordedMe
 def _wait_matched(pubs: dict[str, zenoh.Publisher], timeout_s: float) -> list[str]:
     deadline = time.monotonic() + timeout_s
     while True:
-        unmatched = [t for t, p in pubs.items() if not p.matching_status.matching]  # type: ignore[attr-defined]
+        unmatched = [t for t, p in pubs.items() if not has_subscribers(p)]
         if not unmatched or time.monotonic() >= deadline:
             return unmatched
         time.sleep(0.01)

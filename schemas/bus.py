@@ -49,6 +49,7 @@ __all__ = [
     "check_finite",
     "codec_for",
     "free_port",
+    "has_subscribers",
     "open_session",
     "wait_for",
     "zenoh_config",
@@ -337,7 +338,7 @@ class TypedPublisher(Generic[T]):
     @property
     def matched(self) -> bool:
         """Whether a subscriber matches this publisher now."""
-        return bool(self._pub.matching_status.matching)  # type: ignore[attr-defined]  # stub says bool
+        return has_subscribers(self._pub)
 
     def wait_matched(self, timeout_s: float) -> bool:
         """Wait until a subscriber exists (a put right after a remote declaration is often lost)."""
@@ -522,6 +523,15 @@ class LivelinessWatcher:
     def undeclare(self) -> None:
         """Withdraw the liveliness subscriber."""
         self._sub.undeclare()
+
+
+def has_subscribers(publisher: zenoh.Publisher) -> bool:
+    """Whether a subscriber matches ``publisher`` now.
+
+    zenoh's stub types ``Publisher.matching_status`` as ``bool``; it is a ``MatchingStatus`` whose ``matching``
+    says it (hence the one ignore).
+    """
+    return bool(publisher.matching_status.matching)  # type: ignore[attr-defined]
 
 
 def wait_for(predicate: Callable[[], bool], timeout_s: float, poll_s: float = 0.005) -> bool:

@@ -19,7 +19,7 @@ __all__ = ["register_bridge"]
 def _bridge(args: argparse.Namespace) -> int:
     import msgspec
 
-    from schemas.bus import bus_config_from_args
+    from schemas.bus import Mode, bus_config_from_args
     from schemas.cache import cache_root, profiles_dir
     from schemas.devicemap import resolve_device_map_path
     from schemas.errors import CvvcError
@@ -44,7 +44,7 @@ def _bridge(args: argparse.Namespace) -> int:
                        else None if args.cache_dir == "" else args.cache_dir), publisher=args.publisher,
             oracle=args.oracle, pv_sunspec=_pv_sunspec(args.pv_sunspec),
         )
-        default_mode = "router" if args.listen and not args.connect else "peer"
+        default_mode: Mode = "router" if args.listen and not args.connect else "peer"
         bus = bus_config_from_args(args, default_mode=default_mode, role="devices")
         stop = threading.Event()
         previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)}

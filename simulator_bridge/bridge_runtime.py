@@ -27,6 +27,7 @@ from schemas.bus import BusConfig, Inbox, LivelinessWatcher, Received
 from schemas.devicemap import DeviceMap
 from schemas.logs import RateLimitedLog
 from schemas.security import COMMAND_ROLE
+from simulator_bridge import devices as dv
 from simulator_bridge.device_bank import BridgeCounters, DeviceBank
 from simulator_bridge.errors import BridgeError
 from simulator_bridge.metrics_stream import MetricsAccumulator
@@ -146,7 +147,8 @@ class BridgeRuntime:
                                external_pv=external)
         self.bank.now_t_ns = int(profiles.t_ns(start_step)) - self.step_s * _NS  # nothing simulated yet
         bank = self.bank
-        self.reg_phase = ["abc"[int(engine.node_names[n].split(".")[1]) - 1] for n in engine.reg_secondary_node]
+        self.reg_phase = [dv.PHASE_NAMES[int(engine.node_names[n].split(".")[1]) - 1]
+                          for n in engine.reg_secondary_node]
         self.spec = FramerSpec(
             feeder_id=self.fid, step_s=self.step_s, control_every=self.control_every,
             profile_start_t_ns=int(profiles.start_t_ns), run_start_t_ns=int(profiles.t_ns(start_step)),

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from schemas.devicemap import DeviceMap, DeviceMapError
-from simulator_bridge.controls import CapControlSettings, RegControlSettings
+from simulator_bridge.controls import CapControlSettings, CapKind, RegControlSettings
 from simulator_bridge.dss_context import command
 
 __all__ = [
@@ -34,6 +34,9 @@ __all__ = [
 ]
 
 _PHASES = (1, 2, 3)
+# OpenDSS CapControl types -> ours
+_CAP_KINDS: dict[str, CapKind] = {"current": "current", "voltage": "voltage", "kvar": "kvar", "pf": "pf",
+                                  "powerfactor": "pf", "time": "time", "follow": "follow"}
 
 
 @dataclass(frozen=True)
@@ -304,24 +307,24 @@ def read_capacitors(d, dm: DeviceMap, where: str) -> BankTable:
         what = f"{where}: CapControl {name!r}"
         prop = {p: command(d, f"? capcontrol.{name}.{p}", what=what).strip().lower()
                 for p in ("type", "ptphase", "ctphase", "pctminkvar", "enabled", "voltoverride")}
-        kind = {"powerfactor": "pf"}.get(prop["type"], prop["type"])
-        if kind not in ("current", "voltage", "kvar", "pf", "time", "follow"):
-            raise DeviceMapError(f"{what}: type {kind!r} is not modelled (current, voltage, kvar, pf, time, "
+        kind = _CAP_KINDS.get(prop["type"])
+        if kind is None:
+            raise DeviceMapError(f"{what}: type {prop['type']!r} is not modelled (current, voltage, kvar, pf, time, "
                                  "follow)")
         on, off = float(d.CapControls.ONSetting()), float(d.CapControls.OFFSetting())
         if kind == "pf":  # OpenDSS's 0..2 scale: a leading (negative) PF setting is 2 + PF
             on, off = (2.0 + on if on < 0 else on), (2.0 + off if off < 0 else off)
-        b = banks.index(cc_cap[name])
-        bank_of.append(b)
+        bank = banks.index(cc_cap[name])
+        bank_of.append(bank)
         controls.append(CapControlSettings(
             name=name, kind=kind, on=on, off=off, delay_s=float(d.CapControls.Delay()),
             delay_off_s=float(d.CapControls.DelayOff()), dead_time_s=float(d.CapControls.DeadTime()),
             volt_override=prop["voltoverride"] in ("yes", "true"), vmin_v=float(d.CapControls.Vmin()),
-            vmax_v=float(d.CapControls.Vmax()), n_steps=steps[b], total_kvar=kvar[b],
+            vmax_v=float(d.CapControls.Vmax()), n_steps=steps[bank], total_kvar=kvar[bank],
             pct_min_kvar=float(prop["pctminkvar"] or 50.0), enabled=prop["enabled"] in ("yes", "true")))
         monitored.append((d.CapControls.MonitoredObj(), int(d.CapControls.MonitoredTerm()),
                           phase_mode(prop["ptphase"], what), phase_mode(prop["ctphase"], what),
-                          float(d.CapControls.PTRatio()), float(d.CapControls.CTRatio()), conn_delta[b]))
+                          float(d.CapControls.PTRatio()), float(d.CapControls.CTRatio()), conn_delta[bank]))
     return BankTable(banks=tuple(banks), kvar=tuple(kvar), steps=tuple(steps), states=tuple(states),
                      controls=tuple(controls), monitored=tuple(monitored), bank_of=tuple(bank_of))
 
@@ -351,7 +354,8 @@ def terminal_index(d, node_index: dict[str, int], element: str, terminal: int, o
             node[ph - 1] = node_index[f"{bus}.{ph}"]
             conductor[ph - 1] = first + c
     neutral = first + n_phases if n_cond > n_phases else -1
-    return TerminalIndex(d.CktElement.Name(), tuple(node), tuple(conductor), neutral), n_term * n_cond
+    return (TerminalIndex(d.CktElement.Name(), (node[0], node[1], node[2]), (conductor[0], conductor[1], conductor[2]),
+                          neutral), n_term * n_cond)
 
 
 def bus_distance_ohm(d, source_bus: str, head_element: str) -> tuple[dict[str, float], set[str], str]:
@@ -388,23 +392,23 @@ def bus_distance_ohm(d, source_bus: str, head_element: str) -> tuple[dict[str, f
         name = d.CktElement.Name().lower()
         buses = [b.split(".")[0].lower() for b in d.CktElement.BusNames()]
         if d.CktElement.Enabled() and len(set(buses)) > 1 and not name.startswith("capacitor."):
-            z = line_z.get(name, 0j)
+            z_edge = line_z.get(name, 0j)
             kv = kv_base.get(buses[0], 0.0)
-            if z and kv > 0 and kv_src > 0:
-                z *= (kv_src / kv) ** 2
+            if z_edge and kv > 0 and kv_src > 0:
+                z_edge *= (kv_src / kv) ** 2
             for a in buses:
                 for b in buses:
                     if a != b:
-                        edges.setdefault(a, []).append((b, z))
+                        edges.setdefault(a, []).append((b, z_edge))
                         named_edges.setdefault(a, []).append((b, name))
         i = d.PDElements.Next()
     total: dict[str, complex] = {src: 0j}
     queue = deque([src])
     while queue:
         a = queue.popleft()
-        for b, z in edges.get(a, []):
+        for b, z_ab in edges.get(a, []):
             if b not in total:
-                total[b] = total[a] + z
+                total[b] = total[a] + z_ab
                 queue.append(b)
     head = head_element.lower()
     d.Circuit.SetActiveElement(head)

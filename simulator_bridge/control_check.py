@@ -43,12 +43,15 @@ class MinuteProfiles:
             raise ValueError(f"pv_kw has shape {self._pv.shape}, expected ({self.n_steps}, {n_pv})")
 
     def t_ns(self, step: int) -> int:
+        """Time of minute ``step`` [ns since the UTC epoch]."""
         return self.start_t_ns + step * 60 * _NS
 
     def load_kw(self, start: int, stop: int) -> np.ndarray:
+        """(stop - start, n_loads) every load's active power for minutes ``start..stop-1`` [kW]."""
         return self._load[start:stop]
 
     def pv_kw(self, start: int, stop: int) -> np.ndarray:
+        """(stop - start, n_pv) every plant's available AC power for minutes ``start..stop-1`` [kW]."""
         return self._pv[start:stop]
 
 
@@ -76,6 +79,7 @@ class DeviceComparison:
 
     @property
     def matches(self) -> bool:
+        """The same sequence of positions, each change at most one minute apart."""
         return self.same_sequence and self.max_offset_min <= 1
 
 

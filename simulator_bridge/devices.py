@@ -47,7 +47,7 @@ import heapq
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Literal, get_args
+from typing import Generic, Literal, TypeVar, get_args
 
 import numpy as np
 
@@ -65,6 +65,7 @@ __all__ = [
     "FrameDropper",
     "MAX_VALIDITY_PERIODS",
     "MeasurementNoise",
+    "PHASE_NAMES",
     "PvInverter",
     "RegulatorController",
     "RejectReason",
@@ -305,6 +306,7 @@ class RegulatorController:
 
     @property
     def mode(self) -> Literal["local", "locked"]:
+        """``"locked"`` while a tap command holds the regulator, else ``"local"`` (its own control)."""
         return "locked" if isinstance(self.action, m.TapAction) else "local"
 
     @property
@@ -362,8 +364,9 @@ class CapBankController:
             self.guard.apply(cmd, 0.0)
             self.guard.active = None  # released: local control from now on, nothing left to expire
             return Verdict(status="accepted", reason=f"released to local control ({self.control_type})")
-        self.guard.apply(cmd, float(applied_steps if applied_steps is not None else cmd.closed_steps))
-        return Verdict(status="accepted", applied_value=self.guard.active.value)  # type: ignore[union-attr]
+        value = float(applied_steps if applied_steps is not None else cmd.closed_steps)
+        self.guard.apply(cmd, value)
+        return Verdict(status="accepted", applied_value=value)
 
     def expire(self, t_ns: int) -> ActiveCommand | None:
         """Watchdog: the expired command (then the bank is back on its local control), or None."""
@@ -371,6 +374,7 @@ class CapBankController:
 
     @property
     def mode(self) -> Literal["local", "commanded"]:
+        """``"commanded"`` while a set point is in force, else ``"local"`` (the plant's local default)."""
         return "local" if self.guard.active is None else "commanded"
 
 
@@ -401,7 +405,8 @@ class MeasurementNoise:
         return self._rng.standard_normal(shape) * sigma if sigma > 0 else np.zeros(shape)
 
     def head(self, v_mag_v: np.ndarray, v_ang_deg: np.ndarray, i_mag_a: np.ndarray, i_ang_deg: np.ndarray,
-             p_kw: np.ndarray, q_kvar: np.ndarray) -> tuple[np.ndarray, ...]:
+             p_kw: np.ndarray, q_kvar: np.ndarray
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Noisy feeder-head phasors and powers, each (3,); PMU class. Returns new arrays."""
         e = self.pmu
         s_kva = np.hypot(p_kw, q_kvar)
@@ -477,7 +482,10 @@ class FrameDropper:
         return False
 
 
-class DelayLine:
+_Item = TypeVar("_Item")
+
+
+class DelayLine(Generic[_Item]):
     """Fixed latency: items put at wall time ``now_s`` come out at ``now_s + latency_s``, in order.
 
     Times are the caller's monotonic clock [s]; with ``latency_s = 0`` every item is due at once.
@@ -487,16 +495,17 @@ class DelayLine:
         if not (math.isfinite(latency_s) and 0.0 <= latency_s <= 3600.0):
             raise DeviceError(f"latency must be within 0..3600 s, got {latency_s}")
         self.latency_s = float(latency_s)
-        self._heap: list[tuple[float, int, object]] = []
+        self._heap: list[tuple[float, int, _Item]] = []
         self._n = 0
 
-    def put(self, item: object, now_s: float) -> None:
+    def put(self, item: _Item, now_s: float) -> None:
+        """Hold ``item`` until ``now_s + latency_s`` [s, the caller's monotonic clock]."""
         self._n += 1
         heapq.heappush(self._heap, (now_s + self.latency_s, self._n, item))
 
-    def due(self, now_s: float) -> list[object]:
+    def due(self, now_s: float) -> list[_Item]:
         """Remove and return every item due at ``now_s``, oldest first."""
-        out = []
+        out: list[_Item] = []
         while self._heap and self._heap[0][0] <= now_s:
             out.append(heapq.heappop(self._heap)[2])
         return out
@@ -510,7 +519,7 @@ class DelayLine:
 
 
 # ---------------------------------------------------------------------------------------- frames
-_PHASE_NAMES = ("a", "b", "c")
+PHASE_NAMES: tuple[m.Phase, m.Phase, m.Phase] = ("a", "b", "c")  # phases 1, 2, 3 as the messages name them
 _Values = Sequence[float] | np.ndarray  # per-phase readings: a list (the bridge) or an array
 
 
@@ -522,7 +531,7 @@ def head_frame(*, feeder_id: str, t_ns: int, seq: int, v_mag_v: _Values, v_ang_d
     may be arrays or lists (the bridge passes lists: indexing them is cheaper than making NumPy scalars).
     """
     present = [ph for ph in range(3) if v_mag_v[ph] > 0.0] or [0, 1, 2]
-    phases = [m.HeadPhase(phase=_PHASE_NAMES[ph], v_mag_v=float(v_mag_v[ph]), v_ang_deg=_wrap(v_ang_deg[ph]),
+    phases = [m.HeadPhase(phase=PHASE_NAMES[ph], v_mag_v=float(v_mag_v[ph]), v_ang_deg=_wrap(v_ang_deg[ph]),
                           i_mag_a=float(i_mag_a[ph]), i_ang_deg=_wrap(i_ang_deg[ph]), p_kw=float(p_kw[ph]),
                           q_kvar=float(q_kvar[ph])) for ph in present]
     return m.HeadFrame(t_ns=t_ns, seq=seq, source="head", feeder_id=feeder_id, phases=phases,
@@ -541,7 +550,7 @@ def pv_frame(*, plant: PvInverter, t_ns: int, seq: int, p_kw: _Values, q_kvar: _
     1,000,000 kvar on a 1,860 kVA inverter reads as its headroom, not as the request).
     """
     present = [ph for ph in range(3) if v_v[ph] > 0.0] or [0, 1, 2]
-    phases = [m.PvPhase(phase=_PHASE_NAMES[ph], p_kw=float(p_kw[ph]), q_kvar=float(q_kvar[ph]),
+    phases = [m.PvPhase(phase=PHASE_NAMES[ph], p_kw=float(p_kw[ph]), q_kvar=float(q_kvar[ph]),
                         v_mag_v=float(v_v[ph])) for ph in present]
     s_rated = plant.s_rated_kva
     p_avail = min(max(float(available_p_kw), 0.0), s_rated)
@@ -553,14 +562,14 @@ def pv_frame(*, plant: PvInverter, t_ns: int, seq: int, p_kw: _Values, q_kvar: _
                      q_available_kvar=q_avail, q_setpoint_kvar=q_applied, local_mode=plant.local_mode)
 
 
-def reg_frame(*, reg: RegulatorController, t_ns: int, seq: int, phase: str, v120: float,
+def reg_frame(*, reg: RegulatorController, t_ns: int, seq: int, phase: m.Phase, v120: float,
               v_compared_120: float, tap: int, setpoint_v120: float, band_v120: float,
               mode: Literal["local", "locked"]) -> m.RegFrame:
     """A regulator controller's frame: raw and compared secondary voltage [V, 120 V base], tap, and the
     settings in force at the step (``reg.setpoint_v120``, ``reg.band_v120``, ``reg.mode`` then).
     """
     return m.RegFrame(t_ns=t_ns, seq=seq, source=reg.regulator_id, regulator_id=reg.regulator_id,
-                      phases=[m.RegPhase(phase=phase, v_120=float(v120))],  # type: ignore[arg-type]
+                      phases=[m.RegPhase(phase=phase, v_120=float(v120))],
                       v_compared_120=float(v_compared_120), tap=int(tap), setpoint_v120=setpoint_v120,
                       band_v120=band_v120, mode=mode)
 

@@ -41,6 +41,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from schemas.devicemap import DeviceMap
+from schemas.messages import CapControlType
 from simulator_bridge.circuit_tables import (
     add_pv_plants,
     bus_distance_ohm,
@@ -256,7 +257,7 @@ class FeederEngine:
         by_name = {c.name: j for j, c in enumerate(controls)}
         self.cap_control_index = np.array([by_name[c.capcontrol.lower()] if c.capcontrol else -1 for c in specs],
                                           dtype=int)
-        self.cap_control_type: tuple[str, ...] = tuple(
+        self.cap_control_type: tuple[CapControlType, ...] = tuple(
             controls[j].kind if j >= 0 else "none" for j in self.cap_control_index)
 
     # ------------------------------------------------------------------ set
@@ -317,7 +318,7 @@ class FeederEngine:
         n = len(self._taps)
         if t.shape != (n,) or np.any(t != np.round(t)) or np.any(np.abs(t) > self.reg_tap_max):
             raise EngineError(f"set_taps: expected {n} integer taps within ±{self.reg_tap_max}, got {taps!r}")
-        for r in np.flatnonzero(t != self._taps):
+        for r in np.flatnonzero(t != self._taps).tolist():
             self._set_tap(r, int(t[r]))
 
     def _set_tap(self, r: int, tap: int) -> None:
@@ -354,7 +355,7 @@ class FeederEngine:
                 or np.any(st > self.cap_steps):
             raise EngineError(f"set_cap_states: expected {len(self.cap_steps)} integer states within "
                               f"0..{self.cap_steps.tolist()}, got {states!r}")
-        for c in np.flatnonzero(st != self._cap_states):
+        for c in np.flatnonzero(st != self._cap_states).tolist():
             self._set_bank(c, int(st[c]))
 
     def _set_bank(self, b: int, n: int) -> None:
@@ -556,9 +557,9 @@ class FeederEngine:
             for k, name in enumerate(self._pv_names):
                 pv.Name(name)
                 pv.Irradiance(pv_row[k] / self.pv_pmpp_kw[k])
-            for r in np.flatnonzero(tap_row != prev):
+            for r in np.flatnonzero(tap_row != prev).tolist():
                 self._set_tap(r, int(tap_row[r]))
-            for j in np.flatnonzero(cap_row != prev_cap):
+            for j in np.flatnonzero(cap_row != prev_cap).tolist():
                 self.set_control_cap_state(j, int(cap_row[j]))
             prev, prev_cap = tap_row, cap_row
             solve()

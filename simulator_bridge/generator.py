@@ -173,7 +173,7 @@ def _grow_laterals(
     rng: np.random.Generator, buses: list[_Bus], taps_3ph: list[int], n_lateral_buses: int
 ) -> int:
     """Single-phase laterals: trees tapped off three-phase buses, more of them near the substation."""
-    sizes = []
+    sizes: list[int] = []
     while sum(sizes) < n_lateral_buses:
         sizes.append(int(np.clip(round(rng.lognormal(math.log(7.0), 1.0)), 2, 90)))
     sizes[-1] -= sum(sizes) - n_lateral_buses

@@ -31,7 +31,7 @@ Our reading of IV.F (the paper gives names, not formulas), also in ``docs/profil
 from __future__ import annotations
 
 from collections.abc import Iterable, Sequence
-from typing import Annotated
+from typing import Annotated, TypedDict, Unpack
 
 import msgspec
 import numpy as np
@@ -43,6 +43,7 @@ __all__ = [
     "JUDGED_LIMITS_PU",
     "Metrics",
     "MetricsError",
+    "MetricsSettings",
     "VIOLATION_TOLERANCE_PU",
     "cap_cost_per_bank",
     "combine_metrics",
@@ -219,17 +220,8 @@ def metrics_from_series(
     tap_changes: np.ndarray,
     pv_q_kvar: np.ndarray,
     *,
-    regulator_ids: Sequence[str],
-    pv_ids: Sequence[str],
-    cost_per_tap: float | Sequence[float],
-    cost_per_kvar: float | Sequence[float],
-    limits_pu: tuple[float, float] = JUDGED_LIMITS_PU,
-    window_steps: int = 10,
-    step_s: int = 60,
-    control_period_s: int = 300,
     cap_switches: np.ndarray | None = None,
-    capacitor_ids: Sequence[str] = (),
-    cost_per_switch: float | Sequence[float] = 1.0,
+    **settings: Unpack[MetricsSettings],
 ) -> Metrics:
     """The metrics of one run given as whole arrays.
 
@@ -241,28 +233,16 @@ def metrics_from_series(
         Tap steps moved by each regulator during each step (>= 0).
     pv_q_kvar : ndarray, shape (T, K)
         Each plant's reactive power [kvar] (either sign).
-    regulator_ids, pv_ids, cost_per_tap, cost_per_kvar, limits_pu, window_steps, step_s, control_period_s
-        As for :class:`MetricsAccumulator`.
     cap_switches : ndarray of int, shape (T, C), optional
         Switching operations of each capacitor bank during each step (>= 0); None: no bank.
-    capacitor_ids, cost_per_switch
-        As for :class:`MetricsAccumulator`.
+    **settings
+        :class:`MetricsSettings`: regulator_ids, pv_ids, cost_per_tap, cost_per_kvar, limits_pu [pu],
+        window_steps [steps], step_s [s], control_period_s [s], capacitor_ids, cost_per_switch; as for
+        ``metrics_stream.MetricsAccumulator``.
     """
     if np.ndim(v_pu) != 2:
         raise MetricsError(f"v_pu has shape {np.shape(v_pu)}; expected (n_steps, n_nodes)")
-    cfg = MetricsConfig.make(
-        n_nodes=np.shape(v_pu)[1],
-        regulator_ids=regulator_ids,
-        pv_ids=pv_ids,
-        cost_per_tap=cost_per_tap,
-        cost_per_kvar=cost_per_kvar,
-        limits_pu=limits_pu,
-        window_steps=window_steps,
-        step_s=step_s,
-        control_period_s=control_period_s,
-        capacitor_ids=capacitor_ids,
-        cost_per_switch=cost_per_switch,
-    )
+    cfg = MetricsConfig.make(n_nodes=np.shape(v_pu)[1], **settings)
     n_steps = int(np.shape(v_pu)[0])
     v, taps, q = cfg.check(v_pu, tap_changes, pv_q_kvar, rows=(n_steps,))
     sw = cfg.check_switches(cap_switches, rows=(n_steps,))
@@ -291,6 +271,31 @@ def metrics_from_series(
 # ---------------------------------------------------------------------------------------------------
 
 
+class _RequiredSettings(TypedDict):
+    regulator_ids: Sequence[str]
+    pv_ids: Sequence[str]
+    cost_per_tap: float | Sequence[float]
+    cost_per_kvar: float | Sequence[float]
+
+
+class MetricsSettings(_RequiredSettings, total=False):
+    """The keywords, besides ``n_nodes``, of :meth:`MetricsConfig.make`, :func:`metrics_from_series` and
+    ``metrics_stream.MetricsAccumulator`` (written once here; their meaning and units are in
+    ``MetricsAccumulator``'s docstring).
+
+    The first four are required; the others default to ``limits_pu = JUDGED_LIMITS_PU`` [pu],
+    ``window_steps = 10`` [steps], ``step_s = 60`` [s], ``control_period_s = 300`` [s], ``capacitor_ids = ()``,
+    ``cost_per_switch = 1.0``.
+    """
+
+    limits_pu: tuple[float, float]
+    window_steps: int
+    step_s: int
+    control_period_s: int
+    capacitor_ids: Sequence[str]
+    cost_per_switch: float | Sequence[float]
+
+
 class MetricsConfig(msgspec.Struct, frozen=True, kw_only=True):
     """What the metrics of a run are computed over: nodes, devices, costs, limits and steps (built by :meth:`make`,
     which checks them; shared by :func:`metrics_from_series` and ``metrics_stream.MetricsAccumulator``).
@@ -317,21 +322,26 @@ class MetricsConfig(msgspec.Struct, frozen=True, kw_only=True):
         return len(self.pv_ids)
 
     @classmethod
-    def make(
-        cls,
-        *,
-        n_nodes: int,
-        regulator_ids: Sequence[str],
-        pv_ids: Sequence[str],
-        cost_per_tap: float | Sequence[float],
-        cost_per_kvar: float | Sequence[float],
-        limits_pu: tuple[float, float],
-        window_steps: int,
-        step_s: int,
-        control_period_s: int,
-        capacitor_ids: Sequence[str] = (),
-        cost_per_switch: float | Sequence[float] = 1.0,
-    ) -> MetricsConfig:
+    def make(cls, *, n_nodes: int, **settings: Unpack[MetricsSettings]) -> MetricsConfig:
+        """The checked configuration of ``n_nodes`` nodes and :class:`MetricsSettings` (defaults filled in).
+
+        Raises
+        ------
+        TypeError
+            A keyword is not one of :class:`MetricsSettings` or a required one is missing (as for any call).
+        MetricsError
+            A value is out of range.
+        """
+        unknown = sorted(settings.keys() - MetricsSettings.__required_keys__ - MetricsSettings.__optional_keys__)
+        missing = sorted(MetricsSettings.__required_keys__ - settings.keys())
+        if unknown or missing:
+            raise TypeError(f"metrics settings: unexpected keyword(s) {unknown}, missing {missing}")
+        regulator_ids, pv_ids = settings["regulator_ids"], settings["pv_ids"]
+        cost_per_tap, cost_per_kvar = settings["cost_per_tap"], settings["cost_per_kvar"]
+        limits_pu = settings.get("limits_pu", JUDGED_LIMITS_PU)
+        window_steps, step_s = settings.get("window_steps", 10), settings.get("step_s", 60)
+        control_period_s = settings.get("control_period_s", 300)
+        capacitor_ids, cost_per_switch = settings.get("capacitor_ids", ()), settings.get("cost_per_switch", 1.0)
         if int(n_nodes) < 1:
             raise MetricsError(f"n_nodes = {n_nodes}; voltages must be (n_steps, n_nodes) with n_nodes >= 1")
         regs, pvs = tuple(str(r) for r in regulator_ids), tuple(str(p) for p in pv_ids)

@@ -7,15 +7,16 @@ has to be held; our reading of IV.F is in ``metrics.py``'s docstring and ``docs/
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Unpack
 
 import numpy as np
 
 from simulator_bridge.metrics import (
-    JUDGED_LIMITS_PU,
     VIOLATION_TOLERANCE_PU,
     Metrics,
     MetricsConfig,
     MetricsError,
+    MetricsSettings,
     violation_pu,
 )
 
@@ -31,6 +32,11 @@ class MetricsAccumulator:
     ----------
     n_nodes : int
         Number of nodes in every ``v_pu`` row.
+    judged_nodes : sequence of int, optional
+        Indices of the nodes judged (the feeder zone's, ``for_feeder``); None: every node. ``v_min_pu``,
+        ``v_max_pu``, NVV and MVVM are then of these nodes, and ``mvvm_node`` indexes the whole ``v_pu`` row.
+    **settings
+        The keywords of ``metrics.MetricsSettings`` (shared with ``metrics_from_series``), as follows.
     regulator_ids, pv_ids : sequence of str
         Names of the regulators (columns of ``tap_changes``) and plants (entries of ``pv_q_kvar``).
     cost_per_tap : float or sequence of float
@@ -49,40 +55,11 @@ class MetricsAccumulator:
         Names of the capacitor banks (entries of ``cap_switches``); none by default.
     cost_per_switch : float or sequence of float
         Cost of one switching operation, per bank or one for all.
-    judged_nodes : sequence of int, optional
-        Indices of the nodes judged (the feeder zone's, ``for_feeder``); None: every node. ``v_min_pu``,
-        ``v_max_pu``, NVV and MVVM are then of these nodes, and ``mvvm_node`` indexes the whole ``v_pu`` row.
     """
 
-    def __init__(
-        self,
-        *,
-        n_nodes: int,
-        regulator_ids: Sequence[str],
-        pv_ids: Sequence[str],
-        cost_per_tap: float | Sequence[float],
-        cost_per_kvar: float | Sequence[float],
-        limits_pu: tuple[float, float] = JUDGED_LIMITS_PU,
-        window_steps: int = 10,
-        step_s: int = 60,
-        control_period_s: int = 300,
-        capacitor_ids: Sequence[str] = (),
-        cost_per_switch: float | Sequence[float] = 1.0,
-        judged_nodes: Sequence[int] | np.ndarray | None = None,
-    ) -> None:
-        self._cfg = MetricsConfig.make(
-            n_nodes=n_nodes,
-            regulator_ids=regulator_ids,
-            pv_ids=pv_ids,
-            cost_per_tap=cost_per_tap,
-            cost_per_kvar=cost_per_kvar,
-            limits_pu=limits_pu,
-            window_steps=window_steps,
-            step_s=step_s,
-            control_period_s=control_period_s,
-            capacitor_ids=capacitor_ids,
-            cost_per_switch=cost_per_switch,
-        )
+    def __init__(self, *, n_nodes: int, judged_nodes: Sequence[int] | np.ndarray | None = None,
+                 **settings: Unpack[MetricsSettings]) -> None:
+        self._cfg = MetricsConfig.make(n_nodes=n_nodes, **settings)
         cfg = self._cfg
         judged = None if judged_nodes is None else np.asarray(judged_nodes, dtype=np.intp)
         if judged is not None and (judged.ndim != 1 or judged.size == 0 or judged.min() < 0

@@ -137,7 +137,7 @@ def reference_metrics(device_map: DeviceMap, profiles: Profiles, *, start_step: 
     """
     from simulator_bridge.metrics_stream import MetricsAccumulator
 
-    if getattr(profiles, "step_s", 60) != 60:
+    if profiles.step_s != 60:
         raise EngineError(f"the OpenDSS reference steps minutes; the profiles have {profiles.step_s} s rows")
     if not (0 <= start_step and start_step + steps <= profiles.n_steps and steps > 0):
         raise EngineError(f"steps {start_step}..{start_step + steps} outside the profiles' 0..{profiles.n_steps}")

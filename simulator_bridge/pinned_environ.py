@@ -32,6 +32,8 @@ def pin() -> None:
         environ = ctypes.c_void_p.in_dll(ctypes.CDLL(None), "environ")
     except (OSError, ValueError):
         return
+    if not environ.value:  # no environment block at all: nothing to pin
+        return
     entries = ctypes.cast(environ.value, ctypes.POINTER(ctypes.c_char_p))
     strings = []
     i = 0

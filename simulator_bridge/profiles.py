@@ -522,7 +522,7 @@ def _peak_pu(unscaled: YearProfiles) -> np.ndarray:
 
 
 def _frozen(a: np.ndarray, dtype: type) -> np.ndarray:
-    out = np.array(a, dtype=dtype, copy=True)
+    out: np.ndarray = np.array(a, dtype=dtype, copy=True)
     out.flags.writeable = False
     return out
 

@@ -66,7 +66,7 @@ class StepPacker:
     """
 
     def __init__(self, n_nodes: int, n_pv: int, n_reg: int, n_cap: int = 0) -> None:
-        shapes = {name: (3,) for name in READING_FIELDS if name.startswith("head_")}
+        shapes: dict[str, tuple[int, ...]] = {name: (3,) for name in READING_FIELDS if name.startswith("head_")}
         shapes |= {"pv_p_kw": (n_pv, 3), "pv_q_kvar": (n_pv, 3), "pv_v_v": (n_pv, 3), "reg_v120": (n_reg,),
                    "reg_v120_compared": (n_reg,), "reg_tap": (n_reg,), "cap_states": (n_cap,),
                    "cap_v_v": (n_cap,), "cap_control_value": (n_cap,)}
@@ -270,6 +270,7 @@ class PublisherProcess:
 
     @property
     def published(self) -> int:
+        """Steps the publisher process has published so far."""
         return int(self._state_view[0])
 
     def drain(self) -> None:

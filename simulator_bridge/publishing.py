@@ -25,7 +25,7 @@ import zenoh
 
 from schemas import keys
 from schemas import messages as m
-from schemas.bus import wait_for
+from schemas.bus import has_subscribers, wait_for
 from simulator_bridge import devices as dv
 from simulator_bridge.errors import SimulatorError
 from simulator_bridge.metrics import Metrics
@@ -71,12 +71,13 @@ class FramePublisher:
             congestion_control=zenoh.CongestionControl.BLOCK if reliable else zenoh.CongestionControl.DROP,
             priority=zenoh.Priority.REAL_TIME if reliable else zenoh.Priority.DATA, express=reliable)
 
-    def put(self, msg: msgspec.Struct) -> None:
+    def put(self, msg: m.Message) -> None:
+        """Encode ``msg`` as JSON and put it (no finiteness check: see the class docstring)."""
         self._pub.put(self._enc.encode(msg))
 
     def wait_matched(self, timeout_s: float) -> bool:
         """Wait until a subscriber exists (a put right after a remote declaration is often lost)."""
-        return wait_for(lambda: bool(self._pub.matching_status.matching), timeout_s)
+        return wait_for(lambda: has_subscribers(self._pub), timeout_s)
 
 
 @dataclass(frozen=True)
@@ -110,7 +111,7 @@ class FramerSpec:
     node_names: tuple[str, ...]
     pvs: tuple[tuple[str, int, float, Literal["unity_pf", "volt_var"]], ...]
     regs: tuple[tuple[str, int, int, float, float], ...]
-    reg_phase: tuple[str, ...]
+    reg_phase: tuple[m.Phase, ...]
     q_at_night: bool
     noise_pmu_pct: float
     noise_scada_pct: float
@@ -118,12 +119,16 @@ class FramerSpec:
     latency_s: float
     noise_seed: int
     metrics: Any  # simulator_bridge.metrics_stream.MetricsAccumulator
-    caps: tuple[tuple[str, int, int, float, str], ...] = ()
+    caps: tuple[tuple[str, int, int, float, m.CapControlType], ...] = ()
     drop_burst_s: float = 0.0
     clock_skew_s: float = 0.0
     pv_external: tuple[str, ...] = ()
 
     def is_control_t(self, t_ns: int) -> bool:
+        """Whether the step at ``t_ns`` [ns since the UTC epoch] is a control step.
+
+        Control steps are every ``control_every``-th step from profile step 0.
+        """
         return ((t_ns - self.profile_start_t_ns) // (self.step_s * _NS)) % self.control_every == 0
 
 
@@ -155,12 +160,12 @@ class StepFramer:
         self.spec = spec
         self.pvs = [dv.PvInverter(pid, k, kva, local) for pid, k, kva, local in s.pvs]
         self.regs = [dv.RegulatorController(rid, r, tmax, sp, bw) for rid, r, tmax, sp, bw in s.regs]
-        self.caps = [dv.CapBankController(cid, c, steps, kvar, kind) for cid, c, steps, kvar, kind in s.caps]  # type: ignore[arg-type]
+        self.caps = [dv.CapBankController(cid, c, steps, kvar, kind) for cid, c, steps, kvar, kind in s.caps]
         self.noise = (dv.MeasurementNoise(pmu_pct=s.noise_pmu_pct, scada_pct=s.noise_scada_pct, seed=s.noise_seed)
                       if s.noise_pmu_pct > 0 or s.noise_scada_pct > 0 else None)
         self.dropper = dv.FrameDropper(p=s.drop_prob, seed=s.noise_seed, burst_s=s.drop_burst_s, step_s=s.step_s)
         self.skew_ns = int(round(s.clock_skew_s * 1e9))
-        self.delay = dv.DelayLine(s.latency_s)
+        self.delay: dv.DelayLine[tuple[FramePublisher, m.Message]] = dv.DelayLine(s.latency_s)
         self.metrics = s.metrics
         self.on_control_head = on_control_head
         self._truth_v = np.empty(len(s.node_names))  # the clipped truth voltages, rewritten every step
@@ -188,20 +193,20 @@ class StepFramer:
 
     def flush(self, now_s: float) -> None:
         """Put the frames the latency line holds that are due at ``now_s``."""
-        for pub, msg in self.delay.due(now_s):  # type: ignore[misc]
+        for pub, msg in self.delay.due(now_s):
             self._publish(pub, msg)
 
-    def _publish(self, pub: FramePublisher, msg: msgspec.Struct) -> None:
+    def _publish(self, pub: FramePublisher, msg: m.Message) -> None:
         if pub is self.pub_head and self.on_control_head is not None:
-            t_ns = msg.t_ns - self.skew_ns  # type: ignore[attr-defined]  # the bridge's time of the step
+            t_ns = msg.t_ns - self.skew_ns  # the bridge's time of the step
             if self.spec.is_control_t(t_ns):
                 self.on_control_head(t_ns, time.time_ns())  # before put: the answer may beat put's return
         pub.put(msg)
         self.frames_published += pub is not self.pub_step  # a scan's end marker is not a frame
 
-    def _send(self, pub: FramePublisher, msg: msgspec.Struct, now_s: float) -> bool:
+    def _send(self, pub: FramePublisher, msg: m.Message, now_s: float) -> bool:
         """Drop ``msg`` (False) or put it, through the latency line if any (True)."""
-        if self.dropper.drop(msg.source, msg.t_ns):  # type: ignore[attr-defined]
+        if self.dropper.drop(msg.source, msg.t_ns):
             self.frames_dropped += 1
             return False
         if self.delay.latency_s > 0.0:
@@ -210,7 +215,7 @@ class StepFramer:
             self._publish(pub, msg)
         return True
 
-    def _send_now(self, pub: FramePublisher, msg: msgspec.Struct, now_s: float) -> bool:
+    def _send_now(self, pub: FramePublisher, msg: m.Message, now_s: float) -> bool:
         """:meth:`_send` without drops or latency configured."""
         self._publish(pub, msg)
         return True
@@ -233,11 +238,11 @@ class StepFramer:
         """
         rd, t, seqs, noise = res.readings, int(res.t_ns) + self.skew_ns, self.seqs, self.noise
         send = self._send if self.dropper.p > 0.0 or self.delay.latency_s > 0.0 else self._send_now
-        head = (rd.head_v_mag_v, rd.head_v_ang_deg, rd.head_i_mag_a, rd.head_i_ang_deg, rd.head_p_kw,
-                rd.head_q_kvar)
+        head_values = (rd.head_v_mag_v, rd.head_v_ang_deg, rd.head_i_mag_a, rd.head_i_ang_deg, rd.head_p_kw,
+                       rd.head_q_kvar)
         if noise is not None:
-            head = noise.head(*head)
-        hv, ha, hi, hia, hp, hq = (x.tolist() for x in head)
+            head_values = noise.head(*head_values)
+        hv, ha, hi, hia, hp, hq = (x.tolist() for x in head_values)
         seqs["head"] += 1
         sent: dict[str, list[str]] = {"pv": [], "vr": [], "cap": []}
         head = dv.head_frame(feeder_id=self.spec.feeder_id, t_ns=t, seq=seqs["head"], v_mag_v=hv, v_ang_deg=ha,
@@ -330,6 +335,10 @@ class StepFramer:
                              feeder_id=self.spec.feeder_id, start_t_ns=self.spec.run_start_t_ns, final=final)
 
     def publish_metrics(self, t_ns: int, *, final: bool) -> m.MetricsFrame:
+        """Put and return the metrics frame of the run so far at ``t_ns`` [ns since the UTC epoch].
+
+        ``final`` marks the run's last frame.
+        """
         frame = self.metrics_frame(t_ns, final=final)
         self.pub_metrics.put(frame)
         return frame

@@ -68,10 +68,19 @@ class Profiles(Protocol):
     n_steps: int
     n_loads: int
     n_pv: int
+    step_s: int  # a row's length [s]
 
-    def t_ns(self, step: int) -> int: ...
-    def load_kw(self, start: int, stop: int) -> np.ndarray: ...
-    def pv_kw(self, start: int, stop: int) -> np.ndarray: ...
+    def t_ns(self, step: int) -> int:
+        """Time of row ``step`` [ns since the UTC epoch]."""
+        ...
+
+    def load_kw(self, start: int, stop: int) -> np.ndarray:
+        """(stop - start, n_loads) every load's active power [kW]."""
+        ...
+
+    def pv_kw(self, start: int, stop: int) -> np.ndarray:
+        """(stop - start, n_pv) every plant's available AC power [kW]."""
+        ...
 
 
 @dataclass(frozen=True)
@@ -136,9 +145,9 @@ class Qsts:
     Parameters
     ----------
     engine : FeederEngine
-    profiles : YearProfiles (or anything with ``n_steps``, ``n_loads``, ``n_pv``, ``t_ns``, ``load_kw``,
-        ``pv_kw``), columns in ``engine.load_names`` / ``engine.pv_ids`` order; its ``step_s`` (else the map's
-        ``feeder.step_s``) is the step's length [s] for the event clock.
+    profiles : YearProfiles (or anything with ``n_steps``, ``n_loads``, ``n_pv``, ``step_s``, ``t_ns``, ``load_kw``,
+        ``pv_kw``), columns in ``engine.load_names`` / ``engine.pv_ids`` order; its ``step_s`` is the step's
+        length [s] for the event clock.
     start_step : first profile step to simulate.
     pv_local : local default of a PV plant without a commanded Q: ``"unity"`` or ``"volt_var"``.
     pv_q_at_night : allow reactive power (commanded or volt-var) when available P is 0.
@@ -188,7 +197,7 @@ class Qsts:
         self._cap_lock_state = np.zeros(n_cap, dtype=int)
         self._cap_control = engine.cap_control_index  # each map bank's CapControl, -1 without one
         self._cap_bank = engine.cap_control_bank  # each CapControl's bank (map banks first)
-        self._step_s = float(getattr(profiles, "step_s", engine.device_map.feeder.step_s))
+        self._step_s = float(profiles.step_s)
         self._has_time_caps = any(c.kind == "time" for c in engine.cap_controls)
         # plant voltage = mean of its nodes' voltages: flat node indices and segment starts
         self._pv_nodes = np.array([i for ix in engine.pv_node_index for i in ix], dtype=int)

@@ -8,6 +8,7 @@ and readers (``FeederEngine.perturbation_sensitivities`` calls it).
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -18,7 +19,7 @@ from simulator_bridge.errors import EngineError
 if TYPE_CHECKING:
     from simulator_bridge.engine import FeederEngine
 
-__all__ = ["Sensitivities", "perturbation_sensitivities"]
+__all__ = ["Sensitivities", "one_step_each", "perturbation_sensitivities"]
 
 log = logging.getLogger(__name__)
 
@@ -44,6 +45,37 @@ class Sensitivities:
     dv_dtap: np.ndarray
     dv_dp: np.ndarray
     restore_drift_pu: float = 0.0
+
+
+def one_step_each(engine: FeederEngine, positions0: np.ndarray, top: np.ndarray,
+                  set_positions: Callable[[np.ndarray], None], read: Callable[[], np.ndarray],
+                  read0: np.ndarray) -> np.ndarray:
+    """The change of ``read()`` per step of each device (taps or bank steps), one device at a time.
+
+    Device ``i`` moves one step up from ``positions0`` (down when at its ``top`` position), the others stay at
+    ``positions0``; the engine is solved and ``(read() - read0) / step`` is column ``i``. The engine is left in
+    the last moved state: the caller restores ``positions0``.
+
+    Parameters
+    ----------
+    engine : the solved engine (``solve`` is called after each move).
+    positions0 : (N,) int, the devices' positions [steps]. top : (N,) their highest positions [steps].
+    set_positions : applies (N,) positions (``engine.set_taps`` or ``engine.set_cap_states``).
+    read : what is differenced, a 1-D array of the solved state. read0 : ``read()`` at ``positions0``.
+
+    Returns
+    -------
+    (read0.size, N) change per step [the unit of ``read``, per step].
+    """
+    out = np.zeros((read0.size, len(positions0)))
+    for i in range(len(positions0)):
+        step = 1 if positions0[i] < top[i] else -1
+        moved = np.array(positions0, copy=True)
+        moved[i] += step
+        set_positions(moved)
+        engine.solve()
+        out[:, i] = (read() - read0) / step
+    return out
 
 
 def perturbation_sensitivities(engine: FeederEngine, dq_kvar: float = 100.0, dp_kw: float = 100.0, *,
@@ -90,14 +122,7 @@ def perturbation_sensitivities(engine: FeederEngine, dq_kvar: float = 100.0, dp_
         if abs(moved) >= 1.0:
             dv_dp[:, k] = dv / moved
     engine.set_pv(p0, q0)
-    dv_dtap = np.zeros((len(v0), len(t0)))
-    for r in range(len(t0)):
-        step = 1 if t0[r] < engine.reg_tap_max[r] else -1
-        t = t0.copy()
-        t[r] += step
-        engine.set_taps(t)
-        engine.solve()
-        dv_dtap[:, r] = (engine.node_voltages_pu() - v0) / step
+    dv_dtap = one_step_each(engine, t0, engine.reg_tap_max, engine.set_taps, engine.node_voltages_pu, v0)
     if not restore:
         return Sensitivities(dv_dq=dv_dq, dv_dtap=dv_dtap, dv_dp=dv_dp)
     engine.set_taps(t0)

@@ -13,7 +13,7 @@ from __future__ import annotations
 from collections import deque
 from dataclasses import dataclass
 
-from schemas.errors import CvvcError
+from simulator_bridge.errors import SimulatorError
 from simulator_bridge.survey import CircuitSurvey
 
 __all__ = [
@@ -32,7 +32,7 @@ SUBTRANSMISSION_KV_LL = 35.0
 #: Buses below this line-to-line voltage are secondaries and services, not primaries [kV].
 PRIMARY_MIN_KV_LL = 1.0
 
-class ZoneError(CvvcError):
+class ZoneError(SimulatorError):
     """The head element is not in the circuit, or the zone cannot be found from it."""
 
 

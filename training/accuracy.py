@@ -170,7 +170,7 @@ def simulate_month(
 
 
 def _label(model: CvvcModel, path: Path, labels: list[str]) -> str:
-    base = model.settings.selection
+    base: str = model.settings.selection
     if model.feature_set != "paper":
         base = f"{base} {model.feature_set}"
     return base if base not in labels else f"{base} ({path.name})"
@@ -221,8 +221,7 @@ def accuracy_report(
     """
     from schemas.devicemap import load_device_map
     from simulator_bridge.engine import FeederEngine
-    from simulator_bridge.profiles import month_steps
-    from training.train import load_profiles
+    from simulator_bridge.profiles import feeder_profiles, month_steps
 
     paths = [Path(model_path)] if isinstance(model_path, (str, Path)) else [Path(p) for p in model_path]
     if not paths:
@@ -237,7 +236,7 @@ def accuracy_report(
     model_nodes = [np.asarray([names[c.name] for c in m.critical_nodes], int) for m in models]
     nodes = np.unique(np.concatenate(model_nodes))
     col = {int(n): j for j, n in enumerate(nodes)}
-    profiles = load_profiles(dm, engine, seed=year_seed, cache_dir=cache_dir)
+    profiles = feeder_profiles(dm, engine, seed=year_seed, cache_dir=cache_dir)
     steps = month_steps(profiles, month)
     if max_minutes is not None:
         steps = steps[: max(1, int(max_minutes))]

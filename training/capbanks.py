@@ -61,7 +61,7 @@ def bank_infos(engine, device_map, cap0: np.ndarray) -> list[CapacitorInfo]:
             id=spec.id,
             steps=int(engine.cap_steps[c]),
             kvar_rated=float(engine.cap_kvar[c]),
-            phases=engine.cap_phases[c],  # type: ignore[arg-type]
+            phases=engine.cap_phases[c],
             closed0=int(cap0[c]),
             cost_per_switch=float(spec.cost_per_switch),
             max_switches_per_interval=int(engine.cap_steps[c]),

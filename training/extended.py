@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from regression.model import FeatureSet, features
+from simulator_bridge.sensitivities import one_step_each
 
 __all__ = ["EXTENDED_OPTIONS", "PAPER_OPTIONS", "SINGLE_TAP_SHIFTS", "TAP_SHIFTS", "FeatureOptions", "Perturbations",
            "default_feature_options", "device_shifted_voltages", "near_extreme_cover", "perturb_devices",
@@ -98,25 +99,11 @@ def perturb_devices(engine, load_kw: np.ndarray, pv_kw: np.ndarray, tap0: np.nda
     cap0 = engine.cap_states()
     engine.solve()
     v0, f0 = engine.node_voltages_pu(), _raw(engine)
-    f_tap = np.zeros((f0.size, len(tap0)))
-    for r in range(len(tap0)):
-        step = 1 if tap0[r] < engine.reg_tap_max[r] else -1
-        t = np.array(tap0, copy=True)
-        t[r] += step
-        engine.set_taps(t)
-        engine.solve()
-        f_tap[:, r] = (_raw(engine) - f0) / step
+    f_tap = one_step_each(engine, tap0, engine.reg_tap_max, engine.set_taps, lambda: _raw(engine), f0)
     engine.set_taps(tap0)
-    dv_cap = np.zeros((v0.size, cap0.size))
-    f_cap = np.zeros((f0.size, cap0.size))
-    for c in range(cap0.size):
-        step = 1 if cap0[c] < engine.cap_steps[c] else -1
-        st = cap0.copy()
-        st[c] += step
-        engine.set_cap_states(st)
-        engine.solve()
-        dv_cap[:, c] = (engine.node_voltages_pu() - v0) / step
-        f_cap[:, c] = (_raw(engine) - f0) / step
+    both = one_step_each(engine, cap0, engine.cap_steps, engine.set_cap_states,
+                         lambda: np.concatenate([engine.node_voltages_pu(), _raw(engine)]), np.concatenate([v0, f0]))
+    dv_cap, f_cap = both[:v0.size], both[v0.size:]
     engine.set_cap_states(cap0)
     engine.solve()
     return Perturbations(dv_dcap_pu=dv_cap, feature_dtap=f_tap, feature_dcap=f_cap)

@@ -73,10 +73,15 @@ class PowerFlowSet:
 
     @property
     def n(self) -> int:
+        """Number of power flows in the set."""
         return int(self.scenario.size)
 
     @staticmethod
     def concat(parts: Sequence[PowerFlowSet]) -> PowerFlowSet:
+        """The sets ``parts`` one after the other (the rows of empty ones left out, the first kept if all are
+        empty); ``failed`` counts every part's, an empty one's too (a scenario whose flows all failed).
+        """
+        failed = sum(p.failed for p in parts)
         parts = [p for p in parts if p.n] or list(parts[:1])
         return PowerFlowSet(
             scenario=np.concatenate([p.scenario for p in parts]),
@@ -89,7 +94,7 @@ class PowerFlowSet:
             taps=np.concatenate([p.taps for p in parts]),
             reg_pu=np.concatenate([p.reg_pu for p in parts]),
             cap_v_v=np.concatenate([p.cap_v_v for p in parts]),
-            failed=sum(p.failed for p in parts),
+            failed=failed,
         )
 
 

@@ -180,8 +180,8 @@ def select_scenarios(
         if selection == "guided":
             picks = _guided_picks(summary.d_load_ohm[minutes], summary.d_pv_ohm[minutes])
         elif selection == "random":
-            pos = rng.choice(len(minutes), size=min(per_block, len(minutes)), replace=False)
-            picks = [(int(p), "random") for p in pos]
+            chosen = rng.choice(len(minutes), size=min(per_block, len(minutes)), replace=False)
+            picks = [(int(p), "random") for p in chosen]
         else:
             raise TrainingError(f"unknown selection {selection!r}; use 'guided' or 'random'")
         for pos, kind in picks:

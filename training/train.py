@@ -283,6 +283,8 @@ def train(
     inputs = _inputs(profiles, scen.steps)
 
     # tap0: local control at rest at the year's mean load and mean PV
+    if summary.mean_load_kw is None or summary.mean_pv_kw is None:  # summarize_year always gives them
+        raise TrainingError("the year summary has no mean load and PV (build it with summarize_year)")
     engine.set_loads_kw(summary.mean_load_kw)
     engine.set_pv(summary.mean_pv_kw, np.zeros(len(engine.pv_kva)))
     engine.set_taps(np.zeros(len(engine.regulator_ids), int))
@@ -341,7 +343,7 @@ def train(
         CriticalNode(
             name=engine.node_names[int(n)],
             phase=int(phases[int(n)]),  # type: ignore[arg-type]
-            kinds=list(crit.kinds[i]),  # type: ignore[arg-type]
+            kinds=list(crit.kinds[i]),
             upstream_regulator=None if upstream_all[int(n)] < 0 else int(upstream_all[int(n)]),
         )
         for i, n in enumerate(nodes)
@@ -384,7 +386,7 @@ def train(
         settings=TrainingSettings(
             year_seed=year_seed,
             selection=selection,
-            blocks=tuple(blocks),
+            blocks=(int(blocks[0]), int(blocks[1])),
             q_steps_pct=list(q_steps_pct),
             scenarios=len(scen.steps),
             power_flows=flows.n,
@@ -425,7 +427,7 @@ def train(
         feeder=dm.feeder.name,
         selection=selection,
         year_seed=year_seed,
-        blocks=tuple(blocks),
+        blocks=(int(blocks[0]), int(blocks[1])),
         non_empty_blocks=scen.non_empty_blocks,
         scenarios=len(scen.steps),
         power_flows=flows.n,

@@ -8,7 +8,7 @@ import pytest
 
 from agent.controller import CvvcController, Decision, MeasurementSnapshot
 from agent.errors import AgentInputError
-from agent.state import oracle_state
+from agent.state import GridState, oracle_state
 from benchmarks.synthetic import synthetic_model
 from regression.estimator import dv_dp_pu_per_kw, estimate_voltages_pu, pv_variability_margins_pu
 from regression.model import ModelArrays, ModelError, features
@@ -373,3 +373,38 @@ def test_correction_filter_sheds_reading_noise_and_keeps_a_steady_error():
     assert abs(steady[-1] - base - 0.004) < 0.0002
     with pytest.raises(AgentInputError, match="correction_window_s"):
         controller(correction_window_s=-1.0)
+
+
+def test_sensitivity_error_reaches_the_soft_form_of_estimates_only():
+    """Beyond the paper: the estimator's state carries ``sensitivity_error`` into the problem; the oracle's
+    (case A, exact sensitivities) does not."""
+    n = len(MODEL.critical_nodes)
+    snap = snapshot()
+    state = GridState(v0_pu=np.full(n, 1.0), dv_dq_pu_per_kvar=np.full((n, K), 1e-5),
+                      dv_dtap_pu=np.full((n, R), 0.00625), dv_dp_pu_per_kw=np.zeros((n, K)), taps=np.zeros(R, int),
+                      corrected=True, critical=True)
+    c = controller(sensitivity_error=0.3)
+    c.decide(snap)  # the plants' last P and Q
+    assert c.problem(snap, state).dv_dq_rel_error == 0.3
+    assert c.problem(snap, dataclasses.replace(state, critical=False)).dv_dq_rel_error == 0.0
+    plain = controller()
+    plain.decide(snap)
+    assert plain.problem(snap, state).dv_dq_rel_error == 0.0
+    with pytest.raises(AgentInputError, match="sensitivity_error"):
+        controller(sensitivity_error=-0.1)
+
+
+def test_correction_filter_takes_only_fresh_readings_into_its_mean():
+    """A last-good reading standing in for a lost frame is applied through the mean but does not enter it."""
+    from agent.state import CorrectionFilter
+
+    f = CorrectionFilter(2, 0.5)
+    ok = np.array([True, True])
+    np.testing.assert_allclose(f(np.array([0.004, 0.002]), ok), [0.004, 0.002])  # first readings as they are
+    # regulator 0's reading is stale: the mean stays 0.004; regulator 1's fresh one enters (0.002 -> 0.003)
+    np.testing.assert_allclose(f(np.array([0.010, 0.004]), ok, np.array([False, True])), [0.004, 0.003])
+    np.testing.assert_allclose(f(np.array([0.000, 0.003]), ok), [0.002, 0.003])  # fresh again: it enters
+    g = CorrectionFilter(1, 0.5)  # never seen fresh: a stale reading is used as it is and leaves no mean
+    np.testing.assert_allclose(g(np.array([0.006]), np.array([True]), np.array([False])), [0.006])
+    np.testing.assert_allclose(g(np.array([0.002]), np.array([True])), [0.002])
+

@@ -289,3 +289,37 @@ def test_integer_taps_beyond_one_tap_of_the_relaxation_keep_the_hard_limits():
     assert sol.taps_new.tolist() == [0, -1] == solve_milp_reference(inputs).taps_new.tolist()
     assert sol.max_violation_pu <= V_TOL_PU
     assert solve_cvvc(inputs).taps_new.tolist() == sol.taps_new.tolist()  # deterministic
+
+
+def _low_and_high(rel_error: float) -> CvvcInputs:
+    """Node 0 is 0.015 pu under 0.975, node 1 at 1.04, both 2e-5 pu/kvar, taps frozen: only the soft form."""
+    return CvvcInputs(
+        **{
+            **_tiny(v0=[0.96, 1.04], dv_dq=(2e-5, 2e-5)).__dict__,
+            "max_taps_per_interval": np.array([0]),
+            "v_min_pu": 0.975,
+            "v_max_pu": 1.04,
+            "dv_dq_rel_error": rel_error,
+        }
+    )
+
+
+@pytest.mark.parametrize(("rel_error", "q_kvar"), [(0.0, 375.0), (0.5, 300.0)])
+def test_sensitivity_error_shrinks_q_in_the_soft_form(rel_error, q_kvar):
+    # Minimise (0.015 - s q)^2 + (s q)^2 + 2 err^2 (s q)^2 (both rows soft): s q = 0.015 / (2 + 2 err^2), so
+    # q = 375 kvar with err 0 and 300 kvar with err 0.5 (s = 2e-5; the Q cost of 1e-4 per kvar moves it 0.1 kvar).
+    sol = solve_cvvc(_low_and_high(rel_error))
+    assert sol.status == "soft" and "hard voltage limits infeasible" in sol.reason
+    assert sol.q_new_kvar[0] == pytest.approx(q_kvar, abs=1.0)
+    problem = build_cvvc_qp(_low_and_high(rel_error), soft=True)
+    b = qpsolvers.solve_problem(problem.to_qpsolvers(), solver="clarabel")
+    assert b.found and problem.q_kvar(b.x)[0] == pytest.approx(q_kvar, abs=1.0)
+
+
+def test_sensitivity_error_leaves_the_hard_form_alone():
+    hard = [build_cvvc_qp(_tiny(v0=[1.045, 1.03]), soft=False)]
+    inputs = CvvcInputs(**{**_tiny(v0=[1.045, 1.03]).__dict__, "dv_dq_rel_error": 0.5})
+    hard.append(build_cvvc_qp(inputs, soft=False))
+    np.testing.assert_array_equal(hard[0].p_diag, hard[1].p_diag)
+    with pytest.raises(AgentInputError, match="dv_dq_rel_error"):
+        CvvcInputs(**{**inputs.__dict__, "dv_dq_rel_error": 1.5})

@@ -149,3 +149,10 @@ def test_missing_inputs_are_clear_errors(tmp_path):
         plot_evaluation(tmp_path)
     with pytest.raises(ReportError, match="no recording there"):
         read_trace(tmp_path / "missing.mcap")
+    # a summary or results file of another layout: one clear error naming the file, not a half-drawn plot
+    (tmp_path / "summary.json").write_text('{"feeder": "x", "metrics": {}}')
+    with pytest.raises(ReportError, match="summary.json: not a cvvc run summary of this version"):
+        plot_run(tmp_path)
+    (tmp_path / "results.json").write_text('{"runs": []}')
+    with pytest.raises(ReportError, match="results.json: not a cvvc evaluate result of this version"):
+        plot_evaluation(tmp_path)

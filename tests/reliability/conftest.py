@@ -16,22 +16,13 @@ from pathlib import Path
 import pytest
 from relutil import FEEDER_MAP, REPO, Procs, Watcher
 
+from tests.yearcache import cache_year_profiles
+
 
 @pytest.fixture(scope="session")
 def rel_cache(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """IEEE 13 profiles (year seed 1) generated once per session into a temporary cache."""
-    from schemas.devicemap import load_device_map
-    from simulator_bridge.bridge import cached_profiles
-    from simulator_bridge.engine import FeederEngine
-
-    d = tmp_path_factory.mktemp("rel-cache")
-    dm = load_device_map(FEEDER_MAP)
-    engine = FeederEngine(dm)
-    try:
-        cached_profiles(dm, engine, seed=1, cache_dir=d)
-    finally:
-        engine.close()
-    return d
+    return cache_year_profiles(FEEDER_MAP, tmp_path_factory.mktemp("rel-cache"))
 
 
 @pytest.fixture(scope="session")

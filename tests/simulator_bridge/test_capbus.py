@@ -26,6 +26,7 @@ from schemas import messages as m
 from schemas.bus import BusConfig
 from schemas.devicemap import load_device_map
 from tests.capmap import write_ieee13_caps_map
+from tests.yearcache import cache_year_profiles
 
 FEEDER = "ieee13caps"
 T0 = "2023-07-01T12:00"
@@ -41,17 +42,7 @@ def cap_map(tmp_path_factory: pytest.TempPathFactory) -> Path:
 @pytest.fixture(scope="module")
 def cache_dir(tmp_path_factory: pytest.TempPathFactory, cap_map: Path) -> Path:
     """Profiles of the test map (its own cache: the map's fingerprint differs from IEEE 13's)."""
-    from simulator_bridge.bridge import cached_profiles
-    from simulator_bridge.engine import FeederEngine
-
-    out = tmp_path_factory.mktemp("capprofiles")
-    dm = load_device_map(cap_map)
-    engine = FeederEngine(dm)
-    try:
-        cached_profiles(dm, engine, seed=1, cache_dir=out)
-    finally:
-        engine.close()
-    return out
+    return cache_year_profiles(cap_map, tmp_path_factory.mktemp("capprofiles"))
 
 
 @pytest.fixture

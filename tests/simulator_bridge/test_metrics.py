@@ -267,6 +267,13 @@ def test_bad_configuration():
             cost_per_kvar=0.001,
         )
     assert issubclass(MetricsError, CvvcError)
+    # the settings are keywords written once (MetricsSettings): a misspelt or missing one is a TypeError, as for
+    # any call, in both metrics paths
+    with pytest.raises(TypeError, match=r"unexpected keyword\(s\) \['window'\]"):
+        MetricsAccumulator(**kw | {"window": 3})
+    with pytest.raises(TypeError, match=r"missing \['cost_per_kvar'\]"):
+        metrics_from_series(np.ones((4, 4)), np.zeros((4, 2)), np.zeros((4, 2)), regulator_ids=REGS, pv_ids=PVS,
+                            cost_per_tap=0.14)
 
 
 # ------------------------------------------------------------------------------------ capacitor banks

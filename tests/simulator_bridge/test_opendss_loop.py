@@ -116,6 +116,18 @@ def test_bad_step_and_window_are_clear_errors() -> None:
         reference_metrics(dm, profiles, start_step=MINUTES - 10, steps=20, step_s=5.0)
 
 
+def test_profiles_of_other_than_minute_rows_are_refused() -> None:
+    """The reference steps minutes: profiles whose rows are 30 s (``step_s``, part of the ``Profiles`` protocol,
+    no longer assumed 60 when absent) are a clear error naming their row length, before any solve."""
+    dm = load_device_map(MAPS / "ieee13.toml")
+    profiles = _swing_profiles(dm)
+    profiles.step_s = 30
+    with pytest.raises(EngineError, match="the profiles have 30 s rows"):
+        reference_metrics(dm, profiles, start_step=0, steps=10, step_s=5.0)
+    profiles.step_s = 60  # the same rows as minutes: accepted
+    assert reference_metrics(dm, profiles, start_step=0, steps=2, step_s=60.0).n_steps == 2
+
+
 def test_skipping_quiet_solves_changes_nothing() -> None:
     """Once OpenDSS's control queue is empty the rest of a minute's solves are skipped: the same counts and costs as
     solving all twelve, voltages equal within the solver's tolerance (1e-6: a repeated solve only refines the

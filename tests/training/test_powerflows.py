@@ -1,6 +1,6 @@
 import numpy as np
 
-from training.powerflows import BASE, COMBINED, q_plan
+from training.powerflows import BASE, COMBINED, PowerFlowSet, q_plan
 
 
 def test_q_plan_skips_steps_outside_the_headroom():
@@ -47,3 +47,20 @@ def test_worker_processes_give_the_same_flows_as_one_process():
     assert parallel.scenario.tolist() == serial.scenario.tolist()
     np.testing.assert_allclose(parallel.v_pu, serial.v_pu, atol=1e-9)
     np.testing.assert_allclose(parallel.features, serial.features, atol=1e-6)
+
+
+def _flows(n: int, failed: int, first: int = 0) -> PowerFlowSet:
+    """``n`` flows of a 3-node, 2-plant, 1-regulator, 0-bank feeder, numbered from ``first``."""
+    rows = np.arange(first, first + n)
+    return PowerFlowSet(scenario=rows, plant=np.full(n, BASE), q_pct=np.zeros(n), features=np.zeros((n, 4)),
+                        q_head_kvar=rows.astype(float), pv_q_kvar=np.zeros((n, 2)), v_pu=np.ones((n, 3)),
+                        taps=np.zeros((n, 1), int), reg_pu=np.ones((n, 1)), cap_v_v=np.zeros((n, 0)), failed=failed)
+
+
+def test_concat_keeps_the_failures_of_a_scenario_with_no_flow_left():
+    """A scenario whose every flow failed is an empty part: its rows are nothing, its failures still count."""
+    out = PowerFlowSet.concat([_flows(2, 1), _flows(0, 3), _flows(1, 0, first=2)])
+    assert out.n == 3 and out.failed == 4
+    assert out.scenario.tolist() == [0, 1, 2] and out.q_head_kvar.tolist() == [0.0, 1.0, 2.0]
+    only_failures = PowerFlowSet.concat([_flows(0, 2), _flows(0, 5)])
+    assert only_failures.n == 0 and only_failures.failed == 7

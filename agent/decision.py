@@ -1,0 +1,143 @@
+"""What the controller takes and gives: one control step's measurements in, one decision out (array form).
+
+``MeasurementSnapshot`` is the runtime's aligned frames of a step in the model's device order;
+``Decision`` is the controller's answer before it becomes bus messages (``agent.runtime``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, fields
+from typing import Literal
+
+import numpy as np
+
+__all__ = ["Decision", "DecisionTimings", "MeasurementSnapshot"]
+
+
+@dataclass(frozen=True)
+class MeasurementSnapshot:
+    """The aligned measurements of one control step, as arrays (index order = the model's).
+
+    Attributes
+    ----------
+    t_ns : measurement time [ns since epoch].
+    head_p_kw, head_q_kvar : (3,) feeder-head power per phase a, b, c, into the feeder [kW], [kvar].
+    pv_p_kw, pv_q_kvar : (K,) plant output, generator convention [kW], [kvar].
+    pv_kva_available : (K,) apparent power the plant can deliver now [kVA]; Q headroom is
+        ``sqrt(kva^2 - p^2)``.
+    pv_q_setpoint_kvar : (K,) present Q set point [kvar], NaN when the plant is on its local default.
+        Informational: eq. (13) uses the measured Q, which is what the estimate reflects.
+    reg_v120 : (R,) raw secondary voltage [V on 120 V base] (for the correction, eq. 6).
+    reg_v120_compared : (R,) voltage the controller compares with its band (line-drop compensation
+        included) [V on 120 V base] (for eq. 8).
+    reg_tap : (R,) present tap [steps].
+    head_valid : the head frame arrived and passed the runtime's checks.
+    pv_valid : (K,) bool, same per plant.
+    reg_valid : (R,) bool, same per regulator.
+    cap_steps : (C,) closed steps of each capacitor bank (the model's ``capacitors`` order).
+    cap_valid : (C,) bool, the bank's frame arrived and passed the checks.
+    cap_v_v : (C,) the bank's bus voltage [V] (a regressor of models with readings); NaN where missing.
+    reg_fresh : (R,) bool, the regulator's reading is this step's own frame (not a last-good one standing in for
+        a lost frame); None: every reading is.
+    head_fresh : the head frame is this step's own.
+    """
+
+    t_ns: int
+    head_p_kw: np.ndarray
+    head_q_kvar: np.ndarray
+    pv_p_kw: np.ndarray
+    pv_q_kvar: np.ndarray
+    pv_kva_available: np.ndarray
+    pv_q_setpoint_kvar: np.ndarray
+    reg_v120: np.ndarray
+    reg_v120_compared: np.ndarray
+    reg_tap: np.ndarray
+    head_valid: bool
+    pv_valid: np.ndarray
+    reg_valid: np.ndarray
+    cap_steps: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
+    cap_valid: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+    cap_v_v: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    reg_fresh: np.ndarray | None = None
+    head_fresh: bool = True
+
+
+@dataclass(frozen=True)
+class DecisionTimings:
+    """Wall time per stage [s]. Diagnostics only: excluded from ``Decision.same_content``."""
+
+    estimate_s: float = 0.0
+    solve_s: float = 0.0
+    round_s: float = 0.0
+    total_s: float = 0.0
+
+
+@dataclass(frozen=True)
+class Decision:
+    """What the controller decided for one snapshot.
+
+    Attributes
+    ----------
+    t_ns : the snapshot's time [ns].
+    status : ``optimal`` / ``soft`` / ``hold`` (no commands; see ``reason``).
+    reason : why ``soft`` or ``hold`` (empty when optimal).
+    pv_q_kvar : (K,) new Q set points [kvar], or None on hold.
+    pv_command : (K,) bool, plants to command (False for missing plants and on hold).
+    reg_tap : (R,) int, taps the decision aims at [steps], or None on hold. In ``taps`` mode these are
+        the commands; in ``setpoints`` mode the set points below are.
+    reg_setpoint_v120, reg_band_v120 : (R,) eq. (8) set points and bands [V on 120 V base] in
+        ``setpoints`` mode; None in ``taps`` mode and on hold.
+    reg_command : (R,) bool, regulators to command.
+    v_pu : (N,) critical-node voltage estimates [pu] (corrected when ``corrected``), None without a head frame.
+    v_pred_pu : (N,) predicted voltages after the actions (linear model) [pu], None on hold.
+    corrected : eq. (7) correction applied (from at least one regulator).
+    dv_dq_pu_per_kvar : (N, K) sensitivities used [pu/kvar], None without a head frame.
+    missing : ids of devices whose frame was missing or invalid.
+    iterations, objective : solver iterations and eq. (9) cost of the actions [cost units].
+    solver_status : the solver's status (``optimal``/``soft``/``hold``), ``not run`` when it was not called.
+    timings : per-stage wall time (not deterministic).
+    v_bound_low_pu, v_bound_high_pu : (N,) the estimate's calibrated bounds as applied (widened out of the
+        envelope): the true voltage is expected within ``[v_pu - low, v_pu + high]``; None without bounds.
+    out_of_envelope : the features outside what training covered ("" when inside, or without bounds).
+    cap_steps : (C,) int, closed steps decided for each capacitor bank, or None on hold.
+    cap_command : (C,) bool, banks to command.
+    """
+
+    t_ns: int
+    status: Literal["optimal", "soft", "hold"]
+    reason: str
+    pv_q_kvar: np.ndarray | None
+    pv_command: np.ndarray
+    reg_tap: np.ndarray | None
+    reg_setpoint_v120: np.ndarray | None
+    reg_band_v120: np.ndarray | None
+    reg_command: np.ndarray
+    v_pu: np.ndarray | None
+    v_pred_pu: np.ndarray | None
+    corrected: bool
+    dv_dq_pu_per_kvar: np.ndarray | None
+    missing: tuple[str, ...]
+    iterations: int
+    objective: float
+    solver_status: str
+    timings: DecisionTimings
+    v_bound_low_pu: np.ndarray | None = None
+    v_bound_high_pu: np.ndarray | None = None
+    out_of_envelope: str = ""
+    cap_steps: np.ndarray | None = None
+    cap_command: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+
+    def same_content(self, other: Decision) -> bool:
+        """Bit-identical in every field but ``timings`` (what replay compares)."""
+        for f in fields(self):
+            if f.name == "timings":
+                continue
+            a, b = getattr(self, f.name), getattr(other, f.name)
+            if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
+                if not (isinstance(a, np.ndarray) and isinstance(b, np.ndarray)):
+                    return False
+                if a.shape != b.shape or a.dtype != b.dtype or a.tobytes() != b.tobytes():
+                    return False
+            elif a != b:
+                return False
+        return True
