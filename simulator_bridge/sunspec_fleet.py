@@ -26,6 +26,7 @@ behind SunSpec they are not implemented (the bridge refuses those options with `
 from __future__ import annotations
 
 import math
+import re
 from collections.abc import Mapping
 
 import numpy as np
@@ -37,6 +38,7 @@ from simulator_bridge.sunspec_sim import SimulatedSunSpecInverter, SunSpecSimErr
 __all__ = ["SunSpecFleet", "plant_phases"]
 
 _PHASE_OF_NODE = {"1": "a", "2": "b", "3": "c"}
+_ENDPOINT = re.compile(r"^tcp/(?P<host>[A-Za-z0-9_.\-]+):(?P<port>[0-9]{1,5})$")
 
 
 class SunSpecFleet:
@@ -54,8 +56,6 @@ class SunSpecFleet:
 
     def __init__(self, endpoints: Mapping[str, str], dm: DeviceMap, pv_ids: tuple[str, ...],
                  pv_phases: tuple[tuple[str, ...], ...], *, q_at_night: bool = False, volt_var: bool = False) -> None:
-        from adapters.sunspec_runtime import parse_modbus_endpoint
-
         unknown = sorted(set(endpoints) - set(pv_ids))
         if unknown:
             raise BridgeError(f"--pv-sunspec names plants the feeder does not have: {unknown}; its plants: "
@@ -68,12 +68,7 @@ class SunSpecFleet:
         self.frame_misses = 0  # steps whose frame of some plant did not come within the bound
         self.lagging: set[str] = set()  # plants whose frame did not come in time: not waited for until the next
         for pid, endpoint in endpoints.items():
-            try:
-                host, port = parse_modbus_endpoint(endpoint)
-            except Exception as e:  # AdapterError: a CvvcError of another package
-                raise BridgeError(f"--pv-sunspec {pid}={endpoint}: {e}") from e
-            if host not in ("127.0.0.1", "localhost"):
-                raise BridgeError(f"--pv-sunspec {pid}={endpoint}: the simulated inverters serve on 127.0.0.1 only")
+            port = _loopback_port(pid, endpoint)
             k = pv_ids.index(pid)
             spec = specs[pid]
             v_nominal_v = spec.kv_ll * 1000.0 / (math.sqrt(3.0) if spec.phases == 3 else 1.0)
@@ -156,6 +151,19 @@ class SunSpecFleet:
         self.frame_misses += 1
         self.lagging.update(late)
         return late
+
+
+def _loopback_port(plant_id: str, endpoint: str) -> int:
+    """The port of ``tcp/127.0.0.1:PORT``; BridgeError for any other form or host (the inverters are local)."""
+    match = _ENDPOINT.match(endpoint)
+    if match is None:
+        raise BridgeError(f"--pv-sunspec {plant_id}={endpoint}: not tcp/HOST:PORT; write PV_ID=tcp/127.0.0.1:PORT")
+    if match.group("host") not in ("127.0.0.1", "localhost"):
+        raise BridgeError(f"--pv-sunspec {plant_id}={endpoint}: the simulated inverters serve on 127.0.0.1 only")
+    port = int(match.group("port"))
+    if not 0 < port < 65536:
+        raise BridgeError(f"--pv-sunspec {plant_id}={endpoint}: port {port} is not within 1..65535")
+    return port
 
 
 def plant_phases(node_names: tuple[str, ...],
