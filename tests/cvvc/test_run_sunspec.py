@@ -33,17 +33,11 @@ COST_REL = 1e-3
 @pytest.fixture(scope="module")
 def both_runs(tmp_path_factory, ieee13_model) -> dict[str, tuple[Path, dict]]:
     from schemas.cache import profiles_dir
-    from schemas.devicemap import load_device_map
-    from simulator_bridge.bridge import cached_profiles
-    from simulator_bridge.engine import FeederEngine
+    from tests.yearcache import cache_year_profiles
 
     work = tmp_path_factory.mktemp("pvloop")
-    dm = load_device_map(REPO / "feeders" / "ieee13.toml")
-    engine = FeederEngine(dm)
-    try:  # the run's profile year (seed 2), made once here rather than by both runs at the same time
-        cached_profiles(dm, engine, seed=2, cache_dir=profiles_dir(str(work / "cache")))
-    finally:
-        engine.close()
+    # the run's profile year (seed 2), made once here rather than by both runs at the same time
+    cache_year_profiles(REPO / "feeders" / "ieee13.toml", profiles_dir(str(work / "cache")), seed=2)
     env = dict(os.environ, PYTHONPATH=str(REPO))
     procs = {}
     for protocol in ("bus", "sunspec"):

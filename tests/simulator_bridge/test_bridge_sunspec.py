@@ -13,8 +13,11 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from bridgeutil import FEEDER, STARTUP_S, STEP_NS
+from bridgeutil import bridge_config as _config
+from bridgeutil import bridge_thread as _bridge_thread
+from bridgeutil import finish as _finish
 from busclient import BusClient as Client
-from test_bridge import FEEDER, STARTUP_S, STEP_NS, _bridge_thread, _config, _finish
 
 from adapters.sunspec_runtime import AdapterConfig, run_adapter
 from schemas import messages as m
@@ -23,25 +26,6 @@ from schemas.bus import BusConfig, free_port
 SUNSPEC = ("pv675", "pv633")
 PV_ORDER = ("pv675", "pv680", "pv633")  # the device map's order: the truth frame's pv_q_kvar columns
 W_STEP_KW = 0.1  # W_SF 2 for these 1.2 MVA / 0.8 MVA plants (1.5 x rating must fit an int16): 100 W steps
-
-
-@pytest.fixture(scope="module")
-def cache_dir(profile_cache: Path) -> Path:
-    return profile_cache
-
-
-@pytest.fixture(scope="module")
-def device_map_path() -> Path:
-    return Path(__file__).resolve().parents[2] / "feeders" / "ieee13.toml"
-
-
-@pytest.fixture
-def client(router_endpoint: str) -> Iterator[Client]:
-    c = Client(router_endpoint, FEEDER)
-    try:
-        yield c
-    finally:
-        c.close()
 
 
 class _Adapter:
