@@ -40,7 +40,7 @@ def _sunspec(args: argparse.Namespace) -> int:
             feeder_id=args.feeder_id, device_id=args.device, modbus=args.modbus, unit=args.unit,
             scan_period_s=args.scan_period_s, control_period_s=args.control_period_s,
             status_period_s=args.status_period_s, timeout_s=args.timeout_s, local_mode=args.local_mode,
-            q_at_night=args.q_at_night, clock=args.clock), AdapterConfig)
+            q_at_night=args.q_at_night, clock=args.clock, set_local_mode=args.set_local_mode), AdapterConfig)
     except msgspec.ValidationError as e:
         print(f"cvvc adapter sunspec: error: {e}", file=sys.stderr)
         return 2
@@ -96,6 +96,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--timeout-s", type=float, default=1.0, help="time-out of one Modbus request [s]")
     s.add_argument("--local-mode", choices=["unity_pf", "volt_var"], default="unity_pf",
                    help="the inverter's local default, reported in its frames")
+    s.add_argument("--set-local-mode", action="store_true",
+                   help="write --local-mode into the inverter's model 705 (volt-var curve enabled or not) whenever a "
+                        "scan finds it otherwise; without this flag 705 is only read")
     s.add_argument("--q-at-night", action="store_true", help="the inverter gives reactive power at zero output")
     s.add_argument("--clock", choices=["wall", "head"], default="wall",
                    help="wall: scan on --scan-period-s of the UTC clock; head: scan at each new feeder-head frame and "

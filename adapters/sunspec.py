@@ -9,6 +9,10 @@ factors the device reports: no register addresses are written here. The points u
   ``VA_SF``, ``Var_SF``.
 * 704 DER AC controls: ``VarSetEna``, ``VarSetMod`` (``VARS`` = 4), ``VarSet`` with ``VarSet_SF``,
   ``VarSetEnaRvrt``, ``VarSetRvrtTms``, ``VarSetRvrtRem``.
+* 705 DER volt-var, when the inverter has it: ``Ena`` (also written, to set the plant's local default),
+  ``NCrv``, ``NPt``, and curve 1's ``ActPt``, ``DeptRef`` (``VAR_MAX_PCT`` = 1 only), ``VRef``, points ``V``
+  (% of ``VRef``) and ``Var`` (% of ``VarMax``), with ``V_SF``, ``DeptRef_SF``: the plant's local default (volt-var
+  when enabled, unity power factor otherwise).
 
 Sign convention: ``Var``, ``VarL*`` and ``VarSet`` positive = injecting reactive power (over-excited), the
 project's generator convention (docs/conventions.md). Values are checked before use: a point that is not
@@ -25,7 +29,7 @@ from typing import Any
 
 from adapters.errors import DeviceRefusedError, LinkDownError, ModelMissingError, RegisterValueError
 
-__all__ = ["InverterReading", "PhaseReading", "SunSpecLink", "VARS_MODE"]
+__all__ = ["InverterReading", "PhaseReading", "SunSpecLink", "VARS_MODE", "VoltVarCurve"]
 
 VARS_MODE = 4
 """704 ``VarSetMod`` symbol ``VARS``: the reactive power set point is in vars."""
@@ -33,6 +37,9 @@ _PHASE_OF = {1: "a", 2: "b", 3: "c"}
 _SF_RANGE = (-10, 10)
 _OVER_RATING = 1.5  # a power reading beyond this multiple of the rating is refused
 _MAX_V = 1e6
+_VOLT_VAR = 705
+_VAR_MAX_PCT = 1  # 705 DeptRef symbol: the curve's Var in percent of VarMax
+_VV_V_PCT = (50.0, 150.0)  # a 705 curve voltage outside this [% of VRef] is refused
 
 
 @dataclass(frozen=True)
@@ -46,12 +53,24 @@ class PhaseReading:
 
 
 @dataclass(frozen=True)
+class VoltVarCurve:
+    """Model 705's curve 1, checked: ``enabled`` (``Ena``), ``v_pu`` its voltages [pu of ``VRef``], strictly
+    increasing, and ``q_pu`` its reactive powers [pu of ``VarMaxInj``/``VarMaxAbs``, + injects].
+    """
+
+    enabled: bool
+    v_pu: tuple[float, ...]
+    q_pu: tuple[float, ...]
+
+
+@dataclass(frozen=True)
 class InverterReading:
     """One scan of the inverter's models, checked and in the project's units.
 
     ``q_setpoint_kvar`` is the 704 set point in force (None: the function is disabled, the local default);
     ``var_set_step_kvar`` the resolution of ``VarSet`` (its scale factor) [kvar]; ``revert_remaining_s`` is
-    ``VarSetRvrtRem`` [s] (None if not implemented).
+    ``VarSetRvrtRem`` [s] (None if not implemented). ``volt_var``: model 705's curve, None when the inverter has
+    no model 705.
     """
 
     p_kw: float
@@ -63,6 +82,7 @@ class InverterReading:
     q_setpoint_kvar: float | None
     var_set_step_kvar: float
     revert_remaining_s: float | None
+    volt_var: VoltVarCurve | None = None
 
 
 def _link_errors() -> tuple[type[BaseException], ...]:
@@ -118,7 +138,7 @@ class SunSpecLink:
             raise ModelMissingError(f"the device at {self.endpoint} has no SunSpec model {missing}; the adapter "
                                     "needs 701 (measurement), 702 (capacity) and 704 (controls)")
         self._dev = dev
-        self._models = {mid: dev.models[mid][0] for mid in (701, 702, 704)}
+        self._models = {mid: dev.models[mid][0] for mid in (701, 702, 704, _VOLT_VAR) if dev.models.get(mid)}
 
     def close(self) -> None:
         """Close the connection (a later call re-scans)."""
@@ -144,10 +164,10 @@ class SunSpecLink:
             raise LinkDownError(f"{self.endpoint} did not answer {what}: {e}") from e
 
     def read(self) -> InverterReading:
-        """Read 701, 702 and 704 and check them (LinkDownError, RegisterValueError)."""
+        """Read 701, 702, 704 (and 705 if the inverter has it) and check them (LinkDownError, RegisterValueError)."""
         if self._dev is None:
             self.connect()
-        for mid in (701, 702, 704):
+        for mid in self._models:
             try:
                 self._io(f"a read of model {mid}", self._models[mid].read)
             except DeviceRefusedError as e:  # an exception answer to a read: the device is not usable
@@ -182,11 +202,25 @@ class SunSpecLink:
         if ena == 1 and ctl["VarSetMod"].value == VARS_MODE:
             q_set = _value(m704, 704, "VarSet", "VarSet_SF", -lim, lim) / 1000.0
         rem = ctl["VarSetRvrtRem"].value
+        vv = _volt_var(self._models[_VOLT_VAR]) if _VOLT_VAR in self._models else None
         return InverterReading(p_kw=p_w / 1000.0, q_kvar=q_var / 1000.0, phases=tuple(phases),
                                s_rated_kva=s_va / 1000.0, var_max_inj_kvar=inj / 1000.0,
                                var_max_abs_kvar=absorb / 1000.0, q_setpoint_kvar=q_set,
                                var_set_step_kvar=10.0**sf / 1000.0,
-                               revert_remaining_s=None if rem is None else float(rem))
+                               revert_remaining_s=None if rem is None else float(rem), volt_var=vv)
+
+    def write_volt_var_enable(self, enabled: bool) -> InverterReading:
+        """Enable or disable model 705's volt-var curve (``Ena``), then read the models back (the returned reading's
+        ``volt_var.enabled`` is what the inverter holds). RegisterValueError when the inverter has no model 705.
+        """
+        if self._dev is None:
+            self.connect()
+        if _VOLT_VAR not in self._models:
+            raise RegisterValueError("705.Ena", f"the device at {self.endpoint} has no model 705 (volt-var)")
+        pts = self._models[_VOLT_VAR].points
+        pts["Ena"].value = int(bool(enabled))
+        self._io("705 Ena", pts["Ena"].write)
+        return self.read()
 
     def write_var_setpoint(self, q_kvar: float, revert_s: int) -> InverterReading:
         """Write a 704 reactive power set point [kvar, + injects] that reverts after ``revert_s`` [s], then read
@@ -246,3 +280,34 @@ def _enum(model: Any, mid: int, name: str, allowed: tuple[int, ...]) -> int:
     if v not in allowed:
         raise RegisterValueError(f"{mid}.{name}", f"{v!r} is none of {allowed}")
     return int(v)
+
+
+def _volt_var(model: Any) -> VoltVarCurve:
+    """Model 705's curve 1, checked (RegisterValueError naming the point)."""
+    enabled = _enum(model, 705, "Ena", (0, 1)) == 1
+    n_crv, n_pt = model.points["NCrv"].value, model.points["NPt"].value
+    if not n_crv or not n_pt or not model.groups.get("Crv"):
+        raise RegisterValueError("705.NCrv", f"{n_crv!r} curves of {n_pt!r} points: no curve")
+    crv = model.groups["Crv"][0]
+    act = crv.points["ActPt"].value
+    if act is None or not 2 <= int(act) <= int(n_pt):
+        raise RegisterValueError("705.ActPt", f"{act!r} active points: give 2..{n_pt}")
+    if crv.points["DeptRef"].value != _VAR_MAX_PCT:
+        raise RegisterValueError("705.DeptRef", f"{crv.points['DeptRef'].value!r}: only VAR_MAX_PCT (1), the "
+                                 "curve's Var in percent of VarMax, is understood")
+    v_sf, q_sf = _sf(model, 705, "V_SF"), _sf(model, 705, "DeptRef_SF")
+    if crv.points["VRef"].value in (None, 0):
+        raise RegisterValueError("705.VRef", "the reference voltage is not implemented or 0")
+    v, q = [], []
+    for i, pt in enumerate(crv.groups["Pt"][:int(act)]):
+        rv, rq = pt.points["V"].value, pt.points["Var"].value
+        if rv is None or rq is None:
+            raise RegisterValueError(f"705.Pt{i + 1}", "a curve point is not implemented")
+        v.append(float(rv) * 10.0**v_sf)
+        q.append(float(rq) * 10.0**q_sf)
+    if not all(_VV_V_PCT[0] <= x <= _VV_V_PCT[1] for x in v) or any(b <= a for a, b in zip(v, v[1:], strict=False)):
+        raise RegisterValueError("705.Pt.V", f"curve voltages {v} % of VRef: they must rise strictly within "
+                                 f"{_VV_V_PCT[0]:g}..{_VV_V_PCT[1]:g} %")
+    if not all(-100.0 <= x <= 100.0 for x in q):
+        raise RegisterValueError("705.Pt.Var", f"curve reactive powers {q} % of VarMax: outside -100..100 %")
+    return VoltVarCurve(enabled=enabled, v_pu=tuple(x / 100.0 for x in v), q_pu=tuple(x / 100.0 for x in q))

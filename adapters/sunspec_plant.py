@@ -13,8 +13,10 @@ by the same :class:`~simulator_bridge.devices.PvInverter` guard), then the SunSp
    ``accepted`` when that is the request within half a ``VarSet`` step, ``clipped`` otherwise; a Modbus exception
    answer is ``rejected`` with reason ``device_refused``; a link failure ``rejected`` with ``link_down``.
 
-A scan reads 701/702/704 and makes a ``PvFrame`` stamped with the scan's time. Refused register values
-(``adapters.sunspec``) give no frame: they are counted by point and the link's state becomes ``refusing``.
+A scan reads 701/702/704 (and 705, the local volt-var curve, if the inverter has it) and makes a ``PvFrame``
+stamped with the scan's time; its ``local_mode`` is 705's (volt-var when enabled) or, without 705, the setting's.
+Refused register values (``adapters.sunspec``) give no frame: they are counted by point and the link's state
+becomes ``refusing``.
 A command whose ``valid_until_t_ns`` has passed at a scan is answered ``expired`` (the inverter reverted itself).
 """
 
@@ -46,8 +48,11 @@ class PlantSettings:
     ----------
     feeder_id, device_id : where it is on the bus (``cvvc/<feeder_id>/.../pv/<device_id>``).
     control_period_ns : the feeder's control period [ns]: the unit of the command windows (as the bridge's).
-    local_mode : the plant's local default, reported in its frames.
+    local_mode : the plant's local default, reported in its frames when the inverter has no model 705 (with 705,
+        its ``Ena`` says: volt-var or unity power factor).
     q_at_night : whether the inverter gives reactive power at zero active power.
+    set_local_mode : write ``local_mode`` into the inverter's model 705 (``Ena``: volt-var on or off) whenever a scan
+        finds it otherwise (at the first scan, and after the inverter changed it); nothing without 705.
     """
 
     feeder_id: str
@@ -55,6 +60,7 @@ class PlantSettings:
     control_period_ns: int = dv.DEFAULT_PERIOD_NS
     local_mode: Literal["unity_pf", "volt_var"] = "unity_pf"
     q_at_night: bool = False
+    set_local_mode: bool = False
 
 
 def _rejected(kind: str, why: str) -> dv.Verdict:
@@ -76,6 +82,7 @@ class SunSpecPlant:
         self.scans = self.scan_failures = self.frames = 0
         self.commands = self.commands_failed = 0
         self.refused: Counter[str] = Counter()
+        self.local_mode_writes = self.local_mode_failures = 0  # 705 Ena written to set the local mode (failed)
         self.acks: Counter[str] = Counter()
         self._seq = 0
         self._ack_seq = 0
@@ -95,9 +102,28 @@ class SunSpecPlant:
             self.refused[e.point] += 1
             self._fail("refusing", f"refused register value {e}")
             return None
+        reading = self._set_local_mode(reading)
         self.last = reading
         self.state, self.reason, self.last_ok_t_ns = "ok", "", int(t_ns)
         return self._frame(reading, t_ns)
+
+    def _set_local_mode(self, r: InverterReading) -> InverterReading:
+        """With ``set_local_mode``: write 705 ``Ena`` when the inverter's local default is not the configured one;
+        the reading after it (the one given when nothing is written or the write fails: the frame says what the
+        inverter does, and the failure is counted in ``local_mode_failures`` and logged).
+        """
+        want = self.settings.local_mode == "volt_var"
+        if not self.settings.set_local_mode or r.volt_var is None or r.volt_var.enabled == want:
+            return r
+        try:
+            back = self.link.write_volt_var_enable(want)
+        except (LinkDownError, DeviceRefusedError, RegisterValueError) as e:
+            self.local_mode_failures += 1
+            self.rlog.warning("local_mode", "%s: could not set the local mode %s in 705: %s",
+                              self.settings.device_id, self.settings.local_mode, e)
+            return r
+        self.local_mode_writes += 1
+        return back
 
     def _fail(self, state: Literal["down", "refusing"], why: str) -> None:
         self.scan_failures += 1
@@ -110,6 +136,8 @@ class SunSpecPlant:
         q = [by_phase[ph].q_kvar if ph in by_phase else 0.0 for ph in "abc"]
         v = [by_phase[ph].v_v if ph in by_phase else 0.0 for ph in "abc"]
         self.plant.s_rated_kva = r.s_rated_kva
+        if r.volt_var is not None:  # the inverter says what it does on its own (705); else the configured mode
+            self.plant.local_mode = "volt_var" if r.volt_var.enabled else "unity_pf"
         self._seq += 1
         self.frames += 1
         return dv.pv_frame(plant=self.plant, t_ns=int(t_ns), seq=self._seq, p_kw=p, q_kvar=q, v_v=v,

@@ -55,6 +55,7 @@ class AdapterConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fi
     ``clock``: ``wall`` scans on the scan period of ``clock_ns``; ``head`` scans when a newer feeder-head frame
     arrives (``cvvc/F/meas/head``) and takes its ``t_ns`` as the adapter's time: frames, command windows and
     revert timers then follow the feeder's scan (a simulation in lockstep, or a SCADA poll cycle).
+    ``set_local_mode``: write ``local_mode`` into the inverter's model 705 (volt-var enabled or not) when it differs.
     """
 
     feeder_id: Annotated[str, Meta(pattern=r"^[A-Za-z0-9_.\-]{1,64}$")]
@@ -68,6 +69,7 @@ class AdapterConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fi
     local_mode: Literal["unity_pf", "volt_var"] = "unity_pf"
     q_at_night: bool = False
     clock: Literal["wall", "head"] = "wall"
+    set_local_mode: bool = False
 
 
 class _SenderGone(msgspec.Struct, frozen=True):
@@ -101,7 +103,8 @@ def run_adapter(config: AdapterConfig, bus: BusConfig, *, stop: threading.Event,
     link = SunSpecLink(host, port, unit=config.unit, timeout_s=config.timeout_s)
     plant = SunSpecPlant(PlantSettings(feeder_id=config.feeder_id, device_id=config.device_id,
                                        control_period_ns=int(config.control_period_s * 1e9),
-                                       local_mode=config.local_mode, q_at_night=config.q_at_night), link)
+                                       local_mode=config.local_mode, q_at_night=config.q_at_night,
+                                       set_local_mode=config.set_local_mode), link)
     f, d = config.feeder_id, config.device_id
     period_ns = int(config.scan_period_s * 1e9)
     with open_session(bus) as session:

@@ -38,6 +38,7 @@ import msgspec
 
 from agent.runtime import AgentSummary
 from cvvc.errors import CommandError
+from cvvc.pv_protocol import PvProtocol
 from recordings.info import RecorderGap
 from schemas import messages as m
 from schemas.cache import cache_root, profiles_dir
@@ -94,6 +95,7 @@ class RunConfig(msgspec.Struct, frozen=True, kw_only=True):
     # not the one the model was trained on, so its fingerprint differs from the model's.
     check_model_fingerprint: bool = True
     recorder_restarts_max: int = 3  # a recorder that dies is restarted at most this many times per run
+    pv_protocol: PvProtocol = "bus"  # sunspec: every plant behind a simulated inverter and an adapter (pv_protocol)
 
 
 class RunSummary(msgspec.Struct, frozen=True, kw_only=True):
@@ -119,6 +121,8 @@ class RunSummary(msgspec.Struct, frozen=True, kw_only=True):
     recorder_restarts: int = 0  # the recorder died and was restarted this many times; control went on
     recording_gaps: list[RecorderGap] = []  # what the recording misses because of it (also in the MCAP file)
     recorder_gave_up: bool = False  # the recorder died more than recorder_restarts_max times: recording stopped
+    pv_protocol: str = "bus"  # how the PV plants reached the bus (``RunConfig.pv_protocol``)
+    sunspec_frame_misses: int = 0  # sunspec: steps some adapter's PV frame did not reach the bridge in time
 
 
 class CaseAgent(msgspec.Struct, frozen=True, kw_only=True):
@@ -324,6 +328,14 @@ def run(config: RunConfig) -> RunSummary:
         raise LaunchError(f"--days {config.days} must be in (0, 366]")
     if config.meas_delay_s and not config.realtime:
         raise LaunchError("--meas-delay-s needs --realtime (in lockstep the bridge waits for each decision)")
+    from cvvc import pv_protocol as pvp
+
+    try:
+        pvp.check_pv_protocol(config.pv_protocol, noise_scada_pct=config.noise_scada_pct, drop_prob=config.drop_prob,
+                              meas_delay_s=config.meas_delay_s, clock_skew_s=config.clock_skew_s,
+                              secure=config.secure)
+    except CommandError as e:
+        raise LaunchError(str(e)) from e
 
     t_wall0 = time.monotonic()
     dm_path, model_path = prepare_feeder_and_model(config)
@@ -400,6 +412,16 @@ def run(config: RunConfig) -> RunSummary:
                 realism += ["--latency-s", str(config.meas_delay_s / config.speed)]  # wall s at --speed
             if config.clock_skew_s:
                 realism += ["--clock-skew-s", str(config.clock_skew_s)]
+            endpoints = pvp.sunspec_endpoints(dm, free_port) if config.pv_protocol == "sunspec" else {}
+            for pid, ep in endpoints.items():  # up before the bridge: it waits for their tokens, then steps
+                children.append(_spawn(f"adapter.{pid}", pvp.adapter_args(
+                    dm, feeder_id, pid, ep, volt_var=config.case == "local", connect=connect), out))
+            pv_watch = LivelinessWatcher(session, f"{keys.ROOT}/{feeder_id}/alive/pv/*") if endpoints else None
+            if pv_watch is not None and not wait_for(
+                    lambda: all(pv_watch.is_alive(keys.alive(feeder_id, "pv", p)) for p in endpoints), 60.0):
+                raise LaunchError(f"the SunSpec adapters did not come up within 60 s:\n"
+                                  f"{_tail(out / f'adapter.{next(iter(endpoints))}.log')}")
+            realism += pvp.bridge_args(endpoints)
             realism += ["--truth-every", str(config.truth_every), "--cache-dir", str(profiles_dir(config.cache))]
             bridge = _spawn("bridge", [
                 "bridge", "--feeder", str(dm_path), "--feeder-id", feeder_id, "--start", start_text,
@@ -460,7 +482,8 @@ def run(config: RunConfig) -> RunSummary:
         holds=agent_summary.holds if agent_summary else 0, soft=agent_summary.soft if agent_summary else 0,
         reasons=dict(agent_summary.reasons) if agent_summary else {},
         recorder_restarts=recorder.restarts if recorder is not None else 0, recording_gaps=gaps,
-        recorder_gave_up=recorder.gave_up if recorder is not None else False)
+        recorder_gave_up=recorder.gave_up if recorder is not None else False, pv_protocol=config.pv_protocol,
+        sunspec_frame_misses=bridge_summary.sunspec_frame_misses)
     (out / "summary.json").write_bytes(msgspec.json.format(msgspec.json.encode(summary), indent=2))
     (out / "report.md").write_text(render_summary(summary))
     check_mostly_held(summary)

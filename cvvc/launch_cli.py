@@ -44,6 +44,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="SCADA-class noise on PV, regulator and capacitor readings [%%] (default 0)")
     p.add_argument("--noise-pmu-pct", type=float, default=0.0, metavar="PCT",
                    help="PMU-class noise on the feeder-head meter [%%] (default 0)")
+    p.add_argument("--pv-protocol", choices=["bus", "sunspec"], default="bus",
+                   help="how the PV plants reach the bus: bus (the simulator's own frames, default) or sunspec "
+                        "(each plant behind a simulated SunSpec Modbus inverter and a `cvvc adapter sunspec`; "
+                        "docs/sunspec.md)")
     p.add_argument("--no-record", action="store_true", help="do not record the session to MCAP")
     p.add_argument("--no-baseline", action="store_true", help="skip the no-control baseline")
     p.add_argument("--cache", default=None, help=CACHE_HELP)
@@ -74,7 +78,7 @@ def _run(args: argparse.Namespace) -> int:
                        secure=args.secure, ca_dir=args.ca_dir, drop_prob=args.drop_prob,
                        noise_scada_pct=args.noise_scada_pct, noise_pmu_pct=args.noise_pmu_pct,
                        drop_burst_min=args.drop_burst_min, meas_delay_s=args.meas_delay_s,
-                       clock_skew_s=args.clock_skew_s)
+                       clock_skew_s=args.clock_skew_s, pv_protocol=args.pv_protocol)
     summary = run(config)
     if args.json:
         sys.stdout.write(msgspec.json.format(msgspec.json.encode(summary), indent=2).decode() + "\n")

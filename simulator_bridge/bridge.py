@@ -46,7 +46,7 @@ from schemas import keys
 from schemas import messages as m
 from schemas.bus import BusConfig, open_session, wait_for
 from schemas.devicemap import DeviceMap, load_device_map
-from simulator_bridge.bridge_runtime import BridgeRuntime
+from simulator_bridge.bridge_runtime import BridgeRuntime, sunspec_fleet
 from simulator_bridge.errors import BridgeError
 
 if TYPE_CHECKING:
@@ -66,6 +66,7 @@ log = logging.getLogger(__name__)
 
 _NS = 1_000_000_000
 _LOCAL_TZ = dt.timezone(dt.timedelta(hours=-5))  # the profiles' fixed local standard time (UTC-5)
+_ADAPTER_WAIT_S = 30.0  # before the first step, the longest wait for the SunSpec adapters' tokens [s]
 _STARTUP_PROBE_S = 1.0  # bounded look for an agent already alive, and for its subscription, at startup [s]
 
 
@@ -99,6 +100,10 @@ class BridgeConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fie
         Off by default: it exists only when case A asks for it (``cvvc run --case A`` sets it), and then answers
         at most ``ORACLE_REPLIES_PER_STEP`` queries per simulated step; the rest are refused and counted
         (``oracle_rate``): each reply costs the stepping thread K + R + 2 power flows.
+    pv_sunspec : plant id -> ``tcp/127.0.0.1:PORT``: these plants are behind simulated SunSpec inverters served
+        there, and a ``cvvc adapter sunspec --clock head`` per plant publishes their frames and acks and takes
+        their commands (``simulator_bridge.sunspec_fleet``); the bridge waits, up to ``timeout_s``, for each
+        adapter's frame of a step before the next one.
     """
 
     device_map_path: str
@@ -122,6 +127,7 @@ class BridgeConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fie
     oracle: bool = False
     drop_burst_min: float = 0.0
     clock_skew_s: float = 0.0
+    pv_sunspec: dict[str, str] = {}  # plant id -> tcp/127.0.0.1:PORT: the plant behind a simulated SunSpec inverter
 
 
 class BridgeSummary(msgspec.Struct, frozen=True, kw_only=True):
@@ -168,6 +174,7 @@ class BridgeSummary(msgspec.Struct, frozen=True, kw_only=True):
     decision_wait_s: float = 0.0
     publisher: Literal["inline", "process"] = "inline"
     log_suppressed: dict[str, int] = {}  # log lines not written by the rate limit, by kind (rejected_<kind>: bus)
+    sunspec_frame_misses: int = 0  # steps some SunSpec adapter's frame did not come within the time-out
 
 
 # ------------------------------------------------------------------------------------------ helpers
@@ -210,6 +217,9 @@ def _check_config(c: BridgeConfig) -> None:
         raise BridgeError(f"--drop-burst-min must be within 0..1440 min, got {c.drop_burst_min}")
     if not (math.isfinite(c.clock_skew_s) and abs(c.clock_skew_s) <= 600.0):
         raise BridgeError(f"--clock-skew-s must be within -600..600 s, got {c.clock_skew_s}")
+    if c.pv_sunspec and (c.noise_scada_pct or c.drop_prob or c.latency_s or c.clock_skew_s):
+        raise BridgeError("plants behind SunSpec (--pv-sunspec) take no SCADA noise, drops, latency or clock skew "
+                          "yet: the adapters publish their frames; run without those options")
     if c.publisher == "process" and c.latency_s > 0.0:
         raise BridgeError("publisher='process' cannot hold frames for --latency-s (the stepping thread flushes "
                           "the delay line); use publisher='auto' or 'inline' with latency")
@@ -250,8 +260,9 @@ def run_bridge(config: BridgeConfig, bus: BusConfig, *, stop: threading.Event | 
             raise BridgeError(f"{config.steps} steps from {config.start} run past the end of the profile year "
                               f"({profiles.n_steps - start} steps left); start earlier or run fewer steps")
         qsts = Qsts(engine, profiles, start_step=start, pv_local=config.pv_local)
+        fleet = sunspec_fleet(config, dm, engine, qsts)
         with open_session(bus) as session:
-            rt = BridgeRuntime(config, bus, session, dm, engine, profiles, qsts, start)
+            rt = BridgeRuntime(config, bus, session, dm, engine, profiles, qsts, start, fleet)
             try:
                 return _loop(rt, stop, on_ready)
             finally:
@@ -281,6 +292,8 @@ def _loop(rt: BridgeRuntime, stop: threading.Event, on_ready: Callable[[], None]
         elif rt.inbox.queue.qsize() or rt.held():
             rt.serve(0.0, stop)  # handle what is queued, without waiting
         res = rt.step()
+        if rt.fleet is not None:
+            rt.await_sunspec_frames(int(res.t_ns), stop)
         if rt.is_control_step(res.step):
             rt.control_steps += 1
             if c.clock == "lockstep":
@@ -320,7 +333,8 @@ def _loop(rt: BridgeRuntime, stop: threading.Event, on_ready: Callable[[], None]
         agent_alive=rt.agent_alive, stopped_early=rt.steps < c.steps, metrics=final,
         publisher_cpu_s=pub_cpu_s, decision_wait_s=rt.decision_wait_s,
         publisher="inline" if rt.child is None else "process",
-        log_suppressed=rt.log_suppressed())
+        log_suppressed=rt.log_suppressed(),
+        sunspec_frame_misses=rt.fleet.frame_misses if rt.fleet is not None else 0)
 
 
 def _startup(rt: BridgeRuntime, stop: threading.Event) -> None:
@@ -329,6 +343,10 @@ def _startup(rt: BridgeRuntime, stop: threading.Event) -> None:
     """
     c = rt.config
     deadline = time.monotonic() + c.wait_agent_s
+    if rt.fleet is not None and not rt.serve(time.monotonic() + max(c.wait_agent_s, _ADAPTER_WAIT_S), stop,
+                                             rt.adapters_alive):
+        log.warning("not every SunSpec adapter is on the bus (%s): their plants' frames will be missing",
+                    ", ".join(rt.fleet.plant_ids))
     if c.wait_agent_s > 0:
         rt.serve(deadline, stop, lambda: rt.agent_alive)
     if not rt.agent_alive:  # the watcher's history may still be on its way: ask once, bounded

@@ -42,7 +42,7 @@ def _bridge(args: argparse.Namespace) -> int:
             drop_burst_min=args.drop_burst_min, clock_skew_s=args.clock_skew_s,
             cache_dir=(str(profiles_dir(args.cache)) if args.cache_dir is None
                        else None if args.cache_dir == "" else args.cache_dir), publisher=args.publisher,
-            oracle=args.oracle,
+            oracle=args.oracle, pv_sunspec=_pv_sunspec(args.pv_sunspec),
         )
         default_mode: Mode = "router" if args.listen and not args.connect else "peer"
         bus = bus_config_from_args(args, default_mode=default_mode, role="devices")
@@ -67,6 +67,19 @@ def _bridge(args: argparse.Namespace) -> int:
               f"{summary.steps_total} steps in {summary.wall_s:.2f} s ({summary.steps_per_s:.1f} steps/s), "
               f"{summary.decisions} decisions, {summary.lockstep_misses} lockstep misses{rt}")
     return 0
+
+
+def _pv_sunspec(items: list[str] | None) -> dict[str, str]:
+    """``--pv-sunspec PV_ID=tcp/127.0.0.1:PORT`` flags -> {plant: endpoint}; BridgeError when malformed."""
+    from simulator_bridge.errors import BridgeError
+
+    out: dict[str, str] = {}
+    for item in items or []:
+        plant, sep, endpoint = item.partition("=")
+        if not sep or not plant or not endpoint or plant in out:
+            raise BridgeError(f"--pv-sunspec {item!r}: write PV_ID=tcp/127.0.0.1:PORT, once per plant")
+        out[plant] = endpoint
+    return out
 
 
 def register_bridge(subparsers: argparse._SubParsersAction) -> None:
@@ -117,6 +130,9 @@ def register_bridge(subparsers: argparse._SubParsersAction) -> None:
                         "--zenoh-config (docs/bridge.md)")
     p.add_argument("--oracle", action="store_true", help="serve the case-A oracle on sim/oracle (true voltages "
                    "and sensitivities of every node; off unless case A needs it)")
+    p.add_argument("--pv-sunspec", action="append", metavar="PV_ID=tcp/127.0.0.1:PORT",
+                   help="serve this plant as a simulated SunSpec inverter on PORT and leave its frames, acks and "
+                        "commands to a `cvvc adapter sunspec --clock head` (repeat per plant; docs/sunspec.md)")
     p.add_argument("--json", action="store_true", help="print the run summary as JSON")
     p.add_argument("--summary-out", metavar="FILE", help="write the run summary as JSON to FILE at exit (the "
                    "launcher takes the run's final metrics from the bridge itself, not from the bus)")

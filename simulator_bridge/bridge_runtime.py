@@ -34,6 +34,7 @@ from simulator_bridge.metrics_stream import MetricsAccumulator
 from simulator_bridge.oracle_serving import OracleQuery, OracleServer
 from simulator_bridge.publisher_process import PublisherProcess, StepPacker, child_bus
 from simulator_bridge.publishing import FINITE_READING_FIELDS, FramePublisher, FramerSpec, StepFramer
+from simulator_bridge.sunspec_fleet import SunSpecFleet, plant_phases
 
 if TYPE_CHECKING:
     from simulator_bridge.bridge import BridgeConfig
@@ -41,7 +42,7 @@ if TYPE_CHECKING:
     from simulator_bridge.profiles import YearProfiles
     from simulator_bridge.qsts import Qsts, StepResult
 
-__all__ = ["BridgeRuntime", "publisher_bus"]
+__all__ = ["BridgeRuntime", "publisher_bus", "sunspec_fleet"]
 
 log = logging.getLogger("simulator_bridge.bridge")  # the bridge's log lines, under the bridge's name
 
@@ -76,6 +77,21 @@ def non_finite(res: StepResult) -> BridgeError:
                        "profiles are broken (check `cvvc feeder info`)")
 
 
+def sunspec_fleet(c: BridgeConfig, dm: DeviceMap, engine: FeederEngine, qsts: Qsts) -> SunSpecFleet | None:
+    """The simulated SunSpec inverters of ``c.pv_sunspec`` (not serving yet), or None without any.
+
+    Raises
+    ------
+    BridgeError
+        A plant the feeder does not have, an endpoint that is not ``tcp/127.0.0.1:PORT``.
+    """
+    if not c.pv_sunspec:
+        return None
+    return SunSpecFleet(c.pv_sunspec, dm, tuple(engine.pv_ids),
+                        plant_phases(tuple(engine.node_names), engine.pv_node_index),
+                        q_at_night=bool(qsts.pv_q_at_night), volt_var=c.pv_local == "volt_var")
+
+
 def publisher_bus(c: BridgeConfig, bus: BusConfig, n_nodes: int) -> BusConfig | None:
     """The publisher process's bus, or None to publish inline (``BridgeConfig.publisher``).
 
@@ -107,11 +123,13 @@ class BridgeRuntime:
     ----------
     config : the run. bus : the bridge's bus settings. session : its open Zenoh session. dm : the device map.
     engine, profiles, qsts : the feeder, its year profiles and the simulation. start_step : the profile step of the
-    run's first step.
+    run's first step. fleet : the simulated inverters of the plants behind SunSpec (:func:`sunspec_fleet`), not
+    started yet (started here, stopped by :meth:`close`), or None.
     """
 
     def __init__(self, config: BridgeConfig, bus: BusConfig, session: zenoh.Session, dm: DeviceMap,
-                 engine: FeederEngine, profiles: YearProfiles, qsts: Qsts, start_step: int) -> None:
+                 engine: FeederEngine, profiles: YearProfiles, qsts: Qsts, start_step: int,
+                 fleet: SunSpecFleet | None = None) -> None:
         c = self.config = config
         self.session, self.dm, self.engine, self.profiles, self.qsts = session, dm, engine, profiles, qsts
         self.counters = BridgeCounters(rlog=RateLimitedLog(log))  # every line a peer can provoke
@@ -120,10 +138,13 @@ class BridgeRuntime:
         self.control_every = max(1, dm.feeder.control_period_s // self.step_s)
         self.start_step = start_step
         local: Literal["unity_pf", "volt_var"] = "volt_var" if c.pv_local == "volt_var" else "unity_pf"
+        self.fleet = fleet  # the plants behind SunSpec (``sunspec_fleet``), if any
+        external = frozenset(self.fleet.plant_ids) if self.fleet is not None else frozenset()
         # secure: only the command role's certificate can put commands, so replay protection is keyed on it
         self.bank = DeviceBank(session, self.fid, engine, qsts, local=local,
                                period_ns=int(dm.feeder.control_period_s) * _NS,  # the commands' time window unit
-                               sender=COMMAND_ROLE if bus.tls_dir is not None else None, counters=self.counters)
+                               sender=COMMAND_ROLE if bus.tls_dir is not None else None, counters=self.counters,
+                               external_pv=external)
         self.bank.now_t_ns = int(profiles.t_ns(start_step)) - self.step_s * _NS  # nothing simulated yet
         bank = self.bank
         self.reg_phase = [dv.PHASE_NAMES[int(engine.node_names[n].split(".")[1]) - 1]
@@ -139,7 +160,8 @@ class BridgeRuntime:
             noise_scada_pct=c.noise_scada_pct, drop_prob=c.drop_prob, latency_s=c.latency_s,
             noise_seed=c.noise_seed, metrics=MetricsAccumulator.for_feeder(dm, engine, step_s=self.step_s),
             drop_burst_s=60.0 * c.drop_burst_min, clock_skew_s=c.clock_skew_s,
-            caps=tuple((k.capacitor_id, k.index, k.steps, k.kvar_rated, k.control_type) for k in bank.caps.values()))
+            caps=tuple((k.capacitor_id, k.index, k.steps, k.kvar_rated, k.control_type) for k in bank.caps.values()),
+            pv_external=tuple(sorted(external)))
         self.steps = self.control_steps = self.misses = self.skipped = self.decisions = 0
         self.late_steps = 0
         self.round_trips: list[float] = []
@@ -148,15 +170,23 @@ class BridgeRuntime:
         self.decision: m.Decision | None = None  # the last decision received
         self._ctrl_pub_wall_ns: dict[int, int] = {}  # inline: when a control step's head frame was put
         self.oracle: OracleServer | None = None
-        self._declare()
-        self.child: PublisherProcess | None = None
-        self.framer: StepFramer | None = None
-        child = publisher_bus(c, bus, len(engine.node_names))
-        if child is None:
-            self.framer = StepFramer(self.spec, session, self._on_control_head)
-        else:
-            packer = StepPacker(len(engine.node_names), len(bank.pvs), len(bank.regs), len(engine.capacitor_ids))
-            self.child = PublisherProcess(self.spec, packer, child)
+        if self.fleet is not None:
+            self.fleet.start()  # before the adapters' first scan; stopped by close()
+        try:
+            self._declare()
+            self.child: PublisherProcess | None = None
+            self.framer: StepFramer | None = None
+            child = publisher_bus(c, bus, len(engine.node_names))
+            if child is None:
+                self.framer = StepFramer(self.spec, session, self._on_control_head)
+            else:
+                packer = StepPacker(len(engine.node_names), len(bank.pvs), len(bank.regs),
+                                    len(engine.capacitor_ids))
+                self.child = PublisherProcess(self.spec, packer, child)
+        except BaseException:
+            if self.fleet is not None:  # no close() follows a failed construction: the servers stop here
+                self.fleet.close()
+            raise
 
     @property
     def now_t_ns(self) -> int:
@@ -175,6 +205,11 @@ class BridgeRuntime:
         self.inbox.subscribe(s, f"{keys.ROOT}/*/cmd/**")  # other feeders too: see DeviceBank._wrong_feeder
         self.inbox.subscribe(s, keys.agent_decision(f), m.Decision)
         self.agents = LivelinessWatcher(s, f"{keys.ROOT}/{f}/alive/agent/*", self._on_agent)
+        self.pv_tokens: LivelinessWatcher | None = None
+        if self.fleet is not None:  # the adapters' frames (the step's wait) and acks (the lockstep's commands)
+            self.inbox.subscribe(s, keys.meas_pv(f), m.PvFrame)
+            self.inbox.subscribe(s, keys.ack(f, "pv"), m.Ack)
+            self.pv_tokens = LivelinessWatcher(s, f"{keys.ROOT}/{f}/alive/pv/*")
         if self.config.oracle:  # compiles its twin engine now, not at the first query
             self.oracle = OracleServer(s, f, self.engine, self.qsts, self.inbox, self.counters)
 
@@ -184,7 +219,10 @@ class BridgeRuntime:
         """
         if self.child is not None:
             self.child.close(None)  # nothing more when the run closed it already
+        if self.fleet is not None:
+            self.fleet.close()
         declared = [self.oracle.undeclare] if self.oracle is not None else []
+        declared += [self.pv_tokens.undeclare] if self.pv_tokens is not None else []
         for undeclare in [*declared, self.inbox.undeclare, self.agents.undeclare,
                           self.bank.bridges.undeclare, *(t.undeclare for t in self.tokens)]:
             try:
@@ -253,6 +291,10 @@ class BridgeRuntime:
             self._on_decision(msg, item.recv_wall_ns)
         elif isinstance(msg, m.PvCommand | m.RegCommand | m.CapCommand):
             self.bank.on_command(item.key, msg)
+        elif isinstance(msg, m.PvFrame) and self.fleet is not None:
+            self.fleet.on_frame(msg.plant_id, msg.t_ns)
+        elif isinstance(msg, m.Ack) and self.fleet is not None and msg.device_id in self.fleet.index:
+            self.bank.remember(msg.cmd_id)  # the adapter handled it: the lockstep's decision may be complete
 
     def _on_decision(self, d: m.Decision, recv_wall_ns: int) -> None:
         if d.feeder_id != self.fid:
@@ -304,10 +346,19 @@ class BridgeRuntime:
         """
         t_next = int(self.profiles.t_ns(self.qsts.next_step))
         self.bank.run_watchdogs(t_next)
+        if self.fleet is not None:  # the inverters' local modes (705) and set points (704, timers on the step's time)
+            for k, volt_var in self.fleet.local_modes().items():
+                self.qsts.set_pv_local(k, volt_var)
+            for k, q_kvar in self.fleet.commands(t_next).items():
+                self.qsts.command_pv_q(k, q_kvar)
         res = self.qsts.step()
         self.bank.now_t_ns = int(res.t_ns)
         self.bank.pv_p_kw = res.pv_p_kw
         self.steps += 1
+        if self.fleet is not None:  # before the head frame is put: the adapters scan when it arrives
+            check_finite_step(res)
+            rd = res.readings
+            self.fleet.measure(int(res.t_ns), rd.pv_p_kw, rd.pv_q_kvar, rd.pv_v_v)
         if self.child is not None:
             if not self.child.submit(res, self.steps, self.bank.settings(),
                                      metrics_after=self.is_control_step(res.step)):
@@ -316,6 +367,27 @@ class BridgeRuntime:
             v_lo, v_hi = check_finite_step(res)
             self.framer.publish_step(res, self.steps, v_lo, v_hi, self.bank.settings(), time.monotonic())
         return res
+
+    def adapters_alive(self) -> bool:
+        """Whether every SunSpec adapter's liveliness token (``alive/pv/<id>``) is up (True without any)."""
+        if self.fleet is None or self.pv_tokens is None:
+            return True
+        alive = self.pv_tokens.alive()
+        return all(keys.alive(self.fid, "pv", pid) in alive for pid in self.fleet.plant_ids)
+
+    def await_sunspec_frames(self, t_ns: int, stop: threading.Event) -> None:
+        """Serve the queue until every SunSpec adapter's frame of the step at ``t_ns`` [ns] arrived, at most
+        ``timeout_s``; a step whose frames did not all come is counted (``SunSpecFleet.frame_misses``), and the
+        plants that missed it are not waited for again until their next frame (``SunSpecFleet.missed``).
+        """
+        fleet = self.fleet
+        if fleet is None or self.serve(time.monotonic() + self.config.timeout_s, stop,
+                                       lambda: fleet.frames_in(t_ns)) or stop.is_set():
+            return
+        late = fleet.missed(t_ns)
+        self.counters.rlog.warning("sunspec_frame_miss", "no frame of %s at t_ns=%d within %.3f s (%d steps so far); "
+                                   "not waiting for them until their next frame", late, t_ns, self.config.timeout_s,
+                                   fleet.frame_misses)
 
     def flush(self, now_s: float) -> None:
         """Frames held by the latency line (inline publishing only) that are due go out."""

@@ -66,12 +66,16 @@ class DeviceBank:
     local : the PV inverters' local default. period_ns : the control period, the unit of the commands' time windows
         [ns]. sender : in secure mode the command role's identity (replay protection is keyed on it), else None.
     counters : the run's counters.
+    external_pv : plants behind a field-protocol adapter (``simulator_bridge.sunspec_fleet``): no token, ack,
+        command or watchdog here; the adapter does all that, and its acks mark the commands handled
+        (:meth:`remember`).
     """
 
     def __init__(self, session: zenoh.Session, feeder_id: str, engine: FeederEngine, qsts: Qsts, *,
                  local: Literal["unity_pf", "volt_var"], period_ns: int, sender: str | None,
-                 counters: BridgeCounters) -> None:
+                 counters: BridgeCounters, external_pv: frozenset[str] = frozenset()) -> None:
         self.session, self.fid, self.qsts, self.counters = session, feeder_id, qsts, counters
+        self.external_pv = external_pv
         self.now_t_ns = 0  # the simulation time of the step just simulated (set by the runtime)
         self.pv_p_kw = engine.pv_setpoints()[0]  # the plants' available power at that step [kW]
         self.pvs = {pid: dv.PvInverter(pid, k, float(engine.pv_kva[k]), local, period_ns=period_ns,
@@ -97,10 +101,11 @@ class DeviceBank:
         """
         s, f = self.session, self.fid
         lv = s.liveliness()
-        tokens = [lv.declare_token(keys.alive(f, "pv", p)) for p in self.pvs]
+        tokens = [lv.declare_token(keys.alive(f, "pv", p)) for p in self.pvs if p not in self.external_pv]
         tokens += [lv.declare_token(keys.alive(f, "vr", r)) for r in self.regs]
         tokens += [lv.declare_token(keys.alive(f, "cap", k)) for k in self.caps]
-        self.ack_pv = {p: TypedPublisher(s, keys.ack(f, "pv", p), m.Ack, reliable=True) for p in self.pvs}
+        self.ack_pv = {p: TypedPublisher(s, keys.ack(f, "pv", p), m.Ack, reliable=True) for p in self.pvs
+                       if p not in self.external_pv}
         self.ack_vr = {r: TypedPublisher(s, keys.ack(f, "vr", r), m.Ack, reliable=True) for r in self.regs}
         self.ack_cap = {k: TypedPublisher(s, keys.ack(f, "cap", k), m.Ack, reliable=True) for k in self.caps}
         self.bridges = LivelinessWatcher(s, f"{keys.ROOT}/*/alive/bridge/*")
@@ -147,9 +152,14 @@ class DeviceBank:
                              congestion_control=zenoh.CongestionControl.BLOCK, priority=zenoh.Priority.REAL_TIME)
 
     def on_command(self, key: str, cmd: m.PvCommand | m.RegCommand | m.CapCommand) -> None:
-        """Handle one command received on ``key``: check, apply and ack it, or reject it with a reason."""
-        self.remember(cmd.cmd_id)
+        """Handle one command received on ``key``: check, apply and ack it, or reject it with a reason.
+
+        A command to a plant behind an adapter (``external_pv``) is the adapter's: left alone.
+        """
         parts = keys.parse_device_key(key)
+        if parts is not None and parts[0] == self.fid and parts[2] == "pv" and parts[3] in self.external_pv:
+            return
+        self.remember(cmd.cmd_id)
         if parts is None:
             self.counters.rejected["unknown_device"] += 1  # no device key to answer on
             return
@@ -222,6 +232,8 @@ class DeviceBank:
     def run_watchdogs(self, t_ns: int) -> None:
         """Before simulating ``t_ns``: expire commands past their validity; devices go back to default."""
         for pv in self.pvs.values():
+            if pv.plant_id in self.external_pv:  # its inverter reverts itself; its adapter acks the expiry
+                continue
             gone = pv.guard.expire(t_ns)
             if gone is not None:
                 self.qsts.command_pv_q(pv.index, None)

@@ -98,6 +98,8 @@ class FramerSpec:
     drop_burst_s : with ``drop_prob``, each device loses its frames in outages of this long [s] (0: each frame
     independently). clock_skew_s : the devices' clocks are this far off the bridge's [s]: every frame and scan
     end marker is stamped ``t + clock_skew_s`` (the truth, metrics and command checks keep the bridge's time).
+    pv_external : plants whose frames an adapter publishes (``simulator_bridge.sunspec_fleet``): no frame here, but
+    listed in the step's ``StepEnd``, so the agent waits for the adapter's.
     """
 
     feeder_id: str
@@ -120,6 +122,7 @@ class FramerSpec:
     caps: tuple[tuple[str, int, int, float, m.CapControlType], ...] = ()
     drop_burst_s: float = 0.0
     clock_skew_s: float = 0.0
+    pv_external: tuple[str, ...] = ()
 
     def is_control_t(self, t_ns: int) -> bool:
         """Whether the step at ``t_ns`` [ns since the UTC epoch] is a control step.
@@ -167,7 +170,8 @@ class StepFramer:
         self.on_control_head = on_control_head
         self._truth_v = np.empty(len(s.node_names))  # the clipped truth voltages, rewritten every step
         self.pub_head = FramePublisher(session, keys.meas_head(f))
-        self.pub_pv = [FramePublisher(session, keys.meas_pv(f, pv.plant_id)) for pv in self.pvs]
+        self.pub_pv = [None if pv.plant_id in s.pv_external else FramePublisher(session, keys.meas_pv(f, pv.plant_id))
+                       for pv in self.pvs]  # an external plant's frames are its adapter's
         self.pub_vr = [FramePublisher(session, keys.meas_vr(f, reg.regulator_id)) for reg in self.regs]
         self.pub_cap = [FramePublisher(session, keys.meas_cap(f, cap.capacitor_id)) for cap in self.caps]
         self.pub_step = FramePublisher(session, keys.meas_step(f))  # same QoS as the frames: queued behind them
@@ -248,7 +252,11 @@ class StepFramer:
         if noise is None:
             pv_p, pv_q, pv_v = pv_p.tolist(), pv_q.tolist(), pv_v.tolist()
         available, q_at_night = np.asarray(res.pv_p_kw, dtype=float).tolist(), self.spec.q_at_night
+        external = self.spec.pv_external
         for pv, pub, q_set in zip(self.pvs, self.pub_pv, settings.pv_q_setpoint_kvar, strict=True):
+            if pub is None or pv.plant_id in external:
+                sent["pv"].append(pv.plant_id)
+                continue
             k = pv.index
             p, q, v = pv_p[k], pv_q[k], pv_v[k]
             if noise is not None:

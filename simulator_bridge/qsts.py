@@ -186,6 +186,7 @@ class Qsts:
         self._step = int(start_step)
         n_pv, n_reg = len(engine.pv_ids), len(engine.regulator_ids)
         self._pv_cmd: list[float | None] = [None] * n_pv
+        self._pv_volt_var: np.ndarray | None = None  # per plant, volt-var as its local default; None: pv_local's
         self._locked = np.zeros(n_reg, dtype=bool)  # regulator r held at self._lock_tap[r]
         self._lock_tap = np.zeros(n_reg, dtype=int)
         self.controls = LocalControls(engine.reg_controls, engine.cap_controls)
@@ -224,6 +225,16 @@ class Qsts:
         self._pv_cmd[k] = None if q_kvar is None else float(q_kvar)
         q = self._pv_q_target(self._pv_p_kw, self._pv_v_pu)[k]
         return float(q)
+
+    def set_pv_local(self, k: int, volt_var: bool) -> None:
+        """Plant ``k``'s local default from the next step on: the volt-var curve (True) or unity power factor
+        (False), in place of ``pv_local`` for that plant (a plant's inverter may be set either way on its own, e.g.
+        through SunSpec model 705). The other plants keep ``pv_local`` until set.
+        """
+        self._check_index(k, len(self._pv_cmd), "PV plant")
+        if self._pv_volt_var is None:
+            self._pv_volt_var = np.full(len(self._pv_cmd), self.pv_local == "volt_var")
+        self._pv_volt_var[k] = bool(volt_var)
 
     def command_tap(self, r: int, tap: int | None) -> int:
         """Lock regulator ``r`` at ``tap`` from the next step on (clipped to its range); ``None`` unlocks (back
@@ -325,7 +336,10 @@ class Qsts:
     def _pv_q_target(self, p_kw: np.ndarray, v_pu: np.ndarray) -> np.ndarray:
         """Reactive power each plant will apply [kvar] at available power ``p_kw`` and measured ``v_pu``."""
         e = self.engine
-        if self.pv_local == "volt_var":
+        if self._pv_volt_var is not None:  # set per plant (set_pv_local)
+            curve = volt_var_q_pu(v_pu) * e.pv_kva
+            local = np.where(self._pv_volt_var, self._pv_q_kvar + VOLT_VAR_RESPONSE * (curve - self._pv_q_kvar), 0.0)
+        elif self.pv_local == "volt_var":
             curve = volt_var_q_pu(v_pu) * e.pv_kva
             local = self._pv_q_kvar + VOLT_VAR_RESPONSE * (curve - self._pv_q_kvar)
         else:

@@ -8,11 +8,11 @@ SunSpec points with scale factors, and writes the 704 reactive-power controls.
 
 The inverter's own logic (its "firmware"), run on every Modbus request:
 
-* **Writes** are taken only on the read-write points of model 704 (anything else: Modbus exception 2,
-  *illegal address*). A write that leaves 704 inconsistent is refused with exception 3 (*illegal value*) and
-  changes nothing: ``VarSetEna``/``VarSetEnaRvrt`` not 0/1, ``VarSetMod`` other than ``VARS`` (4) while enabled,
-  ``VarSet`` beyond ``-VarMaxAbs..VarMaxInj`` of model 702, a reversion time beyond one day. Refused writes are
-  counted (:attr:`refused_writes`).
+* **Writes** are taken only on the read-write points of model 704 and on 705's ``Ena`` (0 or 1) when it has
+  model 705 (anything else: Modbus exception 2, *illegal address*). A write that leaves 704 inconsistent is
+  refused with exception 3 (*illegal value*) and changes nothing: ``VarSetEna``/``VarSetEnaRvrt`` not 0/1,
+  ``VarSetMod`` other than ``VARS`` (4) while enabled, ``VarSet`` beyond ``-VarMaxAbs..VarMaxInj`` of model 702,
+  a reversion time beyond one day. Refused writes are counted (:attr:`refused_writes`).
 * **Set point**: with ``VarSetEna = 1`` and ``VarSetMod = VARS`` the inverter holds ``VarSet`` [var] (positive:
   injecting, over-excited: the project's generator convention), clipped to its headroom ``sqrt(VAMax² − P²)``
   (0 at night, as the simulated plants); otherwise it is on its local default (:meth:`q_command_kvar` is None).
@@ -42,6 +42,13 @@ __all__ = ["SUNSPEC_BASE_ADDR", "SimulatedSunSpecInverter", "SunSpecSimError"]
 SUNSPEC_BASE_ADDR = 40000
 """Where the ``SunS`` marker is (the usual SunSpec base address; pysunspec2 also tries 0 and 50000)."""
 _MODELS = (1, 701, 702, 704)
+_VOLT_VAR = 705
+# 705's curve: IEEE 1547-2018 category B default (the simulated plants' own, simulator_bridge.qsts), in 705's units:
+# V in percent of VRef (V_SF 0: whole percents), Var in percent of VarMax (DeptRef VAR_MAX_PCT, DeptRef_SF -2)
+_VV_V_PCT = (92, 98, 102, 108)
+_VV_VAR_PCT = (44.0, 0.0, 0.0, -44.0)
+_VAR_MAX_PCT = 1  # 705 DeptRef symbol VAR_MAX_PCT
+_VV_RESPONSE_S = 5  # 705 RspTms: the open-loop response time of the category B default [s]
 _PHASES = ("a", "b", "c")
 _VARS_MODE = 4  # 704 VarSetMod symbol VARS: the set point is in vars
 _MAX_REVERT_S = 86_400
@@ -80,11 +87,16 @@ class SimulatedSunSpecInverter:
     port : TCP port on ``host``; ``unit`` the Modbus unit id it answers (others too: a single device).
     clock_ns : the inverter's clock [ns] for its revert timer.
     q_at_night : whether it gives reactive power at zero active power.
+    volt_var : model 705 (DER volt-var) with one curve, the IEEE 1547-2018 category B default, enabled (True: the
+        plant's local default is volt-var) or disabled (False: unity power factor); None: no model 705. Of its
+        points only ``Ena`` takes writes (0 or 1; the curve is fixed here: other writes are refused as outside
+        704); :meth:`volt_var_enabled` is what the plant's driver applies.
     """
 
     def __init__(self, *, plant_id: str, s_rated_kva: float, v_nominal_v: float, port: int,
                  phases: Sequence[str] = _PHASES, unit: int = 1, host: str = "127.0.0.1",
-                 clock_ns: Callable[[], int] = time.monotonic_ns, q_at_night: bool = False) -> None:
+                 clock_ns: Callable[[], int] = time.monotonic_ns, q_at_night: bool = False,
+                 volt_var: bool | None = None) -> None:
         from sunspec2 import device
 
         if not (math.isfinite(s_rated_kva) and 0.0 < s_rated_kva <= 1e6):
@@ -109,14 +121,17 @@ class SimulatedSunSpecInverter:
         self._deadline_ns: int | None = None
         self._p_kw = [0.0, 0.0, 0.0]
         self._models: dict[int, Any] = {}
+        self._model_ids = _MODELS if volt_var is None else (*_MODELS, _VOLT_VAR)
         for mid in _MODELS:
             md = device.Model(model_id=mid)
             md.points["ID"].value = mid
             md.points["L"].value = md.len - 2
             self._models[mid] = md
+        if volt_var is not None:
+            self._models[_VOLT_VAR] = self._volt_var_model(bool(volt_var))
         self._addr: dict[int, int] = {}
         addr = SUNSPEC_BASE_ADDR + 2
-        for mid in _MODELS:
+        for mid in self._model_ids:
             self._addr[mid] = addr
             addr += self._models[mid].len
         self._end_addr = addr
@@ -159,10 +174,33 @@ class SimulatedSunSpecInverter:
             m704[name].value = value
         self._set_measure_points([0.0] * 3, [self.v_nominal_v] * 3, [0.0] * 3)
 
+    def _volt_var_model(self, enabled: bool) -> Any:
+        """Model 705 with one curve of ``len(_VV_V_PCT)`` points (its repeating groups need their counts first)."""
+        from sunspec2 import device, mb
+
+        n_pt = len(_VV_V_PCT)
+        head = [_VOLT_VAR, 0, 0, 0, 1, n_pt, 1]  # ID, L (below), Ena, AdptCrvReq, AdptCrvRslt, NPt, NCrv
+        # the rest zero, long enough for any curve of up to 16 points (the length follows from the counts)
+        md = device.Model(model_id=_VOLT_VAR, data=b"".join(mb.u16_to_data(r) for r in head) + bytes(2 * 64))
+        pts = md.points
+        v_ref = int(round(self.v_nominal_v))
+        for name, value in (("L", md.len - 2), ("Ena", int(enabled)), ("AdptCrvRslt", 1), ("RvrtTms", 0),
+                            ("RvrtRem", 0), ("RvrtCrv", 0), ("V_SF", 0), ("DeptRef_SF", -2), ("RspTms_SF", 0)):
+            pts[name].value = value
+        crv = md.groups["Crv"][0]
+        for name, value in (("ActPt", n_pt), ("DeptRef", _VAR_MAX_PCT), ("Pri", 1), ("VRef", v_ref),
+                            ("VRefAuto", v_ref), ("VRefAutoEna", 0), ("VRefAutoTms", 0), ("RspTms", _VV_RESPONSE_S),
+                            ("ReadOnly", 0)):
+            crv.points[name].value = value
+        for pt, v, q in zip(crv.groups["Pt"], _VV_V_PCT, _VV_VAR_PCT, strict=True):
+            pt.points["V"].value = v
+            pt.points["Var"].cvalue = q
+        return md
+
     def _build_image(self) -> list[int]:
         from sunspec2 import mb
 
-        data = b"SunS" + b"".join(self._models[mid].get_mb() for mid in _MODELS)
+        data = b"SunS" + b"".join(self._models[mid].get_mb() for mid in self._model_ids)
         data += mb.u16_to_data(0xFFFF) + mb.u16_to_data(0)
         return [int.from_bytes(data[i:i + 2], "big") for i in range(0, len(data), 2)]
 
@@ -229,6 +267,19 @@ class SimulatedSunSpecInverter:
             self._tick()
             return self._q_command_locked()
 
+    def var_setpoint_kvar(self) -> float | None:
+        """The 704 set point in force [kvar, + injects], not clipped; None: the function is off (local default).
+
+        What a plant model takes as its command: the plant clips it to the headroom at its own output at each
+        instant (``simulator_bridge.qsts``), as the inverter does at its present P (:meth:`q_command_kvar`).
+        """
+        with self._lock:
+            self._tick()
+            ctl = self._models[704].points
+            if ctl["VarSetEna"].value != 1 or ctl["VarSetMod"].value != _VARS_MODE:
+                return None
+            return float(ctl["VarSet"].cvalue) / 1000.0
+
     def control_state(self) -> dict[str, Any]:
         """Model 704's reactive-power points as they stand now (raw register values, after the timer)."""
         with self._lock:
@@ -263,10 +314,17 @@ class SimulatedSunSpecInverter:
 
     def set_raw(self, model_id: int, point: str, raw: int | None) -> None:
         """Put a raw register value into a point (None: the SunSpec "not implemented" value); for tests of bad
-        values. The next :meth:`set_measurements` overwrites measurement points again.
+        values. The next :meth:`set_measurements` overwrites measurement points again. 705's curve points are
+        named ``Crv.<point>`` (curve 1) and ``Crv.Pt.<i>.<point>`` (its point ``i`` from 0).
         """
         with self._lock:
-            self._models[model_id].points[point].value = raw
+            group = self._models[model_id]
+            *path, name = point.split(".")  # 705's curve: "Crv.<name>" (curve 1) or "Crv.Pt.<i>.<name>" (its point i)
+            if path[:1] == ["Crv"]:
+                group = group.groups["Crv"][0]
+                if path[1:2] == ["Pt"]:
+                    group = group.groups["Pt"][int(path[2])]
+            group.points[name].value = raw
             self._image = self._build_image()
 
     # ---------------------------------------------------------------------------------------- Modbus side
@@ -286,6 +344,29 @@ class SimulatedSunSpecInverter:
 
         walk(md)
         return out
+
+    def _ena_705_addr(self) -> int | None:
+        """The register of 705's ``Ena`` (its only point this inverter takes writes on), None without 705."""
+        if _VOLT_VAR not in self._models:
+            return None
+        return self._addr[_VOLT_VAR] + self._models[_VOLT_VAR].points["Ena"].offset
+
+    def _write_705_ena(self, values: list[int]) -> int | None:
+        """Enable (1) or disable (0) the volt-var curve; the Modbus exception code if refused (lock held)."""
+        if values[0] not in (0, 1):
+            self.refused_writes += 1
+            return 3  # illegal value
+        self._models[_VOLT_VAR].points["Ena"].value = values[0]
+        self.writes += 1
+        self._image = self._build_image()
+        return None
+
+    def volt_var_enabled(self) -> bool | None:
+        """Whether model 705's volt-var curve is enabled (the plant's local default); None without model 705."""
+        with self._lock:
+            if _VOLT_VAR not in self._models:
+                return None
+            return self._models[_VOLT_VAR].points["Ena"].value == 1
 
     def _write_704(self, start: int, address: int, values: list[int]) -> int | None:
         """Apply a write of ``values`` at ``address``; the Modbus exception code if refused (lock held)."""
@@ -336,7 +417,9 @@ class SimulatedSunSpecInverter:
         with self._lock:
             self._tick()
             if values is not None and func_code in (6, 16):
-                code = self._write_704(start, address, [int(v) for v in values])
+                ena = self._ena_705_addr()
+                code = (self._write_705_ena([int(v) for v in values]) if ena is not None and address == ena
+                        and len(values) == 1 else self._write_704(start, address, [int(v) for v in values]))
                 if code is not None:
                     return ExcCodes(code)
             registers[:len(self._image)] = self._image

@@ -319,3 +319,25 @@ def test_command_cap_holds_and_counts_switches(map123: DeviceMap) -> None:
     assert q.step().cap_states.tolist() == [0]
     with pytest.raises(QstsError, match="no capacitor"):
         q.command_cap(1, 0)
+
+
+
+def test_a_plants_own_local_mode_replaces_pv_local_for_it_alone(map123: DeviceMap) -> None:
+    """set_pv_local (a plant's inverter set on its own, e.g. SunSpec 705): that plant follows the volt-var law of
+    pv_local='volt_var' (toward curve(V of step k-1)·kVA through the lag), the others stay on unity; and back.
+    Light load, full sun: the plants are above 1.02 pu, where the curve absorbs."""
+    eng = FeederEngine(map123, tolerance=1e-6)
+    mixed = Qsts(eng, constant(eng, 6, 0.2, 1.0), start_step=0, pv_local="unity")
+    mixed.set_pv_local(1, True)
+    prev = mixed.step()
+    for _ in range(3):
+        res = mixed.step()
+        v_prev = float(prev.v_pu[list(eng.pv_node_index[1])].mean())
+        target = prev.pv_q_kvar[1] + VOLT_VAR_RESPONSE * (volt_var_q_pu(v_prev) * eng.pv_kva[1] - prev.pv_q_kvar[1])
+        assert res.pv_q_kvar[1] == pytest.approx(target, rel=1e-12) and res.pv_q_kvar[1] < 0
+        np.testing.assert_array_equal(np.delete(res.pv_q_kvar, 1), 0.0)  # the others on unity
+        prev = res
+    mixed.set_pv_local(1, False)
+    assert mixed.step().pv_q_kvar[1] == 0.0
+    with pytest.raises(QstsError, match="PV plant"):
+        mixed.set_pv_local(99, True)

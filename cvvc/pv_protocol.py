@@ -1,0 +1,58 @@
+"""``cvvc run --pv-protocol``: how the PV plants reach the bus, ``bus`` (the bridge's own frames) or ``sunspec``.
+
+With ``sunspec`` every PV plant of the feeder is behind a simulated SunSpec inverter that the bridge serves on a
+free ``127.0.0.1`` port (``simulator_bridge.sunspec_fleet``), and one ``cvvc adapter sunspec --clock head`` per
+plant reads it over Modbus TCP, publishes the plant's frames and acks, and writes the agent's commands to it
+(docs/sunspec.md). This module only builds the adapters' and the bridge's flags; ``cvvc.launch`` starts them.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from cvvc.errors import CommandError
+from schemas.devicemap import DeviceMap
+
+__all__ = ["PvProtocol", "adapter_args", "bridge_args", "check_pv_protocol", "sunspec_endpoints"]
+
+PvProtocol = Literal["bus", "sunspec"]
+
+
+def check_pv_protocol(protocol: str, *, noise_scada_pct: float, drop_prob: float, meas_delay_s: float,
+                      clock_skew_s: float, secure: bool = False) -> None:
+    """Raise ``CommandError`` for an unknown protocol, or ``sunspec`` with options it does not take yet.
+
+    ``secure``: the security profile's access control lets the ``devices`` role put frames and take commands, but
+    not subscribe to frames and acks, which the head-clocked adapters and the bridge's wait need.
+    """
+    if protocol not in ("bus", "sunspec"):
+        raise CommandError(f"--pv-protocol {protocol!r}: choose bus or sunspec")
+    if protocol == "sunspec" and secure:
+        raise CommandError("--pv-protocol sunspec does not run with --secure yet: the access-control policy does not "
+                           "let the devices role (bridge, adapters) subscribe to the head frame, the PV frames and "
+                           "acks it needs in the closed loop (schemas/security.py); run without --secure")
+    if protocol == "sunspec" and (noise_scada_pct or drop_prob or meas_delay_s or clock_skew_s):
+        raise CommandError("--pv-protocol sunspec takes no --noise-scada-pct, --drop-prob, --meas-delay-s or "
+                           "--clock-skew-s yet (the adapters publish the PV frames, the bridge applies those); "
+                           "run without them, or with --pv-protocol bus")
+
+
+def sunspec_endpoints(dm: DeviceMap, free_port: object) -> dict[str, str]:
+    """Plant id -> ``tcp/127.0.0.1:PORT``, a free port each (``free_port()`` gives one)."""
+    return {pv.id: f"tcp/127.0.0.1:{free_port()}" for pv in dm.pv}  # type: ignore[operator]
+
+
+def adapter_args(dm: DeviceMap, feeder_id: str, plant_id: str, endpoint: str, *, volt_var: bool,
+                 connect: list[str]) -> list[str]:
+    """The ``cvvc adapter sunspec`` flags of one plant: scans at each head frame (the simulation's clock) and sets
+    the plant's local default (volt-var in the ``local`` case) in the inverter's model 705.
+    """
+    return ["adapter", "sunspec", "--feeder-id", feeder_id, "--device", plant_id, "--modbus", endpoint,
+            "--clock", "head", "--scan-period-s", str(dm.feeder.step_s),
+            "--control-period-s", str(dm.feeder.control_period_s),
+            "--local-mode", "volt_var" if volt_var else "unity_pf", "--set-local-mode", *connect]
+
+
+def bridge_args(endpoints: dict[str, str]) -> list[str]:
+    """The bridge's ``--pv-sunspec`` flags."""
+    return [arg for pid, ep in endpoints.items() for arg in ("--pv-sunspec", f"{pid}={ep}")]

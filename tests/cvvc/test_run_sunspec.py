@@ -1,0 +1,129 @@
+"""``cvvc run --pv-protocol sunspec`` against the plain run: real processes, real Zenoh, real Modbus TCP, real OpenDSS.
+
+One simulated hour of case D on IEEE 13 (three plants, PV producing), lockstep, twice: every plant's frames from the
+bridge (``bus``), and every plant behind a simulated SunSpec inverter and its own ``cvvc adapter sunspec``
+(``sunspec``). The two runs are started together (the machine has two cores; each waits on its own processes).
+
+Tolerance, and why: through SunSpec the agent sees its PV inputs as the inverter's registers hold them, rounded to
+the scale factors' steps (701 ``W``/``Var`` per phase on 100 W / 100 var for these 0.8-1.2 MVA plants, ``V`` on
+1 V of 2.4 kV, about 4e-4 pu), and its set points reach the plant on 704 ``VarSet``'s 1 var step. Its decisions
+are continuous in those inputs, so each PV set point may move by a small fraction of a kvar (0.09 kvar at most when
+this test was written): allowed 1 kvar per command (0.1 % of the smallest rating here) and 1e-3 of the reactive
+power cost. Everything discrete must be the same: the number of decisions, NVV, NTC and the tap cost.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from mcap.reader import make_reader
+
+REPO = Path(__file__).resolve().parents[2]
+PLANTS = ("pv675", "pv680", "pv633")
+STEP_KW = 0.1  # 701 W_SF = 2 for these plants (1.5 x rating within an int16): 100 W per phase
+Q_TOL_KVAR = 1.0
+COST_REL = 1e-3
+
+
+@pytest.fixture(scope="module")
+def both_runs(tmp_path_factory, ieee13_model) -> dict[str, tuple[Path, dict]]:
+    from schemas.cache import profiles_dir
+    from tests.yearcache import cache_year_profiles
+
+    work = tmp_path_factory.mktemp("pvloop")
+    # the run's profile year (seed 2), made once here rather than by both runs at the same time
+    cache_year_profiles(REPO / "feeders" / "ieee13.toml", profiles_dir(str(work / "cache")), seed=2)
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    procs = {}
+    for protocol in ("bus", "sunspec"):
+        args = [sys.executable, "-m", "cvvc", "run", "--feeder", str(REPO / "feeders" / "ieee13.toml"),
+                "--model", str(ieee13_model), "--days", str(1 / 24), "--start", "2023-07-10T11:00",
+                "--out", str(work / protocol), "--cache", str(work / "cache"), "--no-baseline", "--json",
+                "--pv-protocol", protocol]
+        procs[protocol] = subprocess.Popen(args, cwd=work, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                           text=True)
+    out = {}
+    for protocol, proc in procs.items():
+        try:
+            stdout, stderr = proc.communicate(timeout=300)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait(10)
+        assert proc.returncode == 0, f"{protocol}: {stderr[-3000:]}"
+        out[protocol] = (work / protocol, json.loads(stdout))
+    return out
+
+
+def _messages(path: str) -> dict[str, list[dict]]:
+    by_topic: dict[str, list[dict]] = {}
+    with open(path, "rb") as f:
+        for _, channel, message in make_reader(f).iter_messages(log_time_order=True):
+            by_topic.setdefault(channel.topic, []).append(json.loads(message.data))
+    return by_topic
+
+
+def test_the_same_decisions_and_metrics_within_the_scale_factors_rounding(both_runs):
+    (_, bus), (_, ss) = both_runs["bus"], both_runs["sunspec"]
+    assert (bus["pv_protocol"], ss["pv_protocol"]) == ("bus", "sunspec")
+    assert ss["decisions"] == bus["decisions"] == 12  # every 5 simulated minutes
+    assert ss["lockstep_misses"] == bus["lockstep_misses"] == 0 and ss["sunspec_frame_misses"] == 0
+    a, b = bus["metrics"], ss["metrics"]
+    assert b["nvv"] == a["nvv"] and b["ntc"] == a["ntc"] and b["t_cost"] == a["t_cost"]
+    assert b["minutes_in_violation"] == a["minutes_in_violation"]
+    assert b["q_cost"] == pytest.approx(a["q_cost"], rel=COST_REL)
+    assert b["total_cost"] == pytest.approx(a["total_cost"], rel=COST_REL)
+    assert a["q_cost"] > 0  # the agent did use the plants
+    rec_a, rec_b = _messages(bus["recording"]), _messages(ss["recording"])
+    q_a = {(d["step_t_ns"], c["plant_id"]): c["q_kvar"] for d in rec_a["cvvc/ieee13/agent/decision"]
+           for c in d["commands"] if "q_kvar" in c}
+    q_b = {(d["step_t_ns"], c["plant_id"]): c["q_kvar"] for d in rec_b["cvvc/ieee13/agent/decision"]
+           for c in d["commands"] if "q_kvar" in c}
+    assert q_a.keys() == q_b.keys() and len(q_a) == 36
+    assert max(abs(q_a[k] - q_b[k]) for k in q_a) <= Q_TOL_KVAR
+
+
+def test_the_plants_frames_and_acks_come_from_the_adapters(both_runs):
+    _, ss = both_runs["sunspec"]
+    rec = _messages(ss["recording"])
+    commands = {c["cmd_id"]: c for d in rec["cvvc/ieee13/agent/decision"] for c in d["commands"] if "q_kvar" in c}
+    truth = rec["cvvc/ieee13/sim/truth"]
+    truth_q = {t["t_ns"]: t["pv_q_kvar"] for t in truth}
+    for k, plant in enumerate(PLANTS):
+        frames = rec[f"cvvc/ieee13/meas/pv/{plant}"]
+        assert len(frames) == ss["steps"] == 60  # one per step: the adapter's, none from the bridge
+        # the 701 registers' values: each phase on the 100 W step, the total within the phases' rounding of the truth
+        assert all(abs(ph["p_kw"] / STEP_KW - round(ph["p_kw"] / STEP_KW)) < 1e-6 for f in frames
+                   for ph in f["phases"])
+        assert all(abs(f["q_kvar"] - truth_q[f["t_ns"]][k]) <= 3 * STEP_KW / 2 + 1e-9 for f in frames)
+        status = rec[f"cvvc/ieee13/link/pv/{plant}"]
+        assert status and all(s["state"] in ("starting", "ok") for s in status) and status[-1]["refused"] == {}
+        acks = rec[f"cvvc/ieee13/ack/pv/{plant}"]
+        answered = [a for a in acks if a["status"] in ("accepted", "clipped", "rejected")]
+        assert len(answered) == sum(c["plant_id"] == plant for c in commands.values())  # one each, the adapter's
+        for a in answered:
+            assert a["status"] == "accepted", a
+            # read back from 704: the request on VarSet's 1 var step; and the simulated plant applied it next step
+            assert a["applied_value"] == pytest.approx(commands[a["cmd_id"]]["q_kvar"], abs=0.0005 + 1e-9)
+            nxt = commands[a["cmd_id"]]["t_ns"] + 60 * 10**9
+            if nxt in truth_q:
+                assert truth_q[nxt][k] == pytest.approx(a["applied_value"], abs=1e-6)
+
+
+@pytest.mark.parametrize(("option", "named"), [
+    (dict(drop_prob=0.1), "--drop-prob"), (dict(noise_scada_pct=1.0), "--noise-scada-pct"),
+    (dict(clock_skew_s=2.0), "--clock-skew-s"), (dict(realtime=True, meas_delay_s=5.0), "--meas-delay-s"),
+    (dict(secure=True), "--secure")])
+def test_options_the_closed_loop_does_not_take_yet_are_refused_before_anything_starts(tmp_path, option, named):
+    from cvvc.launch import LaunchError, RunConfig, run
+
+    config = RunConfig(feeder=str(REPO / "feeders" / "ieee13.toml"), pv_protocol="sunspec", out=str(tmp_path / "o"),
+                       cache=str(tmp_path / "c"), **option)
+    with pytest.raises(LaunchError, match=named):
+        run(config)
+    assert not (tmp_path / "o").exists() and not (tmp_path / "c").exists()  # refused before anything was made
