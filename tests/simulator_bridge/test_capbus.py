@@ -325,9 +325,12 @@ def test_recorded_banks_in_recordings_info_and_the_run_report(client: Client, ro
     assert final.cap_switches_per_bank == {"cap1": 0, "cap2": 1}
     run_dir = tmp_path / "run"
     run_dir.mkdir()
-    (run_dir / "summary.json").write_text(json.dumps({
-        "feeder": str(cap_map), "feeder_id": FEEDER, "case": "local", "start": T0, "recording": str(rec_path),
-        "metrics": msgspec.to_builtins(final)}))
+    from cvvc.launch import RunSummary
+
+    (run_dir / "summary.json").write_bytes(msgspec.json.encode(RunSummary(
+        feeder=str(cap_map), feeder_id=FEEDER, case="local", start=T0, days=summary.steps / 1440.0,
+        steps=summary.steps, wall_s=0.0, metrics=final, baseline=None, lockstep_misses=0, decisions=0,
+        out_dir=str(run_dir), recording=str(rec_path), model=None)))
     trace = read_trace(rec_path, capacitor_ids=("cap1", "cap2"))
     assert trace.cap_states.shape == (summary.steps, 2)
     assert trace.cap_states[0].tolist() == [1, 1] and trace.cap_states[1:, 1].max() == 0
