@@ -165,7 +165,8 @@ def run_campaign(path: str | Path, out: str | Path, *, jobs: int = 1, scheduler:
 
 _SPEC = ["feeder", "feeder_id", "variant", "case", "season", "bandwidth_v120", "start", "days"]
 _RUN = ["status", "attempts", "error", "wall_s", "steps", "decisions", "lockstep_misses"]
-_METRICS = [f.name for f in msgspec.structs.fields(m.MetricsFrame) if f.name not in ("feeder_id", "final", "steps")]
+_HEADER = ("t_ns", "seq", "source", "feeder_id", "final", "steps", "start_t_ns")  # the frame's, or already a column
+_METRICS = [f.name for f in msgspec.structs.fields(m.MetricsFrame) if f.name not in _HEADER]
 
 
 def _cell(value: object) -> object:

@@ -133,6 +133,11 @@ def test_a_campaign_writes_one_tidy_row_per_run_and_each_feeders_tables(campaign
     run's row holds the metrics of its evaluation's results.json, whose results.md is beside."""
     out, _ = campaign_out
     rows = _rows(out)
+    assert list(rows[0]) == [
+        "feeder", "feeder_id", "variant", "case", "season", "bandwidth_v120", "start", "days", "status", "attempts",
+        "error", "wall_s", "steps", "decisions", "lockstep_misses", "mvvm_pu", "nvv", "minutes_in_violation", "ntc",
+        "q_cost", "t_cost", "total_cost", "v_min_pu", "v_max_pu", "taps_changes", "q_mvar_intervals", "cap_switches",
+        "cap_cost", "cap_switches_per_bank"]
     assert [(r["feeder"], r["feeder_id"], r["variant"], r["case"], r["season"], r["start"], r["status"])
             for r in rows] == [("ieee13", "ieee13", "lost-model", "none", "winter", "2023-01-01", "ok"),
                                ("ieee13", "ieee13", "lost-model", "D", "winter", "2023-01-01", "failed"),
