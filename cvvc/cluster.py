@@ -14,7 +14,9 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import signal
 import socket
+import sys
 import uuid
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
@@ -25,7 +27,7 @@ from schemas.errors import CvvcError
 if TYPE_CHECKING:
     from distributed import Client
 
-__all__ = ["ClusterError", "Outcome", "Task", "check_scheduler", "dask_client", "run_tasks"]
+__all__ = ["ClusterError", "Outcome", "Task", "check_scheduler", "dask_client", "run_tasks", "stop_children"]
 
 
 class ClusterError(CvvcError):
@@ -75,13 +77,52 @@ def dask_client(jobs: int, scheduler: str | None = None, *, timeout_s: float = 6
             _wait_for_a_worker(client, scheduler, timeout_s)
             yield client
         return
+    # memory_limit=0: no pause or restart of a worker by its memory; a run's memory is in the processes it starts
+    # (bridge, agent, recorder), which the worker's monitor does not see, and a restarted worker would orphan them
     cluster = LocalCluster(n_workers=jobs, threads_per_worker=1, processes=True, host="127.0.0.1",
-                           dashboard_address=None, protocol="tcp")
+                           dashboard_address=None, protocol="tcp", memory_limit=0)
     try:
         with Client(cluster, set_as_default=False) as client:
-            yield client
+            try:
+                yield client
+            finally:  # interrupted or failed with runs still going: stop their processes before the workers go
+                _stop_worker_children(client)
     finally:
         cluster.close()
+
+
+def _stop_worker_children(client: Client) -> None:
+    """Stop what the local workers started (a run's bridge, agent and recorder) before the cluster is closed.
+
+    Closing a cluster kills a busy worker after a few seconds, before the run's own cleanup (``cvvc.launch``
+    stops its processes by pid) could finish: without this, those processes would outlive ``cvvc evaluate``.
+    """
+    try:
+        stopped = client.run(stop_children)
+    except Exception as e:  # workers already gone (killed, or Ctrl-C reached them): nothing left to ask
+        logging.getLogger(__name__).debug("could not ask the workers to stop their processes: %s", e)
+        return
+    if any(stopped.values()):
+        print(f"[cvvc evaluate] stopped {sum(stopped.values())} process(es) of unfinished runs", file=sys.stderr,
+              flush=True)
+
+
+def stop_children(timeout_s: float = 15.0) -> int:
+    """On a worker: stop every process it started, and theirs, by pid: SIGINT, then SIGKILL after ``timeout_s``.
+
+    Returns how many there were.
+    """
+    import psutil
+
+    children = psutil.Process().children(recursive=True)
+    for child in children:
+        with contextlib.suppress(psutil.NoSuchProcess):
+            child.send_signal(signal.SIGINT)
+    _, alive = psutil.wait_procs(children, timeout=timeout_s)
+    for child in alive:
+        with contextlib.suppress(psutil.NoSuchProcess):
+            child.kill()
+    return len(children)
 
 
 def check_scheduler(scheduler: str) -> None:

@@ -70,3 +70,28 @@ def test_bad_cluster_arguments_are_clear_errors():
     with pytest.raises(ClusterError, match="give the scheduler's address as tcp://HOST:PORT"):
         with dask_client(1, "127.0.0.1:8786"):
             pass
+
+
+def _start_a_child() -> int:
+    """Task: start a long-lived process, as a run starts its bridge, and return without stopping it."""
+    import subprocess
+
+    return subprocess.Popen(["sleep", "120"]).pid
+
+
+def test_the_processes_of_unfinished_runs_are_stopped_on_the_workers(dask_scheduler):
+    """What ``dask_client`` does before closing its local cluster: each worker stops what it started, by pid."""
+    import psutil
+    from distributed import Client
+
+    from cvvc.cluster import stop_children
+
+    with Client(dask_scheduler, set_as_default=False) as client:
+        pid = client.submit(_start_a_child, pure=False).result(timeout=60)
+        assert psutil.Process(pid).status() != psutil.STATUS_ZOMBIE
+        stopped = client.run(stop_children, timeout_s=10.0)
+    assert sum(stopped.values()) >= 1
+    try:
+        assert psutil.Process(pid).status() == psutil.STATUS_ZOMBIE  # ended, not yet reaped by its worker
+    except psutil.NoSuchProcess:
+        pass
