@@ -12,7 +12,8 @@ def dask_scheduler() -> Iterator[str]:
     """A LocalCluster of two worker processes on loopback, as ``cvvc evaluate`` starts one; yields its address.
 
     Started once per session (about 4 s) and handed to evaluations as ``scheduler=``; the tests of the cluster
-    itself (tests/cvvc/test_campaign.py, the small evaluation of test_evaluate.py) start their own.
+    itself (the user cluster of tests/cvvc/test_campaign.py, the small evaluation of test_evaluate.py) start
+    their own.
     """
     from distributed import LocalCluster
 

@@ -1,4 +1,4 @@
-"""``cvvc evaluate`` on Dask: a running scheduler with workers as separate processes, and campaign files."""
+"""``cvvc evaluate`` on Dask: campaign files, run on a scheduler and two workers started as separate processes."""
 
 from __future__ import annotations
 
@@ -49,22 +49,22 @@ def _worker_pids(address: str, n: int, timeout_s: float) -> set[int]:
         return set(client.run(os.getpid).values())
 
 
-def test_a_running_scheduler_with_two_worker_processes_runs_the_evaluation(tmp_path, profile_cache):
-    """``dask scheduler`` and two ``dask worker`` processes on loopback, as a user starts them; the evaluation's
-    runs execute in those workers and land in the same tables."""
+@pytest.fixture(scope="module")
+def user_cluster(tmp_path_factory):
+    """``dask scheduler`` and two ``dask worker`` processes on loopback, as a user starts them (free ports, waits
+    with deadlines, stopped by pid); yields the scheduler's address, the workers' pids and the processes."""
     from schemas.bus import free_port
 
     port, http = free_port(), free_port()
     address = f"tcp://127.0.0.1:{port}"
     env = dict(os.environ, PYTHONPATH=str(REPO))
-    logs = tmp_path / "logs"
-    logs.mkdir()
+    logs = tmp_path_factory.mktemp("dask-logs")
     procs: list[subprocess.Popen] = []
 
     def start(name: str, args: list[str]) -> None:
         with open(logs / f"{name}.log", "wb") as log:
             procs.append(subprocess.Popen([sys.executable, "-m", "dask", *args], env=env, stdout=subprocess.DEVNULL,
-                                          stderr=log, stdin=subprocess.DEVNULL, cwd=tmp_path))
+                                          stderr=log, stdin=subprocess.DEVNULL, cwd=logs))
 
     try:
         start("scheduler", ["scheduler", "--host", "127.0.0.1", "--port", str(port), "--no-dashboard",
@@ -72,20 +72,10 @@ def test_a_running_scheduler_with_two_worker_processes_runs_the_evaluation(tmp_p
         for i in range(2):
             start(f"worker{i}", ["worker", address, "--host", "127.0.0.1", "--no-dashboard", "--nthreads", "1",
                                  "--no-nanny", "--name", f"w{i}"])
-        pids = _worker_pids(address, 2, 90.0)
-        out = tmp_path / "out"
-        ev = evaluate(EvaluateConfig(feeder=str(IEEE13), cases=("none", "local"), seasons=("winter",),
-                                     days_per_season=0.02, out=str(out), cache=str(profile_cache.parent),
-                                     progress=False, scheduler=address))
-        assert all(p.poll() is None for p in procs), "the cluster must outlive the evaluation (it is the user's)"
+        yield address, _worker_pids(address, 2, 90.0), procs
     finally:
         for p in reversed(procs):
             _stop(p)
-    assert [(r.spec.case, r.steps) for r in ev.runs] == [("none", 29), ("local", 29)] and not ev.failures
-    ran_in = {int(line.split(" pid ")[1].split()[0]) for r in ev.runs
-              for line in (Path(r.out_dir) / "attempts.txt").read_text().splitlines()}
-    assert ran_in <= pids and os.getpid() not in ran_in
-    assert f"Dask cluster at {address}" in (out / "results.md").read_text()
 
 
 def test_no_scheduler_at_the_address_is_a_clear_error(tmp_path):
@@ -102,10 +92,11 @@ def _write_campaign(path: Path, text: str) -> Path:
 
 
 @pytest.fixture(scope="module")
-def campaign_out(tmp_path_factory, profile_cache, dask_scheduler):
+def campaign_out(tmp_path_factory, profile_cache, user_cluster):
     """IEEE 13 and a device map that does not load, cases none and D, one variant whose model file is missing:
     IEEE 13's case none finishes, its case D fails in the worker (twice: retried once), the bad map's runs are
-    reported as not prepared. Returns the output folder and the campaign's error."""
+    reported as not prepared. Runs on the user's cluster (a scheduler and two workers as separate processes).
+    Returns the output folder and the campaign's error."""
     folder = tmp_path_factory.mktemp("campaign")
     (folder / "bad.toml").write_text('[feeder]\nname = "bad"\nmaster = "no-such-master.dss"\n')
     campaign = _write_campaign(folder / "c.toml", f'''
@@ -119,8 +110,20 @@ model = "no-such-model.json"
 ''')
     out = folder / "out"
     with pytest.raises(EvaluateError) as err:
-        run_campaign(campaign, out, scheduler=dask_scheduler, cache=str(profile_cache.parent), progress=False)
+        run_campaign(campaign, out, scheduler=user_cluster[0], cache=str(profile_cache.parent), progress=False)
     return out, str(err.value)
+
+
+def test_a_running_scheduler_with_two_worker_processes_runs_the_campaign(campaign_out, user_cluster):
+    """Every attempt of every run executed in one of the user's worker processes, which outlive the campaign
+    (the cluster is the user's); the tables name the cluster."""
+    out, _ = campaign_out
+    address, pids, procs = user_cluster
+    attempts = sorted((out / "ieee13" / "lost-model").glob("*/attempts.txt"))
+    ran_in = [int(line.split(" pid ")[1].split()[0]) for f in attempts for line in f.read_text().splitlines()]
+    assert len(ran_in) == 3 and set(ran_in) <= pids  # none once, D twice (retried)
+    assert all(p.poll() is None for p in procs)
+    assert f"Dask cluster at {address}" in (out / "ieee13" / "lost-model" / "results.md").read_text()
 
 
 def _rows(out: Path) -> list[dict[str, str]]:
