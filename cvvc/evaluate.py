@@ -3,7 +3,11 @@
 Each (case, season, bandwidth) is one :func:`cvvc.launch.run`: bridge, agent and recorder as separate processes in
 lockstep, one month per season at 1-minute resolution (paper IV: January, April, July, October, see
 ``simulator_bridge.profiles.season_month``), on the evaluation year (``year_seed``, 2 by default) while the model
-was trained on another year (``train_seed``, 1). Independent runs go to a process pool (spawn context).
+was trained on another year (``train_seed``, 1). Each run is a task on dask.distributed (``cvvc.cluster``): a
+``LocalCluster`` of ``jobs`` worker processes on loopback, or a running cluster (``scheduler``); the feeder, the
+model and the year profiles are built once here and the runs read them by path from the cache. A run that raises is
+retried once, then reported (``RunFailure``) while the others go on. ``cvvc.campaign`` runs many evaluations
+(feeders x variants) as tasks of one cluster.
 
 Outputs in ``--out``: one folder per run (``summary.json``, ``session.mcap`` ...), ``results.json`` (every run's
 metrics and summary) and ``results.md`` with the paper's Table II/III layout (Season | Case | MVVM | NVV | NTC |
@@ -22,19 +26,22 @@ simulated feeder's line lengths, hence impedances, and load kW each scaled by a 
 from __future__ import annotations
 
 import calendar
-import concurrent.futures as cf
 import datetime as dt
 import json
-import multiprocessing
+import os
 import re
+import socket
 import sys
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
 import msgspec
 import numpy as np
 
+from cvvc.cluster import ClusterError, Outcome, Task, check_scheduler, dask_client, run_tasks
+from cvvc.evaluate_tables import render_results_md
 from cvvc.launch import CASES, Case, LaunchError, RunConfig, RunSummary
 from cvvc.reference import REFERENCE_CASE, ReferenceConfig
 from schemas import messages as m
@@ -48,15 +55,20 @@ __all__ = [
     "EvaluateConfig",
     "EvaluateError",
     "Evaluation",
+    "PreparedEvaluation",
     "RunFailure",
     "RunResult",
     "RunSpec",
     "evaluate",
+    "finish",
     "parse_cases",
     "parse_seasons",
     "perturbed_device_map",
+    "prepare_evaluation",
     "render_results_md",
+    "run_prepared",
     "season_window",
+    "write_results",
 ]
 
 #: Every case ``--cases`` accepts: the bus runs (``cvvc.launch.CASES``) and OpenDSS's own loop (``opendss``).
@@ -67,14 +79,6 @@ SEASONS: tuple[Season, ...] = ("winter", "spring", "summer", "fall")
 EVALUATION_YEAR = 2023  # the calendar year of the generated profiles (``make_profiles`` default)
 Variant = Literal["nominal", "noise-pmu", "noise-scada", "drop-1", "drop-5", "model-error"]
 ROBUSTNESS_VARIANTS: tuple[Variant, ...] = ("nominal", "noise-pmu", "noise-scada", "drop-1", "drop-5", "model-error")
-_VARIANT_LABEL = {
-    "nominal": "nominal (no noise, no drops, exact model)",
-    "noise-pmu": "PMU-class noise 0.1 % (feeder head)",
-    "noise-scada": "SCADA-class noise 1 % (PV plants, regulators)",
-    "drop-1": "1 % of measurement frames dropped",
-    "drop-5": "5 % of measurement frames dropped",
-    "model-error": "model error: line impedances and loads x U(0.9, 1.1)",
-}
 
 
 class EvaluateError(LaunchError):
@@ -92,7 +96,8 @@ class EvaluateConfig(msgspec.Struct, frozen=True, kw_only=True):
     year_seed: int = 2
     train_seed: int = 1
     days_per_season: float | None = None  # None: the whole month
-    jobs: int = 1
+    jobs: int = 1  # the local Dask cluster's worker processes (runs at a time); unused with ``scheduler``
+    scheduler: str | None = None  # a running Dask scheduler (tcp://HOST:PORT) instead of a local cluster
     out: str = "runs/evaluate"
     cache: str | None = None  # cache root; None: schemas.cache.default_cache_root()
     robustness: bool = False
@@ -143,6 +148,7 @@ class RunResult(msgspec.Struct, frozen=True, kw_only=True):
     lockstep_misses: int
     out_dir: str
     recording: str | None
+    attempts: int = 1  # how many times the run was started (a failed attempt is retried once)
 
 
 class RunFailure(msgspec.Struct, frozen=True, kw_only=True):
@@ -151,6 +157,7 @@ class RunFailure(msgspec.Struct, frozen=True, kw_only=True):
     spec: RunSpec
     error: str
     out_dir: str
+    attempts: int = 1  # how many times the run was started (a failed run is retried once)
 
 
 class Evaluation(msgspec.Struct, frozen=True, kw_only=True):
@@ -283,7 +290,7 @@ def perturbed_device_map(dm_path: Path, out_dir: Path, *, pct: float, seed: int)
 def _run_config(spec: RunSpec, config: EvaluateConfig, dm_path: Path, model: Path, out: Path,
                 perturbed: Path | None) -> RunConfig:
     case = _BUS_CASES.get(spec.case)
-    if case is None:  # the reference case is not a bus run (_submit runs it apart)
+    if case is None:  # the reference case is not a bus run (PreparedEvaluation.tasks runs it apart)
         raise EvaluateError(f"{spec.name}: case {spec.case!r} is not a bus run")
     return RunConfig(
         feeder=str(perturbed if spec.variant == "model-error" else dm_path), model=str(model), days=spec.days,
@@ -298,32 +305,45 @@ def _run_config(spec: RunSpec, config: EvaluateConfig, dm_path: Path, model: Pat
         check_model_fingerprint=spec.variant != "model-error")
 
 
+ATTEMPTS_FILE = "attempts.txt"  # in a run's folder: one line per start of the run (a failed run is retried once)
+
+
+def _note_attempt(run_dir: Path) -> None:
+    """Append a line to the run folder's attempts file: this run started once more (on which host, which pid)."""
+    run_dir.mkdir(parents=True, exist_ok=True)
+    stamp = dt.datetime.now(dt.UTC).isoformat(timespec="seconds")
+    with open(run_dir / ATTEMPTS_FILE, "a") as f:
+        f.write(f"{stamp} pid {os.getpid()} on {socket.gethostname()}\n")
+
+
+def _attempts(run_dir: Path) -> int:
+    try:
+        return len((run_dir / ATTEMPTS_FILE).read_text().splitlines())
+    except OSError:
+        return 0
+
+
 def _run_one(spec: RunSpec, run_config: RunConfig) -> RunResult:
-    """Worker: one run through the real bus (a fresh spawned interpreter runs this)."""
+    """Task: one run through the real bus (on a Dask worker: its own process, one thread)."""
     from cvvc.launch import run
 
+    _note_attempt(Path(str(run_config.out)))
     s = run(run_config)
     return RunResult(spec=spec, metrics=s.metrics, wall_s=s.wall_s, steps=s.steps, decisions=s.decisions,
                      lockstep_misses=s.lockstep_misses, out_dir=s.out_dir, recording=s.recording)
 
 
 def _run_reference(spec: RunSpec, config: EvaluateConfig, dm_path: Path, out: Path) -> RunResult:
-    """Worker: the ``opendss`` reference case (OpenDSS's own control loop, no bus) on the spec's window."""
+    """Task: the ``opendss`` reference case (OpenDSS's own control loop, no bus) on the spec's window."""
     from cvvc.reference import run_reference
     from schemas.cache import profiles_dir
 
+    _note_attempt(out / spec.name)
     s = run_reference(ReferenceConfig(feeder=str(dm_path), start=spec.start, days=spec.days,
                                       year_seed=config.year_seed, cache=str(profiles_dir(config.cache)),
                                       out=str(out / spec.name), step_s=config.reference_step_s))
     return RunResult(spec=spec, metrics=s.metrics, wall_s=s.wall_s, steps=s.steps, decisions=0, lockstep_misses=0,
                      out_dir=s.out_dir, recording=None)
-
-
-def _submit(pool: cf.Executor, spec: RunSpec, config: EvaluateConfig, dm_path: Path, model: Path, out: Path,
-            perturbed: Path | None) -> cf.Future:
-    if spec.case == REFERENCE_CASE:
-        return pool.submit(_run_reference, spec, config, dm_path, out)
-    return pool.submit(_run_one, spec, _run_config(spec, config, dm_path, model, out, perturbed))
 
 
 def _finished(spec: RunSpec, run_dir: Path) -> RunResult | None:
@@ -342,20 +362,77 @@ def _finished(spec: RunSpec, run_dir: Path) -> RunResult | None:
                      lockstep_misses=s.lockstep_misses, out_dir=s.out_dir, recording=s.recording)
 
 
+@dataclass
+class PreparedEvaluation:
+    """An evaluation ready to run: the feeder, model and year profiles built once, the runs still to do.
+
+    Filled as its runs finish (:meth:`record`); :meth:`snapshot` is the :class:`Evaluation` so far.
+    """
+
+    config: EvaluateConfig
+    dm_path: Path
+    model: Path
+    feeder_id: str
+    control_period_s: int
+    perturbed: Path | None
+    specs: list[RunSpec]
+    todo: list[RunSpec]
+    t0: float
+    label: str = ""  # prefixes the log lines (a campaign names the feeder and variant)
+    results: list[RunResult] = field(default_factory=list)
+    failures: list[RunFailure] = field(default_factory=list)
+
+    @property
+    def out(self) -> Path:
+        """The evaluation's output folder (``config.out``)."""
+        return Path(self.config.out)
+
+    def tasks(self) -> list[Task]:
+        """One task per run still to do, case A first (:func:`longest_first`)."""
+        tasks = []
+        for spec in longest_first(self.todo):
+            label, tag = f"{self.label}{spec.name}", (self, spec)
+            if spec.case == REFERENCE_CASE:
+                tasks.append(Task(label=label, fn=_run_reference, args=(spec, self.config, self.dm_path, self.out),
+                                  tag=tag))
+            else:
+                rc = _run_config(spec, self.config, self.dm_path, self.model, self.out, self.perturbed)
+                tasks.append(Task(label=label, fn=_run_one, args=(spec, rc), tag=tag))
+        return tasks
+
+    def record(self, spec: RunSpec, outcome: Outcome, count: str = "") -> None:
+        """Keep a finished run's result or failure, log one line, and rewrite results.json/results.md."""
+        run_dir = self.out / spec.name
+        if outcome.error is None:
+            r: RunResult = msgspec.structs.replace(outcome.result, attempts=max(1, _attempts(run_dir)))
+            self.results.append(r)
+            mt = r.metrics
+            _log(f"{count}{self.label}{spec.name}: NVV {mt.nvv}, NTC {mt.ntc}, total cost {mt.total_cost:.1f} "
+                 f"({r.wall_s:.0f} s)")
+        else:
+            e = outcome.error
+            error = str(e) if isinstance(e, CvvcError) else f"{type(e).__name__}: {e}"
+            tries = _attempts(run_dir)
+            self.failures.append(RunFailure(spec=spec, error=error, out_dir=str(run_dir), attempts=tries))
+            _log(f"{count}{self.label}{spec.name}: FAILED after {tries} attempt(s) (logs in {run_dir}): {error}")
+        _write(self.out, self.snapshot())
+
+    def snapshot(self) -> Evaluation:
+        """The evaluation so far: the finished runs and the failures in plan order, the wall time since prepared."""
+        order = {s.name: i for i, s in enumerate(self.specs)}
+        return Evaluation(config=self.config, feeder_id=self.feeder_id, feeder=str(self.dm_path),
+                          model=str(self.model), control_period_s=self.control_period_s,
+                          runs=tuple(sorted(self.results, key=lambda r: order[r.spec.name])),
+                          wall_s=round(time.monotonic() - self.t0, 1),
+                          failures=tuple(sorted(self.failures, key=lambda f: order[f.spec.name])))
+
+
 def _write(out: Path, ev: Evaluation) -> None:
     (out / "results.json").write_bytes(msgspec.json.format(msgspec.json.encode(ev), indent=2))
     (out / "results.md").write_text(render_results_md(ev))
 
 
-def evaluate(config: EvaluateConfig) -> Evaluation:
-    """Run every planned run (see the module docstring) and write ``results.json`` and ``results.md``.
-
-    A run that fails does not stop the others: the results of the finished runs are written (after every
-    run, so a long evaluation can be watched), the failures listed, and then :class:`EvaluateError` raised.
-    """
-    from cvvc.launch import prepare_feeder_and_model
-    from schemas.devicemap import load_device_map
-
+def _check(config: EvaluateConfig) -> None:
     for c in config.cases:
         if c not in EVALUATE_CASES:
             raise EvaluateError(f"unknown case {c!r}; choose from {','.join(EVALUATE_CASES)}")
@@ -370,12 +447,48 @@ def evaluate(config: EvaluateConfig) -> Evaluation:
             raise EvaluateError(f"unknown season {s!r}; choose from {','.join(SEASONS)}")
     if config.jobs < 1:
         raise EvaluateError(f"--jobs {config.jobs} must be at least 1")
+    if config.scheduler is not None:  # before any training: a wrong address is told at once
+        try:
+            check_scheduler(config.scheduler)
+        except ClusterError as e:
+            raise EvaluateError(str(e)) from e
+
+
+def _ensure_year_profiles(dm_paths: list[Path], config: EvaluateConfig) -> None:
+    """The evaluation year's profiles of each map, made once here into the shared cache (the runs read them)."""
+    from schemas.cache import profiles_dir
+    from schemas.devicemap import load_device_map
+    from simulator_bridge.engine import FeederEngine
+    from simulator_bridge.profiles import feeder_profiles, profiles_cache_path
+
+    cache = profiles_dir(config.cache)
+    for path in dm_paths:
+        dm = load_device_map(path)
+        if profiles_cache_path(dm, config.year_seed, cache).is_file():
+            continue
+        engine = FeederEngine(dm)
+        try:
+            feeder_profiles(dm, engine, seed=config.year_seed, cache_dir=cache)
+        finally:
+            engine.close()
+
+
+def prepare_evaluation(config: EvaluateConfig, label: str = "") -> PreparedEvaluation:
+    """Check ``config``, plan its runs, and build once (in this process) what every run needs.
+
+    The device map, the trained model (cached) and the evaluation year's profiles (cached) are made here, so
+    parallel runs never train or generate the same thing twice; the runs get them by path. With ``resume``, runs
+    already finished in the output folder are kept and not planned again.
+    """
+    from cvvc.launch import prepare_feeder_and_model
+    from schemas.devicemap import load_device_map
+
+    _check(config)
     specs = plan_runs(config)
     t0 = time.monotonic()
     out = Path(config.out)
     out.mkdir(parents=True, exist_ok=True)
-    # the feeder and model once, here, so parallel runs never train the same model twice; none when no case runs
-    # an agent (none, local, opendss: e.g. epri-ckt5, which has no regulator to train for)
+    # no model when no case runs an agent (none, local, opendss: e.g. epri-ckt5, which has no regulator to train for)
     agent_case = any(c not in ("none", "local", REFERENCE_CASE) for c in config.cases)
     dm_path, model = prepare_feeder_and_model(RunConfig(feeder=config.feeder, model=config.model,
                                                         train_seed=config.train_seed, cache=config.cache,
@@ -386,136 +499,77 @@ def evaluate(config: EvaluateConfig) -> Evaluation:
     if config.robustness:
         perturbed = perturbed_device_map(dm_path, out / "model-error-feeder", pct=config.perturbation_pct,
                                          seed=config.perturbation_seed)
-    _log(f"{len(specs)} run(s) of {dm.feeder.name}, {config.jobs} at a time; output in {out}")
-    results: list[RunResult] = []
-    failures: list[RunFailure] = []
-    order = {s.name: i for i, s in enumerate(specs)}
-
-    def snapshot() -> Evaluation:
-        return Evaluation(config=config, feeder_id=dm.feeder.name, feeder=str(dm_path), model=str(model),
-                          control_period_s=dm.feeder.control_period_s,
-                          runs=tuple(sorted(results, key=lambda r: order[r.spec.name])),
-                          wall_s=round(time.monotonic() - t0, 1),
-                          failures=tuple(sorted(failures, key=lambda f: order[f.spec.name])))
-
-    todo = []
+    _ensure_year_profiles([dm_path] + ([perturbed] if perturbed else []), config)
+    prep = PreparedEvaluation(config=config, dm_path=dm_path, model=model, feeder_id=dm.feeder.name,
+                              control_period_s=dm.feeder.control_period_s, perturbed=perturbed, specs=specs,
+                              todo=[], t0=t0, label=label)
     for spec in specs:
         done = _finished(spec, out / spec.name) if config.resume else None
         if done is not None:
-            _log(f"{spec.name}: reusing the finished run in {out / spec.name} (--resume)")
-            results.append(done)
+            _log(f"{label}{spec.name}: reusing the finished run in {out / spec.name} (--resume)")
+            prep.results.append(done)
         else:
-            todo.append(spec)
-    todo = longest_first(todo)
-    ctx = multiprocessing.get_context("spawn")
-    with cf.ProcessPoolExecutor(max_workers=config.jobs, mp_context=ctx) as pool:
-        futures = {_submit(pool, spec, config, dm_path, model, out, perturbed): spec for spec in todo}
-        try:
-            for fut in cf.as_completed(futures):
-                spec = futures[fut]
-                try:
-                    r = fut.result()
-                except CvvcError as e:
-                    _log(f"{spec.name}: FAILED (logs in {out / spec.name}): {e}")
-                    failures.append(RunFailure(spec=spec, error=str(e), out_dir=str(out / spec.name)))
-                else:
-                    mt = r.metrics
-                    _log(f"{spec.name}: NVV {mt.nvv}, NTC {mt.ntc}, total cost {mt.total_cost:.1f} "
-                         f"({r.wall_s:.0f} s)")
-                    results.append(r)
-                _write(out, snapshot())
-        except BaseException:
-            for f in futures:
-                f.cancel()
-            raise
-    evaluation = snapshot()
-    _write(out, evaluation)
-    if failures:
+            (out / spec.name / ATTEMPTS_FILE).unlink(missing_ok=True)  # count this evaluation's attempts only
+            prep.todo.append(spec)
+    return prep
+
+
+def run_prepared(preps: list[PreparedEvaluation], config: EvaluateConfig) -> None:
+    """Run every prepared evaluation's runs as tasks of one Dask cluster (``config.jobs``, ``config.scheduler``).
+
+    Case A's runs start first over all evaluations; each finished run is logged and written at once.
+    """
+    tasks = sorted((t for p in preps for t in p.tasks()), key=lambda t: t.tag[1].case != "A")
+    if not tasks:
+        return
+    where = (f"the Dask cluster at {config.scheduler}" if config.scheduler
+             else f"a local Dask cluster of {config.jobs} worker(s)")
+    _log(f"{len(tasks)} run(s) on {where}")
+    done = 0
+
+    def on_done(outcome: Outcome) -> None:
+        nonlocal done
+        done += 1
+        prep, spec = outcome.task.tag
+        prep.record(spec, outcome, f"[{done}/{len(tasks)}] ")
+
+    try:
+        with dask_client(config.jobs, config.scheduler) as client:
+            run_tasks(client, tasks, on_done)
+    except ClusterError as e:
+        raise EvaluateError(str(e)) from e
+
+
+def evaluate(config: EvaluateConfig) -> Evaluation:
+    """Run every planned run (see the module docstring) and write ``results.json`` and ``results.md``.
+
+    A run that fails (after one retry) does not stop the others: the results of the finished runs are written
+    (after every run, so a long evaluation can be watched), the failures listed, and then :class:`EvaluateError`
+    raised.
+    """
+    prep = prepare_evaluation(config)
+    _log(f"{len(prep.specs)} run(s) of {prep.feeder_id}; output in {prep.out}")
+    run_prepared([prep], config)
+    return finish(prep)
+
+
+def write_results(prep: PreparedEvaluation) -> Evaluation:
+    """The evaluation as it stands, written to ``results.json`` and ``results.md`` in its folder."""
+    evaluation = prep.snapshot()
+    _write(prep.out, evaluation)
+    return evaluation
+
+
+def finish(prep: PreparedEvaluation) -> Evaluation:
+    """Write the evaluation's final results; :class:`EvaluateError` if a run failed."""
+    evaluation = write_results(prep)
+    if evaluation.failures:
         names = ", ".join(f.spec.name for f in evaluation.failures)
-        raise EvaluateError(f"{len(failures)} of {len(specs)} run(s) failed ({names}); the others are in "
-                            f"{out / 'results.md'}; see each failed run's folder for its logs, fix, then rerun "
-                            "with --resume to run only what is missing")
+        raise EvaluateError(f"{len(evaluation.failures)} of {len(prep.specs)} run(s) failed ({names}); the others "
+                            f"are in {prep.out / 'results.md'}; see each failed run's folder for its logs, fix, "
+                            "then rerun with --resume to run only what is missing")
     return evaluation
 
 
 def _log(msg: str) -> None:
     print(f"[cvvc evaluate] {msg}", file=sys.stderr, flush=True)
-
-
-# ---------------------------------------------------------------------------------------------------
-# Tables
-# ---------------------------------------------------------------------------------------------------
-
-
-def kvarh_from_mvar_intervals(q_mvar_intervals: float, control_period_s: float) -> float:
-    """Reactive energy [kvarh] from the metrics' ``sum |Q| [Mvar] x control intervals`` (paper Table IV unit)."""
-    return q_mvar_intervals * 1000.0 * control_period_s / 3600.0
-
-
-def _row_label(r: RunResult, robust: bool, bands: bool) -> list[str]:
-    case = r.spec.case
-    if bands and case in ("C", "D"):
-        case = f"{case} ({r.spec.bandwidth_v120:g} V)"
-    cells = [r.spec.season, case]
-    if robust:
-        cells.append(_VARIANT_LABEL[r.spec.variant])
-    return cells
-
-
-def render_results_md(ev: Evaluation) -> str:
-    """The evaluation as markdown: Table II/III layout, Table IV (PV reactive energy), Table V (tap changes)."""
-    robust = ev.config.robustness
-    bands = len(ev.config.bandwidths_v120) > 1
-    head = ["Season", "Case"] + (["Variant"] if robust else [])
-    days = sorted({r.spec.days for r in ev.runs})
-    cap_ids = sorted({k for r in ev.runs for k in r.metrics.cap_switches_per_bank})
-    cap_head = ["Cap sw", "Cap Cost"] if cap_ids else []  # feeders with capacitor banks in the device map
-    lines = [f"# cvvc evaluate: {ev.feeder_id}", "",
-             f"Evaluation year seed {ev.config.year_seed}, model trained on year seed {ev.config.train_seed}; "
-             f"{', '.join(f'{d:g}' for d in days)} day(s) per season from the first of the season's month; "
-             f"{len(ev.runs)} runs in {ev.wall_s:.0f} s wall time (jobs={ev.config.jobs})."
-             + (f" Case {REFERENCE_CASE}: OpenDSS's own control loop at {ev.config.reference_step_s:g} s steps on "
-                "the same loads and PV (unity power factor), not through the bus."
-                if any(r.spec.case == REFERENCE_CASE for r in ev.runs) else ""), "",
-             "## Voltage violations and costs (paper Tables II/III layout)", "",
-             "| " + " | ".join(head + ["MVVM [pu]", "NVV", "NTC"] + cap_head[:1] + ["Q Cost", "T Cost"] + cap_head[1:]
-                               + ["Total", "wall [s]"]) + " |",
-             "|" + "---|" * (len(head) + 7 + len(cap_head))]
-    for r in ev.runs:
-        mt = r.metrics
-        cap_sw = [str(mt.cap_switches)] if cap_ids else []
-        cap_cost = [f"{mt.cap_cost:.2f}"] if cap_ids else []
-        lines.append("| " + " | ".join(_row_label(r, robust, bands) + [
-            f"{mt.mvvm_pu:.4f}", str(mt.nvv), str(mt.ntc)] + cap_sw + [f"{mt.q_cost:.1f}",
-            f"{mt.t_cost:.2f}"] + cap_cost + [f"{mt.total_cost:.1f}", f"{r.wall_s:.0f}"]) + " |")
-    pv_ids = sorted({k for r in ev.runs for k in r.metrics.q_mvar_intervals})
-    lines += ["", "## Reactive energy per PV plant (paper Table IV)", "",
-              f"Sum of |Q| over the window in Mvar x control intervals ({ev.control_period_s} s), and in kvarh.", "",
-              "| " + " | ".join(head + [f"{p} [Mvar·int]" for p in pv_ids] + [f"{p} [kvarh]" for p in pv_ids]) + " |",
-              "|" + "---|" * (len(head) + 2 * len(pv_ids))]
-    for r in ev.runs:
-        q = r.metrics.q_mvar_intervals
-        vals = [float(q.get(p, 0.0)) for p in pv_ids]
-        lines.append("| " + " | ".join(_row_label(r, robust, bands) + [f"{v:.1f}" for v in vals] + [
-            f"{kvarh_from_mvar_intervals(v, ev.control_period_s):.0f}" for v in vals]) + " |")
-    reg_ids = sorted({k for r in ev.runs for k in r.metrics.taps_changes})
-    lines += ["", "## Tap changes per regulator (paper Table V)", "",
-              "| " + " | ".join(head + reg_ids + ["total"]) + " |", "|" + "---|" * (len(head) + len(reg_ids) + 1)]
-    for r in ev.runs:
-        t = r.metrics.taps_changes
-        lines.append("| " + " | ".join(_row_label(r, robust, bands) + [str(t.get(g, 0)) for g in reg_ids]
-                                       + [str(r.metrics.ntc)]) + " |")
-    if cap_ids:
-        lines += ["", "## Capacitor switchings per bank", "",
-                  "Switching operations (one per step of a bank opened or closed), local control and commands.", "",
-                  "| " + " | ".join(head + cap_ids + ["total"]) + " |", "|" + "---|" * (len(head) + len(cap_ids) + 1)]
-        for r in ev.runs:
-            sw = r.metrics.cap_switches_per_bank
-            lines.append("| " + " | ".join(_row_label(r, robust, bands) + [str(sw.get(c, 0)) for c in cap_ids]
-                                           + [str(r.metrics.cap_switches)]) + " |")
-    if ev.failures:
-        lines += ["", "## Failed runs", ""]
-        lines += [f"- {f.spec.name}: {f.error.splitlines()[0] if f.error else '?'} (logs in `{f.out_dir}`)"
-                  for f in ev.failures]
-    lines.append("")
-    return "\n".join(lines)

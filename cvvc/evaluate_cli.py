@@ -28,7 +28,14 @@ def register_evaluate(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--train-seed", type=int, default=1, help="profile year of the training (default 1)")
     p.add_argument("--days-per-season", type=float, default=None,
                    help="days from the first of each season's month (default: the whole month)")
-    p.add_argument("--jobs", type=int, default=1, help="runs at a time, each in its own process (default 1)")
+    p.add_argument("--jobs", type=int, default=1,
+                   help="runs at a time: the worker processes of the local Dask cluster (default 1)")
+    p.add_argument("--scheduler", default=None,
+                   help="a running Dask scheduler (tcp://HOST:PORT) to run on instead of a local cluster; its "
+                        "workers must see the cache and --out at the same paths")
+    p.add_argument("--campaign", default=None,
+                   help="a campaign file (TOML: feeders x cases x seasons x variants, docs/results.md): writes "
+                        "campaign.csv and each feeder's and variant's results.md in --out")
     p.add_argument("--reference-step-s", type=float, default=5.0,
                    help="OpenDSS's time step in the opendss case [s], a divisor of 60 (default 5; docs/simulation.md)")
     add_agent_option_arguments(p)
@@ -46,6 +53,8 @@ def _evaluate(args: argparse.Namespace) -> int:
     from cvvc.evaluate import EvaluateConfig, EvaluateError, evaluate, parse_cases, parse_seasons
     from cvvc.launch import CASES
 
+    if args.campaign:
+        return _campaign(args)
     try:
         cases = parse_cases(args.cases) if args.cases else (("D",) if args.robustness else None)
         seasons = parse_seasons(args.seasons)
@@ -54,7 +63,8 @@ def _evaluate(args: argparse.Namespace) -> int:
         raise CliError(str(e)) from e
     config = EvaluateConfig(feeder=args.feeder, model=args.model, seasons=seasons, bandwidths_v120=bands,
                             year_seed=args.year_seed, train_seed=args.train_seed,
-                            days_per_season=args.days_per_season, jobs=args.jobs, out=args.out, cache=args.cache,
+                            days_per_season=args.days_per_season, jobs=args.jobs, scheduler=args.scheduler,
+                            out=args.out, cache=args.cache,
                             robustness=args.robustness, resume=args.resume,
                             reference_step_s=args.reference_step_s,
                             pv_margin_window_s=args.pv_margin_window_s, setpoint_hold=args.setpoint_hold,
@@ -65,6 +75,26 @@ def _evaluate(args: argparse.Namespace) -> int:
         raise CliError(str(e)) from e
     print((__import__("pathlib").Path(args.out) / "results.md").read_text())
     print(f"output: {args.out} (results.json, results.md, one folder per run); {ev.wall_s:.0f} s")
+    return 0
+
+
+def _campaign(args: argparse.Namespace) -> int:
+    from cvvc.campaign import run_campaign
+    from cvvc.errors import CliError
+    from cvvc.evaluate import EvaluateError
+
+    given = [f for f, v in (("--feeder", args.feeder), ("--model", args.model), ("--cases", args.cases),
+                            ("--days-per-season", args.days_per_season), ("--robustness", args.robustness))
+             if v not in (None, False)]
+    if given:
+        raise CliError(f"{', '.join(given)}: with --campaign, the campaign file says the feeders, cases, seasons and "
+                       "variants")
+    try:
+        result = run_campaign(args.campaign, args.out, jobs=args.jobs, scheduler=args.scheduler, cache=args.cache,
+                              resume=args.resume)
+    except EvaluateError as e:
+        raise CliError(str(e)) from e
+    print(f"output: {result.csv} and one folder per feeder and variant (results.md); {result.wall_s:.0f} s")
     return 0
 
 

@@ -322,7 +322,10 @@ class BridgeRuntime:
     def status(self, *, done: bool) -> m.BridgeStatus:
         """The bridge's status message now (its ``seq`` is the next)."""
         self.counters.seqs["status"] += 1
-        return m.BridgeStatus(t_ns=max(self.now_t_ns, 0), seq=self.counters.seqs["status"], source="bridge",
+        # before the first step (now_t_ns one step before it) the status is stamped at the first simulated instant,
+        # so that a recording of the session starts there, not a step earlier (issue 19 item 4)
+        t_ns = max(self.now_t_ns, self.spec.run_start_t_ns)
+        return m.BridgeStatus(t_ns=t_ns, seq=self.counters.seqs["status"], source="bridge",
                               feeder_id=self.fid, step=self.steps, steps_total=self.config.steps,
                               clock=self.config.clock, lockstep_misses=self.misses, agent_alive=self.agent_alive,
                               rejected=self.all_rejected(), done=done, log_suppressed=self.log_suppressed())

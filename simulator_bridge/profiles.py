@@ -51,6 +51,7 @@ __all__ = [
     "YearProfiles",
     "make_profiles",
     "month_steps",
+    "profiles_cache_path",
     "season_month",
 ]
 
@@ -548,6 +549,11 @@ def _check_finite_nonneg(a: np.ndarray, name: str) -> None:
         raise ProfileError(f"{name} has negative values (first at index {first}, {a.ravel()[first]})")
 
 
+def profiles_cache_path(device_map, seed: int, cache_dir: str | Path) -> Path:
+    """Where :func:`feeder_profiles` caches a feeder's year profiles of ``seed``: keyed by the map's fingerprint."""
+    return Path(cache_dir) / f"profiles-{device_map.feeder.name}-{device_map.fingerprint()}-{seed}.npz"
+
+
 def feeder_profiles(device_map, engine, *, seed: int, cache_dir: str | Path | None) -> YearProfiles:
     """The year profiles of a feeder for ``seed``, cached as ``.npz`` in ``cache_dir`` (None: no cache).
 
@@ -559,7 +565,7 @@ def feeder_profiles(device_map, engine, *, seed: int, cache_dir: str | Path | No
     """
     path = None
     if cache_dir is not None:
-        path = Path(cache_dir) / f"profiles-{device_map.feeder.name}-{device_map.fingerprint()}-{seed}.npz"
+        path = profiles_cache_path(device_map, seed, cache_dir)
         if path.is_file():
             return YearProfiles.load(path)
     lags = np.asarray([p.profile_lag_min for p in device_map.pv], float)

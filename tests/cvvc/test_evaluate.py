@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import datetime as dt
 import json
 import os
 import subprocess
@@ -32,10 +33,12 @@ IEEE13 = REPO / "feeders" / "ieee13.toml"
 
 @pytest.fixture(scope="module")
 def small_evaluation(tmp_path_factory, ieee13_model, profile_cache):
-    """Cases D and none on IEEE 13, summer, the first 0.05 day (72 one-minute steps) of July."""
+    """Cases D and none on IEEE 13, summer, the first 0.05 day (72 one-minute steps) of July, on a local Dask
+    cluster of two workers."""
     out = tmp_path_factory.mktemp("evaluate") / "out"
     config = EvaluateConfig(feeder=str(IEEE13), model=str(ieee13_model), cases=("D", "none"), seasons=("summer",),
-                            days_per_season=0.05, out=str(out), cache=str(profile_cache.parent), progress=False)
+                            days_per_season=0.05, out=str(out), cache=str(profile_cache.parent), progress=False,
+                            jobs=2)
     return out, evaluate(config)
 
 
@@ -54,6 +57,37 @@ def test_evaluate_writes_results_json_with_every_run(small_evaluation):
     d, none = data["runs"]
     assert d["decisions"] == 15  # every 5 simulated minutes: t = 0, 5, ..., 70
     assert none["decisions"] == 0  # the baseline runs no agent
+    assert [r["attempts"] for r in data["runs"]] == [1, 1]
+    assert "local Dask cluster, jobs=2" in (out / "results.md").read_text()
+
+
+def test_runs_on_a_local_cluster_of_two_workers_measure_what_they_measure_in_process(small_evaluation, tmp_path):
+    """The same two runs, each through cvvc.launch.run in this process, give the same metrics frames."""
+    from cvvc.evaluate import _run_config
+    from cvvc.launch import run
+
+    out, ev = small_evaluation
+    worker_pids = {int(line.split(" pid ")[1].split()[0]) for r in ev.runs
+                   for line in (Path(r.out_dir) / "attempts.txt").read_text().splitlines()}
+    assert os.getpid() not in worker_pids  # the runs ran in the cluster's worker processes
+    for r in ev.runs:
+        here = run(_run_config(r.spec, ev.config, Path(ev.feeder), Path(ev.model), tmp_path, None))
+        assert here.steps == r.steps and here.decisions == r.decisions
+        assert here.metrics == r.metrics, r.spec.name
+
+
+def test_a_recordings_time_span_starts_at_the_first_simulated_minute(small_evaluation):
+    """Issue 19 item 4, end to end: the agent's status before its first frame (t_ns 0) does not pull the recorded
+    span back to 1970; the span starts at 2023-07-01 00:00 local standard time (UTC-5) and covers the window."""
+    from mcap.reader import make_reader
+
+    out, ev = small_evaluation
+    first_ns = int(dt.datetime(2023, 7, 1, 5, tzinfo=dt.UTC).timestamp()) * 10**9
+    for r in ev.runs:
+        with open(r.recording, "rb") as f:
+            stats = make_reader(f).get_summary().statistics
+        assert stats.message_start_time == first_ns, r.spec.name
+        assert stats.message_end_time == first_ns + (r.steps - 1) * 60 * 10**9, r.spec.name
 
 
 def test_results_md_shows_capacitor_switchings_only_for_maps_with_banks(small_evaluation):
@@ -154,27 +188,30 @@ def test_resume_reuses_finished_runs(small_evaluation, ieee13_model, profile_cac
     assert {r.spec.name: (Path(r.out_dir) / "summary.json").stat().st_mtime_ns for r in again.runs} == stamps
 
 
-def test_a_failed_run_is_listed_and_the_others_kept(tmp_path, profile_cache):
+def test_a_failed_run_is_listed_and_the_others_kept(tmp_path, profile_cache, dask_scheduler):
+    """A run that fails is retried once (two attempts), then listed; the other run finishes."""
     out = tmp_path / "out"
     config = EvaluateConfig(feeder=str(IEEE13), model=str(tmp_path / "no-such-model.json"), cases=("D", "none"),
                             seasons=("winter",), days_per_season=0.01, out=str(out),
-                            cache=str(profile_cache.parent), progress=False)
+                            cache=str(profile_cache.parent), progress=False, scheduler=dask_scheduler)
     with pytest.raises(EvaluateError, match=r"1 of 2 run\(s\) failed \(winter-D-bw4\).*--resume"):
         evaluate(config)
     data = json.loads((out / "results.json").read_text())
     assert [r["spec"]["case"] for r in data["runs"]] == ["none"]
     assert [f["spec"]["case"] for f in data["failures"]] == ["D"]
+    assert [f["attempts"] for f in data["failures"]] == [2] and "cannot read model" in data["failures"][0]["error"]
+    assert len((out / "winter-D-bw4" / "attempts.txt").read_text().splitlines()) == 2
     md = (out / "results.md").read_text()
-    assert "| winter | none |" in md and "## Failed runs" in md and "winter-D-bw4" in md
+    assert "| winter | none |" in md and "## Failed runs" in md and "winter-D-bw4" in md and "2 attempt(s)" in md
 
 
-def test_opendss_reference_case_beside_none(tmp_path, profile_cache):
+def test_opendss_reference_case_beside_none(tmp_path, profile_cache, dask_scheduler):
     """The opendss case (OpenDSS's own control loop, no bus) gives the same table rows as a bus run, and, being the
     same local control physics of the same model on the same loads and PV (tests/simulator_bridge/
     test_opendss_loop.py), each regulator's tap count within one of the none case's; --resume reuses it."""
     out = tmp_path / "out"
     config = EvaluateConfig(feeder=str(IEEE13), cases=("none", "opendss"), seasons=("summer",), days_per_season=0.25,
-                            out=str(out), cache=str(profile_cache.parent), progress=False)
+                            out=str(out), cache=str(profile_cache.parent), progress=False, scheduler=dask_scheduler)
     ev = evaluate(config)
     none, ref = ev.runs
     assert (none.spec.case, ref.spec.case) == ("none", "opendss")

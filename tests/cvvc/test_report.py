@@ -31,12 +31,12 @@ PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
 
 @pytest.fixture(scope="module")
-def tiny_evaluation(tmp_path_factory, ieee13_model, profile_cache):
+def tiny_evaluation(tmp_path_factory, ieee13_model, profile_cache, dask_scheduler):
     """Case D on IEEE 13 for the first 25 minutes of April (one recording with truth and decisions)."""
     out = tmp_path_factory.mktemp("report") / "eval"
     ev = evaluate(EvaluateConfig(feeder=str(REPO / "feeders" / "ieee13.toml"), model=str(ieee13_model),
                                  cases=("D",), seasons=("spring",), days_per_season=25 / 1440, out=str(out),
-                                 cache=str(profile_cache.parent), progress=False))
+                                 cache=str(profile_cache.parent), progress=False, scheduler=dask_scheduler))
     return out, ev
 
 

@@ -1,0 +1,101 @@
+"""The tables of ``cvvc evaluate``: ``results.md`` in the paper's layout (Tables II-V) from an :class:`Evaluation`."""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+from cvvc.reference import REFERENCE_CASE
+
+if TYPE_CHECKING:
+    from cvvc.evaluate import Evaluation, RunResult
+
+__all__ = ["kvarh_from_mvar_intervals", "render_results_md"]
+
+_VARIANT_LABEL = {
+    "nominal": "nominal (no noise, no drops, exact model)",
+    "noise-pmu": "PMU-class noise 0.1 % (feeder head)",
+    "noise-scada": "SCADA-class noise 1 % (PV plants, regulators)",
+    "drop-1": "1 % of measurement frames dropped",
+    "drop-5": "5 % of measurement frames dropped",
+    "model-error": "model error: line impedances and loads x U(0.9, 1.1)",
+}
+
+
+def kvarh_from_mvar_intervals(q_mvar_intervals: float, control_period_s: float) -> float:
+    """Reactive energy [kvarh] from the metrics' ``sum |Q| [Mvar] x control intervals`` (paper Table IV unit)."""
+    return q_mvar_intervals * 1000.0 * control_period_s / 3600.0
+
+
+def _row_label(r: RunResult, robust: bool, bands: bool) -> list[str]:
+    case = r.spec.case
+    if bands and case in ("C", "D"):
+        case = f"{case} ({r.spec.bandwidth_v120:g} V)"
+    cells = [r.spec.season, case]
+    if robust:
+        cells.append(_VARIANT_LABEL[r.spec.variant])
+    return cells
+
+
+def _engine(ev: Evaluation) -> str:
+    if ev.config.scheduler:
+        return f"Dask cluster at {ev.config.scheduler}"
+    return f"local Dask cluster, jobs={ev.config.jobs}"
+
+
+def render_results_md(ev: Evaluation) -> str:
+    """The evaluation as markdown: Table II/III layout, Table IV (PV reactive energy), Table V (tap changes)."""
+    robust = ev.config.robustness
+    bands = len(ev.config.bandwidths_v120) > 1
+    head = ["Season", "Case"] + (["Variant"] if robust else [])
+    days = sorted({r.spec.days for r in ev.runs})
+    cap_ids = sorted({k for r in ev.runs for k in r.metrics.cap_switches_per_bank})
+    cap_head = ["Cap sw", "Cap Cost"] if cap_ids else []  # feeders with capacitor banks in the device map
+    lines = [f"# cvvc evaluate: {ev.feeder_id}", "",
+             f"Evaluation year seed {ev.config.year_seed}, model trained on year seed {ev.config.train_seed}; "
+             f"{', '.join(f'{d:g}' for d in days)} day(s) per season from the first of the season's month; "
+             f"{len(ev.runs)} runs in {ev.wall_s:.0f} s wall time ({_engine(ev)})."
+             + (f" Case {REFERENCE_CASE}: OpenDSS's own control loop at {ev.config.reference_step_s:g} s steps on "
+                "the same loads and PV (unity power factor), not through the bus."
+                if any(r.spec.case == REFERENCE_CASE for r in ev.runs) else ""), "",
+             "## Voltage violations and costs (paper Tables II/III layout)", "",
+             "| " + " | ".join(head + ["MVVM [pu]", "NVV", "NTC"] + cap_head[:1] + ["Q Cost", "T Cost"] + cap_head[1:]
+                               + ["Total", "wall [s]"]) + " |",
+             "|" + "---|" * (len(head) + 7 + len(cap_head))]
+    for r in ev.runs:
+        mt = r.metrics
+        cap_sw = [str(mt.cap_switches)] if cap_ids else []
+        cap_cost = [f"{mt.cap_cost:.2f}"] if cap_ids else []
+        lines.append("| " + " | ".join(_row_label(r, robust, bands) + [
+            f"{mt.mvvm_pu:.4f}", str(mt.nvv), str(mt.ntc)] + cap_sw + [f"{mt.q_cost:.1f}",
+            f"{mt.t_cost:.2f}"] + cap_cost + [f"{mt.total_cost:.1f}", f"{r.wall_s:.0f}"]) + " |")
+    pv_ids = sorted({k for r in ev.runs for k in r.metrics.q_mvar_intervals})
+    lines += ["", "## Reactive energy per PV plant (paper Table IV)", "",
+              f"Sum of |Q| over the window in Mvar x control intervals ({ev.control_period_s} s), and in kvarh.", "",
+              "| " + " | ".join(head + [f"{p} [Mvar·int]" for p in pv_ids] + [f"{p} [kvarh]" for p in pv_ids]) + " |",
+              "|" + "---|" * (len(head) + 2 * len(pv_ids))]
+    for r in ev.runs:
+        q = r.metrics.q_mvar_intervals
+        vals = [float(q.get(p, 0.0)) for p in pv_ids]
+        lines.append("| " + " | ".join(_row_label(r, robust, bands) + [f"{v:.1f}" for v in vals] + [
+            f"{kvarh_from_mvar_intervals(v, ev.control_period_s):.0f}" for v in vals]) + " |")
+    reg_ids = sorted({k for r in ev.runs for k in r.metrics.taps_changes})
+    lines += ["", "## Tap changes per regulator (paper Table V)", "",
+              "| " + " | ".join(head + reg_ids + ["total"]) + " |", "|" + "---|" * (len(head) + len(reg_ids) + 1)]
+    for r in ev.runs:
+        t = r.metrics.taps_changes
+        lines.append("| " + " | ".join(_row_label(r, robust, bands) + [str(t.get(g, 0)) for g in reg_ids]
+                                       + [str(r.metrics.ntc)]) + " |")
+    if cap_ids:
+        lines += ["", "## Capacitor switchings per bank", "",
+                  "Switching operations (one per step of a bank opened or closed), local control and commands.", "",
+                  "| " + " | ".join(head + cap_ids + ["total"]) + " |", "|" + "---|" * (len(head) + len(cap_ids) + 1)]
+        for r in ev.runs:
+            sw = r.metrics.cap_switches_per_bank
+            lines.append("| " + " | ".join(_row_label(r, robust, bands) + [str(sw.get(c, 0)) for c in cap_ids]
+                                           + [str(r.metrics.cap_switches)]) + " |")
+    if ev.failures:
+        lines += ["", "## Failed runs", ""]
+        lines += [f"- {f.spec.name}: {f.error.splitlines()[0] if f.error else '?'} ({f.attempts} attempt(s), "
+                  f"logs in `{f.out_dir}`)" for f in ev.failures]
+    lines.append("")
+    return "\n".join(lines)

@@ -1,0 +1,97 @@
+"""``cvvc.cluster.run_tasks`` on a real local Dask cluster of two workers: in-flight limit, retry, failure."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import pytest
+
+from cvvc.cluster import ClusterError, Outcome, Task, dask_client, run_tasks
+
+
+def _tasks_on_the_workers() -> int:
+    """Task: how many tasks the scheduler has handed to workers while this one runs (itself included)."""
+    from distributed import get_client
+
+    time.sleep(0.2)
+    return sum(len(keys) for keys in get_client().processing().values())
+
+
+def _fails_the_first_time(marker: str) -> str:
+    """Task: raises on its first attempt (no marker file yet), returns on the second."""
+    path = Path(marker)
+    if not path.exists():
+        path.write_text("tried\n")
+        raise RuntimeError("first attempt fails")
+    return "second attempt"
+
+
+def _always_fails(marker: str) -> None:
+    """Task: counts its attempts in ``marker`` and always raises."""
+    with open(marker, "a") as f:
+        f.write("attempt\n")
+    raise ValueError("always")
+
+
+def test_never_more_tasks_on_the_workers_than_worker_threads(dask_scheduler):
+    """Five tasks on two one-thread workers: each, while running, sees at most two tasks handed out (Dask alone
+    would hand all five out at once)."""
+    from distributed import Client
+
+    outcomes: list[Outcome] = []
+    with Client(dask_scheduler, set_as_default=False) as client:
+        run_tasks(client, [Task(label=f"probe{i}", fn=_tasks_on_the_workers, args=()) for i in range(5)],
+                  outcomes.append)
+    assert [o.error for o in outcomes] == [None] * 5
+    assert all(1 <= o.result <= 2 for o in outcomes), [o.result for o in outcomes]
+
+
+def test_a_task_is_retried_once_then_reported_and_the_others_go_on(dask_scheduler, tmp_path):
+    from distributed import Client
+
+    outcomes: list[Outcome] = []
+    tasks = [Task(label="flaky", fn=_fails_the_first_time, args=(str(tmp_path / "flaky"),)),
+             Task(label="broken", fn=_always_fails, args=(str(tmp_path / "broken"),)),
+             Task(label="fine", fn=str.upper, args=("ok",))]
+    with Client(dask_scheduler, set_as_default=False) as client:
+        run_tasks(client, tasks, outcomes.append)
+    by_label = {o.task.label: o for o in outcomes}
+    assert by_label["flaky"].result == "second attempt" and by_label["flaky"].error is None
+    assert isinstance(by_label["broken"].error, ValueError) and by_label["broken"].result is None
+    assert (tmp_path / "broken").read_text().count("attempt") == 2  # the first try and one retry
+    assert by_label["fine"].result == "OK"
+
+
+def test_bad_cluster_arguments_are_clear_errors():
+    with pytest.raises(ClusterError, match="--jobs 0 must be at least 1"):
+        with dask_client(0):
+            pass
+    with pytest.raises(ClusterError, match="give the scheduler's address as tcp://HOST:PORT"):
+        with dask_client(1, "127.0.0.1:8786"):
+            pass
+
+
+def _start_a_child() -> int:
+    """Task: start a long-lived process, as a run starts its bridge, and return without stopping it."""
+    import subprocess
+
+    return subprocess.Popen(["sleep", "120"]).pid
+
+
+def test_the_processes_of_unfinished_runs_are_stopped_on_the_workers(dask_scheduler):
+    """What ``dask_client`` does before closing its local cluster: each worker stops what it started, by pid."""
+    import psutil
+    from distributed import Client
+
+    from cvvc.cluster import stop_children
+
+    with Client(dask_scheduler, set_as_default=False) as client:
+        pid = client.submit(_start_a_child, pure=False).result(timeout=60)
+        assert psutil.Process(pid).status() != psutil.STATUS_ZOMBIE
+        stopped = client.run(stop_children, timeout_s=10.0)
+    assert sum(stopped.values()) >= 1
+    try:
+        assert psutil.Process(pid).status() == psutil.STATUS_ZOMBIE  # ended, not yet reaped by its worker
+    except psutil.NoSuchProcess:
+        pass
