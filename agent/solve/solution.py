@@ -138,25 +138,7 @@ def violation_pu(inputs: CvvcInputs, v_pu: np.ndarray) -> np.ndarray:
 
 def hold_solution(inputs: CvvcInputs, reason: str, iterations: int, seconds: StageSeconds) -> CvvcSolution:
     """No action: taps and Q set points as they are, the present voltages as the prediction."""
-    v = inputs.v0_pu.copy()
-    return CvvcSolution(
-        status="hold",
-        reason=reason,
-        taps_new=inputs.taps.copy(),
-        q_new_kvar=inputs.q0_kvar.copy(),
-        v_pred_pu=v,
-        cost=inputs.cost(np.zeros(inputs.n_reg), inputs.q0_kvar),
-        max_violation_pu=float(np.max(violation_pu(inputs, v), initial=0.0)),
-        iterations=iterations,
-        relaxed_d_tap=np.zeros(inputs.n_reg),
-        relaxed_q_kvar=inputs.q0_kvar.copy(),
-        relaxed_form="none",
-        relaxed_x=np.zeros(0),
-        relaxed_y=np.zeros(0),
-        relaxed_problem=None,
-        candidates_tried=0,
-        seconds=seconds,
-    )
+    return _unmoved(inputs, "hold", reason, inputs.q0_kvar.copy(), iterations, seconds)
 
 
 def pinned_solution(inputs: CvvcInputs, seconds: StageSeconds) -> CvvcSolution:
@@ -167,20 +149,28 @@ def pinned_solution(inputs: CvvcInputs, seconds: StageSeconds) -> CvvcSolution:
     a summer run), although a violation is then simply what remains. ``soft`` when a limit stays violated.
     """
     q = inputs.q_min_kvar + 0.0  # a fresh array, without -0.0
-    v = inputs.predict_v_pu(np.zeros(inputs.n_reg), q)
-    worst = float(np.max(violation_pu(inputs, v), initial=0.0))
+    worst = float(np.max(violation_pu(inputs, inputs.predict_v_pu(np.zeros(inputs.n_reg), q)), initial=0.0))
+    if worst <= V_TOL_PU:
+        return _unmoved(inputs, "optimal", "", q, 0, seconds)
+    return _unmoved(inputs, "soft", f"no action available (every plant's Q and every tap fixed): {worst:.4f} pu "
+                    "beyond the limits stays", q, 0, seconds)
+
+
+def _unmoved(inputs: CvvcInputs, status: Status, reason: str, q_kvar: np.ndarray, iterations: int,
+             seconds: StageSeconds) -> CvvcSolution:
+    """Taps as they are and Q set points ``q_kvar``, without a relaxation (no warm start for the next one)."""
+    v = inputs.predict_v_pu(np.zeros(inputs.n_reg), q_kvar)
     return CvvcSolution(
-        status="optimal" if worst <= V_TOL_PU else "soft",
-        reason="" if worst <= V_TOL_PU else (
-            f"no action available (every plant's Q and every tap fixed): {worst:.4f} pu beyond the limits stays"),
+        status=status,
+        reason=reason,
         taps_new=inputs.taps.copy(),
-        q_new_kvar=q,
+        q_new_kvar=q_kvar,
         v_pred_pu=v,
-        cost=inputs.cost(np.zeros(inputs.n_reg), q),
-        max_violation_pu=worst,
-        iterations=0,
+        cost=inputs.cost(np.zeros(inputs.n_reg), q_kvar),
+        max_violation_pu=float(np.max(violation_pu(inputs, v), initial=0.0)),
+        iterations=iterations,
         relaxed_d_tap=np.zeros(inputs.n_reg),
-        relaxed_q_kvar=q.copy(),
+        relaxed_q_kvar=q_kvar.copy(),
         relaxed_form="none",
         relaxed_x=np.zeros(0),
         relaxed_y=np.zeros(0),
