@@ -5,7 +5,8 @@ raises, on a worker with one thread (a run drives its own bridge, agent and reco
 worker process). The caller gets each task's outcome as it finishes, result or error, and the other tasks go on.
 
 The local cluster listens on 127.0.0.1 only and has no dashboard. A running cluster is the user's: ``dask
-scheduler --host 127.0.0.1 --port P --no-dashboard`` and ``dask worker tcp://127.0.0.1:P --nthreads 1`` (or other
+scheduler --host 127.0.0.1 --port P --no-dashboard --dashboard-address 127.0.0.1:0`` and ``dask worker
+tcp://127.0.0.1:P --nthreads 1 --dashboard-address 127.0.0.1:0`` (or other
 hosts, docs/results.md); its workers must import this project and see the cache and the output folder at the same
 paths, since a run reads the device map and the model and writes its folder by path.
 """
@@ -79,8 +80,10 @@ def dask_client(jobs: int, scheduler: str | None = None, *, timeout_s: float = 6
         return
     # memory_limit=0: no pause or restart of a worker by its memory; a run's memory is in the processes it starts
     # (bridge, agent, recorder), which the worker's monitor does not see, and a restarted worker would orphan them
+    # dashboard_address: the scheduler's HTTP server (health and metrics even without a dashboard) on a free
+    # loopback port; None meant port 8787, and a warning when another process held it
     cluster = LocalCluster(n_workers=jobs, threads_per_worker=1, processes=True, host="127.0.0.1",
-                           dashboard_address=None, protocol="tcp", memory_limit=0)
+                           dashboard_address="127.0.0.1:0", protocol="tcp", memory_limit=0)
     try:
         with Client(cluster, set_as_default=False) as client:
             try:

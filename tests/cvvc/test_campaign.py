@@ -70,7 +70,8 @@ def user_cluster(tmp_path_factory):
         start("scheduler", ["scheduler", "--host", "127.0.0.1", "--port", str(port), "--no-dashboard",
                             "--dashboard-address", f"127.0.0.1:{http}"])
         for i in range(2):
-            start(f"worker{i}", ["worker", address, "--host", "127.0.0.1", "--no-dashboard", "--nthreads", "1",
+            start(f"worker{i}", ["worker", address, "--host", "127.0.0.1", "--no-dashboard",
+                                 "--dashboard-address", "127.0.0.1:0", "--nthreads", "1",
                                  "--no-nanny", "--name", f"w{i}"])
         yield address, _worker_pids(address, 2, 90.0), procs
     finally:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import socket
 import time
 from pathlib import Path
 
@@ -95,3 +96,33 @@ def test_the_processes_of_unfinished_runs_are_stopped_on_the_workers(dask_schedu
         assert psutil.Process(pid).status() == psutil.STATUS_ZOMBIE  # ended, not yet reaped by its worker
     except psutil.NoSuchProcess:
         pass
+
+
+def test_a_local_cluster_starts_on_loopback_when_dasks_default_http_port_is_taken():
+    """Dask's HTTP server defaulted to port 8787 and warned when another process held it (pytest made the warning
+    an error: seven evaluate tests failed in CI); the local cluster listens on free loopback ports only."""
+    held = socket.socket()
+    try:
+        try:
+            held.bind(("127.0.0.1", 8787))
+            held.listen()
+        except OSError:
+            pass  # taken already: the case under test
+        with dask_client(1) as client:
+            assert client.submit(pow, 2, 5).result(timeout=60) == 32
+            http = client.scheduler_info()["services"].get("dashboard")
+            assert http is not None and http != 8787
+            assert _listening_hosts(http) == {"127.0.0.1"}
+    finally:
+        held.close()
+
+
+def _listening_hosts(port: int) -> set[str]:
+    """The IPv4 addresses with a socket listening on ``port`` (Linux /proc/net/tcp: state 0A is LISTEN)."""
+    hosts = set()
+    for line in Path("/proc/net/tcp").read_text().splitlines()[1:]:
+        local, state = line.split()[1], line.split()[3]
+        addr, hex_port = local.split(":")
+        if state == "0A" and int(hex_port, 16) == port:
+            hosts.add(socket.inet_ntoa(bytes.fromhex(addr)[::-1]))
+    return hosts
