@@ -72,6 +72,7 @@ class AgentSettings(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fi
     # (rural winter week with 1 % SCADA noise: NVV 10 -> 0, NTC 196 -> 66; agent.state.CorrectionFilter)
     sensitivity_error: float = 0.3  # soft form: relative error of the estimated Q sensitivities [-]; 0: eq. (17)
     # (epri-ckt24, first winter day: plants pulling against each other, Q cost 2,130 -> 57 at NVV 435 -> 441)
+    bounds_in_margin: bool = True  # the estimate bounds tighten a limit only past the optimization/judged gap
 
 
 class AgentSummary(msgspec.Struct, frozen=True, kw_only=True):
@@ -249,7 +250,8 @@ class DecisionMaker:
                                          setpoint_hold=settings.setpoint_hold,
                                          control_banks=settings.control_banks,
                                          correction_window_s=settings.correction_window_s,
-                                         sensitivity_error=settings.sensitivity_error)
+                                         sensitivity_error=settings.sensitivity_error,
+                                         bounds_in_margin=settings.bounds_in_margin)
         self.oracle: OracleSource | None = None  # case A: set by the live runtime once its session is open
         self.seq = 0
         self.holds = 0
