@@ -194,3 +194,24 @@ def test_b_an_agent_certificate_of_one_feeder_cannot_command_or_read_another(fle
             except subprocess.TimeoutExpired:
                 bridge.kill()
                 bridge.wait(timeout=10)
+
+
+def test_the_fleet_policy_scopes_every_data_rule_of_a_feeder_and_leaves_the_roles_as_they_were() -> None:
+    from schemas.security import access_control_policy
+
+    plain, fleet = access_control_policy(), access_control_policy(("f1", "f2"))
+    assert fleet["rules"][:len(plain["rules"])] == plain["rules"]  # the roles of `cvvc run` unchanged
+    scoped = {r["id"]: r for r in fleet["rules"][len(plain["rules"]):]}
+    assert scoped["agent.f1-agent-send"]["key_exprs"] == ["cvvc/f1/cmd/**", "cvvc/f1/agent/decision",
+                                                          "cvvc/f1/agent/status"]
+    assert scoped["devices.f2-devices-receive"]["key_exprs"] == ["cvvc/f2/cmd/**", "cvvc/f2/agent/decision"]
+    for rid, rule in scoped.items():  # data rules on the feeder's keys only; interest-only rules on every feeder
+        interest = set(rule["messages"]) <= {"declare_subscriber", "declare_liveliness_subscriber",
+                                             "liveliness_query"}
+        own = rid.split("-")[0].split(".", 1)[1]
+        assert interest or all(k.startswith(f"cvvc/{own}/") for k in rule["key_exprs"]), rule
+    policies = {p["id"]: p for p in fleet["policies"]}
+    assert policies["agent.f1"]["subjects"] == ["agent.f1"]
+    assert all(r.startswith("agent.f1-") for r in policies["agent.f1"]["rules"])
+    assert {"agent.f2", "devices.f2"} <= set(policies["declarations"]["subjects"])
+    assert {s["id"]: s["cert_common_names"] for s in fleet["subjects"]}["devices.f1"] == ["devices.f1"]
