@@ -311,7 +311,8 @@ def run_fleet(config: FleetConfig) -> FleetSummary:
                            recorded_messages=check.messages if check else 0,
                            messages_checked=check.checked if check else 0,
                            crossing_messages=check.crossing if check else 0,
-                           foreign_topics=check.foreign_topics if check else [], probe=probe)
+                           foreign_topics=check.foreign_topics if check else [], probe=probe,
+                           wrong_feeder_acks=check.wrong_feeder_acks if check else {})
     (out / "fleet-summary.json").write_bytes(msgspec.json.format(msgspec.json.encode(summary), indent=2))
     from cvvc.fleet_report import render_fleet
 

@@ -64,7 +64,9 @@ class RecordingCheck(msgspec.Struct, frozen=True, kw_only=True):
 
     ``crossing``: recorded messages on ``cvvc/<F>/...`` whose ``feeder_id`` is not ``F``; ``foreign_topics``:
     recorded topics whose feeder segment is no feeder of the fleet; ``checked``: messages that carry a
-    ``feeder_id``.
+    ``feeder_id``. ``wrong_feeder_acks``: acks (they carry no feeder id) that another feeder's bridge put on
+    ``F``'s ack keys, refusing a command of ``F`` it received on its ``cvvc/*/cmd/**`` subscription (reason
+    ``wrong_feeder``), by ``F``.
     """
 
     messages: int
@@ -72,6 +74,7 @@ class RecordingCheck(msgspec.Struct, frozen=True, kw_only=True):
     crossing: int
     foreign_topics: list[str]
     decision_s: dict[str, list[float]]  # per feeder: each recorded decision's ``timings.total_s`` [s]
+    wrong_feeder_acks: dict[str, int] = {}
 
 
 class FleetSummary(msgspec.Struct, frozen=True, kw_only=True):
@@ -89,6 +92,7 @@ class FleetSummary(msgspec.Struct, frozen=True, kw_only=True):
     crossing_messages: int = 0
     foreign_topics: list[str] = []
     probe: CrossFeederProbe | None = None
+    wrong_feeder_acks: dict[str, int] = {}  # ``RecordingCheck.wrong_feeder_acks``
     prepare_s: float = 0.0  # feeders generated, models trained or read, certificates issued, before the router [s]
 
 
@@ -104,8 +108,13 @@ class _DecisionTimes(msgspec.Struct, frozen=True):
     timings: _Timings = _Timings()
 
 
+class _AckReason(msgspec.Struct, frozen=True):
+    reason: str = ""
+
+
 _decode_id = msgspec.json.Decoder(_FeederId).decode
 _decode_times = msgspec.json.Decoder(_DecisionTimes).decode
+_decode_reason = msgspec.json.Decoder(_AckReason).decode
 
 
 def check_recording(path: str | Path, feeder_ids: list[str]) -> RecordingCheck:
@@ -118,6 +127,7 @@ def check_recording(path: str | Path, feeder_ids: list[str]) -> RecordingCheck:
     messages = checked = crossing = 0
     foreign: set[str] = set()
     decision_s: dict[str, list[float]] = defaultdict(list)
+    wrong_feeder: dict[str, int] = defaultdict(int)
     with RecordedMessages(path, ("cvvc/**",)) as rec:
         for msg in rec:
             messages += 1
@@ -132,13 +142,18 @@ def check_recording(path: str | Path, feeder_ids: list[str]) -> RecordingCheck:
             if fid is not None:
                 checked += 1
                 crossing += fid != feeder
+            if len(parts) > 2 and parts[2] == "ack":
+                try:
+                    wrong_feeder[feeder] += _decode_reason(msg.data).reason.startswith("wrong_feeder:")
+                except (msgspec.DecodeError, msgspec.ValidationError):
+                    pass
             if parts[2:] == ["agent", "decision"]:
                 try:
                     decision_s[feeder].append(_decode_times(msg.data).timings.total_s)
                 except (msgspec.DecodeError, msgspec.ValidationError):
                     pass
     return RecordingCheck(messages=messages, checked=checked, crossing=crossing, foreign_topics=sorted(foreign),
-                          decision_s=dict(decision_s))
+                          decision_s=dict(decision_s), wrong_feeder_acks={k: v for k, v in wrong_feeder.items() if v})
 
 
 def percentile_ms(values_s: list[float] | None, q: float) -> float | None:
@@ -169,7 +184,9 @@ def render_fleet(s: FleetSummary) -> str:
     if s.recording:
         lines.append(f"- recording `{s.recording}`: {s.recorded_messages} messages, {s.messages_checked} carry a "
                      f"feeder id, {s.crossing_messages} of them on another feeder's keys; topics of no feeder "
-                     f"of the fleet: {len(s.foreign_topics)}")
+                     f"of the fleet: {len(s.foreign_topics)}; acks put by another feeder's bridge on a feeder's ack "
+                     f"keys (`wrong_feeder`): {sum(s.wrong_feeder_acks.values())}"
+                     + "".join(f", {n} on {f}'s" for f, n in sorted(s.wrong_feeder_acks.items())))
     if s.probe is not None:
         p = s.probe
         lines.append(f"- probe: a command with {p.sender}'s agent certificate on `{p.key}`: "

@@ -82,6 +82,7 @@ def test_a_secure_fleet_decides_on_every_feeder_and_keeps_them_apart(tmp_path, i
     assert ids_by_feeder == {"ieee13-a": {"ieee13-a"}, "ieee13-b": {"ieee13-b"}}
     assert {t.split("/")[1] for t in cmd_topics} == {"ieee13-a", "ieee13-b"}  # both agents commanded
     assert s["crossing_messages"] == 0 and s["messages_checked"] > 0 and s["foreign_topics"] == []
+    assert s["wrong_feeder_acks"] == {}
 
 
 def test_check_recording_counts_a_message_that_names_another_feeder(tmp_path) -> None:
@@ -91,15 +92,18 @@ def test_check_recording_counts_a_message_that_names_another_feeder(tmp_path) ->
         w.start()
         schema = w.register_schema(name="x", encoding="jsonschema", data=b"{}")
         chans = {t: w.register_channel(topic=t, message_encoding="json", schema_id=schema)
-                 for t in ("cvvc/a/meas/head", "cvvc/b/agent/decision", "cvvc/c/sim/status")}
+                 for t in ("cvvc/a/meas/head", "cvvc/b/agent/decision", "cvvc/c/sim/status", "cvvc/a/ack/pv/p")}
         w.add_message(chans["cvvc/a/meas/head"], log_time=1, publish_time=1, data=b'{"feeder_id": "a"}')
         w.add_message(chans["cvvc/a/meas/head"], log_time=2, publish_time=2, data=b'{"feeder_id": "b"}')
         w.add_message(chans["cvvc/b/agent/decision"], log_time=3, publish_time=3,
                       data=b'{"feeder_id": "b", "timings": {"total_s": 0.004}}')
         w.add_message(chans["cvvc/c/sim/status"], log_time=4, publish_time=4, data=b"not json")
+        for t, reason in ((5, b"wrong_feeder: no bridge runs feeder 'a'; this bridge runs 'b'"), (6, b"replay: old")):
+            w.add_message(chans["cvvc/a/ack/pv/p"], log_time=t, publish_time=t, data=b'{"cmd_id": "c", '
+                          b'"device_id": "p", "status": "rejected", "reason": "' + reason + b'"}')
         w.finish()
     check = check_recording(path, ["a", "b"])
-    assert (check.messages, check.checked, check.crossing) == (4, 3, 1)
+    assert (check.messages, check.checked, check.crossing, check.wrong_feeder_acks) == (6, 3, 1, {"a": 1})
     assert check.foreign_topics == ["cvvc/c/sim/status"] and check.decision_s == {"b": [0.004]}
 
 
