@@ -263,7 +263,8 @@ def run_fleet(config: FleetConfig) -> FleetSummary:
             for mb in members:
                 args = bridge_args(mb.run, mb.dm_path, mb.feeder_id, start_text, steps, settings[mb.feeder_id],
                                    mb.out / "bridge-summary.json", [])
-                mb.bridge = _spawn("bridge", [*args, "--connect", endpoint, *mb.connect], mb.out)
+                mb.bridge = _spawn("bridge", [*args, "--own-commands-only", "--connect", endpoint, *mb.connect],
+                                   mb.out)
                 children.append(mb.bridge)
             _log(f"{len(members)} feeders on {endpoint}: {', '.join(ids)}")
             prober = (_Prober.create(session, members, endpoint) if security_dir and config.probe_cross_feeder
