@@ -164,14 +164,11 @@ def _security(config: FleetConfig, members: list[_Member]) -> str | None:
     from schemas.cache import cache_root
     from schemas.security import init_security_dir
 
-    if config.ca_dir is None:
-        raise LaunchError("--secure needs --ca-dir CA: create the authority once with `cvvc security init-ca "
-                          "--dir CA`, outside the cache")
     root = cache_root(config.cache) / "security"
-    init_security_dir(root, ca_dir=config.ca_dir)
+    init_security_dir(root, ca_dir=config.ca_dir or "")
     for mb in members:
         d = root / "feeders" / mb.feeder_id
-        init_security_dir(d, ca_dir=config.ca_dir, feeder=mb.feeder_id)
+        init_security_dir(d, ca_dir=config.ca_dir or "", feeder=mb.feeder_id)
         mb.connect = ["--secure-dir", str(d)]
     return str(root)
 
@@ -203,6 +200,9 @@ def run_fleet(config: FleetConfig) -> FleetSummary:
         raise LaunchError("a fleet needs at least one feeder (--feeders, --rural-seeds or --fleet)")
     if not 0 < config.days <= 366:
         raise LaunchError(f"--days {config.days} must be in (0, 366]")
+    if config.secure and config.ca_dir is None:
+        raise LaunchError("--secure needs --ca-dir CA: create the authority once with `cvvc security init-ca "
+                          "--dir CA`, outside the cache")
     try:
         start_text = dt.datetime.fromisoformat(config.start).isoformat(timespec="minutes")
     except ValueError as e:
