@@ -4,7 +4,8 @@
 feeder's keys carries the other's id, and the launcher's probe command across feeders is refused;
 (b) the router's per-feeder policy on its own: a real bridge of feeder B; a session with feeder A's agent
 certificate commands it and reads its frames in vain, while B's own agent certificate is acked; the bridge, started
-with ``--own-commands-only`` as ``cvvc fleet`` starts it, subscribes to no other feeder's commands.
+with ``--own-commands-only`` as ``cvvc fleet`` starts it, subscribes to no other feeder's commands;
+(c) an agent process subscribes to its own feeder's frames and acks only (what keeps a plain fleet's agents apart).
 """
 
 from __future__ import annotations
@@ -226,3 +227,29 @@ def test_the_fleet_policy_scopes_every_data_rule_of_a_feeder_and_leaves_the_role
     assert {"agent.f2", "devices.f2"} <= set(policies["declarations"]["subjects"])
     assert {s["id"]: s["cert_common_names"] for s in fleet["subjects"]}["devices.f1"] == ["devices.f1"]
 
+
+
+def test_an_agent_subscribes_to_its_own_feeders_keys_only(router_endpoint, tmp_path, ieee13_model) -> None:
+    """What keeps a plain fleet's agents apart: an agent of ``ieee13-a`` declares subscriptions that match its own
+    feeder's frames and acks and no other feeder's (the router tells publishers whether any subscriber matches)."""
+    log = open(tmp_path / "agent.log", "wb")  # noqa: SIM115  (closed below)
+    agent = subprocess.Popen([sys.executable, "-m", "cvvc", "agent", "--model", str(ieee13_model), "--feeder-id",
+                              "ieee13-a", "--connect", router_endpoint], cwd=REPO, stdout=log,
+                             stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
+    log.close()
+    try:
+        with zenoh.open(zenoh_config(BusConfig(connect=(router_endpoint,)))) as c:
+            pubs = {(f, k): c.declare_publisher(f"cvvc/{f}/{k}") for f in ("ieee13-a", "ieee13-b")
+                    for k in ("meas/head", "meas/pv/pv675", "meas/step", "ack/pv/pv675")}
+            own = [p for (f, _), p in pubs.items() if f == "ieee13-a"]
+            assert wait_for(lambda: all(has_subscribers(p) for p in own), 90.0), \
+                (tmp_path / "agent.log").read_text()[-2000:]
+            assert not any(has_subscribers(p) for (f, _), p in pubs.items() if f == "ieee13-b")
+    finally:
+        if agent.poll() is None:
+            agent.send_signal(signal.SIGINT)
+            try:
+                agent.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                agent.kill()
+                agent.wait(timeout=10)
