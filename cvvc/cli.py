@@ -27,6 +27,7 @@ _VERB_MODULES = (
     "recordings.cli",
     "adapters.cli",
     "cvvc.launch_cli",
+    "cvvc.fleet_cli",
 )
 
 

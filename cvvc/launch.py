@@ -49,7 +49,7 @@ if TYPE_CHECKING:
     from agent.runtime import AgentSettings
 
 __all__ = ["CASES", "CASE_AGENT", "CaseAgent", "LaunchError", "RunConfig", "RunSummary", "agent_settings_args",
-           "case_agent_settings", "check_mostly_held", "run"]
+           "bridge_args", "case_agent_settings", "check_mostly_held", "run"]
 
 Case = Literal["A", "B", "C", "D", "none", "local"]
 CASES: tuple[Case, ...] = ("A", "B", "C", "D", "none", "local")
@@ -173,6 +173,30 @@ def case_agent_settings(case: Case, feeder_id: str, bandwidth_v120: float, pv_ma
 def agent_settings_args(settings: AgentSettings) -> list[str]:
     """The ``cvvc agent`` flags that hand ``settings`` over to the agent process, encoded."""
     return ["--feeder-id", settings.feeder_id, "--settings", msgspec.json.encode(settings).decode()]
+
+
+def bridge_args(config: RunConfig, dm_path: Path, feeder_id: str, start_text: str, steps: int,
+                agent_settings: AgentSettings | None, summary_path: Path, extra: list[str]) -> list[str]:
+    """The ``cvvc bridge`` arguments of a run's feeder (clock, realism, oracle, ``extra``), without the bus flags."""
+    clock = (["--realtime", "--speed", str(config.speed)] if config.realtime
+             else ["--lockstep", "--timeout-s", str(config.lockstep_timeout_s)])
+    realism = []
+    if config.noise_pmu_pct:
+        realism += ["--noise-pmu-pct", str(config.noise_pmu_pct)]
+    if config.noise_scada_pct:
+        realism += ["--noise-scada-pct", str(config.noise_scada_pct)]
+    if config.drop_prob:
+        realism += ["--drop-prob", str(config.drop_prob), "--drop-burst-min", str(config.drop_burst_min)]
+    if config.meas_delay_s:
+        realism += ["--latency-s", str(config.meas_delay_s / config.speed)]  # wall s at --speed
+    if config.clock_skew_s:
+        realism += ["--clock-skew-s", str(config.clock_skew_s)]
+    realism += [*extra, "--truth-every", str(config.truth_every), "--cache-dir", str(profiles_dir(config.cache))]
+    return ["bridge", "--feeder", str(dm_path), "--feeder-id", feeder_id, "--start", start_text,
+            "--steps", str(steps), "--year-seed", str(config.year_seed),
+            "--pv-local", "volt_var" if config.case == "local" else "unity",
+            *(["--oracle"] if agent_settings is not None and agent_settings.full_visibility else []),
+            "--summary-out", str(summary_path), *clock, *realism]
 
 
 def _log(msg: str) -> None:
@@ -399,19 +423,6 @@ def run(config: RunConfig) -> RunSummary:
                 agents = LivelinessWatcher(session, agent_key)
                 if not wait_for(lambda: agents.is_alive(agent_key), 60.0):
                     raise LaunchError(f"the agent did not come up within 60 s:\n{_tail(out / 'agent.log')}")
-            clock = (["--realtime", "--speed", str(config.speed)] if config.realtime
-                     else ["--lockstep", "--timeout-s", str(config.lockstep_timeout_s)])
-            realism = []
-            if config.noise_pmu_pct:
-                realism += ["--noise-pmu-pct", str(config.noise_pmu_pct)]
-            if config.noise_scada_pct:
-                realism += ["--noise-scada-pct", str(config.noise_scada_pct)]
-            if config.drop_prob:
-                realism += ["--drop-prob", str(config.drop_prob), "--drop-burst-min", str(config.drop_burst_min)]
-            if config.meas_delay_s:
-                realism += ["--latency-s", str(config.meas_delay_s / config.speed)]  # wall s at --speed
-            if config.clock_skew_s:
-                realism += ["--clock-skew-s", str(config.clock_skew_s)]
             endpoints = pvp.sunspec_endpoints(dm, free_port) if config.pv_protocol == "sunspec" else {}
             for pid, ep in endpoints.items():  # up before the bridge: it waits for their tokens, then steps
                 children.append(_spawn(f"adapter.{pid}", pvp.adapter_args(
@@ -421,14 +432,8 @@ def run(config: RunConfig) -> RunSummary:
                     lambda: all(pv_watch.is_alive(keys.alive(feeder_id, "pv", p)) for p in endpoints), 60.0):
                 raise LaunchError(f"the SunSpec adapters did not come up within 60 s:\n"
                                   f"{_tail(out / f'adapter.{next(iter(endpoints))}.log')}")
-            realism += pvp.bridge_args(endpoints)
-            realism += ["--truth-every", str(config.truth_every), "--cache-dir", str(profiles_dir(config.cache))]
-            bridge = _spawn("bridge", [
-                "bridge", "--feeder", str(dm_path), "--feeder-id", feeder_id, "--start", start_text,
-                "--steps", str(steps), "--year-seed", str(config.year_seed),
-                "--pv-local", "volt_var" if config.case == "local" else "unity",
-                *(["--oracle"] if agent_settings is not None and agent_settings.full_visibility else []),
-                "--summary-out", str(bridge_summary_path), *clock, *realism, *connect], out)
+            bridge = _spawn("bridge", [*bridge_args(config, dm_path, feeder_id, start_text, steps, agent_settings,
+                                                    bridge_summary_path, pvp.bridge_args(endpoints)), *connect], out)
             children.append(bridge)
 
             bar = _progress(steps, config.progress, config.progress_label)

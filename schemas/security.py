@@ -42,6 +42,7 @@ __all__ = [
     "SecurityError",
     "SecurityRole",
     "access_control_policy",
+    "feeder_common_name",
     "init_ca",
     "init_security_dir",
     "nested_zenoh_config",
@@ -93,8 +94,20 @@ def init_ca(ca_dir: str | Path) -> list[Path]:
     return _write(cert_path, key_path, cert, key)
 
 
-def init_security_dir(state_dir: str | Path, *, ca_dir: str | Path, extra_sans: tuple[str, ...] = ()) -> list[Path]:
+def feeder_common_name(role: str, feeder: str) -> str:
+    """The common name of one feeder's ``agent`` or ``devices`` certificate in a fleet (``cvvc fleet --secure``):
+    ``<role>.<feeder>``, a subject of the router's policy allowed only on that feeder's keys.
+    """
+    return f"{role}.{feeder}"
+
+
+def init_security_dir(state_dir: str | Path, *, ca_dir: str | Path, extra_sans: tuple[str, ...] = (),
+                      feeder: str | None = None) -> list[Path]:
     """Issue every role's certificate into ``state_dir`` from the CA in ``ca_dir``; returns the files written.
+
+    With ``feeder`` (a fleet, one such directory per feeder): only the ``agent`` and ``devices`` certificates,
+    with the common names ``feeder_common_name(role, feeder)``, so the router's policy (``access_control_policy``
+    with ``feeders``) lets them on that feeder's keys alone; the programs still load ``agent.pem`` / ``devices.pem``.
 
     ``state_dir`` gets the CA's certificate, never its key. Idempotent: existing role certificates are kept
     (delete a role's two files to reissue it). Private keys are written 0600, the directory is 0700.
@@ -125,11 +138,12 @@ def init_security_dir(state_dir: str | Path, *, ca_dir: str | Path, extra_sans: 
         except OSError as e:
             raise SecurityError(f"cannot write {state_ca}: {e}") from e
         written.append(state_ca)
-    for role in ROLES:
+    for role in ROLES if feeder is None else ("agent", "devices"):
         cert_path, key_path = role_paths(d, role)
         if cert_path.is_file() and key_path.is_file():
             continue
-        cert, key = _make_leaf(role, ca_cert, ca_key, extra_sans)
+        name = role if feeder is None else feeder_common_name(role, feeder)
+        cert, key = _make_leaf(name, ca_cert, ca_key, extra_sans)
         written += _write(cert_path, key_path, cert, key)
     return written
 
@@ -223,9 +237,10 @@ def _load(cert_path: Path, key_path: Path):
 
 
 # ---------------------------------------------------------------------------------- zenoh settings
-def zenoh_security_settings(state_dir: str | Path, role: str) -> dict[str, Any]:
+def zenoh_security_settings(state_dir: str | Path, role: str, feeders: tuple[str, ...] = ()) -> dict[str, Any]:
     """Zenoh config entries (path -> value) for ``role``: mTLS with the role's certificate, and for the
-    router the access-control policy. Raises ``SecurityError`` if the files are missing.
+    router the access-control policy (with the per-feeder subjects of ``feeders``, a fleet). Raises
+    ``SecurityError`` if the files are missing.
     """
     if role not in ROLES:
         raise SecurityError(f"unknown security role {role!r}; use one of {', '.join(ROLES)}")
@@ -247,7 +262,7 @@ def zenoh_security_settings(state_dir: str | Path, role: str) -> dict[str, Any]:
         f"{tls}/verify_name_on_connect": True,
     }
     if role == "router":
-        out["access_control"] = access_control_policy()
+        out["access_control"] = access_control_policy(feeders)
     return out
 
 
@@ -260,12 +275,15 @@ def _rule(rule_id: str, messages: tuple[str, ...] | list[str], flows: list[str],
             "key_exprs": key_exprs}
 
 
-def access_control_policy() -> dict[str, Any]:
+def access_control_policy(feeders: tuple[str, ...] = ()) -> dict[str, Any]:
     """The router's ``access_control`` section: deny by default; subjects by certificate common name.
 
     Flows are seen from the router: ``ingress`` is what a role sends to the router, ``egress`` what the
     router forwards to that role. A message reaches its destination only if the sender's ingress *and*
-    the receiver's egress are allowed. Every rule here is written for all feeders (``cvvc/*/...``).
+    the receiver's egress are allowed. The rules of the subjects ``agent`` and ``devices`` are written for all
+    feeders (``cvvc/*/...``); for each id of ``feeders`` (a fleet) the subjects ``agent.<id>`` and
+    ``devices.<id>`` (``feeder_common_name``) get the same rules on ``cvvc/<id>/...`` only, so one feeder's
+    agent can neither command another feeder's devices nor read its frames.
     """
     r = _ROOT
     alive = f"{r}/*/alive/**"
@@ -312,8 +330,36 @@ def access_control_policy() -> dict[str, Any]:
          "rules": [x["id"] for x in rules if x["id"].startswith("recorder")]},
         {"id": "declarations", "subjects": ["agent", "devices", "recorder"], "rules": ["declarations-to-senders"]},
     ]
+    base, names = list(rules), []
+    for f in feeders:  # a fleet: each feeder's agent and devices on that feeder's keys alone
+        for role in ("agent", "devices"):
+            scoped = [_feeder_rule(x, f) for x in base if x["id"].startswith(f"{role}-")]
+            name = feeder_common_name(role, f)
+            subjects.append({"id": name, "cert_common_names": [name]})
+            policies.append({"id": name, "subjects": [name], "rules": [x["id"] for x in scoped]})
+            rules += scoped
+            names.append(name)
+    i = next(i for i, x in enumerate(policies) if x["id"] == "declarations")
+    policies[i] = {**policies[i], "subjects": ["agent", "devices", "recorder", *names]}
     return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects,
             "policies": policies}
+
+
+def _feeder_rule(rule: dict[str, Any], feeder: str) -> dict[str, Any]:
+    """``rule`` on one feeder's keys: ``cvvc/*/...`` becomes ``cvvc/<feeder>/...``, under a rule id of its own.
+
+    Rules that only declare interest (subscriptions, liveliness subscriptions and queries) keep every feeder's
+    keys: the bridge subscribes to ``cvvc/*/cmd/**`` (to answer a command sent to a feeder that has no bridge),
+    and what reaches a subscriber is decided by the egress rules, which are scoped.
+    """
+    if set(rule["messages"]) <= _INTEREST_ONLY:
+        return {**rule, "id": f"{feeder_common_name(rule['id'].split('-')[0], feeder)}-{rule['id']}"}
+    prefix = f"{_ROOT}/*/"
+    exprs = [f"{_ROOT}/{feeder}/{k[len(prefix):]}" if k.startswith(prefix) else k for k in rule["key_exprs"]]
+    return {**rule, "id": f"{feeder_common_name(rule['id'].split('-')[0], feeder)}-{rule['id']}", "key_exprs": exprs}
+
+
+_INTEREST_ONLY = frozenset({"declare_subscriber", "declare_liveliness_subscriber", "liveliness_query"})
 
 
 def nested_zenoh_config(settings: dict[str, Any]) -> dict[str, Any]:

@@ -104,6 +104,10 @@ class BridgeConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fie
         there, and a ``cvvc adapter sunspec --clock head`` per plant publishes their frames and acks and takes
         their commands (``simulator_bridge.sunspec_fleet``); the bridge waits, up to ``timeout_s``, for each
         adapter's frame of a step before the next one.
+    own_commands_only : subscribe to this feeder's commands only (``cvvc/<id>/cmd/**``), not to every feeder's
+        (``cvvc/*/cmd/**``, which answers a command sent to a feeder without a bridge: ``wrong_feeder``). For
+        many feeders on one bus (``cvvc fleet``): each bridge otherwise receives every feeder's commands, and one
+        that drains its queue late refuses, on their ack keys, commands of feeders whose bridge has finished.
     """
 
     device_map_path: str
@@ -128,6 +132,7 @@ class BridgeConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fie
     drop_burst_min: float = 0.0
     clock_skew_s: float = 0.0
     pv_sunspec: dict[str, str] = {}  # plant id -> tcp/127.0.0.1:PORT: the plant behind a simulated SunSpec inverter
+    own_commands_only: bool = False
 
 
 class BridgeSummary(msgspec.Struct, frozen=True, kw_only=True):

@@ -43,6 +43,7 @@ def _bridge(args: argparse.Namespace) -> int:
             cache_dir=(str(profiles_dir(args.cache)) if args.cache_dir is None
                        else None if args.cache_dir == "" else args.cache_dir), publisher=args.publisher,
             oracle=args.oracle, pv_sunspec=_pv_sunspec(args.pv_sunspec),
+            own_commands_only=args.own_commands_only,
         )
         default_mode: Mode = "router" if args.listen and not args.connect else "peer"
         bus = bus_config_from_args(args, default_mode=default_mode, role="devices")
@@ -133,6 +134,9 @@ def register_bridge(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--pv-sunspec", action="append", metavar="PV_ID=tcp/127.0.0.1:PORT",
                    help="serve this plant as a simulated SunSpec inverter on PORT and leave its frames, acks and "
                         "commands to a `cvvc adapter sunspec --clock head` (repeat per plant; docs/sunspec.md)")
+    p.add_argument("--own-commands-only", action="store_true",
+                   help="subscribe to this feeder's commands only, not every feeder's (many feeders on one bus: "
+                        "`cvvc fleet`); no wrong_feeder answers for commands sent to feeders without a bridge")
     p.add_argument("--json", action="store_true", help="print the run summary as JSON")
     p.add_argument("--summary-out", metavar="FILE", help="write the run summary as JSON to FILE at exit (the "
                    "launcher takes the run's final metrics from the bridge itself, not from the bus)")

@@ -202,7 +202,8 @@ class BridgeRuntime:
         self.tokens += self.bank.declare()
         self.pub_status = FramePublisher(s, keys.sim_status(f), reliable=True)
         self.inbox = Inbox(maxsize=4096)
-        self.inbox.subscribe(s, f"{keys.ROOT}/*/cmd/**")  # other feeders too: see DeviceBank._wrong_feeder
+        # other feeders too (see DeviceBank._wrong_feeder), unless own_commands_only (many feeders on one bus)
+        self.inbox.subscribe(s, f"{keys.ROOT}/{f if self.config.own_commands_only else '*'}/cmd/**")
         self.inbox.subscribe(s, keys.agent_decision(f), m.Decision)
         self.agents = LivelinessWatcher(s, f"{keys.ROOT}/{f}/alive/agent/*", self._on_agent)
         self.pv_tokens: LivelinessWatcher | None = None
