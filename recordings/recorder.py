@@ -4,7 +4,9 @@ File layout (docs/recordings.md):
 
 - one channel per concrete Zenoh key (the topic is the key, e.g. ``cvvc/rural/meas/pv/pv1``), message
   encoding ``json``, with the JSON Schema of the key's message type (schema encoding ``jsonschema``, name
-  ``cvvc.<Type>``, top-level ``"type": "object"`` so Foxglove can plot it). Only payloads that decode into
+  ``cvvc.<Type>``, top-level ``"type": "object"`` so Foxglove can plot it); the truth (``sim/truth``,
+  ``TruthPack``) is ``msgpack``, with the same kind of schema (``cvvc recordings export-json`` writes a copy with
+  it as JSON, for Foxglove; ``schemas.truth`` reads it as arrays). Only payloads that decode into
   their key's message type (msgspec's typed decode: types, bounds, unknown fields) reach these channels;
 - everything else goes to the **quarantine** channel ``cvvc.quarantine`` (schema ``cvvc.Quarantined``): the
   key, the reason and the payload (base64), so nothing is lost and nothing junk sits on a real channel: a key
@@ -44,6 +46,7 @@ from recordings.errors import RecordingError
 from schemas.bus import MAX_PAYLOAD_BYTES, BusConfig, open_session
 from schemas.jsonschema import schema_bytes, schema_name
 from schemas.keys import message_type_for_key
+from schemas.messages import Wire, wire_of
 
 __all__ = ["METADATA_NAME", "QUARANTINE_TOPIC", "STATS_METADATA_NAME", "McapSink", "Quarantined", "Recorder",
            "RecorderConfig", "RecorderStats", "main"]
@@ -125,10 +128,11 @@ class McapSink:
             self._writer.add_metadata(METADATA_NAME, metadata)
         self._channels: dict[str, int] = {}
         self._schemas: dict[type, int] = {}
-        self._header_decoder = msgspec.json.Decoder(_Header)
+        self._header_decoders: dict[str, msgspec.json.Decoder[_Header] | msgspec.msgpack.Decoder[_Header]] = {
+            "json": msgspec.json.Decoder(_Header), "msgpack": msgspec.msgpack.Decoder(_Header)}
         self._add = self._writer.add_message
         self._max_channels = max_channels
-        self._decoders: dict[type, msgspec.json.Decoder] = {}
+        self._decoders: dict[type, msgspec.json.Decoder[Any] | msgspec.msgpack.Decoder[Any]] = {}
         self._quarantine_channel = 0
         self.quarantined = 0
         self.messages = 0
@@ -159,7 +163,7 @@ class McapSink:
             return self._quarantine(raw, key, recv_ns, f"not a {msg_type.__name__}: {why}")
         if channel_id is None:
             channel_id = self._register_channel(key, msg_type)
-        self._write(channel_id, raw, recv_ns)
+        self._write(channel_id, raw, recv_ns, wire=wire_of(msg_type))
 
     def _schema_problem(self, msg_type: type, raw: bytes) -> str | None:
         """Why ``raw`` does not decode as ``msg_type`` (types, ``Meta`` bounds, unknown or missing fields), or None.
@@ -172,7 +176,8 @@ class McapSink:
             return f"oversize: {len(raw)} bytes > {MAX_PAYLOAD_BYTES}"
         decoder = self._decoders.get(msg_type)
         if decoder is None:
-            decoder = self._decoders[msg_type] = msgspec.json.Decoder(msg_type)
+            decoder = self._decoders[msg_type] = (msgspec.msgpack.Decoder(msg_type) if wire_of(msg_type) == "msgpack"
+                                                  else msgspec.json.Decoder(msg_type))
         try:
             decoder.decode(raw)
         except (msgspec.DecodeError, UnicodeDecodeError, RecursionError) as e:  # ValidationError is a DecodeError
@@ -186,12 +191,14 @@ class McapSink:
             self._quarantine_channel = self._writer.register_channel(
                 QUARANTINE_TOPIC, "json", schema_id, {"cvvc_message_type": "Quarantined"})
         record = Quarantined(key=key[:1000], reason=reason[:500], payload_b64=base64.b64encode(raw).decode())
-        self._write(self._quarantine_channel, msgspec.json.encode(record), recv_ns, header_of=raw)
+        self._write(self._quarantine_channel, msgspec.json.encode(record), recv_ns, header_of=raw,
+                    wire=wire_of(message_type_for_key(key) or Quarantined))
         self.quarantined += 1
 
-    def _write(self, channel_id: int, raw: bytes, recv_ns: int, *, header_of: bytes | None = None) -> None:
+    def _write(self, channel_id: int, raw: bytes, recv_ns: int, *, header_of: bytes | None = None,
+               wire: Wire = "json") -> None:
         try:
-            header = self._header_decoder.decode(raw if header_of is None else header_of)
+            header = self._header_decoders[wire].decode(raw if header_of is None else header_of)
             log_time, seq = header.t_ns, header.seq
         except (msgspec.DecodeError, UnicodeDecodeError, RecursionError):  # not a JSON object, t_ns/seq not
             # integers, bad UTF-8, or nested too deeply: msgspec raises the last two as they are
@@ -234,7 +241,8 @@ class McapSink:
         if not schema_id:
             schema_id = self._writer.register_schema(schema_name(msg_type), "jsonschema", schema_bytes(msg_type))
             self._schemas[msg_type] = schema_id
-        channel_id = self._writer.register_channel(key, "json", schema_id, {"cvvc_message_type": msg_type.__name__})
+        channel_id = self._writer.register_channel(key, wire_of(msg_type), schema_id,
+                                                   {"cvvc_message_type": msg_type.__name__})
         self._channels[key] = channel_id
         return channel_id
 

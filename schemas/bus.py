@@ -31,7 +31,7 @@ import zenoh
 from schemas.errors import CvvcError
 from schemas.keys import message_type_for_key
 from schemas.logs import RateLimitedLog
-from schemas.messages import OracleReply
+from schemas.messages import OracleReply, Wire, wire_of
 
 __all__ = [
     "BadMessage",
@@ -53,6 +53,7 @@ __all__ = [
     "open_session",
     "wait_for",
     "zenoh_config",
+    "zenoh_encoding",
 ]
 
 log = logging.getLogger(__name__)
@@ -259,16 +260,25 @@ _KINDS = (
 
 
 class Codec(Generic[T]):
-    """A typed JSON encoder/decoder for one message type, built once and reused."""
+    """A typed encoder/decoder for one message type, built once and reused: JSON, or MessagePack for the types
+    whose ``schemas.messages.wire_of`` says so (``TruthPack``).
+    """
 
     def __init__(self, msg_type: type[T], *, max_bytes: int = MAX_PAYLOAD_BYTES) -> None:
         self.msg_type = msg_type
         self.max_bytes = max_bytes
-        self._decoder = msgspec.json.Decoder(msg_type)
-        self._encoder = msgspec.json.Encoder()
+        self.wire = wire_of(msg_type)
+        self._decoder: msgspec.json.Decoder[T] | msgspec.msgpack.Decoder[T]
+        self._encoder: msgspec.json.Encoder | msgspec.msgpack.Encoder
+        if self.wire == "msgpack":
+            self._decoder, self._encoder = msgspec.msgpack.Decoder(msg_type), msgspec.msgpack.Encoder()
+        else:
+            self._decoder, self._encoder = msgspec.json.Decoder(msg_type), msgspec.json.Encoder()
 
     def encode(self, msg: T) -> bytes:
-        """The JSON bytes of ``msg``, after checking that every number in it is finite (``NonFiniteError``)."""
+        """The bytes of ``msg`` (its wire: JSON or MessagePack), after checking that every number in it is finite
+        (``NonFiniteError``).
+        """
         check_finite(msg)
         return self._encoder.encode(msg)
 
@@ -311,6 +321,11 @@ def codec_for(msg_type: type[T]) -> Codec[T]:
 
 
 # --------------------------------------------------------------------------------------- publishing
+def zenoh_encoding(wire: Wire) -> zenoh.Encoding:
+    """The Zenoh encoding of a payload of ``wire`` (``schemas.messages.wire_of``)."""
+    return zenoh.Encoding("application/msgpack") if wire == "msgpack" else zenoh.Encoding.APPLICATION_JSON
+
+
 class TypedPublisher(Generic[T]):
     """A Zenoh publisher of one message type on one key.
 
@@ -323,7 +338,7 @@ class TypedPublisher(Generic[T]):
         self.codec = codec_for(msg_type)
         self._pub = session.declare_publisher(
             key,
-            encoding=zenoh.Encoding.APPLICATION_JSON,
+            encoding=zenoh_encoding(self.codec.wire),
             congestion_control=zenoh.CongestionControl.BLOCK if reliable else zenoh.CongestionControl.DROP,
             priority=zenoh.Priority.REAL_TIME if reliable else zenoh.Priority.DATA,
             express=reliable,

@@ -59,7 +59,9 @@ def _mutations(msg_type) -> list[tuple[str, bytes, str]]:
     return cases
 
 
-BAD = [(t, label, payload, kind) for t in MESSAGE_TYPES for (label, payload, kind) in _mutations(t)]
+# JSON payloads; the one MessagePack type (TruthPack) has its own table in test_truth.py
+BAD = [(t, label, payload, kind) for t in MESSAGE_TYPES if m.wire_of(t) == "json"
+       for (label, payload, kind) in _mutations(t)]
 
 
 @pytest.mark.parametrize(("msg_type", "label", "payload", "kind"), BAD,
