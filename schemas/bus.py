@@ -26,6 +26,7 @@ from dataclasses import dataclass
 from typing import Any, Generic, Literal, TypeVar
 
 import msgspec
+import msgspec.inspect
 import zenoh
 
 from schemas.errors import CvvcError
@@ -268,6 +269,9 @@ class Codec(Generic[T]):
         self.msg_type = msg_type
         self.max_bytes = max_bytes
         self.wire = wire_of(msg_type)
+        # the walk for NaN/inf after a decode finds nothing when every float of the type is bounded (msgspec refuses
+        # NaN and inf there at decode, in JSON and MessagePack): skipped then, as the recorder does
+        self._walk_after_decode = _has_unbounded_float(msgspec.inspect.type_info(msg_type), set())
         self._decoder: msgspec.json.Decoder[T] | msgspec.msgpack.Decoder[T]
         self._encoder: msgspec.json.Encoder | msgspec.msgpack.Encoder
         if self.wire == "msgpack":
@@ -300,11 +304,33 @@ class Codec(Generic[T]):
             raise BadMessage("malformed", f"invalid UTF-8: {e}") from None
         except RecursionError:  # e.g. 10,000 nested objects where a tagged struct skips unknown fields
             raise BadMessage("malformed", "JSON nested too deeply") from None
-        try:
-            check_finite(msg)
-        except NonFiniteError as e:
-            raise BadMessage("non_finite", str(e)) from None
+        if self._walk_after_decode:
+            try:
+                check_finite(msg)
+            except NonFiniteError as e:
+                raise BadMessage("non_finite", str(e)) from None
         return msg
+
+
+def _has_unbounded_float(t: msgspec.inspect.Type, seen: set[type]) -> bool:
+    """Whether a value of type ``t`` may hold a float without both a lower and an upper bound (or any value)."""
+    mi = msgspec.inspect
+    if isinstance(t, mi.FloatType):
+        return (t.ge is None and t.gt is None) or (t.le is None and t.lt is None)
+    if isinstance(t, mi.StructType):
+        if t.cls in seen:
+            return False
+        seen.add(t.cls)
+        return any(_has_unbounded_float(f.type, seen) for f in t.fields)
+    if isinstance(t, mi.ListType | mi.VarTupleType | mi.SetType | mi.FrozenSetType):
+        return _has_unbounded_float(t.item_type, seen)
+    if isinstance(t, mi.TupleType):
+        return any(_has_unbounded_float(x, seen) for x in t.item_types)
+    if isinstance(t, mi.DictType):
+        return _has_unbounded_float(t.value_type, seen)
+    if isinstance(t, mi.UnionType):
+        return any(_has_unbounded_float(x, seen) for x in t.types)
+    return isinstance(t, mi.AnyType | mi.CustomType | mi.DecimalType)
 
 
 _CODECS: dict[type, Codec[Any]] = {}

@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import json
 import math
+from typing import Annotated
 
 import msgspec
+import msgspec.inspect
 import pytest
 
 from schemas import messages as m
@@ -187,3 +189,26 @@ def test_cap_frame_schema_is_an_object():
     s = json_schema(m.CapFrame)
     assert s["type"] == "object"
     assert "closed_steps" in s["required"] and "control_value" in s["properties"]
+
+
+class _Loose(msgspec.Struct, frozen=True):
+    """A type with an unbounded float: JSON 1e999 decodes to inf there, so the codec's walk must run."""
+
+    t_ns: int
+    x: float
+    y: list[Annotated[float, msgspec.Meta(ge=0.0)]] = []  # bounded below only: still open above
+
+
+@pytest.mark.parametrize("payload", [b'{"t_ns": 1, "x": 1e999}', b'{"t_ns": 1, "x": 1.0, "y": [1e999]}'])
+def test_the_decode_walk_runs_for_a_type_with_an_unbounded_float(payload):
+    with pytest.raises(BadMessage) as e:
+        codec_for(_Loose).decode(payload)
+    assert e.value.kind == "non_finite"
+
+
+@pytest.mark.parametrize("msg_type", MESSAGE_TYPES, ids=lambda t: t.__name__)
+def test_every_message_float_is_bounded_so_decode_alone_refuses_non_finite(msg_type):
+    """The codec skips its NaN/inf walk after decoding these types: every float in them has both bounds."""
+    from schemas.bus import _has_unbounded_float
+
+    assert not _has_unbounded_float(msgspec.inspect.type_info(msg_type), set())
