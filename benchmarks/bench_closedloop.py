@@ -31,13 +31,15 @@ _WEEK_STEPS = 7 * 1440
 _CHUNK = 1 << 20  # the recorder's zstd chunk size [bytes]
 
 
-def _truth_of(recording: Path) -> tuple[np.ndarray, np.ndarray, int, int, str, int]:
-    """(taps (T, NR), bank states (T, NC), payload bytes, zstd bytes, message encoding, frames) of the truth."""
+def _truth_of(recording: Path, steps: int) -> tuple[np.ndarray, np.ndarray, int, int, str, int]:
+    """(taps (steps, NR), bank states (steps, NC), payload bytes, zstd bytes, message encoding, frames) of the
+    truth; a step whose frame the recording lacks keeps the previous step's positions (the frames are counted).
+    """
     from mcap.reader import make_reader
 
     from schemas.truth import decode_truth
 
-    taps, caps, payload, zstd_bytes, encoding = [], [], 0, 0, ""
+    taps, caps, times, payload, zstd_bytes, encoding = [], [], [], 0, 0, ""
     chunk = bytearray()
     compressor = zstandard.ZstdCompressor()
     with recording.open("rb") as f:
@@ -48,6 +50,7 @@ def _truth_of(recording: Path) -> tuple[np.ndarray, np.ndarray, int, int, str, i
             tr = decode_truth(msg.data, encoding)
             taps.append(tr.taps)
             caps.append(tr.cap_states)
+            times.append(tr.t_ns)
             payload += len(msg.data)
             chunk += msg.data
             if len(chunk) >= _CHUNK:
@@ -55,7 +58,12 @@ def _truth_of(recording: Path) -> tuple[np.ndarray, np.ndarray, int, int, str, i
                 chunk.clear()
     if chunk:
         zstd_bytes += len(compressor.compress(bytes(chunk)))
-    return np.array(taps), np.array(caps), payload, zstd_bytes, encoding, len(taps)
+    if not times:
+        raise RuntimeError(f"{recording}: no truth frames")
+    step = ((np.array(times) - times[0]) // 60_000_000_000).astype(int)  # 1-minute steps from the first frame
+    at = np.maximum.accumulate(np.where(np.isin(np.arange(steps), step), np.arange(steps), 0))
+    row = np.searchsorted(step, at)  # the frame of each step, or of the last step before it that has one
+    return np.array(taps)[row], np.array(caps)[row].reshape(steps, -1), payload, zstd_bytes, encoding, len(times)
 
 
 def _bare_s(device_map: Path, cache: Path, start: str, year_seed: int, map_taps: np.ndarray,
@@ -108,11 +116,9 @@ def bench_closedloop(days: float = 7.0, *, case: Literal["A", "B", "C", "D", "no
         if summary.recording is None:
             raise RuntimeError("the run wrote no recording")
         recording = Path(summary.recording)
-        taps, caps, payload, zstd_bytes, encoding, frames = _truth_of(recording)
-        if frames != summary.steps:
-            raise RuntimeError(f"{frames} truth frames for {summary.steps} steps: cannot replay the taps")
-        bare = _bare_s(Path(summary.feeder), cache_root(cache), summary.start, config.year_seed, taps,
-                       caps.reshape(frames, -1), bare_repeats)
+        taps, caps, payload, zstd_bytes, encoding, frames = _truth_of(recording, summary.steps)
+        bare = _bare_s(Path(summary.feeder), cache_root(cache), summary.start, config.year_seed, taps, caps,
+                       bare_repeats)
         weeks = summary.steps / _WEEK_STEPS
         return ClosedLoopBench(
             feeder=summary.feeder_id, case=summary.case, days=days, steps=summary.steps,
@@ -126,8 +132,9 @@ def bench_closedloop(days: float = 7.0, *, case: Literal["A", "B", "C", "D", "no
             truth_frames=frames, truth_encoding=encoding)
 
 
-if __name__ == "__main__":  # python -m benchmarks.bench_closedloop [DAYS [CACHE_DIR]]
+if __name__ == "__main__":  # python -m benchmarks.bench_closedloop [DAYS [CACHE_DIR [RUN_DIR]]]
     t0 = time.perf_counter()
     print(to_json(bench_closedloop(float(sys.argv[1]) if len(sys.argv) > 1 else 7.0,
-                                   cache=sys.argv[2] if len(sys.argv) > 2 else None)))
+                                   cache=sys.argv[2] if len(sys.argv) > 2 else None,
+                                   out=sys.argv[3] if len(sys.argv) > 3 else None)))
     print(f"({time.perf_counter() - t0:.1f} s)", file=sys.stderr)

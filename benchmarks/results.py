@@ -177,7 +177,7 @@ class ClosedLoopBench(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_
     recording_bytes_per_week: int
     truth_payload_bytes_per_week: int
     truth_zstd_bytes_per_week: int
-    truth_frames: int
+    truth_frames: int  # in the recording (a step without one replays the previous step's taps in bare)
     truth_encoding: str  # the truth channel's MCAP message encoding
 
 
