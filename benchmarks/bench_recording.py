@@ -40,7 +40,7 @@ def _messages(n: int) -> list[tuple[str, bytes]]:
         m.RegFrame: keys.meas_vr("rural", "vr1a"), m.PvCommand: keys.cmd("rural", "pv", "pv1"),
         m.RegCommand: keys.cmd("rural", "vr", "vr1a"), m.Ack: keys.ack("rural", "pv", "pv1"),
         m.Decision: keys.agent_decision("rural"), m.AgentStatus: keys.agent_status("rural"),
-        m.TruthFrame: keys.sim_truth("rural"), m.MetricsFrame: keys.sim_metrics("rural"),
+        m.TruthPack: keys.sim_truth("rural"), m.MetricsFrame: keys.sim_metrics("rural"),
         m.BridgeStatus: keys.sim_status("rural"),
     }
     types = list(key_of)
@@ -62,7 +62,12 @@ def _bare_writer(msgs: list[tuple[str, bytes]], path: Path) -> float:
     class _T(msgspec.Struct):
         t_ns: int = 0
 
-    dec = msgspec.json.Decoder(_T)
+    from schemas.keys import message_type_for_key
+    from schemas.messages import wire_of
+
+    json_dec, msgpack_dec = msgspec.json.Decoder(_T), msgspec.msgpack.Decoder(_T)
+    decoders = {key: msgpack_dec if wire_of(message_type_for_key(key) or _T) == "msgpack" else json_dec
+                for key in dict(msgs)}  # the truth is MessagePack
     with open(path, "wb") as f:
         t0 = time.perf_counter()
         w = Writer(f, compression=CompressionType.ZSTD)
@@ -70,7 +75,7 @@ def _bare_writer(msgs: list[tuple[str, bytes]], path: Path) -> float:
         channels = {key: w.register_channel(key, "json", 0) for key in dict(msgs)}
         now = time.time_ns()
         for key, raw in msgs:
-            w.add_message(channels[key], log_time=dec.decode(raw).t_ns, data=raw, publish_time=now)
+            w.add_message(channels[key], log_time=decoders[key].decode(raw).t_ns, data=raw, publish_time=now)
         w.finish()
         return len(msgs) / (time.perf_counter() - t0)
 

@@ -20,17 +20,18 @@ from regression.capbanks import bank_voltage_pu, head_q_at_training_banks
 from regression.model import ModelArrays, read_model
 from schemas import messages as m
 from schemas.bus import codec_for
+from schemas.truth import TruthArrays, decode_truth
 
 __all__ = ["estimate_errors", "main"]
 
 
-def _read(run: Path) -> tuple[dict[int, m.Decision], dict[int, m.TruthFrame], dict[int, dict[str, int]], list[str]]:
+def _read(run: Path) -> tuple[dict[int, m.Decision], dict[int, TruthArrays], dict[int, dict[str, int]], list[str]]:
     """Decisions by the step they answer, truth frames and bank states by time, and the truth's node names."""
     decisions: dict[int, m.Decision] = {}
-    truth: dict[int, m.TruthFrame] = {}
+    truth: dict[int, TruthArrays] = {}
     banks: dict[int, dict[str, int]] = {}
     node_names: list[str] = []
-    dec, tru, cap = codec_for(m.Decision), codec_for(m.TruthFrame), codec_for(m.CapFrame)
+    dec, cap = codec_for(m.Decision), codec_for(m.CapFrame)
     with (run / "session.mcap").open("rb") as f:
         for _, channel, message in make_reader(f).iter_messages(log_time_order=True):
             topic = channel.topic
@@ -38,7 +39,7 @@ def _read(run: Path) -> tuple[dict[int, m.Decision], dict[int, m.TruthFrame], di
                 d = dec.decode(message.data)
                 decisions[d.step_t_ns] = d
             elif topic.endswith("/sim/truth"):
-                tr = tru.decode(message.data)
+                tr = decode_truth(message.data, channel.message_encoding)
                 truth[tr.t_ns] = tr
                 node_names = node_names or list(tr.node_names or [])
             elif "/meas/cap/" in topic:

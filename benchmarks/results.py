@@ -18,6 +18,7 @@ import msgspec
 __all__ = [
     "BenchError",
     "BridgeBench",
+    "ClosedLoopBench",
     "DecisionBench",
     "MemoryKib",
     "OfflineRerun",
@@ -147,6 +148,37 @@ class RecordingBench(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_f
     bytes_per_message: float
     mean_payload_bytes: float
     offline_rerun: OfflineRerun | None  # None while ``agent.runtime.decide_offline`` is missing
+
+
+class ClosedLoopBench(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """``bench_closedloop``: a recorded ``cvvc run`` (bridge, agent, recorder) against bare OpenDSS of the same steps.
+
+    ``ratio`` = run wall time / bare time (issue 19's goal: <= 2 on a month); ``loop_ratio`` the same with the
+    bridge's stepping loop alone (no process start-up, no profile or model loading). ``bare_s`` steps the same loads,
+    PV and the closed loop's own taps (read back from the recording's truth) with nothing else. ``truth_*``: the
+    truth channel's payload per simulated week, as sent and after zstd in 1 MiB chunks (the recorder's chunking).
+    """
+
+    feeder: str
+    case: str
+    days: float
+    steps: int
+    run_wall_s: float  # RunSummary.wall_s: processes started to everything stopped [s]
+    loop_wall_s: float  # the bridge's stepping loop [s]
+    bare_s: float  # bare OpenDSS of the same steps, best of ``bare_repeats`` [s]
+    bare_repeats: int
+    ratio: float
+    loop_ratio: float
+    decision_wait_s: float  # the bridge's wait for the agent's decisions and commands [s]
+    bridge_thread_cpu_s: float
+    publisher_cpu_s: float
+    round_trip_p50_s: float | None
+    lockstep_misses: int
+    recording_bytes_per_week: int
+    truth_payload_bytes_per_week: int
+    truth_zstd_bytes_per_week: int
+    truth_frames: int  # in the recording (a step without one replays the previous step's taps in bare)
+    truth_encoding: str  # the truth channel's MCAP message encoding
 
 
 class MemoryKib(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True, omit_defaults=True):

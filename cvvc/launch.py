@@ -55,6 +55,9 @@ Case = Literal["A", "B", "C", "D", "none", "local"]
 CASES: tuple[Case, ...] = ("A", "B", "C", "D", "none", "local")
 
 
+_AGENT_UP_S = 60.0  # the longest the agent may take to come up; the bridge waits that long for it [s]
+
+
 class LaunchError(CommandError):
     """A run that cannot start or whose processes failed; the message says which and why."""
 
@@ -255,13 +258,16 @@ def _spawn(name: str, args: list[str], log_dir: Path, *, essential: bool = True)
     return _Child(name, proc, essential)
 
 
-def _stop(child: _Child, timeout_s: float = 15.0) -> int:
-    """Stop one child by its pid: SIGINT, then SIGKILL after ``timeout_s``. Returns its exit status."""
-    if child.proc.poll() is None:
+def _stop(child: _Child, timeout_s: float = 15.0, *, signalled: bool = False) -> int:
+    """Stop one child by its pid: SIGINT (unless ``signalled``: sent already), then SIGKILL after ``timeout_s``.
+    Returns its exit status.
+    """
+    if child.proc.poll() is None and not signalled:
         try:
             child.proc.send_signal(signal.SIGINT)
         except ProcessLookupError:
             pass
+    if child.proc.poll() is None:
         try:
             child.proc.wait(timeout=timeout_s)
         except subprocess.TimeoutExpired:
@@ -269,6 +275,20 @@ def _stop(child: _Child, timeout_s: float = 15.0) -> int:
             child.proc.kill()
             child.proc.wait(timeout=10)
     return int(child.proc.returncode)
+
+
+def _stop_all(children: list[_Child]) -> None:
+    """Stop every child: SIGINT to all first, so they finish (a recorder its file) side by side, then ``_stop``."""
+    signalled = set()
+    for child in children:
+        if child.proc.poll() is None:
+            try:
+                child.proc.send_signal(signal.SIGINT)
+                signalled.add(child.proc.pid)
+            except ProcessLookupError:
+                pass
+    for child in children:
+        _stop(child, signalled=child.proc.pid in signalled)
 
 
 class _RecorderSupervisor:
@@ -419,10 +439,6 @@ def run(config: RunConfig) -> RunSummary:
                 children.append(_spawn("agent", [
                     "agent", "--model", str(kept_model), *agent_settings_args(agent_settings),
                     "--summary-out", str(agent_summary_path), *connect], out))
-                agent_key = keys.alive(feeder_id, "agent", "agent")
-                agents = LivelinessWatcher(session, agent_key)
-                if not wait_for(lambda: agents.is_alive(agent_key), 60.0):
-                    raise LaunchError(f"the agent did not come up within 60 s:\n{_tail(out / 'agent.log')}")
             endpoints = pvp.sunspec_endpoints(dm, free_port) if config.pv_protocol == "sunspec" else {}
             for pid, ep in endpoints.items():  # up before the bridge: it waits for their tokens, then steps
                 children.append(_spawn(f"adapter.{pid}", pvp.adapter_args(
@@ -433,8 +449,16 @@ def run(config: RunConfig) -> RunSummary:
                 raise LaunchError(f"the SunSpec adapters did not come up within 60 s:\n"
                                   f"{_tail(out / f'adapter.{next(iter(endpoints))}.log')}")
             bridge = _spawn("bridge", [*bridge_args(config, dm_path, feeder_id, start_text, steps, agent_settings,
-                                                    bridge_summary_path, pvp.bridge_args(endpoints)), *connect], out)
+                                                    bridge_summary_path, pvp.bridge_args(endpoints)), *connect,
+                                       *(["--wait-agent-s", str(_AGENT_UP_S)] if agent_settings is not None else [])],
+                            out)
             children.append(bridge)
+            if agent_settings is not None:  # the bridge compiles and loads while the agent starts, and waits for it
+                agent_key = keys.alive(feeder_id, "agent", "agent")
+                agents = LivelinessWatcher(session, agent_key)
+                if not wait_for(lambda: agents.is_alive(agent_key) or bridge.proc.poll() is not None, _AGENT_UP_S):
+                    raise LaunchError(f"the agent did not come up within {_AGENT_UP_S:.0f} s:\n"
+                                      f"{_tail(out / 'agent.log')}")
 
             bar = _progress(steps, config.progress, config.progress_label)
             while True:
@@ -458,12 +482,9 @@ def run(config: RunConfig) -> RunSummary:
                 bar.close()
             if bridge.proc.returncode != 0:
                 raise LaunchError(f"the bridge exited with {bridge.proc.returncode}:\n{_tail(out / 'bridge.log')}")
-            for child in children:
-                if child is not bridge:
-                    _stop(child)
+            _stop_all([child for child in children if child is not bridge])
     finally:
-        for child in children:
-            _stop(child)
+        _stop_all(children)
     wall_s = time.monotonic() - t_wall0
     bridge_summary = _read_summary(bridge_summary_path, BridgeSummary, "bridge")
     final = bridge_summary.metrics

@@ -11,9 +11,10 @@ What is plotted (matplotlib, Agg backend, no display needed):
 - ``estimation_error.png`` (Fig. 8-like): the agent's estimate minus the true voltage at the same node and
   ``t_ns`` [pu], over time (max/min/RMS per decision) and its histogram.
 
-The data come from ``cvvc/<F>/sim/truth`` (TruthFrame: ``v_pu`` per node, ``taps``, ``pv_q_kvar``, ``cap_states``) and
-``cvvc/<F>/agent/decision`` (Decision: ``estimates``), read with ``mcap.reader.make_reader`` and decoded with
-lean msgspec types (only the fields used). A month of truth is streamed: nothing per node and step is kept.
+The data come from ``cvvc/<F>/sim/truth`` (TruthPack, or TruthFrame in older recordings, read as arrays by
+``schemas.truth``: ``v_pu`` per node, ``taps``, ``pv_q_kvar``, ``cap_states``) and ``cvvc/<F>/agent/decision``
+(Decision: ``estimates``), read with ``mcap.reader.make_reader``, the decisions decoded with a lean msgspec type
+(only the fields used). A month of truth is streamed: nothing per node and step is kept.
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ import numpy as np
 
 from cvvc.errors import CommandError
 from schemas.errors import CvvcError
+from schemas.truth import TruthDecodeError, decode_truth
 
 if TYPE_CHECKING:
     from cvvc.launch import RunSummary
@@ -41,15 +43,6 @@ WINDOW_STEPS = 10  # 10-minute averages at the 1-minute step
 
 class ReportError(CommandError):
     """A run or evaluation folder that cannot be plotted; the message says what is missing."""
-
-
-class _Truth(msgspec.Struct):
-    t_ns: int
-    v_pu: list[float]
-    node_names: list[str] | None = None
-    taps: list[int] = []
-    pv_q_kvar: list[float] = []
-    cap_states: list[int] = []
 
 
 class _Estimate(msgspec.Struct):
@@ -125,7 +118,6 @@ def read_trace(mcap_path: str | Path, *, regulator_ids: tuple[str, ...] = (), pv
     path = Path(mcap_path)
     if not path.is_file():
         raise ReportError(f"{path}: no recording there; run with recording on (cvvc run without --no-record)")
-    truth_dec = msgspec.json.Decoder(_Truth)
     dec_dec = msgspec.json.Decoder(_Decision)
     with open(path, "rb") as f:
         reader = make_reader(f)
@@ -143,15 +135,17 @@ def read_trace(mcap_path: str | Path, *, regulator_ids: tuple[str, ...] = (), pv
         err_t, err_max, err_min, err_rms, errors = [], [], [], [], []
         acc_v = acc_q = np.zeros(0)  # the window's sums, started afresh at each window's first step
         n_acc = 0
-        for _, _, msg in reader.iter_messages(topics=[truth_topic]):
-            tr = truth_dec.decode(msg.data)
+        for _, channel, msg in reader.iter_messages(topics=[truth_topic]):
+            try:  # compact (msgpack) or, in recordings made before it, JSON
+                tr = decode_truth(msg.data, channel.message_encoding)
+            except TruthDecodeError as bad:
+                raise ReportError(f"{path}: {truth_topic} at {msg.log_time}: {bad}") from bad
             if tr.node_names:
                 node_index = {n: i for i, n in enumerate(tr.node_names)}
-            v = np.asarray(tr.v_pu, dtype=float)
-            q = np.asarray(tr.pv_q_kvar, dtype=float)
+            v, q = tr.v_pu, tr.pv_q_kvar
             step_t.append(tr.t_ns)
-            taps.append(tr.taps)
-            caps.append(tr.cap_states)
+            taps.append(tr.taps.tolist())
+            caps.append(tr.cap_states.tolist())
             if n_acc == 0:
                 t_list.append(tr.t_ns)
                 acc_v, acc_q = v.copy(), q.copy()

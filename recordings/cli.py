@@ -1,4 +1,4 @@
-"""``cvvc record``, ``cvvc recordings info|recover`` and ``cvvc replay``.
+"""``cvvc record``, ``cvvc recordings info|recover|export-json`` and ``cvvc replay``.
 
 Nothing heavy is imported at module level: each handler imports what it needs.
 """
@@ -48,6 +48,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     c.add_argument("output", metavar="OUT")
     c.add_argument("--json", action="store_true", help="print JSON")
     c.set_defaults(func=_recover)
+    e = psub.add_parser("export-json", help="copy a recording with the compact truth re-encoded as JSON (Foxglove)",
+                        description="Write OUT: IN with every MessagePack channel (the truth, sim/truth) re-encoded "
+                                    "as JSON TruthFrame with its JSON Schema, so Foxglove can plot every node's "
+                                    "voltage; everything else is copied as it is.")
+    e.add_argument("input", metavar="IN")
+    e.add_argument("output", metavar="OUT")
+    e.add_argument("--json", action="store_true", help="print JSON")
+    e.set_defaults(func=_export_json)
 
     y = sub.add_parser("replay", help="republish recorded frames onto the bus, or re-run the agent offline",
                        description="Republish recorded measurement frames with their original spacing scaled by "
@@ -154,6 +162,18 @@ def _recover(args: argparse.Namespace) -> int:
     for problem in res.problems:
         print(f"  problem: {problem}")
     return 0
+
+
+def _export_json(args: argparse.Namespace) -> int:
+    from recordings.export import export_json
+
+    res = export_json(args.input, args.output)
+    if args.json:
+        print(_json(res))
+    else:
+        print(f"{res.out_path}: {res.messages} messages, {res.reencoded} truth frames re-encoded as JSON"
+              + (f", {res.skipped} undecodable left out ({res.skipped_topics})" if res.skipped else ""))
+    return 0 if res.skipped == 0 else 1
 
 
 # ------------------------------------------------------------------------------------------ replay

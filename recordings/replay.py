@@ -25,7 +25,10 @@ import zenoh
 
 from recordings.errors import ReplayError, UnreadableError
 from recordings.info import MCAP_READ_ERRORS, check_mcap_file
-from schemas.bus import BusConfig, has_subscribers, open_session
+from schemas import messages as m
+from schemas.bus import BusConfig, has_subscribers, open_session, zenoh_encoding
+from schemas.keys import message_type_for_key
+from schemas.messages import wire_of
 
 __all__ = [
     "MEASUREMENT_KEYS",
@@ -182,7 +185,7 @@ def replay(session: zenoh.Session, config: ReplayConfig, stop: threading.Event |
 def _replay_topics(session: zenoh.Session, config: ReplayConfig, rec: RecordedMessages,
                    stop: threading.Event) -> ReplayResult:
     topics = rec.topics
-    pubs = {t: session.declare_publisher(t, encoding=zenoh.Encoding.APPLICATION_JSON,
+    pubs = {t: session.declare_publisher(t, encoding=zenoh_encoding(wire_of(message_type_for_key(t) or m.Message)),
                                          congestion_control=zenoh.CongestionControl.BLOCK) for t in topics}
     try:
         unmatched = _wait_matched(pubs, config.wait_subscriber_s)

@@ -26,12 +26,13 @@ from dataclasses import dataclass
 from typing import Any, Generic, Literal, TypeVar
 
 import msgspec
+import msgspec.inspect
 import zenoh
 
 from schemas.errors import CvvcError
 from schemas.keys import message_type_for_key
 from schemas.logs import RateLimitedLog
-from schemas.messages import OracleReply
+from schemas.messages import OracleReply, Wire, wire_of
 
 __all__ = [
     "BadMessage",
@@ -53,6 +54,7 @@ __all__ = [
     "open_session",
     "wait_for",
     "zenoh_config",
+    "zenoh_encoding",
 ]
 
 log = logging.getLogger(__name__)
@@ -259,16 +261,28 @@ _KINDS = (
 
 
 class Codec(Generic[T]):
-    """A typed JSON encoder/decoder for one message type, built once and reused."""
+    """A typed encoder/decoder for one message type, built once and reused: JSON, or MessagePack for the types
+    whose ``schemas.messages.wire_of`` says so (``TruthPack``).
+    """
 
     def __init__(self, msg_type: type[T], *, max_bytes: int = MAX_PAYLOAD_BYTES) -> None:
         self.msg_type = msg_type
         self.max_bytes = max_bytes
-        self._decoder = msgspec.json.Decoder(msg_type)
-        self._encoder = msgspec.json.Encoder()
+        self.wire = wire_of(msg_type)
+        # the walk for NaN/inf after a decode finds nothing when every float of the type is bounded (msgspec refuses
+        # NaN and inf there at decode, in JSON and MessagePack): skipped then, as the recorder does
+        self._walk_after_decode = _has_unbounded_float(msgspec.inspect.type_info(msg_type), set())
+        self._decoder: msgspec.json.Decoder[T] | msgspec.msgpack.Decoder[T]
+        self._encoder: msgspec.json.Encoder | msgspec.msgpack.Encoder
+        if self.wire == "msgpack":
+            self._decoder, self._encoder = msgspec.msgpack.Decoder(msg_type), msgspec.msgpack.Encoder()
+        else:
+            self._decoder, self._encoder = msgspec.json.Decoder(msg_type), msgspec.json.Encoder()
 
     def encode(self, msg: T) -> bytes:
-        """The JSON bytes of ``msg``, after checking that every number in it is finite (``NonFiniteError``)."""
+        """The bytes of ``msg`` (its wire: JSON or MessagePack), after checking that every number in it is finite
+        (``NonFiniteError``).
+        """
         check_finite(msg)
         return self._encoder.encode(msg)
 
@@ -290,11 +304,33 @@ class Codec(Generic[T]):
             raise BadMessage("malformed", f"invalid UTF-8: {e}") from None
         except RecursionError:  # e.g. 10,000 nested objects where a tagged struct skips unknown fields
             raise BadMessage("malformed", "JSON nested too deeply") from None
-        try:
-            check_finite(msg)
-        except NonFiniteError as e:
-            raise BadMessage("non_finite", str(e)) from None
+        if self._walk_after_decode:
+            try:
+                check_finite(msg)
+            except NonFiniteError as e:
+                raise BadMessage("non_finite", str(e)) from None
         return msg
+
+
+def _has_unbounded_float(t: msgspec.inspect.Type, seen: set[type]) -> bool:
+    """Whether a value of type ``t`` may hold a float without both a lower and an upper bound (or any value)."""
+    mi = msgspec.inspect
+    if isinstance(t, mi.FloatType):
+        return (t.ge is None and t.gt is None) or (t.le is None and t.lt is None)
+    if isinstance(t, mi.StructType):
+        if t.cls in seen:
+            return False
+        seen.add(t.cls)
+        return any(_has_unbounded_float(f.type, seen) for f in t.fields)
+    if isinstance(t, mi.ListType | mi.VarTupleType | mi.SetType | mi.FrozenSetType):
+        return _has_unbounded_float(t.item_type, seen)
+    if isinstance(t, mi.TupleType):
+        return any(_has_unbounded_float(x, seen) for x in t.item_types)
+    if isinstance(t, mi.DictType):
+        return _has_unbounded_float(t.value_type, seen)
+    if isinstance(t, mi.UnionType):
+        return any(_has_unbounded_float(x, seen) for x in t.types)
+    return isinstance(t, mi.AnyType | mi.CustomType | mi.DecimalType)
 
 
 _CODECS: dict[type, Codec[Any]] = {}
@@ -311,6 +347,11 @@ def codec_for(msg_type: type[T]) -> Codec[T]:
 
 
 # --------------------------------------------------------------------------------------- publishing
+def zenoh_encoding(wire: Wire) -> zenoh.Encoding:
+    """The Zenoh encoding of a payload of ``wire`` (``schemas.messages.wire_of``)."""
+    return zenoh.Encoding("application/msgpack") if wire == "msgpack" else zenoh.Encoding.APPLICATION_JSON
+
+
 class TypedPublisher(Generic[T]):
     """A Zenoh publisher of one message type on one key.
 
@@ -323,7 +364,7 @@ class TypedPublisher(Generic[T]):
         self.codec = codec_for(msg_type)
         self._pub = session.declare_publisher(
             key,
-            encoding=zenoh.Encoding.APPLICATION_JSON,
+            encoding=zenoh_encoding(self.codec.wire),
             congestion_control=zenoh.CongestionControl.BLOCK if reliable else zenoh.CongestionControl.DROP,
             priority=zenoh.Priority.REAL_TIME if reliable else zenoh.Priority.DATA,
             express=reliable,

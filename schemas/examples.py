@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import msgspec
+import numpy as np
 
 from schemas import messages as m
 
@@ -56,6 +57,10 @@ def examples(t_ns: int = T0_NS, seq: int = 1) -> dict[type[msgspec.Struct], msgs
                                    v_pu=[1.01, 0.99, 1.03], v_min_pu=0.99, v_max_pu=1.03,
                                    node_names=["b0001.1", "b0001.2", "b0001.3"], taps=[3], pv_q_kvar=[0.0],
                                    cap_states=[1]),
+        m.TruthPack: m.TruthPack(t_ns=t_ns, seq=seq, source="bridge", feeder_id="rural", n_nodes=3,
+                                 v_pu_f32=m.pack_v_pu(np.array([1.01, 0.99, 1.03])), v_min_pu=0.99, v_max_pu=1.03,
+                                 node_names=["b0001.1", "b0001.2", "b0001.3"], taps=[3], pv_q_kvar=[0.0],
+                                 cap_states=[1]),
         m.MetricsFrame: m.MetricsFrame(t_ns=t_ns, seq=seq, source="bridge", feeder_id="rural", start_t_ns=t_ns,
                                        steps=60, mvvm_pu=0.0, nvv=0, minutes_in_violation=0, ntc=2,
                                        q_cost=1.5, t_cost=0.28, total_cost=2.78, v_min_pu=0.98, v_max_pu=1.03,

@@ -14,7 +14,7 @@ Layout, for a feeder id ``F`` and a device id ``D``::
     cvvc/F/link/pv/D            LinkStatus       a field-protocol adapter's link to its device (SunSpec)
     cvvc/F/agent/decision       Decision
     cvvc/F/agent/status         AgentStatus
-    cvvc/F/sim/truth            TruthFrame       simulation only
+    cvvc/F/sim/truth            TruthPack        simulation only (MessagePack: schemas.truth)
     cvvc/F/sim/metrics          MetricsFrame     simulation only
     cvvc/F/sim/status           BridgeStatus     simulation only
     cvvc/F/sim/oracle           OracleRequest -> OracleReply (queryable, case A)
@@ -127,7 +127,7 @@ def agent_status(feeder: str) -> str:
 
 
 def sim_truth(feeder: str) -> str:
-    """The simulator's ``TruthFrame``: every node's true voltage (simulation only; never used by the agent)."""
+    """The simulator's ``TruthPack``: every node's true voltage (simulation only; never used by the agent)."""
     return f"{ROOT}/{_id(feeder)}/sim/truth"
 
 
@@ -179,7 +179,7 @@ _BY_SUFFIX: dict[tuple[str, ...], type[msgspec.Struct]] = {
     ("link", "pv"): m.LinkStatus,
     ("agent", "decision"): m.Decision,
     ("agent", "status"): m.AgentStatus,
-    ("sim", "truth"): m.TruthFrame,
+    ("sim", "truth"): m.TruthPack,
     ("sim", "metrics"): m.MetricsFrame,
     ("sim", "status"): m.BridgeStatus,
     ("sim", "oracle"): m.OracleReply,

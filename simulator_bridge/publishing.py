@@ -25,7 +25,7 @@ import zenoh
 
 from schemas import keys
 from schemas import messages as m
-from schemas.bus import has_subscribers, wait_for
+from schemas.bus import has_subscribers, wait_for, zenoh_encoding
 from simulator_bridge import devices as dv
 from simulator_bridge.errors import SimulatorError
 from simulator_bridge.metrics import Metrics
@@ -61,18 +61,18 @@ class FramePublisher:
     ``TypedPublisher`` walks every field of every message for NaN (about 60 µs a frame, more than a power
     flow of IEEE 13). Frames and truth come from arrays that were checked in one vectorised pass; metrics from
     the accumulator, which refuses non-finite inputs and clips what it reports; the status holds no float.
-    Same Zenoh settings and JSON as ``TypedPublisher``.
+    Same Zenoh settings and encoding as ``TypedPublisher`` (JSON; MessagePack with ``wire="msgpack"``, the truth's).
     """
 
-    def __init__(self, session: zenoh.Session, key: str, *, reliable: bool = False) -> None:
-        self._enc = msgspec.json.Encoder()
+    def __init__(self, session: zenoh.Session, key: str, *, reliable: bool = False, wire: m.Wire = "json") -> None:
+        self._enc = msgspec.msgpack.Encoder() if wire == "msgpack" else msgspec.json.Encoder()
         self._pub = session.declare_publisher(
-            key, encoding=zenoh.Encoding.APPLICATION_JSON,
+            key, encoding=zenoh_encoding(wire),
             congestion_control=zenoh.CongestionControl.BLOCK if reliable else zenoh.CongestionControl.DROP,
             priority=zenoh.Priority.REAL_TIME if reliable else zenoh.Priority.DATA, express=reliable)
 
     def put(self, msg: m.Message) -> None:
-        """Encode ``msg`` as JSON and put it (no finiteness check: see the class docstring)."""
+        """Encode ``msg`` and put it (no finiteness check: see the class docstring)."""
         self._pub.put(self._enc.encode(msg))
 
     def wait_matched(self, timeout_s: float) -> bool:
@@ -175,7 +175,7 @@ class StepFramer:
         self.pub_vr = [FramePublisher(session, keys.meas_vr(f, reg.regulator_id)) for reg in self.regs]
         self.pub_cap = [FramePublisher(session, keys.meas_cap(f, cap.capacitor_id)) for cap in self.caps]
         self.pub_step = FramePublisher(session, keys.meas_step(f))  # same QoS as the frames: queued behind them
-        self.pub_truth = FramePublisher(session, keys.sim_truth(f), reliable=True)
+        self.pub_truth = FramePublisher(session, keys.sim_truth(f), reliable=True, wire=m.wire_of(m.TruthPack))
         self.pub_metrics = FramePublisher(session, keys.sim_metrics(f), reliable=True)
         self.seqs: Counter[str] = Counter()
         self.frames_published = self.frames_dropped = self.truth_frames = 0
@@ -310,19 +310,21 @@ class StepFramer:
         return sent
 
     def publish_truth(self, res: Any, n_step: int, v_lo_pu: float, v_hi_pu: float) -> None:
-        """The TruthFrame of the ``n_step``-th step of the run (from 1), if it has one.
+        """The truth frame (``TruthPack``) of the ``n_step``-th step of the run (from 1), if it has one.
 
-        The voltages are clipped to the schema's 0..3 pu into a buffer kept across steps; the extremes of the
-        clipped voltages are the clipped extremes (clipping is monotonic).
+        The voltages are clipped to the schema's 0..3 pu into a buffer kept across steps, then packed as float32
+        (``schemas.messages.pack_v_pu``); the extremes of the clipped voltages are the clipped extremes (clipping is
+        monotonic), sent exact.
         """
         every = self.spec.truth_every
         if every == 0 or (n_step - 1) % every != 0:
             return
         self.seqs["truth"] += 1
         v = np.clip(res.v_pu, 0.0, 3.0, out=self._truth_v)
-        self.pub_truth.put(m.TruthFrame(
+        self.pub_truth.put(m.TruthPack(
             t_ns=int(res.t_ns), seq=self.seqs["truth"], source="bridge", feeder_id=self.spec.feeder_id,
-            v_pu=v.tolist(), v_min_pu=min(max(v_lo_pu, 0.0), 3.0), v_max_pu=min(max(v_hi_pu, 0.0), 3.0),
+            n_nodes=len(v), v_pu_f32=m.pack_v_pu(v),
+            v_min_pu=min(max(v_lo_pu, 0.0), 3.0), v_max_pu=min(max(v_hi_pu, 0.0), 3.0),
             node_names=list(self.spec.node_names) if self.truth_frames == 0 else None,
             taps=np.asarray(res.taps).tolist(), pv_q_kvar=np.asarray(res.pv_q_kvar, dtype=float).tolist(),
             cap_states=np.asarray(res.cap_states).tolist()))

@@ -3,12 +3,12 @@
 from __future__ import annotations
 
 import dataclasses
-import json
 import os
 import subprocess
 import sys
 from pathlib import Path
 
+import msgspec
 import numpy as np
 import pytest
 from mcap.reader import make_reader
@@ -25,6 +25,8 @@ from cvvc.report import (
     taps_figure,
     window_envelope_pu,
 )
+from schemas.messages import TruthPack
+from schemas.truth import to_truth_frame
 
 REPO = Path(__file__).resolve().parents[2]
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -42,8 +44,8 @@ def tiny_evaluation(tmp_path_factory, ieee13_model, profile_cache, dask_schedule
 
 def _truth(path: Path) -> list[dict]:
     with path.open("rb") as f:
-        return [json.loads(m.data) for _, ch, m in make_reader(f).iter_messages(log_time_order=True)
-                if ch.topic.endswith("/sim/truth")]
+        return [msgspec.to_builtins(to_truth_frame(msgspec.msgpack.decode(m.data, type=TruthPack)))
+                for _, ch, m in make_reader(f).iter_messages(log_time_order=True) if ch.topic.endswith("/sim/truth")]
 
 
 def _assert_pngs(paths: list[Path], names: set[str]) -> None:

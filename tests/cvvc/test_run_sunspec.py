@@ -20,8 +20,12 @@ import subprocess
 import sys
 from pathlib import Path
 
+import msgspec
 import pytest
 from mcap.reader import make_reader
+
+from schemas import messages as m
+from schemas.truth import to_truth_frame
 
 REPO = Path(__file__).resolve().parents[2]
 PLANTS = ("pv675", "pv680", "pv633")
@@ -60,11 +64,18 @@ def both_runs(tmp_path_factory, ieee13_model) -> dict[str, tuple[Path, dict]]:
     return out
 
 
+def _as_dict(raw: bytes, encoding: str) -> dict:
+    """A recorded message as a dict: JSON as it is, the truth (msgpack ``TruthPack``) in its JSON form."""
+    if encoding == "msgpack":
+        return msgspec.to_builtins(to_truth_frame(msgspec.msgpack.decode(raw, type=m.TruthPack)))
+    return json.loads(raw)
+
+
 def _messages(path: str) -> dict[str, list[dict]]:
     by_topic: dict[str, list[dict]] = {}
     with open(path, "rb") as f:
         for _, channel, message in make_reader(f).iter_messages(log_time_order=True):
-            by_topic.setdefault(channel.topic, []).append(json.loads(message.data))
+            by_topic.setdefault(channel.topic, []).append(_as_dict(message.data, channel.message_encoding))
     return by_topic
 
 

@@ -24,7 +24,8 @@ EXAMPLE_KEYS: dict[type, str] = {
     m.Ack: keys.ack(FEEDER, "pv", "pv1"),
     m.Decision: keys.agent_decision(FEEDER),
     m.AgentStatus: keys.agent_status(FEEDER),
-    m.TruthFrame: keys.sim_truth(FEEDER),
+    m.TruthPack: keys.sim_truth(FEEDER),
+    m.TruthFrame: "test/truth_frame",  # the JSON form of the truth (export-json): not a bus message any more
     m.MetricsFrame: keys.sim_metrics(FEEDER),
     m.BridgeStatus: keys.sim_status(FEEDER),
     m.OracleRequest: "test/oracle_request",

@@ -17,12 +17,12 @@ from typing import Any
 
 import msgspec
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, given, reject, settings
 from hypothesis import strategies as st
 
 from schemas.bus import MAX_ORACLE_REPLY_BYTES, MAX_PAYLOAD_BYTES, BadMessage, codec_for
 from schemas.examples import examples
-from schemas.messages import MESSAGE_TYPES, OracleReply
+from schemas.messages import MESSAGE_TYPES, OracleReply, TruthPack, pack_v_pu, wire_of
 
 KINDS = {"oversize", "malformed", "unknown_field", "missing_field", "wrong_type", "out_of_range", "non_finite",
          "invalid"}
@@ -54,7 +54,23 @@ def _valid(msg_type: type) -> bytes:
 
 
 def _builtins(msg_type: type) -> dict[str, Any]:
-    return msgspec.to_builtins(EXAMPLES[msg_type])
+    return msgspec.to_builtins(EXAMPLES[msg_type], builtin_types=(bytes,) if _MSGPACK(msg_type) else ())
+
+
+def _MSGPACK(msg_type: type) -> bool:  # noqa: N802  (reads as a constant test)
+    return wire_of(msg_type) == "msgpack"
+
+
+def _wire(msg_type: type, tree: Any) -> bytes:
+    """``tree`` in ``msg_type``'s wire: JSON text, or MessagePack (the truth); an integer MessagePack cannot hold
+    (beyond 64 bits) is not a case for it: the example is skipped."""
+    if not _MSGPACK(msg_type):
+        return json.dumps(tree).encode()
+    try:
+        return msgspec.msgpack.encode(tree)
+    except OverflowError:
+        reject()
+        raise
 
 
 json_values = st.recursive(
@@ -146,14 +162,14 @@ def test_field_mutations(msg_type: type, data: st.DataObject) -> None:
     action = data.draw(st.sampled_from(["replace", "delete", "unknown"]))
     if action == "unknown":
         tree[data.draw(st.text(min_size=1, max_size=12).filter(lambda k: k not in tree))] = data.draw(json_values)
-        assert _check(msg_type, json.dumps(tree).encode()) == "unknown_field"
+        assert _check(msg_type, _wire(msg_type, tree)) == "unknown_field"
         return
     path = data.draw(st.sampled_from(paths))
     if action == "delete":
         _delete(tree, path)
     else:
         _set(tree, path, data.draw(json_values))
-    _check(msg_type, json.dumps(tree).encode())
+    _check(msg_type, _wire(msg_type, tree))
 
 
 BAD_NUMBERS = ["NaN", "nan", "Infinity", "-Infinity", "inf", "1e999", "-1e999", "1e309", "9" * 400,
@@ -170,6 +186,11 @@ def test_bad_number_literals(msg_type: type, data: st.DataObject) -> None:
     if not numeric:
         return
     path = data.draw(st.sampled_from(numeric))
+    if _MSGPACK(msg_type):  # no literals in MessagePack: the non-finite and absurd numbers themselves
+        _set(tree, path, data.draw(st.sampled_from([math.nan, math.inf, -math.inf, 1e308, -(2**63), 2**64 - 1])))
+        kind = _check(msg_type, _wire(msg_type, tree))
+        assert kind != "ok" or path in (("seq",), ("t_ns",)) or abs(_get(tree, path)) < 1e300, path
+        return
     literal = data.draw(st.sampled_from(BAD_NUMBERS))
     marker = "__FUZZ_NUMBER__"
     _set(tree, path, marker)
@@ -195,7 +216,11 @@ def test_out_of_range_numbers(msg_type: type, value: float) -> None:
                                                                                                    bool)]
     for path in numeric[:3]:
         _set(tree, path, value)
-    raw = json.dumps(tree).encode() if math.isfinite(value) else json.dumps(tree).replace("Infinity", "1e999").encode()
+    if _MSGPACK(msg_type):
+        raw = _wire(msg_type, tree)
+    else:
+        raw = (json.dumps(tree).encode() if math.isfinite(value)
+               else json.dumps(tree).replace("Infinity", "1e999").encode())
     if _check(msg_type, raw) == "ok":
         assert math.isfinite(value) and abs(value) < 2**63
 
@@ -204,6 +229,11 @@ def test_out_of_range_numbers(msg_type: type, value: float) -> None:
 @pytest.mark.parametrize("depth", [100, 10_000, 200_000])
 def test_deep_nesting(msg_type: type, depth: int) -> None:
     """Nested arrays and objects as a whole payload and inside a field: rejected, no RecursionError."""
+    if _MSGPACK(msg_type):  # MessagePack: arrays of one (0x91) and maps {"a": ...} (0x81 0xa1 "a") nested
+        assert _check(msg_type, b"\x91" * depth + b"\xc0") != "ok"
+        assert _check(msg_type, b"\x81\xa1a" * depth + b"\x01") != "ok"
+        assert _check(msg_type, b"\x91" * depth) != "ok"  # unterminated
+        return
     assert _check(msg_type, b"[" * depth + b"]" * depth) != "ok"
     assert _check(msg_type, b'{"a":' * depth + b"1" + b"}" * depth) != "ok"
     tree = _builtins(msg_type)
@@ -213,10 +243,27 @@ def test_deep_nesting(msg_type: type, depth: int) -> None:
     assert _check(msg_type, b"[" * depth) != "ok"  # unterminated
 
 
+def test_oversize_truth_is_refused_before_parsing() -> None:
+    """MessagePack cannot be padded: the largest truth frame within the limit decodes, four bytes more do not."""
+    limit = codec_for(TruthPack).max_bytes
+
+    def raw(n: int) -> bytes:
+        return msgspec.msgpack.encode(msgspec.structs.replace(EXAMPLES[TruthPack], n_nodes=n, node_names=None,
+                                                              v_pu_f32=pack_v_pu([1.0] * n)))
+
+    n = (limit - len(raw(0))) // 4
+    while len(raw(n)) > limit:
+        n -= 1
+    assert len(raw(n)) <= limit < len(raw(n + 1))
+    assert _check(TruthPack, raw(n)) == "ok" and _check(TruthPack, raw(n + 1)) == "oversize"
+
+
 @TYPES
 def test_oversize_is_refused_before_parsing(msg_type: type) -> None:
     valid, limit = _valid(msg_type), codec_for(msg_type).max_bytes  # 1 MiB; the oracle's reply has its own
     assert limit == (MAX_ORACLE_REPLY_BYTES if msg_type is OracleReply else MAX_PAYLOAD_BYTES)
+    if _MSGPACK(msg_type):  # JSON padding: TruthPack's own test above
+        return
     padded = valid[:-1] + b" " * (limit - len(valid) + 1) + b"}"
     assert len(padded) > limit and _check(msg_type, padded) == "oversize"
     assert _check(msg_type, valid[:-1] + b" " * (limit - len(valid)) + b"}") == "ok"  # at the limit

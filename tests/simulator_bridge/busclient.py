@@ -18,6 +18,7 @@ import zenoh
 
 from schemas import keys
 from schemas import messages as m
+from schemas.messages import wire_of
 
 __all__ = ["BusClient"]
 
@@ -73,7 +74,8 @@ class BusClient:
             mtype = keys.message_type_for_key(key)
             if mtype is None or parts[2] not in _BRIDGE_KINDS or mtype is m.OracleReply:
                 continue
-            msg = msgspec.json.decode(raw, type=mtype)
+            wire = msgspec.msgpack if wire_of(mtype) == "msgpack" else msgspec.json  # the truth is MessagePack
+            msg = wire.decode(raw, type=mtype)
             self.seen.append((key, msg, t))
             if pred(key, msg):
                 return msg

@@ -23,6 +23,7 @@ from bridgeutil import FEEDER, STARTUP_S, STEP_NS, bridge_cmd, bridge_config, br
 from busclient import BusClient as Client
 
 from schemas import messages as m
+from schemas.truth import truth_arrays
 
 
 # ------------------------------------------------------------------------------------ tests
@@ -241,8 +242,8 @@ def test_lockstep_with_a_silent_agent_times_out_and_goes_on(client: Client, rout
         assert status.lockstep_misses == 3 and status.agent_alive and status.clock == "lockstep"
         final = client.next(lambda k, x: isinstance(x, m.MetricsFrame) and x.final)
         assert final.steps == 11
-        truth = [x for _, x, _ in client.seen if isinstance(x, m.TruthFrame)]
-        assert truth[0].node_names is not None and len(truth[0].node_names) == len(truth[0].v_pu) == 41
+        truth = [x for _, x, _ in client.seen if isinstance(x, m.TruthPack)]
+        assert truth[0].node_names is not None and len(truth[0].node_names) == len(truth_arrays(truth[0]).v_pu) == 41
         # every token was declared and withdrawn again
         ups = {k for k, up in alive if up and "/agent/" not in k}
         downs = {k for k, up in alive if not up}
@@ -327,5 +328,5 @@ def test_a_stopped_run_publishes_every_simulated_step_before_its_final_metrics(
     final = client.next(lambda k, x: isinstance(x, m.MetricsFrame) and x.final)
     assert summary.stopped_early and final.steps == summary.steps == summary.truth_frames
     assert summary.frames_published == 7 * summary.steps  # head, 3 PV, 3 regulators per step
-    last = client.next(lambda k, x: isinstance(x, m.TruthFrame) and x.seq == summary.steps)
+    last = client.next(lambda k, x: isinstance(x, m.TruthPack) and x.seq == summary.steps)
     assert last.t_ns == summary.end_t_ns

@@ -67,7 +67,7 @@ def _pv(client: Client, plant: str, t_ns: int) -> m.PvFrame:
 
 
 def _truth_q(client: Client, plant: str, t_ns: int) -> float:
-    tr = client.next(lambda k, x: isinstance(x, m.TruthFrame) and x.t_ns == t_ns)
+    tr = client.next(lambda k, x: isinstance(x, m.TruthPack) and x.t_ns == t_ns)
     return tr.pv_q_kvar[PV_ORDER.index(plant)]
 
 

@@ -152,7 +152,7 @@ def test_cap_commands_acked_applied_expired_and_counted(client: Client, router_e
     assert (got["release"].status, got["release"].applied_value) == ("accepted", None)
     assert (got["f6"].mode, got["f6"].cmd_id, got["f6"].closed_steps) == ("local", None, 0)  # no control: holds
 
-    truth = [x for _, x, _ in client.seen if isinstance(x, m.TruthFrame)]
+    truth = [x for _, x, _ in client.seen if isinstance(x, m.TruthPack)]
     by_t = {tr.t_ns: tr.cap_states for tr in truth}
     assert by_t[t0] == [1, 1] and by_t[t0 + STEP_NS] == [0, 0]
     final = got["final"]
@@ -249,9 +249,9 @@ def test_inline_and_process_publish_the_same_cap_frames(router_endpoint: str, ca
             client.be_agent()
 
             def drive(client: Client = client) -> None:
-                t0 = client.next(lambda k, x: isinstance(x, m.TruthFrame)).t_ns
+                t0 = client.next(lambda k, x: isinstance(x, m.TruthPack)).t_ns
                 for i, t in enumerate(t0 + 5 * j * STEP_NS for j in range(2)):
-                    client.next(lambda k, x, t=t: isinstance(x, m.TruthFrame) and x.t_ns == t)
+                    client.next(lambda k, x, t=t: isinstance(x, m.TruthPack) and x.t_ns == t)
                     client.decide(t, [client.cap_cmd("cap1", i % 2, t, valid_s=120),
                                       client.cap_cmd("cap2", (i + 1) % 2, t)])
                 client.next(lambda k, x: isinstance(x, m.BridgeStatus) and x.done)

@@ -48,9 +48,9 @@ def test_the_publisher_process_sends_what_inline_publishing_sends(router_endpoin
                 device_map_path, cache_dir, steps=16, truth_every=1, pv_local="volt_var", noise_pmu_pct=0.2,
                 noise_scada_pct=1.0, drop_prob=0.1, noise_seed=5, publisher=publisher), router_endpoint)
             try:
-                t0 = client.next(lambda k, x: isinstance(x, m.TruthFrame)).t_ns
+                t0 = client.next(lambda k, x: isinstance(x, m.TruthPack)).t_ns
                 for i, t in enumerate(t0 + 5 * j * STEP_NS for j in range(4)):
-                    client.next(lambda k, x, t=t: isinstance(x, m.TruthFrame) and x.t_ns == t)
+                    client.next(lambda k, x, t=t: isinstance(x, m.TruthPack) and x.t_ns == t)
                     cmds = [client.pv_cmd("pv675", 100.0 + 50 * i, t, valid_s=120),
                             client.reg_cmd("reg1", m.TapAction(tap=i), t)]
                     client.decide(t, cmds)
