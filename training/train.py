@@ -36,6 +36,7 @@ from training.extended import (
     near_extreme_cover,
     perturb_devices,
     reading_matrix,
+    zone_extreme_cover,
 )
 from training.fits import (
     SensitivitySamples,
@@ -57,8 +58,9 @@ from training.scenarios import ScenarioSet, select_scenarios, summarize_year
 __all__ = ["DEFAULT_Q_STEPS_PCT", "TRAINING_REVISION", "TrainResult", "TrainSummary", "load_profiles", "train"]
 
 #: Bump when training changes what it produces, so cached models (``cvvc run``'s cache) are retrained.
-TRAINING_REVISION = 6  # 3: critical nodes in the zone, movable only; 4: model format 2; 5: bounds and banks;
-# 6: cvvc run trains the extended set on feeders with banks (training.extended.default_feature_options)
+TRAINING_REVISION = 7  # 3: critical nodes in the zone, movable only; 4: model format 2; 5: bounds and banks;
+# 6: cvvc run trains the extended set on feeders with banks (training.extended.default_feature_options);
+# 7: the extended set's cover also takes each regulator zone's extremes (training.extended.zone_extreme_cover)
 
 DEFAULT_Q_STEPS_PCT = tuple(float(p) for p in range(-100, 101, 20))
 DEFAULT_COMBINED_PCT = (-100.0, -50.0, 50.0, 100.0)
@@ -192,14 +194,15 @@ def _critical(engine, dm, flows: PowerFlowSet, dv_dtap_all: np.ndarray, dv_dq_al
         "reg_secondary": np.asarray(engine.reg_secondary_node, int),  # always: the correction reads them
         "pv": pv_nodes[eligible[pv_nodes]] if pv_nodes.size else pv_nodes,
     }
+    upstream = upstream_regulators(dv_dtap_all, engine.reg_secondary_node)
     if margin_pu > 0:
         base = flows.v_pu[flows.plant == BASE]  # one flow per scenario: the Q sweeps move the extremes little
         shifted = device_shifted_voltages(base, dv_dtap_all, tap0, engine.reg_tap_max, dv_dcap_all,
                                           single_shifts=SINGLE_TAP_SHIFTS)
-        required["near_extreme"] = near_extreme_cover(
-            np.concatenate([flows.v_pu.astype(np.float32), shifted]), eligible, margin_pu)
+        every = np.concatenate([flows.v_pu.astype(np.float32), shifted])
+        required["near_extreme"] = np.union1d(near_extreme_cover(every, eligible, margin_pu),
+                                              zone_extreme_cover(every, eligible, upstream, margin_pu))
     crit = select_critical(required, extreme_nodes(flows.v_pu, eligible=eligible))
-    upstream = upstream_regulators(dv_dtap_all, engine.reg_secondary_node)
     return crit, upstream, phases
 
 

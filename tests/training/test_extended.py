@@ -13,7 +13,7 @@ import pytest
 from regression.batch import estimate_v_pu
 from regression.model import ModelArrays, ModelError, features, read_model, write_model
 from tests.training.conftest import REPO
-from training.extended import device_shifted_voltages, near_extreme_cover
+from training.extended import device_shifted_voltages, near_extreme_cover, zone_extreme_cover
 
 _BANKS = '''
 [[capacitor]]
@@ -177,6 +177,20 @@ def test_near_extreme_cover_takes_a_node_near_each_flows_extremes():
     assert near_extreme_cover(v, eligible, 0.002).tolist() == [2, 3]
     assert near_extreme_cover(v, eligible, 0.0).tolist() == [1, 2, 3]
     assert near_extreme_cover(v, np.array([True, True, False, True]), 0.002).tolist() == [1, 3]
+
+
+def test_zone_extreme_cover_takes_each_regulator_zones_own_extremes():
+    """Nodes 0-1 behind regulator 0, nodes 2-4 behind regulator 1, node 5 behind none. Feeder-wide, node 4 is always
+    the lowest and node 2 the highest; zone 0's own lowest (node 1) and highest (node 0) are never the feeder's."""
+    v = np.array([[1.010, 0.990, 1.030, 1.000, 0.960, 1.000],
+                  [1.012, 0.985, 1.028, 1.001, 0.962, 1.000]])
+    upstream_of = np.array([0, 0, 1, 1, 1, -1])
+    eligible = np.ones(6, bool)
+    assert near_extreme_cover(v, eligible, 0.001).tolist() == [2, 4]
+    assert zone_extreme_cover(v, eligible, upstream_of, 0.001).tolist() == [0, 1, 2, 4]
+    eligible[1] = False  # zone 0 then has node 0 alone, both its highest and its lowest
+    assert zone_extreme_cover(v, eligible, upstream_of, 0.001).tolist() == [0, 2, 4]
+    assert zone_extreme_cover(v, eligible, np.full(6, -1), 0.001).tolist() == []  # no regulator, no zone
 
 
 def test_shifted_voltages_move_the_extreme_into_a_boosted_zone():
