@@ -261,15 +261,16 @@ class CvvcController:
         return head_ok, pv_ok, reg_ok
 
     def _correction_filter(self, snap: MeasurementSnapshot) -> Callable[[np.ndarray, np.ndarray], np.ndarray] | None:
-        """The correction filter for this step: only this step's own readings, with its own head frame, enter
-        the mean (None without a filter).
+        """The correction filter for this step (None without a filter): only this step's own readings, with its
+        own head and plant frames, enter the mean; with a head or plant frame standing in for a lost one, this
+        step's own readings are applied as they are (``CorrectionFilter``).
         """
         filt = self._eps_filter
         if filt is None:
             return None
         fresh = np.full(len(self._reg_ids), True) if snap.reg_fresh is None else np.asarray(snap.reg_fresh, bool)
-        fresh = fresh & bool(snap.head_fresh)
-        return lambda eps, ok: filt(eps, ok, fresh)
+        inputs_fresh = bool(snap.head_fresh) and (snap.pv_fresh is None or bool(np.all(snap.pv_fresh)))
+        return lambda eps, ok: filt(eps, ok, fresh, inputs_fresh=inputs_fresh)
 
     def _cap_usable(self, snap: MeasurementSnapshot) -> np.ndarray:
         """(C,) bool: banks whose frame is valid with a whole number of closed steps within the bank's."""

@@ -177,7 +177,8 @@ def snapshot_from(aligned: AlignedFrames, model: CvvcModel, *, reading_window_s:
         t_ns=aligned.t_ns, head_p_kw=head_p, head_q_kvar=head_q, pv_p_kw=pv_p, pv_q_kvar=pv_q,
         pv_kva_available=pv_kva, pv_q_setpoint_kvar=pv_sp, reg_v120=reg_v, reg_v120_compared=reg_vc,
         reg_tap=reg_tap, head_valid=head is not None, pv_valid=pv_ok, reg_valid=reg_ok,
-        cap_steps=cap_steps, cap_valid=cap_ok, cap_v_v=cap_v, reg_fresh=reg_fresh, head_fresh=aligned.head is not None)
+        cap_steps=cap_steps, cap_valid=cap_ok, cap_v_v=cap_v, reg_fresh=reg_fresh, head_fresh=aligned.head is not None,
+        pv_fresh=np.array([plant.id in aligned.pv for plant in model.pv], bool))
 
 
 def _fitted_readings(aligned: AlignedFrames, reg_id: str, now: m.RegFrame, head: m.HeadFrame,
