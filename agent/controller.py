@@ -80,6 +80,10 @@ class CvvcController:
     sensitivity_error : beyond the paper, soft form (eq. 17): the relative error assumed for the estimated Q
         sensitivities [-] (see ``CvvcInputs.dv_dq_rel_error``); 0: the paper's eq. (17). Case A's oracle
         sensitivities are the power flow's own and get none.
+    filtered_setpoints : beyond the paper, ``setpoints`` mode with the correction filter: eq. (8)'s ``V_s^1`` starts
+        from the corrected estimate at the regulator's secondary plus the filtered difference between the compared
+        reading and that estimate (a second ``CorrectionFilter``), instead of the compared reading itself: the
+        reading's noise then moves the band by a fraction of itself.
     """
 
     def __init__(
@@ -95,6 +99,7 @@ class CvvcController:
         control_banks: bool = False,
         correction_window_s: float = 0.0,
         sensitivity_error: float = 0.0,
+        filtered_setpoints: bool = False,
     ) -> None:
         if mode not in ("taps", "setpoints"):
             raise AgentInputError(f"mode must be 'taps' or 'setpoints', not {mode!r}")
@@ -117,6 +122,9 @@ class CvvcController:
         self._eps_filter = (CorrectionFilter(len(model.regulators),
                                              min(1.0, float(model.control_period_s) / correction_window_s))
                             if correction_window_s > 0 else None)
+        self._cmp_filter = (CorrectionFilter(len(model.regulators),
+                                             min(1.0, float(model.control_period_s) / correction_window_s))
+                            if correction_window_s > 0 and filtered_setpoints else None)
         self.correction = correction
         self.bandwidth_v120 = float(bandwidth_v120)
         self._arrays = ModelArrays.of(model)
@@ -271,6 +279,21 @@ class CvvcController:
         fresh = np.full(len(self._reg_ids), True) if snap.reg_fresh is None else np.asarray(snap.reg_fresh, bool)
         inputs_fresh = bool(snap.head_fresh) and (snap.pv_fresh is None or bool(np.all(snap.pv_fresh)))
         return lambda eps, ok: filt(eps, ok, fresh, inputs_fresh=inputs_fresh)
+
+    def _compared_v120(self, snap: MeasurementSnapshot, state: GridState, reg_ok: np.ndarray) -> np.ndarray:
+        """(R,) the compared voltages eq. (8) starts from [V on the 120 V base]: the readings, or with
+        ``filtered_setpoints`` the estimate at each secondary plus the filtered reading-minus-estimate.
+        """
+        compared = np.asarray(snap.reg_v120_compared, float)
+        filt = self._cmp_filter
+        if filt is None or not state.critical:
+            return compared
+        per_v = self._arrays.reg_pu_per_v120
+        est_v120 = state.v0_pu[self._arrays.reg_secondary_node] / per_v
+        fresh = np.full(len(self._reg_ids), True) if snap.reg_fresh is None else np.asarray(snap.reg_fresh, bool)
+        inputs_fresh = bool(snap.head_fresh) and (snap.pv_fresh is None or bool(np.all(snap.pv_fresh)))
+        offset_pu = filt((compared - est_v120) * per_v, reg_ok, fresh, inputs_fresh=inputs_fresh)
+        return np.where(reg_ok, est_v120 + offset_pu / per_v, compared)
 
     def _cap_usable(self, snap: MeasurementSnapshot) -> np.ndarray:
         """(C,) bool: banks whose frame is valid with a whole number of closed steps within the bank's."""
@@ -455,7 +478,8 @@ class CvvcController:
         if self.mode == "setpoints":
             sec_node = self._arrays.reg_secondary_node
             dv_sec = solution.v_pred_pu[sec_node] - state.v0_pu[sec_node]
-            v_s1 = expected_compared_v120(snap.reg_v120_compared, dv_sec, self._arrays.reg_pu_per_v120)
+            v_s1 = expected_compared_v120(self._compared_v120(snap, state, reg_ok), dv_sec,
+                                          self._arrays.reg_pu_per_v120)
             d_tap = solution.taps_new[:n_reg] - state.taps
             band, step = self.bandwidth_v120, self._step_v120
             setpoints = np.array(

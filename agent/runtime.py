@@ -70,6 +70,8 @@ class AgentSettings(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fi
     clock_tolerance_s: float = 5.0  # a frame stamped this close to a control step is that step's (clock skew) [s]
     correction_window_s: float = 3000.0  # eq. (6)'s corrections: exponential mean over about this [s]; 0: off
     # (rural winter week with 1 % SCADA noise: NVV 10 -> 0, NTC 196 -> 66; agent.state.CorrectionFilter)
+    filtered_setpoints: bool = True  # beyond the paper: eq. (8) from the filtered compared reading (with the filter)
+    # (rural winter week with 1 % SCADA noise: NTC 66 -> 25, summer 134 -> 73; CvvcController)
     sensitivity_error: float = 0.3  # soft form: relative error of the estimated Q sensitivities [-]; 0: eq. (17)
     # (epri-ckt24, first winter day: plants pulling against each other, Q cost 2,130 -> 57 at NVV 435 -> 441)
 
@@ -250,7 +252,8 @@ class DecisionMaker:
                                          setpoint_hold=settings.setpoint_hold,
                                          control_banks=settings.control_banks,
                                          correction_window_s=settings.correction_window_s,
-                                         sensitivity_error=settings.sensitivity_error)
+                                         sensitivity_error=settings.sensitivity_error,
+                                         filtered_setpoints=settings.filtered_setpoints)
         self.oracle: OracleSource | None = None  # case A: set by the live runtime once its session is open
         self.seq = 0
         self.holds = 0

@@ -445,3 +445,25 @@ def test_a_stale_head_frame_lets_the_fresh_readings_correct_the_estimate():
         fresh.decide(snapshot(i * 300 * 10**9))
     d = fresh.decide(snapshot(13 * 300 * 10**9, reading_error_pu=drop))
     assert d.v_pu[sec] == pytest.approx(base - 0.001, abs=1e-6)
+
+
+def test_filtered_setpoints_shed_reading_noise_and_keep_a_steady_offset():
+    """Beyond the paper (``filtered_setpoints``): eq. (8)'s set points follow the compared reading's filtered offset
+    from the estimate, so alternating reading noise of +-0.004 pu moves them by a fraction of what it moves the
+    plain ones; without noise they are the plain ones (the line-drop offset of the compared reading is kept)."""
+    minute = 60_000_000_000
+
+    def setpoints(filtered: bool, errors: list[float]) -> np.ndarray:
+        c = controller(mode="setpoints", correction_window_s=3000.0, filtered_setpoints=filtered)
+        out = []
+        for i, e in enumerate(errors):
+            d = c.decide(snapshot(i * 5 * minute, reading_error_pu=np.full(R, e)))
+            assert d.status == "optimal", d.reason
+            out.append(d.reg_setpoint_v120)
+        return np.array(out)
+
+    noise = [0.004 * (-1) ** i for i in range(20)]
+    plain, filtered = setpoints(False, noise), setpoints(True, noise)
+    assert np.all(np.ptp(plain[10:], axis=0) > 0.5)  # each regulator's set points over the last ten decisions
+    assert np.all(np.ptp(filtered[10:], axis=0) < 0.3 * np.ptp(plain[10:], axis=0))
+    np.testing.assert_allclose(setpoints(True, [0.0] * 3), setpoints(False, [0.0] * 3), atol=1e-9)
