@@ -80,7 +80,8 @@ class CvvcController:
     sensitivity_error : beyond the paper, soft form (eq. 17): the relative error assumed for the estimated Q
         sensitivities [-] (see ``CvvcInputs.dv_dq_rel_error``); 0: the paper's eq. (17). Case A's oracle
         sensitivities are the power flow's own and get none.
-    filtered_setpoints : beyond the paper, ``setpoints`` mode with the correction filter: eq. (8)'s ``V_s^1`` starts
+    filtered_setpoints : beyond the paper, ``setpoints`` mode with the correction and its filter (case D; case C keeps
+        the paper's eq. 8 on the reading): eq. (8)'s ``V_s^1`` starts
         from the corrected estimate at the regulator's secondary plus the filtered difference between the compared
         reading and that estimate (a second ``CorrectionFilter``), instead of the compared reading itself: the
         reading's noise then moves the band by a fraction of itself.
@@ -124,7 +125,7 @@ class CvvcController:
                             if correction_window_s > 0 else None)
         self._cmp_filter = (CorrectionFilter(len(model.regulators),
                                              min(1.0, float(model.control_period_s) / correction_window_s))
-                            if correction_window_s > 0 and filtered_setpoints else None)
+                            if correction and correction_window_s > 0 and filtered_setpoints else None)
         self.correction = correction
         self.bandwidth_v120 = float(bandwidth_v120)
         self._arrays = ModelArrays.of(model)

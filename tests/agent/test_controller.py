@@ -453,8 +453,9 @@ def test_filtered_setpoints_shed_reading_noise_and_keep_a_steady_offset():
     plain ones; without noise they are the plain ones (the line-drop offset of the compared reading is kept)."""
     minute = 60_000_000_000
 
-    def setpoints(filtered: bool, errors: list[float]) -> np.ndarray:
-        c = controller(mode="setpoints", correction_window_s=3000.0, filtered_setpoints=filtered)
+    def setpoints(filtered: bool, errors: list[float], correction: bool = True) -> np.ndarray:
+        c = controller(mode="setpoints", correction=correction, correction_window_s=3000.0,
+                       filtered_setpoints=filtered)
         out = []
         for i, e in enumerate(errors):
             d = c.decide(snapshot(i * 5 * minute, reading_error_pu=np.full(R, e)))
@@ -467,3 +468,5 @@ def test_filtered_setpoints_shed_reading_noise_and_keep_a_steady_offset():
     assert np.all(np.ptp(plain[10:], axis=0) > 0.5)  # each regulator's set points over the last ten decisions
     assert np.all(np.ptp(filtered[10:], axis=0) < 0.3 * np.ptp(plain[10:], axis=0))
     np.testing.assert_allclose(setpoints(True, [0.0] * 3), setpoints(False, [0.0] * 3), atol=1e-9)
+    # case C (no correction): the paper's eq. (8) on the reading
+    np.testing.assert_array_equal(setpoints(True, noise, correction=False), setpoints(False, noise, correction=False))
