@@ -80,6 +80,9 @@ class CvvcController:
     sensitivity_error : beyond the paper, soft form (eq. 17): the relative error assumed for the estimated Q
         sensitivities [-] (see ``CvvcInputs.dv_dq_rel_error``); 0: the paper's eq. (17). Case A's oracle
         sensitivities are the power flow's own and get none.
+    bounds_in_margin : the optimization limits lie inside the judged ones (0.975-1.04 against 0.965-1.05): let that
+        gap take the calibrated bounds first, so a node's limit is tightened only by what of its bound exceeds the
+        gap, i.e. to the judged limit less the bound when that is tighter. Off: the bounds come on top of the gap.
     filtered_setpoints : beyond the paper, ``setpoints`` mode with the correction and its filter (case D; case C keeps
         the paper's eq. 8 on the reading): eq. (8)'s ``V_s^1`` starts
         from the corrected estimate at the regulator's secondary plus the filtered difference between the compared
@@ -100,6 +103,7 @@ class CvvcController:
         control_banks: bool = False,
         correction_window_s: float = 0.0,
         sensitivity_error: float = 0.0,
+        bounds_in_margin: bool = False,
         filtered_setpoints: bool = False,
     ) -> None:
         if mode not in ("taps", "setpoints"):
@@ -118,6 +122,7 @@ class CvvcController:
         if not (np.isfinite(sensitivity_error) and 0.0 <= sensitivity_error <= 1.0):
             raise AgentInputError(f"sensitivity_error must be within 0 to 1, not {sensitivity_error}")
         self.sensitivity_error = float(sensitivity_error)
+        self.bounds_in_margin = bool(bounds_in_margin)
         self.model = model
         self.mode = mode
         self._eps_filter = (CorrectionFilter(len(model.regulators),
@@ -345,6 +350,10 @@ class CvvcController:
             rise, fall = self.pv_margins_pu(state.dv_dp_pu_per_kw, pv_p)
             v_min_pu, v_max_pu = lo_pu + fall, hi_pu - rise
         bounds = self.bounds_pu(out_of_envelope) if state.critical else None
+        if bounds is not None and self.bounds_in_margin:
+            (judged_lo, judged_hi), (lo_b, hi_b) = self.model.judged_limits_pu, bounds
+            bounds = (np.maximum(lo_b - max(lo_pu - judged_lo, 0.0), 0.0),
+                      np.maximum(hi_b - max(judged_hi - hi_pu, 0.0), 0.0))
         if bounds is not None:
             # never past an empty band: a node whose limits are closer than its bounds keeps half its gap (or
             # 1 mV/V) between them, and the soft form then says the hard limits cannot be met

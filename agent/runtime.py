@@ -74,6 +74,7 @@ class AgentSettings(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fi
     # (rural winter week with 1 % SCADA noise: NTC 66 -> 25, summer 134 -> 73; CvvcController)
     sensitivity_error: float = 0.3  # soft form: relative error of the estimated Q sensitivities [-]; 0: eq. (17)
     # (epri-ckt24, first winter day: plants pulling against each other, Q cost 2,130 -> 57 at NVV 435 -> 441)
+    bounds_in_margin: bool = True  # the estimate bounds tighten a limit only past the optimization/judged gap
 
 
 class AgentSummary(msgspec.Struct, frozen=True, kw_only=True):
@@ -253,6 +254,7 @@ class DecisionMaker:
                                          control_banks=settings.control_banks,
                                          correction_window_s=settings.correction_window_s,
                                          sensitivity_error=settings.sensitivity_error,
+                                         bounds_in_margin=settings.bounds_in_margin,
                                          filtered_setpoints=settings.filtered_setpoints)
         self.oracle: OracleSource | None = None  # case A: set by the live runtime once its session is open
         self.seq = 0

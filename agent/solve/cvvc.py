@@ -15,15 +15,17 @@ Same inputs and warm start -> bit-identical solution (timings aside).
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from typing import Literal
 
 import numpy as np
 
 from agent.cvvc_qp import CvvcInputs, CvvcQp, build_cvvc_qp
+from agent.solve.robust import robust_shortfall_pu, robustly_feasible
 from agent.solve.rounding import round_taps
 from agent.solve.rows import solve_rows, start_nodes, unreachable_rows, zero_is_feasible
-from agent.solve.settings import Q_DECIMALS
+from agent.solve.settings import Q_DECIMALS, V_TOL_PU
 from agent.solve.solution import (
     CvvcSolution,
     Run,
@@ -94,6 +96,14 @@ def solve_cvvc(inputs: CvvcInputs, *, warm_start: WarmStart | CvvcSolution | Non
                 if run.infeasible
                 else f"hard relaxation not solved ({run.status}): soft form (eq. 17) used"
             )
+    if run.ok and inputs.dv_dq_rel_error > 0.0 and not np.all(qp.soft_nodes):
+        hard_nodes = ~qp.soft_nodes
+        if (robust_shortfall_pu(inputs, qp.d_tap(run.x), qp.q_kvar(run.x), hard_nodes) > V_TOL_PU
+                and not robustly_feasible(inputs, hard_nodes)):
+            run = dataclasses.replace(run, ok=False)
+            reason = (reason + "; " if reason else "") + (
+                "hard voltage limits met only on the Q sensitivities' exact values (not within "
+                f"{inputs.dv_dq_rel_error:.0%} of them): soft form (eq. 17) used")
     if not run.ok:
         all_soft = np.ones(inputs.n_nodes, bool)
         run, qp = solve_rows(inputs, all_soft, None, start, _source(warm, inputs))

@@ -342,6 +342,23 @@ def test_calibrated_bounds_tighten_the_estimated_nodes_limits():
     assert d.out_of_envelope == "" and d.reason == ""
 
 
+def test_bounds_within_the_judged_limits_gap_leave_the_optimization_limits():
+    """``bounds_in_margin``: the gap between the optimization and the judged limits (0.01 pu each side) takes the
+    bounds first; a node's limit moves only by what of its bound exceeds that gap (to the judged limit less it)."""
+    lo, hi = MODEL.optimization_limits_pu
+    judged_lo, judged_hi = MODEL.judged_limits_pu
+    assert judged_hi - hi == pytest.approx(0.01) and lo - judged_lo == pytest.approx(0.01)
+    inside = CvvcController(_bounded_model(0.004, 0.003), mode="taps", correction=True, bandwidth_v120=4.0,
+                            bounds_in_margin=True).decide(snapshot(reading_error_pu=HIGH))
+    assert inside.status == "optimal" and inside.v_pred_pu.max() == pytest.approx(hi, abs=1e-5)
+    past = CvvcController(_bounded_model(0.014, 0.003), mode="taps", correction=True, bandwidth_v120=4.0,
+                          bounds_in_margin=True).decide(snapshot(reading_error_pu=HIGH))
+    assert past.status == "optimal" and past.v_pred_pu.max() <= judged_hi - 0.014 + 1e-5  # 1.036, not 1.026
+    assert past.v_pred_pu.max() > hi - 0.014 + 0.005
+    assert past.v_pred_pu.min() >= lo - 1e-5
+    np.testing.assert_array_equal(past.v_bound_high_pu, 0.014)  # the message carries the calibrated bounds
+
+
 def test_inputs_outside_the_training_envelope_widen_the_bounds_and_say_so():
     model = _bounded_model(0.004, 0.003, head_p_range=(0.0, 500.0))  # the snapshot's 800 kW per phase is outside
     d = CvvcController(model, mode="taps", correction=True, bandwidth_v120=4.0).decide(snapshot(reading_error_pu=HIGH))

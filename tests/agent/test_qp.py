@@ -10,6 +10,7 @@ import scipy.optimize
 from agent.cvvc_qp import CvvcInputs, build_cvvc_qp
 from agent.errors import AgentInputError
 from agent.solve import V_TOL_PU, solve_cvvc, solve_milp_reference
+from agent.solve.robust import robust_shortfall_pu, robustly_feasible
 from benchmarks.synthetic import random_cvvc_inputs
 
 
@@ -335,3 +336,52 @@ def test_nothing_can_move_is_answered_without_a_solve():
     assert over.max_violation_pu == pytest.approx(0.003)
     inside = solve_cvvc(CvvcInputs(**{**_tiny(v0=[1.0, 1.0]).__dict__, **pinned}))
     assert inside.status == "optimal" and inside.reason == "" and inside.cost == 0.0
+
+
+def _narrow_band(rel_error: float) -> CvvcInputs:
+    """Node 0 is 0.001 pu over 1.04, node 1 0.0005 pu above 0.975; two 2000 kVA plants whose sensitivities at the
+    two nodes differ by 0.4 uV/V per kvar (4.0 and 3.6 against 3.0 and 3.0), taps frozen. The hard limits hold
+    only with the plants pulling against each other: 4 x - 3 y >= 1000 and 3.6 x - 3 y <= 500 (x absorbed by plant
+    0, y injected by plant 1, in kvar) give x = 1250, y = 1333 (0.4 x >= 500)."""
+    return CvvcInputs(
+        v0_pu=np.array([1.041, 0.9755]),
+        dv_dq_pu_per_kvar=np.array([[4.0e-6, 3.0e-6], [3.6e-6, 3.0e-6]]),
+        dv_dtap_pu=np.array([[0.00625], [0.00625]]),
+        q0_kvar=np.zeros(2),
+        q_min_kvar=np.full(2, -2000.0),
+        q_max_kvar=np.full(2, 2000.0),
+        q_rating_kvar=np.full(2, 2000.0),
+        taps=np.array([0]),
+        tap_min=np.array([-16]),
+        tap_max=np.array([16]),
+        max_taps_per_interval=np.array([0]),
+        cost_per_tap=np.array([1.0]),
+        cost_per_kvar=np.full(2, 1e-4),
+        v_min_pu=0.975,
+        v_max_pu=1.04,
+        dv_dq_rel_error=rel_error,
+    )
+
+
+def test_hard_limits_that_need_plants_pulling_apart_on_sensitivity_differences_go_soft():
+    """Beyond the paper: with exact sensitivities (error 0) the hard form pulls the plants apart (-1250 / +1333
+    kvar, hand-computed); with a 30 % error no action meets the limits for every sensitivity within it (robust
+    counterpart infeasible), so the soft form with the error term decides, with far less Q."""
+    exact = solve_cvvc(_narrow_band(0.0))
+    assert exact.status == "optimal" and exact.reason == ""
+    np.testing.assert_allclose(exact.q_new_kvar, [-1250.0, 1333.3], atol=2.0)
+    uncertain = solve_cvvc(_narrow_band(0.3))
+    assert uncertain.status == "soft" and "not within 30% of them" in uncertain.reason
+    assert np.abs(uncertain.q_new_kvar).sum() < 0.2 * np.abs(exact.q_new_kvar).sum()
+    assert not robustly_feasible(_narrow_band(0.3), np.ones(2, bool))
+    assert robustly_feasible(_narrow_band(0.0), np.ones(2, bool))
+
+
+def test_hard_limits_that_hold_within_the_sensitivity_error_stay_hard():
+    """Case A_q_only with a 30 % error: absorbing 357 kvar (250 / 0.7) would meet the limits at the worst error, so
+    the hard form keeps its optimum (-250 kvar at the nominal sensitivity), though that point alone is not robust."""
+    inputs = CvvcInputs(**{**_tiny(v0=[1.045, 1.03]).__dict__, "dv_dq_rel_error": 0.3})
+    sol = solve_cvvc(inputs)
+    assert sol.status == "optimal" and sol.reason == ""
+    assert sol.q_new_kvar[0] == pytest.approx(-250.0, abs=1.0)
+    assert robust_shortfall_pu(inputs, np.zeros(1), sol.q_new_kvar, np.ones(2, bool)) == pytest.approx(0.0015, abs=1e-5)
