@@ -46,6 +46,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--reading-fit-s", type=float, default=None,
                    help="beyond the paper, opt-in: regulator readings of this many seconds regressed on the head's "
                         "P, Q and voltage and evaluated now (agent/readings.py); 0: off [default: AgentSettings, 0]")
+    p.add_argument("--filtered-setpoints", choices=["on", "off"], default=None,
+                   help="beyond the paper (setpoints mode, with the correction filter): eq. (8) starts from the "
+                        "estimate plus the filtered reading-minus-estimate, not the noisy reading [default: on]")
     p.add_argument("--full-visibility", action="store_true",
                    help="case A: true voltages and sensitivities of every node from the bridge's oracle")
     p.add_argument("--agent-id", default="agent")
@@ -76,7 +79,8 @@ def settings_from_args(args: argparse.Namespace):
     given = {"pv_margin_window_s": args.pv_margin_window_s, "pv_margin_cap_pu": args.pv_margin_cap_pu,
              "setpoint_hold": None if args.setpoint_hold is None else args.setpoint_hold == "on",
              "control_banks": None if args.control_banks is None else args.control_banks == "on",
-             "reading_window_s": args.reading_window_s, "reading_fit_s": args.reading_fit_s}
+             "reading_window_s": args.reading_window_s, "reading_fit_s": args.reading_fit_s,
+             "filtered_setpoints": None if args.filtered_setpoints is None else args.filtered_setpoints == "on"}
     optional: dict[str, Any] = {name: value for name, value in given.items() if value is not None}
     return AgentSettings(feeder_id=args.feeder_id, agent_id=args.agent_id, mode=args.mode,
                          correction=args.correction == "on", bandwidth_v120=args.bandwidth_v,

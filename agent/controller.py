@@ -83,6 +83,11 @@ class CvvcController:
     bounds_in_margin : the optimization limits lie inside the judged ones (0.975-1.04 against 0.965-1.05): let that
         gap take the calibrated bounds first, so a node's limit is tightened only by what of its bound exceeds the
         gap, i.e. to the judged limit less the bound when that is tighter. Off: the bounds come on top of the gap.
+    filtered_setpoints : beyond the paper, ``setpoints`` mode with the correction and its filter (case D; case C keeps
+        the paper's eq. 8 on the reading): eq. (8)'s ``V_s^1`` starts
+        from the corrected estimate at the regulator's secondary plus the filtered difference between the compared
+        reading and that estimate (a second ``CorrectionFilter``), instead of the compared reading itself: the
+        reading's noise then moves the band by a fraction of itself.
     """
 
     def __init__(
@@ -99,6 +104,7 @@ class CvvcController:
         correction_window_s: float = 0.0,
         sensitivity_error: float = 0.0,
         bounds_in_margin: bool = False,
+        filtered_setpoints: bool = False,
     ) -> None:
         if mode not in ("taps", "setpoints"):
             raise AgentInputError(f"mode must be 'taps' or 'setpoints', not {mode!r}")
@@ -122,6 +128,9 @@ class CvvcController:
         self._eps_filter = (CorrectionFilter(len(model.regulators),
                                              min(1.0, float(model.control_period_s) / correction_window_s))
                             if correction_window_s > 0 else None)
+        self._cmp_filter = (CorrectionFilter(len(model.regulators),
+                                             min(1.0, float(model.control_period_s) / correction_window_s))
+                            if correction and correction_window_s > 0 and filtered_setpoints else None)
         self.correction = correction
         self.bandwidth_v120 = float(bandwidth_v120)
         self._arrays = ModelArrays.of(model)
@@ -266,15 +275,31 @@ class CvvcController:
         return head_ok, pv_ok, reg_ok
 
     def _correction_filter(self, snap: MeasurementSnapshot) -> Callable[[np.ndarray, np.ndarray], np.ndarray] | None:
-        """The correction filter for this step: only this step's own readings, with its own head frame, enter
-        the mean (None without a filter).
+        """The correction filter for this step (None without a filter): only this step's own readings, with its
+        own head and plant frames, enter the mean; with a head or plant frame standing in for a lost one, this
+        step's own readings are applied as they are (``CorrectionFilter``).
         """
         filt = self._eps_filter
         if filt is None:
             return None
         fresh = np.full(len(self._reg_ids), True) if snap.reg_fresh is None else np.asarray(snap.reg_fresh, bool)
-        fresh = fresh & bool(snap.head_fresh)
-        return lambda eps, ok: filt(eps, ok, fresh)
+        inputs_fresh = bool(snap.head_fresh) and (snap.pv_fresh is None or bool(np.all(snap.pv_fresh)))
+        return lambda eps, ok: filt(eps, ok, fresh, inputs_fresh=inputs_fresh)
+
+    def _compared_v120(self, snap: MeasurementSnapshot, state: GridState, reg_ok: np.ndarray) -> np.ndarray:
+        """(R,) the compared voltages eq. (8) starts from [V on the 120 V base]: the readings, or with
+        ``filtered_setpoints`` the estimate at each secondary plus the filtered reading-minus-estimate.
+        """
+        compared = np.asarray(snap.reg_v120_compared, float)
+        filt = self._cmp_filter
+        if filt is None or not state.critical:
+            return compared
+        per_v = self._arrays.reg_pu_per_v120
+        est_v120 = state.v0_pu[self._arrays.reg_secondary_node] / per_v
+        fresh = np.full(len(self._reg_ids), True) if snap.reg_fresh is None else np.asarray(snap.reg_fresh, bool)
+        inputs_fresh = bool(snap.head_fresh) and (snap.pv_fresh is None or bool(np.all(snap.pv_fresh)))
+        offset_pu = filt((compared - est_v120) * per_v, reg_ok, fresh, inputs_fresh=inputs_fresh)
+        return np.where(reg_ok, est_v120 + offset_pu / per_v, compared)
 
     def _cap_usable(self, snap: MeasurementSnapshot) -> np.ndarray:
         """(C,) bool: banks whose frame is valid with a whole number of closed steps within the bank's."""
@@ -463,7 +488,8 @@ class CvvcController:
         if self.mode == "setpoints":
             sec_node = self._arrays.reg_secondary_node
             dv_sec = solution.v_pred_pu[sec_node] - state.v0_pu[sec_node]
-            v_s1 = expected_compared_v120(snap.reg_v120_compared, dv_sec, self._arrays.reg_pu_per_v120)
+            v_s1 = expected_compared_v120(self._compared_v120(snap, state, reg_ok), dv_sec,
+                                          self._arrays.reg_pu_per_v120)
             d_tap = solution.taps_new[:n_reg] - state.taps
             band, step = self.bandwidth_v120, self._step_v120
             setpoints = np.array(

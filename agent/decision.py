@@ -40,6 +40,7 @@ class MeasurementSnapshot:
     reg_fresh : (R,) bool, the regulator's reading is this step's own frame (not a last-good one standing in for
         a lost frame); None: every reading is.
     head_fresh : the head frame is this step's own.
+    pv_fresh : (K,) bool, the plant's frame is this step's own (not a last-good one); None: every frame is.
     """
 
     t_ns: int
@@ -60,6 +61,7 @@ class MeasurementSnapshot:
     cap_v_v: np.ndarray = field(default_factory=lambda: np.zeros(0))
     reg_fresh: np.ndarray | None = None
     head_fresh: bool = True
+    pv_fresh: np.ndarray | None = None
 
 
 @dataclass(frozen=True)

@@ -70,6 +70,8 @@ class AgentSettings(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fi
     clock_tolerance_s: float = 5.0  # a frame stamped this close to a control step is that step's (clock skew) [s]
     correction_window_s: float = 3000.0  # eq. (6)'s corrections: exponential mean over about this [s]; 0: off
     # (rural winter week with 1 % SCADA noise: NVV 10 -> 0, NTC 196 -> 66; agent.state.CorrectionFilter)
+    filtered_setpoints: bool = True  # beyond the paper: eq. (8) from the filtered compared reading (with the filter)
+    # (rural winter week with 1 % SCADA noise: NTC 66 -> 25, summer 134 -> 73; CvvcController)
     sensitivity_error: float = 0.3  # soft form: relative error of the estimated Q sensitivities [-]; 0: eq. (17)
     # (epri-ckt24, first winter day: plants pulling against each other, Q cost 2,130 -> 57 at NVV 435 -> 441)
     bounds_in_margin: bool = True  # the estimate bounds tighten a limit only past the optimization/judged gap
@@ -178,7 +180,8 @@ def snapshot_from(aligned: AlignedFrames, model: CvvcModel, *, reading_window_s:
         t_ns=aligned.t_ns, head_p_kw=head_p, head_q_kvar=head_q, pv_p_kw=pv_p, pv_q_kvar=pv_q,
         pv_kva_available=pv_kva, pv_q_setpoint_kvar=pv_sp, reg_v120=reg_v, reg_v120_compared=reg_vc,
         reg_tap=reg_tap, head_valid=head is not None, pv_valid=pv_ok, reg_valid=reg_ok,
-        cap_steps=cap_steps, cap_valid=cap_ok, cap_v_v=cap_v, reg_fresh=reg_fresh, head_fresh=aligned.head is not None)
+        cap_steps=cap_steps, cap_valid=cap_ok, cap_v_v=cap_v, reg_fresh=reg_fresh, head_fresh=aligned.head is not None,
+        pv_fresh=np.array([plant.id in aligned.pv for plant in model.pv], bool))
 
 
 def _fitted_readings(aligned: AlignedFrames, reg_id: str, now: m.RegFrame, head: m.HeadFrame,
@@ -251,7 +254,8 @@ class DecisionMaker:
                                          control_banks=settings.control_banks,
                                          correction_window_s=settings.correction_window_s,
                                          sensitivity_error=settings.sensitivity_error,
-                                         bounds_in_margin=settings.bounds_in_margin)
+                                         bounds_in_margin=settings.bounds_in_margin,
+                                         filtered_setpoints=settings.filtered_setpoints)
         self.oracle: OracleSource | None = None  # case A: set by the live runtime once its session is open
         self.seq = 0
         self.holds = 0

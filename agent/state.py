@@ -58,9 +58,16 @@ class CorrectionFilter:
     What ``eps`` should carry, the model's error at the regulator, changes slowly; its exponential mean over the
     last hour or so (``weight`` 0.1 per 5-minute decision) keeps it and sheds most of the noise (docs/results.md). A
     regulator without a usable reading keeps its last mean; the first reading is taken as it is. A reading that is
-    usable but not this step's own (a last-good frame standing in for a lost one, or this step's head frame lost)
-    is applied through the mean without entering it: a stale reading against the present load is not the model's
-    error, and the mean would carry it for an hour.
+    usable but not this step's own (a last-good frame standing in for a lost one) is applied through the mean
+    without entering it: a stale reading against the present load is not the model's error, and the mean would
+    carry it for an hour.
+
+    When the estimate's own inputs are not this step's (``inputs_fresh`` False: the head's or a plant's frame lost
+    and a last-good one standing in), a fresh reading's ``eps`` is applied as it is (eq. 6 as in the paper) and does
+    not enter the mean: the estimate then misses the change since the stale frame (at sunset on 17 July of the rural
+    summer week the plants' Q went from 370 kvar to 0 during a head outage), the mean knows nothing of it, and the
+    fresh reading measures it. The mean alone let the 10-minute average fall to 0.962 pu there (NVV 97 with 20 %
+    of the frames lost in 10-minute outages, 0 with eq. 6 unfiltered; docs/results.md, session 4).
     """
 
     def __init__(self, n_regulators: int, weight: float) -> None:
@@ -70,18 +77,24 @@ class CorrectionFilter:
         self._eps = np.zeros(n_regulators)  # the mean so far (0 until a regulator's first usable reading)
         self._seen = np.zeros(n_regulators, bool)
 
-    def __call__(self, eps: np.ndarray, ok: np.ndarray, fresh: np.ndarray | None = None) -> np.ndarray:
-        """The corrections to apply [pu] for this decision's ``eps`` (R,) [pu] and their validity ``ok`` (R,);
-        ``fresh`` (R,) bool marks the readings that may enter the mean (default: every usable one).
+    def __call__(self, eps: np.ndarray, ok: np.ndarray, fresh: np.ndarray | None = None, *,
+                 inputs_fresh: bool = True) -> np.ndarray:
+        """The corrections to apply [pu] for this decision's ``eps`` (R,) [pu] and their validity ``ok`` (R,).
+
+        ``fresh`` (R,) bool marks the readings that are this step's own (default: every usable one);
+        ``inputs_fresh``: the estimate's head and plant frames are this step's own (class docstring).
         """
         eps = np.asarray(eps, float)
         ok = np.asarray(ok, bool) & np.isfinite(eps)
-        update = ok if fresh is None else ok & np.asarray(fresh, bool)
+        own = ok if fresh is None else ok & np.asarray(fresh, bool)
+        update = own & bool(inputs_fresh)
         mean = np.where(self._seen, self.weight * eps + (1.0 - self.weight) * self._eps, eps)
         self._eps = np.where(update, mean, self._eps)
         self._seen = self._seen | update
-        # a stale reading of a regulator never seen fresh is taken as it is, without entering the mean
-        return np.where(ok & ~self._seen, eps, self._eps)
+        # a fresh reading against stale inputs, or a stale reading of a regulator never seen fresh: taken as it is,
+        # without entering the mean
+        raw = (own & ~update) | (ok & ~self._seen)
+        return np.where(raw, eps, self._eps)
 
 
 def estimated_state(

@@ -282,6 +282,7 @@ def test_a_head_or_regulator_frame_lost_at_a_control_step_is_replaced_by_its_las
     snap = snapshot_from(out[0], model, last_good_s=AgentSettings(feeder_id="rural").last_good_s)
     assert snap.head_valid and snap.reg_valid[0]  # the frames of t1 - 60 s stand in
     assert not snap.head_fresh and not snap.reg_fresh[0]  # ... and are marked stale (the correction filter)
+    assert snap.pv_fresh[0]  # the plant's own frame came
     assert snap.head_p_kw.sum() == pytest.approx(sum(p.p_kw for p in EX[m.HeadFrame].phases))
     old = snapshot_from(out[0], model, last_good_s=30)  # older than 30 s: not good any more
     assert not old.head_valid and not old.reg_valid[0]
@@ -303,6 +304,7 @@ def test_a_pv_frame_lost_at_a_control_step_is_replaced_by_its_last_good_value(al
                                     pv=[msgspec.structs.replace(model.pv[0], id="pv1")])
     snap = snapshot_from(out[0], model, last_good_s=240)
     assert snap.pv_valid[0] and snap.pv_p_kw[0] == 777.0
+    assert snap.head_fresh and not snap.pv_fresh[0]  # marked stale (the correction filter)
     assert not snapshot_from(out[0], model, last_good_s=0).pv_valid[0]
 
 

@@ -425,3 +425,65 @@ def test_correction_filter_takes_only_fresh_readings_into_its_mean():
     np.testing.assert_allclose(g(np.array([0.006]), np.array([True]), np.array([False])), [0.006])
     np.testing.assert_allclose(g(np.array([0.002]), np.array([True])), [0.002])
 
+
+
+def test_correction_filter_applies_a_fresh_reading_as_it_is_when_the_inputs_are_stale():
+    """A head or plant frame standing in for a lost one (``inputs_fresh`` False): this step's own readings are
+    applied as eq. (6) computes them and do not enter the mean (rural summer week, 20 % of the frames lost in
+    10-minute outages: the mean alone missed a sunset's voltage drop during a head outage, NVV 97)."""
+    from agent.state import CorrectionFilter
+
+    f = CorrectionFilter(2, 0.5)
+    ok = np.array([True, True])
+    f(np.array([0.004, 0.002]), ok)  # the means: 0.004 and 0.002
+    # stale inputs: regulator 0's own reading as it is, regulator 1's stale reading through its mean
+    np.testing.assert_allclose(f(np.array([-0.010, 0.009]), ok, np.array([True, False]), inputs_fresh=False),
+                               [-0.010, 0.002])
+    np.testing.assert_allclose(f(np.array([0.004, 0.002]), ok), [0.004, 0.002])  # neither entered the means
+
+
+def test_a_stale_head_frame_lets_the_fresh_readings_correct_the_estimate():
+    """With the filter on, a decision whose head frame is a last-good stand-in (``head_fresh`` False) or whose plant
+    frame is (``pv_fresh``) corrects its estimate at a regulator's secondary by that regulator's own reading, not by
+    the hour's mean: the reading is the only thing that knows the grid has changed since the stale frame."""
+    sec = ARRAYS.reg_secondary_node[0]
+    drop = np.array([-0.01] + [0.0] * (R - 1))
+    for stale in ({"head_fresh": False}, {"pv_fresh": np.array([False] + [True] * (K - 1))}):
+        c = controller(correction_window_s=3000.0)
+        for i in range(12):  # an hour of steady readings: the mean is 0
+            c.decide(snapshot(i * 300 * 10**9))
+        base = c.decide(snapshot(12 * 300 * 10**9)).v_pu[sec]
+        d = c.decide(snapshot(13 * 300 * 10**9, reading_error_pu=drop, **stale))
+        assert d.v_pu[sec] == pytest.approx(base - 0.01, abs=1e-6), stale
+        d = c.decide(snapshot(14 * 300 * 10**9))  # fresh again: the drop never entered the mean
+        assert d.v_pu[sec] == pytest.approx(base, abs=1e-6), stale
+    fresh = controller(correction_window_s=3000.0)  # with fresh inputs the same drop moves the mean by 0.1 of it
+    for i in range(12):
+        fresh.decide(snapshot(i * 300 * 10**9))
+    d = fresh.decide(snapshot(13 * 300 * 10**9, reading_error_pu=drop))
+    assert d.v_pu[sec] == pytest.approx(base - 0.001, abs=1e-6)
+
+
+def test_filtered_setpoints_shed_reading_noise_and_keep_a_steady_offset():
+    """Beyond the paper (``filtered_setpoints``): eq. (8)'s set points follow the compared reading's filtered offset
+    from the estimate, so alternating reading noise of +-0.004 pu moves them by a fraction of what it moves the
+    plain ones; without noise they are the plain ones (the line-drop offset of the compared reading is kept)."""
+    minute = 60_000_000_000
+
+    def setpoints(filtered: bool, errors: list[float], correction: bool = True) -> np.ndarray:
+        c = controller(mode="setpoints", correction=correction, correction_window_s=3000.0,
+                       filtered_setpoints=filtered)
+        out = []
+        for i, e in enumerate(errors):
+            d = c.decide(snapshot(i * 5 * minute, reading_error_pu=np.full(R, e)))
+            assert d.status == "optimal", d.reason
+            out.append(d.reg_setpoint_v120)
+        return np.array(out)
+
+    noise = [0.004 * (-1) ** i for i in range(20)]
+    plain, filtered = setpoints(False, noise), setpoints(True, noise)
+    assert np.all(np.ptp(plain[10:], axis=0) > 0.5)  # each regulator's set points over the last ten decisions
+    assert np.all(np.ptp(filtered[10:], axis=0) < 0.3 * np.ptp(plain[10:], axis=0))
+    np.testing.assert_allclose(setpoints(True, [0.0] * 3), setpoints(False, [0.0] * 3), atol=1e-9)
+    # case C (no correction): the paper's eq. (8) on the reading
+    np.testing.assert_array_equal(setpoints(True, noise, correction=False), setpoints(False, noise, correction=False))

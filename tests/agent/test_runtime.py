@@ -136,3 +136,20 @@ def test_eq8_set_points_are_clamped_into_the_accepted_range_and_counted(model):
     assert [a.setpoint_v120 for a in actions] == [hi if i % 2 == 0 else lo for i in range(n)]
     assert all(a.band_v120 == m.BAND_RANGE_V120[0] for a in actions)
     assert maker.clamped == 2 * n
+
+
+def test_filtered_setpoints_are_on_by_default_and_the_agent_flag_turns_them_off():
+    """``AgentSettings.filtered_setpoints`` (eq. 8 from the filtered compared reading) is a default; ``cvvc agent
+    --filtered-setpoints off`` gives the paper's eq. (8) on the reading."""
+    import argparse
+
+    from agent.cli import register, settings_from_args
+    from agent.runtime import AgentSettings
+
+    parser = argparse.ArgumentParser()
+    register(parser.add_subparsers())
+    default = settings_from_args(parser.parse_args(["agent", "--model", "-", "--feeder-id", "rural"]))
+    off = settings_from_args(parser.parse_args(["agent", "--model", "-", "--feeder-id", "rural",
+                                                "--filtered-setpoints", "off"]))
+    assert default.filtered_setpoints and AgentSettings().filtered_setpoints
+    assert not off.filtered_setpoints
