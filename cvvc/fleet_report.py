@@ -113,6 +113,7 @@ class _AckReason(msgspec.Struct, frozen=True):
 
 
 _decode_id = msgspec.json.Decoder(_FeederId).decode
+_decode_packed_id = msgspec.msgpack.Decoder(_FeederId).decode  # the truth (schemas.truth.TruthPack) is MessagePack
 _decode_times = msgspec.json.Decoder(_DecisionTimes).decode
 _decode_reason = msgspec.json.Decoder(_AckReason).decode
 
@@ -138,7 +139,10 @@ def check_recording(path: str | Path, feeder_ids: list[str]) -> RecordingCheck:
             try:
                 fid = _decode_id(msg.data).feeder_id
             except (msgspec.DecodeError, msgspec.ValidationError):
-                fid = None  # not JSON of ours: counted as a message, not as checked
+                try:
+                    fid = _decode_packed_id(msg.data).feeder_id
+                except (msgspec.DecodeError, msgspec.ValidationError):
+                    fid = None  # not a message of ours: counted as a message, not as checked
             if fid is not None:
                 checked += 1
                 crossing += fid != feeder
