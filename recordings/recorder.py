@@ -293,16 +293,20 @@ class Recorder:
         self.close()
 
     def start(self) -> None:
-        """Open the file, write the header and metadata, start the writer and subscribe."""
+        """Open the file, subscribe, write the header and metadata, start the writer.
+
+        The subscribers come before the header reaches the disk, so a file that is not empty says the recorder is
+        subscribed (what starters wait on); samples arriving meanwhile wait in the queue for the writer.
+        """
         try:
             self._file = open(Path(self.config.out_path), "wb")  # noqa: SIM115  # closed in close()
             self._sink = McapSink(self._file, metadata=_recording_metadata(self.config),
                                   chunk_size_bytes=self.config.chunk_size_bytes,
                                   max_channels=self.config.max_channels)
-            self._sink.flush()
-            self._thread.start()
             for key in self.config.keys:
                 self._subs.append(self._session.declare_subscriber(key, self._on_sample))
+            self._sink.flush()
+            self._thread.start()
         except OSError as e:
             self.close()
             raise RecordingError(f"cannot write {self.config.out_path}: {e}; check the directory exists "
