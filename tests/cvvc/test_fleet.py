@@ -16,7 +16,6 @@ import shutil
 import signal
 import subprocess
 import sys
-import threading
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -29,8 +28,9 @@ from cvvc.fleet import _open_router
 from cvvc.fleet_report import check_recording
 from recordings.replay import RecordedMessages
 from schemas import messages as m
-from schemas.bus import BusConfig, codec_for, free_port, has_subscribers, wait_for, zenoh_config
+from schemas.bus import BusConfig, free_port, has_subscribers, wait_for, zenoh_config
 from schemas.security import init_ca, init_security_dir
+from tests.busprobe import Seen
 from tests.yearcache import cache_year_profiles
 
 REPO = Path(__file__).resolve().parents[2]
@@ -109,27 +109,6 @@ def test_check_recording_counts_a_message_that_names_another_feeder(tmp_path) ->
     assert check.foreign_topics == ["cvvc/c/sim/status"] and check.decision_s == {"b": [0.004]}
 
 
-class _Seen:
-    def __init__(self) -> None:
-        self.lock = threading.Lock()
-        self.head_t_ns: list[int] = []
-        self.acks: dict[str, m.Ack] = {}
-        self.cmd_ids: list[str] = []
-
-    def on_head(self, s: zenoh.Sample) -> None:
-        with self.lock:
-            self.head_t_ns.append(json.loads(s.payload.to_bytes())["t_ns"])
-
-    def on_ack(self, s: zenoh.Sample) -> None:
-        ack = codec_for(m.Ack).decode(s.payload.to_bytes())
-        with self.lock:
-            self.acks[ack.cmd_id] = ack
-
-    def on_cmd(self, s: zenoh.Sample) -> None:
-        with self.lock:
-            self.cmd_ids.append(json.loads(s.payload.to_bytes())["cmd_id"])
-
-
 @pytest.fixture
 def fleet_router(tmp_path: Path) -> Iterator[tuple[str, Path]]:
     """The fleet's router (feeders ieee13-a and ieee13-b) on a free port, and the certificates' root folder."""
@@ -148,7 +127,7 @@ def test_b_an_agent_certificate_of_one_feeder_cannot_command_or_read_another(fle
     endpoint, root = fleet_router
     cache = cache_year_profiles(IEEE13, profile_cache)
     a_dir, b_dir = root / "feeders" / "ieee13-a", root / "feeders" / "ieee13-b"
-    seen, a_seen = _Seen(), _Seen()
+    seen, a_seen = Seen(), Seen()
     log = open(tmp_path / "bridge.log", "wb")  # noqa: SIM115  (closed below)
     bridge = subprocess.Popen(
         [sys.executable, "-m", "cvvc", "bridge", "--feeder", str(IEEE13), "--feeder-id", "ieee13-b",

@@ -8,8 +8,6 @@ replayed under another name was applied again.
 
 from __future__ import annotations
 
-import json
-import threading
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -19,8 +17,9 @@ import zenoh
 from relutil import FEEDER, FEEDER_MAP, NOON, Procs
 
 from schemas import messages as m
-from schemas.bus import BusConfig, codec_for, free_port, open_session, wait_for, zenoh_config
+from schemas.bus import BusConfig, free_port, open_session, wait_for, zenoh_config
 from schemas.security import COMMAND_ROLE, init_ca, init_security_dir
+from tests.busprobe import Seen
 
 PLANT = "pv675"
 MIN_NS = 60 * 10**9
@@ -37,29 +36,11 @@ def secure(tmp_path: Path) -> Iterator[tuple[str, Path]]:
         yield endpoint, d
 
 
-class _Seen:
-    """Head frame times and acks, by the client's subscriptions (thread-safe)."""
-
-    def __init__(self) -> None:
-        self.lock = threading.Lock()
-        self.head_t_ns: list[int] = []
-        self.acks: dict[str, m.Ack] = {}
-
-    def on_head(self, s: zenoh.Sample) -> None:
-        with self.lock:
-            self.head_t_ns.append(json.loads(s.payload.to_bytes())["t_ns"])
-
-    def on_ack(self, s: zenoh.Sample) -> None:
-        ack = codec_for(m.Ack).decode(s.payload.to_bytes())
-        with self.lock:
-            self.acks[ack.cmd_id] = ack
-
-
 def test_in_secure_mode_a_command_under_another_source_name_is_still_a_replay(secure, tmp_path: Path,
                                                                               rel_cache: Path) -> None:
     endpoint, d = secure
     procs = Procs(tmp_path, endpoint, None, rel_cache)
-    seen = _Seen()
+    seen = Seen()
     try:
         with zenoh.open(zenoh_config(BusConfig(connect=(endpoint,), tls_dir=str(d), role=COMMAND_ROLE))) as agent:
             subs = [agent.declare_subscriber(f"cvvc/{FEEDER}/meas/head", seen.on_head),
