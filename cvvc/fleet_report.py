@@ -123,6 +123,8 @@ def check_recording(path: str | Path, feeder_ids: list[str]) -> RecordingCheck:
     feeder of the fleet, and every decision's time per feeder.
     """
     from recordings.replay import RecordedMessages
+    from schemas.keys import message_type_for_key
+    from schemas.messages import wire_of
 
     known = set(feeder_ids)
     messages = checked = crossing = 0
@@ -136,13 +138,12 @@ def check_recording(path: str | Path, feeder_ids: list[str]) -> RecordingCheck:
             feeder = parts[1] if len(parts) > 1 else ""
             if feeder not in known:
                 foreign.add(msg.topic)
+            msg_type = message_type_for_key(msg.topic)
+            decode = _decode_packed_id if msg_type is not None and wire_of(msg_type) == "msgpack" else _decode_id
             try:
-                fid = _decode_id(msg.data).feeder_id
+                fid = decode(msg.data).feeder_id
             except (msgspec.DecodeError, msgspec.ValidationError):
-                try:
-                    fid = _decode_packed_id(msg.data).feeder_id
-                except (msgspec.DecodeError, msgspec.ValidationError):
-                    fid = None  # not a message of ours: counted as a message, not as checked
+                fid = None  # not a message of ours: counted as a message, not as checked
             if fid is not None:
                 checked += 1
                 crossing += fid != feeder

@@ -15,11 +15,9 @@ from __future__ import annotations
 import numpy as np
 from scipy.optimize import linprog
 
-from agent.cvvc_qp import CvvcInputs
+from agent.cvvc_qp import CvvcInputs, build_cvvc_qp
 
 __all__ = ["robust_shortfall_pu", "robustly_feasible"]
-
-_PCT_PER_PU = 100.0
 
 
 def robust_shortfall_pu(inputs: CvvcInputs, d_tap: np.ndarray, q_kvar: np.ndarray, hard: np.ndarray) -> float:
@@ -38,29 +36,20 @@ def robust_shortfall_pu(inputs: CvvcInputs, d_tap: np.ndarray, q_kvar: np.ndarra
 def robustly_feasible(inputs: CvvcInputs, hard: np.ndarray) -> bool:
     """Whether some action (taps continuous, as in the relaxation) keeps every ``hard`` node within its limits
     for every Q sensitivity within ``inputs.dv_dq_rel_error`` of its estimate. True when HiGHS cannot tell.
+
+    The hard QP's own scaled rows and variable box (``build_cvvc_qp`` over the ``hard`` nodes), each row split in
+    two: its upper limit with ``+ err |S| (Q+ + Q-)``, its lower limit with ``- err |S| (Q+ + Q-)``.
     """
     idx = np.flatnonzero(hard)
     if idx.size == 0:
         return True
-    k, r = inputs.n_pv, inputs.n_reg
-    rating = inputs.q_rating_kvar
-    s = _PCT_PER_PU * inputs.dv_dq_pu_per_kvar[idx] * rating  # (n, K) % per rating
-    e = inputs.dv_dq_rel_error * np.abs(s)
-    s_t = _PCT_PER_PU * inputs.dv_dtap_pu[idx]
-    v_base = _PCT_PER_PU * inputs.v0_pu[idx] - s @ (inputs.q0_kvar / rating)
-    v_lo = _PCT_PER_PU * np.broadcast_to(inputs.v_min_pu, (inputs.n_nodes,))[idx] - v_base
-    v_hi = _PCT_PER_PU * np.broadcast_to(inputs.v_max_pu, (inputs.n_nodes,))[idx] - v_base
-    # x = [dT+ (R), dT- (R), Q+ (K), Q- (K)] >= 0, Q in units of each plant's rating.
-    upper_rows = np.hstack([s_t, -s_t, s + e, -s + e])  # v + err |S||q| <= v_max
-    lower_rows = np.hstack([-s_t, s_t, -(s - e), s + e])  # -(v - err |S||q|) <= -v_min
-    max_t = inputs.max_taps_per_interval.astype(float)
-    room_up = np.maximum(inputs.tap_max - inputs.taps, 0).astype(float)
-    room_down = np.maximum(inputs.taps - inputs.tap_min, 0).astype(float)
-    q_min, q_max = inputs.q_min_kvar / rating, inputs.q_max_kvar / rating
-    q_lo = np.concatenate([np.maximum(q_min, 0.0), np.maximum(-q_max, 0.0)])  # as the QP's variable bounds
-    q_hi = np.concatenate([np.maximum(q_max, 0.0), np.maximum(-q_min, 0.0)])
-    tap_hi = np.concatenate([np.minimum(max_t, room_up), np.minimum(max_t, room_down)])
-    bounds = [(0.0, u) for u in tap_hi] + list(zip(q_lo, q_hi, strict=True))
-    lp = linprog(np.zeros(2 * r + 2 * k), A_ub=np.vstack([upper_rows, lower_rows]),
-                 b_ub=np.concatenate([v_hi, -v_lo]), bounds=bounds, method="highs")
+    qp = build_cvvc_qp(inputs, soft=False, nodes=idx)
+    n = idx.size
+    rows = qp.A.toarray()[:n]  # voltage rows [%]: taps up/down, Q+, Q- (no violation variables in the hard form)
+    spread = np.zeros_like(rows)
+    lay = qp.layout
+    spread[:, lay.q_inj] = spread[:, lay.q_abs] = inputs.dv_dq_rel_error * np.abs(rows[:, lay.q_inj])
+    lp = linprog(np.zeros(lay.n), A_ub=np.vstack([rows + spread, -(rows - spread)]),
+                 b_ub=np.concatenate([qp.upper[:n], -qp.lower[:n]]),
+                 bounds=list(zip(qp.lower[n:], qp.upper[n:], strict=True)), method="highs")
     return bool(lp.status != 2)  # 2: infeasible; anything else (solved, limits hit) gives the hard form its chance
