@@ -409,13 +409,15 @@ def run_agent(model: CvvcModel, settings: AgentSettings, bus, *, stop: threading
         inbox.subscribe(session, f"cvvc/{f}/ack/**", m.Ack)
         decision_pub = TypedPublisher(session, keys.agent_decision(f), m.Decision, reliable=True)
         status_pub = TypedPublisher(session, keys.agent_status(f), m.AgentStatus, reliable=True)
+        # a decision's commands are batched by Zenoh and flushed by the decision (express, same priority) after them
         cmd_pubs: dict[str, TypedPublisher[Any]] = {}
+        batched = {"reliable": True, "express": False}
         for p in model.pv:
-            cmd_pubs[p.id] = TypedPublisher(session, keys.cmd(f, "pv", p.id), m.PvCommand, reliable=True)
+            cmd_pubs[p.id] = TypedPublisher(session, keys.cmd(f, "pv", p.id), m.PvCommand, **batched)
         for r in model.regulators:
-            cmd_pubs[r.id] = TypedPublisher(session, keys.cmd(f, "vr", r.id), m.RegCommand, reliable=True)
+            cmd_pubs[r.id] = TypedPublisher(session, keys.cmd(f, "vr", r.id), m.RegCommand, **batched)
         for c in model.capacitors:
-            cmd_pubs[c.id] = TypedPublisher(session, keys.cmd(f, "cap", c.id), m.CapCommand, reliable=True)
+            cmd_pubs[c.id] = TypedPublisher(session, keys.cmd(f, "cap", c.id), m.CapCommand, **batched)
         if settings.full_visibility:
             maker.oracle = _Oracle(session, f, settings.oracle_timeout_s, rlog).reply
 

@@ -356,10 +356,14 @@ class TypedPublisher(Generic[T]):
     """A Zenoh publisher of one message type on one key.
 
     Measurements use congestion control DROP (the newest frame matters); commands and decisions use
-    BLOCK at a high priority (they must not be lost).
+    BLOCK at a high priority (they must not be lost). ``express`` (default: ``reliable``) sends each message at
+    once in a batch of its own; ``express=False`` on a reliable publisher lets Zenoh batch it with what follows on
+    the same priority (an express message of that priority flushes them in one write): for messages that come in
+    bursts, e.g. a decision's commands just before the decision, or the acks of a decision.
     """
 
-    def __init__(self, session: zenoh.Session, key: str, msg_type: type[T], *, reliable: bool = False) -> None:
+    def __init__(self, session: zenoh.Session, key: str, msg_type: type[T], *, reliable: bool = False,
+                 express: bool | None = None) -> None:
         self.key = key
         self.codec = codec_for(msg_type)
         self._pub = session.declare_publisher(
@@ -367,7 +371,7 @@ class TypedPublisher(Generic[T]):
             encoding=zenoh_encoding(self.codec.wire),
             congestion_control=zenoh.CongestionControl.BLOCK if reliable else zenoh.CongestionControl.DROP,
             priority=zenoh.Priority.REAL_TIME if reliable else zenoh.Priority.DATA,
-            express=reliable,
+            express=reliable if express is None else express,
         )
 
     def put(self, msg: T) -> bytes:

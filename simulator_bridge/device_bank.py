@@ -104,10 +104,13 @@ class DeviceBank:
         tokens = [lv.declare_token(keys.alive(f, "pv", p)) for p in self.pvs if p not in self.external_pv]
         tokens += [lv.declare_token(keys.alive(f, "vr", r)) for r in self.regs]
         tokens += [lv.declare_token(keys.alive(f, "cap", k)) for k in self.caps]
-        self.ack_pv = {p: TypedPublisher(s, keys.ack(f, "pv", p), m.Ack, reliable=True) for p in self.pvs
-                       if p not in self.external_pv}
-        self.ack_vr = {r: TypedPublisher(s, keys.ack(f, "vr", r), m.Ack, reliable=True) for r in self.regs}
-        self.ack_cap = {k: TypedPublisher(s, keys.ack(f, "cap", k), m.Ack, reliable=True) for k in self.caps}
+        # a decision's acks come in a burst that nobody waits for: batched by Zenoh, not one write each
+        self.ack_pv = {p: TypedPublisher(s, keys.ack(f, "pv", p), m.Ack, reliable=True, express=False)
+                       for p in self.pvs if p not in self.external_pv}
+        self.ack_vr = {r: TypedPublisher(s, keys.ack(f, "vr", r), m.Ack, reliable=True, express=False)
+                       for r in self.regs}
+        self.ack_cap = {k: TypedPublisher(s, keys.ack(f, "cap", k), m.Ack, reliable=True, express=False)
+                        for k in self.caps}
         self.bridges = LivelinessWatcher(s, f"{keys.ROOT}/*/alive/bridge/*")
         return tokens
 
