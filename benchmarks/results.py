@@ -18,6 +18,7 @@ import msgspec
 __all__ = [
     "BenchError",
     "BridgeBench",
+    "BurstBench",
     "ClosedLoopBench",
     "DecisionBench",
     "MemoryKib",
@@ -148,6 +149,22 @@ class RecordingBench(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_f
     bytes_per_message: float
     mean_payload_bytes: float
     offline_rerun: OfflineRerun | None  # None while ``agent.runtime.decide_offline`` is missing
+
+
+class BurstBench(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """``bench_burst``: a decision's burst (11 commands then the decision) put express each vs batched.
+
+    Per round and mode, medians over ``bursts``: ``*_put_cpu_us`` the publishing thread's CPU per burst [µs],
+    ``*_latency_ms`` from the burst's first put to the subscriber (another process) receiving its decision [ms].
+    ``batched``: the commands non-express, the decision express (it flushes them).
+    """
+
+    bursts: int
+    rounds: int
+    express_put_cpu_us: list[float]
+    batched_put_cpu_us: list[float]
+    express_latency_ms: list[float]
+    batched_latency_ms: list[float]
 
 
 class ClosedLoopBench(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
