@@ -25,9 +25,7 @@ in ``qsts.py`` / ``engine.py``. ``docs/bridge.md`` is the user's guide; in short
   and the metrics frames, come from a ``StepFramer``: called inline by the stepping thread, or, by default
   on feeders of 200 nodes or more, in a publisher process with its own Zenoh session, fed through shared
   memory with each step's results and the device settings in force, so its Python work runs beside the next
-  power flow instead of under this process's GIL; in lockstep the device frames (what the agent decides on) are
-  still put by the stepping thread, and the child does the metrics and the truth. The messages are the same
-  either way.
+  power flow instead of under this process's GIL. The messages are the same either way.
 """
 
 from __future__ import annotations
@@ -96,9 +94,8 @@ class BridgeConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fie
     publisher : who builds, encodes and puts a step's frames, metrics update, truth and metrics frames:
         ``inline`` the stepping thread; ``process`` a publisher process with its own Zenoh session, while the
         stepping thread solves the next step (not with ``latency_s``; the bus must have connect or listen
-        endpoints and no config file; in lockstep the stepping thread still puts the device frames, so that the
-        agent's frames do not wait for the child: docs/bridge.md, "Sixth pass"); ``auto`` (default) the process on
-        feeders of 200 nodes or more when it can, inline otherwise. The messages are the same.
+        endpoints and no config file); ``auto`` (default) the process on feeders of 200 nodes or more when it
+        can, inline otherwise. The messages are the same.
     oracle : serve the case-A oracle (``sim/oracle``: every node's true voltage and perturbation sensitivities).
         Off by default: it exists only when case A asks for it (``cvvc run --case A`` sets it), and then answers
         at most ``ORACLE_REPLIES_PER_STEP`` queries per simulated step; the rest are refused and counted
@@ -322,8 +319,6 @@ def _loop(rt: BridgeRuntime, stop: threading.Event, on_ready: Callable[[], None]
             raise BridgeError("the publisher process gave no report at the end of the run (see the log)")
         final, published, dropped, truth, pub_cpu_s = (r.final_metrics, r.frames_published, r.frames_dropped,
                                                        r.truth_frames, r.cpu_s)
-        if rt.frame_framer is not None:  # the device frames this process put
-            published, dropped = published + rt.frame_framer.frames_published, dropped + rt.frame_framer.frames_dropped
     else:
         f = rt.framer
         assert f is not None
@@ -365,9 +360,7 @@ def _startup(rt: BridgeRuntime, stop: threading.Event) -> None:
             wait_for(lambda: rt.agent_alive, _STARTUP_PROBE_S)
     if rt.agent_alive:
         timeout_s = max(deadline - time.monotonic(), _STARTUP_PROBE_S)
-        if rt.frame_framer is not None:  # the head frames are this process's
-            rt.frame_framer.pub_head.wait_matched(timeout_s)
-        elif rt.child is not None:
+        if rt.child is not None:
             rt.child.wait_matched(timeout_s)
         elif rt.framer is not None:
             rt.framer.pub_head.wait_matched(timeout_s)

@@ -176,7 +176,6 @@ class BridgeRuntime:
             self._declare()
             self.child: PublisherProcess | None = None
             self.framer: StepFramer | None = None
-            self.frame_framer: StepFramer | None = None  # with the child, in lockstep: puts the device frames here
             child = publisher_bus(c, bus, len(engine.node_names))
             if child is None:
                 self.framer = StepFramer(self.spec, session, self._on_control_head)
@@ -184,8 +183,6 @@ class BridgeRuntime:
                 packer = StepPacker(len(engine.node_names), len(bank.pvs), len(bank.regs),
                                     len(engine.capacitor_ids))
                 self.child = PublisherProcess(self.spec, packer, child)
-                if c.clock == "lockstep":  # the agent's frames without a hop through the child (docs/bridge.md)
-                    self.frame_framer = StepFramer(self.spec, session, self._on_control_head)
         except BaseException:
             if self.fleet is not None:  # no close() follows a failed construction: the servers stop here
                 self.fleet.close()
@@ -305,9 +302,8 @@ class BridgeRuntime:
             self.counters.rejected["decision_wrong_feeder"] += 1
             return
         self.decisions += 1
-        pub = self._ctrl_pub_wall_ns.pop(d.step_t_ns, None)
-        if pub is None and self.child is not None:
-            pub = self.child.control_head_wall_ns(d.step_t_ns)
+        pub = (self._ctrl_pub_wall_ns.pop(d.step_t_ns, None) if self.child is None
+               else self.child.control_head_wall_ns(d.step_t_ns))
         if pub is not None:
             self.round_trips.append((recv_wall_ns - pub) / _NS)
         self.decision = d
@@ -368,12 +364,8 @@ class BridgeRuntime:
             rd = res.readings
             self.fleet.measure(int(res.t_ns), rd.pv_p_kw, rd.pv_q_kvar, rd.pv_v_v)
         if self.child is not None:
-            own = self.frame_framer
-            if own is not None:  # the device frames from this process, the truth and metrics from the child
-                check_finite_step(res)
-                own.publish_frames(res, self.bank.settings(), time.monotonic())
             if not self.child.submit(res, self.steps, self.bank.settings(),
-                                     metrics_after=self.is_control_step(res.step), frames_put=own is not None):
+                                     metrics_after=self.is_control_step(res.step)):
                 raise non_finite(res)
         elif self.framer is not None:
             v_lo, v_hi = check_finite_step(res)

@@ -13,10 +13,6 @@ starts there) into shared memory. It never touches the simulation, so the steppi
 it, except for a free slot (``depth`` steps behind) and at the end (:meth:`PublisherProcess.close`, which
 returns the child's counters and final metrics frame). A child that fails or dies fails the run with a
 ``PublisherError`` at the next hand-over; every wait is bounded.
-
-A step handed over with ``frames_put`` (the bridge in lockstep) had its device frames put by the stepping process
-itself: the child only updates the metrics and puts the truth (and the metrics frame after a control step), so
-the frames the agent decides on never wait for the child to wake up.
 """
 
 from __future__ import annotations
@@ -173,7 +169,6 @@ def _unpack_cap_commands(words: np.ndarray, n_cap: int) -> tuple[tuple[str, int]
 
 # ------------------------------------------------------------------------------------------ the process
 _STEP, _STEP_THEN_METRICS, _MATCH, _CLOSE = 1, 2, 3, 4
-_FRAMES_PUT = 8  # flag on a step's kind: the stepping process put the step's device frames itself
 
 
 class PublisherReport(msgspec.Struct, frozen=True, kw_only=True):
@@ -240,11 +235,9 @@ class PublisherProcess:
                 raise PublisherError(f"the publisher process took no step for {_WAIT_S:.0f} s; the run stops")
         return self._submitted % self.depth
 
-    def submit(self, res: Any, n_step: int, settings: DeviceSettings, *, metrics_after: bool,
-               frames_put: bool = False) -> bool:
-        """Hand one step over; ``metrics_after``: publish a metrics frame after it; ``frames_put``: the stepping
-        process put the step's device frames itself (the child does the metrics update and the truth). Returns
-        False (and hands nothing over) when the step holds a NaN or inf.
+    def submit(self, res: Any, n_step: int, settings: DeviceSettings, *, metrics_after: bool) -> bool:
+        """Hand one step over; ``metrics_after``: publish a metrics frame after it. Returns False (and hands
+        nothing over) when the step holds a NaN or inf.
         """
         if self._state_view[1]:
             self._check()
@@ -252,7 +245,7 @@ class PublisherProcess:
         if not self.packer.pack(self._fs[i], self._is[i], res, n_step, settings):
             self._free.release()
             return False
-        self._is[i, 0] = (_STEP_THEN_METRICS if metrics_after else _STEP) | (_FRAMES_PUT if frames_put else 0)
+        self._is[i, 0] = _STEP_THEN_METRICS if metrics_after else _STEP
         self._submitted += 1
         self._ready.release()
         return True
@@ -375,18 +368,15 @@ def _child_main(spec: FramerSpec, packer: StepPacker, bus: BusConfig, depth: int
                         return
                     continue
                 slot = i % depth
-                kind, frames_put = int(ins[slot, 0]) & ~_FRAMES_PUT, bool(int(ins[slot, 0]) & _FRAMES_PUT)
+                kind = int(ins[slot, 0])
                 i += 1
                 if kind in (_STEP, _STEP_THEN_METRICS):
                     if cpu0 is None:
                         cpu0 = time.process_time()  # from the first step on: the start is no publishing
                     res, n_step, settings = packer.unpack(fs[slot], ins[slot])
                     free.release()
-                    v_lo, v_hi = float(res.v_pu.min()), float(res.v_pu.max())
-                    if frames_put:
-                        framer.publish_after_frames(res, n_step, v_lo, v_hi)
-                    else:
-                        framer.publish_step(res, n_step, v_lo, v_hi, settings, time.monotonic())
+                    framer.publish_step(res, n_step, float(res.v_pu.min()), float(res.v_pu.max()), settings,
+                                        time.monotonic())
                     if kind == _STEP_THEN_METRICS:
                         framer.publish_metrics(res.t_ns, final=False)
                     st[0] += 1

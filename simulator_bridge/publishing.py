@@ -188,10 +188,6 @@ class StepFramer:
         device frames go out first, so that on a control step the agent works while the rest is done.
         """
         self.publish_frames(res, settings, now_s)
-        self.publish_after_frames(res, n_step, v_lo_pu, v_hi_pu)
-
-    def publish_after_frames(self, res: Any, n_step: int, v_lo_pu: float, v_hi_pu: float) -> None:
-        """What :meth:`publish_step` does after the device frames: the metrics update and the truth."""
         self.metrics.update(res.v_pu, res.tap_changes, res.pv_q_kvar, res.cap_switches)
         self.publish_truth(res, n_step, v_lo_pu, v_hi_pu)
 
