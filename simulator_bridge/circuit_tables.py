@@ -15,6 +15,7 @@ import numpy as np
 
 from schemas.devicemap import DeviceMap, DeviceMapError
 from simulator_bridge.controls import CapControlSettings, CapKind, RegControlSettings
+from simulator_bridge.dss_context import command
 
 __all__ = [
     "BankTable",
@@ -160,30 +161,20 @@ def check_names(d, dm: DeviceMap, where: str) -> None:
                                  f"in {master}")
 
 
-def _command(d, cmd: str, *, what: str) -> str:
-    """``dss_context.command``, imported on first use: the publisher process imports this module (through
-    ``readout``'s reading tables) and never needs OpenDSS, whose import (``opendssdirect``, pandas) was most of its
-    start-up (docs/bridge.md, "Sixth pass").
-    """
-    from simulator_bridge.dss_context import command
-
-    return command(d, cmd, what=what)
-
-
 def add_pv_plants(d, dm: DeviceMap, where: str) -> None:
     """Create the map's new PV plants in ``d`` (``create = true``) and set up its existing ones, all dark."""
     for p in dm.pv:
         name = pv_name(dm, p.id)
         if p.create:
             kv = p.kv_ll if p.phases == 3 else p.kv_ll / np.sqrt(3.0)  # 1-phase: kV across the terminals
-            _command(d,
+            command(d,
                 f"new pvsystem.{name} phases={p.phases} bus1={p.bus} kv={kv:.6g} kva={p.kva:.6g} "
                 f"pmpp={p.pmpp_kw:.6g} irradiance=0 %cutin=0.01 %cutout=0.01 kvar=0 "
                 "wattpriority=yes varfollowinverter=no",
                 what=f"{where}: PV plant {p.id!r}",
             )
         else:
-            _command(d, f"edit pvsystem.{name} kva={p.kva:.6g} pmpp={p.pmpp_kw:.6g} irradiance=0 kvar=0 "
+            command(d, f"edit pvsystem.{name} kva={p.kva:.6g} pmpp={p.pmpp_kw:.6g} irradiance=0 kvar=0 "
                           "wattpriority=yes varfollowinverter=no",
                           what=f"{where}: PV plant {p.id!r}")
 
@@ -198,10 +189,10 @@ def disable_meters(d) -> None:
     """Disable every EnergyMeter and Monitor of the model (they would sample every solve)."""
     for name in d.Meters.AllNames():
         if name and name.upper() != "NONE":
-            _command(d, f"disable energymeter.{name}", what="engine setup")
+            command(d, f"disable energymeter.{name}", what="engine setup")
     for name in d.Monitors.AllNames():
         if name and name.upper() != "NONE":
-            _command(d, f"disable monitor.{name}", what="engine setup")
+            command(d, f"disable monitor.{name}", what="engine setup")
 
 
 def read_regulators(d, dm: DeviceMap, node_index: dict[str, int],
@@ -227,7 +218,7 @@ def read_regulators(d, dm: DeviceMap, node_index: dict[str, int],
         r_v, x_v = float(d.RegControls.ForwardR()), float(d.RegControls.ForwardX())
         vreg, bandw = float(d.RegControls.ForwardVreg()), float(d.RegControls.ForwardBand())
         remote_bus = d.RegControls.MonitoredBus().strip().lower()
-        prop = {p: _command(d, f"? regcontrol.{name}.{p}", what=what).strip().lower()
+        prop = {p: command(d, f"? regcontrol.{name}.{p}", what=what).strip().lower()
                 for p in ("ptphase", "remoteptratio", "enabled", "vlimit", "reversible", "ldc_z", "cogen")}
         if prop["reversible"] in ("yes", "true") or prop["cogen"] in ("yes", "true") \
                 or float(prop["vlimit"] or 0) > 0 or float(prop["ldc_z"] or 0) > 0:
@@ -314,7 +305,7 @@ def read_capacitors(d, dm: DeviceMap, where: str) -> BankTable:
     for name in cc_names:
         d.CapControls.Name(name)
         what = f"{where}: CapControl {name!r}"
-        prop = {p: _command(d, f"? capcontrol.{name}.{p}", what=what).strip().lower()
+        prop = {p: command(d, f"? capcontrol.{name}.{p}", what=what).strip().lower()
                 for p in ("type", "ptphase", "ctphase", "pctminkvar", "enabled", "voltoverride")}
         kind = _CAP_KINDS.get(prop["type"])
         if kind is None:
