@@ -75,6 +75,9 @@ class AgentSettings(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fi
     sensitivity_error: float = 0.3  # soft form: relative error of the estimated Q sensitivities [-]; 0: eq. (17)
     # (epri-ckt24, first winter day: plants pulling against each other, Q cost 2,130 -> 57 at NVV 435 -> 441)
     bounds_in_margin: bool = True  # the estimate bounds tighten a limit only past the optimization/judged gap
+    stale_plants: bool = True  # a plant behind a stale frame: P projected, Q our command, not raised, margin
+    # for its P (agent.stale_plants)
+    # (rural winter week, 5 % lost in 10-minute outages: NVV 3 -> 0, NTC 72 -> 24)
 
 
 class AgentSummary(msgspec.Struct, frozen=True, kw_only=True):
@@ -255,7 +258,8 @@ class DecisionMaker:
                                          correction_window_s=settings.correction_window_s,
                                          sensitivity_error=settings.sensitivity_error,
                                          bounds_in_margin=settings.bounds_in_margin,
-                                         filtered_setpoints=settings.filtered_setpoints)
+                                         filtered_setpoints=settings.filtered_setpoints,
+                                         stale_plants=settings.stale_plants)
         self.oracle: OracleSource | None = None  # case A: set by the live runtime once its session is open
         self.seq = 0
         self.holds = 0
