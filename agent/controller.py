@@ -51,8 +51,12 @@ __all__ = ["CvvcController", "Decision", "DecisionTimings", "MeasurementSnapshot
 _V120_RANGE = (60.0, 180.0)
 _POWER_LIMIT_KW = 1e6
 OUT_OF_ENVELOPE_WIDEN = 2.0
-_MIN_BAND_PU = 1e-3  # the narrowest band the estimate bounds leave between a node's limits [pu]
 """Factor on the calibrated estimate bounds when the inputs are outside the training envelope (extrapolation)."""
+_MIN_BAND_PU = 1e-3  # the narrowest band the estimate bounds leave between a node's limits [pu]
+STALE_PLANT_AGE_S = 150.0
+"""A plant's stand-in frame older than this [s] (two lost 1-minute frames and more: an outage, not a dropped frame)
+is treated by ``agent.stale_plants``; a younger one as it is (20 % of the frames lost at random: stand-ins of a
+minute, and the rule at every one of them took the rural winter week from 20 to 144 tap changes)."""
 
 
 def _finite(*arrays: np.ndarray) -> bool:
@@ -310,6 +314,13 @@ class CvvcController:
         n_pv = len(self._pv_ids)
         return np.full(n_pv, True) if snap.pv_fresh is None else np.asarray(snap.pv_fresh, bool).reshape(n_pv)
 
+    def _pv_old(self, snap: MeasurementSnapshot, pv_ok: np.ndarray) -> np.ndarray:
+        """(K,) bool: usable plants whose frame is a stand-in older than ``STALE_PLANT_AGE_S`` (or of unknown age)."""
+        stand_in = pv_ok & ~self._pv_fresh(snap)
+        if snap.pv_age_s is None:
+            return stand_in
+        return stand_in & (np.asarray(snap.pv_age_s, float).reshape(stand_in.shape) > STALE_PLANT_AGE_S)
+
     def _plant_inputs(self, snap: MeasurementSnapshot,
                       pv_ok: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """The plants as the decision takes them: ``(p_kw, q_kvar, kva, q_max_kvar)``, (K,) each.
@@ -322,7 +333,7 @@ class CvvcController:
         q = np.array(self._pv_last_q_kvar, float)
         kva = np.asarray(snap.pv_kva_available, float).copy()
         fresh_ok = pv_ok & self._pv_fresh(snap)
-        stale = pv_ok & ~fresh_ok
+        stale = self._pv_old(snap, pv_ok)
         if not (self.stale_plants and np.any(stale)):
             return p, q, kva, np.full(p.size, np.inf)
         p = self._stale.projected_p_kw(p, fresh_ok, stale)
@@ -380,7 +391,7 @@ class CvvcController:
             rise, fall = self.pv_margins_pu(state.dv_dp_pu_per_kw, pv_p)
             if self.stale_plants and self._recent_pv_p:
                 recent = np.array([x for _, x in self._recent_pv_p])
-                rise = stale_rise_pu(rise, state.dv_dp_pu_per_kw, pv_p, recent, pv_ok & ~self._pv_fresh(snap),
+                rise = stale_rise_pu(rise, state.dv_dp_pu_per_kw, pv_p, recent, self._pv_old(snap, pv_ok),
                                      self._margin_cap_pu)
             v_min_pu, v_max_pu = lo_pu + fall, hi_pu - rise
         bounds = self.bounds_pu(out_of_envelope) if state.critical else None

@@ -135,6 +135,7 @@ def snapshot_from(aligned: AlignedFrames, model: CvvcModel, *, reading_window_s:
             head_q[_PHASE_INDEX[ph.phase]] = ph.q_kvar
     pv_p, pv_q, pv_kva, pv_sp = (np.zeros(n_pv) for _ in range(4))
     pv_ok = np.zeros(n_pv, bool)
+    pv_age = np.zeros(n_pv)
     for k, plant in enumerate(model.pv):
         pf = aligned.pv.get(plant.id)
         last = aligned.pv_recent.get(plant.id)
@@ -146,6 +147,7 @@ def snapshot_from(aligned: AlignedFrames, model: CvvcModel, *, reading_window_s:
         # The apparent power available now: the plant's Q headroom is what the inverter says it is
         # (``q_available_kvar``: 0 at night, when it gives no reactive power).
         pv_p[k], pv_q[k] = pf.p_kw, pf.q_kvar
+        pv_age[k] = max(aligned.t_ns - pf.t_ns, 0) / 1e9
         pv_kva[k] = min(float(np.hypot(pf.p_kw, pf.q_available_kvar)), pf.s_rated_kva)
         pv_sp[k] = np.nan if pf.q_setpoint_kvar is None else pf.q_setpoint_kvar
         pv_ok[k] = True
@@ -184,7 +186,7 @@ def snapshot_from(aligned: AlignedFrames, model: CvvcModel, *, reading_window_s:
         pv_kva_available=pv_kva, pv_q_setpoint_kvar=pv_sp, reg_v120=reg_v, reg_v120_compared=reg_vc,
         reg_tap=reg_tap, head_valid=head is not None, pv_valid=pv_ok, reg_valid=reg_ok,
         cap_steps=cap_steps, cap_valid=cap_ok, cap_v_v=cap_v, reg_fresh=reg_fresh, head_fresh=aligned.head is not None,
-        pv_fresh=np.array([plant.id in aligned.pv for plant in model.pv], bool))
+        pv_fresh=np.array([plant.id in aligned.pv for plant in model.pv], bool), pv_age_s=pv_age)
 
 
 def _fitted_readings(aligned: AlignedFrames, reg_id: str, now: m.RegFrame, head: m.HeadFrame,
