@@ -8,7 +8,7 @@ import pytest
 
 from agent.controller import STALE_PLANT_AGE_S, CvvcController, MeasurementSnapshot
 from agent.runtime import AgentSettings
-from agent.stale_plants import StalePlants, project_stale_p_kw, stale_rise_pu
+from agent.stale_plants import STALE_RISE_CAP_FACTOR, StalePlants, project_stale_p_kw, stale_rise_pu
 from tests.agent.test_controller import HIGH, K, controller, snapshot
 
 PERIOD_NS = 300 * 10**9
@@ -90,7 +90,7 @@ def test_a_stale_plant_starts_from_our_command_and_is_not_raised():
 
 def test_a_stale_plant_p_uncertainty_tightens_the_upper_limits():
     """pv0 stood at 1000 kW during the margin window and its stand-in frame says 200 kW: the upper limits come down
-    by what pv0 would add going back to 1000 kW, up to twice the margin's cap, beyond the cap of the plain margin."""
+    by what pv0 would add going back to 1000 kW, up to 1.5 times the margin's cap, beyond the cap of the plain margin."""
     rng = np.random.default_rng(1)
     dv_dp = rng.uniform(1e-6, 3e-5, (6, 3))
     recent = np.array([[1000.0, 500.0, 500.0], [1000.0, 500.0, 500.0]])
@@ -98,7 +98,7 @@ def test_a_stale_plant_p_uncertainty_tightens_the_upper_limits():
     cap = 0.01
     rise = np.minimum(dv_dp[:, 0] * 800.0, cap)  # the plain margin's, every plant (only pv0 moved)
     out = stale_rise_pu(rise, dv_dp, p, recent, np.array([True, False, False]), cap)
-    np.testing.assert_allclose(out, np.minimum(rise + dv_dp[:, 0] * 800.0, 2 * cap))
+    np.testing.assert_allclose(out, np.minimum(rise + dv_dp[:, 0] * 800.0, STALE_RISE_CAP_FACTOR * cap))
     assert np.any(out > cap)
     np.testing.assert_allclose(stale_rise_pu(rise, dv_dp, p, recent, np.zeros(3, bool), cap), rise)
 
