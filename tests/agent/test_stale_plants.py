@@ -90,7 +90,7 @@ def test_a_stale_plant_starts_from_our_command_and_is_not_raised():
 
 def test_a_stale_plant_p_uncertainty_tightens_the_upper_limits():
     """pv0 stood at 1000 kW during the margin window and its stand-in frame says 200 kW: the upper limits come down
-    by what pv0 would add going back to 1000 kW, up to 1.5 times the margin's cap, beyond the cap of the plain margin."""
+    by what pv0 would add going back to 1000 kW, up to 1.5 times the margin's cap, beyond the plain margin's cap."""
     rng = np.random.default_rng(1)
     dv_dp = rng.uniform(1e-6, 3e-5, (6, 3))
     recent = np.array([[1000.0, 500.0, 500.0], [1000.0, 500.0, 500.0]])
