@@ -77,7 +77,7 @@ class AgentSettings(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fi
     bounds_in_margin: bool = True  # the estimate bounds tighten a limit only past the optimization/judged gap
     stale_plants: bool = True  # a plant behind a stale frame: P projected, Q our command, not raised, margin
     # for its P (agent.stale_plants)
-    # (rural winter week, 5 % lost in 10-minute outages: NVV 3 -> 0, NTC 72 -> 23; 20 % outages: NTC 98 -> 138)
+    # (rural winter week, 5 % lost in 10-minute outages: NVV 3 -> 0, NTC 72 -> 25; 20 % outages: NTC 98 -> 70)
 
 
 class AgentSummary(msgspec.Struct, frozen=True, kw_only=True):
