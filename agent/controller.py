@@ -40,6 +40,7 @@ from agent.decision import Decision, DecisionTimings, MeasurementSnapshot
 from agent.errors import AgentInputError
 from agent.setpoints import expected_compared_v120, setpoint_for_tap_change
 from agent.solve import CvvcSolution, WarmStart, solve_cvvc
+from agent.stale_plants import StalePlants, stale_rise_pu
 from agent.state import CorrectionFilter, GridState, OracleSource, estimated_state, oracle_state
 from regression.estimator import SensitivityTable, dv_dp_pu_per_kw, pv_variability_margins_pu
 from regression.model import CvvcModel, ModelArrays, features
@@ -50,8 +51,12 @@ __all__ = ["CvvcController", "Decision", "DecisionTimings", "MeasurementSnapshot
 _V120_RANGE = (60.0, 180.0)
 _POWER_LIMIT_KW = 1e6
 OUT_OF_ENVELOPE_WIDEN = 2.0
-_MIN_BAND_PU = 1e-3  # the narrowest band the estimate bounds leave between a node's limits [pu]
 """Factor on the calibrated estimate bounds when the inputs are outside the training envelope (extrapolation)."""
+_MIN_BAND_PU = 1e-3  # the narrowest band the estimate bounds leave between a node's limits [pu]
+STALE_PLANT_AGE_S = 150.0
+"""A plant's stand-in frame older than this [s] (two lost 1-minute frames and more: an outage, not a dropped frame)
+is treated by ``agent.stale_plants``; a younger one as it is (20 % of the frames lost at random: stand-ins of a
+minute, and the rule at every one of them took the rural winter week from 20 to 144 tap changes)."""
 
 
 def _finite(*arrays: np.ndarray) -> bool:
@@ -105,6 +110,7 @@ class CvvcController:
         sensitivity_error: float = 0.0,
         bounds_in_margin: bool = False,
         filtered_setpoints: bool = False,
+        stale_plants: bool = False,
     ) -> None:
         if mode not in ("taps", "setpoints"):
             raise AgentInputError(f"mode must be 'taps' or 'setpoints', not {mode!r}")
@@ -171,6 +177,8 @@ class CvvcController:
         self._cap_last = np.array([c.closed0 for c in banks], int)  # last known state (training state at first)
         self._cap_refused_until = np.full(len(banks), -1, dtype=np.int64)  # t_ns until which a bank is held
         self._period_ns = int(model.control_period_s) * 1_000_000_000
+        self.stale_plants = bool(stale_plants)
+        self._stale = StalePlants(self._pv_rating_kva, 2 * self._period_ns)
 
     # ------------------------------------------------------------------------------------------ bounds
     def bounds_pu(self, out_of_envelope: bool) -> tuple[np.ndarray, np.ndarray] | None:
@@ -301,6 +309,40 @@ class CvvcController:
         offset_pu = filt((compared - est_v120) * per_v, reg_ok, fresh, inputs_fresh=inputs_fresh)
         return np.where(reg_ok, est_v120 + offset_pu / per_v, compared)
 
+    def _pv_fresh(self, snap: MeasurementSnapshot) -> np.ndarray:
+        """(K,) bool: the plants whose frame is this step's own."""
+        n_pv = len(self._pv_ids)
+        return np.full(n_pv, True) if snap.pv_fresh is None else np.asarray(snap.pv_fresh, bool).reshape(n_pv)
+
+    def _pv_old(self, snap: MeasurementSnapshot, pv_ok: np.ndarray) -> np.ndarray:
+        """(K,) bool: usable plants whose frame is a stand-in older than ``STALE_PLANT_AGE_S`` (or of unknown age)."""
+        stand_in = pv_ok & ~self._pv_fresh(snap)
+        if snap.pv_age_s is None:
+            return stand_in
+        return stand_in & (np.asarray(snap.pv_age_s, float).reshape(stand_in.shape) > STALE_PLANT_AGE_S)
+
+    def _plant_inputs(self, snap: MeasurementSnapshot,
+                      pv_ok: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The plants as the decision takes them: ``(p_kw, q_kvar, kva, q_max_kvar)``, (K,) each.
+
+        Last known P [kW] and Q [kvar], apparent power available [kVA] and the highest Q the decision may give
+        [kvar] (inf: the headroom); with ``stale_plants``, a plant behind a stale frame as ``agent.stale_plants``
+        says: P projected from the fresh plants, Q our command in force, not raised from it. No state changes.
+        """
+        p = np.array(self._pv_last_p_kw, float)
+        q = np.array(self._pv_last_q_kvar, float)
+        kva = np.asarray(snap.pv_kva_available, float).copy()
+        fresh_ok = pv_ok & self._pv_fresh(snap)
+        stale = self._pv_old(snap, pv_ok)
+        if not (self.stale_plants and np.any(stale)):
+            return p, q, kva, np.full(p.size, np.inf)
+        p = self._stale.projected_p_kw(p, fresh_ok, stale)
+        kva = np.where(stale, np.minimum(np.maximum(kva, p), self._pv_rating_kva), kva)
+        headroom = np.sqrt(np.maximum(kva**2 - p**2, 0.0))
+        cmd = self._stale.commanded_q_kvar(int(snap.t_ns))
+        q = np.where(stale & np.isfinite(cmd), np.clip(np.nan_to_num(cmd), -headroom, headroom), q)
+        return p, q, kva, np.where(stale, q, np.inf)
+
     def _cap_usable(self, snap: MeasurementSnapshot) -> np.ndarray:
         """(C,) bool: banks whose frame is valid with a whole number of closed steps within the bank's."""
         steps = np.asarray(snap.cap_steps, float)
@@ -340,14 +382,17 @@ class CvvcController:
         (widened ``out_of_envelope``). No state changes. Raises ``AgentInputError`` on unusable inputs.
         """
         _, pv_ok, reg_ok = self._usable(snap)
-        pv_p = np.array(self._pv_last_p_kw, float)
-        pv_q = np.array(self._pv_last_q_kvar, float)
-        headroom = np.sqrt(np.maximum(np.asarray(snap.pv_kva_available, float) ** 2 - pv_p**2, 0.0))
+        pv_p, pv_q, kva, q_hi = self._plant_inputs(snap, pv_ok)
+        headroom = np.sqrt(np.maximum(kva**2 - pv_p**2, 0.0))
         lo_pu, hi_pu = self.model.optimization_limits_pu
         v_min_pu: np.ndarray | float = lo_pu
         v_max_pu: np.ndarray | float = hi_pu
         if self._margin_window_ns > 0:
             rise, fall = self.pv_margins_pu(state.dv_dp_pu_per_kw, pv_p)
+            if self.stale_plants and self._recent_pv_p:
+                recent = np.array([x for _, x in self._recent_pv_p])
+                rise = stale_rise_pu(rise, state.dv_dp_pu_per_kw, pv_p, recent, self._pv_old(snap, pv_ok),
+                                     self._margin_cap_pu)
             v_min_pu, v_max_pu = lo_pu + fall, hi_pu - rise
         bounds = self.bounds_pu(out_of_envelope) if state.critical else None
         if bounds is not None and self.bounds_in_margin:
@@ -372,7 +417,7 @@ class CvvcController:
             dv_dtap_pu=np.hstack([np.reshape(state.dv_dtap_pu, (n, -1)), dv_dcap]),
             q0_kvar=pv_q,
             q_min_kvar=np.where(pv_ok, -headroom, pv_q),
-            q_max_kvar=np.where(pv_ok, headroom, pv_q),
+            q_max_kvar=np.where(pv_ok, np.minimum(headroom, np.maximum(q_hi, -headroom)), pv_q),
             q_rating_kvar=np.maximum(self._pv_rating_kva, 1.0),
             taps=np.concatenate([state.taps, self._cap_last]).astype(int),
             tap_min=np.concatenate([self._tap_min, np.zeros(len(self._cap_ids), int)]),
@@ -435,6 +480,7 @@ class CvvcController:
             self._reg_last_tap[r] = int(snap.reg_tap[r])
         for c in np.flatnonzero(cap_ok):
             self._cap_last[c] = int(snap.cap_steps[c])
+        self._stale.observe(snap.pv_p_kw, pv_ok & self._pv_fresh(snap))
         if not head_ok:
             return self._hold(snap, "no valid feeder-head frame: holding (no commands)", missing, t0)
         never_pv = [self._pv_ids[k] for k in range(n_pv) if self._pv_last_p_kw[k] is None]
@@ -443,8 +489,7 @@ class CvvcController:
             return self._hold(snap, f"no valid frame yet from {', '.join(never_pv + never_reg)}: holding", missing, t0)
 
         # The grid state: the estimator's (eq. 5-7, eq. 3) or, in case A, the bridge's oracle (every node).
-        pv_p = np.array(self._pv_last_p_kw, float)  # equals the snapshot where usable
-        pv_q = np.array(self._pv_last_q_kvar, float)
+        pv_p, pv_q, *_ = self._plant_inputs(snap, pv_ok)
         taps = np.array(self._reg_last_tap, int)
         prefix = "" if oracle is None else "case A: "
         if oracle is None:
@@ -506,6 +551,7 @@ class CvvcController:
                 for r in np.flatnonzero(reg_ok):
                     self._last_setpoint[r] = (t_now, float(setpoints[r]))
             bands = np.full(n_reg, self.bandwidth_v120)
+        self._stale.commanded(int(snap.t_ns), solution.q_new_kvar, pv_ok)
         applied = self.bounds_pu(bool(outside)) if state.critical else None
         reason = solution.reason
         if outside:

@@ -41,6 +41,8 @@ class MeasurementSnapshot:
         a lost frame); None: every reading is.
     head_fresh : the head frame is this step's own.
     pv_fresh : (K,) bool, the plant's frame is this step's own (not a last-good one); None: every frame is.
+    pv_age_s : (K,) how old each plant's frame is at the step [s] (0 for its own); None: unknown (a stand-in is
+        then taken as old).
     """
 
     t_ns: int
@@ -62,6 +64,7 @@ class MeasurementSnapshot:
     reg_fresh: np.ndarray | None = None
     head_fresh: bool = True
     pv_fresh: np.ndarray | None = None
+    pv_age_s: np.ndarray | None = None
 
 
 @dataclass(frozen=True)

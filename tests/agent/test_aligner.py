@@ -305,6 +305,7 @@ def test_a_pv_frame_lost_at_a_control_step_is_replaced_by_its_last_good_value(al
     snap = snapshot_from(out[0], model, last_good_s=240)
     assert snap.pv_valid[0] and snap.pv_p_kw[0] == 777.0
     assert snap.head_fresh and not snap.pv_fresh[0]  # marked stale (the correction filter)
+    assert snap.pv_age_s is not None and snap.pv_age_s[0] == 60.0  # its age (the stale-plant rule starts past 150 s)
     assert not snapshot_from(out[0], model, last_good_s=0).pv_valid[0]
 
 
