@@ -93,6 +93,11 @@ class CvvcController:
         from the corrected estimate at the regulator's secondary plus the filtered difference between the compared
         reading and that estimate (a second ``CorrectionFilter``), instead of the compared reading itself: the
         reading's noise then moves the band by a fraction of itself.
+    stale_plants : beyond the paper: a plant behind a stand-in frame older than ``STALE_PLANT_AGE_S`` is taken as
+        ``agent.stale_plants`` says (P projected from the fresh plants, Q our command in force and not raised, its
+        P's own variability margin).
+    command_valid_periods : how many control periods a command stays in force after its step (the runtime's
+        ``AgentSettings.valid_intervals``): how long ``stale_plants`` takes our last Q command as the plant's Q.
     """
 
     def __init__(
@@ -111,6 +116,7 @@ class CvvcController:
         bounds_in_margin: bool = False,
         filtered_setpoints: bool = False,
         stale_plants: bool = False,
+        command_valid_periods: float = 2.0,
     ) -> None:
         if mode not in ("taps", "setpoints"):
             raise AgentInputError(f"mode must be 'taps' or 'setpoints', not {mode!r}")
@@ -178,7 +184,8 @@ class CvvcController:
         self._cap_refused_until = np.full(len(banks), -1, dtype=np.int64)  # t_ns until which a bank is held
         self._period_ns = int(model.control_period_s) * 1_000_000_000
         self.stale_plants = bool(stale_plants)
-        self._stale = StalePlants(self._pv_rating_kva, 2 * self._period_ns)
+        # our Q command is in force as long as the runtime's commands are valid (``AgentSettings.valid_intervals``)
+        self._stale = StalePlants(self._pv_rating_kva, int(command_valid_periods * self._period_ns))
 
     # ------------------------------------------------------------------------------------------ bounds
     def bounds_pu(self, out_of_envelope: bool) -> tuple[np.ndarray, np.ndarray] | None:
@@ -373,16 +380,18 @@ class CvvcController:
             recent.popleft()
         recent.append((t_ns, pv_p_kw.copy()))
 
-    def problem(self, snap: MeasurementSnapshot, state: GridState, *, out_of_envelope: bool = False) -> CvvcInputs:
+    def problem(self, snap: MeasurementSnapshot, state: GridState, *, out_of_envelope: bool = False,
+                plants: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None) -> CvvcInputs:
         """The CVVC problem (eq. 9-17) of a snapshot the controller has taken in, over ``state``'s nodes.
 
         The one inputs builder, whichever the state's source: missing plants fixed at their last Q, missing
         regulators frozen; the optimization limits tightened by the PV variability margin of ``state``'s
         dV/dP over the window recorded so far and, for estimated critical nodes, by the estimate's calibrated bounds
-        (widened ``out_of_envelope``). No state changes. Raises ``AgentInputError`` on unusable inputs.
+        (widened ``out_of_envelope``). ``plants``: ``_plant_inputs``'s result for ``snap`` if the caller has it.
+        No state changes. Raises ``AgentInputError`` on unusable inputs.
         """
         _, pv_ok, reg_ok = self._usable(snap)
-        pv_p, pv_q, kva, q_hi = self._plant_inputs(snap, pv_ok)
+        pv_p, pv_q, kva, q_hi = self._plant_inputs(snap, pv_ok) if plants is None else plants
         headroom = np.sqrt(np.maximum(kva**2 - pv_p**2, 0.0))
         lo_pu, hi_pu = self.model.optimization_limits_pu
         v_min_pu: np.ndarray | float = lo_pu
@@ -489,7 +498,8 @@ class CvvcController:
             return self._hold(snap, f"no valid frame yet from {', '.join(never_pv + never_reg)}: holding", missing, t0)
 
         # The grid state: the estimator's (eq. 5-7, eq. 3) or, in case A, the bridge's oracle (every node).
-        pv_p, pv_q, *_ = self._plant_inputs(snap, pv_ok)
+        plants = self._plant_inputs(snap, pv_ok)
+        pv_p, pv_q = plants[0], plants[1]
         taps = np.array(self._reg_last_tap, int)
         prefix = "" if oracle is None else "case A: "
         if oracle is None:
@@ -515,7 +525,7 @@ class CvvcController:
         outside = "" if not state.critical else self.envelope_problem(
             features(np.asarray(snap.head_p_kw, float), np.asarray(snap.head_q_kvar, float), pv_p, pv_q))
         try:
-            inputs = self.problem(snap, state, out_of_envelope=bool(outside))
+            inputs = self.problem(snap, state, out_of_envelope=bool(outside), plants=plants)
         except AgentInputError as e:
             return self._hold(snap, f"{prefix}unusable optimization inputs: {e}", missing, t0, state=state,
                               estimate_s=t_est - t0)

@@ -261,7 +261,8 @@ class DecisionMaker:
                                          sensitivity_error=settings.sensitivity_error,
                                          bounds_in_margin=settings.bounds_in_margin,
                                          filtered_setpoints=settings.filtered_setpoints,
-                                         stale_plants=settings.stale_plants)
+                                         stale_plants=settings.stale_plants,
+                                         command_valid_periods=settings.valid_intervals)
         self.oracle: OracleSource | None = None  # case A: set by the live runtime once its session is open
         self.seq = 0
         self.holds = 0
