@@ -41,6 +41,9 @@ def register_evaluate(sub: argparse._SubParsersAction) -> None:
     add_agent_option_arguments(p)
     p.add_argument("--robustness", action="store_true",
                    help="case D under PMU/SCADA noise, 1 %% and 5 %% dropped frames, and +-10 %% model error")
+    p.add_argument("--lockstep-timeout-s", type=float, default=60.0,
+                   help="how long the bridge waits for the agent's decision before going on under local control "
+                        "(a lockstep miss, listed in results.md) [s] (default 60)")
     p.add_argument("--resume", action="store_true",
                    help="reuse runs already finished in --out (same case and window); run only the others")
     p.add_argument("--cache", default=None, help=CACHE_HELP)
@@ -66,7 +69,7 @@ def _evaluate(args: argparse.Namespace) -> int:
                             days_per_season=args.days_per_season, jobs=args.jobs, scheduler=args.scheduler,
                             out=args.out, cache=args.cache,
                             robustness=args.robustness, resume=args.resume,
-                            reference_step_s=args.reference_step_s,
+                            reference_step_s=args.reference_step_s, lockstep_timeout_s=args.lockstep_timeout_s,
                             pv_margin_window_s=args.pv_margin_window_s, setpoint_hold=args.setpoint_hold,
                             control_banks=args.control_banks, cases=CASES if cases is None else cases)
     try:

@@ -93,6 +93,14 @@ def render_results_md(ev: Evaluation) -> str:
             sw = r.metrics.cap_switches_per_bank
             lines.append("| " + " | ".join(_row_label(r, robust, bands) + [str(sw.get(c, 0)) for c in cap_ids]
                                            + [str(r.metrics.cap_switches)]) + " |")
+    missed = [r for r in ev.runs if r.lockstep_misses]
+    if missed:
+        lines += ["", "## Runs with lockstep misses: not the method's figures", "",
+                  f"At these control steps the bridge waited {ev.config.lockstep_timeout_s:g} s for the agent's "
+                  "decision and went on under local control (a starved machine, or an agent that stopped): a "
+                  "regulator whose set point expired meanwhile is back on its own. Re-run them on a quieter machine "
+                  "or with a longer `--lockstep-timeout-s`.", ""]
+        lines += [f"- {r.spec.name}: {r.lockstep_misses} of its control steps" for r in missed]
     if ev.failures:
         lines += ["", "## Failed runs", ""]
         lines += [f"- {f.spec.name}: {f.error.splitlines()[0] if f.error else '?'} ({f.attempts} attempt(s), "

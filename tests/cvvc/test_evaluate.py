@@ -235,3 +235,20 @@ def test_opendss_case_is_not_a_robustness_variant_and_needs_a_step_dividing_a_mi
         evaluate(EvaluateConfig(feeder=str(IEEE13), cases=("opendss",), robustness=True, out=str(tmp_path)))
     with pytest.raises(EvaluateError, match="--reference-step-s 7 must divide 60"):
         evaluate(EvaluateConfig(feeder=str(IEEE13), cases=("opendss",), reference_step_s=7.0, out=str(tmp_path)))
+
+
+def test_runs_with_lockstep_misses_are_listed_as_not_the_methods_figures(tmp_path, ieee13_model, profile_cache):
+    """A bridge that waits only 1 ms for each decision goes on under local control at some control steps (a
+    lockstep miss, as a starved machine causes); results.md lists the run apart, results.json counts the misses."""
+    out = tmp_path / "out"
+    ev = evaluate(EvaluateConfig(feeder=str(IEEE13), model=str(ieee13_model), cases=("D",), seasons=("summer",),
+                                 days_per_season=0.05, out=str(out), cache=str(profile_cache.parent),
+                                 progress=False, lockstep_timeout_s=0.001))
+    (run,) = ev.runs
+    assert run.lockstep_misses > 0
+    assert json.loads((out / "results.json").read_text())["runs"][0]["lockstep_misses"] == run.lockstep_misses
+    md = (out / "results.md").read_text()
+    assert "## Runs with lockstep misses: not the method's figures" in md
+    assert f"- summer-D-bw4: {run.lockstep_misses} of its control steps" in md
+    with pytest.raises(EvaluateError, match="lockstep-timeout-s"):
+        evaluate(msgspec.structs.replace(ev.config, lockstep_timeout_s=0.0, out=str(tmp_path / "bad")))
