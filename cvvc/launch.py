@@ -39,6 +39,7 @@ import msgspec
 from agent.runtime import AgentSummary
 from cvvc.errors import CommandError
 from cvvc.pv_protocol import PvProtocol
+from cvvc.run_report import render_summary, top_reasons
 from recordings.info import RecorderGap
 from schemas import messages as m
 from schemas.cache import cache_root, profiles_dir
@@ -522,7 +523,7 @@ def check_mostly_held(summary: RunSummary) -> None:
     """
     if summary.decisions and 2 * summary.holds > summary.decisions:
         raise LaunchError(f"{summary.holds} of {summary.decisions} decisions were 'hold' (no command sent): the run "
-                          f"did not control the feeder; most frequent reasons: {_top_reasons(summary.reasons)} "
+                          f"did not control the feeder; most frequent reasons: {top_reasons(summary.reasons)} "
                           f"(the whole summary: {Path(summary.out_dir) / 'summary.json'})")
 
 
@@ -536,11 +537,6 @@ def _read_summary(path: Path, kind: type[_S], who: str) -> _S:
     except (OSError, msgspec.DecodeError, msgspec.ValidationError) as e:
         raise LaunchError(f"the {who} left no readable summary ({path}: {e}):\n"
                           f"{_tail(path.parent / f'{who}.log')}") from e
-
-
-def _top_reasons(reasons: dict[str, int], n: int = 3) -> str:
-    top = sorted(reasons.items(), key=lambda kv: -kv[1])[:n]
-    return "; ".join(f"{count} x {reason!r}" for reason, count in top) or "none given"
 
 
 def _recorder_agent_args(settings: AgentSettings | None, model: Path) -> list[str]:
@@ -576,42 +572,3 @@ def no_control_baseline(dm_path: Path, start: dt.datetime, steps: int, year_seed
         r = sim.step()
         acc.update(r.v_pu, r.tap_changes, r.pv_q_kvar, r.cap_switches)
     return acc.result()
-
-
-def render_summary(s: RunSummary) -> str:
-    """The run's summary as a short markdown report."""
-    mt, base = s.metrics, s.baseline
-    rows = [("MVVM [pu]", "mvvm_pu"), ("NVV", "nvv"), ("minutes in violation", "minutes_in_violation"),
-            ("NTC (tap changes)", "ntc"), ("Q cost", "q_cost"), ("T cost", "t_cost"), ("total cost", "total_cost"),
-            ("V min [pu]", "v_min_pu"), ("V max [pu]", "v_max_pu")]
-    if mt.cap_switches_per_bank:  # capacitor banks in the device map
-        rows[4:4] = [("capacitor switchings", "cap_switches"), ("cap cost", "cap_cost")]
-    lines = [f"# cvvc run: case {s.case} on {s.feeder_id}, {s.start}, {s.days:g} day(s)", "",
-             f"| metric | case {s.case} | no control |", "|---|---|---|"]
-    for label, key in rows:
-        b = "" if base is None else _fmt(getattr(base, key))
-        lines.append(f"| {label} | {_fmt(getattr(mt, key))} | {b} |")
-    why = f"; most frequent reasons: {_top_reasons(s.reasons)}" if s.holds or s.soft else ""
-    lines += ["", f"- decisions: {s.decisions} (soft {s.soft}, hold {s.holds}{why}); lockstep misses: "
-              f"{s.lockstep_misses}; wall time {s.wall_s:.1f} s",
-              f"- recording: `{s.recording}`" if s.recording else "- recording: off", *_recorder_lines(s),
-              f"- model: `{s.model}`" if s.model else "- model: none (baseline case)", ""]
-    return "\n".join(lines)
-
-
-def _recorder_lines(s: RunSummary) -> list[str]:
-    """The report's lines on recorder restarts and the gaps they left (none when the recorder never died)."""
-    lines = [f"- the recorder died and was restarted {s.recorder_restarts} time(s); control went on"
-             ] if s.recorder_restarts else []
-    for g in s.recording_gaps:
-        span = (g.to_t_ns - g.from_t_ns) / 1e9 if g.from_t_ns >= 0 and g.to_t_ns >= 0 else float("nan")
-        lines.append(f"  - gap {g.restart}: {span:.0f} s of simulated time not recorded ({g.reason[:200]})")
-    if s.recorder_gave_up:
-        lines.append("- the recorder died once more than its restarts allow: the recording ends early")
-    return lines
-
-
-def _fmt(v: object) -> str:
-    if isinstance(v, float):
-        return f"{v:.4f}" if abs(v) < 10 else f"{v:.2f}"
-    return str(v)

@@ -67,7 +67,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 def _run(args: argparse.Namespace) -> int:
     import msgspec
 
-    from cvvc.launch import RunConfig, render_summary, run
+    from cvvc.launch import RunConfig, run
+    from cvvc.run_report import render_summary
 
     config = RunConfig(feeder=args.feeder, model=args.model, days=args.days, start=args.start, case=args.case,
                        realtime=args.realtime, speed=args.speed, out=args.out, train_seed=args.train_seed,

@@ -16,7 +16,8 @@ from pathlib import Path
 
 import msgspec
 
-from cvvc.launch import LaunchError, RunSummary, render_summary
+from cvvc.launch import LaunchError, RunSummary
+from cvvc.run_report import render_summary
 
 __all__ = ["REFERENCE_CASE", "ReferenceConfig", "run_reference"]
 

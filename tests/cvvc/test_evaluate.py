@@ -26,6 +26,8 @@ from cvvc.evaluate import (
     render_results_md,
     season_window,
 )
+from cvvc.launch import RunSummary
+from cvvc.run_report import render_summary
 
 REPO = Path(__file__).resolve().parents[2]
 IEEE13 = REPO / "feeders" / "ieee13.toml"
@@ -250,5 +252,7 @@ def test_runs_with_lockstep_misses_are_listed_as_not_the_methods_figures(tmp_pat
     md = (out / "results.md").read_text()
     assert "## Runs with lockstep misses: not the method's figures" in md
     assert f"- summer-D-bw4: {run.lockstep_misses} of its control steps" in md
+    summary = msgspec.json.decode((Path(run.out_dir) / "summary.json").read_bytes(), type=RunSummary)
+    assert f"**{run.lockstep_misses} lockstep miss(es)**" in render_summary(summary)
     with pytest.raises(EvaluateError, match="lockstep-timeout-s"):
         evaluate(msgspec.structs.replace(ev.config, lockstep_timeout_s=0.0, out=str(tmp_path / "bad")))

@@ -1,0 +1,60 @@
+"""The report of one ``cvvc run`` (``report.md``, printed at its end): its metrics beside no control's, its
+decisions and their most frequent reasons, lockstep misses, the recording and its gaps.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from cvvc.launch import RunSummary
+
+__all__ = ["render_summary", "top_reasons"]
+
+
+def top_reasons(reasons: dict[str, int], n: int = 3) -> str:
+    """The ``n`` most frequent reasons of soft and hold decisions, as one line."""
+    top = sorted(reasons.items(), key=lambda kv: -kv[1])[:n]
+    return "; ".join(f"{count} x {reason!r}" for reason, count in top) or "none given"
+
+
+def render_summary(s: RunSummary) -> str:
+    """The run's summary as a short markdown report."""
+    mt, base = s.metrics, s.baseline
+    rows = [("MVVM [pu]", "mvvm_pu"), ("NVV", "nvv"), ("minutes in violation", "minutes_in_violation"),
+            ("NTC (tap changes)", "ntc"), ("Q cost", "q_cost"), ("T cost", "t_cost"), ("total cost", "total_cost"),
+            ("V min [pu]", "v_min_pu"), ("V max [pu]", "v_max_pu")]
+    if mt.cap_switches_per_bank:  # capacitor banks in the device map
+        rows[4:4] = [("capacitor switchings", "cap_switches"), ("cap cost", "cap_cost")]
+    lines = [f"# cvvc run: case {s.case} on {s.feeder_id}, {s.start}, {s.days:g} day(s)", "",
+             f"| metric | case {s.case} | no control |", "|---|---|---|"]
+    for label, key in rows:
+        b = "" if base is None else _fmt(getattr(base, key))
+        lines.append(f"| {label} | {_fmt(getattr(mt, key))} | {b} |")
+    why = f"; most frequent reasons: {top_reasons(s.reasons)}" if s.holds or s.soft else ""
+    lines += ["", f"- decisions: {s.decisions} (soft {s.soft}, hold {s.holds}{why}); lockstep misses: "
+              f"{s.lockstep_misses}; wall time {s.wall_s:.1f} s",
+              *([f"- **{s.lockstep_misses} lockstep miss(es)**: at those control steps the bridge went on under local "
+                 f"control without the agent's decision (a starved machine or a stopped agent): these metrics are "
+                 f"not case {s.case}'s alone"] if s.lockstep_misses else []),
+              f"- recording: `{s.recording}`" if s.recording else "- recording: off", *_recorder_lines(s),
+              f"- model: `{s.model}`" if s.model else "- model: none (baseline case)", ""]
+    return "\n".join(lines)
+
+
+def _recorder_lines(s: RunSummary) -> list[str]:
+    """The report's lines on recorder restarts and the gaps they left (none when the recorder never died)."""
+    lines = [f"- the recorder died and was restarted {s.recorder_restarts} time(s); control went on"
+             ] if s.recorder_restarts else []
+    for g in s.recording_gaps:
+        span = (g.to_t_ns - g.from_t_ns) / 1e9 if g.from_t_ns >= 0 and g.to_t_ns >= 0 else float("nan")
+        lines.append(f"  - gap {g.restart}: {span:.0f} s of simulated time not recorded ({g.reason[:200]})")
+    if s.recorder_gave_up:
+        lines.append("- the recorder died once more than its restarts allow: the recording ends early")
+    return lines
+
+
+def _fmt(v: object) -> str:
+    if isinstance(v, float):
+        return f"{v:.4f}" if abs(v) < 10 else f"{v:.2f}"
+    return str(v)
