@@ -62,6 +62,11 @@ class CorrectionFilter:
     without entering it: a stale reading against the present load is not the model's error, and the mean would
     carry it for an hour.
 
+    Until a regulator has had ``1 / weight`` readings in its mean, the mean is their plain average (the weight of
+    its ``n``-th reading is ``max(weight, 1 / n)``): an exponential mean started from the first reading alone would
+    keep 0.9^(n-1) of that one reading's noise (IEEE 8500, winter, 1 % SCADA noise: 729 node-minutes under 0.965 pu
+    in the run's first hour, NVV 803 in three days against 15 without noise).
+
     When the estimate's own inputs are not this step's (``inputs_fresh`` False: the head's or a plant's frame lost
     and a last-good one standing in), a fresh reading's ``eps`` is applied as it is (eq. 6 as in the paper) and does
     not enter the mean: the estimate then misses the change since the stale frame (at sunset on 17 July of the rural
@@ -76,6 +81,7 @@ class CorrectionFilter:
         self.weight = float(weight)
         self._eps = np.zeros(n_regulators)  # the mean so far (0 until a regulator's first usable reading)
         self._seen = np.zeros(n_regulators, bool)
+        self._count = np.zeros(n_regulators)  # readings that entered each mean
 
     def __call__(self, eps: np.ndarray, ok: np.ndarray, fresh: np.ndarray | None = None, *,
                  inputs_fresh: bool = True) -> np.ndarray:
@@ -88,9 +94,11 @@ class CorrectionFilter:
         ok = np.asarray(ok, bool) & np.isfinite(eps)
         own = ok if fresh is None else ok & np.asarray(fresh, bool)
         update = own & bool(inputs_fresh)
-        mean = np.where(self._seen, self.weight * eps + (1.0 - self.weight) * self._eps, eps)
+        weight = np.maximum(self.weight, 1.0 / (self._count + 1.0))  # a plain average until 1 / weight readings
+        mean = np.where(self._seen, weight * eps + (1.0 - weight) * self._eps, eps)
         self._eps = np.where(update, mean, self._eps)
         self._seen = self._seen | update
+        self._count = self._count + update
         # a fresh reading against stale inputs, or a stale reading of a regulator never seen fresh: taken as it is,
         # without entering the mean
         raw = (own & ~update) | (ok & ~self._seen)

@@ -487,3 +487,23 @@ def test_filtered_setpoints_shed_reading_noise_and_keep_a_steady_offset():
     np.testing.assert_allclose(setpoints(True, [0.0] * 3), setpoints(False, [0.0] * 3), atol=1e-9)
     # case C (no correction): the paper's eq. (8) on the reading
     np.testing.assert_array_equal(setpoints(True, noise, correction=False), setpoints(False, noise, correction=False))
+
+
+def test_correction_filter_averages_its_first_readings_instead_of_keeping_the_first():
+    """Until ``1 / weight`` readings have entered, the filter's mean is their plain average: the first reading's
+    noise is not kept at 0.9^(n-1) of itself for an hour (IEEE 8500 winter with 1 % SCADA noise: NVV 803 from the
+    run's first hour)."""
+    from agent.state import CorrectionFilter
+
+    f = CorrectionFilter(1, 0.1)
+    ok = np.array([True])
+    readings = [0.010, -0.006, 0.002, -0.004, 0.003]
+    for i, r in enumerate(readings, start=1):
+        out = f(np.array([r]), ok)
+        np.testing.assert_allclose(out, [np.mean(readings[:i])], atol=1e-15)
+    for n in range(len(readings) + 1, 30):  # the n-th reading weighs 1 / n, then (past 10 readings) 0.1
+        before = float(f(np.array([0.0]), np.array([False]))[0])  # a reading that is not usable: the mean as it is
+        out = f(np.array([0.02]), ok)
+        w = max(0.1, 1.0 / n)
+        np.testing.assert_allclose(out, [w * 0.02 + (1.0 - w) * before], atol=1e-15)
+        assert out[0] != before
