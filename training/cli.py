@@ -68,6 +68,8 @@ def _train(args: argparse.Namespace) -> int:
         feature_set=options.feature_set,
         critical_margin_pu=options.critical_margin_pu,
         calendar=options.calendar,
+        calendar_cover_per_cell=args.calendar_cover,
+        calendar_seasonal=args.seasonal,
     )
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -82,6 +84,8 @@ def _train(args: argparse.Namespace) -> int:
         f"  power flows:     {s.power_flows} ({s.failed_power_flows} failed) on {s.workers} process(es), "
         f"{s.seconds_power_flows:.1f} s"
     )
+    if s.cover_minutes:
+        print(f"  calendar cover:  {s.cover_minutes} more minutes (one base flow each)")
     print(f"  critical nodes:  {s.critical_nodes} of {s.node_count} ({100 * s.critical_share:.1f} %)")
     print(
         f"  fit residuals:   rmse {s.voltage_rmse_pu:.5f} pu, max {s.voltage_max_abs_pu:.5f} pu; held-out "
@@ -175,6 +179,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="extended sets: time of day and day of year among the regression features (docs/method.md; "
         "ignored with --features auto)",
     )
+    p.add_argument(
+        "--calendar-cover", type=int, default=0, metavar="N",
+        help="also N minutes in every (month, local hour) cell of the year, one base flow each, in eq. (5)'s fit "
+        "(training.scenarios.calendar_cover; default 0: the paper's scenarios only)",
+    )
+    p.add_argument("--seasonal", type=int, nargs="?", const=1, default=0, choices=(0, 1, 2), metavar="H",
+                   help="with a calendar: also the first H (1 or 2; no value: 1) daily harmonics times the yearly one "
+                   "among the features (default 0: none)")
     p.add_argument("--json", action="store_true", help="print the summary as JSON (no progress bar)")
     p.add_argument("--cache", default=None, help=CACHE_HELP)
     p.set_defaults(func=_train)

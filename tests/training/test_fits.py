@@ -115,3 +115,40 @@ def test_sensitivity_samples_from_a_sweep():
     assert s.plant.tolist() == [0, 0, 1]
     np.testing.assert_allclose(s.dv_dq_pu_per_kvar[:, 0], [1e-4, 1e-4, 2e-4])
     np.testing.assert_allclose(s.q_head_kvar, [110, 90, 75])
+
+
+def test_integer_weights_are_repeated_flows():
+    """A flow of weight 3 counts as the same flow three times (the calendar cover's weighting)."""
+    rng = np.random.default_rng(4)
+    x = rng.normal(size=(40, 3)) * [100, 50, 10] + [500, 0, 0]
+    v = 1.0 + x @ (rng.normal(size=(3, 2)) * 1e-5) + rng.normal(size=(40, 2)) * 1e-3  # noisy: the weights matter
+    w = rng.integers(1, 4, size=40)
+    weighted = fit_voltage_regression(x, v, weights=w)
+    repeated = fit_voltage_regression(np.repeat(x, w, axis=0), np.repeat(v, w, axis=0))
+    np.testing.assert_allclose(weighted.alpha, repeated.alpha, rtol=1e-9, atol=1e-12)
+    assert not np.allclose(weighted.alpha, fit_voltage_regression(x, v).alpha, rtol=1e-6, atol=0)
+
+
+@pytest.mark.parametrize("weights", [np.zeros(20), -np.ones(20), np.ones(19)])
+def test_bad_weights_are_refused(weights):
+    x = np.random.default_rng(5).normal(size=(20, 2))
+    with pytest.raises(TrainingError, match="weights"):
+        fit_voltage_regression(x, np.ones((20, 1)), weights=weights)
+
+
+def test_seasonal_calendar_recovers_a_daily_shape_that_changes_with_the_season():
+    """A secondary whose customer peaks at night in summer and in the evening in winter (IEEE 8500's deep
+    secondaries, docs/method.md): the additive calendar cannot fit it, the seasonal one recovers it exactly."""
+    from regression.model import calendar_features
+
+    t_ns = (1672549200 + np.arange(0, 365 * 86400, 3 * 3600 + 420)) * 10**9  # every 3 h 7 min through a year
+    base = calendar_features(t_ns, -5.0)
+    v = (1.0 + 0.004 * base[:, 0] * base[:, 4] - 0.003 * base[:, 1] * base[:, 5]
+         + 0.002 * base[:, 2] * base[:, 4])[:, None]  # harmonics 1 and 2 of the day times the year's
+    plain = fit_voltage_regression(base, v)
+    one = fit_voltage_regression(calendar_features(t_ns, -5.0, seasonal=1), v)
+    two = fit_voltage_regression(calendar_features(t_ns, -5.0, seasonal=2), v)
+    assert plain.rmse_pu[0] > 0.002  # the additive terms see none of it
+    assert abs(one.rmse_pu[0] - 0.001) < 5e-5  # what is left: harmonic 2's term, rms 0.002 / 2
+    assert two.max_abs_pu < 1e-9
+    np.testing.assert_allclose(two.alpha[0, [6, 9, 10]], [0.004, -0.003, 0.002], atol=1e-9)
