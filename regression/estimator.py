@@ -14,7 +14,7 @@ import numpy as np
 
 from regression.capbanks import bank_voltage_pu, head_q_at_training_banks
 from regression.errors import ModelInputError
-from regression.model import CALENDAR_FEATURES, HEAD_Q_COLUMNS, ModelArrays, SensitivityFit, calendar_features
+from regression.model import HEAD_Q_COLUMNS, ModelArrays, SensitivityFit, calendar_features
 
 __all__ = [
     "SensitivityTable",
@@ -191,8 +191,8 @@ def estimate_critical_pu(
                                                           np.nan)
             if cap_v_v is not None:
                 readings[..., arrays.tap0.size :] = np.asarray(cap_v_v, float) / arrays.cap_v_ref_v
-        seasonal = (arrays.n_calendar - len(CALENDAR_FEATURES)) // 4
-        calendar = None if t_ns is None else calendar_features(np.asarray(t_ns), arrays.utc_offset_h, seasonal)
+        calendar = None if t_ns is None else calendar_features(np.asarray(t_ns), arrays.utc_offset_h,
+                                                               arrays.calendar_seasonal, arrays.calendar_weekly)
         f = extended_features(arrays, f, readings, taps, arrays.cap0 if c is None else c, calendar=calendar)
     elif c is not None:
         f = f.copy()

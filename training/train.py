@@ -16,7 +16,6 @@ import msgspec
 import numpy as np
 
 from regression.model import (
-    CALENDAR_FEATURES,
     CriticalNode,
     CvvcModel,
     FitStats,
@@ -61,9 +60,10 @@ from training.scenarios import ScenarioSet, calendar_cover, select_scenarios, su
 __all__ = ["DEFAULT_Q_STEPS_PCT", "TRAINING_REVISION", "TrainResult", "TrainSummary", "load_profiles", "train"]
 
 #: Bump when training changes what it produces, so cached models (``cvvc run``'s cache) are retrained.
-TRAINING_REVISION = 7  # 3: critical nodes in the zone, movable only; 4: model format 2; 5: bounds and banks;
+TRAINING_REVISION = 8  # 3: critical nodes in the zone, movable only; 4: model format 2; 5: bounds and banks;
 # 6: cvvc run trains the extended set on feeders with banks (training.extended.default_feature_options);
-# 7: the extended set's cover also takes each regulator zone's extremes (training.extended.zone_extreme_cover)
+# 7: the extended set's cover also takes each regulator zone's extremes (training.extended.zone_extreme_cover);
+# 8: the extended set's calendar cover, seasonal and weekly calendar terms (training.extended.EXTENDED_OPTIONS)
 
 DEFAULT_Q_STEPS_PCT = tuple(float(p) for p in range(-100, 101, 20))
 DEFAULT_COMBINED_PCT = (-100.0, -50.0, 50.0, 100.0)
@@ -231,6 +231,7 @@ def train(
     calendar: bool = False,
     calendar_cover_per_cell: int = 0,
     calendar_seasonal: int = 0,
+    calendar_weekly: bool = False,
 ) -> TrainResult:
     """Train the estimator of one feeder (paper II.A-II.D).
 
@@ -262,6 +263,7 @@ def train(
         guided scenario's flows together; 0: none (the paper).
     calendar_seasonal : with ``calendar``: also the first 1 or 2 daily harmonics times the yearly one (seasonal daily
         shapes, ``regression.model.SEASONAL_CALENDAR_FEATURES``); 0: none.
+    calendar_weekly : with ``calendar``: also the weekend and its daily shape (``WEEKLY_CALENDAR_FEATURES``).
 
     Raises
     ------
@@ -348,9 +350,9 @@ def train(
     if calendar and feature_set == "paper":
         raise TrainingError("calendar features belong to the extended feature sets; add --features extended")
     cal = calendar_features(np.asarray([profiles.t_ns(int(all_steps[i])) for i in flows.scenario], np.int64),
-                            UTC_OFFSET_H, seasonal=calendar_seasonal) if calendar else np.zeros((flows.n, 0))
+                            UTC_OFFSET_H, calendar_seasonal, calendar_weekly) if calendar else np.zeros((flows.n, 0))
     ext = None if pert is None else _extended(dm, engine, flows, pert, nodes, cap0, rcond, feature_set, cal.shape[1],
-                                           float(UTC_OFFSET_H))
+                                           float(UTC_OFFSET_H), (calendar_seasonal, calendar_weekly))
     x = flows.features if ext is None else np.concatenate([flows.features, cal, ext.readings], axis=1)
     vfit, val_rmse, val_max = fit_voltages_with_holdout(flows.scenario, x, v_crit, rcond=rcond, weights=weights,
                                                         every=_HOLDOUT_EVERY)
@@ -423,7 +425,7 @@ def train(
             calendar_cover_per_cell=calendar_cover_per_cell,
         ),
         feature_names=feature_names(len(dm.pv)) if ext is None
-        else extended_feature_names(len(dm.pv), ext.names, calendar, calendar_seasonal if calendar else 0),
+        else extended_feature_names(len(dm.pv), ext.names, calendar, calendar_seasonal, calendar_weekly),
         critical_nodes=crit_nodes,
         regulators=regs,
         pv=pvs,
@@ -505,7 +507,7 @@ def _bank_fields(banks: list, dv_dcap_pu: np.ndarray, ext: _Extended | None) -> 
 
 def _extended(
     dm, engine, flows: PowerFlowSet, pert, nodes: np.ndarray, cap0: np.ndarray, rcond: float, feature_set: str,
-    n_calendar: int, utc_offset_h: float,
+    n_calendar: int, utc_offset_h: float, calendar_terms: tuple[int, bool],
 ) -> _Extended:
     """The banks' static term, the feature mapping and (``extended_readings``) the readings as regressors."""
     n_reg = flows.reg_pu.shape[1]
@@ -540,7 +542,8 @@ def _extended(
         "feature_dcap": f_cap.tolist(),
         "reading_alpha": reading_fit.alpha.tolist() if use else [],
         "calendar": n_calendar > 0,
-        "calendar_seasonal": max(0, n_calendar - len(CALENDAR_FEATURES)) // 4,
+        "calendar_seasonal": calendar_terms[0] if n_calendar else 0,
+        "calendar_weekly": calendar_terms[1] and n_calendar > 0,
         "utc_offset_h": utc_offset_h,
     }
     return _Extended(names=names, readings=readings, model_fields=fields)

@@ -152,3 +152,26 @@ def test_seasonal_calendar_recovers_a_daily_shape_that_changes_with_the_season()
     assert abs(one.rmse_pu[0] - 0.001) < 5e-5  # what is left: harmonic 2's term, rms 0.002 / 2
     assert two.max_abs_pu < 1e-9
     np.testing.assert_allclose(two.alpha[0, [6, 9, 10]], [0.004, -0.003, 0.002], atol=1e-9)
+
+
+def test_weekly_calendar_marks_local_weekends_and_recovers_their_daily_shape():
+    """A shop's load: its own daily shape on weekdays and another on weekends; the weekly terms recover it."""
+    from regression.model import WEEKLY_CALENDAR_FEATURES, calendar_features, n_calendar_features
+
+    sat_4am_local = 1688198400 * 10**9  # 2023-07-01 08:00 UTC, a Saturday at 03:00 local (UTC-5)
+    days = np.arange(7) * 86400 * 10**9  # Saturday .. Friday
+    cal = calendar_features(sat_4am_local + days, -5.0, weekly=True)
+    assert cal.shape == (7, n_calendar_features(True, 0, True)) == (7, 6 + len(WEEKLY_CALENDAR_FEATURES))
+    assert cal[:, 6].tolist() == [1, 1, 0, 0, 0, 0, 0]
+    np.testing.assert_allclose(cal[:, 7:], cal[:, 6:7] * cal[:, :4])
+    # 05:30 UTC is Saturday 00:30 local (weekend) but still Friday 23:30 one hour earlier
+    edge = calendar_features(np.array([1688189400, 1688185800]) * 10**9, -5.0, weekly=True)
+    assert edge[:, 6].tolist() == [1, 0]
+    t_ns = (1672549200 + np.arange(0, 365 * 86400, 3 * 3600 + 420)) * 10**9
+    base = calendar_features(t_ns, -5.0)
+    weekly = calendar_features(t_ns, -5.0, weekly=True)
+    v = (1.0 + 0.002 * base[:, 0] - 0.004 * weekly[:, 6] * base[:, 1] + 0.001 * weekly[:, 6])[:, None]
+    assert fit_voltage_regression(base, v).rmse_pu[0] > 0.001
+    fit = fit_voltage_regression(weekly, v)
+    assert fit.max_abs_pu < 1e-9
+    np.testing.assert_allclose(fit.alpha[0, [0, 6, 8]], [0.002, 0.001, -0.004], atol=1e-9)
