@@ -72,8 +72,7 @@ def bench_decision(
         model_path.parent.mkdir(parents=True, exist_ok=True)
         opts = default_feature_options(dm)  # the model ``cvvc run`` trains
         write_model(train(device_map_path, year_seed=1, cache_dir=cache / "profiles", progress=False,
-                          feature_set=opts.feature_set, calendar=opts.calendar,
-                          critical_margin_pu=opts.critical_margin_pu).model, model_path)
+                          **opts.train_kwargs()).model, model_path)
     model = read_model(model_path, expect_fingerprint=dm.fingerprint())
     engine = FeederEngine(dm)
     profiles = load_profiles(dm, engine, seed=2, cache_dir=cache / "profiles")

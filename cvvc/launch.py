@@ -234,8 +234,7 @@ def prepare_feeder_and_model(config: RunConfig) -> tuple[Path, Path]:
         t0 = time.monotonic()
         opts = default_feature_options(dm)
         result = train(dm_path, year_seed=config.train_seed, selection="guided", cache_dir=cache / "profiles",
-                       progress=config.progress, feature_set=opts.feature_set, calendar=opts.calendar,
-                       critical_margin_pu=opts.critical_margin_pu)
+                       progress=config.progress, **opts.train_kwargs())
         model_path.parent.mkdir(parents=True, exist_ok=True)
         tmp = model_path.with_suffix(".tmp")
         write_model(result.model, tmp)

@@ -102,7 +102,7 @@ def extended_features(
         voltage times ``pu_per_v120``, a bank's bus voltage over its ``v_ref_v``.
     taps : (..., R) present taps [steps].
     caps : (..., C) closed steps of each bank.
-    calendar : (..., 6) ``regression.model.calendar_features`` of the minute, for a model with ``n_calendar``.
+    calendar : (..., n_calendar) ``regression.model.calendar_features`` of the minute, for a model with them.
     valid : (..., J) bool, optional.
 
     Returns
@@ -191,7 +191,8 @@ def estimate_critical_pu(
                                                           np.nan)
             if cap_v_v is not None:
                 readings[..., arrays.tap0.size :] = np.asarray(cap_v_v, float) / arrays.cap_v_ref_v
-        calendar = None if t_ns is None else calendar_features(np.asarray(t_ns), arrays.utc_offset_h)
+        calendar = None if t_ns is None else calendar_features(np.asarray(t_ns), arrays.utc_offset_h,
+                                                               arrays.calendar_seasonal, arrays.calendar_weekly)
         f = extended_features(arrays, f, readings, taps, arrays.cap0 if c is None else c, calendar=calendar)
     elif c is not None:
         f = f.copy()

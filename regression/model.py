@@ -48,7 +48,10 @@ __all__ = [
     "HEAD_Q_COLUMNS",
     "features",
     "CALENDAR_FEATURES",
+    "SEASONAL_CALENDAR_FEATURES",
+    "WEEKLY_CALENDAR_FEATURES",
     "calendar_features",
+    "n_calendar_features",
     "extended_feature_names",
     "feature_names",
     "read_model",
@@ -166,6 +169,7 @@ class TrainingSettings(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown
     rcond: float = 0.0  # truncation of the eq. (5) least squares (0: not recorded)
     tolerance: float = 0.0  # OpenDSS solve tolerance of the training flows (0: not recorded)
     critical_margin_pu: float = 0.0  # near-extreme nodes within this of a flow's extreme are critical (0: none)
+    calendar_cover_per_cell: int = 0  # base-flow minutes per (month, hour) cell beyond the scenarios (0: none)
 
 
 class FitStats(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
@@ -255,6 +259,8 @@ class CvvcModel(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields
     reading_alpha: list[list[Finite]] = []
     calendar: bool = False  # the calendar features follow the paper's (``CALENDAR_FEATURES``)
     utc_offset_h: float = 0.0  # local standard time of the feeder minus UTC [h], for the calendar features
+    calendar_seasonal: int = 0  # ... followed by the first so many daily harmonics times the yearly one
+    calendar_weekly: bool = False  # ... and by the weekend and its daily harmonics (``WEEKLY_CALENDAR_FEATURES``)
 
 
 def feature_names(n_pv: int) -> list[str]:
@@ -271,29 +277,56 @@ def feature_names(n_pv: int) -> list[str]:
 
 CALENDAR_FEATURES = ("tod_cos1", "tod_sin1", "tod_cos2", "tod_sin2", "doy_cos", "doy_sin")
 """Calendar features of the extended sets: time of day (two harmonics) and day of year (one)."""
+SEASONAL_CALENDAR_FEATURES = tuple(f"tod_{f}{h}_doy_{g}" for h in (1, 2) for g in ("cos", "sin")
+                                   for f in ("cos", "sin"))
+"""Seasonal calendar features (after ``CALENDAR_FEATURES``): each daily harmonic times the yearly one, so that the
+daily shape a node's voltage learns may change with the season; a model takes the first 4 (harmonic 1) or all 8."""
 
 
-def extended_feature_names(n_pv: int, readings: list[str], calendar: bool = False) -> list[str]:
+WEEKLY_CALENDAR_FEATURES = ("weekend", "weekend_tod_cos1", "weekend_tod_sin1", "weekend_tod_cos2", "weekend_tod_sin2")
+"""Weekly calendar features (after the seasonal ones): 1 on Saturdays and Sundays (local time), alone and times
+the daily harmonics, so that a weekend day may have its own daily shape (a shop's, an office's load)."""
+_EPOCH_WEEKDAY = 3  # 1970-01-01 was a Thursday (Monday 0)
+
+
+def n_calendar_features(calendar: bool, seasonal: int, weekly: bool = False) -> int:
+    """Number of calendar features of a model with these settings (0, or 6 + 4 seasonal + 5 weekly)."""
+    return len(CALENDAR_FEATURES) + 4 * seasonal + len(WEEKLY_CALENDAR_FEATURES) * int(weekly) if calendar else 0
+
+
+def extended_feature_names(n_pv: int, readings: list[str], calendar: bool = False, seasonal: int = 0,
+                           weekly: bool = False) -> list[str]:
     """Features of the extended sets: the paper's (``feature_names``), the calendar's, one per field reading."""
-    return feature_names(n_pv) + (list(CALENDAR_FEATURES) if calendar else []) + [f"reading_{r}" for r in readings]
+    cal = (list(CALENDAR_FEATURES) + list(SEASONAL_CALENDAR_FEATURES[: 4 * seasonal])
+           + (list(WEEKLY_CALENDAR_FEATURES) if weekly else [])) if calendar else []
+    return feature_names(n_pv) + cal + [f"reading_{r}" for r in readings]
 
 
-def calendar_features(t_ns: np.ndarray, utc_offset_h: float) -> np.ndarray:
+def calendar_features(t_ns: np.ndarray, utc_offset_h: float, seasonal: int = 0, weekly: bool = False) -> np.ndarray:
     """Time of day and day of year as harmonics, ``CALENDAR_FEATURES`` order (beyond the paper).
 
     Parameters
     ----------
     t_ns : (...,) UTC epoch nanoseconds.
     utc_offset_h : the feeder's local standard time minus UTC [h] (the load follows local time).
+    seasonal : also the products of the first ``seasonal`` daily harmonics (0, 1 or 2) with the yearly one
+        (``SEASONAL_CALENDAR_FEATURES``).
+    weekly : also the weekend indicator and its products with the two daily harmonics (``WEEKLY_CALENDAR_FEATURES``).
 
     Returns
     -------
-    (..., 6) array in [-1, 1].
+    (..., ``n_calendar_features(True, seasonal, weekly)``) array in [-1, 1].
     """
     local_s = np.asarray(t_ns, float) / 1e9 + float(utc_offset_h) * 3600.0
     day = 2.0 * np.pi * (local_s % 86400.0) / 86400.0
     year = 2.0 * np.pi * (local_s % (365.2425 * 86400.0)) / (365.2425 * 86400.0)
-    return np.stack([np.cos(day), np.sin(day), np.cos(2 * day), np.sin(2 * day), np.cos(year), np.sin(year)], axis=-1)
+    cols = [np.cos(day), np.sin(day), np.cos(2 * day), np.sin(2 * day), np.cos(year), np.sin(year)]
+    for h in range(int(seasonal)):
+        cols += [cols[2 * h] * cols[4], cols[2 * h + 1] * cols[4], cols[2 * h] * cols[5], cols[2 * h + 1] * cols[5]]
+    if weekly:
+        weekend = ((np.floor(local_s / 86400.0) + _EPOCH_WEEKDAY) % 7 >= 5).astype(float)
+        cols += [weekend] + [weekend * c for c in cols[:4]]
+    return np.stack(cols, axis=-1)
 
 
 #: Columns of the feeder head's Q per phase in ``features``' output (head P, head Q, then each plant's P and Q).
@@ -331,7 +364,9 @@ class ModelArrays:
     reg_secondary_node: np.ndarray  # (R,) int
     reg_pu_per_v120: np.ndarray  # (R,)
     extended: bool = False  # features are mapped back to tap0/cap0 (``regression.estimator.extended_features``)
-    n_calendar: int = 0  # calendar features after the paper's (0 or len(CALENDAR_FEATURES))
+    n_calendar: int = 0  # calendar features after the paper's (``n_calendar_features``)
+    calendar_seasonal: int = 0  # the model's calendar settings (``CvvcModel``'s of the same names)
+    calendar_weekly: bool = False
     utc_offset_h: float = 0.0
     # the extended feature set (defaults: none, as for a paper model)
     cap0: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (C,) closed steps in training (closed0)
@@ -354,7 +389,7 @@ class ModelArrays:
         n_reg = len(model.regulators)
         n_cap, n_read = len(model.capacitors), len(model.readings)
         n_paper = len(feature_names(len(model.pv)))
-        n_feat = n_paper + n_read + (len(CALENDAR_FEATURES) if model.calendar else 0)
+        n_feat = n_paper + n_read + n_calendar_features(model.calendar, model.calendar_seasonal, model.calendar_weekly)
         extended = model.feature_set != "paper"
         try:
             return cls._of(model, n_reg, n_cap, n_read, n_paper, n_feat, extended)
@@ -377,7 +412,9 @@ class ModelArrays:
             reg_secondary_node=np.asarray([r.secondary_node for r in model.regulators], int),
             reg_pu_per_v120=np.asarray([r.pu_per_v120 for r in model.regulators], float),
             extended=extended,
-            n_calendar=len(CALENDAR_FEATURES) if model.calendar else 0,
+            n_calendar=n_calendar_features(model.calendar, model.calendar_seasonal, model.calendar_weekly),
+            calendar_seasonal=model.calendar_seasonal,
+            calendar_weekly=model.calendar_weekly,
             utc_offset_h=model.utc_offset_h,
             cap0=np.asarray([c.closed0 for c in model.capacitors], float),
             cap_v_ref_v=np.asarray([c.v_ref_v for c in model.capacitors], float),
@@ -448,7 +485,7 @@ def _check_extended(model: CvvcModel, path: Path) -> None:
     n_node, n_reg = len(model.critical_nodes), len(model.regulators)
     n_cap, n_read = len(model.capacitors), len(model.readings)
     n_paper = len(feature_names(len(model.pv)))
-    n_feat = n_paper + n_read + (len(CALENDAR_FEATURES) if model.calendar else 0)
+    n_feat = n_paper + n_read + n_calendar_features(model.calendar, model.calendar_seasonal, model.calendar_weekly)
     checks = [
         (len(model.feature_names) == n_feat, f"{len(model.feature_names)} feature names for {n_feat} features"),
         (all(len(a) == n_feat + 1 for a in model.alpha), f"alpha rows are not {n_feat} + 1 long"),
@@ -466,6 +503,9 @@ def _check_extended(model: CvvcModel, path: Path) -> None:
          "reading_alpha is not (readings x paper features + 1)"),
         (model.feature_set == "extended_readings" or n_read == 0, "field readings in a model without them"),
         (model.feature_set != "paper" or not model.calendar, "calendar features in a paper model"),
+        (model.calendar or not (model.calendar_seasonal or model.calendar_weekly),
+         "seasonal or weekly calendar features without the calendar's"),
+        (0 <= model.calendar_seasonal <= 2, f"calendar_seasonal {model.calendar_seasonal} is not 0, 1 or 2"),
     ]
     bad = [what for ok, what in checks if not ok]
     if bad:

@@ -43,7 +43,8 @@ def _feature_options(args: argparse.Namespace, device_map_path: Path) -> Feature
 
     if args.features == "auto":
         return default_feature_options(load_device_map(device_map_path))
-    return FeatureOptions(args.features, args.calendar, args.critical_margin_pu)
+    return FeatureOptions(args.features, args.calendar, args.critical_margin_pu, args.calendar_cover, args.seasonal,
+                          args.weekly)
 
 
 def _train(args: argparse.Namespace) -> int:
@@ -65,9 +66,7 @@ def _train(args: argparse.Namespace) -> int:
         combined_pct=() if args.no_combined else DEFAULT_COMBINED_PCT,
         progress=not args.json,
         calibration_minutes=args.calibration_minutes,
-        feature_set=options.feature_set,
-        critical_margin_pu=options.critical_margin_pu,
-        calendar=options.calendar,
+        **options.train_kwargs(),
     )
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -82,6 +81,8 @@ def _train(args: argparse.Namespace) -> int:
         f"  power flows:     {s.power_flows} ({s.failed_power_flows} failed) on {s.workers} process(es), "
         f"{s.seconds_power_flows:.1f} s"
     )
+    if s.cover_minutes:
+        print(f"  calendar cover:  {s.cover_minutes} more minutes (one base flow each)")
     print(f"  critical nodes:  {s.critical_nodes} of {s.node_count} ({100 * s.critical_share:.1f} %)")
     print(
         f"  fit residuals:   rmse {s.voltage_rmse_pu:.5f} pu, max {s.voltage_max_abs_pu:.5f} pu; held-out "
@@ -160,7 +161,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="held-out minutes of the training year for the calibrated estimate bounds (0: none)")
     p.add_argument(
         "--features", choices=("auto", "paper", "extended", "extended_readings"), default="auto",
-        help="auto (default): extended with --calendar and --critical-margin-pu 0.001 when a bank of the device "
+        help="auto (default): extended with --calendar, --critical-margin-pu 0.001, --calendar-cover 1, --seasonal 2 "
+        "and --weekly when a bank of the device "
         "map has a capcontrol or there is no regulator, else paper; paper: eq. (5) on head and plant P, Q; "
         "extended: plus the capacitor banks' states, features mapped back to the training taps and banks; "
         "extended_readings: plus the regulators' and banks' voltage readings as regressors (docs/method.md)",
@@ -175,6 +177,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="extended sets: time of day and day of year among the regression features (docs/method.md; "
         "ignored with --features auto)",
     )
+    p.add_argument(
+        "--calendar-cover", type=int, default=0, metavar="N",
+        help="also N minutes in every (month, local hour) cell of the year, one base flow each, in eq. (5)'s fit "
+        "(training.scenarios.calendar_cover; default 0: the paper's scenarios only; ignored with --features auto)",
+    )
+    p.add_argument("--seasonal", type=int, nargs="?", const=1, default=0, choices=(0, 1, 2), metavar="H",
+                   help="with a calendar: also the first H (1 or 2; no value: 1) daily harmonics times the yearly one "
+                   "among the features (default 0: none; ignored with --features auto)")
+    p.add_argument("--weekly", action="store_true",
+                   help="with a calendar: also the weekend and its daily harmonics among the features (ignored with "
+                   "--features auto)")
     p.add_argument("--json", action="store_true", help="print the summary as JSON (no progress bar)")
     p.add_argument("--cache", default=None, help=CACHE_HELP)
     p.set_defaults(func=_train)

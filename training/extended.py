@@ -33,18 +33,30 @@ __all__ = ["EXTENDED_OPTIONS", "PAPER_OPTIONS", "SINGLE_TAP_SHIFTS", "TAP_SHIFTS
 
 @dataclass(frozen=True)
 class FeatureOptions:
-    """The feature set of a model and its two companions (``training.train.train``'s keywords of the same names)."""
+    """The feature set of a model and its companions (``training.train.train``'s keywords of the same names)."""
 
     feature_set: FeatureSet
     calendar: bool
     critical_margin_pu: float
+    calendar_cover_per_cell: int = 0
+    calendar_seasonal: int = 0
+    calendar_weekly: bool = False
+
+    def train_kwargs(self) -> dict:
+        """These options as ``training.train.train`` keywords."""
+        return {"feature_set": self.feature_set, "calendar": self.calendar,
+                "critical_margin_pu": self.critical_margin_pu, "calendar_cover_per_cell": self.calendar_cover_per_cell,
+                "calendar_seasonal": self.calendar_seasonal, "calendar_weekly": self.calendar_weekly}
 
 
 #: The paper's method (eq. (5) on head and plant P, Q; the paper's extreme nodes).
 PAPER_OPTIONS = FeatureOptions("paper", False, 0.0)
 #: The extended set as measured on the real feeders (docs/method.md): banks, tap/bank mapping, calendar and the
-#: near-extreme cover at 0.001 pu.
-EXTENDED_OPTIONS = FeatureOptions("extended", True, 0.001)
+#: near-extreme cover at 0.001 pu; since training revision 8 the calendar cover (one minute per month and hour),
+#: the seasonal (two daily harmonics x the yearly one) and the weekly calendar terms (docs/method.md, "The deep
+#: secondaries' calendar bias").
+EXTENDED_OPTIONS = FeatureOptions("extended", True, 0.001, calendar_cover_per_cell=1, calendar_seasonal=2,
+                                  calendar_weekly=True)
 
 
 def default_feature_options(device_map) -> FeatureOptions:

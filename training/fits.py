@@ -31,6 +31,8 @@ __all__ = [
     "choose_c_kvar",
     "fit_sensitivity",
     "fit_voltage_regression",
+    "fit_voltages_with_holdout",
+    "sensitivity_rel_err",
     "sensitivity_samples",
     "tap_sensitivities",
 ]
@@ -54,7 +56,9 @@ class VoltageFit:
     dropped_features: tuple[int, ...]  # constant features (coefficient 0)
 
 
-def fit_voltage_regression(x: np.ndarray, v_pu: np.ndarray, *, rcond: float = 1e-6) -> VoltageFit:
+def fit_voltage_regression(
+    x: np.ndarray, v_pu: np.ndarray, *, rcond: float = 1e-6, weights: np.ndarray | None = None
+) -> VoltageFit:
     """Least squares of node voltages on features, paper eq. (5) (first term).
 
     Parameters
@@ -62,6 +66,8 @@ def fit_voltage_regression(x: np.ndarray, v_pu: np.ndarray, *, rcond: float = 1e
     x : (F, M) features of F power flows (``regression.model.features``) [kW, kvar].
     v_pu : (F, N) node voltages [pu of each node's base].
     rcond : singular values of the standardised design below ``rcond * s_max`` are dropped.
+    weights : (F,) positive weight of each flow in the least squares (None: all 1). The statistics
+        (``rmse_pu``, ``max_abs_pu``) stay unweighted.
 
     Raises
     ------
@@ -75,17 +81,22 @@ def fit_voltage_regression(x: np.ndarray, v_pu: np.ndarray, *, rcond: float = 1e
     if not (np.all(np.isfinite(x)) and np.all(np.isfinite(v_pu))):
         raise TrainingError("non-finite feature or voltage in the training power flows; check the feeder")
     n_flows, n_feat = x.shape
-    mu = x.mean(axis=0)
-    sd = x.std(axis=0)
+    w = np.ones(n_flows) if weights is None else np.asarray(weights, float)
+    if w.shape != (n_flows,) or not np.all(np.isfinite(w)) or np.any(w <= 0):
+        raise TrainingError(f"regression weights must be ({n_flows},) positive finite numbers, one per flow")
+    w = w / w.mean()
+    mu = w @ x / n_flows
+    sd = np.sqrt(w @ (x - mu) ** 2 / n_flows)
     keep = sd > 1e-9 * np.maximum(1.0, np.abs(mu))
     if n_flows < int(keep.sum()) + 2:
         raise TrainingError(
             f"singular regression: {n_flows} power flows for {int(keep.sum())} varying features; "
             "use more blocks or more scenarios (e.g. --blocks 5 5)"
         )
+    sw = np.sqrt(w)[:, None]
     z = (x[:, keep] - mu[keep]) / sd[keep]
-    v_mean = v_pu.mean(axis=0)
-    beta, _, rank, s = np.linalg.lstsq(z, v_pu - v_mean, rcond=rcond)
+    v_mean = w @ v_pu / n_flows
+    beta, _, rank, s = np.linalg.lstsq(z * sw, (v_pu - v_mean) * sw, rcond=rcond)
     coef = np.zeros((n_feat, v_pu.shape[1]))
     coef[keep] = beta / sd[keep, None]
     intercept = v_mean - mu @ coef
@@ -100,6 +111,29 @@ def fit_voltage_regression(x: np.ndarray, v_pu: np.ndarray, *, rcond: float = 1e
         rank=int(rank),
         dropped_features=tuple(int(i) for i in np.flatnonzero(~keep)),
     )
+
+
+def fit_voltages_with_holdout(scenario: np.ndarray, x: np.ndarray, v_pu: np.ndarray, *, rcond: float,
+                              weights: np.ndarray, every: int) -> tuple[VoltageFit, float, float]:
+    """Eq. (5) fit on every flow, plus its RMSE and max error [pu] on held-out scenarios (fitted on the others).
+
+    Parameters
+    ----------
+    scenario : (F,) scenario of each flow; every ``every``-th scenario (``scenario % every == every - 1``) is held out.
+    x, v_pu, rcond, weights : as ``fit_voltage_regression``.
+    every : the holdout period.
+
+    Returns
+    -------
+    The fit on every flow, the held-out RMSE and max |error| (NaN when there is too little to hold out).
+    """
+    holdout = (np.asarray(scenario) % every) == every - 1
+    val_rmse, val_max = float("nan"), float("nan")
+    if holdout.any() and (~holdout).sum() > x.shape[1] + 1:
+        part = fit_voltage_regression(x[~holdout], v_pu[~holdout], rcond=rcond, weights=weights[~holdout])
+        err = x[holdout] @ part.alpha[:, :-1].T + part.alpha[:, -1] - v_pu[holdout]
+        val_rmse, val_max = float(np.sqrt(np.mean(err**2))), float(np.max(np.abs(err)))
+    return fit_voltage_regression(x, v_pu, rcond=rcond, weights=weights), val_rmse, val_max
 
 
 def tap_sensitivities(v0_pu: np.ndarray, v_tap_pu: np.ndarray) -> np.ndarray:
@@ -293,3 +327,26 @@ def fit_sensitivity(
         q_max_kvar=float(q_range_kvar[1]),
     )
     return fit, scores
+
+
+def sensitivity_rel_err(sens: list[list[SensitivityFit]], samples: SensitivitySamples) -> float:
+    """Median relative error of the eq. (3) fits on their samples, over significant pairs.
+
+    A (node, plant) pair is significant when its median |dV/dQ| is at least 10 % of the node's largest.
+    """
+    from regression.batch import eval_sensitivities, sensitivity_arrays
+
+    n_pv = len(sens[0]) if sens else 0
+    pred = eval_sensitivities(sensitivity_arrays(sens), samples.q_head_kvar)
+    pred = pred[np.arange(samples.plant.size), :, samples.plant]  # (S, N): each sample's own plant
+    truth = samples.dv_dq_pu_per_kvar
+    med = np.stack([np.median(np.abs(truth[samples.plant == k]), axis=0) for k in range(n_pv)])  # (K, N)
+    rel = []
+    for k in range(n_pv):
+        sig = med[k] >= 0.1 * med.max(axis=0)
+        m = samples.plant == k
+        t, p = truth[m][:, sig], pred[m][:, sig]
+        ok = np.abs(t) > 0
+        rel.append(np.abs(p[ok] - t[ok]) / np.abs(t[ok]))
+    rel_all = np.concatenate(rel) if rel else np.zeros(0)
+    return float(np.median(rel_all)) if rel_all.size else float("nan")

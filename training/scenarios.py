@@ -20,6 +20,7 @@ Our reading of the paper (see docs/method.md):
 
 from __future__ import annotations
 
+import calendar
 from dataclasses import dataclass
 from typing import Literal
 
@@ -31,6 +32,7 @@ __all__ = [
     "PICK_KINDS",
     "ScenarioSet",
     "YearSummary",
+    "calendar_cover",
     "center_ohm",
     "select_scenarios",
     "summarize_year",
@@ -196,3 +198,50 @@ def select_scenarios(
         non_empty_blocks=int(np.count_nonzero(counts)),
         minutes_per_block=counts.reshape(n_load, n_pv),
     )
+
+
+def calendar_cover(n_steps: int, year: int, *, per_cell: int, seed: int, exclude: np.ndarray) -> np.ndarray:
+    """Minutes spread over the calendar: ``per_cell`` at random in every (month, local hour of day) cell.
+
+    Beyond the paper. The guided selection picks each (load, PV) block's extremes of ``D_L`` and ``D_PV``: a few
+    minutes per block, whatever their hour and season. A customer secondary's voltage follows its own customer's
+    load, whose share of the feeder's changes with the hour and the season (archetypes, time shifts); what eq. (5)
+    can learn of that share from the calendar features it learns from these minutes, so they are spread evenly
+    over the year's hours and months (``training.train.train``'s ``calendar_cover``).
+
+    Parameters
+    ----------
+    n_steps : minutes in the year; step 0 is local standard midnight of 1 January of ``year``.
+    year : the profiles' calendar year (month lengths).
+    per_cell : minutes per (month, hour) cell (0: none).
+    seed : seed of the random draw.
+    exclude : steps already picked (never drawn again).
+
+    Returns
+    -------
+    (S,) int steps, sorted, at most ``12 * 24 * per_cell``.
+
+    Raises
+    ------
+    TrainingError
+        When ``per_cell`` is negative.
+    """
+    if per_cell < 0:
+        raise TrainingError(f"calendar cover: {per_cell} minutes per cell; use 0 (none) or more")
+    if per_cell == 0 or n_steps <= 0:
+        return np.zeros(0, int)
+    rng = np.random.default_rng(seed)
+    taken = set(np.asarray(exclude, int).tolist())
+    out: list[int] = []
+    first_day = 0
+    for month in range(1, 13):
+        days = calendar.monthrange(year, month)[1]
+        for hour in range(24):
+            cand = [s for day in range(first_day, first_day + days) for s in range(day * 1440 + hour * 60,
+                                                                                    day * 1440 + hour * 60 + 60)
+                    if s < n_steps and s not in taken]
+            if cand:
+                picks = rng.choice(len(cand), size=min(per_cell, len(cand)), replace=False)
+                out.extend(int(cand[i]) for i in picks)
+        first_day += days
+    return np.asarray(sorted(out), int)

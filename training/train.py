@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import os
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Literal
 
@@ -43,6 +43,8 @@ from training.fits import (
     choose_c_kvar,
     fit_sensitivity,
     fit_voltage_regression,
+    fit_voltages_with_holdout,
+    sensitivity_rel_err,
     sensitivity_samples,
     tap_sensitivities,
 )
@@ -53,14 +55,15 @@ from training.powerflows import (
     run_power_flows,
     settle_taps,
 )
-from training.scenarios import ScenarioSet, select_scenarios, summarize_year
+from training.scenarios import ScenarioSet, calendar_cover, select_scenarios, summarize_year
 
 __all__ = ["DEFAULT_Q_STEPS_PCT", "TRAINING_REVISION", "TrainResult", "TrainSummary", "load_profiles", "train"]
 
 #: Bump when training changes what it produces, so cached models (``cvvc run``'s cache) are retrained.
-TRAINING_REVISION = 7  # 3: critical nodes in the zone, movable only; 4: model format 2; 5: bounds and banks;
+TRAINING_REVISION = 8  # 3: critical nodes in the zone, movable only; 4: model format 2; 5: bounds and banks;
 # 6: cvvc run trains the extended set on feeders with banks (training.extended.default_feature_options);
-# 7: the extended set's cover also takes each regulator zone's extremes (training.extended.zone_extreme_cover)
+# 7: the extended set's cover also takes each regulator zone's extremes (training.extended.zone_extreme_cover);
+# 8: the extended set's calendar cover, seasonal and weekly calendar terms (training.extended.EXTENDED_OPTIONS)
 
 DEFAULT_Q_STEPS_PCT = tuple(float(p) for p in range(-100, 101, 20))
 DEFAULT_COMBINED_PCT = (-100.0, -50.0, 50.0, 100.0)
@@ -98,6 +101,7 @@ class TrainSummary(msgspec.Struct, frozen=True, kw_only=True):
     calibration_minutes: int = 0  # held-out minutes the estimate bounds were calibrated on (0: no bounds)
     bound_p50_pu: float = 0.0  # median over critical nodes of the calibrated bound (upper + lower) / 2
     seconds_calibration: float = 0.0
+    cover_minutes: int = 0  # calendar cover: base-flow minutes beyond the scenarios (``calendar_cover_per_cell``)
 
 
 @dataclass(frozen=True)
@@ -129,10 +133,10 @@ def _check_device_map(dm, feature_set: str = "paper") -> None:
         )
 
 
-def _inputs(profiles, steps: np.ndarray) -> list[ScenarioInput]:
+def _inputs(profiles, steps: np.ndarray, first_index: int = 0) -> list[ScenarioInput]:
     return [
         ScenarioInput(
-            index=i,
+            index=first_index + i,
             load_kw=profiles.load_kw(int(s), int(s) + 1)[0].astype(float),
             pv_kw=profiles.pv_kw(int(s), int(s) + 1)[0].astype(float),
         )
@@ -225,6 +229,9 @@ def train(
     feature_set: Literal["paper", "extended", "extended_readings"] = "paper",
     critical_margin_pu: float = 0.0,
     calendar: bool = False,
+    calendar_cover_per_cell: int = 0,
+    calendar_seasonal: int = 0,
+    calendar_weekly: bool = False,
 ) -> TrainResult:
     """Train the estimator of one feeder (paper II.A-II.D).
 
@@ -251,6 +258,12 @@ def train(
     critical_margin_pu : > 0 adds a greedy cover of the nodes within this of each flow's extremes to the
         critical nodes (``training.extended.near_extreme_cover``); 0: the paper's extremes only.
     calendar : extended sets only: time of day and day of year among the features (``calendar_features``).
+    calendar_cover_per_cell : beyond the guided scenarios, this many minutes in every (month, local hour) cell
+        (``training.scenarios.calendar_cover``), each one base flow (no Q sweep) weighted in eq. (5) as a
+        guided scenario's flows together; 0: none (the paper).
+    calendar_seasonal : with ``calendar``: also the first 1 or 2 daily harmonics times the yearly one (seasonal daily
+        shapes, ``regression.model.SEASONAL_CALENDAR_FEATURES``); 0: none.
+    calendar_weekly : with ``calendar``: also the weekend and its daily shape (``WEEKLY_CALENDAR_FEATURES``).
 
     Raises
     ------
@@ -284,6 +297,9 @@ def train(
     summary = summarize_year(profiles, engine.load_distance_ohm, engine.pv_distance_ohm)
     scen: ScenarioSet = select_scenarios(summary, blocks=blocks, selection=selection, seed=year_seed)
     inputs = _inputs(profiles, scen.steps)
+    cover = calendar_cover(profiles.n_steps, profiles.year, per_cell=calendar_cover_per_cell, seed=year_seed,
+                           exclude=scen.steps)
+    all_steps = np.concatenate([scen.steps, cover]).astype(int)
 
     # tap0: local control at rest at the year's mean load and mean PV
     if summary.mean_load_kw is None or summary.mean_pv_kw is None:  # summarize_year always gives them
@@ -309,9 +325,16 @@ def train(
         workers=n_workers,
         progress=progress,
     )
-    seconds_pf = time.perf_counter() - t_pf
     if flows.n == 0:
         raise TrainingError(f"feeder {dm.feeder.name!r}: no training power flow converged; check the feeder")
+    weights = np.ones(flows.n)
+    if cover.size:  # base flows only, each weighted as a guided scenario's flows together
+        extra = run_power_flows(engine, _inputs(profiles, cover, len(scen.steps)), device_map_path=str(device_map_path),
+                                tolerance=tolerance, q_steps_pct=(), combined_pct=(), workers=n_workers,
+                                progress=progress)
+        weights = np.concatenate([weights, np.full(extra.n, flows.n / np.unique(flows.scenario).size)])
+        flows = replace(PowerFlowSet.concat([flows, extra]), workers=flows.workers)
+    seconds_pf = time.perf_counter() - t_pf
 
     # II.C: critical nodes
     dv_dq_all = _q_sensitivities(engine, inputs[0], tap0)
@@ -326,18 +349,19 @@ def train(
     v_crit = flows.v_pu[:, nodes] - (flows.taps - tap0) @ dv_dtap_all[nodes].T
     if calendar and feature_set == "paper":
         raise TrainingError("calendar features belong to the extended feature sets; add --features extended")
-    cal = calendar_features(np.asarray([profiles.t_ns(int(scen.steps[i])) for i in flows.scenario], np.int64),
-                            UTC_OFFSET_H) if calendar else np.zeros((flows.n, 0))
+    cal = calendar_features(np.asarray([profiles.t_ns(int(all_steps[i])) for i in flows.scenario], np.int64),
+                            UTC_OFFSET_H, calendar_seasonal, calendar_weekly) if calendar else np.zeros((flows.n, 0))
     ext = None if pert is None else _extended(dm, engine, flows, pert, nodes, cap0, rcond, feature_set, cal.shape[1],
-                                           float(UTC_OFFSET_H))
+                                           float(UTC_OFFSET_H), (calendar_seasonal, calendar_weekly))
     x = flows.features if ext is None else np.concatenate([flows.features, cal, ext.readings], axis=1)
-    vfit, val_rmse, val_max = _fit_voltages(flows, x, v_crit, rcond)
+    vfit, val_rmse, val_max = fit_voltages_with_holdout(flows.scenario, x, v_crit, rcond=rcond, weights=weights,
+                                                        every=_HOLDOUT_EVERY)
     # eq. (3): samples from single-plant sweeps, form chosen on held-out scenarios
     samples = sensitivity_samples(flows.scenario, flows.plant, flows.pv_q_kvar, flows.q_head_kvar, v_crit)
     q_range = (float(flows.q_head_kvar.min()), float(flows.q_head_kvar.max()))
     c_kvar = choose_c_kvar(*q_range)
     sens = _fit_sensitivities(samples, nodes.size, engine.pv_ids, c_kvar, q_range)
-    sens_rel = _sensitivity_rel_err(sens, samples)
+    sens_rel = sensitivity_rel_err(sens, samples)
     forms = {f: sum(x.form == f for row in sens for x in row) for f in ("constant", "linear", "power")}
     neg_b = sum(x.form == "power" and x.b < 0 for row in sens for x in row)
 
@@ -398,9 +422,10 @@ def train(
             rcond=rcond,
             tolerance=tolerance,
             critical_margin_pu=critical_margin_pu,
+            calendar_cover_per_cell=calendar_cover_per_cell,
         ),
         feature_names=feature_names(len(dm.pv)) if ext is None
-        else extended_feature_names(len(dm.pv), ext.names, calendar),
+        else extended_feature_names(len(dm.pv), ext.names, calendar, calendar_seasonal, calendar_weekly),
         critical_nodes=crit_nodes,
         regulators=regs,
         pv=pvs,
@@ -419,7 +444,7 @@ def train(
     if calibration_minutes > 0:
         from training.calibration import calibrate_bounds
 
-        bounds = calibrate_bounds(model, engine, profiles, training_steps=np.asarray(scen.steps),
+        bounds = calibrate_bounds(model, engine, profiles, training_steps=all_steps,
                                   training_features=flows.features, minutes=calibration_minutes,
                                   alpha=bound_alpha, progress=progress)
         model = msgspec.structs.replace(model, bounds=bounds)
@@ -455,19 +480,9 @@ def train(
         bound_p50_pu=0.0 if b is None else float(np.median((np.add(b.upper_pu, b.lower_pu)) / 2.0)),
         seconds_calibration=round(seconds_cal, 3),
         power_fits_with_negative_b=neg_b,
+        cover_minutes=int(cover.size),
     )
     return TrainResult(model=model, summary=summ)
-
-
-def _fit_voltages(flows: PowerFlowSet, x: np.ndarray, v_crit: np.ndarray, rcond: float):
-    """Eq. (5) fit of ``x`` (F, M) on every flow, plus its error on held-out scenarios (fitted on the others)."""
-    holdout = (flows.scenario % _HOLDOUT_EVERY) == _HOLDOUT_EVERY - 1
-    val_rmse, val_max = float("nan"), float("nan")
-    if holdout.any() and (~holdout).sum() > x.shape[1] + 1:
-        part = fit_voltage_regression(x[~holdout], v_crit[~holdout], rcond=rcond)
-        err = x[holdout] @ part.alpha[:, :-1].T + part.alpha[:, -1] - v_crit[holdout]
-        val_rmse, val_max = float(np.sqrt(np.mean(err**2))), float(np.max(np.abs(err)))
-    return fit_voltage_regression(x, v_crit, rcond=rcond), val_rmse, val_max
 
 
 @dataclass(frozen=True)
@@ -492,7 +507,7 @@ def _bank_fields(banks: list, dv_dcap_pu: np.ndarray, ext: _Extended | None) -> 
 
 def _extended(
     dm, engine, flows: PowerFlowSet, pert, nodes: np.ndarray, cap0: np.ndarray, rcond: float, feature_set: str,
-    n_calendar: int, utc_offset_h: float,
+    n_calendar: int, utc_offset_h: float, calendar_terms: tuple[int, bool],
 ) -> _Extended:
     """The banks' static term, the feature mapping and (``extended_readings``) the readings as regressors."""
     n_reg = flows.reg_pu.shape[1]
@@ -527,6 +542,8 @@ def _extended(
         "feature_dcap": f_cap.tolist(),
         "reading_alpha": reading_fit.alpha.tolist() if use else [],
         "calendar": n_calendar > 0,
+        "calendar_seasonal": calendar_terms[0] if n_calendar else 0,
+        "calendar_weekly": calendar_terms[1] and n_calendar > 0,
         "utc_offset_h": utc_offset_h,
     }
     return _Extended(names=names, readings=readings, model_fields=fields)
@@ -558,29 +575,6 @@ def _fit_sensitivities(
             row.append(fit)
         sens.append(row)
     return sens
-
-
-def _sensitivity_rel_err(sens: list[list[SensitivityFit]], samples: SensitivitySamples) -> float:
-    """Median relative error of the fits on their samples, over significant pairs.
-
-    A (node, plant) pair is significant when its median |dV/dQ| is at least 10 % of the node's largest.
-    """
-    from regression.batch import eval_sensitivities, sensitivity_arrays
-
-    n_pv = len(sens[0]) if sens else 0
-    pred = eval_sensitivities(sensitivity_arrays(sens), samples.q_head_kvar)
-    pred = pred[np.arange(samples.plant.size), :, samples.plant]  # (S, N): each sample's own plant
-    truth = samples.dv_dq_pu_per_kvar
-    med = np.stack([np.median(np.abs(truth[samples.plant == k]), axis=0) for k in range(n_pv)])  # (K, N)
-    rel = []
-    for k in range(n_pv):
-        sig = med[k] >= 0.1 * med.max(axis=0)
-        m = samples.plant == k
-        t, p = truth[m][:, sig], pred[m][:, sig]
-        ok = np.abs(t) > 0
-        rel.append(np.abs(p[ok] - t[ok]) / np.abs(t[ok]))
-    rel_all = np.concatenate(rel) if rel else np.zeros(0)
-    return float(np.median(rel_all)) if rel_all.size else float("nan")
 
 
 def _check_finite(model: CvvcModel) -> None:

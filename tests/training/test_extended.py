@@ -63,6 +63,16 @@ def models(ieee13_caps, profile_cache):
             train(ieee13_caps, feature_set="extended_readings", **kw).model)
 
 
+@pytest.fixture(scope="module")
+def calendar_model(ieee13_caps, profile_cache):
+    """The extended set with ``cvvc run``'s calendar terms on an extended feeder (``EXTENDED_OPTIONS``)."""
+    from training.extended import EXTENDED_OPTIONS
+    from training.train import train
+
+    return train(ieee13_caps, year_seed=1, blocks=(3, 3), workers=1, cache_dir=profile_cache, progress=False,
+                 **EXTENDED_OPTIONS.train_kwargs()).model
+
+
 def _state(path, model, *, caps, step=None):
     """Solve one minute of the training year at the model's taps and the given banks; return estimator inputs."""
     from schemas.devicemap import load_device_map
@@ -239,13 +249,13 @@ def test_format_1_models_still_load_and_others_are_refused(models, tmp_path):
         read_model(path)
 
 
-@pytest.mark.parametrize("which", [1, 2])  # extended (calendar), extended_readings
-def test_the_agent_runs_an_extended_model_with_the_same_estimate(ieee13_caps, models, which):
+@pytest.mark.parametrize("which", [1, 2, 3])  # extended (calendar), extended_readings, EXTENDED_OPTIONS
+def test_the_agent_runs_an_extended_model_with_the_same_estimate(ieee13_caps, models, calendar_model, which):
     """The controller decides with an extended model (banks, calendar, readings) and its critical-node estimate is
     the reports' (``estimate_v_pu``): one estimate online and offline. Bank 1 open, as the agent sees it."""
     from agent.controller import CvvcController, MeasurementSnapshot
 
-    model = models[which]
+    model = calendar_model if which == 3 else models[which]
     v, f, taps, v120, caps, cap_v, t_ns = _state(ieee13_caps, model, caps=[0, 1])
     k = len(model.pv)
     head_p, head_q, pv = f[0, 0:3], f[0, 3:6], f[0, 6:].reshape(k, 2)
@@ -287,3 +297,39 @@ def test_auto_features_are_the_extended_set_on_a_feeder_whose_banks_switch(ieee1
     assert _feature_options(parse(["train", "--out", "m.json"]), ieee13_caps) == PAPER_OPTIONS
     explicit = parse(["train", "--out", "m.json", "--features", "paper"])
     assert _feature_options(explicit, m1) == PAPER_OPTIONS
+
+
+def test_the_calendar_cover_and_the_seasonal_and_weekly_terms_enter_the_model(ieee13_caps, calendar_model, tmp_path):
+    """``cvvc run``'s extended model (``EXTENDED_OPTIONS``): the calendar cover's minutes in the fit, the seasonal and
+    weekly features in the model file, and the weekend moving the estimate at the same hour and measurements."""
+    from regression.model import (
+        CALENDAR_FEATURES,
+        SEASONAL_CALENDAR_FEATURES,
+        WEEKLY_CALENDAR_FEATURES,
+    )
+    from training.extended import EXTENDED_OPTIONS
+
+    m = calendar_model
+    assert EXTENDED_OPTIONS.calendar_cover_per_cell >= 1 and EXTENDED_OPTIONS.calendar_weekly
+    assert m.settings.calendar_cover_per_cell == EXTENDED_OPTIONS.calendar_cover_per_cell
+    seasonal = list(SEASONAL_CALENDAR_FEATURES[: 4 * EXTENDED_OPTIONS.calendar_seasonal])
+    assert m.feature_names[12:] == list(CALENDAR_FEATURES) + seasonal + list(WEEKLY_CALENDAR_FEATURES)
+    path = tmp_path / "m.json"
+    write_model(m, path)
+    back = read_model(path)
+    assert (back.calendar_seasonal, back.calendar_weekly) == (EXTENDED_OPTIONS.calendar_seasonal, True)
+    v, f, taps, v120, caps, cap_v, t_ns = _state(ieee13_caps, m, caps=[1, 1])
+    a = ModelArrays.of(back)
+    weekday = estimate_v_pu(a, f, taps, v120, caps=caps, cap_v_v=cap_v, t_ns=t_ns)
+    weekly = [m.feature_names.index(n) for n in WEEKLY_CALENDAR_FEATURES]
+    assert np.max(np.abs(a.alpha[:, weekly])) > 0  # the weekend has its own shape
+    day_ns = 86400 * 10**9
+    wednesday = t_ns + (2 - (int(t_ns[0]) // day_ns + 3) % 7) % 7 * day_ns  # local noon (UTC-5) of a Wednesday
+    wed, sat = (estimate_v_pu(a, f, taps, v120, caps=caps, cap_v_v=cap_v, t_ns=t) for t in (wednesday,
+                                                                                              wednesday + 3 * day_ns))
+    assert np.max(np.abs(sat - wed)) > 1e-6
+    assert np.max(np.abs(weekday[0] - v)) < 0.005
+    doc = path.read_text().replace('"calendar": true', '"calendar": false')
+    path.write_text(doc)
+    with pytest.raises(ModelError, match="calendar"):
+        read_model(path)

@@ -115,3 +115,63 @@ def test_sensitivity_samples_from_a_sweep():
     assert s.plant.tolist() == [0, 0, 1]
     np.testing.assert_allclose(s.dv_dq_pu_per_kvar[:, 0], [1e-4, 1e-4, 2e-4])
     np.testing.assert_allclose(s.q_head_kvar, [110, 90, 75])
+
+
+def test_integer_weights_are_repeated_flows():
+    """A flow of weight 3 counts as the same flow three times (the calendar cover's weighting)."""
+    rng = np.random.default_rng(4)
+    x = rng.normal(size=(40, 3)) * [100, 50, 10] + [500, 0, 0]
+    v = 1.0 + x @ (rng.normal(size=(3, 2)) * 1e-5) + rng.normal(size=(40, 2)) * 1e-3  # noisy: the weights matter
+    w = rng.integers(1, 4, size=40)
+    weighted = fit_voltage_regression(x, v, weights=w)
+    repeated = fit_voltage_regression(np.repeat(x, w, axis=0), np.repeat(v, w, axis=0))
+    np.testing.assert_allclose(weighted.alpha, repeated.alpha, rtol=1e-9, atol=1e-12)
+    assert not np.allclose(weighted.alpha, fit_voltage_regression(x, v).alpha, rtol=1e-6, atol=0)
+
+
+@pytest.mark.parametrize("weights", [np.zeros(20), -np.ones(20), np.ones(19)])
+def test_bad_weights_are_refused(weights):
+    x = np.random.default_rng(5).normal(size=(20, 2))
+    with pytest.raises(TrainingError, match="weights"):
+        fit_voltage_regression(x, np.ones((20, 1)), weights=weights)
+
+
+def test_seasonal_calendar_recovers_a_daily_shape_that_changes_with_the_season():
+    """A secondary whose customer peaks at night in summer and in the evening in winter (IEEE 8500's deep
+    secondaries, docs/method.md): the additive calendar cannot fit it, the seasonal one recovers it exactly."""
+    from regression.model import calendar_features
+
+    t_ns = (1672549200 + np.arange(0, 365 * 86400, 3 * 3600 + 420)) * 10**9  # every 3 h 7 min through a year
+    base = calendar_features(t_ns, -5.0)
+    v = (1.0 + 0.004 * base[:, 0] * base[:, 4] - 0.003 * base[:, 1] * base[:, 5]
+         + 0.002 * base[:, 2] * base[:, 4])[:, None]  # harmonics 1 and 2 of the day times the year's
+    plain = fit_voltage_regression(base, v)
+    one = fit_voltage_regression(calendar_features(t_ns, -5.0, seasonal=1), v)
+    two = fit_voltage_regression(calendar_features(t_ns, -5.0, seasonal=2), v)
+    assert plain.rmse_pu[0] > 0.002  # the additive terms see none of it
+    assert abs(one.rmse_pu[0] - 0.001) < 5e-5  # what is left: harmonic 2's term, rms 0.002 / 2
+    assert two.max_abs_pu < 1e-9
+    np.testing.assert_allclose(two.alpha[0, [6, 9, 10]], [0.004, -0.003, 0.002], atol=1e-9)
+
+
+def test_weekly_calendar_marks_local_weekends_and_recovers_their_daily_shape():
+    """A shop's load: its own daily shape on weekdays and another on weekends; the weekly terms recover it."""
+    from regression.model import WEEKLY_CALENDAR_FEATURES, calendar_features, n_calendar_features
+
+    sat_4am_local = 1688198400 * 10**9  # 2023-07-01 08:00 UTC, a Saturday at 03:00 local (UTC-5)
+    days = np.arange(7) * 86400 * 10**9  # Saturday .. Friday
+    cal = calendar_features(sat_4am_local + days, -5.0, weekly=True)
+    assert cal.shape == (7, n_calendar_features(True, 0, True)) == (7, 6 + len(WEEKLY_CALENDAR_FEATURES))
+    assert cal[:, 6].tolist() == [1, 1, 0, 0, 0, 0, 0]
+    np.testing.assert_allclose(cal[:, 7:], cal[:, 6:7] * cal[:, :4])
+    # 05:30 UTC is Saturday 00:30 local (weekend) but still Friday 23:30 one hour earlier
+    edge = calendar_features(np.array([1688189400, 1688185800]) * 10**9, -5.0, weekly=True)
+    assert edge[:, 6].tolist() == [1, 0]
+    t_ns = (1672549200 + np.arange(0, 365 * 86400, 3 * 3600 + 420)) * 10**9
+    base = calendar_features(t_ns, -5.0)
+    weekly = calendar_features(t_ns, -5.0, weekly=True)
+    v = (1.0 + 0.002 * base[:, 0] - 0.004 * weekly[:, 6] * base[:, 1] + 0.001 * weekly[:, 6])[:, None]
+    assert fit_voltage_regression(base, v).rmse_pu[0] > 0.001
+    fit = fit_voltage_regression(weekly, v)
+    assert fit.max_abs_pu < 1e-9
+    np.testing.assert_allclose(fit.alpha[0, [0, 6, 8]], [0.002, 0.001, -0.004], atol=1e-9)

@@ -66,3 +66,25 @@ def test_random_selection_is_seeded_and_stays_in_blocks():
 def test_bad_blocks_raise():
     with pytest.raises(TrainingError, match="blocks"):
         select_scenarios(_year(), blocks=(0, 3), selection="guided")
+
+
+def test_calendar_cover_fills_every_month_and_hour_and_skips_the_scenarios():
+    from calendar import monthrange
+
+    from training.scenarios import calendar_cover
+
+    n = 365 * 1440
+    picked = np.arange(0, n, 7)  # every 7th minute is a scenario already
+    steps = calendar_cover(n, 2023, per_cell=2, seed=3, exclude=picked)
+    assert steps.size == 12 * 24 * 2 and np.all(np.diff(steps) > 0)
+    assert not np.isin(steps, picked).any()
+    month_start = np.cumsum([0] + [monthrange(2023, m)[1] for m in range(1, 13)]) * 1440
+    month = np.searchsorted(month_start, steps, side="right")
+    hour = steps % 1440 // 60
+    cells = np.bincount((month - 1) * 24 + hour, minlength=288)
+    assert cells.tolist() == [2] * 288
+    np.testing.assert_array_equal(steps, calendar_cover(n, 2023, per_cell=2, seed=3, exclude=picked))
+    assert not np.array_equal(steps, calendar_cover(n, 2023, per_cell=2, seed=4, exclude=picked))
+    assert calendar_cover(n, 2023, per_cell=0, seed=3, exclude=picked).size == 0
+    with pytest.raises(TrainingError, match="per cell"):
+        calendar_cover(n, 2023, per_cell=-1, seed=3, exclude=picked)
