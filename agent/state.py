@@ -80,8 +80,7 @@ class CorrectionFilter:
             raise AgentInputError(f"correction filter weight must be in (0, 1], not {weight}")
         self.weight = float(weight)
         self._eps = np.zeros(n_regulators)  # the mean so far (0 until a regulator's first usable reading)
-        self._seen = np.zeros(n_regulators, bool)
-        self._count = np.zeros(n_regulators)  # readings that entered each mean
+        self._count = np.zeros(n_regulators)  # readings that entered each mean (0: never seen fresh)
 
     def __call__(self, eps: np.ndarray, ok: np.ndarray, fresh: np.ndarray | None = None, *,
                  inputs_fresh: bool = True) -> np.ndarray:
@@ -94,14 +93,13 @@ class CorrectionFilter:
         ok = np.asarray(ok, bool) & np.isfinite(eps)
         own = ok if fresh is None else ok & np.asarray(fresh, bool)
         update = own & bool(inputs_fresh)
-        weight = np.maximum(self.weight, 1.0 / (self._count + 1.0))  # a plain average until 1 / weight readings
-        mean = np.where(self._seen, weight * eps + (1.0 - weight) * self._eps, eps)
-        self._eps = np.where(update, mean, self._eps)
-        self._seen = self._seen | update
+        # a plain average until 1 / weight readings (the first one, weight 1, is taken as it is)
+        weight = np.maximum(self.weight, 1.0 / (self._count + 1.0))
+        self._eps = np.where(update, weight * eps + (1.0 - weight) * self._eps, self._eps)
         self._count = self._count + update
         # a fresh reading against stale inputs, or a stale reading of a regulator never seen fresh: taken as it is,
         # without entering the mean
-        raw = (own & ~update) | (ok & ~self._seen)
+        raw = (own & ~update) | (ok & (self._count == 0))
         return np.where(raw, eps, self._eps)
 
 

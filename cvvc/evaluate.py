@@ -113,7 +113,7 @@ class EvaluateConfig(msgspec.Struct, frozen=True, kw_only=True):
     # how long the bridge waits for the agent's decision at a control step before going on under local control [s].
     # Longer than ``cvvc run``'s 10 s: a miss is a starved machine, not the method, and its steps under local
     # control make the run's figures something else (IEEE 8500 summer on a loaded machine: 12 misses, 8 in a row,
-    # the regulators' commands expired and the feeder went to 1.07 pu: NVV 8,380 against 855 without a miss)
+    # the regulators' commands expired and the feeder went to 1.07 pu: NVV 8,380 against 764 on a quiet machine)
     lockstep_timeout_s: float = 60.0
 
 

@@ -19,7 +19,7 @@ Pure functions of arrays plus one function that drives the engine for the pertur
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 
 import numpy as np
 
@@ -43,10 +43,8 @@ class FeatureOptions:
     calendar_weekly: bool = False
 
     def train_kwargs(self) -> dict:
-        """These options as ``training.train.train`` keywords."""
-        return {"feature_set": self.feature_set, "calendar": self.calendar,
-                "critical_margin_pu": self.critical_margin_pu, "calendar_cover_per_cell": self.calendar_cover_per_cell,
-                "calendar_seasonal": self.calendar_seasonal, "calendar_weekly": self.calendar_weekly}
+        """These options as ``training.train.train`` keywords (the fields carry their names)."""
+        return asdict(self)
 
 
 #: The paper's method (eq. (5) on head and plant P, Q; the paper's extreme nodes).
