@@ -15,6 +15,7 @@ has come for ``stale_after_s``; the agent never sends commands without fresh fra
 from __future__ import annotations
 
 import logging
+import re
 import signal
 import threading
 import time
@@ -35,7 +36,9 @@ from schemas import keys
 from schemas import messages as m
 from schemas.logs import RateLimitedLog
 
-__all__ = ["AgentSettings", "AgentSummary", "DecisionMaker", "decide_offline", "run_agent", "snapshot_from"]
+__all__ = [
+    "AgentSettings", "AgentSummary", "DecisionMaker", "decide_offline", "reason_kind", "run_agent", "snapshot_from",
+]
 
 log = logging.getLogger(__name__)
 #: The window over which the status judges the share of refused frames [s], and the least refused to say so.
@@ -43,6 +46,14 @@ DEGRADED_WINDOW_S = 10.0
 DEGRADED_MIN_REFUSED = 3
 _PHASE_INDEX = {"a": 0, "b": 1, "c": 2}
 _FIT_MIN = 16  # readings a fit needs: with four terms, fewer are noisier than the mean of five
+_DECIMAL = re.compile(r"\d+\.\d+")
+
+
+def reason_kind(reason: str) -> str:
+    """A soft or hold decision's reason with its decimal figures masked as ``#`` (the first 120 characters): what
+    the summary counts, so that one cause with a different figure at each step is one line, not twenty.
+    """
+    return _DECIMAL.sub("#", reason)[:120]
 
 
 class AgentSettings(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
@@ -96,7 +107,7 @@ class AgentSummary(msgspec.Struct, frozen=True, kw_only=True):
     clamped: int = 0
     log_suppressed: dict[str, int] = {}
     soft: int = 0
-    reasons: dict[str, int] = {}  # why decisions were soft or held, by reason (the first 120 characters)
+    reasons: dict[str, int] = {}  # why decisions were soft or held, by kind of reason (``reason_kind``)
     step_ends: int = 0  # scan-end markers taken (``StepEnd``)
     released_by_step_end: int = 0  # steps with lost frames decided at once, on a marker, not after the late window
     decided_after_late_window: int = 0  # live: control steps decided only once the late-frame window was over
@@ -325,7 +336,7 @@ class DecisionMaker:
             self.holds += 1
         if d.status in ("soft", "hold"):
             self.soft += d.status == "soft"
-            self.reasons[d.reason[:120]] += 1
+            self.reasons[reason_kind(d.reason)] += 1
         self.commands_sent += len(commands)
         estimates = []
         if d.v_pu is not None:
