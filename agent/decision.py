@@ -6,12 +6,16 @@
 
 from __future__ import annotations
 
+import re
+from collections.abc import Iterable
 from dataclasses import dataclass, field, fields
 from typing import Literal
 
 import numpy as np
 
-__all__ = ["Decision", "DecisionTimings", "MeasurementSnapshot"]
+__all__ = ["Decision", "DecisionTimings", "MeasurementSnapshot", "decision_time_ms", "reason_kind"]
+
+_DECIMAL = re.compile(r"\d+\.\d+")
 
 
 @dataclass(frozen=True)
@@ -146,3 +150,23 @@ class Decision:
             elif a != b:
                 return False
         return True
+
+
+def decision_time_ms(seconds: Iterable[float]) -> dict[str, float]:
+    """p50, p99 and max of decision wall times given in seconds, in ms (rounded to 0.01 ms); empty for none.
+
+    A decision's time runs from its frames' alignment to its message (``m.Timings.total_s``): what the agent adds
+    to a control step, measured in every run rather than only by the benchmarks' replayed states.
+    """
+    t = np.asarray(list(seconds), float) * 1e3
+    if t.size == 0:
+        return {}
+    p50, p99 = np.percentile(t, [50, 99])
+    return {"p50": round(float(p50), 2), "p99": round(float(p99), 2), "max": round(float(t.max()), 2)}
+
+
+def reason_kind(reason: str) -> str:
+    """A soft or hold decision's reason with its decimal figures masked as ``#`` (the first 120 characters): what
+    the summary counts, so that one cause with a different figure at each step is one line, not twenty.
+    """
+    return _DECIMAL.sub("#", reason)[:120]

@@ -15,11 +15,10 @@ has come for ``stale_after_s``; the agent never sends commands without fresh fra
 from __future__ import annotations
 
 import logging
-import re
 import signal
 import threading
 import time
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Iterable, Iterator
 from typing import Any, Literal
 
@@ -29,6 +28,7 @@ import numpy as np
 from agent.aligner import AlignedFrames, FrameAligner
 from agent.controller import CvvcController, MeasurementSnapshot
 from agent.controller import Decision as ControllerDecision
+from agent.decision import decision_time_ms, reason_kind
 from agent.readings import fitted_reading_v120
 from agent.state import OracleSource
 from regression.model import CvvcModel
@@ -36,9 +36,7 @@ from schemas import keys
 from schemas import messages as m
 from schemas.logs import RateLimitedLog
 
-__all__ = [
-    "AgentSettings", "AgentSummary", "DecisionMaker", "decide_offline", "reason_kind", "run_agent", "snapshot_from",
-]
+__all__ = ["AgentSettings", "AgentSummary", "DecisionMaker", "decide_offline", "run_agent", "snapshot_from"]
 
 log = logging.getLogger(__name__)
 #: The window over which the status judges the share of refused frames [s], and the least refused to say so.
@@ -46,14 +44,8 @@ DEGRADED_WINDOW_S = 10.0
 DEGRADED_MIN_REFUSED = 3
 _PHASE_INDEX = {"a": 0, "b": 1, "c": 2}
 _FIT_MIN = 16  # readings a fit needs: with four terms, fewer are noisier than the mean of five
-_DECIMAL = re.compile(r"\d+\.\d+")
-
-
-def reason_kind(reason: str) -> str:
-    """A soft or hold decision's reason with its decimal figures masked as ``#`` (the first 120 characters): what
-    the summary counts, so that one cause with a different figure at each step is one line, not twenty.
-    """
-    return _DECIMAL.sub("#", reason)[:120]
+#: Decisions whose wall time the summary's percentiles cover (the latest; a week of 1-minute steps is 10,080).
+DECISION_TIMES_KEPT = 100_000
 
 
 class AgentSettings(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
@@ -108,6 +100,7 @@ class AgentSummary(msgspec.Struct, frozen=True, kw_only=True):
     log_suppressed: dict[str, int] = {}
     soft: int = 0
     reasons: dict[str, int] = {}  # why decisions were soft or held, by kind of reason (``reason_kind``)
+    decision_ms: dict[str, float] = {}  # the agent's wall time per decision (``decision_time_ms``): p50, p99, max
     step_ends: int = 0  # scan-end markers taken (``StepEnd``)
     released_by_step_end: int = 0  # steps with lost frames decided at once, on a marker, not after the late window
     decided_after_late_window: int = 0  # live: control steps decided only once the late-frame window was over
@@ -281,6 +274,7 @@ class DecisionMaker:
         self.clamped = 0  # set points / bands brought into the regulators' accepted range
         self.soft = 0
         self.reasons: Counter[str] = Counter()  # of soft and hold decisions
+        self.decision_s: deque[float] = deque(maxlen=DECISION_TIMES_KEPT)  # wall time of each decision [s]
         self._dv_dtap = _within_array(np.asarray(model.dv_dtap_pu, float), -1.0, 1.0, 12)  # a model constant
 
     def on_frame(self, key: str, msg: Any) -> list[tuple[AlignedFrames, ControllerDecision]]:
@@ -349,6 +343,7 @@ class DecisionMaker:
                                                     _within_array(pred, 0.0, 3.0, 9), lows, highs, strict=True)]
         dv_dq = [] if d.dv_dq_pu_per_kvar is None else _within_array(d.dv_dq_pu_per_kvar, -1.0, 1.0, 12)
         tm = d.timings
+        self.decision_s.append(tm.total_s + align_s)
         return m.Decision(
             t_ns=t, seq=seq, source=s.agent_id, feeder_id=s.feeder_id, step_t_ns=t, in_reply_to=in_reply_to,
             status=d.status, reason=d.reason[:500], commands=commands, estimates=estimates,
@@ -508,6 +503,7 @@ def run_agent(model: CvvcModel, settings: AgentSettings, bus, *, stop: threading
                         rejected=rejected, clamped=maker.clamped,
                         log_suppressed=_suppressed(rlog, inbox.rejects.log_suppressed()),
                         soft=maker.soft, reasons=dict(maker.reasons.most_common(20)),
+                        decision_ms=decision_time_ms(maker.decision_s),
                         step_ends=maker.aligner.step_ends, released_by_step_end=maker.aligner.released_by_step_end,
                         decided_after_late_window=late_decided, clock_snapped=maker.aligner.snapped)
 

@@ -155,6 +155,10 @@ class RunResult(msgspec.Struct, frozen=True, kw_only=True):
     out_dir: str
     recording: str | None
     attempts: int = 1  # how many times the run was started (a failed attempt is retried once)
+    soft: int = 0  # decisions on the soft form (eq. 17), as the agent counted them
+    holds: int = 0  # decisions without a command
+    reasons: dict[str, int] = {}  # the reasons of soft and hold decisions, by kind
+    decision_ms: dict[str, float] = {}  # the agent's wall time per decision [ms]: p50, p99, max
 
 
 class RunFailure(msgspec.Struct, frozen=True, kw_only=True):
@@ -335,8 +339,14 @@ def _run_one(spec: RunSpec, run_config: RunConfig) -> RunResult:
 
     _note_attempt(Path(str(run_config.out)))
     s = run(run_config)
+    return _result(spec, s)
+
+
+def _result(spec: RunSpec, s: RunSummary) -> RunResult:
+    """A run's result from its summary."""
     return RunResult(spec=spec, metrics=s.metrics, wall_s=s.wall_s, steps=s.steps, decisions=s.decisions,
-                     lockstep_misses=s.lockstep_misses, out_dir=s.out_dir, recording=s.recording)
+                     lockstep_misses=s.lockstep_misses, out_dir=s.out_dir, recording=s.recording, soft=s.soft,
+                     holds=s.holds, reasons=dict(s.reasons), decision_ms=dict(s.decision_ms))
 
 
 def _run_reference(spec: RunSpec, config: EvaluateConfig, dm_path: Path, out: Path) -> RunResult:
@@ -364,8 +374,7 @@ def _finished(spec: RunSpec, run_dir: Path) -> RunResult | None:
         return None
     if (s.case, s.start[:10], s.days) != (spec.case, spec.start, spec.days):
         return None
-    return RunResult(spec=spec, metrics=s.metrics, wall_s=s.wall_s, steps=s.steps, decisions=s.decisions,
-                     lockstep_misses=s.lockstep_misses, out_dir=s.out_dir, recording=s.recording)
+    return _result(spec, s)
 
 
 @dataclass
@@ -415,7 +424,8 @@ class PreparedEvaluation:
             mt = r.metrics
             missed = (f"; {r.lockstep_misses} LOCKSTEP MISSES: steps under local control, not the method's figures"
                       if r.lockstep_misses else "")
-            _log(f"{count}{self.label}{spec.name}: NVV {mt.nvv}, NTC {mt.ntc}, total cost {mt.total_cost:.1f} "
+            soft = f", soft {r.soft} of {r.decisions}" if r.decisions else ""
+            _log(f"{count}{self.label}{spec.name}: NVV {mt.nvv}, NTC {mt.ntc}, total cost {mt.total_cost:.1f}{soft} "
                  f"({r.wall_s:.0f} s){missed}")
         else:
             e = outcome.error

@@ -93,6 +93,20 @@ def render_results_md(ev: Evaluation) -> str:
             sw = r.metrics.cap_switches_per_bank
             lines.append("| " + " | ".join(_row_label(r, robust, bands) + [str(sw.get(c, 0)) for c in cap_ids]
                                            + [str(r.metrics.cap_switches)]) + " |")
+    agent_runs = [r for r in ev.runs if r.decisions]
+    if agent_runs:
+        lines += ["", "## Decisions", "",
+                  "Soft: the hard limits were not met (paper eq. 17); hold: no command sent. Decision time: the "
+                  "agent's wall time per control step, from the frames' alignment to the decision message.", "",
+                  "| " + " | ".join(head + ["decisions", "soft", "hold", "most frequent reason",
+                                            "p50 [ms]", "p99 [ms]", "max [ms]"]) + " |",
+                  "|" + "---|" * (len(head) + 7)]
+        for r in agent_runs:
+            top = max(r.reasons.items(), key=lambda kv: kv[1], default=("", 0))
+            why = f"{top[1]} x {top[0]}".replace("|", "/") if top[1] else ""
+            ms = [f"{r.decision_ms[k]:.1f}" if k in r.decision_ms else "" for k in ("p50", "p99", "max")]
+            lines.append("| " + " | ".join(_row_label(r, robust, bands) + [
+                str(r.decisions), f"{r.soft} ({r.soft / r.decisions:.0%})", str(r.holds), why] + ms) + " |")
     missed = [r for r in ev.runs if r.lockstep_misses]
     if missed:
         lines += ["", "## Runs with lockstep misses: not the method's figures", "",

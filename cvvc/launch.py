@@ -122,6 +122,7 @@ class RunSummary(msgspec.Struct, frozen=True, kw_only=True):
     holds: int = 0  # decisions with status 'hold' (no command sent), as the agent counted them
     soft: int = 0  # decisions on the soft form (eq. 17)
     reasons: dict[str, int] = {}  # the reasons of soft and hold decisions, most frequent first
+    decision_ms: dict[str, float] = {}  # the agent's wall time per decision [ms]: p50, p99, max
     recorder_restarts: int = 0  # the recorder died and was restarted this many times; control went on
     recording_gaps: list[RecorderGap] = []  # what the recording misses because of it (also in the MCAP file)
     recorder_gave_up: bool = False  # the recorder died more than recorder_restarts_max times: recording stopped
@@ -507,6 +508,7 @@ def run(config: RunConfig) -> RunSummary:
         model=str(kept_model) if agent_settings is not None else None,
         holds=agent_summary.holds if agent_summary else 0, soft=agent_summary.soft if agent_summary else 0,
         reasons=dict(agent_summary.reasons) if agent_summary else {},
+        decision_ms=dict(agent_summary.decision_ms) if agent_summary else {},
         recorder_restarts=recorder.restarts if recorder is not None else 0, recording_gaps=gaps,
         recorder_gave_up=recorder.gave_up if recorder is not None else False, pv_protocol=config.pv_protocol,
         sunspec_frame_misses=bridge_summary.sunspec_frame_misses)

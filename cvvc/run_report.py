@@ -9,13 +9,18 @@ from typing import TYPE_CHECKING
 if TYPE_CHECKING:
     from cvvc.launch import RunSummary
 
-__all__ = ["render_summary", "top_reasons"]
+__all__ = ["decision_time_text", "render_summary", "top_reasons"]
 
 
 def top_reasons(reasons: dict[str, int], n: int = 3) -> str:
     """The ``n`` most frequent reasons of soft and hold decisions, as one line."""
     top = sorted(reasons.items(), key=lambda kv: -kv[1])[:n]
     return "; ".join(f"{count} x {reason!r}" for reason, count in top) or "none given"
+
+
+def decision_time_text(ms: dict[str, float]) -> str:
+    """``p50 x ms, p99 y ms, max z ms`` of a summary's ``decision_ms`` (empty: no decision)."""
+    return ", ".join(f"{k} {ms[k]:.1f} ms" for k in ("p50", "p99", "max") if k in ms) or "no decision"
 
 
 def render_summary(s: RunSummary) -> str:
@@ -34,6 +39,8 @@ def render_summary(s: RunSummary) -> str:
     why = f"; most frequent reasons: {top_reasons(s.reasons)}" if s.holds or s.soft else ""
     lines += ["", f"- decisions: {s.decisions} (soft {s.soft}, hold {s.holds}{why}); lockstep misses: "
               f"{s.lockstep_misses}; wall time {s.wall_s:.1f} s",
+              *([f"- decision time (the agent's, per control step): {decision_time_text(s.decision_ms)}"]
+                if s.decision_ms else []),
               *([f"- **{s.lockstep_misses} lockstep miss(es)**: at those control steps the bridge went on under local "
                  f"control without the agent's decision (a starved machine or a stopped agent): these metrics are "
                  f"not case {s.case}'s alone"] if s.lockstep_misses else []),

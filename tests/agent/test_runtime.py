@@ -158,7 +158,7 @@ def test_filtered_setpoints_are_on_by_default_and_the_agent_flag_turns_them_off(
 def test_reasons_are_counted_by_kind_with_their_figures_masked():
     """epri-ckt5 summer: 210 'no action available' decisions each carried their own residual (0.0022-0.0034 pu),
     so the summary's 20 most frequent reasons missed most of them and did not add up to the soft count."""
-    from agent.runtime import reason_kind
+    from agent.decision import reason_kind
 
     a = "no action available (every plant's Q and every tap fixed): 0.0032 pu beyond the limits stays"
     b = "no action available (every plant's Q and every tap fixed): 0.0027 pu beyond the limits stays"

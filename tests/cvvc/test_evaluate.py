@@ -119,6 +119,26 @@ def test_results_md_has_the_paper_table_rows(small_evaluation):
     assert "pv633 [kvarh]" in md and "(paper Table IV)" in md and "(paper Table V)" in md
 
 
+def test_results_list_each_agent_runs_soft_and_hold_decisions_and_its_decision_time(small_evaluation):
+    """Issue 16 item 5: the soft and hold counts (read by hand from each run's agent-summary.json before) and the
+    agent's decision time of every run, in results.json and results.md; none for the baseline, which has no agent."""
+    out, ev = small_evaluation
+    d, none = ev.runs
+    agent = json.loads((Path(d.out_dir) / "agent-summary.json").read_text())
+    assert (d.soft, d.holds, d.reasons) == (agent["soft"], agent["holds"], agent["reasons"])
+    assert d.soft + d.holds == sum(d.reasons.values())
+    assert set(d.decision_ms) == {"p50", "p99", "max"}
+    assert 0.0 < d.decision_ms["p50"] <= d.decision_ms["p99"] <= d.decision_ms["max"] < 60_000.0
+    assert none.decision_ms == {} and none.decisions == 0
+    md = (out / "results.md").read_text()
+    assert "## Decisions" in md
+    row = f"| summer | D | 15 | {d.soft} ({d.soft / 15:.0%}) | {d.holds} |"
+    assert row in md and f"| {d.decision_ms['p99']:.1f} | {d.decision_ms['max']:.1f} |" in md
+    assert "| summer | none | 0 |" not in md
+    report = (Path(d.out_dir) / "report.md").read_text()
+    assert f"decision time (the agent's, per control step): p50 {d.decision_ms['p50']:.1f} ms" in report
+
+
 def test_unknown_case_or_season_is_a_clear_error(tmp_path):
     with pytest.raises(EvaluateError, match="unknown case.*E.*choose from A,B,C,D,none,local"):
         parse_cases("D,E")
