@@ -100,6 +100,8 @@ def test_noiseless_meters_every_minute_are_exact_at_their_nodes(ieee13_model, pr
 
 def test_meters_every_15_minutes_do_not_worsen_the_estimate(ieee13_model, profile_cache, without_meters):
     m = read_model(ieee13_model)
+    # noise 0.0001 pu: with the default 0.001 pu the meters worsen IEEE 13's RMSE (measured 0.00067 -> 0.00074 pu),
+    # its corrected estimate being better than such a meter; on epri-ckt24 they take it from 0.0031 to 0.0011 pu
     rep = _report(ieee13_model, profile_cache, ami_meters=min(3, len(m.critical_nodes)), ami_interval_min=15,
                   ami_noise_pu=0.0001)
     assert rep.errors[2].label.endswith("AMI meters (15 min)")
