@@ -5,6 +5,9 @@ control (``simulator_bridge.qsts.Qsts``, PV at unity power factor), then estimat
 each model with paper eq. (5) and with the correction of eq. (6)-(7), and compares with OpenDSS's
 voltages. At sampled minutes it also compares the eq. (3) sensitivities with perturbation truth
 (``FeederEngine.perturbation_sensitivities``). Writes a PNG like the paper's Fig. 8.
+
+Explicit option, not the paper's: ``ami_meters=K`` adds a row per model with K AMI meters at the critical
+nodes of widest calibrated bounds (``training.ami``: placement, meter model and the estimate).
 """
 
 from __future__ import annotations
@@ -19,6 +22,7 @@ import numpy as np
 
 from regression.batch import estimate_v_pu, eval_sensitivities, sensitivity_arrays
 from regression.model import CvvcModel, ModelArrays, features, read_model
+from training.ami import AMI_SEED, ami_estimate_v_pu, ami_placement, check_ami_options
 from training.errors import TrainingError
 
 __all__ = ["AccuracyReport", "ErrorStats", "MonthTruth", "accuracy_report", "error_stats", "simulate_month"]
@@ -66,6 +70,8 @@ class AccuracyReport(msgspec.Struct, frozen=True, kw_only=True):
     png: str | None = None
     bound_alpha: dict[str, float] = {}  # per model with calibrated bounds: the promised miscoverage
     bound_miss_rate: dict[str, float] = {}  # ... and the realised share of (minute, node) outside the bounds
+    # per model: the critical nodes with an AMI meter (explicit option; unset, so absent from JSON, without meters)
+    ami_nodes: dict[str, list[str]] | msgspec.UnsetType = msgspec.UNSET
 
 
 def error_stats(label: str, err_pu: np.ndarray) -> ErrorStats:
@@ -206,6 +212,11 @@ def accuracy_report(
     sens_minutes: int = 24,
     cache_dir: str | Path | None = None,
     progress: bool = True,
+    ami_meters: int = 0,
+    ami_interval_min: int = 15,
+    ami_noise_pu: float = 0.001,
+    ami_latency_min: int = 0,
+    ami_seed: int = AMI_SEED,
 ) -> AccuracyReport:
     """Estimation error of one or more models over a month (paper IV.D-E, Fig. 8).
 
@@ -218,6 +229,12 @@ def accuracy_report(
     png_path : where to write the figure (None: no figure).
     max_minutes : simulate only the first minutes of the month (tests, quick looks).
     sens_minutes : minutes at which eq. (3) is compared with perturbation truth.
+    ami_meters : explicit option, not the paper's: K AMI meters per model at the K critical nodes with the
+        widest calibrated bounds (training information only); adds the row "..., with correction + K AMI
+        meters (I min)" and ``ami_nodes``. 0 (default): no meter, the report as without the option.
+    ami_interval_min : minutes between meter readings (from the first simulated minute).
+    ami_noise_pu : standard deviation of the Gaussian reading noise [pu], seeded by ``ami_seed``.
+    ami_latency_min : minutes from a reading to its first use. See ``training.ami`` for the estimate.
     """
     from schemas.devicemap import load_device_map
     from simulator_bridge.engine import FeederEngine
@@ -231,6 +248,9 @@ def accuracy_report(
     models = [read_model(p, expect_fingerprint=fp) for p in paths]
     if not 1 <= month <= 12:
         raise TrainingError(f"month {month} is not in 1..12")
+    ami_cols = [_ami_cols(m, p, ami_meters) for m, p in zip(models, paths, strict=True)]  # fail before simulating
+    if ami_meters > 0:
+        check_ami_options(ami_interval_min, ami_noise_pu, ami_latency_min)
     engine = FeederEngine(dm, tolerance=1e-8)
     names = {n: i for i, n in enumerate(engine.node_names)}
     model_nodes = [np.asarray([names[c.name] for c in m.critical_nodes], int) for m in models]
@@ -252,21 +272,31 @@ def accuracy_report(
     within_gap: dict[str, float] = {}
     curves: dict[str, np.ndarray] = {}
     labels: list[str] = []
-    for m, path, mn in zip(models, paths, model_nodes, strict=True):
+    ami_nodes: dict[str, list[str]] = {}
+    for m, path, mn, idx in zip(models, paths, model_nodes, ami_cols, strict=True):
         label = _label(m, path, labels)
         labels.append(label)
         arrays = ModelArrays.of(m)
         cols = [col[int(n)] for n in mn]
         v_true = truth.v_pu[:, cols]
         plain = estimate_v_pu(arrays, truth.features, truth.taps, caps=truth.cap_states, t_ns=truth.t_ns) - v_true
-        corr = estimate_v_pu(arrays, truth.features, truth.taps, truth.reg_v120, caps=truth.cap_states,
-                             cap_v_v=truth.cap_v_v, t_ns=truth.t_ns) - v_true
+        est_corr = estimate_v_pu(arrays, truth.features, truth.taps, truth.reg_v120, caps=truth.cap_states,
+                                 cap_v_v=truth.cap_v_v, t_ns=truth.t_ns)
+        corr = est_corr - v_true
         if m.bounds is not None:  # predicted against realised: the share of corrected estimates outside the bounds
             up, lo = np.asarray(m.bounds.upper_pu), np.asarray(m.bounds.lower_pu)
             bound_alpha[label] = m.bounds.alpha
             bound_miss[label] = float(np.mean((-corr > up) | (corr > lo)))
         errors.append(error_stats(f"{label}, no correction", plain))
         errors.append(error_stats(f"{label}, with correction", corr))
+        if ami_meters > 0:
+            ami = corr.copy()
+            ami[:, idx] = ami_estimate_v_pu(est_corr[:, idx], v_true[:, idx], interval_min=ami_interval_min,
+                                            noise_pu=ami_noise_pu, latency_min=ami_latency_min,
+                                            seed=ami_seed) - v_true[:, idx]
+            errors.append(error_stats(f"{label}, with correction + {ami_meters} AMI meters ({ami_interval_min} min)",
+                                      ami))
+            ami_nodes[label] = [m.critical_nodes[int(i)].name for i in idx]
         curves[f"{label}, no correction"] = plain.ravel()
         curves[f"{label}, with correction"] = corr.ravel()
         crit = set(mn.tolist())
@@ -297,7 +327,25 @@ def accuracy_report(
         png=png,
         bound_alpha=bound_alpha,
         bound_miss_rate=bound_miss,
+        ami_nodes=ami_nodes if ami_meters > 0 else msgspec.UNSET,
     )
+
+
+def _ami_cols(model: CvvcModel, path: Path, meters: int) -> np.ndarray:
+    """Critical-node indices of the model's AMI meters (``training.ami.ami_placement``); none for 0 meters."""
+    if meters < 0:
+        raise TrainingError(f"{meters} AMI meters: give 0 or more")
+    if meters == 0:
+        return np.zeros(0, int)
+    if model.bounds is None:
+        raise TrainingError(
+            f"model {path.name} has no calibrated bounds, which place the AMI meters: retrain it with "
+            "cvvc train (it calibrates bounds) or run without --ami-meters"
+        )
+    try:
+        return ami_placement(np.asarray(model.bounds.upper_pu), np.asarray(model.bounds.lower_pu), meters)
+    except TrainingError as e:
+        raise TrainingError(f"model {path.name}: {e}") from e
 
 
 def _plot(curves: dict[str, np.ndarray], labels: list[str], path: Path, feeder: str, month: int) -> Path:
