@@ -162,6 +162,11 @@ class FrameAligner:
         self._hold_max = 4 * n_sources
 
     # ---------------------------------------------------------------------------------------- input
+    @property
+    def newest_t_ns(self) -> int | None:
+        """The newest accepted frame's time [ns], None before the first."""
+        return self._newest_t_ns
+
     def add(self, key: str, frame: _Frame | m.StepEnd) -> list[AlignedFrames]:
         """Add one decoded frame or scan-end marker; returns the control-step groups this frame completes or closes.
 

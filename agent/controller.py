@@ -35,6 +35,7 @@ from typing import Literal
 
 import numpy as np
 
+from agent.ami import AmiReadings
 from agent.cvvc_qp import CvvcInputs
 from agent.decision import Decision, DecisionTimings, MeasurementSnapshot
 from agent.errors import AgentInputError
@@ -50,8 +51,7 @@ __all__ = ["CvvcController", "Decision", "DecisionTimings", "MeasurementSnapshot
 #: Plausible ranges; a value outside makes its frame invalid (the schemas bound the wire values already).
 _V120_RANGE = (60.0, 180.0)
 _POWER_LIMIT_KW = 1e6
-OUT_OF_ENVELOPE_WIDEN = 2.0
-"""Factor on the calibrated estimate bounds when the inputs are outside the training envelope (extrapolation)."""
+OUT_OF_ENVELOPE_WIDEN = 2.0  # on the calibrated estimate bounds when the inputs leave the training envelope
 _MIN_BAND_PU = 1e-3  # the narrowest band the estimate bounds leave between a node's limits [pu]
 STALE_PLANT_AGE_S = 150.0
 """A plant's stand-in frame older than this [s] (two lost 1-minute frames and more: an outage, not a dropped frame)
@@ -175,6 +175,7 @@ class CvvcController:
         self._bound_lo = None if b is None else np.asarray(b.lower_pu, float)
         self._bound_hi = None if b is None else np.asarray(b.upper_pu, float)
         self._env = None if b is None else (np.asarray(b.envelope_lo, float), np.asarray(b.envelope_hi, float))
+        self.ami = AmiReadings(model)  # AMI meter readings (explicit option): none unless the bus brings some
         banks = model.capacitors
         self._cap_ids = tuple(c.id for c in banks)
         self._cap_steps_max = np.array([c.steps for c in banks], int)
@@ -195,7 +196,7 @@ class CvvcController:
         if self._bound_lo is None or self._bound_hi is None:
             return None
         widen = OUT_OF_ENVELOPE_WIDEN if out_of_envelope else 1.0
-        return widen * self._bound_lo, widen * self._bound_hi
+        return self.ami.bounds(widen * self._bound_lo, widen * self._bound_hi)
 
     def envelope_problem(self, x: np.ndarray) -> str:
         """The features of ``x`` (M,) outside the training envelope, as text ("" when inside or no envelope)."""
@@ -217,7 +218,6 @@ class CvvcController:
         self._cap_refused_until[c] = max(int(self._cap_refused_until[c]), int(t_ns) + 2 * self._period_ns)
         return True
 
-    # ------------------------------------------------------------------------------------------ helpers
     def _hold(
         self,
         snap: MeasurementSnapshot,
@@ -452,7 +452,6 @@ class CvvcController:
         recent = np.array([p for _, p in self._recent_pv_p])
         return pv_variability_margins_pu(dv_dp_pu_per_kw, pv_p_kw, recent, self._margin_cap_pu)
 
-    # ------------------------------------------------------------------------------------------- decide
     def decide(self, snap: MeasurementSnapshot, oracle: OracleSource | None = None) -> Decision:
         """Decide the actions for one snapshot (see the module docstring for the hold rule).
 
@@ -508,6 +507,7 @@ class CvvcController:
                 head_q_kvar=snap.head_q_kvar, pv_p_kw=pv_p, pv_q_kvar=pv_q, taps=taps, caps=self._cap_last,
                 reg_v120=snap.reg_v120 if self.correction else None, reg_ok=reg_ok,
                 cap_v_v=self._cap_readings(snap, cap_ok), eps_filter=self._correction_filter(snap))
+            state = self.ami.correct(int(snap.t_ns), state)  # AMI readings (explicit option; none: unchanged)
         else:
             reply = oracle(int(snap.t_ns))
             if reply is None:

@@ -101,6 +101,7 @@ class AgentSummary(msgspec.Struct, frozen=True, kw_only=True):
     soft: int = 0
     reasons: dict[str, int] = {}  # why decisions were soft or held, by kind of reason (``reason_kind``)
     decision_ms: dict[str, float] = {}  # the agent's wall time per decision (``decision_time_ms``): p50, p99, max
+    ami: dict[str, int] = {}  # AMI meter readings taken, used and ignored by kind (``agent.ami``; none without meters)
     step_ends: int = 0  # scan-end markers taken (``StepEnd``)
     released_by_step_end: int = 0  # steps with lost frames decided at once, on a marker, not after the late window
     decided_after_late_window: int = 0  # live: control steps decided only once the late-frame window was over
@@ -278,7 +279,10 @@ class DecisionMaker:
         self._dv_dtap = _within_array(np.asarray(model.dv_dtap_pu, float), -1.0, 1.0, 12)  # a model constant
 
     def on_frame(self, key: str, msg: Any) -> list[tuple[AlignedFrames, ControllerDecision]]:
-        """Add a received frame; the decisions of the steps it completes."""
+        """Add a received frame; the decisions of the steps it completes (none for an AMI meter's reading)."""
+        if isinstance(msg, m.MeterFrame):
+            self.controller.ami.add(msg, self.aligner.newest_t_ns)
+            return []
         return [(a, self._decide(a)) for a in self.aligner.add(key, msg)]
 
     def close_pending(self) -> list[tuple[AlignedFrames, ControllerDecision]]:
@@ -371,7 +375,7 @@ class DecisionMaker:
         return c
 
 
-_FRAME_TYPES = (m.HeadFrame, m.PvFrame, m.RegFrame, m.CapFrame, m.StepEnd)  # what the aligner takes (markers too)
+_FRAME_TYPES = (m.HeadFrame, m.PvFrame, m.RegFrame, m.CapFrame, m.StepEnd, m.MeterFrame)  # frames, markers, meters
 
 
 def decide_offline(model: CvvcModel, settings: AgentSettings | None,
@@ -504,6 +508,7 @@ def run_agent(model: CvvcModel, settings: AgentSettings, bus, *, stop: threading
                         log_suppressed=_suppressed(rlog, inbox.rejects.log_suppressed()),
                         soft=maker.soft, reasons=dict(maker.reasons.most_common(20)),
                         decision_ms=decision_time_ms(maker.decision_s),
+                        ami=dict(maker.controller.ami.counts),
                         step_ends=maker.aligner.step_ends, released_by_step_end=maker.aligner.released_by_step_end,
                         decided_after_late_window=late_decided, clock_snapped=maker.aligner.snapped)
 

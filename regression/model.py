@@ -203,6 +203,11 @@ class EstimateBounds(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_f
     calibration_minutes: int
     envelope_lo: list[Finite]
     envelope_hi: list[Finite]
+    # AMI meters (explicit option, ``agent.ami``): the same bounds for a node whose estimate is moved by a meter reading
+    # at most ``ami_interval_s`` old (empty lists: a model calibrated before meters existed)
+    ami_interval_s: int = 0
+    ami_upper_pu: list[Finite] = []
+    ami_lower_pu: list[Finite] = []
 
 
 class CvvcModel(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):

@@ -39,6 +39,7 @@ __all__ = [
     "DeviceMapError",
     "FeederSection",
     "CapacitorSpec",
+    "MeterSpec",
     "PvPlantSpec",
     "RegulatorSpec",
     "load_device_map",
@@ -124,14 +125,31 @@ class PvPlantSpec(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fiel
     profile_lag_min: Annotated[int, Meta(ge=0, le=120)] = 0
 
 
+class MeterSpec(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """An AMI meter at a customer node: beyond the paper's measurements, an explicit option (issue 16).
+
+    It reads the voltage of OpenDSS node ``node`` (``bus.phase``) every ``interval_s`` seconds of simulated time
+    (at multiples of ``interval_s`` since midnight UTC) and its reading reaches the bus as a ``MeterFrame``. The
+    agent corrects its estimate of that node by the reading when the node is critical (``agent.ami``).
+    """
+
+    id: Name
+    node: Annotated[str, Meta(pattern=r"^[A-Za-z0-9_.\-]{1,64}$")]
+    interval_s: Annotated[int, Meta(ge=60, le=86_400)] = 900
+
+
 class DeviceMap(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
-    """A whole device map, as decoded from TOML. ``root`` is the folder the TOML file is in."""
+    """A whole device map, as decoded from TOML. ``root`` is the folder the TOML file is in.
+
+    ``meter``: AMI meters (explicit option); they leave the fingerprint unchanged (training does not use them).
+    """
 
     feeder: FeederSection
     regulator: list[RegulatorSpec] = []
     capacitor: list[CapacitorSpec] = []
     pv: list[PvPlantSpec] = []
     root: str = "."
+    meter: list[MeterSpec] = []
 
     @property
     def master_path(self) -> Path:
@@ -144,7 +162,9 @@ class DeviceMap(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields
         The agent refuses a model whose fingerprint differs from its feeder's.
         """
         h = hashlib.sha256()
-        h.update(msgspec.json.encode(msgspec.structs.replace(self, root=".")))
+        own = msgspec.to_builtins(msgspec.structs.replace(self, root="."))
+        del own["meter"]  # meters do not change what training computes
+        h.update(msgspec.json.encode(own))
         folder = self.master_path.parent
         for f in sorted(folder.rglob("*")):
             if f.is_file() and f.suffix.lower() in {".dss", ".csv", ".dat", ".txt"}:
@@ -172,7 +192,7 @@ def load_device_map(path: str | Path) -> DeviceMap:
         raise DeviceMapError(f"{path}: not valid TOML: {e}") from e
     dm = msgspec.structs.replace(dm, root=str(path.parent.resolve()))
     for kind, ids in (("regulator", [r.id for r in dm.regulator]), ("capacitor", [c.id for c in dm.capacitor]),
-                      ("pv", [p.id for p in dm.pv])):
+                      ("pv", [p.id for p in dm.pv]), ("meter", [x.id for x in dm.meter])):
         dupes = {i for i in ids if ids.count(i) > 1}
         if dupes:
             raise DeviceMapError(f"{path}: duplicate {kind} id(s): {sorted(dupes)}")

@@ -74,6 +74,8 @@ def examples(t_ns: int = T0_NS, seq: int = 1) -> dict[type[msgspec.Struct], msgs
                                valid_until_t_ns=t_ns + 600_000_000_000),
         m.CapCommand: m.CapCommand(t_ns=t_ns, seq=seq, source="agent", cmd_id=f"agent:{seq}:cap1", in_reply_to=seq,
                                    valid_until_t_ns=t_ns + 600_000_000_000, capacitor_id="cap1", closed_steps=1),
+        m.MeterFrame: m.MeterFrame(t_ns=t_ns, seq=seq, source="ami1", meter_id="ami1", node="b0042.1", v_pu=1.012,
+                                   interval_s=900),
         m.OracleRequest: m.OracleRequest(t_ns=t_ns),
         m.OracleReply: m.OracleReply(t_ns=t_ns, seq=seq, source="bridge", feeder_id="rural",
                                      node_names=["b0001.1"], v_pu=[1.01], dv_dq_pu_per_kvar=[[1e-5]],

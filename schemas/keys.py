@@ -6,6 +6,7 @@ Layout, for a feeder id ``F`` and a device id ``D``::
     cvvc/F/meas/pv/D            PvFrame          PV plant inverter
     cvvc/F/meas/vr/D            RegFrame         regulator controller
     cvvc/F/meas/cap/D           CapFrame         capacitor bank (its switch and local control)
+    cvvc/F/meas/ami/D           MeterFrame       AMI meter at a customer node (explicit option, every interval)
     cvvc/F/meas/step            StepEnd          end of a scan: which devices sent a frame for that time
     cvvc/F/cmd/pv/D             PvCommand        agent -> inverter
     cvvc/F/cmd/vr/D             RegCommand       agent -> regulator controller
@@ -42,6 +43,7 @@ __all__ = [
     "cmd",
     "feeder_all",
     "link",
+    "meas_ami",
     "meas_cap",
     "meas_head",
     "meas_pv",
@@ -89,6 +91,11 @@ def meas_pv(feeder: str, plant: str = "*") -> str:
 def meas_vr(feeder: str, regulator: str = "*") -> str:
     """A regulator controller's ``RegFrame`` (bridge -> agent); ``*`` for every regulator."""
     return f"{ROOT}/{_id(feeder)}/meas/vr/{regulator if regulator == '*' else _id(regulator)}"
+
+
+def meas_ami(feeder: str, meter: str = "*") -> str:
+    """An AMI meter's ``MeterFrame`` (bridge -> agent); ``*`` for every meter."""
+    return f"{ROOT}/{_id(feeder)}/meas/ami/{meter if meter == '*' else _id(meter)}"
 
 
 def meas_cap(feeder: str, capacitor: str = "*") -> str:
@@ -169,6 +176,7 @@ _BY_SUFFIX: dict[tuple[str, ...], type[msgspec.Struct]] = {
     ("meas", "pv"): m.PvFrame,
     ("meas", "vr"): m.RegFrame,
     ("meas", "cap"): m.CapFrame,
+    ("meas", "ami"): m.MeterFrame,
     ("meas", "step"): m.StepEnd,
     ("cmd", "pv"): m.PvCommand,
     ("cmd", "vr"): m.RegCommand,

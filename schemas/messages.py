@@ -35,6 +35,7 @@ __all__ = [
     "HeadPhase",
     "LinkStatus",
     "Message",
+    "MeterFrame",
     "MetricsFrame",
     "NodeEstimate",
     "OracleReply",
@@ -198,6 +199,19 @@ class CapFrame(Message, frozen=True, kw_only=True, forbid_unknown_fields=True):
     cmd_id: Annotated[str, Meta(max_length=96)] | None = None
     valid_until_t_ns: TimeNs | None = None
     quality: list[QualityFlag] = []
+
+
+class MeterFrame(Message, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """An AMI meter's voltage reading at a customer node (explicit option beyond the paper; ``MeterSpec``).
+
+    ``node`` is the OpenDSS node (``bus.phase``) the meter reads; ``v_pu`` its voltage [pu of the node's base],
+    read at ``t_ns`` (every ``interval_s`` of the meter, not every step).
+    """
+
+    meter_id: Ident
+    node: Ident
+    v_pu: Pu
+    interval_s: Annotated[int, Meta(ge=60, le=86_400)] = 900
 
 
 # ------------------------------------------------------------------------------------------ commands
@@ -516,4 +530,5 @@ MESSAGE_TYPES: tuple[type[msgspec.Struct], ...] = (
     StepEnd,
     LinkStatus,
     TruthPack,
+    MeterFrame,
 )

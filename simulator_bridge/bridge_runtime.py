@@ -161,7 +161,7 @@ class BridgeRuntime:
             noise_seed=c.noise_seed, metrics=MetricsAccumulator.for_feeder(dm, engine, step_s=self.step_s),
             drop_burst_s=60.0 * c.drop_burst_min, clock_skew_s=c.clock_skew_s,
             caps=tuple((k.capacitor_id, k.index, k.steps, k.kvar_rated, k.control_type) for k in bank.caps.values()),
-            pv_external=tuple(sorted(external)))
+            pv_external=tuple(sorted(external)), meters=_meters(dm, engine.node_names))
         self.steps = self.control_steps = self.misses = self.skipped = self.decisions = 0
         self.late_steps = 0
         self.round_trips: list[float] = []
@@ -405,3 +405,15 @@ class BridgeRuntime:
     def is_control_step(self, step_index: int) -> bool:
         """Whether profile step ``step_index`` is a control step."""
         return step_index % self.control_every == 0
+
+
+def _meters(dm: DeviceMap, node_names: list[str] | tuple[str, ...]) -> tuple[tuple[str, int, int], ...]:
+    """The device map's AMI meters as ``(meter_id, node index, interval_s)``; a node the circuit lacks is an error."""
+    index = {n.lower(): i for i, n in enumerate(node_names)}
+    out = []
+    for meter in dm.meter:
+        i = index.get(meter.node.lower())
+        if i is None:
+            raise BridgeError(f"meter {meter.id}: node {meter.node!r} is not a node of the circuit (bus.phase)")
+        out.append((meter.id, i, meter.interval_s))
+    return tuple(out)

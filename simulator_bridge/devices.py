@@ -437,6 +437,10 @@ class MeasurementNoise:
         return (max(float(v_v * (1 + n[0])), 0.0),
                 None if control_value is None else float(control_value * (1 + n[1])))
 
+    def meter(self, v_pu: float) -> float:
+        """Noisy AMI meter reading [pu]; PMU class (revenue meters measure voltage to about 0.1 %)."""
+        return max(float(v_pu * (1 + self._gauss((1,), self.pmu)[0])), 0.0)
+
     def regulator(self, v120: float, v_compared_120: float) -> tuple[float, float]:
         """Noisy raw and compared secondary voltages [V on the 120 V base]; SCADA class."""
         n = self._gauss((2,), self.scada)

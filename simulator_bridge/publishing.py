@@ -99,7 +99,8 @@ class FramerSpec:
     independently). clock_skew_s : the devices' clocks are this far off the bridge's [s]: every frame and scan
     end marker is stamped ``t + clock_skew_s`` (the truth, metrics and command checks keep the bridge's time).
     pv_external : plants whose frames an adapter publishes (``simulator_bridge.sunspec_fleet``): no frame here, but
-    listed in the step's ``StepEnd``, so the agent waits for the adapter's.
+    listed in the step's ``StepEnd``, so the agent waits for the adapter's. meters : AMI meters (``MeterSpec``):
+    each puts a ``MeterFrame`` of its node's voltage at the steps whose time is a multiple of its interval.
     """
 
     feeder_id: str
@@ -123,6 +124,7 @@ class FramerSpec:
     drop_burst_s: float = 0.0
     clock_skew_s: float = 0.0
     pv_external: tuple[str, ...] = ()
+    meters: tuple[tuple[str, int, int], ...] = ()  # AMI meters (explicit option): (meter_id, node index, interval_s)
 
     def is_control_t(self, t_ns: int) -> bool:
         """Whether the step at ``t_ns`` [ns since the UTC epoch] is a control step.
@@ -174,6 +176,7 @@ class StepFramer:
                        for pv in self.pvs]  # an external plant's frames are its adapter's
         self.pub_vr = [FramePublisher(session, keys.meas_vr(f, reg.regulator_id)) for reg in self.regs]
         self.pub_cap = [FramePublisher(session, keys.meas_cap(f, cap.capacitor_id)) for cap in self.caps]
+        self.pub_ami = [FramePublisher(session, keys.meas_ami(f, mid)) for mid, _, _ in s.meters]
         self.pub_step = FramePublisher(session, keys.meas_step(f))  # same QoS as the frames: queued behind them
         self.pub_truth = FramePublisher(session, keys.sim_truth(f), reliable=True, wire=m.wire_of(m.TruthPack))
         self.pub_metrics = FramePublisher(session, keys.sim_metrics(f), reliable=True)
@@ -248,6 +251,8 @@ class StepFramer:
         head = dv.head_frame(feeder_id=self.spec.feeder_id, t_ns=t, seq=seqs["head"], v_mag_v=hv, v_ang_deg=ha,
                              i_mag_a=hi, i_ang_deg=hia, p_kw=hp, q_kvar=hq)
         head_sent = send(self.pub_head, head, now_s)
+        if self.spec.meters:  # before the device frames: the agent has a reading before the step's group completes
+            self._meter_frames(res, t, send, now_s)
         pv_p, pv_q, pv_v = rd.pv_p_kw, rd.pv_q_kvar, rd.pv_v_v
         if noise is None:
             pv_p, pv_q, pv_v = pv_p.tolist(), pv_q.tolist(), pv_v.tolist()
@@ -285,6 +290,19 @@ class StepFramer:
         self._step_end(t, head_sent, sent, now_s)
         if len(self.delay):
             self.flush(now_s)
+
+    def _meter_frames(self, res: Any, t: int, send: Any, now_s: float) -> None:
+        """The AMI meters' frames of one step: a meter reads when the step's time is a multiple of its interval."""
+        t_s = int(res.t_ns) // _NS
+        for (meter_id, node, interval_s), pub in zip(self.spec.meters, self.pub_ami, strict=True):
+            if t_s % interval_s:
+                continue
+            v = float(res.v_pu[node])
+            if self.noise is not None:
+                v = self.noise.meter(v)
+            self.seqs[f"ami:{meter_id}"] += 1
+            send(pub, m.MeterFrame(t_ns=t, seq=self.seqs[f"ami:{meter_id}"], source=meter_id, meter_id=meter_id,
+                                   node=self.spec.node_names[node], v_pu=min(v, 3.0), interval_s=interval_s), now_s)
 
     def _cap_frames(self, rd: Any, t: int, settings: DeviceSettings, send: Any, now_s: float) -> list[str]:
         """The capacitor banks' frames of one step (states exact; voltage and control reading SCADA class); the

@@ -13,6 +13,9 @@ so ``[estimate - lower, estimate + upper]`` holds the true voltage in at least `
 minutes (split conformal prediction; Lei et al. 2018). Minutes of one window are correlated, so the guarantee is
 approximate: ``cvvc report accuracy`` reports the realised rate on another year. The agent tightens each critical
 node's limits by its bounds (``agent.controller``), and widens them when its inputs leave the training envelope.
+
+The same minutes give each node's bounds when an AMI meter reads it every 15 minutes (explicit option,
+``agent.ami``): the quantiles of ``err(t) - err(r) - noise`` with ``r`` the latest reading before ``t``.
 """
 
 from __future__ import annotations
@@ -24,12 +27,18 @@ import numpy as np
 from regression.batch import estimate_v_pu
 from regression.model import CvvcModel, EstimateBounds, ModelArrays
 
-__all__ = ["CALIBRATION_WINDOWS", "calibrate_bounds", "conformal_quantile", "envelope"]
+__all__ = [
+    "AMI_INTERVAL_S", "CALIBRATION_WINDOWS", "ami_residual", "calibrate_bounds", "conformal_quantile", "envelope",
+]
 
 #: (month, day, local hour) of the calibration windows: one per month, the hour moving through the day.
 CALIBRATION_WINDOWS = tuple((month, 10 + month, (5 + 2 * month) % 24) for month in range(1, 13))
 _WARMUP_MIN = 30  # minutes simulated and dropped before each window: the regulators settle from training's taps
 _ENVELOPE_SLACK = 0.05  # the envelope is the training range widened by this share of it on each side
+#: AMI bounds (explicit option, ``agent.ami``): a reading every 15 minutes, revenue-meter noise (0.1 %), seeded.
+AMI_INTERVAL_S = 900
+AMI_NOISE_PU = 0.001
+AMI_NOISE_SEED = 20261127
 
 
 def conformal_quantile(scores: np.ndarray, level: float) -> np.ndarray:
@@ -78,16 +87,20 @@ def calibrate_bounds(model: CvvcModel, engine, profiles, *, training_steps: np.n
     nodes = np.asarray([names[c.name] for c in model.critical_nodes], int)
     arrays = ModelArrays.of(model)
     held_out = set(np.asarray(training_steps, int).tolist())
-    residuals = []
+    residuals, ami_residuals = [], []
+    rng = np.random.default_rng(AMI_NOISE_SEED)
     for month, day, hour in CALIBRATION_WINDOWS:
         first = month_steps(profiles, month).start + (day - 1) * 1440 + hour * 60
         steps = range(first - _WARMUP_MIN, min(first + per_window, profiles.n_steps))
         truth = simulate_month(engine, profiles, steps, nodes, sens_minutes=0, progress=progress)
         keep = np.array([s >= first and s not in held_out for s in truth.steps])
-        est = estimate_v_pu(arrays, truth.features[keep], truth.taps[keep], truth.reg_v120[keep],
-                            caps=truth.cap_states[keep], cap_v_v=truth.cap_v_v[keep], t_ns=truth.t_ns[keep])
-        residuals.append(truth.v_pu[keep] - est)
+        est = estimate_v_pu(arrays, truth.features, truth.taps, truth.reg_v120, caps=truth.cap_states,
+                            cap_v_v=truth.cap_v_v, t_ns=truth.t_ns)  # row by row: the warm-up rows too
+        err = truth.v_pu - est
+        residuals.append(err[keep])
+        ami_residuals.append(ami_residual(err, truth.t_ns, keep, AMI_INTERVAL_S, AMI_NOISE_PU, rng))
     r = np.concatenate(residuals)
+    r_ami = np.concatenate(ami_residuals)
     lo, hi = envelope(np.asarray(training_features, float))
     return EstimateBounds(
         alpha=float(alpha),
@@ -96,4 +109,26 @@ def calibrate_bounds(model: CvvcModel, engine, profiles, *, training_steps: np.n
         calibration_minutes=int(r.shape[0]),
         envelope_lo=[float(x) for x in lo],
         envelope_hi=[float(x) for x in hi],
+        ami_interval_s=AMI_INTERVAL_S if r_ami.shape[0] else 0,
+        ami_upper_pu=[float(x) for x in conformal_quantile(r_ami, 1.0 - alpha / 2.0)] if r_ami.shape[0] else [],
+        ami_lower_pu=[float(x) for x in conformal_quantile(-r_ami, 1.0 - alpha / 2.0)] if r_ami.shape[0] else [],
     )
+
+
+def ami_residual(err: np.ndarray, t_ns: np.ndarray, keep: np.ndarray, interval_s: int, noise_pu: float,
+                 rng: np.random.Generator) -> np.ndarray:
+    """Errors (true - estimate) of the ``keep`` rows after an AMI reading's correction (``agent.ami``).
+
+    ``err`` (T, N) over consecutive minutes at ``t_ns`` (T,). A meter reads at the minutes whose time is a multiple
+    of ``interval_s``, with Gaussian noise ``noise_pu``; a kept row ``t`` is corrected by the latest reading strictly
+    before it (the agent may not have a reading of its own minute yet): ``err(t) - err(r) - noise(r)``. Kept rows
+    without an earlier reading in the window are left out.
+    """
+    read = np.flatnonzero((np.asarray(t_ns, np.int64) // 1_000_000_000) % interval_s == 0)
+    if read.size == 0:
+        return np.zeros((0, err.shape[1]))
+    noise = rng.normal(0.0, noise_pu, size=(read.size, err.shape[1]))
+    rows = np.flatnonzero(keep)
+    k = np.searchsorted(read, rows, side="left") - 1  # the latest reading strictly before each kept row
+    ok = k >= 0
+    return err[rows[ok]] - err[read[k[ok]]] - noise[k[ok]]

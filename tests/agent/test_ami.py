@@ -1,0 +1,87 @@
+"""AMI meter readings in the agent (``agent.ami``) and their calibrated bounds (``training.calibration``)."""
+
+from __future__ import annotations
+
+import msgspec
+import numpy as np
+import pytest
+
+from agent.ami import AmiReadings
+from agent.state import GridState
+from regression.model import read_model
+from schemas import messages as m
+from training.calibration import ami_residual
+
+_NS = 1_000_000_000
+T0 = 1_688_983_200 * _NS  # 2023-07-10 10:00 UTC, a multiple of 15 minutes
+
+
+@pytest.fixture(scope="module")
+def model(ieee13_model):
+    return read_model(ieee13_model)
+
+
+def _state(v: np.ndarray) -> GridState:
+    n = v.size
+    return GridState(v0_pu=v, dv_dq_pu_per_kvar=np.zeros((n, 1)), dv_dtap_pu=np.zeros((n, 1)),
+                     dv_dp_pu_per_kw=np.zeros((n, 1)), taps=np.zeros(1, int), corrected=True, critical=True)
+
+
+def _frame(node: str, t_ns: int, v_pu: float, interval_s: int = 900) -> m.MeterFrame:
+    return m.MeterFrame(t_ns=t_ns, seq=1, source="ami1", meter_id="ami1", node=node, v_pu=v_pu, interval_s=interval_s)
+
+
+def test_a_reading_moves_its_node_by_its_offset_to_the_estimate_of_its_minute(model):
+    ami = AmiReadings(model)
+    n, node = len(model.critical_nodes), model.critical_nodes[2].name
+    est0 = np.full(n, 1.01)
+    assert ami.correct(T0, _state(est0)).v0_pu.tolist() == est0.tolist()  # no reading yet: unchanged
+    assert ami.add(_frame(node.upper(), T0, 1.03), T0) is None  # node names are case-insensitive (OpenDSS)
+    est1 = np.full(n, 1.02)
+    v = ami.correct(T0 + 300 * _NS, _state(est1)).v0_pu
+    assert v[2] == pytest.approx(1.03 + (1.02 - 1.01)) and np.delete(v, 2).tolist() == np.delete(est1, 2).tolist()
+    assert ami.fresh.tolist() == [i == 2 for i in range(n)] and ami.tight[2]
+    lo, hi = ami.bounds(np.full(n, 0.05), np.full(n, 0.05))
+    b = model.bounds
+    assert lo[2] == min(0.05, b.ami_lower_pu[2]) and hi[2] == min(0.05, b.ami_upper_pu[2])
+    assert np.delete(lo, 2).tolist() == [0.05] * (n - 1)
+
+
+def test_old_foreign_and_implausible_readings_are_counted_and_never_used(model):
+    ami = AmiReadings(model)
+    n, node = len(model.critical_nodes), model.critical_nodes[0].name
+    ami.correct(T0, _state(np.full(n, 1.0)))
+    assert "not a critical node" in ami.add(_frame("nowhere.1", T0, 1.0), T0)
+    assert "outside" in ami.add(_frame(node, T0, 1.7), T0)
+    assert "future" in ami.add(_frame(node, T0 + 3600 * _NS, 1.0), T0)
+    assert ami.add(_frame(node, T0, 1.02), T0) is None
+    assert "not newer" in ami.add(_frame(node, T0, 1.04), T0)
+    assert ami.correct(T0 + 300 * _NS, _state(np.full(n, 1.0))).v0_pu[0] == pytest.approx(1.02)
+    stale = ami.correct(T0 + 2 * 900 * _NS + 300 * _NS, _state(np.full(n, 1.0)))  # older than two intervals
+    assert stale.v0_pu[0] == 1.0 and not ami.fresh.any()
+    assert {k: ami.counts[k] for k in ("ami_not_critical", "ami_out_of_range", "ami_future", "ami_not_newer")} == {
+        "ami_not_critical": 1, "ami_out_of_range": 1, "ami_future": 1, "ami_not_newer": 1}
+
+
+def test_a_model_without_ami_bounds_keeps_the_ordinary_bounds_of_a_metered_node(model):
+    bare = msgspec.structs.replace(model, bounds=msgspec.structs.replace(model.bounds, ami_interval_s=0,
+                                                                          ami_upper_pu=[], ami_lower_pu=[]))
+    ami = AmiReadings(bare)
+    n, node = len(model.critical_nodes), model.critical_nodes[1].name
+    ami.correct(T0, _state(np.full(n, 1.0)))
+    ami.add(_frame(node, T0, 1.01), T0)
+    assert ami.correct(T0 + 300 * _NS, _state(np.full(n, 1.0))).v0_pu[1] == pytest.approx(1.01)
+    lo, hi = np.full(n, 0.02), np.full(n, 0.03)
+    assert [x.tolist() for x in ami.bounds(lo, hi)] == [lo.tolist(), hi.tolist()]
+
+
+def test_calibrations_ami_residual_is_the_error_change_since_the_last_earlier_reading():
+    t_ns = T0 + np.arange(40) * 60 * _NS  # readings at rows 0, 15, 30
+    err = np.arange(40, dtype=float)[:, None] * np.array([[1e-4, -2e-4]])
+    keep = np.zeros(40, bool)
+    keep[[0, 1, 15, 16, 39]] = True
+    r = ami_residual(err, t_ns, keep, 900, 0.0, np.random.default_rng(0))
+    # row 0 has no earlier reading (left out); 1 -> 0, 15 -> 0 (strictly before), 16 -> 15, 39 -> 30
+    assert r.shape == (4, 2)
+    np.testing.assert_allclose(r[:, 0], np.array([1, 15, 1, 9]) * 1e-4)
+    np.testing.assert_allclose(r[:, 1], np.array([1, 15, 1, 9]) * -2e-4)
