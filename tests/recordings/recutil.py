@@ -31,6 +31,7 @@ EXAMPLE_KEYS: dict[type, str] = {
     m.OracleRequest: "test/oracle_request",
     m.OracleReply: keys.sim_oracle(FEEDER),
     m.CapFrame: keys.meas_cap(FEEDER, "cap1"),
+    m.MeterFrame: keys.meas_ami(FEEDER, "ami1"),
     m.CapCommand: keys.cmd(FEEDER, "cap", "cap1"),
     m.StepEnd: keys.meas_step(FEEDER),
     m.LinkStatus: keys.link(FEEDER, "pv", "pv1"),
