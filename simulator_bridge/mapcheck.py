@@ -36,8 +36,8 @@ def check_device_map(dm: DeviceMap, survey: CircuitSurvey) -> list[str]:
     """Every problem of ``dm`` against ``survey``, one line each (empty: the map fits its circuit).
 
     Checked: source bus, head element (and its zone), RegControls, Capacitors and their CapControls, PV buses
-    (existence, three phases for a three-phase plant, inside the zone, ``kv_ll`` against the bus base voltage) and
-    existing PVSystems.
+    (existence, three phases for a three-phase plant, inside the zone, ``kv_ll`` against the bus base voltage),
+    existing PVSystems and AMI meters' nodes (``bus.phase`` of the circuit, inside the zone).
     """
     out: list[str] = []
     master = survey.master.rsplit("/", 1)[-1]
@@ -97,4 +97,15 @@ def check_device_map(dm: DeviceMap, survey: CircuitSurvey) -> list[str]:
         if not p.create and (p.pvsystem or "").lower() not in pvsystems:
             out.append(f"pv {p.id!r}: PVSystem {p.pvsystem!r} not found in {master}; {_close(pvsystems, 'PVSystem')}"
                        " (or set create = true to add the plant)")
+    for meter in dm.meter:  # AMI meters (explicit option): a node is ``bus.phase``
+        name, _, phase = meter.node.lower().rpartition(".")
+        b = bus.get(name)
+        if b is None or not phase.isdigit() or int(phase) not in b.phases:
+            where = (f"bus {name!r} not found" if b is None else
+                     f"bus {name!r} has phase(s) {list(b.phases)}, not {phase!r}")
+            out.append(f"meter {meter.id!r}: node {meter.node!r} is not a node of {master} ({where}); name it "
+                       "bus.phase")
+        elif zone is not None and name not in zone.buses:
+            out.append(f"meter {meter.id!r}: node {meter.node!r} is outside the feeder zone (not downstream of "
+                       f"{f.head_element}); the agent only corrects its critical nodes, which are inside")
     return out

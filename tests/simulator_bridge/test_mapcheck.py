@@ -18,6 +18,7 @@ IEEE13 = (REPO / "feeders" / "ieee13.toml").read_text().replace(
     f'master = "{(SHARED_FEEDERS / "ieee13" / "IEEE13Nodeckt.dss").as_posix()}"')
 
 CAPS = '\n[[capacitor]]\nid = "cap1"\ncapacitor = "cap1"\n'
+METER = '\n[[meter]]\nid = "ami1"\nnode = "675.1"\n'
 
 # (what is changed in the IEEE 13 map, the one line expected)
 BROKEN = [
@@ -38,6 +39,12 @@ BROKEN = [
      r"capacitor 'cap1': Capacitor 'cap7' not found in IEEE13Nodeckt.dss; known: cap1, cap2"),
     ((CAPS, CAPS + 'capcontrol = "cc1"\n'),
      r"capacitor 'cap1': CapControl 'cc1' does not control Capacitor 'cap1' in IEEE13Nodeckt.dss; remove capcontrol"),
+    ((METER, METER.replace('"675.1"', '"675x.1"')),
+     r"meter 'ami1': node '675x.1' is not a node of IEEE13Nodeckt.dss (bus '675x' not found); name it bus.phase"),
+    ((METER, METER.replace('"675.1"', '"611.1"')),
+     r"meter 'ami1': node '611.1' is not a node of IEEE13Nodeckt.dss (bus '611' has phase(s) [3], not '1')"),
+    ((METER, METER.replace('"675.1"', '"650.1"')),
+     r"meter 'ami1': node '650.1' is outside the feeder zone (not downstream of Line.650632)"),
 ]
 
 
@@ -56,7 +63,7 @@ def info(tmp_path, capsys):
 
 
 def test_a_good_map_is_described_with_its_zone(info):
-    code, out, err = info(IEEE13 + CAPS, "--json")
+    code, out, err = info(IEEE13 + CAPS + METER, "--json")  # an AMI meter at a node of the zone is fine
     assert code == 0, err
     d = json.loads(out)
     assert d["peak_load_kw"] == 3466.0 and d["loads"] == 15 and d["outside_loads"] == 0
@@ -66,7 +73,7 @@ def test_a_good_map_is_described_with_its_zone(info):
 
 @pytest.mark.parametrize(("change", "line"), BROKEN, ids=[b[1].split(":")[0] + str(i) for i, b in enumerate(BROKEN)])
 def test_each_problem_is_one_line_that_says_how_to_mend_it(info, change, line):
-    base = IEEE13 + CAPS
+    base = IEEE13 + CAPS + METER
     assert change[0] in base
     code, out, err = info(base.replace(change[0], change[1], 1))
     assert code == 2 and out == ""
