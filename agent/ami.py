@@ -28,7 +28,7 @@ from schemas import messages as m
 
 __all__ = ["AmiReadings"]
 
-#: Estimates kept per decision step to pair with readings: a day of 5-minute control periods.
+#: Decisions whose estimates are kept to pair with readings (a day of 5-minute control periods).
 HISTORY_STEPS = 288
 #: Future time a reading may carry (clock skew between meter and agent) [ns].
 FUTURE_TOLERANCE_NS = 60 * 1_000_000_000
@@ -51,6 +51,7 @@ class AmiReadings:
         self._lo = None if b is None or not b.ami_lower_pu else np.asarray(b.ami_lower_pu, float)
         self._hi = None if b is None or not b.ami_upper_pu else np.asarray(b.ami_upper_pu, float)
         self._max_age_multiple = float(max_age_multiple)
+        self._period_ns = int(model.control_period_s) * 1_000_000_000  # a reading pairs with a decision this close
         self.latest: dict[int, tuple[int, float, int]] = {}  # node -> (t_ns, v_pu, interval_s)
         self._history: OrderedDict[int, np.ndarray] = OrderedDict()  # decision t_ns -> estimate (before AMI)
         self.fresh = np.zeros(n, bool)  # nodes whose estimate a reading corrected at the last decision
@@ -107,12 +108,8 @@ class AmiReadings:
         return (np.where(self.tight, np.minimum(lo, self._lo), lo), np.where(self.tight, np.minimum(hi, self._hi), hi))
 
     def _estimate_at(self, t_r: int) -> np.ndarray | None:
-        """The estimate of the latest decision at or before ``t_r`` within one step's slack (5 minutes)."""
-        best = None
+        """The estimate of the latest decision at or before ``t_r``, if within one control period of it."""
         for t, v in reversed(self._history.items()):
             if t <= t_r:
-                best = (t, v)
-                break
-        if best is None or t_r - best[0] > 300 * 1_000_000_000:
-            return None
-        return best[1]
+                return v if t_r - t <= self._period_ns else None
+        return None

@@ -5,6 +5,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 from cvvc.reference import REFERENCE_CASE
+from cvvc.run_report import top_reasons
 
 if TYPE_CHECKING:
     from cvvc.evaluate import Evaluation, RunResult
@@ -102,8 +103,7 @@ def render_results_md(ev: Evaluation) -> str:
                                             "p50 [ms]", "p99 [ms]", "max [ms]"]) + " |",
                   "|" + "---|" * (len(head) + 7)]
         for r in agent_runs:
-            top = max(r.reasons.items(), key=lambda kv: kv[1], default=("", 0))
-            why = f"{top[1]} x {top[0]}".replace("|", "/") if top[1] else ""
+            why = top_reasons(r.reasons, 1).replace("|", "/") if r.reasons else ""
             ms = [f"{r.decision_ms[k]:.1f}" if k in r.decision_ms else "" for k in ("p50", "p99", "max")]
             lines.append("| " + " | ".join(_row_label(r, robust, bands) + [
                 str(r.decisions), f"{r.soft} ({r.soft / r.decisions:.0%})", str(r.holds), why] + ms) + " |")

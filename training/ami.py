@@ -68,6 +68,7 @@ def ami_estimate_v_pu(
     noise_pu: float,
     latency_min: int,
     seed: int = AMI_SEED,
+    rng: np.random.Generator | None = None,
 ) -> np.ndarray:
     """Corrected estimates at metered nodes, shifted by the latest usable meter reading's residual.
 
@@ -78,7 +79,7 @@ def ami_estimate_v_pu(
     interval_min : minutes between readings (>= 1); readings at rows 0, I, 2I, ...
     noise_pu : standard deviation of the Gaussian reading noise [pu] (>= 0).
     latency_min : minutes from a reading to its use (>= 0).
-    seed : seed of the noise.
+    seed : seed of the noise. rng : draw the noise from this generator instead (a caller's run of windows).
 
     Returns
     -------
@@ -92,7 +93,7 @@ def ami_estimate_v_pu(
     read_rows = t[::interval_min]
     readings = true[read_rows].copy()
     if noise_pu > 0:
-        readings += np.random.default_rng(seed).normal(0.0, noise_pu, size=readings.shape)
+        readings += (np.random.default_rng(seed) if rng is None else rng).normal(0.0, noise_pu, size=readings.shape)
     out = est.copy()
     usable = t >= latency_min
     if not usable.any():

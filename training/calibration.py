@@ -26,6 +26,7 @@ import numpy as np
 
 from regression.batch import estimate_v_pu
 from regression.model import CvvcModel, EstimateBounds, ModelArrays
+from training.ami import ami_estimate_v_pu
 
 __all__ = [
     "AMI_INTERVAL_S", "CALIBRATION_WINDOWS", "ami_residual", "calibrate_bounds", "conformal_quantile", "envelope",
@@ -122,13 +123,16 @@ def ami_residual(err: np.ndarray, t_ns: np.ndarray, keep: np.ndarray, interval_s
     ``err`` (T, N) over consecutive minutes at ``t_ns`` (T,). A meter reads at the minutes whose time is a multiple
     of ``interval_s``, with Gaussian noise ``noise_pu``; a kept row ``t`` is corrected by the latest reading strictly
     before it (the agent may not have a reading of its own minute yet): ``err(t) - err(r) - noise(r)``. Kept rows
-    without an earlier reading in the window are left out.
+    without an earlier reading in the window are left out. The rule is ``training.ami.ami_estimate_v_pu``'s (the
+    accuracy report's) with a minute of latency, from the window's first reading on.
     """
     read = np.flatnonzero((np.asarray(t_ns, np.int64) // 1_000_000_000) % interval_s == 0)
     if read.size == 0:
         return np.zeros((0, err.shape[1]))
-    noise = rng.normal(0.0, noise_pu, size=(read.size, err.shape[1]))
+    first = int(read[0])
+    # estimate 0 and truth err: the shifted estimate is err(r) + noise(r), so err - shifted is the residual
+    shifted = ami_estimate_v_pu(np.zeros_like(err[first:]), err[first:], interval_min=interval_s // 60,
+                                noise_pu=noise_pu, latency_min=1, rng=rng)
     rows = np.flatnonzero(keep)
-    k = np.searchsorted(read, rows, side="left") - 1  # the latest reading strictly before each kept row
-    ok = k >= 0
-    return err[rows[ok]] - err[read[k[ok]]] - noise[k[ok]]
+    rows = rows[rows > first]
+    return err[rows] - shifted[rows - first]

@@ -91,3 +91,14 @@ def test_the_sessions_decisions_replay_bit_for_bit_with_the_readings(ami_run, tm
     assert proc.returncode == 0, proc.stderr[-3000:]
     diff = json.loads(proc.stdout)["diff"]
     assert diff["identical"] == diff["recorded"] == 12
+
+
+def test_the_epri_ckt24_ami_map_is_epri_ckt24_plus_its_meters():
+    """``feeders/epri-ckt24-ami.toml`` is a copy with meters: it must not drift from the map it copies."""
+    from msgspec.structs import replace
+
+    base = load_device_map(REPO / "feeders" / "epri-ckt24.toml")
+    ami = load_device_map(REPO / "feeders" / "epri-ckt24-ami.toml")
+    assert [x.node for x in ami.meter] == ["g2100gi2700_n292330_sec_1.3", "g2100nj7400_n300463_sec_1.1",
+                                           "g2000vh9100_n283615_sec_2.3"]
+    assert replace(ami, meter=[]) == base and ami.fingerprint() == base.fingerprint()
