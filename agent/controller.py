@@ -42,7 +42,14 @@ from agent.errors import AgentInputError
 from agent.setpoints import expected_compared_v120, setpoint_for_tap_change
 from agent.solve import CvvcSolution, WarmStart, solve_cvvc
 from agent.stale_plants import StalePlants, stale_rise_pu
-from agent.state import CorrectionFilter, GridState, OracleSource, estimated_state, oracle_state
+from agent.state import (
+    CorrectionFilter,
+    GridState,
+    OracleSource,
+    estimated_state,
+    filter_gap_bounds_pu,
+    oracle_state,
+)
 from regression.estimator import SensitivityTable, dv_dp_pu_per_kw, pv_variability_margins_pu
 from regression.model import CvvcModel, ModelArrays, features
 
@@ -117,6 +124,7 @@ class CvvcController:
         filtered_setpoints: bool = False,
         stale_plants: bool = False,
         command_valid_periods: float = 2.0,
+        bounds_cover_filter: bool = False,
     ) -> None:
         if mode not in ("taps", "setpoints"):
             raise AgentInputError(f"mode must be 'taps' or 'setpoints', not {mode!r}")
@@ -135,6 +143,7 @@ class CvvcController:
             raise AgentInputError(f"sensitivity_error must be within 0 to 1, not {sensitivity_error}")
         self.sensitivity_error = float(sensitivity_error)
         self.bounds_in_margin = bool(bounds_in_margin)
+        self.bounds_cover_filter = bool(bounds_cover_filter)
         self.model = model
         self.mode = mode
         self._eps_filter = (CorrectionFilter(len(model.regulators),
@@ -175,6 +184,8 @@ class CvvcController:
         self._bound_lo = None if b is None else np.asarray(b.lower_pu, float)
         self._bound_hi = None if b is None else np.asarray(b.upper_pu, float)
         self._env = None if b is None else (np.asarray(b.envelope_lo, float), np.asarray(b.envelope_hi, float))
+        # this decision's eq. (6) correction as computed minus as applied through the filter, per regulator [pu]
+        self._filter_gap_pu = np.zeros(len(model.regulators))
         self.ami = AmiReadings(model)  # AMI meter readings (explicit option): none unless the bus brings some
         banks = model.capacitors
         self._cap_ids = tuple(c.id for c in banks)
@@ -196,7 +207,10 @@ class CvvcController:
         if self._bound_lo is None or self._bound_hi is None:
             return None
         widen = OUT_OF_ENVELOPE_WIDEN if out_of_envelope else 1.0
-        return self.ami.bounds(widen * self._bound_lo, widen * self._bound_hi)
+        lo, hi = widen * self._bound_lo, widen * self._bound_hi
+        if self.bounds_cover_filter:
+            lo, hi = filter_gap_bounds_pu(lo, hi, self._filter_gap_pu, self._arrays.upstream_regulator)
+        return self.ami.bounds(lo, hi)
 
     def envelope_problem(self, x: np.ndarray) -> str:
         """The features of ``x`` (M,) outside the training envelope, as text ("" when inside or no envelope)."""
@@ -295,11 +309,25 @@ class CvvcController:
         step's own readings are applied as they are (``CorrectionFilter``).
         """
         filt = self._eps_filter
+        self._filter_gap_pu = np.zeros(len(self._reg_ids))
         if filt is None:
             return None
         fresh = np.full(len(self._reg_ids), True) if snap.reg_fresh is None else np.asarray(snap.reg_fresh, bool)
         inputs_fresh = bool(snap.head_fresh) and (snap.pv_fresh is None or bool(np.all(snap.pv_fresh)))
-        return lambda eps, ok: filt(eps, ok, fresh, inputs_fresh=inputs_fresh)
+
+        # eq. (6) from this step's own reading differs from eq. (6) from the averaged one by the readings' difference
+        now = (np.full(len(self._reg_ids), np.nan) if snap.reg_v120_now is None
+               else np.asarray(snap.reg_v120_now, float))
+        to_now_pu = (now - np.asarray(snap.reg_v120, float)) * self._arrays.reg_pu_per_v120
+
+        def apply(eps: np.ndarray, ok: np.ndarray) -> np.ndarray:
+            applied = filt(eps, ok, fresh, inputs_fresh=inputs_fresh)
+            inst = np.asarray(eps, float) + to_now_pu
+            own = np.asarray(ok, bool) & fresh & np.isfinite(inst)
+            self._filter_gap_pu = np.where(own, inst - applied, 0.0)
+            return applied
+
+        return apply
 
     def _compared_v120(self, snap: MeasurementSnapshot, state: GridState, reg_ok: np.ndarray) -> np.ndarray:
         """(R,) the compared voltages eq. (8) starts from [V on the 120 V base]: the readings, or with

@@ -45,6 +45,8 @@ class MeasurementSnapshot:
         a lost frame); None: every reading is.
     head_fresh : the head frame is this step's own.
     pv_fresh : (K,) bool, the plant's frame is this step's own (not a last-good one); None: every frame is.
+    reg_v120_now : (R,) the raw secondary voltage of the regulator's own frame of this step [V on 120 V base] (NaN
+        without one), before any averaging: what the calibrated bounds assume eq. (6) starts from; None: unknown.
     pv_age_s : (K,) how old each plant's frame is at the step [s] (0 for its own); None: unknown (a stand-in is
         then taken as old).
     """
@@ -68,6 +70,7 @@ class MeasurementSnapshot:
     reg_fresh: np.ndarray | None = None
     head_fresh: bool = True
     pv_fresh: np.ndarray | None = None
+    reg_v120_now: np.ndarray | None = None
     pv_age_s: np.ndarray | None = None
 
 

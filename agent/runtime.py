@@ -78,6 +78,8 @@ class AgentSettings(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fi
     sensitivity_error: float = 0.3  # soft form: relative error of the estimated Q sensitivities [-]; 0: eq. (17)
     # (epri-ckt24, first winter day: plants pulling against each other, Q cost 2,130 -> 57 at NVV 435 -> 441)
     bounds_in_margin: bool = True  # the estimate bounds tighten a limit only past the optimization/judged gap
+    bounds_cover_filter: bool = True  # the estimate bounds cover eq. (6) as computed and as filtered
+    # (agent.state.filter_gap_bounds_pu; epri-m1 case D, 1 July: 37 % of node-decisions outside the bounds without)
     stale_plants: bool = True  # a plant behind a stale frame: P projected, Q our command, not raised, margin
     # for its P (agent.stale_plants)
     # (rural winter week, 5 % lost in 10-minute outages: NVV 3 -> 0, NTC 72 -> 25; 20 % outages: NTC 98 -> 70)
@@ -191,7 +193,13 @@ def snapshot_from(aligned: AlignedFrames, model: CvvcModel, *, reading_window_s:
         pv_kva_available=pv_kva, pv_q_setpoint_kvar=pv_sp, reg_v120=reg_v, reg_v120_compared=reg_vc,
         reg_tap=reg_tap, head_valid=head is not None, pv_valid=pv_ok, reg_valid=reg_ok,
         cap_steps=cap_steps, cap_valid=cap_ok, cap_v_v=cap_v, reg_fresh=reg_fresh, head_fresh=aligned.head is not None,
-        pv_fresh=np.array([plant.id in aligned.pv for plant in model.pv], bool), pv_age_s=pv_age)
+        pv_fresh=np.array([plant.id in aligned.pv for plant in model.pv], bool), pv_age_s=pv_age,
+        reg_v120_now=np.array([_own_reading(aligned.vr.get(reg.id)) for reg in model.regulators], float))
+
+
+def _own_reading(frame: m.RegFrame | None) -> float:
+    """A regulator's own frame's raw secondary voltage [V on 120 V base]; NaN without a frame or a phase."""
+    return float(frame.phases[0].v_120) if frame is not None and frame.phases else float("nan")
 
 
 def _fitted_readings(aligned: AlignedFrames, reg_id: str, now: m.RegFrame, head: m.HeadFrame,
@@ -267,7 +275,8 @@ class DecisionMaker:
                                          bounds_in_margin=settings.bounds_in_margin,
                                          filtered_setpoints=settings.filtered_setpoints,
                                          stale_plants=settings.stale_plants,
-                                         command_valid_periods=settings.valid_intervals)
+                                         command_valid_periods=settings.valid_intervals,
+                                         bounds_cover_filter=settings.bounds_cover_filter)
         self.oracle: OracleSource | None = None  # case A: set by the live runtime once its session is open
         self.seq = 0
         self.holds = 0

@@ -18,7 +18,7 @@ from regression.estimator import SensitivityTable, dv_dq_pu_per_kvar, estimate_c
 from regression.model import CvvcModel, ModelArrays, features
 from schemas import messages as m
 
-__all__ = ["CorrectionFilter", "GridState", "OracleSource", "estimated_state", "oracle_state"]
+__all__ = ["CorrectionFilter", "GridState", "OracleSource", "estimated_state", "filter_gap_bounds_pu", "oracle_state"]
 
 #: Case A's source: the bridge's oracle reply for a step time [ns], or None when it did not answer.
 OracleSource = Callable[[int], "m.OracleReply | None"]
@@ -101,6 +101,28 @@ class CorrectionFilter:
         # without entering the mean
         raw = (own & ~update) | (ok & (self._count == 0))
         return np.where(raw, eps, self._eps)
+
+
+def filter_gap_bounds_pu(lo_pu: np.ndarray, hi_pu: np.ndarray, gap_pu: np.ndarray,
+                         upstream_regulator: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Estimate bounds that hold for the filtered correction too: ``(lo, hi)`` (N,) [pu], new arrays.
+
+    The calibrated bounds (``training.calibration``) are of the estimate corrected by eq. (6) as computed at the
+    minute: the truth is expected in ``[v_inst - lo, v_inst + hi]``. The agent applies the filtered correction
+    (``CorrectionFilter``), so its estimate is ``v = v_inst - gap`` at every node below regulator ``r``, with
+    ``gap_r`` = eq. (6)'s correction as computed minus as applied (0 where the reading was not this step's own).
+    Measured on epri-m1 (case D, 1 July): 37 % of node-decisions outside the calibrated bounds around ``v``, 3 %
+    around ``v_inst``: the filter's lag, not the regression, was what the bounds missed. The bounds around ``v``
+    that contain both intervals: ``lo + max(-gap, 0)`` below and ``hi + max(gap, 0)`` above (never narrower).
+
+    Parameters
+    ----------
+    lo_pu, hi_pu : (N,) the bounds as they would be applied [pu]. gap_pu : (R,) per regulator [pu].
+    upstream_regulator : (N,) each node's nearest upstream regulator (eq. 7's ``r_i``), -1 for none.
+    """
+    up = np.asarray(upstream_regulator, int)
+    gap = np.where(up >= 0, np.asarray(gap_pu, float)[np.maximum(up, 0)] if np.size(gap_pu) else 0.0, 0.0)
+    return (np.asarray(lo_pu, float) + np.maximum(-gap, 0.0), np.asarray(hi_pu, float) + np.maximum(gap, 0.0))
 
 
 def estimated_state(

@@ -47,6 +47,7 @@ from cvvc.launch import CASES, Case, LaunchError, RunConfig, RunSummary
 from cvvc.reference import REFERENCE_CASE, ReferenceConfig
 from schemas import messages as m
 from schemas.errors import CvvcError
+from simulator_bridge.live_accuracy import LiveAccuracy
 
 __all__ = [
     "EVALUATE_CASES",
@@ -159,6 +160,7 @@ class RunResult(msgspec.Struct, frozen=True, kw_only=True):
     holds: int = 0  # decisions without a command
     reasons: dict[str, int] = {}  # the reasons of soft and hold decisions, by kind
     decision_ms: dict[str, float] = {}  # the agent's wall time per decision [ms]: p50, p99, max
+    live: LiveAccuracy | None = None  # the agent's estimates and bounds against the truth of their step
 
 
 class RunFailure(msgspec.Struct, frozen=True, kw_only=True):
@@ -346,7 +348,8 @@ def _result(spec: RunSpec, s: RunSummary) -> RunResult:
     """A run's result from its summary."""
     return RunResult(spec=spec, metrics=s.metrics, wall_s=s.wall_s, steps=s.steps, decisions=s.decisions,
                      lockstep_misses=s.lockstep_misses, out_dir=s.out_dir, recording=s.recording, soft=s.soft,
-                     holds=s.holds, reasons=dict(s.reasons), decision_ms=dict(s.decision_ms))
+                     holds=s.holds, reasons=dict(s.reasons), decision_ms=dict(s.decision_ms),
+                     live=s.live)
 
 
 def _run_reference(spec: RunSpec, config: EvaluateConfig, dm_path: Path, out: Path) -> RunResult:

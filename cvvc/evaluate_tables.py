@@ -94,6 +94,37 @@ def render_results_md(ev: Evaluation) -> str:
             sw = r.metrics.cap_switches_per_bank
             lines.append("| " + " | ".join(_row_label(r, robust, bands) + [str(sw.get(c, 0)) for c in cap_ids]
                                            + [str(r.metrics.cap_switches)]) + " |")
+    lines += ["", "## Every minute (no average)", "",
+              "Judged nodes outside the optimization limits and outside ANSI C84.1 Range A (0.95-1.05 pu), each "
+              "minute on its own, and the 1-minute extremes.", "",
+              "| " + " | ".join(head + ["node-min outside opt.", "min outside opt.", "node-min outside ANSI A",
+                                        "min outside ANSI A", "V min [pu]", "V max [pu]"]) + " |",
+              "|" + "---|" * (len(head) + 6)]
+    for r in ev.runs:
+        mt = r.metrics
+        lines.append("| " + " | ".join(_row_label(r, robust, bands) + [
+            f"{mt.node_minutes_outside_opt:,}", f"{mt.minutes_outside_opt:,}", f"{mt.node_minutes_outside_ansi:,}",
+            f"{mt.minutes_outside_ansi:,}", f"{mt.v_min_pu:.4f}", f"{mt.v_max_pu:.4f}"]) + " |")
+    judged = [r for r in ev.runs if r.live is not None and r.live.samples]
+    if judged:
+        lines += ["", "## Live accuracy (the agent's estimates against the truth of their step)", "",
+                  "At the critical nodes, every decision: RMSE, share within ±0.01 pu, the calibrated bounds' "
+                  "realised miss rate against the rate they promise, and the share of decisions whose true zone "
+                  "extremes are both estimated.", "",
+                  "| " + " | ".join(head + ["RMSE [pu]", "within ±0.01", "bounds missed", "promised",
+                                            "extremes captured", "worst node"]) + " |",
+                  "|" + "---|" * (len(head) + 6)]
+        for r in judged:
+            a = r.live
+            if a is None:
+                continue
+            promised = "" if a.promised_miss_rate is None else f"{a.promised_miss_rate:.1%}"
+            miss_rate = f"{a.bound_miss_rate:.1%}" if a.bound_samples else "no bounds"
+            if a.bounds_hold() is False:
+                miss_rate = f"**{miss_rate}**"
+            lines.append("| " + " | ".join(_row_label(r, robust, bands) + [
+                f"{a.rmse_pu:.4f}", f"{a.within_001:.1%}", miss_rate, promised, f"{a.extremes_captured:.0%}",
+                a.worst.node if a.worst is not None else ""]) + " |")
     agent_runs = [r for r in ev.runs if r.decisions]
     if agent_runs:
         lines += ["", "## Decisions", "",

@@ -44,6 +44,7 @@ from recordings.info import RecorderGap
 from schemas import messages as m
 from schemas.cache import cache_root, profiles_dir
 from simulator_bridge.bridge import BridgeSummary
+from simulator_bridge.live_accuracy import LiveAccuracy
 from simulator_bridge.metrics import Metrics
 
 if TYPE_CHECKING:
@@ -128,6 +129,7 @@ class RunSummary(msgspec.Struct, frozen=True, kw_only=True):
     recorder_gave_up: bool = False  # the recorder died more than recorder_restarts_max times: recording stopped
     pv_protocol: str = "bus"  # how the PV plants reached the bus (``RunConfig.pv_protocol``)
     sunspec_frame_misses: int = 0  # sunspec: steps some adapter's PV frame did not reach the bridge in time
+    live: LiveAccuracy | None = None  # the agent's estimates and bounds against the truth of their step (bridge)
 
 
 class CaseAgent(msgspec.Struct, frozen=True, kw_only=True):
@@ -499,6 +501,9 @@ def run(config: RunConfig) -> RunSummary:
     if config.baseline and config.case != "none":
         _log("simulating the no-control baseline of the same days")
         baseline = no_control_baseline(dm_path, start, steps, config.year_seed, cache_root(config.cache))
+    live = bridge_summary.live_accuracy
+    if live is not None and agent_settings is not None:
+        live = msgspec.structs.replace(live, promised_miss_rate=promised_miss_rate(kept_model))
     summary = RunSummary(
         feeder=str(dm_path), feeder_id=feeder_id, case=config.case, start=start_text, days=config.days,
         steps=steps, wall_s=round(wall_s, 2), metrics=final, baseline=baseline,
@@ -511,11 +516,19 @@ def run(config: RunConfig) -> RunSummary:
         decision_ms=dict(agent_summary.decision_ms) if agent_summary else {},
         recorder_restarts=recorder.restarts if recorder is not None else 0, recording_gaps=gaps,
         recorder_gave_up=recorder.gave_up if recorder is not None else False, pv_protocol=config.pv_protocol,
-        sunspec_frame_misses=bridge_summary.sunspec_frame_misses)
+        sunspec_frame_misses=bridge_summary.sunspec_frame_misses, live=live)
     (out / "summary.json").write_bytes(msgspec.json.format(msgspec.json.encode(summary), indent=2))
     (out / "report.md").write_text(render_summary(summary))
     check_mostly_held(summary)
     return summary
+
+
+def promised_miss_rate(model_path: Path) -> float | None:
+    """The miscoverage a model's calibrated bounds promise (``bounds.alpha``); None without bounds."""
+    from regression.model import read_model
+
+    bounds = read_model(model_path).bounds
+    return None if bounds is None else float(bounds.alpha)
 
 
 def check_mostly_held(summary: RunSummary) -> None:

@@ -9,7 +9,9 @@ What is plotted (matplotlib, Agg backend, no display needed):
 - ``cap_states.png`` (feeders with capacitor banks in their device map): each bank's closed steps (truth) at every
   step, with its switchings in the legend;
 - ``estimation_error.png`` (Fig. 8-like): the agent's estimate minus the true voltage at the same node and
-  ``t_ns`` [pu], over time (max/min/RMS per decision) and its histogram.
+  ``t_ns`` [pu], over time (max/min/RMS per decision) and its histogram;
+- ``worst_node.png``: at the critical node whose calibrated bounds missed most often (``simulator_bridge.
+  live_accuracy``), the agent's estimate, the bounds it promised around it and the true voltage at every decision.
 
 The data come from ``cvvc/<F>/sim/truth`` (TruthPack, or TruthFrame in older recordings, read as arrays by
 ``schemas.truth``: ``v_pu`` per node, ``taps``, ``pv_q_kvar``, ``cap_states``) and ``cvvc/<F>/agent/decision``
@@ -29,14 +31,15 @@ import numpy as np
 from cvvc.errors import CommandError
 from schemas.errors import CvvcError
 from schemas.truth import TruthDecodeError, decode_truth
+from simulator_bridge.live_accuracy import LiveAccuracy, LiveAccuracyAccumulator
 
 if TYPE_CHECKING:
     from cvvc.launch import RunSummary
 
 _T = TypeVar("_T")
 
-__all__ = ["ReportError", "RunTrace", "envelope_figure", "errors_figure", "plot_evaluation", "plot_run", "pv_figure",
-           "read_trace", "taps_figure", "window_envelope_pu"]
+__all__ = ["NodeTrace", "ReportError", "RunTrace", "envelope_figure", "errors_figure", "plot_evaluation", "plot_run",
+           "pv_figure", "read_trace", "taps_figure", "window_envelope_pu", "worst_node_figure"]
 
 WINDOW_STEPS = 10  # 10-minute averages at the 1-minute step
 
@@ -48,6 +51,8 @@ class ReportError(CommandError):
 class _Estimate(msgspec.Struct):
     node: str
     v_pu: float
+    bound_low_pu: float = 0.0
+    bound_high_pu: float = 0.0
 
 
 class _Decision(msgspec.Struct):
@@ -81,6 +86,22 @@ class RunTrace:
     limits_pu: tuple[float, float]
     cap_states: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
     capacitor_ids: tuple[str, ...] = ()
+    worst: NodeTrace | None = None  # the critical node whose bounds missed most often
+
+
+@dataclass(frozen=True)
+class NodeTrace:
+    """One critical node at every decision (``t_ns`` (D,)): the estimate, its bounds as promised and the truth [pu];
+    ``accuracy`` the run's live figures (``simulator_bridge.live_accuracy``) over every estimated node.
+    """
+
+    node: str
+    t_ns: np.ndarray
+    v_est_pu: np.ndarray
+    bound_low_pu: np.ndarray
+    bound_high_pu: np.ndarray
+    v_true_pu: np.ndarray
+    accuracy: LiveAccuracy
 
 
 def window_envelope_pu(v_pu: np.ndarray, window_steps: int = WINDOW_STEPS) -> tuple[np.ndarray, np.ndarray]:
@@ -133,6 +154,8 @@ def read_trace(mcap_path: str | Path, *, regulator_ids: tuple[str, ...] = (), pv
         node_index: dict[str, int] = {}
         t_list, step_t, vmax, vmin, taps, pvq, caps = [], [], [], [], [], [], []
         err_t, err_max, err_min, err_rms, errors = [], [], [], [], []
+        judged: list[tuple[int, list[_Estimate], np.ndarray]] = []  # (t_ns, estimates, true v at their nodes)
+        live: LiveAccuracyAccumulator | None = None
         acc_v = acc_q = np.zeros(0)  # the window's sums, started afresh at each window's first step
         n_acc = 0
         for _, channel, msg in reader.iter_messages(topics=[truth_topic]):
@@ -142,6 +165,7 @@ def read_trace(mcap_path: str | Path, *, regulator_ids: tuple[str, ...] = (), pv
                 raise ReportError(f"{path}: {truth_topic} at {msg.log_time}: {bad}") from bad
             if tr.node_names:
                 node_index = {n: i for i, n in enumerate(tr.node_names)}
+                live = LiveAccuracyAccumulator(tr.node_names)
             v, q = tr.v_pu, tr.pv_q_kvar
             step_t.append(tr.t_ns)
             taps.append(tr.taps.tolist())
@@ -161,6 +185,11 @@ def read_trace(mcap_path: str | Path, *, regulator_ids: tuple[str, ...] = (), pv
             est = estimates.get(tr.t_ns)
             if est and node_index:
                 e = np.array([x.v_pu - v[node_index[x.node]] for x in est if x.node in node_index])
+                known = [x for x in est if x.node in node_index]
+                if live is not None and known:
+                    live.add([x.node for x in known], np.array([x.v_pu for x in known]),
+                             np.array([x.bound_low_pu for x in known]), np.array([x.bound_high_pu for x in known]), v)
+                    judged.append((tr.t_ns, known, np.array([v[node_index[x.node]] for x in known])))
                 if e.size:
                     err_t.append(tr.t_ns)
                     err_max.append(e.max())
@@ -181,7 +210,22 @@ def read_trace(mcap_path: str | Path, *, regulator_ids: tuple[str, ...] = (), pv
         regulator_ids=regulator_ids, pv_ids=pv_ids, err_t_ns=np.asarray(err_t, dtype=np.int64),
         err_max_pu=np.asarray(err_max), err_min_pu=np.asarray(err_min), err_rms_pu=np.asarray(err_rms),
         errors_pu=np.concatenate(errors) if errors else np.zeros(0), limits_pu=limits_pu,
-        cap_states=np.asarray(caps, dtype=float).reshape(len(step_t), -1), capacitor_ids=capacitor_ids)
+        cap_states=np.asarray(caps, dtype=float).reshape(len(step_t), -1), capacitor_ids=capacitor_ids,
+        worst=_worst_node(live, judged))
+
+
+def _worst_node(live: LiveAccuracyAccumulator | None,
+                judged: list[tuple[int, list[_Estimate], np.ndarray]]) -> NodeTrace | None:
+    """The series of the node whose bounds missed most often (None without judged estimates)."""
+    worst = live.worst() if live is not None else None
+    if live is None or worst is None:
+        return None
+    rows = [(t, x, v[j]) for t, est, v in judged for j, x in enumerate(est) if x.node == worst.node]
+    return NodeTrace(node=worst.node, t_ns=np.array([t for t, _, _ in rows], dtype=np.int64),
+                     v_est_pu=np.array([x.v_pu for _, x, _ in rows]),
+                     bound_low_pu=np.array([x.bound_low_pu for _, x, _ in rows]),
+                     bound_high_pu=np.array([x.bound_high_pu for _, x, _ in rows]),
+                     v_true_pu=np.array([v for _, _, v in rows]), accuracy=live.result())
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -353,6 +397,29 @@ def errors_figure(traces: dict[str, RunTrace], title: str):
     return fig
 
 
+def worst_node_figure(trace: RunTrace, title: str):
+    """The worst node's estimate, promised bounds and truth over time; None without judged estimates."""
+    w = trace.worst
+    if w is None or not w.t_ns.size:
+        return None
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(12, 4.2))
+    hours = (w.t_ns - int(w.t_ns[0])) / 3.6e12
+    ax.fill_between(hours, w.v_est_pu - w.bound_low_pu, w.v_est_pu + w.bound_high_pu, step="mid", color="C0",
+                    alpha=0.25, lw=0, label="bounds the agent promised")
+    ax.plot(hours, w.v_est_pu, color="C0", lw=0.9, drawstyle="steps-mid", label="agent's estimate")
+    ax.plot(hours, w.v_true_pu, color="k", lw=0.9, drawstyle="steps-mid", label="true voltage")
+    a = w.accuracy
+    ax.set_title(f"{title}: node {w.node} (bounds missed {a.bound_miss_rate:.1%} of node-decisions over every "
+                 f"critical node)", fontsize=10)
+    ax.set_xlabel("hours from the first decision")
+    ax.set_ylabel("voltage [pu]")
+    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.0, 1.0))
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    return fig
+
+
 def _plots(traces: dict[str, RunTrace], title: str, out: Path, prefix: str = "") -> list[Path]:
     out.mkdir(parents=True, exist_ok=True)
     paths = [_save(envelope_figure(traces, f"{title}: 10-min average voltage envelope"),
@@ -370,7 +437,10 @@ def plot_run(run_dir: str | Path, *, out: str | Path | None = None) -> list[Path
     d = Path(run_dir)
     summary, trace = _trace_of(d)
     title = f"{summary.feeder_id} case {summary.case} from {summary.start}"
-    return _plots({f"case {summary.case}": trace}, title, Path(out) if out else d / "plots")
+    folder = Path(out) if out else d / "plots"
+    paths = _plots({f"case {summary.case}": trace}, title, folder)
+    worst = worst_node_figure(trace, title)
+    return paths + ([_save(worst, folder / "worst_node.png")] if worst is not None else [])
 
 
 def plot_evaluation(eval_dir: str | Path, *, out: str | Path | None = None) -> list[Path]:

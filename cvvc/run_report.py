@@ -8,8 +8,9 @@ from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
     from cvvc.launch import RunSummary
+    from simulator_bridge.live_accuracy import LiveAccuracy
 
-__all__ = ["decision_time_text", "render_summary", "top_reasons"]
+__all__ = ["decision_time_text", "live_accuracy_text", "render_summary", "top_reasons"]
 
 
 def top_reasons(reasons: dict[str, int], n: int = 3) -> str:
@@ -23,12 +24,34 @@ def decision_time_text(ms: dict[str, float]) -> str:
     return ", ".join(f"{k} {ms[k]:.1f} ms" for k in ("p50", "p99", "max") if k in ms) or "no decision"
 
 
+def live_accuracy_text(a: LiveAccuracy) -> str:
+    """One line on the agent's estimates against the truth of their step: error, bounds' misses and a verdict."""
+    text = (f"live accuracy at the critical nodes ({a.decisions} decisions x nodes, against the truth of their step):"
+            f" RMSE {a.rmse_pu:.4f} pu, {100 * a.within_001:.1f} % within ±0.01 pu, extremes captured "
+            f"{100 * a.extremes_captured:.0f} % of decisions")
+    if a.bound_samples:
+        text += (f"; bounds missed {100 * a.bound_miss_rate:.1f} % of {a.bound_samples:,} node-decisions "
+                 f"({a.misses_below:,} below, {a.misses_above:,} above)")
+        verdict = a.bounds_hold()
+        if verdict is not None and a.promised_miss_rate is not None:
+            text += (f", promised at most {100 * a.promised_miss_rate:.1f} %: "
+                     + ("held (within 2x)" if verdict else "**not held** (more than 2x)"))
+    if a.worst is not None:
+        text += (f"; worst node {a.worst.node} (RMSE {a.worst.rmse_pu:.4f} pu, "
+                 f"{a.worst.misses_below + a.worst.misses_above} misses)")
+    return text
+
+
 def render_summary(s: RunSummary) -> str:
     """The run's summary as a short markdown report."""
     mt, base = s.metrics, s.baseline
     rows = [("MVVM [pu]", "mvvm_pu"), ("NVV", "nvv"), ("minutes in violation", "minutes_in_violation"),
             ("NTC (tap changes)", "ntc"), ("Q cost", "q_cost"), ("T cost", "t_cost"), ("total cost", "total_cost"),
-            ("V min [pu]", "v_min_pu"), ("V max [pu]", "v_max_pu")]
+            ("V min, 1-minute [pu]", "v_min_pu"), ("V max, 1-minute [pu]", "v_max_pu"),
+            ("node-minutes outside the optimization limits", "node_minutes_outside_opt"),
+            ("minutes with a node outside the optimization limits", "minutes_outside_opt"),
+            ("node-minutes outside ANSI Range A (0.95-1.05 pu)", "node_minutes_outside_ansi"),
+            ("minutes with a node outside ANSI Range A", "minutes_outside_ansi")]
     if mt.cap_switches_per_bank:  # capacitor banks in the device map
         rows[4:4] = [("capacitor switchings", "cap_switches"), ("cap cost", "cap_cost")]
     lines = [f"# cvvc run: case {s.case} on {s.feeder_id}, {s.start}, {s.days:g} day(s)", "",
@@ -41,6 +64,7 @@ def render_summary(s: RunSummary) -> str:
               f"{s.lockstep_misses}; wall time {s.wall_s:.1f} s",
               *([f"- decision time (the agent's, per control step): {decision_time_text(s.decision_ms)}"]
                 if s.decision_ms else []),
+              *([f"- {live_accuracy_text(s.live)}"] if s.live is not None and s.live.samples else []),
               *([f"- **{s.lockstep_misses} lockstep miss(es)**: at those control steps the bridge went on under local "
                  f"control without the agent's decision (a starved machine or a stopped agent): these metrics are "
                  f"not case {s.case}'s alone"] if s.lockstep_misses else []),

@@ -434,6 +434,11 @@ class MetricsFrame(Message, frozen=True, kw_only=True, forbid_unknown_fields=Tru
     cap_switches: Count = 0  # capacitor switching operations (steps opened or closed), over every bank
     cap_cost: Cost = 0.0  # sum over banks of cost_per_switch x switchings (included in total_cost)
     cap_switches_per_bank: dict[str, Count] = {}
+    # every minute on its own (no average): judged nodes outside the optimization limits and ANSI C84.1 Range A
+    node_minutes_outside_opt: Count = 0
+    minutes_outside_opt: Count = 0
+    node_minutes_outside_ansi: Count = 0
+    minutes_outside_ansi: Count = 0
 
 
 class BridgeStatus(Message, frozen=True, kw_only=True, forbid_unknown_fields=True):

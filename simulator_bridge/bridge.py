@@ -48,6 +48,7 @@ from schemas.bus import BusConfig, open_session, wait_for
 from schemas.devicemap import DeviceMap, load_device_map
 from simulator_bridge.bridge_runtime import BridgeRuntime, sunspec_fleet
 from simulator_bridge.errors import BridgeError
+from simulator_bridge.live_accuracy import LiveAccuracy
 
 if TYPE_CHECKING:
     from simulator_bridge.engine import FeederEngine
@@ -180,6 +181,7 @@ class BridgeSummary(msgspec.Struct, frozen=True, kw_only=True):
     publisher: Literal["inline", "process"] = "inline"
     log_suppressed: dict[str, int] = {}  # log lines not written by the rate limit, by kind (rejected_<kind>: bus)
     sunspec_frame_misses: int = 0  # steps some SunSpec adapter's frame did not come within the time-out
+    live_accuracy: LiveAccuracy | None = None  # the agent's estimates against the truth of their step
 
 
 # ------------------------------------------------------------------------------------------ helpers
@@ -339,7 +341,8 @@ def _loop(rt: BridgeRuntime, stop: threading.Event, on_ready: Callable[[], None]
         publisher_cpu_s=pub_cpu_s, decision_wait_s=rt.decision_wait_s,
         publisher="inline" if rt.child is None else "process",
         log_suppressed=rt.log_suppressed(),
-        sunspec_frame_misses=rt.fleet.frame_misses if rt.fleet is not None else 0)
+        sunspec_frame_misses=rt.fleet.frame_misses if rt.fleet is not None else 0,
+        live_accuracy=rt.live.result() if rt.decisions else None)
 
 
 def _startup(rt: BridgeRuntime, stop: threading.Event) -> None:

@@ -30,7 +30,8 @@ from schemas.security import COMMAND_ROLE
 from simulator_bridge import devices as dv
 from simulator_bridge.device_bank import BridgeCounters, DeviceBank
 from simulator_bridge.errors import BridgeError
-from simulator_bridge.metrics_stream import MetricsAccumulator
+from simulator_bridge.live_accuracy import LiveAccuracyAccumulator
+from simulator_bridge.metrics_stream import MetricsAccumulator, zone_phase_nodes
 from simulator_bridge.oracle_serving import OracleQuery, OracleServer
 from simulator_bridge.publisher_process import PublisherProcess, StepPacker, child_bus
 from simulator_bridge.publishing import FINITE_READING_FIELDS, FramePublisher, FramerSpec, StepFramer
@@ -48,6 +49,7 @@ log = logging.getLogger("simulator_bridge.bridge")  # the bridge's log lines, un
 
 _NS = 1_000_000_000
 _POLL_S = 0.05  # longest a wait goes without checking the stop event [s]
+_TRUTH_KEPT = 16  # control steps whose truth waits for their decision (real time: decisions may come late)
 _DRAIN_MAX = 1000  # queued items handled in one go before the clock and the stop event are looked at again
 # publisher="auto" uses the publisher process from this many nodes on: measured faster than inline on IEEE 123 (278
 # nodes), the rural feeder (1283) and IEEE 8500 (8531); no faster on IEEE 13 (41), where a child process would only
@@ -168,6 +170,9 @@ class BridgeRuntime:
         self.decision_wait_s = 0.0  # stepping thread's waits for decisions on control steps [s]
         self.logged_no_agent = False  # the lockstep said once that it steps without an agent
         self.decision: m.Decision | None = None  # the last decision received
+        # the agent's estimates judged against the truth of their step (control steps' voltages kept until then)
+        self.live = LiveAccuracyAccumulator(engine.node_names, zone_phase_nodes(engine))
+        self._control_truth: dict[int, np.ndarray] = {}
         self._ctrl_pub_wall_ns: dict[int, int] = {}  # inline: when a control step's head frame was put
         self.oracle: OracleServer | None = None
         if self.fleet is not None:
@@ -307,6 +312,11 @@ class BridgeRuntime:
         if pub is not None:
             self.round_trips.append((recv_wall_ns - pub) / _NS)
         self.decision = d
+        truth = self._control_truth.pop(d.step_t_ns, None)
+        if truth is not None and d.estimates:
+            est = d.estimates
+            self.live.add([e.node for e in est], np.array([e.v_pu for e in est]),
+                          np.array([e.bound_low_pu for e in est]), np.array([e.bound_high_pu for e in est]), truth)
 
     def decided(self, t_ns: int) -> bool:
         """Whether the decision of step ``t_ns`` arrived and every command it lists was handled."""
@@ -357,6 +367,10 @@ class BridgeRuntime:
                 self.qsts.command_pv_q(k, q_kvar)
         res = self.qsts.step()
         self.bank.now_t_ns = int(res.t_ns)
+        if self.is_control_step(res.step):  # the truth the decision of this step is judged against
+            self._control_truth[int(res.t_ns)] = np.array(res.v_pu, dtype=float)
+            while len(self._control_truth) > _TRUTH_KEPT:
+                self._control_truth.pop(next(iter(self._control_truth)))
         self.bank.pv_p_kw = res.pv_p_kw
         self.steps += 1
         if self.fleet is not None:  # before the head frame is put: the adapters scan when it arrives

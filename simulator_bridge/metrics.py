@@ -24,6 +24,10 @@ Our reading of IV.F (the paper gives names, not formulas), also in ``docs/profil
 * Q cost (eq. 15): the paper charges ``c_k (Q_k^+ + Q_k^-)`` per kvar of set point per 5-minute control
   interval. We charge every step its share of an interval: ``sum_t sum_k c_k |Q_k[t]| step_s /
   control_period_s``, so a set point held for one interval costs exactly ``c_k |Q_k|``.
+* Every minute on its own (beyond the paper, whose 10-minute averages can hide a worse minute): node-minutes and
+  minutes with any judged node's voltage (not averaged) outside the optimization limits ``opt_limits_pu``
+  (0.975, 1.04) and outside ANSI C84.1 Range A (``ANSI_RANGE_A_PU``, 0.95-1.05) [pu], with the same tolerance; the
+  1-minute extremes are ``v_min_pu`` / ``v_max_pu``.
 * Reactive energy per plant: ``sum_t |Q_k[t]| step_s / 3600`` [kvarh], and the paper's Table IV unit,
   ``sum_t |Q_k[t]| / 1000 x step_s / control_period_s`` [Mvar x control intervals].
 """
@@ -40,7 +44,9 @@ from msgspec import Meta
 from simulator_bridge.errors import SimulatorError
 
 __all__ = [
+    "ANSI_RANGE_A_PU",
     "JUDGED_LIMITS_PU",
+    "OPTIMIZATION_LIMITS_PU",
     "Metrics",
     "MetricsError",
     "MetricsSettings",
@@ -56,6 +62,12 @@ __all__ = [
 
 JUDGED_LIMITS_PU = (0.965, 1.05)
 """The paper's judged voltage limits (IV) [pu of each node's nominal]."""
+
+OPTIMIZATION_LIMITS_PU = (0.975, 1.04)
+"""The paper's optimization limits (IV) [pu]: the default of the per-minute count ``opt_limits_pu``."""
+
+ANSI_RANGE_A_PU = (0.95, 1.05)
+"""ANSI C84.1 service voltage Range A [pu of nominal]: every minute is judged against it."""
 
 VIOLATION_TOLERANCE_PU = 1e-9
 """Violations no larger than this are floating-point rounding and are not counted [pu]."""
@@ -105,6 +117,12 @@ class Metrics(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=T
     cap_switches_per_bank: tuple[NonNegInt, ...] = ()
     cap_switches: NonNegInt = 0
     cap_cost: NonNegFloat = 0.0
+    # every minute on its own (append-only): judged nodes outside the optimization limits / ANSI Range A
+    opt_limits_pu: tuple[float, float] = OPTIMIZATION_LIMITS_PU
+    node_minutes_outside_opt: NonNegFloat = 0.0
+    minutes_outside_opt: NonNegFloat = 0.0
+    node_minutes_outside_ansi: NonNegFloat = 0.0
+    minutes_outside_ansi: NonNegFloat = 0.0
 
     def combine(self, other: Metrics) -> Metrics:
         """The metrics of this run and ``other`` together (counts and costs add, extremes combine).
@@ -112,7 +130,7 @@ class Metrics(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=T
         Both must have the same devices, limits and timing; each run keeps its own rolling windows.
         """
         for name in ("step_s", "window_steps", "control_period_s", "limits_pu", "regulator_ids", "pv_ids",
-                     "capacitor_ids"):
+                     "capacitor_ids", "opt_limits_pu"):
             if getattr(self, name) != getattr(other, name):
                 raise MetricsError(
                     f"cannot combine metrics with different {name}: {getattr(self, name)!r} vs "
@@ -143,6 +161,10 @@ class Metrics(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=T
             cap_switches_per_bank=_add(self.cap_switches_per_bank, other.cap_switches_per_bank),
             cap_switches=self.cap_switches + other.cap_switches,
             cap_cost=self.cap_cost + other.cap_cost,
+            node_minutes_outside_opt=self.node_minutes_outside_opt + other.node_minutes_outside_opt,
+            minutes_outside_opt=self.minutes_outside_opt + other.minutes_outside_opt,
+            node_minutes_outside_ansi=self.node_minutes_outside_ansi + other.node_minutes_outside_ansi,
+            minutes_outside_ansi=self.minutes_outside_ansi + other.minutes_outside_ansi,
         )
 
 
@@ -188,6 +210,13 @@ def violation_pu(v_pu: np.ndarray, limits_pu: tuple[float, float]) -> np.ndarray
     v = np.asarray(v_pu, dtype=float)
     m = np.maximum(v - hi, lo - v)
     return np.where(m > VIOLATION_TOLERANCE_PU, m, 0.0)
+
+
+def outside_count(v_pu: np.ndarray, limits_pu: tuple[float, float]) -> np.ndarray:
+    """How many voltages of each row of ``v_pu`` (..., N) [pu] are outside ``limits_pu`` (beyond
+    ``VIOLATION_TOLERANCE_PU``, as :func:`violation_pu`); shape (...).
+    """
+    return np.count_nonzero(violation_pu(v_pu, limits_pu) > 0.0, axis=-1)
 
 
 def tap_cost_per_regulator(tap_changes: np.ndarray, cost_per_tap: np.ndarray) -> np.ndarray:
@@ -247,6 +276,7 @@ def metrics_from_series(
     v, taps, q = cfg.check(v_pu, tap_changes, pv_q_kvar, rows=(n_steps,))
     sw = cfg.check_switches(cap_switches, rows=(n_steps,))
     avg = rolling_mean_pu(v, cfg.window_steps)[cfg.window_steps - 1 :]
+    n_opt, n_ansi = outside_count(v, cfg.opt_limits_pu), outside_count(v, ANSI_RANGE_A_PU)
     viol = violation_pu(avg, cfg.limits_pu)
     outside = viol > 0.0
     worst = int(np.argmax(viol)) if viol.size else 0
@@ -263,6 +293,8 @@ def metrics_from_series(
         taps=taps.astype(np.int64).sum(axis=0),
         abs_q_kvar_steps=np.abs(q).sum(axis=0),
         cap_switches=sw.sum(axis=0),
+        minute_counts=MinuteCounts(opt_nodes=int(n_opt.sum()), opt_steps=int(np.count_nonzero(n_opt)),
+                                   ansi_nodes=int(n_ansi.sum()), ansi_steps=int(np.count_nonzero(n_ansi))),
     )
 
 
@@ -285,7 +317,7 @@ class MetricsSettings(_RequiredSettings, total=False):
 
     The first four are required; the others default to ``limits_pu = JUDGED_LIMITS_PU`` [pu],
     ``window_steps = 10`` [steps], ``step_s = 60`` [s], ``control_period_s = 300`` [s], ``capacitor_ids = ()``,
-    ``cost_per_switch = 1.0``.
+    ``cost_per_switch = 1.0``, ``opt_limits_pu = OPTIMIZATION_LIMITS_PU`` [pu].
     """
 
     limits_pu: tuple[float, float]
@@ -294,6 +326,18 @@ class MetricsSettings(_RequiredSettings, total=False):
     control_period_s: int
     capacitor_ids: Sequence[str]
     cost_per_switch: float | Sequence[float]
+    opt_limits_pu: tuple[float, float]
+
+
+class MinuteCounts(msgspec.Struct, frozen=True, kw_only=True):
+    """Every step judged on its own: (node, step) samples and steps with a judged node outside the optimization
+    limits (``opt_*``) and ANSI C84.1 Range A (``ansi_*``).
+    """
+
+    opt_nodes: int = 0
+    opt_steps: int = 0
+    ansi_nodes: int = 0
+    ansi_steps: int = 0
 
 
 class MetricsConfig(msgspec.Struct, frozen=True, kw_only=True):
@@ -312,6 +356,7 @@ class MetricsConfig(msgspec.Struct, frozen=True, kw_only=True):
     control_period_s: int
     capacitor_ids: tuple[str, ...] = ()
     cost_per_switch: tuple[float, ...] = ()
+    opt_limits_pu: tuple[float, float] = OPTIMIZATION_LIMITS_PU
 
     @property
     def n_regs(self) -> int:
@@ -342,12 +387,15 @@ class MetricsConfig(msgspec.Struct, frozen=True, kw_only=True):
         window_steps, step_s = settings.get("window_steps", 10), settings.get("step_s", 60)
         control_period_s = settings.get("control_period_s", 300)
         capacitor_ids, cost_per_switch = settings.get("capacitor_ids", ()), settings.get("cost_per_switch", 1.0)
+        opt_lo, opt_hi = (float(x) for x in settings.get("opt_limits_pu", OPTIMIZATION_LIMITS_PU))
         if int(n_nodes) < 1:
             raise MetricsError(f"n_nodes = {n_nodes}; voltages must be (n_steps, n_nodes) with n_nodes >= 1")
         regs, pvs = tuple(str(r) for r in regulator_ids), tuple(str(p) for p in pv_ids)
         lo, hi = (float(x) for x in limits_pu)
         if not (np.isfinite(lo) and np.isfinite(hi) and 0.0 < lo < hi):
             raise MetricsError(f"limits_pu = {limits_pu}; need 0 < v_min < v_max")
+        if not (np.isfinite(opt_lo) and np.isfinite(opt_hi) and 0.0 < opt_lo < opt_hi):
+            raise MetricsError(f"opt_limits_pu = {(opt_lo, opt_hi)}; need 0 < v_min < v_max")
         for name, value in (("window_steps", window_steps), ("step_s", step_s), ("control_period_s", control_period_s)):
             if int(value) != value or value < 1:
                 raise MetricsError(f"{name} = {value}; must be a positive whole number")
@@ -363,6 +411,7 @@ class MetricsConfig(msgspec.Struct, frozen=True, kw_only=True):
             control_period_s=int(control_period_s),
             capacitor_ids=tuple(str(c) for c in capacitor_ids),
             cost_per_switch=_costs(cost_per_switch, len(tuple(capacitor_ids)), "cost_per_switch", "capacitor bank"),
+            opt_limits_pu=(opt_lo, opt_hi),
         )
 
     def check_switches(self, cap_switches: np.ndarray | None, rows: tuple[int, ...] = ()) -> np.ndarray:
@@ -436,6 +485,7 @@ class MetricsConfig(msgspec.Struct, frozen=True, kw_only=True):
         taps: np.ndarray,
         abs_q_kvar_steps: np.ndarray,
         cap_switches: np.ndarray,
+        minute_counts: MinuteCounts,
     ) -> Metrics:
         t_cost = tap_cost_per_regulator(taps[None, :], np.array(self.cost_per_tap))
         c_cost = cap_cost_per_bank(cap_switches[None, :], np.array(self.cost_per_switch))
@@ -446,6 +496,7 @@ class MetricsConfig(msgspec.Struct, frozen=True, kw_only=True):
             control_period_s=self.control_period_s,
         )
         intervals = self.step_s / self.control_period_s
+        minutes = self.step_s / 60.0
         return Metrics(
             n_steps=n_steps,
             n_steps_judged=n_steps_judged,
@@ -476,6 +527,11 @@ class MetricsConfig(msgspec.Struct, frozen=True, kw_only=True):
             cap_switches_per_bank=tuple(int(x) for x in cap_switches),
             cap_switches=int(cap_switches.sum()),
             cap_cost=float(c_cost.sum()),
+            opt_limits_pu=self.opt_limits_pu,
+            node_minutes_outside_opt=minute_counts.opt_nodes * minutes,
+            minutes_outside_opt=minute_counts.opt_steps * minutes,
+            node_minutes_outside_ansi=minute_counts.ansi_nodes * minutes,
+            minutes_outside_ansi=minute_counts.ansi_steps * minutes,
         )
 
 

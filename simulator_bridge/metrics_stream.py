@@ -12,15 +12,31 @@ from typing import Unpack
 import numpy as np
 
 from simulator_bridge.metrics import (
+    ANSI_RANGE_A_PU,
     VIOLATION_TOLERANCE_PU,
     Metrics,
     MetricsConfig,
     MetricsError,
     MetricsSettings,
+    MinuteCounts,
+    outside_count,
     violation_pu,
 )
 
-__all__ = ["MetricsAccumulator"]
+__all__ = ["MetricsAccumulator", "zone_phase_nodes"]
+
+
+def zone_phase_nodes(engine) -> np.ndarray | None:
+    """Indices of the nodes a feeder's voltages are judged on: the feeder zone's (downstream of the head meter)
+    phase nodes (phases 1-3), of any object with ``node_names`` and ``node_in_feeder`` (a ``FeederEngine``); None
+    when it has no zone (every node is judged). The transmission side, other feeders and neutral nodes are not
+    this feeder's voltages (``docs/feeders.md``).
+    """
+    zone = getattr(engine, "node_in_feeder", None)
+    if zone is None:
+        return None
+    phase_node = np.array([n.rpartition(".")[2] in ("1", "2", "3") for n in engine.node_names], dtype=bool)
+    return np.flatnonzero(np.asarray(zone, dtype=bool) & phase_node)
 
 
 class MetricsAccumulator:
@@ -83,6 +99,7 @@ class MetricsAccumulator:
         self._abs_q = np.zeros(cfg.n_pv)
         self._cap_sw = np.zeros(len(cfg.capacitor_ids), dtype=np.int64)
         self._avg = np.empty(n_judged)  # the present rolling average, rewritten in place every step
+        self._minutes = [0, 0, 0, 0]  # every step on its own: MinuteCounts' fields
 
     @property
     def n_steps(self) -> int:
@@ -114,6 +131,7 @@ class MetricsAccumulator:
         w = cfg.window_steps
         self._ring[self._n_steps % w] = v
         self._n_steps += 1
+        self._count_minute(v, v_lo, v_hi)
         self._v_min = min(self._v_min, v_lo)
         self._v_max = max(self._v_max, v_hi)
         self._taps += taps
@@ -143,6 +161,18 @@ class MetricsAccumulator:
                 self._mvvm = float(viol[worst])
                 self._mvvm_node = worst if self._judged is None else int(self._judged[worst])
 
+    def _count_minute(self, v: np.ndarray, v_lo: float, v_hi: float) -> None:
+        """Count this step's judged nodes outside the optimization limits and ANSI Range A (nothing to count when
+        its extremes are inside both).
+        """
+        for k, limits in ((0, self._cfg.opt_limits_pu), (2, ANSI_RANGE_A_PU)):
+            lo, hi = limits
+            if v_hi - hi <= VIOLATION_TOLERANCE_PU and lo - v_lo <= VIOLATION_TOLERANCE_PU:
+                continue
+            n = int(outside_count(v, limits))
+            self._minutes[k] += n
+            self._minutes[k + 1] += n > 0
+
     @classmethod
     def for_feeder(cls, device_map, engine, *, step_s: int | None = None) -> MetricsAccumulator:
         """The accumulator of a feeder: its nodes, devices, costs and judged limits from the device map.
@@ -153,11 +183,7 @@ class MetricsAccumulator:
         feeders and neutral nodes are not this feeder's voltages (``docs/feeders.md``).
         """
         f = device_map.feeder
-        zone = getattr(engine, "node_in_feeder", None)
-        judged = None
-        if zone is not None:
-            phase_node = np.array([n.rpartition(".")[2] in ("1", "2", "3") for n in engine.node_names], dtype=bool)
-            judged = np.flatnonzero(np.asarray(zone, dtype=bool) & phase_node)
+        judged = zone_phase_nodes(engine)
         return cls(
             n_nodes=len(engine.node_names), regulator_ids=list(engine.regulator_ids), pv_ids=list(engine.pv_ids),
             cost_per_tap=[r.cost_per_tap for r in device_map.regulator],
@@ -166,6 +192,7 @@ class MetricsAccumulator:
             control_period_s=f.control_period_s, judged_nodes=judged,
             capacitor_ids=list(getattr(engine, "capacitor_ids", ())),
             cost_per_switch=[c.cost_per_switch for c in device_map.capacitor],
+            opt_limits_pu=tuple(f.optimization_limits_pu),
         )
 
     def result(self) -> Metrics:
@@ -182,4 +209,6 @@ class MetricsAccumulator:
             taps=self._taps,
             abs_q_kvar_steps=self._abs_q,
             cap_switches=self._cap_sw,
+            minute_counts=MinuteCounts(opt_nodes=self._minutes[0], opt_steps=self._minutes[1],
+                                       ansi_nodes=self._minutes[2], ansi_steps=self._minutes[3]),
         )

@@ -378,4 +378,8 @@ def metrics_frame(r: Metrics, *, t_ns: int, seq: int, feeder_id: str, start_t_ns
         taps_changes=dict(zip(r.regulator_ids, r.tap_changes_per_regulator, strict=True)),
         q_mvar_intervals=dict(zip(r.pv_ids, r.q_mvar_intervals_per_plant, strict=True)),
         final=final, cap_switches=int(r.cap_switches), cap_cost=float(r.cap_cost),
-        cap_switches_per_bank=dict(zip(r.capacitor_ids, r.cap_switches_per_bank, strict=True)))
+        cap_switches_per_bank=dict(zip(r.capacitor_ids, r.cap_switches_per_bank, strict=True)),
+        node_minutes_outside_opt=int(round(r.node_minutes_outside_opt)),
+        minutes_outside_opt=int(round(r.minutes_outside_opt)),
+        node_minutes_outside_ansi=int(round(r.node_minutes_outside_ansi)),
+        minutes_outside_ansi=int(round(r.minutes_outside_ansi)))
