@@ -507,3 +507,50 @@ def test_correction_filter_averages_its_first_readings_instead_of_keeping_the_fi
         w = max(0.1, 1.0 / n)
         np.testing.assert_allclose(out, [w * 0.02 + (1.0 - w) * before], atol=1e-15)
         assert out[0] != before
+
+
+def test_bounds_cover_the_correction_as_computed_from_the_steps_own_reading():
+    """The calibrated bounds hold around eq. (6) corrected by the minute's reading; the agent applies a 5-minute mean
+    of readings through the correction filter, which lags a change. With ``bounds_cover_filter`` the bounds as applied
+    contain the interval around the instantaneous correction: after a 0.006 pu step of the error the filtered
+    estimate stays low and its upper bound widens by the lag; without it the truth leaves the promised interval."""
+    sec = ARRAYS.reg_secondary_node[0]
+    below = np.flatnonzero(ARRAYS.upstream_regulator == 0)
+    assert sec in below
+
+    def last(cover: bool) -> Decision:
+        c = CvvcController(_bounded_model(0.001, 0.001), mode="taps", correction=True, bandwidth_v120=4.0,
+                           correction_window_s=3000.0, bounds_cover_filter=cover)
+        d = None
+        for i in range(12):  # a steady error learned, then a 0.006 pu step of it
+            e = np.array([0.002 if i < 11 else 0.008] + [0.0] * (R - 1))
+            s = snapshot(i * 300 * 10**9, reading_error_pu=e)
+            d = c.decide(dataclasses.replace(s, reg_v120_now=s.reg_v120.copy()))
+        assert d is not None
+        return d
+
+    plain = snapshot(11 * 300 * 10**9)
+    true_sec = plain.reg_v120[0] * ARRAYS.reg_pu_per_v120[0] + 0.008  # the reading is the truth there
+    covered, bare = last(True), last(False)
+    np.testing.assert_allclose(covered.v_pu, bare.v_pu)  # the estimate itself is the filtered one either way
+    assert true_sec > bare.v_pu[sec] + bare.v_bound_high_pu[sec] + 0.004  # the filter's lag leaves the bounds
+    assert covered.v_pu[sec] + covered.v_bound_high_pu[sec] >= true_sec - 1e-9  # covered
+    gap = covered.v_bound_high_pu[below] - 0.001
+    assert np.all(gap > 0.004) and np.ptp(gap) < 1e-9  # every node below the regulator, by the same lag
+    np.testing.assert_allclose(covered.v_bound_low_pu, 0.001)  # never narrower
+    others = np.setdiff1d(np.arange(len(MODEL.critical_nodes)), below)
+    np.testing.assert_allclose(covered.v_bound_high_pu[others], 0.001)  # no other regulator's correction lags
+
+
+def test_filter_gap_bounds_widen_the_side_the_applied_correction_lags():
+    from agent.state import filter_gap_bounds_pu
+
+    lo, hi = np.full(4, 0.002), np.full(4, 0.003)
+    up = np.array([0, 0, 1, -1])
+    new_lo, new_hi = filter_gap_bounds_pu(lo, hi, np.array([0.004, -0.001]), up)
+    np.testing.assert_allclose(new_hi, [0.007, 0.007, 0.003, 0.003])  # reading above the applied: truth higher
+    np.testing.assert_allclose(new_lo, [0.002, 0.002, 0.003, 0.002])
+    np.testing.assert_allclose(lo, 0.002)  # inputs untouched
+    same_lo, same_hi = filter_gap_bounds_pu(lo, hi, np.zeros(0), np.full(4, -1))  # a feeder without regulators
+    np.testing.assert_allclose(same_lo, lo)
+    np.testing.assert_allclose(same_hi, hi)

@@ -134,7 +134,12 @@ def test_results_list_each_agent_runs_soft_and_hold_decisions_and_its_decision_t
     assert "## Decisions" in md
     row = f"| summer | D | 15 | {d.soft} ({d.soft / 15:.0%}) | {d.holds} |"
     assert row in md and f"| {d.decision_ms['p99']:.1f} | {d.decision_ms['max']:.1f} |" in md
-    assert "| summer | none | 0 |" not in md
+    assert "| summer | none | 0 |" not in md.split("## Decisions")[1]
+    live = md.split("## Live accuracy")[1].split("##")[0]  # the agent's run is judged, the baseline has nothing to
+    assert "| summer | D |" in live and "| summer | none |" not in live  # judge
+    assert d.live is not None and d.live.decisions == 15 and none.live is None
+    minutes = md.split("## Every minute (no average)")[1].split("##")[0]
+    assert f"| summer | none | {none.metrics.node_minutes_outside_opt:,} |" in minutes
     report = (Path(d.out_dir) / "report.md").read_text()
     assert f"decision time (the agent's, per control step): p50 {d.decision_ms['p50']:.1f} ms" in report
 

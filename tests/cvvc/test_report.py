@@ -63,10 +63,29 @@ def _assert_pngs(paths: list[Path], names: set[str]) -> None:
         assert coloured.sum() > 20, p
 
 
-def test_report_run_writes_the_four_pngs(tiny_evaluation, tmp_path):
+def test_report_run_writes_the_five_pngs(tiny_evaluation, tmp_path):
     out, ev = tiny_evaluation
     paths = plot_run(ev.runs[0].out_dir, out=tmp_path / "plots")
-    _assert_pngs(paths, {"voltage_envelope.png", "pv_q.png", "taps.png", "estimation_error.png"})
+    _assert_pngs(paths, {"voltage_envelope.png", "pv_q.png", "taps.png", "estimation_error.png", "worst_node.png"})
+
+
+def test_live_accuracy_from_the_recording_equals_the_bridges(tiny_evaluation):
+    """Two paths to the same figures: the bridge judged each decision against its truth while the run went on;
+    the report reads the recording's decisions and truth frames back. They agree on every count (the bridge has
+    the float64 truth, the recording float32: within 1e-6 pu on the error)."""
+    out, ev = tiny_evaluation
+    live = ev.runs[0].live
+    assert live is not None and live.decisions == 5 and live.bound_samples == live.samples > 0
+    assert live.promised_miss_rate is not None and 0 < live.promised_miss_rate < 0.1
+    w = read_trace(Path(ev.runs[0].recording)).worst
+    assert w is not None and w.t_ns.size == 5
+    again = w.accuracy
+    assert (again.decisions, again.samples, again.bound_misses) == (live.decisions, live.samples, live.bound_misses)
+    assert again.rmse_pu == pytest.approx(live.rmse_pu, abs=1e-6)
+    outside = (w.v_true_pu < w.v_est_pu - w.bound_low_pu - 1e-6) | (w.v_true_pu > w.v_est_pu + w.bound_high_pu + 1e-6)
+    assert int(outside.sum()) == w.accuracy.worst.misses_below + w.accuracy.worst.misses_above
+    text = (out / "results.md").read_text()
+    assert "## Live accuracy" in text and "## Every minute (no average)" in text
 
 
 def test_report_evaluate_groups_cases_per_season(tiny_evaluation):
@@ -77,7 +96,7 @@ def test_report_evaluate_groups_cases_per_season(tiny_evaluation):
     assert proc.returncode == 0, proc.stderr[-2000:]
     paths = [Path(line) for line in proc.stdout.split()]
     _assert_pngs(paths, {"spring-voltage_envelope.png", "spring-pv_q.png", "spring-taps.png",
-                         "spring-estimation_error.png"})
+                         "spring-estimation_error.png"})  # the worst node is a run's own figure
     assert all(p.parent == out / "plots" for p in paths)
 
 

@@ -371,3 +371,35 @@ def test_a_feeder_without_regulators_has_no_tap_cost():
         acc.update(np.ones(3), np.zeros(0, int), np.array([10.0, -5.0]))
     r = acc.result()
     assert r.ntc == 0 and r.t_cost == 0.0 and r.q_cost > 0.0
+
+
+def test_a_minute_the_ten_minute_average_hides_is_counted_every_minute():
+    """One node dips to 0.945 pu for one minute and another rises to 1.045 pu for two: the 10-minute averages stay
+    inside the judged limits (NVV 0), while each minute on its own is outside ANSI Range A (0.95-1.05: 1
+    node-minute) and the optimization limits (0.975-1.04: 3 node-minutes in 3 minutes), the same in the stream."""
+    v = np.full((30, 4), 1.0)
+    v[12, 1] = 0.945
+    v[20:22, 2] = 1.045
+    taps, q = np.zeros((30, 2), int), np.zeros((30, 2))
+    for r in (_stream(v, taps, q), _batch(v, taps, q)):
+        assert r.nvv == 0 and r.mvvm_pu == 0.0
+        assert (r.node_minutes_outside_ansi, r.minutes_outside_ansi) == (1.0, 1.0)
+        assert (r.node_minutes_outside_opt, r.minutes_outside_opt) == (3.0, 3.0)
+        assert r.opt_limits_pu == (0.975, 1.04) and r.v_min_pu == 0.945
+    wide = _stream(v, taps, q, opt_limits_pu=(0.94, 1.06))
+    assert (wide.node_minutes_outside_opt, wide.minutes_outside_opt) == (0.0, 0.0)
+    both = combine_metrics([_stream(v, taps, q), _batch(v, taps, q)])
+    assert (both.node_minutes_outside_opt, both.minutes_outside_ansi) == (6.0, 2.0)
+    with pytest.raises(MetricsError, match="opt_limits_pu"):
+        _stream(v, taps, q, opt_limits_pu=(1.0, 0.9))
+
+
+def test_stream_and_batch_count_the_same_minutes_on_random_series():
+    rng = np.random.default_rng(7)
+    v = 1.0 + 0.03 * rng.standard_normal((200, 12))
+    taps, q = rng.integers(0, 2, (200, 2)), rng.normal(0, 50, (200, 2))
+    s, b = _stream(v, taps, q), _batch(v, taps, q)
+    assert s.node_minutes_outside_opt > 0 and s.node_minutes_outside_ansi > 0
+    for name in ("node_minutes_outside_opt", "minutes_outside_opt", "node_minutes_outside_ansi",
+                 "minutes_outside_ansi"):
+        assert getattr(s, name) == getattr(b, name), name
