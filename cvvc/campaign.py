@@ -45,6 +45,7 @@ from cvvc.evaluate import (
 )
 from schemas import messages as m
 from schemas.errors import CvvcError
+from simulator_bridge.live_accuracy import LiveAccuracy
 
 __all__ = ["EMBEDDED_FEEDER", "Campaign", "CampaignResult", "Variant", "campaign_rows", "load_campaign",
            "run_campaign"]
@@ -167,6 +168,15 @@ _SPEC = ["feeder", "feeder_id", "variant", "case", "season", "bandwidth_v120", "
 _RUN = ["status", "attempts", "error", "wall_s", "steps", "decisions", "lockstep_misses"]
 _HEADER = ("t_ns", "seq", "source", "feeder_id", "final", "steps", "start_t_ns")  # the frame's, or already a column
 _METRICS = [f.name for f in msgspec.structs.fields(m.MetricsFrame) if f.name not in _HEADER]
+_LIVE = ["live_rmse_pu", "live_within_001", "live_bound_miss_rate", "live_promised_miss_rate",
+         "live_extremes_captured"]  # the agent's estimates against the truth (empty without an agent)
+
+
+def _live_cells(live: LiveAccuracy | None) -> list[object]:
+    if live is None or not live.samples:
+        return [""] * len(_LIVE)
+    return [live.rmse_pu, live.within_001, live.bound_miss_rate if live.bound_samples else "",
+            "" if live.promised_miss_rate is None else live.promised_miss_rate, live.extremes_captured]
 
 
 def _cell(value: object) -> object:
@@ -177,8 +187,8 @@ def campaign_rows(evaluations: dict[str, Evaluation], broken: dict[str, tuple[Ev
     """``campaign.csv``: one row per planned run, finished (``ok``) or ``failed``, evaluation by evaluation."""
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
-    w.writerow(_SPEC + _RUN + _METRICS)
-    blank = [""] * (len(_RUN) - 3 + len(_METRICS))
+    w.writerow(_SPEC + _RUN + _METRICS + _LIVE)
+    blank = [""] * (len(_RUN) - 3 + len(_METRICS) + len(_LIVE))
     for key, ev in evaluations.items():
         feeder, variant = key.split("/", 1)
         runs = {r.spec.name: r for r in ev.runs}
@@ -189,7 +199,7 @@ def campaign_rows(evaluations: dict[str, Evaluation], broken: dict[str, tuple[Ev
                 r = runs[s.name]
                 mt = msgspec.structs.asdict(r.metrics)
                 w.writerow(head + ["ok", r.attempts, "", r.wall_s, r.steps, r.decisions, r.lockstep_misses]
-                           + [_cell(mt[n]) for n in _METRICS])
+                           + [_cell(mt[n]) for n in _METRICS] + _live_cells(r.live))
             elif s.name in failures:
                 f = failures[s.name]
                 w.writerow(head + ["failed", f.attempts, f.error.splitlines()[0] if f.error else ""] + blank)

@@ -141,7 +141,9 @@ def test_a_campaign_writes_one_tidy_row_per_run_and_each_feeders_tables(campaign
         "feeder", "feeder_id", "variant", "case", "season", "bandwidth_v120", "start", "days", "status", "attempts",
         "error", "wall_s", "steps", "decisions", "lockstep_misses", "mvvm_pu", "nvv", "minutes_in_violation", "ntc",
         "q_cost", "t_cost", "total_cost", "v_min_pu", "v_max_pu", "taps_changes", "q_mvar_intervals", "cap_switches",
-        "cap_cost", "cap_switches_per_bank"]
+        "cap_cost", "cap_switches_per_bank", "node_minutes_outside_opt", "minutes_outside_opt",
+        "node_minutes_outside_ansi", "minutes_outside_ansi", "live_rmse_pu", "live_within_001", "live_bound_miss_rate",
+        "live_promised_miss_rate", "live_extremes_captured"]
     assert [(r["feeder"], r["feeder_id"], r["variant"], r["case"], r["season"], r["start"], r["status"])
             for r in rows] == [("ieee13", "ieee13", "lost-model", "none", "winter", "2023-01-01", "ok"),
                                ("ieee13", "ieee13", "lost-model", "D", "winter", "2023-01-01", "failed"),
