@@ -121,8 +121,13 @@ def simulate_month(
     *,
     sens_minutes: int = 24,
     progress: bool = True,
+    setpoint_offset_v120: np.ndarray | None = None,
 ) -> MonthTruth:
-    """Run QSTS over ``steps`` (consecutive) and record features, taps and truth at ``nodes``."""
+    """Run QSTS over ``steps`` (consecutive) and record features, taps and truth at ``nodes``.
+
+    ``setpoint_offset_v120`` (R,) [V on the 120 V base]: the regulators' local set points moved by these from their
+    defaults for the whole run (the tap states a central controller's set points create); None: the defaults.
+    """
     from tqdm import tqdm
 
     from simulator_bridge.qsts import Qsts
@@ -131,6 +136,9 @@ def simulate_month(
     phases = np.asarray([n.rpartition(".")[2] for n in engine.node_names])
     eligible = np.isin(phases, ["1", "2", "3"]) & np.asarray(engine.node_in_feeder, bool)  # the zone's nodes
     qsts = Qsts(engine, profiles, start_step=steps[0])
+    if setpoint_offset_v120 is not None:
+        for reg, offset in enumerate(np.asarray(setpoint_offset_v120, float)):
+            qsts.command_setpoint(reg, float(engine.reg_default_setpoint_v120[reg]) + offset, None)
     sens_at = set(np.linspace(0, len(steps) - 1, min(sens_minutes, len(steps))).round().astype(int).tolist())
     feats, qh, taps, v120, vv, amax, amin, s_rows, s_vals, vext = [], [], [], [], [], [], [], [], [], []
     caps, cap_v = [], []
