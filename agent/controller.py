@@ -36,6 +36,7 @@ from typing import Literal
 import numpy as np
 
 from agent.ami import AmiReadings
+from agent.bank_rows import local_bank_rows, predicted_banks
 from agent.cvvc_qp import CvvcInputs
 from agent.decision import Decision, DecisionTimings, MeasurementSnapshot
 from agent.errors import AgentInputError
@@ -125,6 +126,7 @@ class CvvcController:
         stale_plants: bool = False,
         command_valid_periods: float = 2.0,
         bounds_cover_filter: bool = False,
+        predict_banks: bool = False,
     ) -> None:
         if mode not in ("taps", "setpoints"):
             raise AgentInputError(f"mode must be 'taps' or 'setpoints', not {mode!r}")
@@ -144,6 +146,7 @@ class CvvcController:
         self.sensitivity_error = float(sensitivity_error)
         self.bounds_in_margin = bool(bounds_in_margin)
         self.bounds_cover_filter = bool(bounds_cover_filter)
+        self.predict_banks = bool(predict_banks)
         self.model = model
         self.mode = mode
         self._eps_filter = (CorrectionFilter(len(model.regulators),
@@ -448,10 +451,20 @@ class CvvcController:
         movable = self._cap_movable(snap, state)
         n = state.v0_pu.shape[0]
         dv_dcap = self._arrays.dv_dcap_pu if state.critical else np.zeros((n, len(self._cap_ids)))
+        v0, dv_dq = state.v0_pu, state.dv_dq_pu_per_kvar
+        dv_dtap = np.hstack([np.reshape(state.dv_dtap_pu, (n, -1)), dv_dcap])
+        if self.predict_banks and predicted_banks(self.model.capacitors).size:
+            # the banks on their local control, predicted: rows after the nodes (agent.bank_rows)
+            rows = local_bank_rows(self.model.capacitors, snap.cap_control_value, self._cap_last, movable,
+                                   len(self._pv_ids), len(self._reg_ids))
+            v0, dv_dq = np.concatenate([v0, rows.u0]), np.vstack([dv_dq, rows.du_dq])
+            dv_dtap = np.vstack([dv_dtap, rows.du_dtap])
+            v_min_pu = np.concatenate([np.broadcast_to(np.asarray(v_min_pu, float), (n,)), rows.lo])
+            v_max_pu = np.concatenate([np.broadcast_to(np.asarray(v_max_pu, float), (n,)), rows.hi])
         return CvvcInputs(
-            v0_pu=state.v0_pu,
-            dv_dq_pu_per_kvar=state.dv_dq_pu_per_kvar,
-            dv_dtap_pu=np.hstack([np.reshape(state.dv_dtap_pu, (n, -1)), dv_dcap]),
+            v0_pu=v0,
+            dv_dq_pu_per_kvar=dv_dq,
+            dv_dtap_pu=dv_dtap,
             q0_kvar=pv_q,
             q_min_kvar=np.where(pv_ok, -headroom, pv_q),
             q_max_kvar=np.where(pv_ok, np.minimum(headroom, np.maximum(q_hi, -headroom)), pv_q),
@@ -607,7 +620,7 @@ class CvvcController:
             reg_band_v120=bands,
             reg_command=reg_ok.copy(),
             v_pu=state.v0_pu if state.critical else None,
-            v_pred_pu=solution.v_pred_pu.copy() if state.critical else None,
+            v_pred_pu=solution.v_pred_pu[: state.v0_pu.shape[0]].copy() if state.critical else None,
             corrected=state.corrected,
             dv_dq_pu_per_kvar=state.dv_dq_pu_per_kvar if state.critical else None,
             missing=missing,

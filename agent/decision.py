@@ -41,6 +41,9 @@ class MeasurementSnapshot:
     cap_steps : (C,) closed steps of each capacitor bank (the model's ``capacitors`` order).
     cap_valid : (C,) bool, the bank's frame arrived and passed the checks.
     cap_v_v : (C,) the bank's bus voltage [V] (a regressor of models with readings); NaN where missing.
+    cap_control_value : (C,) what the bank's local control compares with its ON/OFF settings, in its unit
+        (``CapFrame.control_value``), NaN where missing or when the bank is held by a command (not on local control);
+        empty: unknown.
     reg_fresh : (R,) bool, the regulator's reading is this step's own frame (not a last-good one standing in for
         a lost frame); None: every reading is.
     head_fresh : the head frame is this step's own.
@@ -71,6 +74,7 @@ class MeasurementSnapshot:
     head_fresh: bool = True
     pv_fresh: np.ndarray | None = None
     reg_v120_now: np.ndarray | None = None
+    cap_control_value: np.ndarray = field(default_factory=lambda: np.zeros(0))
     pv_age_s: np.ndarray | None = None
 
 

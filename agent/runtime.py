@@ -80,6 +80,8 @@ class AgentSettings(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fi
     bounds_in_margin: bool = True  # the estimate bounds tighten a limit only past the optimization/judged gap
     bounds_cover_filter: bool = True  # the estimate bounds cover eq. (6) as computed and as filtered
     # (agent.state.filter_gap_bounds_pu; epri-m1 case D, 1 July: 37 % of node-decisions outside the bounds without)
+    predict_banks: bool = True  # banks on their local control: the decision keeps them from switching because of it
+    # (agent.bank_rows; needs a model of training revision 9)
     stale_plants: bool = True  # a plant behind a stale frame: P projected, Q our command, not raised, margin
     # for its P (agent.stale_plants)
     # (rural winter week, 5 % lost in 10-minute outages: NVV 3 -> 0, NTC 72 -> 25; 20 % outages: NTC 98 -> 70)
@@ -184,17 +186,21 @@ def snapshot_from(aligned: AlignedFrames, model: CvvcModel, *, reading_window_s:
     cap_steps = np.zeros(len(model.capacitors), int)
     cap_ok = np.zeros(len(model.capacitors), bool)
     cap_v = np.full(len(model.capacitors), np.nan)
+    cap_value = np.full(len(model.capacitors), np.nan)
     for c, bank in enumerate(model.capacitors):
         cf = aligned.cap.get(bank.id)
         if cf is not None and cf.steps == bank.steps:  # a bank reporting another number of steps is not the model's
             cap_steps[c], cap_ok[c], cap_v[c] = cf.closed_steps, True, cf.v_v
+            if cf.mode == "local" and cf.control_value is not None:
+                cap_value[c] = cf.control_value
     return MeasurementSnapshot(
         t_ns=aligned.t_ns, head_p_kw=head_p, head_q_kvar=head_q, pv_p_kw=pv_p, pv_q_kvar=pv_q,
         pv_kva_available=pv_kva, pv_q_setpoint_kvar=pv_sp, reg_v120=reg_v, reg_v120_compared=reg_vc,
         reg_tap=reg_tap, head_valid=head is not None, pv_valid=pv_ok, reg_valid=reg_ok,
         cap_steps=cap_steps, cap_valid=cap_ok, cap_v_v=cap_v, reg_fresh=reg_fresh, head_fresh=aligned.head is not None,
         pv_fresh=np.array([plant.id in aligned.pv for plant in model.pv], bool), pv_age_s=pv_age,
-        reg_v120_now=np.array([_own_reading(aligned.vr.get(reg.id)) for reg in model.regulators], float))
+        reg_v120_now=np.array([_own_reading(aligned.vr.get(reg.id)) for reg in model.regulators], float),
+        cap_control_value=cap_value)
 
 
 def _own_reading(frame: m.RegFrame | None) -> float:
@@ -276,7 +282,8 @@ class DecisionMaker:
                                          filtered_setpoints=settings.filtered_setpoints,
                                          stale_plants=settings.stale_plants,
                                          command_valid_periods=settings.valid_intervals,
-                                         bounds_cover_filter=settings.bounds_cover_filter)
+                                         bounds_cover_filter=settings.bounds_cover_filter,
+                                         predict_banks=settings.predict_banks)
         self.oracle: OracleSource | None = None  # case A: set by the live runtime once its session is open
         self.seq = 0
         self.holds = 0

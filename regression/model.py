@@ -114,7 +114,9 @@ class CapacitorInfo(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fi
     flow ran at (the state eq. (5) has built in); ``phases`` are the bank's phases (1-3), over which its
     kvar is spread. ``cost_per_switch`` is per step opened or closed (the device map's). ``v_ref_v`` divides the
     bank's bus voltage reading (``CapFrame.v_v``, line-to-neutral [V]) into the per-unit reading that the
-    ``extended_readings`` feature set regresses on (0 otherwise).
+    ``extended_readings`` feature set regresses on (0 otherwise). ``control_*``: the bank's local control, so the
+    agent can keep its own actions from making it switch (its type, ON/OFF settings and the controlled quantity's
+    linear sensitivities to the plants' Q and the regulators' taps).
     """
 
     id: str
@@ -125,6 +127,12 @@ class CapacitorInfo(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fi
     cost_per_switch: Annotated[float, Meta(ge=0.0, le=1e6)] = 1.0
     max_switches_per_interval: Annotated[int, Meta(ge=0, le=64)] = 1
     v_ref_v: float = 0.0  # extended_readings: the bank's median bus voltage over the training flows [V]
+    # its local CapControl, as the agent predicts it (training.capbanks.bank_controls; "none": not predicted)
+    control_kind: Literal["voltage", "kvar", "current", "none"] = "none"
+    control_on: float = 0.0  # ON setting, in the control's unit (CapFrame.control_value's)
+    control_off: float = 0.0  # OFF setting
+    control_dq: list[float] = []  # (K,) change of the controlled quantity per kvar of each plant's Q [unit/kvar]
+    control_dtap: list[float] = []  # (R,) ... per tap step of each regulator [unit/step]
 
 
 class PvInfo(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):

@@ -9,11 +9,16 @@ step. The training flows keep every bank at ``closed0``, the engine's state at c
 
 from __future__ import annotations
 
+import msgspec
 import numpy as np
 
 from regression.model import CapacitorInfo
 
-__all__ = ["SCENARIOS_PER_BANK", "bank_infos", "bank_sensitivities"]
+__all__ = ["PREDICTED_KINDS", "SCENARIOS_PER_BANK", "bank_controls", "bank_infos", "bank_sensitivities"]
+
+#: CapControl types whose quantity is nearly linear in the plants' Q and the taps: the agent predicts them.
+PREDICTED_KINDS = ("voltage", "kvar", "current")
+_DQ_SHARE = 0.1  # each plant's Q perturbation: this share of its kVA rating
 
 #: Representative scenarios the finite differences are averaged over (first, middle, last).
 SCENARIOS_PER_BANK = 3
@@ -68,3 +73,66 @@ def bank_infos(engine, device_map, cap0: np.ndarray) -> list[CapacitorInfo]:
         )
         for c, spec in enumerate(device_map.capacitor)
     ]
+
+
+def bank_controls(engine, inputs, tap0: np.ndarray, cap0: np.ndarray,
+                  banks: list[CapacitorInfo]) -> list[CapacitorInfo]:
+    """``banks`` with their local control as the agent predicts it: the CapControl's type and ON/OFF settings, and
+    its controlled quantity's sensitivity to each plant's Q [unit/kvar] and each regulator's tap [unit/step].
+
+    Finite differences from the base state (PV Q at 0, ``tap0``, ``cap0``) at the representative scenarios of
+    :func:`bank_sensitivities`, averaged: each plant's Q moved by ``_DQ_SHARE`` of its rating (within its
+    headroom), each regulator one tap up (down at its top). Banks without a control, or of a type that is not nearly
+    linear in them (power factor, time, follow), keep ``control_kind = "none"``.
+    """
+    index = np.asarray(engine.cap_control_index, int)
+    predicted = [c for c in range(len(banks))
+                 if index[c] >= 0 and engine.cap_controls[index[c]].kind in PREDICTED_KINDS
+                 and engine.cap_controls[index[c]].enabled]
+    if not predicted:
+        return banks
+    n_pv, n_reg = len(engine.pv_ids), len(tap0)
+    picks = _scenario_indices(len(inputs))
+    dq = np.zeros((len(banks), n_pv))
+    dtap = np.zeros((len(banks), n_reg))
+
+    def sensed() -> np.ndarray:
+        return np.asarray(engine.sense()[0], float)[index[predicted]]
+
+    for i in picks:
+        s = inputs[i]
+        engine.set_loads_kw(s.load_kw)
+        engine.set_taps(tap0)
+        engine.set_cap_states(cap0)
+        zero = np.zeros(n_pv)
+        engine.set_pv(s.pv_kw, zero)
+        engine.solve()
+        base = sensed()
+        for k in range(n_pv):
+            q = zero.copy()
+            q[k] = _DQ_SHARE * float(engine.pv_kva[k])
+            applied = engine.set_pv(s.pv_kw, q)[k]
+            if abs(applied) < 1e-6:  # no headroom at this scenario: absorb instead
+                q[k] = -q[k]
+                applied = engine.set_pv(s.pv_kw, q)[k]
+            if abs(applied) < 1e-6:
+                continue
+            engine.solve()
+            dq[predicted, k] += (sensed() - base) / applied / len(picks)
+        engine.set_pv(s.pv_kw, zero)
+        for r in range(n_reg):
+            step = 1 if tap0[r] < engine.reg_tap_max[r] else -1
+            taps = np.asarray(tap0, int).copy()
+            taps[r] += step
+            engine.set_taps(taps)
+            engine.solve()
+            dtap[predicted, r] += (sensed() - base) / step / len(picks)
+        engine.set_taps(tap0)
+    engine.solve()
+    out = list(banks)
+    for c in predicted:
+        cc = engine.cap_controls[index[c]]
+        out[c] = msgspec.structs.replace(banks[c], control_kind=cc.kind, control_on=float(cc.on),
+                                         control_off=float(cc.off), control_dq=dq[c].tolist(),
+                                         control_dtap=dtap[c].tolist())
+    return out

@@ -27,7 +27,7 @@ from regression.model import (
     extended_feature_names,
     feature_names,
 )
-from training.capbanks import bank_infos, bank_sensitivities
+from training.capbanks import bank_controls, bank_infos, bank_sensitivities
 from training.critical import extreme_nodes, movable_nodes, node_phase, select_critical, upstream_regulators
 from training.errors import TrainingError
 from training.extended import (
@@ -64,7 +64,8 @@ TRAINING_REVISION = 9  # 3: critical nodes in the zone, movable only; 4: model f
 # 6: cvvc run trains the extended set on feeders with banks (training.extended.default_feature_options);
 # 7: the extended set's cover also takes each regulator zone's extremes (training.extended.zone_extreme_cover);
 # 8: the extended set's calendar cover, seasonal and weekly calendar terms (training.extended.EXTENDED_OPTIONS);
-# 9: the bounds are calibrated over set-point-shifted windows too (training.calibration.SETPOINT_OFFSET_TAPS)
+# 9: the bounds are calibrated over set-point-shifted windows too (training.calibration.SETPOINT_OFFSET_TAPS);
+# the banks' local controls as the agent predicts them (training.capbanks.bank_controls)
 
 DEFAULT_Q_STEPS_PCT = tuple(float(p) for p in range(-100, 101, 20))
 DEFAULT_COMBINED_PCT = (-100.0, -50.0, 50.0, 100.0)
@@ -439,7 +440,8 @@ def train(
         control_period_s=dm.feeder.control_period_s,
         node_count=len(engine.node_names),
         fit=fit_stats,
-        **_bank_fields(bank_infos(engine, dm, cap0), dv_dcap_all[nodes], ext),
+        **_bank_fields(bank_controls(engine, inputs, tap0, cap0, bank_infos(engine, dm, cap0)), dv_dcap_all[nodes],
+                       ext),
     )
     t_cal = time.perf_counter()
     if calibration_minutes > 0:
@@ -501,8 +503,10 @@ def _bank_fields(banks: list, dv_dcap_pu: np.ndarray, ext: _Extended | None) -> 
     perturbations (``training.extended``).
     """
     fields: dict = {"capacitors": banks, "dv_dcap_pu": dv_dcap_pu.tolist() if banks else []}
-    if ext is not None:
+    if ext is not None:  # its banks carry their reading references; ``banks`` their local controls
         fields.update(ext.model_fields)
+        fields["capacitors"] = [msgspec.structs.replace(b, v_ref_v=e.v_ref_v)
+                                for b, e in zip(banks, ext.model_fields["capacitors"], strict=True)]
     return fields
 
 
