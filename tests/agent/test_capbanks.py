@@ -261,3 +261,67 @@ def test_aligner_waits_for_the_banks_and_rejects_unknown_or_impossible_ones():
     assert len(late) == 1 and late[0].missing == ("cap1",)  # a stale bank is named missing
     without = FrameAligner(feeder_id="rural", pv_ids=("pv1",), regulator_ids=(), control_period_ns=PERIOD_NS)
     assert without.add(*bank) == [] and without.ignored == 1  # a model without banks ignores their frames
+
+
+def _predicted(dq: list[float]) -> object:
+    """MODEL with cap2 (partially closed) on a current control: ON 300 A, OFF 200 A, ``dq`` A per kvar of each
+    plant's Q (injecting Q lowers the current the control monitors)."""
+    banks = [BANKS[0], msgspec.structs.replace(BANKS[1], control_kind="current", control_on=300.0, control_off=200.0,
+                                               control_dq=dq, control_dtap=[0.0] * R)]
+    return msgspec.structs.replace(MODEL, capacitors=banks)
+
+
+def test_a_bank_on_local_control_is_not_pushed_across_its_setting():
+    """A low-voltage snapshot: the plants inject Q. Plant 0's Q lowers the current cap2's local control monitors
+    (0.2 A/kvar, 215 A now, OFF at 200 A): unpredicted, the decision injects enough to open the bank; predicted, it
+    keeps the current at or above 210 A (OFF plus 10 % of the ON-OFF gap) and takes the rest from the other plants."""
+    dq = [-0.2] + [0.0] * (K - 1)
+    model = _predicted(dq)
+    lo, _ = model.optimization_limits_pu
+    snap = dataclasses.replace(_shift_to(lo - 0.004, _snapshot()), cap_control_value=np.array([np.nan, 215.0]),
+                               pv_kva_available=np.full(K, 1500.0))  # Q headroom: 1200 kvar each
+
+    def after(predict: bool) -> tuple[float, object]:
+        d = CvvcController(model, mode="taps", correction=False, bandwidth_v120=4.0,
+                           predict_banks=predict).decide(snap)
+        assert d.status == "optimal", d.reason
+        return 215.0 + float(np.dot(dq, d.pv_q_kvar - snap.pv_q_kvar)), d
+
+    free, _ = after(False)
+    kept, d = after(True)
+    assert free < 200.0  # the bank's own control would open it
+    assert kept >= 210.0 - 1e-6 and d.v_pred_pu.min() >= lo - 1e-5 and d.v_pred_pu.size == N
+    # a bank already past its setting switches whatever the decision: no row binds for it
+    past = dataclasses.replace(snap, cap_control_value=np.array([np.nan, 195.0]))
+    d_past = CvvcController(model, mode="taps", correction=False, bandwidth_v120=4.0, predict_banks=True).decide(past)
+    np.testing.assert_allclose(d_past.pv_q_kvar, CvvcController(model, mode="taps", correction=False,
+                                                                bandwidth_v120=4.0).decide(past).pv_q_kvar, atol=1e-6)
+
+
+def test_bank_rows_keep_the_quantity_where_the_control_would_not_switch():
+    from agent.bank_rows import BANK_MARGIN_SHARE, ROW_SPAN_PU, local_bank_rows, predicted_banks
+
+    volt = CapacitorInfo(id="v", steps=1, kvar_rated=600.0, phases=[1], closed0=0, control_kind="voltage",
+                         control_on=118.0, control_off=126.0, control_dq=[0.01], control_dtap=[0.8])
+    kvar = CapacitorInfo(id="k", steps=2, kvar_rated=600.0, phases=[1], closed0=1, control_kind="kvar",
+                         control_on=150.0, control_off=-225.0, control_dq=[-1.0], control_dtap=[0.0])
+    plain = CapacitorInfo(id="p", steps=1, kvar_rated=300.0, phases=[1], closed0=0)
+    banks = [volt, plain, kvar]
+    assert predicted_banks(banks).tolist() == [0, 2]
+    rows = local_bank_rows(banks, np.array([121.0, np.nan, 0.0]), np.array([0, 0, 1]), np.zeros(3, bool), 1, 1)
+    gain_v, gain_k = ROW_SPAN_PU / 8.0, ROW_SPAN_PU / 375.0
+    # the open voltage bank: kept above ON + margin (118.8 V), no upper limit (it cannot open)
+    assert rows.lo[0] == pytest.approx(1.0 + gain_v * (118.0 + BANK_MARGIN_SHARE * 8.0 - 122.0))
+    assert rows.hi[0] > 5.0 and rows.u0[0] == pytest.approx(1.0 + gain_v * (121.0 - 122.0))
+    # the partially closed kvar bank: between OFF + margin and ON - margin
+    assert rows.lo[1] == pytest.approx(1.0 + gain_k * (-225.0 + 37.5 + 37.5))
+    assert rows.hi[1] == pytest.approx(1.0 + gain_k * (150.0 - 37.5 + 37.5))
+    np.testing.assert_allclose(rows.du_dq[:, 0], [0.01 * gain_v, -1.0 * gain_k])
+    np.testing.assert_allclose(rows.du_dtap[:, :2], [[0.8 * gain_v, 0.0], [0.0, 0.0]])  # banks' own columns: 0
+    assert rows.binding.tolist() == [True, True]
+    # within the margin already: the limit is where the quantity is; past a setting, held or unknown: no limit
+    near = local_bank_rows(banks, np.array([118.2, np.nan, 160.0]), np.array([0, 0, 1]), np.zeros(3, bool), 1, 1)
+    assert near.lo[0] == pytest.approx(1.0 + gain_v * (118.2 - 122.0)) and near.binding.tolist() == [True, False]
+    held = local_bank_rows(banks, np.array([121.0, np.nan, np.nan]), np.array([0, 0, 1]),
+                           np.array([True, False, False]), 1, 1)
+    assert held.binding.tolist() == [False, False] and held.lo.max() < -5.0 and held.hi.min() > 5.0

@@ -56,3 +56,47 @@ def test_bank_sensitivity_matches_a_switching_at_another_load(banks_only):
     measured = (engine.node_voltages_pu()[idx] - v0) / (1 - 2 * closed[0])
     predicted = np.asarray(model.dv_dcap_pu)[:, 0]
     assert np.max(np.abs(measured - predicted)) < 0.15 * np.max(np.abs(measured))
+
+
+def test_a_banks_local_control_is_predicted_linearly(tmp_path):
+    """``bank_controls``: the CapControl's type and settings, and its monitored current's change per kvar of the plant
+    (below the monitored line) and per tap, by finite differences at training scenarios; checked against OpenDSS at
+    another load and a larger Q step (within 15 %)."""
+    from training.capbanks import bank_controls, bank_infos
+    from training.powerflows import ScenarioInput
+
+    master = (REPO.parent / "shared" / "feeders" / "ieee13" / "IEEE13Nodeckt.dss").resolve()
+    text = (f'[feeder]\nname = "t13cc"\nmaster = "{master}"\nhead_element = "Line.650632"\nsource_bus = "650"\n'
+            'extra_commands = ["New CapControl.cc1 Capacitor=Cap1 Element=Line.692675 Terminal=1 Type=Current '
+            'CTratio=1 ON=300 OFF=200 Delay=30 DelayOFF=30"]\n'
+            '[[pv]]\nid = "pv1"\nbus = "675"\nkv_ll = 4.16\nkva = 500.0\npmpp_kw = 450.0\n'
+            '[[regulator]]\nid = "reg1"\nregcontrol = "Reg1"\n'
+            '[[capacitor]]\nid = "cap1"\ncapacitor = "Cap1"\ncapcontrol = "cc1"\n'
+            '[[capacitor]]\nid = "cap2"\ncapacitor = "Cap2"\n')
+    path = tmp_path / "map.toml"
+    path.write_text(text)
+    dm = load_device_map(path)
+    engine = FeederEngine(dm, tolerance=1e-8)
+    tap0, cap0 = np.asarray(engine.taps(), int), np.asarray(engine.cap_states(), int)
+    base = engine.load_kw_nominal
+    inputs = [ScenarioInput(index=i, load_kw=base * s, pv_kw=np.array([200.0])) for i, s in enumerate((0.5, 0.8, 1.0))]
+    banks = bank_controls(engine, inputs, tap0, cap0, bank_infos(engine, dm, cap0))
+    cap1, cap2 = banks
+    assert (cap1.control_kind, cap1.control_on, cap1.control_off) == ("current", 300.0, 200.0)
+    assert cap2.control_kind == "none" and cap2.control_dq == []
+    assert len(cap1.control_dq) == 1 and len(cap1.control_dtap) == 1 and abs(cap1.control_dq[0]) > 1e-3
+
+    def sensed(q_kvar: float, taps: np.ndarray) -> float:
+        engine.set_taps(taps)
+        engine.set_pv(np.array([300.0]), np.array([q_kvar]))
+        engine.solve()
+        return float(engine.sense()[0][engine.cap_control_index[0]])
+
+    engine.set_loads_kw(base * 0.65)  # not a training scenario
+    engine.set_cap_states(cap0)
+    x0 = sensed(0.0, tap0)
+    assert abs((sensed(-150.0, tap0) - x0) / -150.0 - cap1.control_dq[0]) < 0.15 * abs(cap1.control_dq[0])
+    up = tap0 + np.where(tap0 < engine.reg_tap_max, 1, -1)
+    step = float((up - tap0)[0])
+    measured = (sensed(0.0, up) - x0) / step
+    assert abs(measured - cap1.control_dtap[0]) < 0.15 * abs(measured) + 1e-3
