@@ -8,7 +8,7 @@ OFF setting, a current or kvar control the other way round. The agent's Q set po
 can push it across a setting, and its switching then moves every voltage (the "fight": more switchings than with no
 control, 1-minute dips the 10-minute metrics do not see). While ``x`` lies where the control would not switch, the
 predicted ``x`` after the decision is kept there, ``BANK_MARGIN_SHARE`` of the ON-OFF gap inside each setting (or
-where ``x`` is, if it is already closer); a bank whose control is about to switch anyway, one the agent commands, or
+half-way from ``x`` to the setting, if ``x`` is already closer); a bank whose control is about to switch anyway, one the agent commands, or
 one without a reading gets a row that never binds.
 
 Each row is a pseudo-node of the problem, scaled so that the ON-OFF gap spans ``ROW_SPAN_PU``, like a band of
@@ -94,8 +94,8 @@ def local_bank_rows(banks: Sequence[CapacitorInfo], value: np.ndarray, closed: n
 
 
 def _keep_between(bank: CapacitorInfo, x: float, closed: int) -> tuple[float, float] | None:
-    """Where the controlled quantity must stay for the control not to switch, with the margin (relaxed to ``x``
-    where it is already inside the margin); None when it switches at ``x`` already.
+    """Where the controlled quantity must stay for the control not to switch, with the margin (half-way from ``x``
+    to the setting where it is already inside the margin); None when it switches at ``x`` already.
     """
     on, off = bank.control_on, bank.control_off
     margin = BANK_MARGIN_SHARE * abs(on - off)
@@ -103,11 +103,11 @@ def _keep_between(bank: CapacitorInfo, x: float, closed: int) -> tuple[float, fl
     if bank.control_kind == "voltage":  # low closes, high opens
         if (can_close and x < on) or (can_open and x > off):
             return None
-        low = min(on + margin, x) if can_close else -np.inf
-        high = max(off - margin, x) if can_open else np.inf
+        low = min(on + margin, 0.5 * (x + on)) if can_close else -np.inf
+        high = max(off - margin, 0.5 * (x + off)) if can_open else np.inf
     else:  # current, kvar: high closes, low opens
         if (can_close and x > on) or (can_open and x < off):
             return None
-        high = max(on - margin, x) if can_close else np.inf
-        low = min(off + margin, x) if can_open else -np.inf
+        high = max(on - margin, 0.5 * (x + on)) if can_close else np.inf
+        low = min(off + margin, 0.5 * (x + off)) if can_open else -np.inf
     return low, high

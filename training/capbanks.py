@@ -97,7 +97,7 @@ def bank_controls(engine, inputs, tap0: np.ndarray, cap0: np.ndarray,
     dtap = np.zeros((len(banks), n_reg))
 
     def sensed() -> np.ndarray:
-        return np.asarray(engine.sense()[0], float)[index[predicted]]
+        return np.asarray(engine.sense()[1], float)[index[predicted]]  # (reg_v120, cap_value, ...)
 
     for i in picks:
         s = inputs[i]

@@ -319,9 +319,9 @@ def test_bank_rows_keep_the_quantity_where_the_control_would_not_switch():
     np.testing.assert_allclose(rows.du_dq[:, 0], [0.01 * gain_v, -1.0 * gain_k])
     np.testing.assert_allclose(rows.du_dtap[:, :2], [[0.8 * gain_v, 0.0], [0.0, 0.0]])  # banks' own columns: 0
     assert rows.binding.tolist() == [True, True]
-    # within the margin already: the limit is where the quantity is; past a setting, held or unknown: no limit
+    # within the margin already: the limit half-way to the setting; past a setting, held or unknown: no limit
     near = local_bank_rows(banks, np.array([118.2, np.nan, 160.0]), np.array([0, 0, 1]), np.zeros(3, bool), 1, 1)
-    assert near.lo[0] == pytest.approx(1.0 + gain_v * (118.2 - 122.0)) and near.binding.tolist() == [True, False]
+    assert near.lo[0] == pytest.approx(1.0 + gain_v * (118.1 - 122.0)) and near.binding.tolist() == [True, False]
     held = local_bank_rows(banks, np.array([121.0, np.nan, np.nan]), np.array([0, 0, 1]),
                            np.array([True, False, False]), 1, 1)
     assert held.binding.tolist() == [False, False] and held.lo.max() < -5.0 and held.hi.min() > 5.0
