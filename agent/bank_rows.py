@@ -8,8 +8,8 @@ OFF setting, a current or kvar control the other way round. The agent's Q set po
 can push it across a setting, and its switching then moves every voltage (the "fight": more switchings than with no
 control, 1-minute dips the 10-minute metrics do not see). While ``x`` lies where the control would not switch, the
 predicted ``x`` after the decision is kept there, ``BANK_MARGIN_SHARE`` of the ON-OFF gap inside each setting (or
-half-way from ``x`` to the setting, if ``x`` is already closer); a bank whose control is about to switch anyway, one the agent commands, or
-one without a reading gets a row that never binds.
+half-way from ``x`` to the setting, if ``x`` is already closer); a bank whose control is about to switch anyway, one
+the agent commands, or one without a reading gets a row that never binds.
 
 Each row is a pseudo-node of the problem, scaled so that the ON-OFF gap spans ``ROW_SPAN_PU``, like a band of
 voltages: ``u = 1 + ROW_SPAN_PU * (x - mid) / |on - off|``.
@@ -103,11 +103,19 @@ def _keep_between(bank: CapacitorInfo, x: float, closed: int) -> tuple[float, fl
     if bank.control_kind == "voltage":  # low closes, high opens
         if (can_close and x < on) or (can_open and x > off):
             return None
-        low = min(on + margin, 0.5 * (x + on)) if can_close else -np.inf
-        high = max(off - margin, 0.5 * (x + off)) if can_open else np.inf
+        low = _limit(on, on + margin, x) if can_close else -np.inf
+        high = _limit(off, off - margin, x) if can_open else np.inf
     else:  # current, kvar: high closes, low opens
         if (can_close and x > on) or (can_open and x < off):
             return None
-        high = max(on - margin, 0.5 * (x + on)) if can_close else np.inf
-        low = min(off + margin, 0.5 * (x + off)) if can_open else -np.inf
+        high = _limit(on, on - margin, x) if can_close else np.inf
+        low = _limit(off, off + margin, x) if can_open else -np.inf
     return low, high
+
+
+def _limit(setting: float, inner: float, x: float) -> float:
+    """The limit ``inner`` (the setting less the margin), or half-way from ``x`` to the setting when ``x`` lies between
+    the two already.
+    """
+    between = (setting < x < inner) or (inner < x < setting)
+    return 0.5 * (x + setting) if between else inner
