@@ -127,6 +127,7 @@ class CvvcController:
         command_valid_periods: float = 2.0,
         bounds_cover_filter: bool = False,
         predict_banks: bool = False,
+        tap_reversal_lockout_s: float = 0.0,
     ) -> None:
         if mode not in ("taps", "setpoints"):
             raise AgentInputError(f"mode must be 'taps' or 'setpoints', not {mode!r}")
@@ -147,6 +148,12 @@ class CvvcController:
         self.bounds_in_margin = bool(bounds_in_margin)
         self.bounds_cover_filter = bool(bounds_cover_filter)
         self.predict_banks = bool(predict_banks)
+        if not (np.isfinite(tap_reversal_lockout_s) and tap_reversal_lockout_s >= 0.0):
+            raise AgentInputError(f"tap_reversal_lockout_s must be >= 0, not {tap_reversal_lockout_s}")
+        self._lockout_ns = int(tap_reversal_lockout_s * 1e9)
+        # each regulator's last decided move: its direction (+1, -1, 0 for none yet) and the step it was decided at
+        self._last_move = np.zeros(len(model.regulators), int)
+        self._last_move_t_ns = np.zeros(len(model.regulators), np.int64)
         self.model = model
         self.mode = mode
         self._eps_filter = (CorrectionFilter(len(model.regulators),
@@ -411,8 +418,20 @@ class CvvcController:
             recent.popleft()
         recent.append((t_ns, pv_p_kw.copy()))
 
+    def reversal_locks(self, t_ns: int) -> tuple[np.ndarray, np.ndarray]:
+        """(R,) bool each: regulators that may not move down (raised lately) and up (lowered lately) at ``t_ns``.
+
+        Beyond the paper: a tap decided one way and the other way a decision later is wear for nothing (IEEE 8500, a
+        day of case D: 210 of 386 tap moves reversed the one before); within ``tap_reversal_lockout_s`` of a
+        regulator's last decided move, the reverse move is not offered, unless the limits cannot be met without it
+        (``decide`` solves again without the locks).
+        """
+        recent = (self._last_move != 0) & (int(t_ns) - self._last_move_t_ns < self._lockout_ns)
+        return recent & (self._last_move > 0), recent & (self._last_move < 0)
+
     def problem(self, snap: MeasurementSnapshot, state: GridState, *, out_of_envelope: bool = False,
-                plants: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None) -> CvvcInputs:
+                plants: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None,
+                locked: bool = True) -> CvvcInputs:
         """The CVVC problem (eq. 9-17) of a snapshot the controller has taken in, over ``state``'s nodes.
 
         The one inputs builder, whichever the state's source: missing plants fixed at their last Q, missing
@@ -449,6 +468,8 @@ class CvvcController:
             v_min_pu, v_max_pu = v_min_pu + scale * bounds[0], v_max_pu - scale * bounds[1]
         # Capacitor banks are integer devices after the regulators: closed steps 0..steps, cost per switching.
         movable = self._cap_movable(snap, state)
+        taps_now = np.asarray(state.taps, int)
+        no_down, no_up = self.reversal_locks(int(snap.t_ns)) if locked else (np.zeros(taps_now.size, bool),) * 2
         n = state.v0_pu.shape[0]
         dv_dcap = self._arrays.dv_dcap_pu if state.critical else np.zeros((n, len(self._cap_ids)))
         v0, dv_dq = state.v0_pu, state.dv_dq_pu_per_kvar
@@ -470,8 +491,10 @@ class CvvcController:
             q_max_kvar=np.where(pv_ok, np.minimum(headroom, np.maximum(q_hi, -headroom)), pv_q),
             q_rating_kvar=np.maximum(self._pv_rating_kva, 1.0),
             taps=np.concatenate([state.taps, self._cap_last]).astype(int),
-            tap_min=np.concatenate([self._tap_min, np.zeros(len(self._cap_ids), int)]),
-            tap_max=np.concatenate([self._tap_max, self._cap_steps_max]),
+            tap_min=np.concatenate([np.where(no_down, np.maximum(self._tap_min, taps_now), self._tap_min),
+                                    np.zeros(len(self._cap_ids), int)]),
+            tap_max=np.concatenate([np.where(no_up, np.minimum(self._tap_max, taps_now), self._tap_max),
+                                    self._cap_steps_max]),
             max_taps_per_interval=np.concatenate([np.where(reg_ok, self._max_taps, 0),
                                                   np.where(movable, self._cap_max_sw, 0)]),
             cost_per_tap=np.concatenate([self._tap_cost, self._cap_cost]),
@@ -572,6 +595,10 @@ class CvvcController:
                               estimate_s=t_est - t0)
         # Case A solves cold (as it always has): its rows are every live node, not the critical nodes.
         solution = solve_cvvc(inputs, warm_start=self._warm if oracle is None else None)
+        if solution.status != "optimal" and any(lock.any() for lock in self.reversal_locks(int(snap.t_ns))):
+            # the limits need a reverse move after all: offer it
+            unlocked = self.problem(snap, state, out_of_envelope=bool(outside), plants=plants, locked=False)
+            solution = solve_cvvc(unlocked, warm_start=self._warm if oracle is None else None)
         sec = solution.seconds
         if solution.status == "hold":
             return self._hold(snap, prefix + solution.reason, missing, t0, state=state, solution=solution,
@@ -603,6 +630,9 @@ class CvvcController:
                     self._last_setpoint[r] = (t_now, float(setpoints[r]))
             bands = np.full(n_reg, self.bandwidth_v120)
         self._stale.commanded(int(snap.t_ns), solution.q_new_kvar, pv_ok)
+        moved = reg_ok & (solution.taps_new[:n_reg] != state.taps)
+        self._last_move = np.where(moved, np.sign(solution.taps_new[:n_reg] - state.taps), self._last_move)
+        self._last_move_t_ns = np.where(moved, int(snap.t_ns), self._last_move_t_ns)
         applied = self.bounds_pu(bool(outside)) if state.critical else None
         reason = solution.reason
         if outside:

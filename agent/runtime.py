@@ -80,6 +80,8 @@ class AgentSettings(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fi
     bounds_in_margin: bool = True  # the estimate bounds tighten a limit only past the optimization/judged gap
     bounds_cover_filter: bool = True  # the estimate bounds cover eq. (6) as computed and as filtered
     # (agent.state.filter_gap_bounds_pu; epri-m1 case D, 1 July: 37 % of node-decisions outside the bounds without)
+    tap_reversal_lockout_s: float = 900.0  # a regulator's move is not reversed within this [s] unless needed (agent.
+    # controller.CvvcController.reversal_locks; 0: off)
     predict_banks: bool = True  # banks on their local control: the decision keeps them from switching because of it
     # (agent.bank_rows; needs a model of training revision 9)
     stale_plants: bool = True  # a plant behind a stale frame: P projected, Q our command, not raised, margin
@@ -283,7 +285,8 @@ class DecisionMaker:
                                          stale_plants=settings.stale_plants,
                                          command_valid_periods=settings.valid_intervals,
                                          bounds_cover_filter=settings.bounds_cover_filter,
-                                         predict_banks=settings.predict_banks)
+                                         predict_banks=settings.predict_banks,
+                                         tap_reversal_lockout_s=settings.tap_reversal_lockout_s)
         self.oracle: OracleSource | None = None  # case A: set by the live runtime once its session is open
         self.seq = 0
         self.holds = 0

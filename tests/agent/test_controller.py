@@ -554,3 +554,33 @@ def test_filter_gap_bounds_widen_the_side_the_applied_correction_lags():
     same_lo, same_hi = filter_gap_bounds_pu(lo, hi, np.zeros(0), np.full(4, -1))  # a feeder without regulators
     np.testing.assert_allclose(same_lo, lo)
     np.testing.assert_allclose(same_hi, hi)
+
+
+def test_a_tap_move_is_not_reversed_soon_after_unless_the_limits_need_it():
+    """Under-voltage raises taps; five minutes later an over-voltage the plants' Q can absorb: with the lockout the
+    raised regulators are not lowered (Q does it), without it they are; with no Q headroom left they are lowered all
+    the same (the limits need it), and once the lockout is over the reverse move is offered again."""
+    low, high = -3.0 * HIGH, HIGH  # readings 3 % below the estimate: under-voltage; 1 % above: over-voltage
+    dear_q = msgspec.structs.replace(MODEL, pv=[msgspec.structs.replace(p, cost_per_kvar=0.05) for p in MODEL.pv])
+
+    def pair(lockout_s: float, kva: float = 1200.0, second_t_s: int = 300) -> tuple[Decision, Decision]:
+        c = CvvcController(dear_q, mode="taps", correction=True, bandwidth_v120=4.0,
+                           tap_reversal_lockout_s=lockout_s)
+        d1 = c.decide(snapshot(0, reading_error_pu=low))
+        s2 = snapshot(second_t_s * 10**9, reading_error_pu=high, taps=d1.reg_tap)
+        return d1, c.decide(dataclasses.replace(s2, pv_kva_available=np.full(K, kva)))
+
+    d1, free = pair(0.0)  # Q at 0.05 per kvar: lowering taps is the cheaper way down
+    raised = d1.reg_tap > 0
+    assert d1.status == "optimal" and raised.any()
+    assert free.status == "optimal" and np.any(free.reg_tap[raised] < d1.reg_tap[raised])
+    _, locked = pair(900.0)
+    assert locked.status == "optimal", locked.reason
+    assert np.all(locked.reg_tap[raised] >= d1.reg_tap[raised])  # not reversed: Q absorbs instead
+    assert locked.pv_q_kvar.sum() < free.pv_q_kvar.sum() - 1.0
+    _, needed = pair(900.0, kva=900.0)  # no Q headroom (P = 900 kW): only the taps can bring the voltages down
+    assert needed.status == "optimal" and np.any(needed.reg_tap[raised] < d1.reg_tap[raised])
+    _, later = pair(900.0, second_t_s=1200)
+    np.testing.assert_array_equal(later.reg_tap, free.reg_tap)
+    with pytest.raises(AgentInputError, match="tap_reversal_lockout_s"):
+        controller(tap_reversal_lockout_s=-1.0)
