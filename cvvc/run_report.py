@@ -57,8 +57,8 @@ def render_summary(s: RunSummary) -> str:
     lines = [f"# cvvc run: case {s.case} on {s.feeder_id}, {s.start}, {s.days:g} day(s)", "",
              f"| metric | case {s.case} | no control |", "|---|---|---|"]
     for label, key in rows:
-        b = "" if base is None else _fmt(getattr(base, key))
-        lines.append(f"| {label} | {_fmt(getattr(mt, key))} | {b} |")
+        b = "" if base is None else _fmt(getattr(base, key), key)
+        lines.append(f"| {label} | {_fmt(getattr(mt, key), key)} | {b} |")
     why = f"; most frequent reasons: {top_reasons(s.reasons)}" if s.holds or s.soft else ""
     lines += ["", f"- decisions: {s.decisions} (soft {s.soft}, hold {s.holds}{why}); lockstep misses: "
               f"{s.lockstep_misses}; wall time {s.wall_s:.1f} s",
@@ -85,7 +85,13 @@ def _recorder_lines(s: RunSummary) -> list[str]:
     return lines
 
 
-def _fmt(v: object) -> str:
+_COUNTS = {"nvv", "minutes_in_violation", "ntc", "cap_switches", "node_minutes_outside_opt", "minutes_outside_opt",
+           "node_minutes_outside_ansi", "minutes_outside_ansi"}  # whole numbers in both the run's and no control's
+
+
+def _fmt(v: object, key: str = "") -> str:
+    if key in _COUNTS and isinstance(v, int | float):
+        return f"{round(v):,}"
     if isinstance(v, float):
         return f"{v:.4f}" if abs(v) < 10 else f"{v:.2f}"
     return str(v)
