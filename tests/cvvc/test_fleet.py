@@ -213,7 +213,7 @@ def test_an_agent_subscribes_to_its_own_feeders_keys_only(router_endpoint, tmp_p
     feeder's frames and acks and no other feeder's (the router tells publishers whether any subscriber matches)."""
     log = open(tmp_path / "agent.log", "wb")  # noqa: SIM115  (closed below)
     agent = subprocess.Popen([sys.executable, "-m", "cvvc", "agent", "--model", str(ieee13_model), "--feeder-id",
-                              "ieee13-a", "--connect", router_endpoint], cwd=REPO, stdout=log,
+                              "ieee13-a", "--connect", router_endpoint, "--insecure"], cwd=REPO, stdout=log,
                              stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
     log.close()
     try:

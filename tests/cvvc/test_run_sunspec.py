@@ -128,8 +128,7 @@ def test_the_plants_frames_and_acks_come_from_the_adapters(both_runs):
 
 @pytest.mark.parametrize(("option", "named"), [
     (dict(drop_prob=0.1), "--drop-prob"), (dict(noise_scada_pct=1.0), "--noise-scada-pct"),
-    (dict(clock_skew_s=2.0), "--clock-skew-s"), (dict(realtime=True, meas_delay_s=5.0), "--meas-delay-s"),
-    (dict(secure=True), "--secure")])
+    (dict(clock_skew_s=2.0), "--clock-skew-s"), (dict(realtime=True, meas_delay_s=5.0), "--meas-delay-s")])
 def test_options_the_closed_loop_does_not_take_yet_are_refused_before_anything_starts(tmp_path, option, named):
     from cvvc.launch import LaunchError, RunConfig, run
 
