@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from typing import Literal
 
 import numpy as np
@@ -45,6 +45,7 @@ from agent.stale_plants import StalePlants, stale_rise_pu
 from agent.state import CorrectionFilter, GridState, OracleSource, estimated_state, oracle_state
 from regression.estimator import SensitivityTable, dv_dp_pu_per_kw, pv_variability_margins_pu
 from regression.model import CvvcModel, ModelArrays, features
+from schemas.devicemap import MeterSpec
 
 __all__ = ["CvvcController", "Decision", "DecisionTimings", "MeasurementSnapshot"]
 
@@ -98,6 +99,8 @@ class CvvcController:
         P's own variability margin).
     command_valid_periods : how many control periods a command stays in force after its step (the runtime's
         ``AgentSettings.valid_intervals``): how long ``stale_plants`` takes our last Q command as the plant's Q.
+    meters : the device map's AMI meters (``AgentSettings.meters``): the only meters whose readings count
+        (``agent.ami``); none by default.
     """
 
     def __init__(
@@ -117,6 +120,7 @@ class CvvcController:
         filtered_setpoints: bool = False,
         stale_plants: bool = False,
         command_valid_periods: float = 2.0,
+        meters: Iterable[MeterSpec] = (),
     ) -> None:
         if mode not in ("taps", "setpoints"):
             raise AgentInputError(f"mode must be 'taps' or 'setpoints', not {mode!r}")
@@ -175,7 +179,7 @@ class CvvcController:
         self._bound_lo = None if b is None else np.asarray(b.lower_pu, float)
         self._bound_hi = None if b is None else np.asarray(b.upper_pu, float)
         self._env = None if b is None else (np.asarray(b.envelope_lo, float), np.asarray(b.envelope_hi, float))
-        self.ami = AmiReadings(model)  # AMI meter readings (explicit option): none unless the bus brings some
+        self.ami = AmiReadings(model, meters)  # AMI meter readings (explicit option): the map's meters only
         banks = model.capacitors
         self._cap_ids = tuple(c.id for c in banks)
         self._cap_steps_max = np.array([c.steps for c in banks], int)

@@ -220,13 +220,16 @@ def run_fleet(config: FleetConfig) -> FleetSummary:
     for mb in members:
         mb.out.mkdir(parents=True, exist_ok=True)
         s = case_agent_settings(mb.run.case, mb.feeder_id, mb.run.bandwidth_v120)
-        settings[mb.feeder_id] = s
         if s is not None:
             from regression.model import read_model
             from schemas.devicemap import load_device_map
 
-            read_model(mb.model, expect_fingerprint=load_device_map(mb.dm_path).fingerprint())
+            dm = load_device_map(mb.dm_path)
+            if dm.meter:  # the only meters whose readings the agent takes
+                s = msgspec.structs.replace(s, meters=tuple(dm.meter))
+            read_model(mb.model, expect_fingerprint=dm.fingerprint())
             shutil.copyfile(mb.model, mb.out / "model.json")
+        settings[mb.feeder_id] = s
     security_dir = _security(config, members)
     steps = int(round(config.days * 1440))
     endpoint = f"tcp/127.0.0.1:{free_port()}"

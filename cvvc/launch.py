@@ -390,6 +390,8 @@ def run(config: RunConfig) -> RunSummary:
     fingerprint = dm.fingerprint()
     agent_settings = case_agent_settings(config.case, feeder_id, config.bandwidth_v120, config.pv_margin_window_s,
                                          config.setpoint_hold, config.control_banks)
+    if agent_settings is not None and dm.meter:  # the only meters whose readings the agent takes
+        agent_settings = msgspec.structs.replace(agent_settings, meters=tuple(dm.meter))
     if agent_settings is not None and config.check_model_fingerprint:
         from regression.model import read_model
 
