@@ -24,6 +24,11 @@ produce the same aligned sets. The rule, documented in docs/agent.md:
 - No single frame locks a source out: a frame whose ``seq`` is not above its source's last but whose ``t_ns`` is
   at least one control period past that source's last accepted frame is taken (a restarted device, or a forged
   high ``seq`` earlier) and counted in ``seq_resets``.
+- A sequence jump is held until the device's next frame confirms it: a frame whose ``seq`` is more than
+  ``SEQ_JUMP_MAX`` above its device's last is kept aside; if the device's next frame goes on from the jumped
+  ``seq`` the new sequence stands (``seq_jumps``), if it goes on from the old one the held frame is refused as
+  ``seq_jump``. So a forged frame with a high ``seq`` (e.g. stamped a few seconds after a step, which the clock
+  tolerance would snap onto it) neither replaces the step's real frame nor refuses the device's next ones.
 - A scan's end marker (``StepEnd``, sent after a step's frames by whoever collects them) names the devices that
   sent a frame for its time: once those have arrived, the group is released at once, the rest listed as
   ``missing``, instead of waiting for the late-frame window (issue "Robust by default", item 7: a lost frame
@@ -114,6 +119,8 @@ def plausibility_problem(frame: m.HeadFrame | m.PvFrame | m.RegFrame | m.CapFram
 _Frame = m.HeadFrame | m.PvFrame | m.RegFrame | m.CapFrame
 _FRAME_TYPES = (m.HeadFrame, m.PvFrame, m.RegFrame, m.CapFrame)
 _EXPECT_MAX = 64  # scan-end markers kept ahead of their frames (the oldest goes first)
+SEQ_JUMP_MAX = 1440
+"""The largest ``seq`` step a device's frame may take unconfirmed: a day of one-minute frames lost."""
 _VR_HISTORY = 64  # frames kept per regulator for the averaged readings (one per minute: an hour)
 
 
@@ -176,6 +183,8 @@ class FrameAligner:
         self.accepted = 0
         self.ignored = 0  # device frames of a kind the agent does not use
         self.seq_resets = 0
+        self.seq_jumps = 0  # sequence jumps confirmed by the device's next frame
+        self._seq_held: dict[str, _Frame] = {}  # device -> a frame whose seq jumped, awaiting its next frame
         self.step_ends = 0  # scan-end markers taken
         self.released_by_step_end = 0  # incomplete groups released at once because a marker said all had come
         self._expected: dict[int, frozenset[str]] = {}  # t_ns -> the devices a marker says sent a frame
@@ -258,6 +267,8 @@ class FrameAligner:
         return []
 
     def _take(self, key: str, frame: _Frame) -> list[AlignedFrames]:
+        if self._seq_jumped(frame):
+            return []
         why = self._check_order(frame)
         if why is not None:
             self._reject(*why)
@@ -344,6 +355,24 @@ class FrameAligner:
         if problem is not None:
             return "implausible", f"{_device(frame)}: {problem}"
         return None
+
+    def _seq_jumped(self, frame: _Frame) -> bool:
+        """Whether ``frame`` is held aside for a ``seq`` jump (module docstring); settles an earlier held one."""
+        device = _device(frame)
+        last = self._last_seq.get(device)
+        held = self._seq_held.pop(device, None)
+        if last is None or frame.seq <= last + SEQ_JUMP_MAX:
+            if held is not None:
+                self._reject("seq_jump", f"{device} seq {held.seq} (t_ns {held.t_ns}): a jump from {last} that its "
+                             f"next frame (seq {frame.seq}) did not confirm")
+            return False
+        if held is not None and held.seq < frame.seq <= held.seq + SEQ_JUMP_MAX:
+            self.seq_jumps += 1  # the device's next frame goes on from the jump: its new sequence stands
+            return False
+        if held is not None:
+            self._reject("seq_jump", f"{device} seq {held.seq}: a jump from {last} not confirmed")
+        self._seq_held[device] = frame
+        return True
 
     def _check_order(self, frame: _Frame) -> tuple[str, str] | None:
         """Why a frame is a duplicate, out of order or stale, or None (may count a ``seq`` reset)."""

@@ -284,7 +284,9 @@ class DecisionMaker:
         self.soft = 0
         self.reasons: Counter[str] = Counter()  # of soft and hold decisions
         self.decision_s: deque[float] = deque(maxlen=DECISION_TIMES_KEPT)  # wall time of each decision [s]
-        self._sent: OrderedDict[str, str] = OrderedDict()  # cmd_id -> device of the latest commands sent
+        # cmd_id -> (device, answered) of the latest commands sent: one answer (accepted, clipped, rejected) and one
+        # 'expired' count per command, so the device's ack to a replay of it by someone else does not
+        self._sent: OrderedDict[str, tuple[str, bool]] = OrderedDict()
         self._dv_dtap = _within_array(np.asarray(model.dv_dtap_pu, float), -1.0, 1.0, 12)  # a model constant
 
     def on_frame(self, key: str, msg: Any) -> list[tuple[AlignedFrames, ControllerDecision]]:
@@ -300,13 +302,22 @@ class DecisionMaker:
         return [(a, self._decide(a)) for a in self.aligner.add(key, msg)]
 
     def ack_problem(self, key: str, ack: m.Ack) -> str | None:
-        """Why an ack does not count, or None: it must answer a command this agent sent (its ``cmd_id``, kept for
-        the latest ``SENT_COMMANDS_KEPT``) to the device it names, on that device's ack key.
+        """Why an ack does not count, or None (then it is taken): it must answer a command this agent sent (its
+        ``cmd_id``, kept for the latest ``SENT_COMMANDS_KEPT``) to the device it names, on that device's ack key, and
+        be that command's first answer (or its one ``expired``): the device's answer to someone's replay of the
+        command ('rejected', replay) does not count.
         """
         if key.rsplit("/", 1)[-1] != ack.device_id:
             return f"{key[:200]}: an ack of device {ack.device_id[:64]!r}"
-        if self._sent.get(ack.cmd_id) != ack.device_id:
+        sent = self._sent.get(ack.cmd_id)
+        if sent is None or sent[0] != ack.device_id:
             return f"ack of {ack.device_id[:64]!r} for {ack.cmd_id[:96]!r}: not a command this agent sent to it"
+        if ack.status == "expired":
+            del self._sent[ack.cmd_id]
+        elif sent[1]:
+            return f"ack of {ack.device_id[:64]!r} for {ack.cmd_id[:96]!r}: that command was answered already"
+        else:
+            self._sent[ack.cmd_id] = (sent[0], True)
         return None
 
     def close_pending(self) -> list[tuple[AlignedFrames, ControllerDecision]]:
@@ -361,7 +372,7 @@ class DecisionMaker:
             self.reasons[reason_kind(d.reason)] += 1
         self.commands_sent += len(commands)
         for cmd in commands:
-            self._sent[cmd.cmd_id] = _command_device(cmd)
+            self._sent[cmd.cmd_id] = (_command_device(cmd), False)
         while len(self._sent) > SENT_COMMANDS_KEPT:
             self._sent.popitem(last=False)
         estimates = []
