@@ -507,6 +507,7 @@ class LinkStatus(Message, frozen=True, kw_only=True, forbid_unknown_fields=True)
     commands_failed: Count = 0
     last_ok_t_ns: TimeNs = 0
     reason: Reason = ""
+    foreign_writes: Count = 0  # scans that found a set point the adapter did not write (it wrote its own again)
 
 
 class OracleRequest(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
