@@ -48,7 +48,7 @@ def register_evaluate(sub: argparse._SubParsersAction) -> None:
                    help="reuse runs already finished in --out (same case and window); run only the others")
     p.add_argument("--cache", default=None, help=CACHE_HELP)
     p.add_argument("--out", required=True, help="output folder")
-    from cvvc.launch_cli import add_security_arguments
+    from cvvc.cli_options import add_security_arguments
 
     add_security_arguments(p)
     p.set_defaults(func=_evaluate)

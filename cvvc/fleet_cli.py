@@ -35,7 +35,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", default=None, help="output folder (default runs/fleet-<n>-<time>)")
     p.add_argument("--cache", default=None, help=CACHE_HELP)
     p.add_argument("--no-record", action="store_true", help="no recording (no decision times, no crossing check)")
-    from cvvc.launch_cli import add_security_arguments
+    from cvvc.cli_options import add_security_arguments
 
     add_security_arguments(p)  # secure by default: one certificate per feeder's agent and devices, each allowed on
     # its own feeder's keys alone; a probe command across feeders is put and must be refused

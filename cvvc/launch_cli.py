@@ -5,10 +5,10 @@ from __future__ import annotations
 import argparse
 import sys
 
-from cvvc.cli_options import add_agent_option_arguments
+from cvvc.cli_options import add_agent_option_arguments, add_security_arguments
 from schemas.cache import CACHE_HELP
 
-__all__ = ["add_security_arguments", "register"]
+__all__ = ["register"]
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -83,18 +83,6 @@ def _run(args: argparse.Namespace) -> int:
         print(render_summary(summary))
         print(f"output: {summary.out_dir} (summary.json, report.md{', session.mcap' if summary.recording else ''})")
     return 0
-
-
-def add_security_arguments(p: argparse.ArgumentParser) -> None:
-    """``--insecure``, ``--ca-dir`` and the no-op ``--secure`` of the launchers (``run``, ``fleet``, ``evaluate``)."""
-    g = p.add_mutually_exclusive_group()
-    g.add_argument("--insecure", action="store_true",
-                   help="run the bus without TLS and access control (prints a warning; recorded in the summary). "
-                        "Default: mTLS with per-role certificates in <cache>/security and the router's "
-                        "deny-by-default access policy; see docs/security.md")
-    g.add_argument("--secure", action="store_true", help="the default (kept for earlier command lines)")
-    p.add_argument("--ca-dir", metavar="CA", help="the certificate authority that issues the certificates "
-                   "(default <cache>/ca, created on the first run; or one made with `cvvc security init-ca`)")
 
 
 def register_report(sub: argparse._SubParsersAction) -> None:
