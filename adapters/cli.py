@@ -49,7 +49,7 @@ def _sunspec(args: argparse.Namespace) -> int:
     status = _with_stop(lambda stop: run_adapter(config, bus, stop=stop))
     print(f"adapter {config.device_id} ({config.modbus}): {status.state}, {status.scans} scans, {status.frames} "
           f"frames, {status.commands} commands ({status.commands_failed} failed), refused values "
-          f"{dict(status.refused) or 'none'}")
+          f"{dict(status.refused) or 'none'}, foreign writes {status.foreign_writes}")
     return 0
 
 

@@ -246,6 +246,17 @@ class SunSpecLink:
         self._io("704 VarSetEna", pts["VarSetEna"].write)
         return self.read()
 
+    def disable_var_setpoint(self) -> InverterReading:
+        """Disable 704's reactive power set point (``VarSetEna = 0``: the inverter back on its local default), then
+        read the models back.
+        """
+        if self._dev is None:
+            self.connect()
+        pts = self._models[704].points
+        pts["VarSetEna"].value = 0
+        self._io("704 VarSetEna", pts["VarSetEna"].write)
+        return self.read()
+
 
 def _sf(model: Any, mid: int, name: str) -> int:
     sf = model.points[name].value

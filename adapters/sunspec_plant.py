@@ -18,6 +18,13 @@ stamped with the scan's time; its ``local_mode`` is 705's (volt-var when enabled
 Refused register values (``adapters.sunspec``) give no frame: they are counted by point and the link's state
 becomes ``refusing``.
 A command whose ``valid_until_t_ns`` has passed at a scan is answered ``expired`` (the inverter reverted itself).
+
+Each scan also verifies what the inverter does: the 704 set point in force must be the one this adapter wrote for
+the command in force (none without one). Another value was written by someone else (a second Modbus master): a
+*foreign write*, counted (``foreign_writes``, in ``LinkStatus``), logged (the first one), and ours written again
+(with the command's remaining revert time, or the function disabled when no command is in force); the frame reports
+the set point the inverter holds after that. Within ``_EXPIRY_MARGIN_NS`` of the command's end the inverter's own
+revert timer and the adapter's clock may disagree, and nothing is judged.
 """
 
 from __future__ import annotations
@@ -38,6 +45,7 @@ __all__ = ["PlantSettings", "SunSpecPlant"]
 
 log = logging.getLogger(__name__)
 _ROUNDING_TOL_KVAR = 1e-9
+_EXPIRY_MARGIN_NS = 5_000_000_000  # the revert timer is whole seconds, rounded up, on the inverter's own clock
 
 
 @dataclass(frozen=True)
@@ -84,6 +92,7 @@ class SunSpecPlant:
         self.refused: Counter[str] = Counter()
         self.local_mode_writes = self.local_mode_failures = 0  # 705 Ena written to set the local mode (failed)
         self.acks: Counter[str] = Counter()
+        self.foreign_writes = 0  # scans that found a set point this adapter did not write (re-asserted)
         self._seq = 0
         self._ack_seq = 0
         self._status_seq = 0
@@ -103,8 +112,9 @@ class SunSpecPlant:
             self._fail("refusing", f"refused register value {e}")
             return None
         reading = self._set_local_mode(reading)
-        self.last = reading
         self.state, self.reason, self.last_ok_t_ns = "ok", "", int(t_ns)
+        reading = self._verify_setpoint(reading, int(t_ns))
+        self.last = reading
         return self._frame(reading, t_ns)
 
     def _set_local_mode(self, r: InverterReading) -> InverterReading:
@@ -124,6 +134,33 @@ class SunSpecPlant:
             return r
         self.local_mode_writes += 1
         return back
+
+    def _verify_setpoint(self, r: InverterReading, t_ns: int) -> InverterReading:
+        """The reading after making sure the set point in force is ours (module docstring); a foreign one is counted,
+        logged and overwritten with ours.
+        """
+        active = self.plant.guard.active
+        if active is not None and abs(active.valid_until_t_ns - t_ns) < _EXPIRY_MARGIN_NS:
+            return r
+        ours = None if active is None or active.valid_until_t_ns < t_ns else active.value
+        held = r.q_setpoint_kvar
+        if (ours is None) == (held is None) and (
+                ours is None or held is None or abs(held - ours) <= r.var_set_step_kvar / 2 + _ROUNDING_TOL_KVAR):
+            return r
+        self.foreign_writes += 1
+        what = "its local default" if ours is None else f"{ours:.3f} kvar"
+        self.reason = (f"foreign write: the inverter held {'no set point' if held is None else f'{held:.3f} kvar'} "
+                       f"where this adapter wrote {what}; re-asserted")
+        if self.foreign_writes == 1:  # logged once; LinkStatus counts every one and says the latest
+            log.warning("%s: %s (counted in its LinkStatus.foreign_writes)", self.settings.device_id, self.reason)
+        try:
+            if ours is None or active is None:
+                return self.link.disable_var_setpoint()
+            return self.link.write_var_setpoint(ours, max(1, math.ceil((active.valid_until_t_ns - t_ns) / 1e9)))
+        except (LinkDownError, DeviceRefusedError, RegisterValueError) as e:
+            self.rlog.warning("foreign_write_fix", "%s: could not write the set point again: %s",
+                              self.settings.device_id, e)
+            return r
 
     def _fail(self, state: Literal["down", "refusing"], why: str) -> None:
         self.scan_failures += 1
@@ -218,4 +255,5 @@ class SunSpecPlant:
                             endpoint=self.link.endpoint[:200], state=self.state, scans=self.scans,
                             scan_failures=self.scan_failures, frames=self.frames, refused=dict(self.refused),
                             commands=self.commands, commands_failed=self.commands_failed,
-                            last_ok_t_ns=self.last_ok_t_ns, reason=self.reason[:500])
+                            last_ok_t_ns=self.last_ok_t_ns, reason=self.reason[:500],
+                            foreign_writes=self.foreign_writes)

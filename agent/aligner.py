@@ -12,21 +12,31 @@ produce the same aligned sets. The rule, documented in docs/agent.md:
   not know, with a ``seq`` not above the last accepted one from that source (duplicate / out of order),
   older than the newest released group (stale), with the ``invalid`` quality flag, or with physically
   impossible values.
+- A frame's identity is the device of the model its key and its device id name (``head``, ``pv/<id>``,
+  ``vr/<id>``, ``cap/<id>``), never the ``source`` the payload declares: sequences are kept, and the clock rule
+  below counts, per device of the map, so made-up sources count for nothing.
 - No single frame moves the clock (issue "Robust by default"): a frame more than ``max_jump_ns`` (one control
   period) ahead of the newest accepted frame, or any frame before the first accepted one, is *held* until
-  frames of at least two sources (one if the model has a single device) agree on the new time within
+  frames of at least two devices (one if the model has a single device) agree on the new time within
   ``max_jump_ns``; then the held frames are taken in arrival order. Lost-frame bursts and the start of a run
   pass at once (every device reports the same step); a lone forged timestamp stays held, and is counted as
   ``time_jump`` when it is pushed out of the bounded hold.
 - No single frame locks a source out: a frame whose ``seq`` is not above its source's last but whose ``t_ns`` is
   at least one control period past that source's last accepted frame is taken (a restarted device, or a forged
   high ``seq`` earlier) and counted in ``seq_resets``.
+- A sequence jump is held until the device's next frame confirms it: a frame whose ``seq`` is more than
+  ``SEQ_JUMP_MAX`` above its device's last is kept aside; if the device's next frame goes on from the jumped
+  ``seq`` the new sequence stands (``seq_jumps``), if it goes on from the old one the held frame is refused as
+  ``seq_jump``. So a forged frame with a high ``seq`` (e.g. stamped a few seconds after a step, which the clock
+  tolerance would snap onto it) neither replaces the step's real frame nor refuses the device's next ones.
 - A scan's end marker (``StepEnd``, sent after a step's frames by whoever collects them) names the devices that
   sent a frame for its time: once those have arrived, the group is released at once, the rest listed as
   ``missing``, instead of waiting for the late-frame window (issue "Robust by default", item 7: a lost frame
   cost a 2 s stall per control step in lockstep). A marker never moves the clock, never releases a group that
   has no frame, and never makes a group wait longer; at most ``_EXPECT_MAX`` are kept ahead of their frames, so
   a forged marker can at worst have one step decided early on the frames that had arrived.
+- A device's first frame of a time stays: another frame of the same device for a time already received (e.g. one
+  stamped a few seconds off the step and snapped onto it) is refused as ``duplicate``, so it never replaces it.
 - Only groups on a control step (``t_ns`` a multiple of the control period) are released as decisions to
   make; the others only refresh the last-known state.
 - Field clocks off by a little (issue "Robust by default", item 7: +-2 s skew between the devices and the agent):
@@ -109,7 +119,37 @@ def plausibility_problem(frame: m.HeadFrame | m.PvFrame | m.RegFrame | m.CapFram
 _Frame = m.HeadFrame | m.PvFrame | m.RegFrame | m.CapFrame
 _FRAME_TYPES = (m.HeadFrame, m.PvFrame, m.RegFrame, m.CapFrame)
 _EXPECT_MAX = 64  # scan-end markers kept ahead of their frames (the oldest goes first)
+SEQ_JUMP_MAX = 1440
+"""The largest ``seq`` step a device's frame may take unconfirmed: a day of one-minute frames lost."""
 _VR_HISTORY = 64  # frames kept per regulator for the averaged readings (one per minute: an hour)
+
+
+def _device(frame: _Frame) -> str:
+    """The device a frame is of, as the map names it (its key was checked against it), never its ``source``."""
+    match frame:
+        case m.HeadFrame():
+            return "head"
+        case m.PvFrame():
+            return f"pv/{frame.plant_id}"
+        case m.RegFrame():
+            return f"vr/{frame.regulator_id}"
+        case m.CapFrame():
+            return f"cap/{frame.capacitor_id}"
+    raise TypeError(f"not a device frame: {type(frame).__name__}")
+
+
+def _in_group(g: _Group, frame: _Frame) -> bool:
+    """Whether ``g`` holds a frame of ``frame``'s device already."""
+    match frame:
+        case m.HeadFrame():
+            return g.head is not None
+        case m.PvFrame():
+            return frame.plant_id in g.pv
+        case m.RegFrame():
+            return frame.regulator_id in g.vr
+        case m.CapFrame():
+            return frame.capacitor_id in g.cap
+    return False
 
 
 @dataclass
@@ -143,6 +183,8 @@ class FrameAligner:
         self.accepted = 0
         self.ignored = 0  # device frames of a kind the agent does not use
         self.seq_resets = 0
+        self.seq_jumps = 0  # sequence jumps confirmed by the device's next frame
+        self._seq_held: dict[str, _Frame] = {}  # device -> a frame whose seq jumped, awaiting its next frame
         self.step_ends = 0  # scan-end markers taken
         self.released_by_step_end = 0  # incomplete groups released at once because a marker said all had come
         self._expected: dict[int, frozenset[str]] = {}  # t_ns -> the devices a marker says sent a frame
@@ -156,7 +198,7 @@ class FrameAligner:
         self._head_history: deque[m.HeadFrame] = deque(maxlen=_VR_HISTORY)
         self._pv_latest: dict[str, m.PvFrame] = {}
         self._newest_t_ns: int | None = None  # newest accepted frame time; None before the first
-        self._held: list[tuple[str, _Frame]] = []  # frames ahead of the clock, awaiting a second source
+        self._held: list[tuple[str, _Frame]] = []  # frames ahead of the clock, awaiting a second device
         n_sources = 1 + len(pv_ids) + len(regulator_ids) + len(capacitor_ids)
         self._sources_needed = min(2, n_sources)
         self._hold_max = 4 * n_sources
@@ -198,21 +240,24 @@ class FrameAligner:
         self.snapped += 1
         return msgspec.structs.replace(frame, t_ns=t_ns - off + (period if off > tol else 0))
 
-    def _reject(self, kind: str, detail: str) -> None:
+    def reject(self, kind: str, detail: str) -> None:
+        """Count one refused input of ``kind`` (also the runtime's, e.g. an AMI reading of an unknown meter)."""
         self.rejected[kind] += 1
         self.last_reject[kind] = detail
+
+    _reject = reject
 
     def _hold(self, key: str, frame: _Frame) -> list[AlignedFrames]:
         """Keep a frame that would move the clock until another source agrees (see the module docstring)."""
         self._held.append((key, frame))
         if len(self._held) > self._hold_max:
             _, gone = self._held.pop(0)
-            self._reject("time_jump", f"{gone.source} t_ns {gone.t_ns}: ahead of the feeder's clock "
+            self._reject("time_jump", f"{_device(gone)} t_ns {gone.t_ns}: ahead of the feeder's clock "
                          f"({self._newest_t_ns}) and never confirmed by another device")
         times = sorted({f.t_ns for _, f in self._held})
         for t in times:
-            sources = {f.source for _, f in self._held if t <= f.t_ns <= t + self.max_jump_ns}
-            if len(sources) >= self._sources_needed:
+            devices = {_device(f) for _, f in self._held if t <= f.t_ns <= t + self.max_jump_ns}
+            if len(devices) >= self._sources_needed:
                 held, self._held = self._held, []
                 self._newest_t_ns = t if self._newest_t_ns is None else max(self._newest_t_ns, t)
                 out: list[AlignedFrames] = []
@@ -222,14 +267,16 @@ class FrameAligner:
         return []
 
     def _take(self, key: str, frame: _Frame) -> list[AlignedFrames]:
+        if self._seq_jumped(frame):
+            return []
         why = self._check_order(frame)
         if why is not None:
             self._reject(*why)
             return []
         self.accepted += 1
         self._newest_t_ns = frame.t_ns if self._newest_t_ns is None else max(self._newest_t_ns, frame.t_ns)
-        self._last_seq[frame.source] = frame.seq
-        self._last_t_ns[frame.source] = frame.t_ns
+        self._last_seq[_device(frame)] = frame.seq
+        self._last_t_ns[_device(frame)] = frame.t_ns
         out = [self._release(t) for t in sorted(self._groups) if t < frame.t_ns]
         g = self._groups.setdefault(frame.t_ns, _Group(frame.t_ns))
         match frame:
@@ -306,20 +353,42 @@ class FrameAligner:
                     return "unknown_device", f"capacitor bank {frame.capacitor_id!r} on {key}"
         problem = plausibility_problem(frame)
         if problem is not None:
-            return "implausible", f"{frame.source}: {problem}"
+            return "implausible", f"{_device(frame)}: {problem}"
         return None
+
+    def _seq_jumped(self, frame: _Frame) -> bool:
+        """Whether ``frame`` is held aside for a ``seq`` jump (module docstring); settles an earlier held one."""
+        device = _device(frame)
+        last = self._last_seq.get(device)
+        held = self._seq_held.pop(device, None)
+        if last is None or frame.seq <= last + SEQ_JUMP_MAX:
+            if held is not None:
+                self._reject("seq_jump", f"{device} seq {held.seq} (t_ns {held.t_ns}): a jump from {last} that its "
+                             f"next frame (seq {frame.seq}) did not confirm")
+            return False
+        if held is not None and held.seq < frame.seq <= held.seq + SEQ_JUMP_MAX:
+            self.seq_jumps += 1  # the device's next frame goes on from the jump: its new sequence stands
+            return False
+        if held is not None:
+            self._reject("seq_jump", f"{device} seq {held.seq}: a jump from {last} not confirmed")
+        self._seq_held[device] = frame
+        return True
 
     def _check_order(self, frame: _Frame) -> tuple[str, str] | None:
         """Why a frame is a duplicate, out of order or stale, or None (may count a ``seq`` reset)."""
-        last = self._last_seq.get(frame.source)
+        device = _device(frame)
+        last = self._last_seq.get(device)
         if last is not None and frame.seq <= last:
-            if frame.t_ns >= self._last_t_ns[frame.source] + self.control_period_ns:
-                self.seq_resets += 1  # the source moved on by more than a period: its seq restarted
+            if frame.t_ns >= self._last_t_ns[device] + self.control_period_ns:
+                self.seq_resets += 1  # the device moved on by more than a period: its seq restarted
             else:
                 kind = "duplicate" if frame.seq == last else "out_of_order"
-                return kind, f"{frame.source} seq {frame.seq} <= {last}"
+                return kind, f"{device} seq {frame.seq} <= {last}"
         if frame.t_ns <= self._released_t_ns:
-            return "stale", f"{frame.source} t_ns {frame.t_ns} not after released {self._released_t_ns}"
+            return "stale", f"{device} t_ns {frame.t_ns} not after released {self._released_t_ns}"
+        g = self._groups.get(frame.t_ns)
+        if g is not None and _in_group(g, frame):
+            return "duplicate", f"{device}: a second frame for t_ns {frame.t_ns}; the first one stays"
         return None
 
     def _missing(self, g: _Group) -> tuple[str, ...]:

@@ -13,25 +13,37 @@ same rule offline), while the reading is at most ``max_age_s`` old. Its bounds a
 every ``ami_interval_s``), when the model has them and the meter reads at least that often; otherwise the node keeps
 its ordinary bounds. Readings of nodes that are not critical, from the future or older than the newest are counted
 and ignored.
+
+Identity from the device map, never from the payload: a reading counts only from a meter the map declares
+(``[[meter]]``, ``AgentSettings.meters``), for that meter's node, and it serves for the *map's* interval of that
+meter (a reading's own ``interval_s`` is ignored: a forged 86,400 s would let one reading serve two days). A map
+without meters takes no reading at all. A reading stamped more than a step ahead of the newest frame is refused.
 """
 
 from __future__ import annotations
 
 import dataclasses
 from collections import Counter, OrderedDict
+from collections.abc import Iterable
 
 import numpy as np
 
 from agent.state import GridState
 from regression.model import CvvcModel
 from schemas import messages as m
+from schemas.devicemap import MeterSpec
 
-__all__ = ["AmiReadings"]
+__all__ = ["AmiReadings", "REFUSED_KINDS"]
 
 #: Decisions whose estimates are kept to pair with readings (a day of 5-minute control periods).
 HISTORY_STEPS = 288
-#: Future time a reading may carry (clock skew between meter and agent) [ns].
+#: How far ahead of the newest frame a reading may be stamped [ns]: one 1-minute step (a step's reading is published
+#: before that step's frames).
 FUTURE_TOLERANCE_NS = 60 * 1_000_000_000
+#: Why a reading is refused (counted with the agent's rejected inputs), by the kind ``add`` returns; the other
+#: kinds (a declared meter at a node that is not critical) are only counted in ``counts``.
+REFUSED_KINDS = {"ami_unknown_meter": "unknown_device", "ami_wrong_node": "unknown_device",
+                 "ami_out_of_range": "implausible", "ami_future": "future", "ami_not_newer": "out_of_order"}
 
 
 class AmiReadings:
@@ -40,10 +52,15 @@ class AmiReadings:
     Parameters
     ----------
     model : the model (critical-node names and, optionally, AMI bounds).
-    max_age_multiple : a reading serves until it is this many meter intervals old.
+    meters : the device map's meters (``[[meter]]``); readings of any other meter are refused.
+    max_age_multiple : a reading serves until it is this many of its meter's (map) intervals old.
+    future_tolerance_ns : how far ahead of the newest frame a reading may be stamped [ns].
     """
 
-    def __init__(self, model: CvvcModel, max_age_multiple: float = 2.0) -> None:
+    def __init__(self, model: CvvcModel, meters: Iterable[MeterSpec] = (), max_age_multiple: float = 2.0,
+                 future_tolerance_ns: int = FUTURE_TOLERANCE_NS) -> None:
+        self._meters = {x.id: x for x in meters}
+        self._future_ns = int(future_tolerance_ns)
         self._index = {c.name.lower(): i for i, c in enumerate(model.critical_nodes)}
         n = len(model.critical_nodes)
         b = model.bounds
@@ -58,25 +75,36 @@ class AmiReadings:
         self.tight = np.zeros(n, bool)  # ... and whose AMI bounds apply
         self.counts: Counter[str] = Counter()
 
-    def add(self, frame: m.MeterFrame, now_t_ns: int | None = None) -> str | None:
-        """Keep a reading; why it is ignored (counted), or None."""
+    def add(self, frame: m.MeterFrame, now_t_ns: int | None = None) -> tuple[str, str] | None:
+        """Keep a reading; or ``(kind, why)`` it is ignored (counted in ``counts`` under ``kind``; the kinds of
+        ``REFUSED_KINDS`` are refusals). ``now_t_ns``: the newest frame's time [ns], None before the first.
+        """
+        meter = self._meters.get(frame.meter_id)
+        if meter is None:
+            return self._ignore("ami_unknown_meter", f"meter {frame.meter_id[:64]!r} is not in the device map")
+        if frame.node.lower() != meter.node.lower():
+            return self._ignore("ami_wrong_node", f"meter {meter.id}: node {frame.node[:64]!r}, the map says "
+                                f"{meter.node!r}")
         i = self._index.get(frame.node.lower())
         if i is None:
-            self.counts["ami_not_critical"] += 1
-            return f"meter {frame.meter_id}: node {frame.node} is not a critical node of the model"
+            return self._ignore("ami_not_critical", f"meter {meter.id}: node {frame.node} is not a critical node "
+                                "of the model")
         if not 0.5 <= frame.v_pu <= 1.5:
-            self.counts["ami_out_of_range"] += 1
-            return f"meter {frame.meter_id}: reading {frame.v_pu} pu outside 0.5..1.5"
-        if now_t_ns is not None and frame.t_ns > now_t_ns + FUTURE_TOLERANCE_NS:
-            self.counts["ami_future"] += 1
-            return f"meter {frame.meter_id}: reading from the future (t_ns {frame.t_ns})"
+            return self._ignore("ami_out_of_range", f"meter {meter.id}: reading {frame.v_pu} pu outside 0.5..1.5")
+        if now_t_ns is not None and frame.t_ns > now_t_ns + self._future_ns:
+            return self._ignore("ami_future", f"meter {meter.id}: reading from the future (t_ns {frame.t_ns}, "
+                                f"newest frame {now_t_ns})")
         last = self.latest.get(i)
-        if last is not None and frame.t_ns <= last[0]:
-            self.counts["ami_not_newer"] += 1
-            return f"meter {frame.meter_id}: reading not newer than the one kept"
-        self.latest[i] = (int(frame.t_ns), float(frame.v_pu), int(frame.interval_s))
+        # a kept reading from the future (taken before the first frame dated it) never locks the meter out
+        if last is not None and frame.t_ns <= last[0] and (now_t_ns is None or last[0] <= now_t_ns + self._future_ns):
+            return self._ignore("ami_not_newer", f"meter {meter.id}: reading not newer than the one kept")
+        self.latest[i] = (int(frame.t_ns), float(frame.v_pu), int(meter.interval_s))  # the map's interval
         self.counts["ami_readings"] += 1
         return None
+
+    def _ignore(self, kind: str, why: str) -> tuple[str, str]:
+        self.counts[kind] += 1
+        return kind, why
 
     def correct(self, t_ns: int, state: GridState) -> GridState:
         """``state`` with each metered node's estimate moved by its latest usable reading (see the module)."""

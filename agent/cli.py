@@ -23,7 +23,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="every decision setting as encoded AgentSettings (how `cvvc run` hands a case over); "
                         "the flags below that shape decisions are then ignored")
     p.add_argument("--feeder", default=None,
-                   help="device map of the feeder: refuse the model if its fingerprint differs")
+                   help="device map of the feeder: refuse the model if its fingerprint differs; its AMI meters "
+                        "([[meter]]) are the only ones whose readings count (none without it)")
     p.add_argument("--mode", choices=["taps", "setpoints"], default="setpoints",
                    help="command tap positions (cases A/B) or eq. 8 voltage set points (cases C/D)")
     p.add_argument("--correction", choices=["on", "off"], default="on", help="eq. 6-7 correction (case D)")
@@ -97,12 +98,15 @@ def _agent(args: argparse.Namespace) -> int:
     from schemas.bus import bus_config_from_args
 
     expect = None
+    settings = settings_from_args(args)
     if args.feeder:
         from schemas.devicemap import load_device_map, resolve_device_map_path
 
-        expect = load_device_map(resolve_device_map_path(args.feeder)).fingerprint()
+        dm = load_device_map(resolve_device_map_path(args.feeder))
+        expect = dm.fingerprint()
+        if dm.meter and not settings.meters:  # the map's meters: the only ones whose readings count
+            settings = msgspec.structs.replace(settings, meters=tuple(dm.meter))
     model = read_model(args.model, expect_fingerprint=expect)
-    settings = settings_from_args(args)
     if settings.mode == "taps" and settings.correction and not settings.full_visibility:
         logging.getLogger("agent").info("taps mode with correction: not one of the paper's cases, allowed")
     summary = run_agent(model, settings, bus_config_from_args(args, role="agent"))

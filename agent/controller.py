@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from typing import Literal
 
 import numpy as np
@@ -53,6 +53,7 @@ from agent.state import (
 )
 from regression.estimator import SensitivityTable, dv_dp_pu_per_kw, pv_variability_margins_pu
 from regression.model import CvvcModel, ModelArrays, features
+from schemas.devicemap import MeterSpec
 
 __all__ = ["CvvcController", "Decision", "DecisionTimings", "MeasurementSnapshot"]
 
@@ -106,6 +107,8 @@ class CvvcController:
         P's own variability margin).
     command_valid_periods : how many control periods a command stays in force after its step (the runtime's
         ``AgentSettings.valid_intervals``): how long ``stale_plants`` takes our last Q command as the plant's Q.
+    meters : the device map's AMI meters (``AgentSettings.meters``): the only meters whose readings count
+        (``agent.ami``); none by default.
     """
 
     def __init__(
@@ -128,6 +131,7 @@ class CvvcController:
         bounds_cover_filter: bool = False,
         predict_banks: bool = False,
         tap_reversal_lockout_s: float = 0.0,
+        meters: Iterable[MeterSpec] = (),
     ) -> None:
         if mode not in ("taps", "setpoints"):
             raise AgentInputError(f"mode must be 'taps' or 'setpoints', not {mode!r}")
@@ -196,7 +200,7 @@ class CvvcController:
         self._env = None if b is None else (np.asarray(b.envelope_lo, float), np.asarray(b.envelope_hi, float))
         # this decision's eq. (6) correction as computed minus as applied through the filter, per regulator [pu]
         self._filter_gap_pu = np.zeros(len(model.regulators))
-        self.ami = AmiReadings(model)  # AMI meter readings (explicit option): none unless the bus brings some
+        self.ami = AmiReadings(model, meters)  # AMI meter readings (explicit option): the map's meters only
         banks = model.capacitors
         self._cap_ids = tuple(c.id for c in banks)
         self._cap_steps_max = np.array([c.steps for c in banks], int)

@@ -18,7 +18,7 @@ import logging
 import signal
 import threading
 import time
-from collections import Counter, deque
+from collections import Counter, OrderedDict, deque
 from collections.abc import Iterable, Iterator
 from typing import Any, Literal
 
@@ -26,6 +26,7 @@ import msgspec
 import numpy as np
 
 from agent.aligner import AlignedFrames, FrameAligner
+from agent.ami import REFUSED_KINDS
 from agent.controller import CvvcController, MeasurementSnapshot
 from agent.controller import Decision as ControllerDecision
 from agent.decision import decision_time_ms, reason_kind
@@ -34,6 +35,7 @@ from agent.state import OracleSource
 from regression.model import CvvcModel
 from schemas import keys
 from schemas import messages as m
+from schemas.devicemap import MeterSpec
 from schemas.logs import RateLimitedLog
 
 __all__ = ["AgentSettings", "AgentSummary", "DecisionMaker", "decide_offline", "run_agent", "snapshot_from"]
@@ -46,6 +48,8 @@ _PHASE_INDEX = {"a": 0, "b": 1, "c": 2}
 _FIT_MIN = 16  # readings a fit needs: with four terms, fewer are noisier than the mean of five
 #: Decisions whose wall time the summary's percentiles cover (the latest; a week of 1-minute steps is 10,080).
 DECISION_TIMES_KEPT = 100_000
+#: Commands whose ids an ack may answer (the latest sent; a day of decisions on a feeder of ~40 devices).
+SENT_COMMANDS_KEPT = 16_384
 
 
 class AgentSettings(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
@@ -87,6 +91,9 @@ class AgentSettings(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fi
     stale_plants: bool = True  # a plant behind a stale frame: P projected, Q our command, not raised, margin
     # for its P (agent.stale_plants)
     # (rural winter week, 5 % lost in 10-minute outages: NVV 3 -> 0, NTC 72 -> 25; 20 % outages: NTC 98 -> 70)
+    # the device map's AMI meters ([[meter]]): the only meters whose readings count, each for its node and at its
+    # interval in the map (agent.ami); none: every reading is refused
+    meters: tuple[MeterSpec, ...] = ()
 
 
 class AgentSummary(msgspec.Struct, frozen=True, kw_only=True):
@@ -286,7 +293,8 @@ class DecisionMaker:
                                          command_valid_periods=settings.valid_intervals,
                                          bounds_cover_filter=settings.bounds_cover_filter,
                                          predict_banks=settings.predict_banks,
-                                         tap_reversal_lockout_s=settings.tap_reversal_lockout_s)
+                                         tap_reversal_lockout_s=settings.tap_reversal_lockout_s,
+                                         meters=settings.meters)
         self.oracle: OracleSource | None = None  # case A: set by the live runtime once its session is open
         self.seq = 0
         self.holds = 0
@@ -295,14 +303,41 @@ class DecisionMaker:
         self.soft = 0
         self.reasons: Counter[str] = Counter()  # of soft and hold decisions
         self.decision_s: deque[float] = deque(maxlen=DECISION_TIMES_KEPT)  # wall time of each decision [s]
+        # cmd_id -> (device, answered) of the latest commands sent: one answer (accepted, clipped, rejected) and one
+        # 'expired' count per command, so the device's ack to a replay of it by someone else does not
+        self._sent: OrderedDict[str, tuple[str, bool]] = OrderedDict()
         self._dv_dtap = _within_array(np.asarray(model.dv_dtap_pu, float), -1.0, 1.0, 12)  # a model constant
 
     def on_frame(self, key: str, msg: Any) -> list[tuple[AlignedFrames, ControllerDecision]]:
         """Add a received frame; the decisions of the steps it completes (none for an AMI meter's reading)."""
         if isinstance(msg, m.MeterFrame):
-            self.controller.ami.add(msg, self.aligner.newest_t_ns)
+            if key.rsplit("/", 1)[-1] != msg.meter_id:
+                self.aligner.reject("unknown_device", f"{key[:200]}: a reading of meter {msg.meter_id[:64]!r}")
+                return []
+            ignored = self.controller.ami.add(msg, self.aligner.newest_t_ns)
+            if ignored is not None and ignored[0] in REFUSED_KINDS:
+                self.aligner.reject(REFUSED_KINDS[ignored[0]], ignored[1])
             return []
         return [(a, self._decide(a)) for a in self.aligner.add(key, msg)]
+
+    def ack_problem(self, key: str, ack: m.Ack) -> str | None:
+        """Why an ack does not count, or None (then it is taken): it must answer a command this agent sent (its
+        ``cmd_id``, kept for the latest ``SENT_COMMANDS_KEPT``) to the device it names, on that device's ack key, and
+        be that command's first answer (or its one ``expired``): the device's answer to someone's replay of the
+        command ('rejected', replay) does not count.
+        """
+        if key.rsplit("/", 1)[-1] != ack.device_id:
+            return f"{key[:200]}: an ack of device {ack.device_id[:64]!r}"
+        sent = self._sent.get(ack.cmd_id)
+        if sent is None or sent[0] != ack.device_id:
+            return f"ack of {ack.device_id[:64]!r} for {ack.cmd_id[:96]!r}: not a command this agent sent to it"
+        if ack.status == "expired":
+            del self._sent[ack.cmd_id]
+        elif sent[1]:
+            return f"ack of {ack.device_id[:64]!r} for {ack.cmd_id[:96]!r}: that command was answered already"
+        else:
+            self._sent[ack.cmd_id] = (sent[0], True)
+        return None
 
     def close_pending(self) -> list[tuple[AlignedFrames, ControllerDecision]]:
         """Decide the steps still waiting for frames with what arrived (the late window passed)."""
@@ -355,6 +390,10 @@ class DecisionMaker:
             self.soft += d.status == "soft"
             self.reasons[reason_kind(d.reason)] += 1
         self.commands_sent += len(commands)
+        for cmd in commands:
+            self._sent[cmd.cmd_id] = (_command_device(cmd), False)
+        while len(self._sent) > SENT_COMMANDS_KEPT:
+            self._sent.popitem(last=False)
         estimates = []
         if d.v_pu is not None:
             pred = d.v_pred_pu if d.v_pred_pu is not None else d.v_pu
@@ -477,7 +516,9 @@ def run_agent(model: CvvcModel, settings: AgentSettings, bus, *, stop: threading
                 now = time.monotonic()
                 if item is not None:
                     msg = item.msg
-                    if isinstance(msg, m.Ack):
+                    if isinstance(msg, m.Ack) and (why := maker.ack_problem(item.key, msg)) is not None:
+                        maker.aligner.reject("foreign_ack", why)  # a forged 'rejected' would hold a bank
+                    elif isinstance(msg, m.Ack):
                         acks[msg.status] += 1
                         if msg.status == "rejected":
                             rlog.warning("command_rejected", "command %s rejected by %s: %s", msg.cmd_id,

@@ -144,7 +144,7 @@ def bench_soak(days: float = 30.0, feeder: str | None = None, *, start: str = "2
             inbox.subscribe(session, keys.agent_status(fid), m.AgentStatus)
             inbox.subscribe(session, keys.agent_decision(fid), m.Decision)
             procs["recorder"] = _spawn("recorder", ["record", "--out", str(mcap), "--keys", f"cvvc/{fid}/**",
-                                                    "--connect", endpoint], out)
+                                                    "--connect", endpoint, "--insecure"], out)
             probe = session.declare_publisher(keys.sim_status(fid))
             if not wait_for(lambda: has_subscribers(probe), 60.0):
                 raise SoakError(f"the recorder did not subscribe within 60 s; see {out / 'recorder.log'}")
@@ -153,12 +153,12 @@ def bench_soak(days: float = 30.0, feeder: str | None = None, *, start: str = "2
             if case_d is None:
                 raise SoakError("case D runs no agent: the case table is broken")
             procs["agent"] = _spawn("agent", ["agent", "--model", str(model_path), *agent_settings_args(case_d),
-                                              "--connect", endpoint], out)
+                                              "--connect", endpoint, "--insecure"], out)
             procs["bridge"] = _spawn("bridge", [
                 "bridge", "--feeder", str(dm_path), "--feeder-id", fid, "--start", start, "--steps", str(steps),
                 "--year-seed", str(year_seed), "--lockstep", "--timeout-s", str(lockstep_timeout_s),
                 "--wait-agent-s", "120", "--truth-every", str(truth_every),
-                "--cache-dir", str(profiles_dir(cache)), "--json", "--connect", endpoint], out)
+                "--cache-dir", str(profiles_dir(cache)), "--json", "--connect", endpoint, "--insecure"], out)
             next_sample_step = per_hour
             while procs["bridge"].poll() is None:
                 for name in ("recorder", "agent"):

@@ -440,7 +440,7 @@ def fuzz_live(n: int = 20_000, seed: int = SEED, out_dir: Path | None = None) ->
     if trained.returncode != 0:
         raise FuzzError(f"cvvc train failed ({trained.returncode}):\n{trained.stderr[-2000:]}")
     endpoint = f"tcp/127.0.0.1:{free_port()}"
-    bus = ["--connect", endpoint]
+    bus = ["--connect", endpoint, "--insecure"]  # the payloads come from a plain client: decoding, not authentication
     procs: dict[str, subprocess.Popen[bytes]] = {}
     t0 = time.monotonic()
     try:

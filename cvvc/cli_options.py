@@ -1,10 +1,10 @@
-"""Command-line options that several ``cvvc`` verbs share (``run``, ``evaluate``): argument parsing only."""
+"""Command-line options that several ``cvvc`` verbs share (``run``, ``evaluate``, ``fleet``): argument parsing only."""
 
 from __future__ import annotations
 
 import argparse
 
-__all__ = ["add_agent_option_arguments"]
+__all__ = ["add_agent_option_arguments", "add_security_arguments"]
 
 
 def add_agent_option_arguments(p: argparse.ArgumentParser) -> None:
@@ -17,3 +17,15 @@ def add_agent_option_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--control-banks", action="store_true",
                    help="the agent decides and commands the capacitor banks (cases B-D; default: they stay on "
                         "their local control)")
+
+
+def add_security_arguments(p: argparse.ArgumentParser) -> None:
+    """``--insecure``, ``--ca-dir`` and the no-op ``--secure`` of the launchers (``run``, ``fleet``, ``evaluate``)."""
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--insecure", action="store_true",
+                   help="run the bus without TLS and access control (prints a warning; recorded in the summary). "
+                        "Default: mTLS with per-role certificates in <cache>/security and the router's "
+                        "deny-by-default access policy; see docs/security.md")
+    g.add_argument("--secure", action="store_true", help="the default (kept for earlier command lines)")
+    p.add_argument("--ca-dir", metavar="CA", help="the certificate authority that issues the certificates "
+                   "(default <cache>/ca, created on the first run; or one made with `cvvc security init-ca`)")

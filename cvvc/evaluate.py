@@ -116,6 +116,8 @@ class EvaluateConfig(msgspec.Struct, frozen=True, kw_only=True):
     # control make the run's figures something else (IEEE 8500 summer on a loaded machine: 12 misses, 8 in a row,
     # the regulators' commands expired and the feeder went to 1.07 pu: NVV 8,380 against 764 on a quiet machine)
     lockstep_timeout_s: float = 60.0
+    secure: bool = True  # every run's bus with mTLS and the access policy (``RunConfig.secure``); False: --insecure
+    ca_dir: str | None = None  # the CA of the certificates; None: <cache>/ca, created on the first run
 
 
 def longest_first(specs: list[RunSpec]) -> list[RunSpec]:
@@ -314,7 +316,7 @@ def _run_config(spec: RunSpec, config: EvaluateConfig, dm_path: Path, model: Pat
         noise_pmu_pct=0.1 if spec.variant == "noise-pmu" else 0.0,
         noise_scada_pct=1.0 if spec.variant == "noise-scada" else 0.0,
         drop_prob={"drop-1": 0.01, "drop-5": 0.05}.get(spec.variant, 0.0),
-        check_model_fingerprint=spec.variant != "model-error")
+        check_model_fingerprint=spec.variant != "model-error", secure=config.secure, ca_dir=config.ca_dir)
 
 
 ATTEMPTS_FILE = "attempts.txt"  # in a run's folder: one line per start of the run (a failed run is retried once)

@@ -48,6 +48,9 @@ def register_evaluate(sub: argparse._SubParsersAction) -> None:
                    help="reuse runs already finished in --out (same case and window); run only the others")
     p.add_argument("--cache", default=None, help=CACHE_HELP)
     p.add_argument("--out", required=True, help="output folder")
+    from cvvc.cli_options import add_security_arguments
+
+    add_security_arguments(p)
     p.set_defaults(func=_evaluate)
 
 
@@ -71,7 +74,8 @@ def _evaluate(args: argparse.Namespace) -> int:
                             robustness=args.robustness, resume=args.resume,
                             reference_step_s=args.reference_step_s, lockstep_timeout_s=args.lockstep_timeout_s,
                             pv_margin_window_s=args.pv_margin_window_s, setpoint_hold=args.setpoint_hold,
-                            control_banks=args.control_banks, cases=CASES if cases is None else cases)
+                            control_banks=args.control_banks, cases=CASES if cases is None else cases,
+                            secure=not args.insecure, ca_dir=args.ca_dir)
     try:
         ev = evaluate(config)
     except EvaluateError as e:

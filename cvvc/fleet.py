@@ -91,8 +91,8 @@ class FleetConfig(msgspec.Struct, frozen=True, kw_only=True):
     record: bool = True
     truth_every: int = 1
     lockstep_timeout_s: float = 30.0  # 2 cores shared by every feeder's processes: a step may wait its turn
-    secure: bool = False
-    ca_dir: str | None = None
+    secure: bool = True  # mTLS + the access policy; False: --insecure
+    ca_dir: str | None = None  # None: <cache>/ca, created on the first run
     probe_cross_feeder: bool = True  # secure mode: the cross-feeder command probe (``CrossFeederProbe``)
     progress: bool = True
     recorder_restarts_max: int = 3
@@ -159,16 +159,20 @@ def _prepare(config: FleetConfig, entry: FleetFeeder, out: Path) -> _Member:
 
 def _security(config: FleetConfig, members: list[_Member]) -> str | None:
     """Issue the router's and recorder's certificates and each feeder's own; returns the router's folder."""
-    if not config.secure:
-        return None
-    from schemas.cache import cache_root
-    from schemas.security import init_security_dir
+    from schemas.cache import ca_dir, security_dir
+    from schemas.security import INSECURE_WARNING, ensure_local_security, init_security_dir
 
-    root = cache_root(config.cache) / "security"
-    init_security_dir(root, ca_dir=config.ca_dir or "")
+    if not config.secure:
+        _log(f"WARNING {INSECURE_WARNING}")
+        for mb in members:
+            mb.connect = ["--insecure"]
+        return None
+    root = security_dir(config.cache)
+    ca = config.ca_dir or ca_dir(config.cache)
+    ensure_local_security(root, ca_dir=ca)
     for mb in members:
         d = root / "feeders" / mb.feeder_id
-        init_security_dir(d, ca_dir=config.ca_dir or "", feeder=mb.feeder_id)
+        init_security_dir(d, ca_dir=ca, feeder=mb.feeder_id)
         mb.connect = ["--secure-dir", str(d)]
     return str(root)
 
@@ -200,9 +204,6 @@ def run_fleet(config: FleetConfig) -> FleetSummary:
         raise LaunchError("a fleet needs at least one feeder (--feeders, --rural-seeds or --fleet)")
     if not 0 < config.days <= 366:
         raise LaunchError(f"--days {config.days} must be in (0, 366]")
-    if config.secure and config.ca_dir is None:
-        raise LaunchError("--secure needs --ca-dir CA: create the authority once with `cvvc security init-ca "
-                          "--dir CA`, outside the cache")
     try:
         start_text = dt.datetime.fromisoformat(config.start).isoformat(timespec="minutes")
     except ValueError as e:
@@ -219,13 +220,16 @@ def run_fleet(config: FleetConfig) -> FleetSummary:
     for mb in members:
         mb.out.mkdir(parents=True, exist_ok=True)
         s = case_agent_settings(mb.run.case, mb.feeder_id, mb.run.bandwidth_v120)
-        settings[mb.feeder_id] = s
         if s is not None:
             from regression.model import read_model
             from schemas.devicemap import load_device_map
 
-            read_model(mb.model, expect_fingerprint=load_device_map(mb.dm_path).fingerprint())
+            dm = load_device_map(mb.dm_path)
+            if dm.meter:  # the only meters whose readings the agent takes
+                s = msgspec.structs.replace(s, meters=tuple(dm.meter))
+            read_model(mb.model, expect_fingerprint=dm.fingerprint())
             shutil.copyfile(mb.model, mb.out / "model.json")
+        settings[mb.feeder_id] = s
     security_dir = _security(config, members)
     steps = int(round(config.days * 1440))
     endpoint = f"tcp/127.0.0.1:{free_port()}"
@@ -239,7 +243,7 @@ def run_fleet(config: FleetConfig) -> FleetSummary:
         with _open_router(endpoint, security_dir, ids) as session:
             if config.record:
                 rec_args = ["--keys", f"{keys.ROOT}/**", "--connect", endpoint,
-                            *(["--secure-dir", security_dir] if security_dir else [])]
+                            *(["--secure-dir", security_dir] if security_dir else ["--insecure"])]
                 recorder = _RecorderSupervisor(lambda path: ["record", "--out", str(path), *rec_args], mcap_path,
                                                out, config.recorder_restarts_max)
                 children.append(recorder.child)

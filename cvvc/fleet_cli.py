@@ -35,10 +35,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", default=None, help="output folder (default runs/fleet-<n>-<time>)")
     p.add_argument("--cache", default=None, help=CACHE_HELP)
     p.add_argument("--no-record", action="store_true", help="no recording (no decision times, no crossing check)")
-    p.add_argument("--secure", action="store_true",
-                   help="mTLS with one certificate per feeder's agent and devices; the router lets each only on "
-                        "its own feeder's keys, and a probe command across feeders is put and must be refused")
-    p.add_argument("--ca-dir", metavar="CA", help="with --secure: the certificate authority's folder")
+    from cvvc.cli_options import add_security_arguments
+
+    add_security_arguments(p)  # secure by default: one certificate per feeder's agent and devices, each allowed on
+    # its own feeder's keys alone; a probe command across feeders is put and must be refused
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     p.set_defaults(func=_fleet)
 
@@ -67,7 +67,7 @@ def _fleet(args: argparse.Namespace) -> int:
     config = FleetConfig(feeders=feeders, days=pick(args.days, "days", 0.25),
                          start=pick(args.start, "start", "2023-01-16"), case=pick(args.case, "case", "D"),
                          out=args.out, cache=args.cache, record=not args.no_record, truth_every=args.truth_every,
-                         lockstep_timeout_s=args.lockstep_timeout_s, secure=args.secure, ca_dir=args.ca_dir,
+                         lockstep_timeout_s=args.lockstep_timeout_s, secure=not args.insecure, ca_dir=args.ca_dir,
                          progress=not args.json)
     summary = run_fleet(config)
     if args.json:

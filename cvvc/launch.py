@@ -93,8 +93,8 @@ class RunConfig(msgspec.Struct, frozen=True, kw_only=True):
     meas_delay_s: float = 0.0  # real time only: frames reach the agent this late [simulated s]
     clock_skew_s: float = 0.0  # the field devices' clocks this far off the bridge's and the agent's [s]
     truth_every: int = 1  # the recording keeps the truth, so metrics can be recomputed from it
-    secure: bool = False  # security profile: mTLS + access control, certificates in <cache>/security
-    ca_dir: str | None = None  # secure: the CA that issues them (`cvvc security init-ca`), kept out of the cache
+    secure: bool = True  # mTLS + the deny-by-default access policy, certificates in <cache>/security; False: --insecure
+    ca_dir: str | None = None  # secure: the CA that issues them; None: <cache>/ca, created on the first run
     progress_label: str = "simulated"  # the progress bar's label (``cvvc evaluate`` names the run)
     # False only for the model-error study (``cvvc evaluate --robustness``): the simulated feeder is deliberately
     # not the one the model was trained on, so its fingerprint differs from the model's.
@@ -130,6 +130,7 @@ class RunSummary(msgspec.Struct, frozen=True, kw_only=True):
     pv_protocol: str = "bus"  # how the PV plants reached the bus (``RunConfig.pv_protocol``)
     sunspec_frame_misses: int = 0  # sunspec: steps some adapter's PV frame did not reach the bridge in time
     live: LiveAccuracy | None = None  # the agent's estimates and bounds against the truth of their step (bridge)
+    secure: bool = False  # the bus ran with mTLS and the access policy (False: ``--insecure``)
 
 
 class CaseAgent(msgspec.Struct, frozen=True, kw_only=True):
@@ -391,6 +392,8 @@ def run(config: RunConfig) -> RunSummary:
     fingerprint = dm.fingerprint()
     agent_settings = case_agent_settings(config.case, feeder_id, config.bandwidth_v120, config.pv_margin_window_s,
                                          config.setpoint_hold, config.control_banks)
+    if agent_settings is not None and dm.meter:  # the only meters whose readings the agent takes
+        agent_settings = msgspec.structs.replace(agent_settings, meters=tuple(dm.meter))
     if agent_settings is not None and config.check_model_fingerprint:
         from regression.model import read_model
 
@@ -407,16 +410,8 @@ def run(config: RunConfig) -> RunSummary:
 
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     connect = ["--connect", endpoint]
-    security_dir: str | None = None
-    if config.secure:  # every child presents its role's certificate; the router enforces the policy
-        from schemas.security import init_security_dir
-
-        if config.ca_dir is None:
-            raise LaunchError("--secure needs --ca-dir CA: create the authority once with `cvvc security init-ca "
-                              "--dir CA`, outside the cache (its key must not sit beside the run's keys)")
-        security_dir = str(cache_root(config.cache) / "security")
-        init_security_dir(security_dir, ca_dir=config.ca_dir)
-        connect += ["--secure-dir", security_dir]
+    security_dir = _security_dir(config)
+    connect += ["--secure-dir", security_dir] if security_dir else ["--insecure"]
     children: list[_Child] = []
     # The run's figures come from the processes the launcher started, never from the bus, where any session
     # could publish a metrics frame or a decision (issue "Robust by default" (c)): each writes its own summary.
@@ -516,7 +511,7 @@ def run(config: RunConfig) -> RunSummary:
         decision_ms=dict(agent_summary.decision_ms) if agent_summary else {},
         recorder_restarts=recorder.restarts if recorder is not None else 0, recording_gaps=gaps,
         recorder_gave_up=recorder.gave_up if recorder is not None else False, pv_protocol=config.pv_protocol,
-        sunspec_frame_misses=bridge_summary.sunspec_frame_misses, live=live)
+        sunspec_frame_misses=bridge_summary.sunspec_frame_misses, live=live, secure=config.secure)
     (out / "summary.json").write_bytes(msgspec.json.format(msgspec.json.encode(summary), indent=2))
     (out / "report.md").write_text(render_summary(summary))
     check_mostly_held(summary)
@@ -529,6 +524,23 @@ def promised_miss_rate(model_path: Path) -> float | None:
 
     bounds = read_model(model_path).bounds
     return None if bounds is None else float(bounds.alpha)
+
+
+def _security_dir(config: RunConfig) -> str | None:
+    """The role certificates every child presents (the router enforces the policy), issued on first use from the CA
+    of ``config.ca_dir`` (default ``<cache>/ca``, created without a question); None with ``--insecure`` (warned).
+    """
+    from schemas.cache import ca_dir, security_dir
+    from schemas.security import INSECURE_WARNING, ensure_local_security
+
+    if not config.secure:
+        _log(f"WARNING {INSECURE_WARNING}")
+        return None
+    path = security_dir(config.cache)
+    written = ensure_local_security(path, ca_dir=config.ca_dir or ca_dir(config.cache))
+    if written:
+        _log(f"certificates issued into {path} (the CA in {config.ca_dir or ca_dir(config.cache)})")
+    return str(path)
 
 
 def check_mostly_held(summary: RunSummary) -> None:

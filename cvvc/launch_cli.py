@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from cvvc.cli_options import add_agent_option_arguments
+from cvvc.cli_options import add_agent_option_arguments, add_security_arguments
 from schemas.cache import CACHE_HELP
 
 __all__ = ["register"]
@@ -52,11 +52,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-baseline", action="store_true", help="skip the no-control baseline")
     p.add_argument("--cache", default=None, help=CACHE_HELP)
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
-    p.add_argument("--secure", action="store_true",
-                   help="security profile: mTLS with per-role certificates (issued once into <cache>/security "
-                        "from --ca-dir) and the router's access-control policy; see docs/security.md")
-    p.add_argument("--ca-dir", metavar="CA", help="with --secure: the certificate authority's folder, made once "
-                   "with `cvvc security init-ca --dir CA` (kept apart from the cache)")
+    add_security_arguments(p)
     p.set_defaults(func=_run)
     register_report(sub)
     from cvvc.evaluate_cli import register_evaluate
@@ -76,7 +72,7 @@ def _run(args: argparse.Namespace) -> int:
                        pv_margin_window_s=args.pv_margin_window_s, setpoint_hold=args.setpoint_hold,
                        control_banks=args.control_banks,
                        baseline=not args.no_baseline, cache=args.cache, progress=not args.json,
-                       secure=args.secure, ca_dir=args.ca_dir, drop_prob=args.drop_prob,
+                       secure=not args.insecure, ca_dir=args.ca_dir, drop_prob=args.drop_prob,
                        noise_scada_pct=args.noise_scada_pct, noise_pmu_pct=args.noise_pmu_pct,
                        drop_burst_min=args.drop_burst_min, meas_delay_s=args.meas_delay_s,
                        clock_skew_s=args.clock_skew_s, pv_protocol=args.pv_protocol)

@@ -22,15 +22,11 @@ def check_pv_protocol(protocol: str, *, noise_scada_pct: float, drop_prob: float
                       clock_skew_s: float, secure: bool = False) -> None:
     """Raise ``CommandError`` for an unknown protocol, or ``sunspec`` with options it does not take yet.
 
-    ``secure``: the security profile's access control lets the ``devices`` role put frames and take commands, but
-    not subscribe to frames and acks, which the head-clocked adapters and the bridge's wait need.
+    ``secure`` is accepted whatever the protocol: the access policy lets the ``devices`` role (bridge, adapters)
+    read the head frame, the PV frames and acks the head-clocked adapters and the bridge's wait need.
     """
     if protocol not in ("bus", "sunspec"):
         raise CommandError(f"--pv-protocol {protocol!r}: choose bus or sunspec")
-    if protocol == "sunspec" and secure:
-        raise CommandError("--pv-protocol sunspec does not run with --secure yet: the access-control policy does not "
-                           "let the devices role (bridge, adapters) subscribe to the head frame, the PV frames and "
-                           "acks it needs in the closed loop (schemas/security.py); run without --secure")
     if protocol == "sunspec" and (noise_scada_pct or drop_prob or meas_delay_s or clock_skew_s):
         raise CommandError("--pv-protocol sunspec takes no --noise-scada-pct, --drop-prob, --meas-delay-s or "
                            "--clock-skew-s yet (the adapters publish the PV frames, the bridge applies those); "

@@ -68,6 +68,9 @@ def render_summary(s: RunSummary) -> str:
               *([f"- **{s.lockstep_misses} lockstep miss(es)**: at those control steps the bridge went on under local "
                  f"control without the agent's decision (a starved machine or a stopped agent): these metrics are "
                  f"not case {s.case}'s alone"] if s.lockstep_misses else []),
+              ("- bus: mTLS with per-role certificates and the deny-by-default access policy" if s.secure else
+               "- **bus: insecure** (`--insecure`): no TLS, no access control; any local process could read "
+               "and command"),
               f"- recording: `{s.recording}`" if s.recording else "- recording: off", *_recorder_lines(s),
               f"- model: `{s.model}`" if s.model else "- model: none (baseline case)", ""]
     return "\n".join(lines)

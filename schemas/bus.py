@@ -133,7 +133,7 @@ def zenoh_config(bus: BusConfig) -> zenoh.Config:
     except Exception as e:
         raise BusError(f"invalid Zenoh setting: {e}") from e
     if secure:
-        _insert_security(conf, bus)
+        _insert_security(conf, bus, policy=mode == "router")
     return conf
 
 
@@ -141,13 +141,14 @@ def _to_tls(endpoints: list[str]) -> list[str]:
     return [f"tls/{e[len('tcp/'):]}" if e.startswith("tcp/") else e for e in endpoints]
 
 
-def _insert_security(conf: zenoh.Config, bus: BusConfig) -> None:
+def _insert_security(conf: zenoh.Config, bus: BusConfig, *, policy: bool) -> None:
+    """The role's mTLS settings; with ``policy`` (a router) the access-control policy too, whatever the role."""
     from schemas.security import SecurityError, zenoh_security_settings
 
     if bus.role is None:
         raise BusError("a secure session needs a role (agent, devices, recorder or router)")
     try:
-        settings = zenoh_security_settings(bus.tls_dir or "", bus.role)
+        settings = zenoh_security_settings(bus.tls_dir or "", bus.role, policy=policy)
     except SecurityError as e:
         raise BusError(str(e)) from e
     for key, value in settings.items():
@@ -183,21 +184,41 @@ def add_bus_arguments(parser: argparse.ArgumentParser) -> None:
                    help="a Zenoh JSON5 config file (multicast scouting is still forced off)")
     g.add_argument("--zenoh-mode", choices=["peer", "router", "client"], default=None,
                    help="session mode (default: peer, or router when only listening)")
-    g.add_argument("--secure-dir", metavar="DIR", default=None,
-                   help="security profile: mTLS with this program's certificate from DIR (made by "
-                        "`cvvc security init --dir DIR`); tcp/ endpoints become tls/, peers join as clients")
+    sec = g.add_mutually_exclusive_group()
+    sec.add_argument("--secure-dir", metavar="DIR", default=None,
+                     help="mTLS with this program's certificate from DIR (made by `cvvc security init --dir DIR`); "
+                          "default: <cache>/security, issued on first use from a local CA made in <cache>/ca; "
+                          "tcp/ endpoints become tls/, peers join as clients (docs/security.md)")
+    sec.add_argument("--insecure", action="store_true",
+                     help="no TLS and no access control: any process that reaches the port may read and command "
+                          "(prints a warning)")
 
 
 def bus_config_from_args(args: argparse.Namespace, *, default_mode: Mode = "peer",
                          role: str | None = None) -> BusConfig:
-    """The ``BusConfig`` of the parsed flags; ``role`` is the certificate the program presents when secure."""
+    """The ``BusConfig`` of the parsed flags; ``role`` is the certificate the program presents.
+
+    Secure by default: without ``--secure-dir`` the certificates of ``<cache>/security`` (the program's ``--cache``
+    when it has one), issued on first use from a local CA created in ``<cache>/ca``
+    (``schemas.security.ensure_local_security``); ``--insecure`` joins without TLS and logs a warning.
+    """
+    from schemas.cache import ca_dir, security_dir
+    from schemas.security import INSECURE_WARNING, ensure_local_security
+
     mode = args.zenoh_mode or default_mode
+    tls_dir = getattr(args, "secure_dir", None)
+    if getattr(args, "insecure", False):
+        log.warning(INSECURE_WARNING)
+    elif tls_dir is None:
+        cache = getattr(args, "cache", None)
+        tls_dir = str(security_dir(cache))
+        ensure_local_security(tls_dir, ca_dir=ca_dir(cache))
     return BusConfig(
         mode=mode,
         listen=tuple(args.listen),
         connect=tuple(args.connect),
         config_file=args.zenoh_config,
-        tls_dir=getattr(args, "secure_dir", None),
+        tls_dir=tls_dir,
         role=role,
     )
 

@@ -10,7 +10,9 @@ Layout under the cache root::
     feeders/rural-v<generator version>-s<seed>/    the embedded rural feeder (simulator_bridge.default_feeder)
     profiles/profiles-<feeder>-<fingerprint>-<seed>.npz   year profiles (simulator_bridge.profiles)
     models/                                         models trained by ``cvvc run`` / ``cvvc evaluate``
-    security/                                       certificates of ``--secure`` runs
+    security/                                       the role certificates and keys of the bus (mTLS, the default)
+    ca/                                             the local certificate authority that issues them, made on the
+                                                    first run (its key is never copied into security/)
 """
 
 from __future__ import annotations
@@ -18,7 +20,8 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-__all__ = ["CACHE_FOLDER_NAME", "CACHE_HELP", "cache_root", "default_cache_root", "profiles_dir"]
+__all__ = ["CACHE_FOLDER_NAME", "CACHE_HELP", "ca_dir", "cache_root", "default_cache_root", "profiles_dir",
+           "security_dir"]
 
 #: Name of the project's folder inside the user's cache folder.
 CACHE_FOLDER_NAME = "cvvc-edge"
@@ -45,3 +48,15 @@ def cache_root(given: str | os.PathLike[str] | None) -> Path:
 def profiles_dir(given: str | os.PathLike[str] | None) -> Path:
     """The year-profile cache folder under the cache root of ``given`` (see :func:`cache_root`)."""
     return cache_root(given) / "profiles"
+
+
+def security_dir(given: str | os.PathLike[str] | None) -> Path:
+    """The folder of the bus's role certificates and keys under the cache root of ``given``."""
+    return cache_root(given) / "security"
+
+
+def ca_dir(given: str | os.PathLike[str] | None) -> Path:
+    """The folder of the local certificate authority under the cache root of ``given``: a sibling of
+    :func:`security_dir`, never inside it (the CA's key signs every certificate of the bus).
+    """
+    return cache_root(given) / "ca"

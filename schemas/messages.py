@@ -7,8 +7,10 @@ nominal line-to-neutral voltage; time ``t_ns`` is integer nanoseconds since the 
 *measurement* time, never the wall clock of the receiver.
 
 Every field with a number has bounds (``Meta``): msgspec checks them on decode, so out-of-range and
-infinite values (JSON ``1e999``) are rejected at the door. JSON cannot carry NaN; senders refuse non-finite
-numbers (``schemas.bus.check_finite``). Schemas evolve append-only, with defaults.
+infinite values (JSON ``1e999``) are rejected at the door. So does every list, dict, string and byte string: a
+length bound (``MAX_DEVICES``, ``MAX_NODES``, the six quality flags, ...), so an oversized list is refused as
+``out_of_range`` before any code sees it (0.88 MB of quality flags used to decode). JSON cannot carry NaN;
+senders refuse non-finite numbers (``schemas.bus.check_finite``). Schemas evolve append-only, with defaults.
 """
 
 from __future__ import annotations
@@ -20,6 +22,8 @@ import numpy as np
 from msgspec import Meta
 
 __all__ = [
+    "MAX_DEVICES",
+    "MAX_NODES",
     "MESSAGE_TYPES",
     "Ack",
     "AgentStatus",
@@ -66,7 +70,7 @@ __all__ = [
 # ---------------------------------------------------------------------------------------------- scalars
 TimeNs = Annotated[int, Meta(ge=0, le=2**63 - 1, description="integer ns since the Unix epoch (UTC)")]
 Seq = Annotated[int, Meta(ge=0, le=2**63 - 1)]
-Ident = Annotated[str, Meta(pattern=r"^[A-Za-z0-9_.\-]{1,64}$")]
+Ident = Annotated[str, Meta(pattern=r"^[A-Za-z0-9_.\-]{1,64}$", max_length=64)]
 Reason = Annotated[str, Meta(max_length=500)]
 Phase = Literal["a", "b", "c"]
 VoltsLN = Annotated[float, Meta(ge=0.0, le=1e6)]
@@ -93,6 +97,18 @@ BAND_RANGE_V120 = (1.0, 8.0)
 """Bandwidths a regulator controller accepts [V on the 120 V base] (the paper's case C uses 4 V)."""
 
 QualityFlag = Literal["invalid", "questionable", "substituted", "old_data", "test", "noisy"]
+Qualities = Annotated[list[QualityFlag], Meta(max_length=6)]  # each flag at most once
+
+MAX_DEVICES = 4096
+"""The most devices of one kind (PV plants, regulators, banks) a message lists: a bound, not a feeder's size."""
+MAX_NODES = 300_000
+"""The most nodes a message lists (IEEE 8500: about 8,500 phase nodes; epri-ckt24 about 10,000); above the 262,144
+float32 voltages a 1 MiB truth frame can hold, so for the truth the payload limit binds first."""
+NodeName = Annotated[str, Meta(max_length=256)]  # an OpenDSS node, bus.phase
+CountKey = Annotated[str, Meta(max_length=200)]  # what a count is of: a kind of refusal, a device, a point
+Counts = Annotated[dict[CountKey, Annotated[int, Meta(ge=0, le=2**53)]], Meta(max_length=MAX_DEVICES)]
+NodeList = Annotated[list[NodeName], Meta(max_length=MAX_NODES)]
+SensMatrix = Annotated[list[Annotated[list[Sens], Meta(max_length=MAX_DEVICES)]], Meta(max_length=MAX_NODES)]
 
 
 class Message(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
@@ -106,7 +122,7 @@ class Message(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=T
 class Command(Message, frozen=True, kw_only=True, forbid_unknown_fields=True):
     """Header of every command: its id, the measurement seq it answers, and when it expires."""
 
-    cmd_id: Annotated[str, Meta(pattern=r"^[A-Za-z0-9_.:\-]{1,96}$")]
+    cmd_id: Annotated[str, Meta(pattern=r"^[A-Za-z0-9_.:\-]{1,96}$", max_length=96)]
     in_reply_to: Seq
     valid_until_t_ns: TimeNs
 
@@ -131,7 +147,7 @@ class HeadFrame(Message, frozen=True, kw_only=True, forbid_unknown_fields=True):
     phases: Annotated[list[HeadPhase], Meta(min_length=1, max_length=3)]
     p_kw: Kw
     q_kvar: Kvar
-    quality: list[QualityFlag] = []
+    quality: Qualities = []
 
 
 class PvPhase(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
@@ -154,7 +170,7 @@ class PvFrame(Message, frozen=True, kw_only=True, forbid_unknown_fields=True):
     q_available_kvar: Kva  # headroom sqrt(S^2 - P^2) at this P
     q_setpoint_kvar: Kvar | None = None  # None: on its local default
     local_mode: Literal["unity_pf", "volt_var"] = "unity_pf"
-    quality: list[QualityFlag] = []
+    quality: Qualities = []
 
 
 class RegPhase(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
@@ -174,7 +190,7 @@ class RegFrame(Message, frozen=True, kw_only=True, forbid_unknown_fields=True):
     setpoint_v120: V120
     band_v120: Band120
     mode: Literal["local", "locked"]
-    quality: list[QualityFlag] = []
+    quality: Qualities = []
 
 
 class CapFrame(Message, frozen=True, kw_only=True, forbid_unknown_fields=True):
@@ -198,7 +214,7 @@ class CapFrame(Message, frozen=True, kw_only=True, forbid_unknown_fields=True):
     mode: Literal["local", "commanded"] = "local"
     cmd_id: Annotated[str, Meta(max_length=96)] | None = None
     valid_until_t_ns: TimeNs | None = None
-    quality: list[QualityFlag] = []
+    quality: Qualities = []
 
 
 class MeterFrame(Message, frozen=True, kw_only=True, forbid_unknown_fields=True):
@@ -309,14 +325,14 @@ class Decision(Message, frozen=True, kw_only=True, forbid_unknown_fields=True):
     in_reply_to: Seq  # seq of the feeder-head frame it answers
     status: Literal["optimal", "soft", "hold"]
     reason: Reason = ""
-    commands: list[DecisionCommand] = []
-    estimates: list[NodeEstimate] = []
-    dv_dq_pu_per_kvar: list[list[Sens]] = []  # [node][plant]
-    dv_dtap_pu: list[list[Sens]] = []  # [node][regulator]
+    commands: Annotated[list[DecisionCommand], Meta(max_length=3 * MAX_DEVICES)] = []
+    estimates: Annotated[list[NodeEstimate], Meta(max_length=MAX_NODES)] = []
+    dv_dq_pu_per_kvar: SensMatrix = []  # [node][plant]
+    dv_dtap_pu: SensMatrix = []  # [node][regulator]
     solver: SolverStats | None = None
     timings: Timings = Timings()
     corrected: bool = False
-    missing: list[Ident] = []  # devices whose frames were missing, stale or invalid
+    missing: Annotated[list[Ident], Meta(max_length=3 * MAX_DEVICES + 1)] = []  # frames missing, stale or invalid
     out_of_envelope: bool = False  # the inputs left what training covered: bounds widened (``reason`` says which)
 
 
@@ -331,9 +347,9 @@ class AgentStatus(Message, frozen=True, kw_only=True, forbid_unknown_fields=True
     last_frame_t_ns: TimeNs = 0
     seconds_since_frame: Seconds = 0.0
     decisions: Count = 0
-    rejected: dict[str, Count] = {}
+    rejected: Counts = {}
     reason: Reason = ""
-    log_suppressed: dict[str, Count] = {}  # log lines not written by the rate limit so far, by kind
+    log_suppressed: Counts = {}  # log lines not written by the rate limit so far, by kind
 
 
 # ----------------------------------------------------------------------------------- simulation only
@@ -341,13 +357,13 @@ class TruthFrame(Message, frozen=True, kw_only=True, forbid_unknown_fields=True)
     """Every node's true voltage [pu] (simulation only). ``node_names`` is sent on the first frame."""
 
     feeder_id: Ident
-    v_pu: list[Pu]
+    v_pu: Annotated[list[Pu], Meta(max_length=MAX_NODES)]
     v_min_pu: Pu
     v_max_pu: Pu
-    node_names: list[str] | None = None
-    taps: list[Tap] = []
-    pv_q_kvar: list[Kvar] = []
-    cap_states: list[CapSteps] = []  # closed steps of each capacitor bank (device-map order)
+    node_names: NodeList | None = None
+    taps: Annotated[list[Tap], Meta(max_length=MAX_DEVICES)] = []
+    pv_q_kvar: Annotated[list[Kvar], Meta(max_length=MAX_DEVICES)] = []
+    cap_states: Annotated[list[CapSteps], Meta(max_length=MAX_DEVICES)] = []  # each bank's closed steps (map order)
 
 
 TRUTH_LAYOUT = "f32le-shuffle4"
@@ -386,14 +402,14 @@ class TruthPack(Message, frozen=True, kw_only=True, forbid_unknown_fields=True):
 
     WIRE: ClassVar[str] = "msgpack"
     feeder_id: Ident
-    n_nodes: Annotated[int, Meta(ge=0, le=10_000_000)]
-    v_pu_f32: bytes
+    n_nodes: Annotated[int, Meta(ge=0, le=MAX_NODES)]
+    v_pu_f32: Annotated[bytes, Meta(max_length=4 * MAX_NODES)]
     v_min_pu: Pu
     v_max_pu: Pu
-    node_names: list[str] | None = None
-    taps: list[Tap] = []
-    pv_q_kvar: list[Kvar] = []
-    cap_states: list[CapSteps] = []  # closed steps of each capacitor bank (device-map order)
+    node_names: NodeList | None = None
+    taps: Annotated[list[Tap], Meta(max_length=MAX_DEVICES)] = []
+    pv_q_kvar: Annotated[list[Kvar], Meta(max_length=MAX_DEVICES)] = []
+    cap_states: Annotated[list[CapSteps], Meta(max_length=MAX_DEVICES)] = []  # each bank's closed steps (map order)
     layout: Literal["f32le-shuffle4"] = "f32le-shuffle4"  # the version of v_pu_f32's layout (TRUTH_LAYOUT)
 
     def __post_init__(self) -> None:
@@ -428,12 +444,13 @@ class MetricsFrame(Message, frozen=True, kw_only=True, forbid_unknown_fields=Tru
     total_cost: Cost
     v_min_pu: Pu
     v_max_pu: Pu
-    taps_changes: dict[str, Count] = {}
-    q_mvar_intervals: dict[str, Annotated[float, Meta(ge=0.0, le=1e12)]] = {}
+    taps_changes: Counts = {}
+    q_mvar_intervals: Annotated[dict[CountKey, Annotated[float, Meta(ge=0.0, le=1e12)]],
+                                Meta(max_length=MAX_DEVICES)] = {}
     final: bool = False
     cap_switches: Count = 0  # capacitor switching operations (steps opened or closed), over every bank
     cap_cost: Cost = 0.0  # sum over banks of cost_per_switch x switchings (included in total_cost)
-    cap_switches_per_bank: dict[str, Count] = {}
+    cap_switches_per_bank: Counts = {}
     # every minute on its own (no average): judged nodes outside the optimization limits and ANSI C84.1 Range A
     node_minutes_outside_opt: Count = 0
     minutes_outside_opt: Count = 0
@@ -450,9 +467,9 @@ class BridgeStatus(Message, frozen=True, kw_only=True, forbid_unknown_fields=Tru
     clock: Literal["lockstep", "realtime"]
     lockstep_misses: Count = 0
     agent_alive: bool = False
-    rejected: dict[str, Count] = {}
+    rejected: Counts = {}
     done: bool = False
-    log_suppressed: dict[str, Count] = {}  # log lines not written by the rate limit so far, by kind
+    log_suppressed: Counts = {}  # log lines not written by the rate limit so far, by kind
 
 
 class StepEnd(Message, frozen=True, kw_only=True, forbid_unknown_fields=True):
@@ -490,11 +507,12 @@ class LinkStatus(Message, frozen=True, kw_only=True, forbid_unknown_fields=True)
     scans: Count = 0
     scan_failures: Count = 0
     frames: Count = 0
-    refused: dict[str, Count] = {}
+    refused: Counts = {}
     commands: Count = 0
     commands_failed: Count = 0
     last_ok_t_ns: TimeNs = 0
     reason: Reason = ""
+    foreign_writes: Count = 0  # scans that found a set point the adapter did not write (it wrote its own again)
 
 
 class OracleRequest(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
@@ -508,12 +526,12 @@ class OracleReply(Message, frozen=True, kw_only=True, forbid_unknown_fields=True
     """Case A: true voltages of every node and perturbation sensitivities at one step, from the bridge."""
 
     feeder_id: Ident
-    node_names: list[str]
-    v_pu: list[Pu]
-    dv_dq_pu_per_kvar: list[list[Sens]] = []  # [node][plant]
-    dv_dtap_pu: list[list[Sens]] = []  # [node][regulator]
-    taps: list[Tap] = []
-    dv_dp_pu_per_kw: list[list[Sens]] = []  # [node][plant], per kW of output (for the PV variability margin)
+    node_names: NodeList
+    v_pu: Annotated[list[Pu], Meta(max_length=MAX_NODES)]
+    dv_dq_pu_per_kvar: SensMatrix = []  # [node][plant]
+    dv_dtap_pu: SensMatrix = []  # [node][regulator]
+    taps: Annotated[list[Tap], Meta(max_length=MAX_DEVICES)] = []
+    dv_dp_pu_per_kw: SensMatrix = []  # [node][plant], per kW of output (for the PV variability margin)
 
 
 MESSAGE_TYPES: tuple[type[msgspec.Struct], ...] = (

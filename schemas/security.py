@@ -6,16 +6,17 @@ Two steps, two folders (the CA's private key never sits beside the keys a run us
 
        CA/ca.pem, CA/ca.key                the local certificate authority (EC P-256, 10 years)
 
-2. ``init_security_dir(DIR, ca_dir=CA)`` (``cvvc security init --dir DIR --ca-dir CA``; ``cvvc run --secure
-   --ca-dir CA`` does it into ``<cache>/security``) issues from it::
+2. ``init_security_dir(DIR, ca_dir=CA)`` (``cvvc security init --dir DIR --ca-dir CA``) issues from it::
 
        DIR/ca.pem                          the CA's certificate only (to verify peers)
        DIR/<role>.pem, DIR/<role>.key      one certificate per role, CN = role name,
                                            SAN 127.0.0.1 / localhost, server + client use
 
 for the roles ``agent``, ``devices`` (the bridge: head meter, PV plants, regulators), ``recorder`` and
-``router`` (the launcher). Private keys are 0600. Running either again keeps what is there (idempotent);
-a ``DIR`` that holds a CA key (made by an older version) is refused until that key is moved out. Rotation:
+``router`` (the launcher). ``ensure_local_security`` does both steps when needed: it is every program's default
+(secure unless ``--insecure``), with ``<cache>/ca`` and ``<cache>/security``. Private keys are 0600. Running either
+again keeps what is there (idempotent); a ``DIR`` that holds a CA key (made by an older version) is refused until
+that key is moved out. Rotation:
 delete a role's two files in ``DIR`` and run step 2 again (docs/security.md).
 
 ``zenoh_security_settings(DIR, role)`` gives the Zenoh config entries of a role: TLS certificate and key for
@@ -38,11 +39,13 @@ from schemas.errors import CvvcError
 
 __all__ = [
     "COMMAND_ROLE",
+    "INSECURE_WARNING",
     "ROLES",
     "SecurityError",
     "SecurityRole",
     "access_control_policy",
     "feeder_common_name",
+    "ensure_local_security",
     "init_ca",
     "init_security_dir",
     "nested_zenoh_config",
@@ -55,6 +58,9 @@ ROLES: tuple[SecurityRole, ...] = ("agent", "devices", "recorder", "router")
 COMMAND_ROLE: SecurityRole = "agent"
 """The one certificate (common name) the access policy lets publish commands (``cvvc/*/cmd/**``): in secure mode
 the devices key their replay protection on it rather than on the ``source`` a command names itself."""
+INSECURE_WARNING = ("--insecure: the bus runs without TLS and without access control; any process that reaches its "
+                    "port reads every frame and may command every device (docs/security.md)")
+"""What every program says (stderr) when it runs with ``--insecure``; the run's summary records it too."""
 _CA_DAYS = 3650
 _CERT_DAYS = 825
 _ROOT = "cvvc"
@@ -110,9 +116,9 @@ def init_security_dir(state_dir: str | Path, *, ca_dir: str | Path, extra_sans: 
     with ``feeders``) lets them on that feeder's keys alone; the programs still load ``agent.pem`` / ``devices.pem``.
 
     ``state_dir`` gets the CA's certificate, never its key. Idempotent: existing role certificates are kept
-    (delete a role's two files to reissue it). Private keys are written 0600, the directory is 0700.
-    ``extra_sans`` (host names or IP addresses) are added to the subject alternative names of new
-    certificates, beside 127.0.0.1 and localhost, for use across hosts.
+    (delete a role's two files to reissue it), unless another CA issued them: they are then issued again.
+    Private keys are written 0600, the directory is 0700. ``extra_sans`` (host names or IP addresses) are added to
+    the subject alternative names of new certificates, beside 127.0.0.1 and localhost, for use across hosts.
 
     Raises
     ------
@@ -133,6 +139,10 @@ def init_security_dir(state_dir: str | Path, *, ca_dir: str | Path, extra_sans: 
     written: list[Path] = []
     state_ca = role_paths(d, "ca")[0]
     if not state_ca.is_file() or state_ca.read_bytes() != ca_cert_path.read_bytes():
+        if state_ca.is_file():  # another CA issued what is here: its certificates would fail every handshake
+            for role in ROLES:
+                for path in role_paths(d, role):
+                    path.unlink(missing_ok=True)
         try:
             state_ca.write_bytes(ca_cert_path.read_bytes())
         except OSError as e:
@@ -146,6 +156,28 @@ def init_security_dir(state_dir: str | Path, *, ca_dir: str | Path, extra_sans: 
         cert, key = _make_leaf(name, ca_cert, ca_key, extra_sans)
         written += _write(cert_path, key_path, cert, key)
     return written
+
+
+def ensure_local_security(state_dir: str | Path, *, ca_dir: str | Path) -> list[Path]:
+    """The default of every program (secure unless ``--insecure``): create the CA in ``ca_dir`` when there is
+    none (the first run, no question asked), then issue every role's certificate into ``state_dir``
+    (``init_security_dir``). ``ca_dir`` must not be ``state_dir``: the CA's key never sits beside the role keys.
+    Returns the files written (none once both exist).
+    """
+    if Path(ca_dir).resolve() == Path(state_dir).resolve():
+        raise SecurityError(f"the CA folder {ca_dir} is the role certificates' folder; give the CA a folder of its "
+                            "own (its key must not sit beside the keys a run uses)")
+    import fcntl
+
+    lock_path = Path(state_dir).resolve().parent / ".security.lock"  # runs started side by side make one CA
+    try:
+        lock_path.parent.mkdir(parents=True, exist_ok=True)
+        lock = open(lock_path, "a")  # noqa: SIM115  (closed below)
+    except OSError as e:
+        raise SecurityError(f"cannot create {lock_path}: {e}") from e
+    with lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        return init_ca(ca_dir) + init_security_dir(state_dir, ca_dir=ca_dir)
 
 
 def _make_ca():
@@ -237,10 +269,12 @@ def _load(cert_path: Path, key_path: Path):
 
 
 # ---------------------------------------------------------------------------------- zenoh settings
-def zenoh_security_settings(state_dir: str | Path, role: str, feeders: tuple[str, ...] = ()) -> dict[str, Any]:
+def zenoh_security_settings(state_dir: str | Path, role: str, feeders: tuple[str, ...] = (), *,
+                            policy: bool | None = None) -> dict[str, Any]:
     """Zenoh config entries (path -> value) for ``role``: mTLS with the role's certificate, and for the
-    router the access-control policy (with the per-feeder subjects of ``feeders``, a fleet). Raises
-    ``SecurityError`` if the files are missing.
+    router the access-control policy (with the per-feeder subjects of ``feeders``, a fleet). ``policy``: whether
+    to add the policy (default: for the ``router`` role); any session in router mode needs it, e.g. a bridge that
+    only listens, else its clients would be allowed everything. Raises ``SecurityError`` if the files are missing.
     """
     if role not in ROLES:
         raise SecurityError(f"unknown security role {role!r}; use one of {', '.join(ROLES)}")
@@ -261,7 +295,7 @@ def zenoh_security_settings(state_dir: str | Path, role: str, feeders: tuple[str
         f"{tls}/enable_mtls": True,
         f"{tls}/verify_name_on_connect": True,
     }
-    if role == "router":
+    if role == "router" if policy is None else policy:
         out["access_control"] = access_control_policy(feeders)
     return out
 
@@ -304,9 +338,12 @@ def access_control_policy(feeders: tuple[str, ...] = ()) -> dict[str, Any]:
         # out; commands in
         _rule("devices-send", ["put"], ["ingress"],
               [f"{r}/*/meas/**", f"{r}/*/ack/**", f"{r}/*/link/**", f"{r}/*/sim/**"]),
-        _rule("devices-subscribe", ["declare_subscriber"], ["ingress"],
-              [f"{r}/*/cmd/**", f"{r}/*/agent/decision"]),
-        _rule("devices-receive", ["put"], ["egress"], [f"{r}/*/cmd/**", f"{r}/*/agent/decision"]),
+        # ... and, for SunSpec adapters clocked on the head (``--clock head``) and the bridge that waits for their
+        # frames, the head frame, the PV frames and the PV acks (what a devices certificate may send anyway)
+        _rule("devices-subscribe", ["declare_subscriber"], ["ingress"], [f"{r}/*/cmd/**", f"{r}/*/agent/decision",
+              f"{r}/*/meas/head", f"{r}/*/meas/pv/*", f"{r}/*/ack/pv/*"]),
+        _rule("devices-receive", ["put"], ["egress"], [f"{r}/*/cmd/**", f"{r}/*/agent/decision",
+              f"{r}/*/meas/head", f"{r}/*/meas/pv/*", f"{r}/*/ack/pv/*"]),
         _rule("devices-oracle", ["declare_queryable", "reply"], ["ingress"], [f"{r}/*/sim/oracle"]),
         _rule("devices-oracle-query", ["query"], ["egress"], [f"{r}/*/sim/oracle"]),
         _rule("devices-alive", ["liveliness_token"], ["ingress"],

@@ -37,7 +37,8 @@ def test_the_commands_serve_an_inverter_and_put_its_frames_on_the_bus_then_stop_
             inbox.subscribe(session, keys.meas_pv("f9", "pv7"))
             inbox.subscribe(session, keys.link("f9", "pv", "pv7"))
             adapter = _cvvc("adapter", "sunspec", "--feeder-id", "f9", "--device", "pv7", "--modbus", modbus,
-                            "--scan-period-s", "0.2", "--status-period-s", "0.5", "--connect", router_endpoint)
+                            "--scan-period-s", "0.2", "--status-period-s", "0.5", "--connect", router_endpoint,
+                            "--insecure")
             got: list = []
 
             def frame_seen() -> bool:

@@ -154,3 +154,31 @@ def test_a_bad_modbus_endpoint_is_refused_with_the_form_to_use(text):
 def test_a_good_endpoint_parses():
     assert parse_modbus_endpoint("tcp/127.0.0.1:1502") == ("127.0.0.1", 1502)
     assert parse_modbus_endpoint("tcp/[::1]:502") == ("::1", 502)
+
+
+def test_a_set_point_the_adapter_did_not_write_is_counted_logged_once_reasserted_and_shown(plant, inverter, caplog):
+    """A second Modbus master writes full absorption over our command: each scan finds it, writes ours again, and
+    the link's status counts it; without a command in force a foreign set point is switched off."""
+    plant.scan(0)
+    now = time.time_ns()
+    assert plant.command(_cmd(-100.0, now), now).status == "accepted"
+    rogue = SunSpecLink("127.0.0.1", inverter.port, timeout_s=2.0)
+    try:
+        rogue.read()  # the other master learns the scale factors, as any would
+        with caplog.at_level("WARNING"):
+            for k in (1, 2):
+                rogue.write_var_setpoint(-800.0, 3000)
+                assert inverter.q_command_kvar() == pytest.approx(-800.0)
+                frame = plant.scan(now + k * 60 * S)
+                assert frame is not None and frame.q_setpoint_kvar == pytest.approx(-100.0)  # what holds now
+                assert inverter.q_command_kvar() == pytest.approx(-100.0)
+        status = plant.status(now + 120 * S)
+        assert status.foreign_writes == 2 and "foreign write" in status.reason
+        assert plant.scan(now + 180 * S) is not None and plant.foreign_writes == 2  # ours in force: nothing new
+        assert caplog.text.count("did not write") + caplog.text.count("foreign write") == 1
+        plant.plant.guard.expire(now + 601 * S)  # our command's time is over: none in force
+        rogue.write_var_setpoint(300.0, 3000)
+        assert plant.scan(now + 660 * S).q_setpoint_kvar is None and inverter.q_command_kvar() is None
+        assert plant.foreign_writes == 3
+    finally:
+        rogue.close()

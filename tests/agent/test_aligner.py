@@ -152,19 +152,54 @@ def test_a_burst_of_lost_frames_passes_at_once(aligner):
     assert out.t_ns == t and out.complete and sum(aligner.rejected.values()) == 0
 
 
-def test_a_forged_huge_seq_locks_a_source_out_for_at_most_one_period(aligner):
-    """Issue 17 (a): a head frame with seq 2**63-1 made the agent hold for the rest of the run."""
+def test_a_forged_huge_seq_is_held_and_refused_when_the_devices_next_frame_does_not_confirm_it(aligner):
+    """Issue 17 (a): a head frame with seq 2**63-1 made the agent hold for the rest of the run; then it locked the
+    head out for a control period. Now the jump waits for the head's next frame, which refuses it."""
     for k, f in (head(T0, 1), pv(T0, 1), vr(T0, 1)):
         aligner.add(k, f)
-    aligner.add(*head(T0 + MINUTE, 2**63 - 1))  # taken: its time is plausible
+    assert aligner.add(*head(T0 + MINUTE, 2**63 - 1)) == []  # held aside, not taken
     released = []
     for i in range(2, 12):
         t = T0 + i * MINUTE
         for k, f in (head(t, i), pv(t, i), vr(t, i)):
             released += aligner.add(k, f)
-    assert aligner.rejected["out_of_order"] == 4  # the real head at +2..+5 min
-    assert aligner.seq_resets == 1  # at +6 min, one period after the forgery
-    assert [(a.t_ns, a.head is not None) for a in released] == [(T0 + 5 * MINUTE, False), (T0 + 10 * MINUTE, True)]
+    assert aligner.rejected == {"seq_jump": 1} and aligner.seq_resets == 0
+    assert [(a.t_ns, a.head is not None) for a in released] == [(T0 + 5 * MINUTE, True), (T0 + 10 * MINUTE, True)]
+
+
+def test_a_near_future_frame_with_a_high_seq_never_replaces_the_real_one(aligner):
+    """A head frame stamped 3 s after the step (snapped onto it by the clock tolerance) with a high seq, sent before
+    the step's real frames: the real head frame is the one decided on, and the forgery is counted."""
+    snapping = FrameAligner(feeder_id="rural", pv_ids=("pv1",), regulator_ids=("vr1a",),
+                            control_period_ns=PERIOD_NS, clock_tolerance_ns=5 * 10**9)
+    for k, f in (head(T0, 1), pv(T0, 1), vr(T0, 1)):
+        snapping.add(k, f)
+    t = T0 + PERIOD_NS
+    assert snapping.add(*head(t + 3 * 10**9, 10**6)) == []
+    out = []
+    for k, f in (head(t, 2), pv(t, 2), vr(t, 2)):
+        out += snapping.add(k, f)
+    assert len(out) == 1 and out[0].head.seq == 2 and out[0].complete
+    assert snapping.rejected == {"seq_jump": 1}
+
+
+def test_a_second_frame_of_a_device_for_the_same_time_is_a_duplicate_the_first_stays(aligner):
+    aligner.add(*head(T0, 1))
+    aligner.add(*head(T0, 2))
+    aligner.add(*pv(T0, 1))
+    (out,) = aligner.add(*vr(T0, 1))
+    assert out.head.seq == 1 and aligner.rejected == {"duplicate": 1}
+
+
+def test_a_device_whose_seq_really_jumps_is_confirmed_by_its_next_frame(aligner):
+    for k, f in (head(T0, 1), pv(T0, 1), vr(T0, 1)):
+        aligner.add(k, f)
+    released = []
+    for i, seq in ((1, 5000), (2, 5001), (3, 5002)):  # the head's counter restarted from a saved value
+        t = T0 + i * MINUTE
+        for k, f in (head(t, seq), pv(t, 1 + i), vr(t, 1 + i)):
+            released += aligner.add(k, f)
+    assert aligner.seq_jumps == 1 and sum(aligner.rejected.values()) == 0
 
 
 def test_capacitor_bank_frames_are_ignored_not_fatal(aligner):

@@ -68,6 +68,27 @@ def test_one_decision_per_control_step_with_expiring_commands(model):
         codec_for(m.Decision).decode(codec_for(m.Decision).encode(d))  # valid on the wire
 
 
+def test_an_ack_counts_once_for_a_command_the_agent_sent_to_that_device(model):
+    """The device's answer to a replay of our command, an ack on another device's key, an ack of a command never
+    sent: none counts; one answer and one 'expired' per command do."""
+    maker = DecisionMaker(model, AgentSettings(feeder_id="rural"))
+    sent = []
+    for key, frame in _frames(model, T0, 1):
+        sent += [c for a, d in maker.on_frame(key, frame) for c in maker.to_message(a, d).commands]
+    cmd = next(c for c in sent if isinstance(c, m.PvCommand))
+    key = keys.ack(FEEDER, "pv", cmd.plant_id)
+
+    def ack(status: str, cmd_id: str = cmd.cmd_id, device: str = cmd.plant_id) -> m.Ack:
+        return m.Ack(t_ns=T0, seq=1, source=device, cmd_id=cmd_id, device_id=device, status=status)
+
+    assert "not a command this agent sent" in maker.ack_problem(key, ack("rejected", cmd_id="agent:1:x"))
+    assert "an ack of device" in maker.ack_problem(keys.ack(FEEDER, "pv", "other"), ack("accepted"))
+    assert maker.ack_problem(key, ack("accepted")) is None
+    assert "answered already" in maker.ack_problem(key, ack("rejected"))  # e.g. someone replayed it: 'replay'
+    assert maker.ack_problem(key, ack("expired")) is None
+    assert "not a command this agent sent" in maker.ack_problem(key, ack("expired"))
+
+
 def test_missing_head_holds_with_no_commands(model):
     maker = DecisionMaker(model, AgentSettings(feeder_id="rural"))
     for key, frame in _frames(model, T0, 1, drop=("head",)):

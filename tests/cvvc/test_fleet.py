@@ -194,7 +194,9 @@ def test_the_fleet_policy_scopes_every_data_rule_of_a_feeder_and_leaves_the_role
     scoped = {r["id"]: r for r in fleet["rules"][len(plain["rules"]):]}
     assert scoped["agent.f1-agent-send"]["key_exprs"] == ["cvvc/f1/cmd/**", "cvvc/f1/agent/decision",
                                                           "cvvc/f1/agent/status"]
-    assert scoped["devices.f2-devices-receive"]["key_exprs"] == ["cvvc/f2/cmd/**", "cvvc/f2/agent/decision"]
+    assert scoped["devices.f2-devices-receive"]["key_exprs"] == ["cvvc/f2/cmd/**", "cvvc/f2/agent/decision",
+                                                                 "cvvc/f2/meas/head", "cvvc/f2/meas/pv/*",
+                                                                 "cvvc/f2/ack/pv/*"]
     for rid, rule in scoped.items():  # data rules on the feeder's keys only; interest-only rules on every feeder
         interest = set(rule["messages"]) <= {"declare_subscriber", "declare_liveliness_subscriber",
                                              "liveliness_query"}
@@ -213,7 +215,7 @@ def test_an_agent_subscribes_to_its_own_feeders_keys_only(router_endpoint, tmp_p
     feeder's frames and acks and no other feeder's (the router tells publishers whether any subscriber matches)."""
     log = open(tmp_path / "agent.log", "wb")  # noqa: SIM115  (closed below)
     agent = subprocess.Popen([sys.executable, "-m", "cvvc", "agent", "--model", str(ieee13_model), "--feeder-id",
-                              "ieee13-a", "--connect", router_endpoint], cwd=REPO, stdout=log,
+                              "ieee13-a", "--connect", router_endpoint, "--insecure"], cwd=REPO, stdout=log,
                              stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
     log.close()
     try:

@@ -223,3 +223,31 @@ def test_case_flags_give_the_settings_the_agent_records(case, window, hold, expe
     assert settings_from_args(args) == settings
     assert case_agent_settings("none", "ieee13", 4.0, 0.0, True) is None
     assert case_agent_settings("local", "ieee13", 4.0) is None
+
+
+def test_the_run_is_secure_by_default_and_says_so(one_hour_run):
+    """Without a flag the run's bus is mTLS with the access policy: the CA made on this first run sits in
+    ``<cache>/ca``, apart from the role keys of ``<cache>/security`` that the processes present."""
+    out, summary = one_hour_run
+    assert summary["secure"] is True
+    assert "mTLS with per-role certificates" in (out / "report.md").read_text()
+    cache = out.parent / "cache"
+    assert (cache / "ca" / "ca.key").is_file()
+    assert not (cache / "security" / "ca.key").exists()
+    for role in ("agent", "devices", "recorder", "router"):
+        assert (cache / "security" / f"{role}.key").stat().st_mode & 0o777 == 0o600
+    bridge = json.loads((out / "bridge-summary.json").read_text())
+    assert bridge["metrics"] == summary["metrics"]  # the children joined the TLS router and the run completed
+
+
+def test_an_insecure_run_warns_and_records_it(tmp_path):
+    proc = _cvvc("run", "--feeder", str(REPO / "feeders" / "ieee13.toml"), "--case", "none", "--days", str(3 / 1440),
+                 "--out", str(tmp_path / "out"), "--cache", str(tmp_path / "cache"), "--no-baseline", "--json",
+                 "--insecure", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "WARNING --insecure: the bus runs without TLS and without access control" in proc.stderr
+    assert json.loads(proc.stdout)["secure"] is False
+    assert "**bus: insecure**" in (tmp_path / "out" / "report.md").read_text()
+    assert not (tmp_path / "cache" / "ca").exists() and not (tmp_path / "cache" / "security").exists()
+    both = _cvvc("run", "--insecure", "--secure", "--days", "0.01", cwd=tmp_path)
+    assert both.returncode == 2 and "not allowed with argument" in both.stderr

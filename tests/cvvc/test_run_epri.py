@@ -61,3 +61,5 @@ def test_a_run_without_cache_flag_writes_into_the_user_cache_not_the_cwd(tmp_pat
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert list(work.iterdir()) == []
     assert list((xdg / "cvvc-edge" / "profiles").glob("profiles-ieee13-*.npz"))
+    assert (xdg / "cvvc-edge" / "ca" / "ca.key").is_file()  # the first run's local CA, apart from the role keys
+    assert (xdg / "cvvc-edge" / "security" / "agent.key").is_file()

@@ -114,6 +114,7 @@ def test_the_plants_frames_and_acks_come_from_the_adapters(both_runs):
         assert all(abs(f["q_kvar"] - truth_q[f["t_ns"]][k]) <= 3 * STEP_KW / 2 + 1e-9 for f in frames)
         status = rec[f"cvvc/ieee13/link/pv/{plant}"]
         assert status and all(s["state"] in ("starting", "ok") for s in status) and status[-1]["refused"] == {}
+        assert status[-1]["foreign_writes"] == 0  # every scan read back the set point the adapter wrote
         acks = rec[f"cvvc/ieee13/ack/pv/{plant}"]
         answered = [a for a in acks if a["status"] in ("accepted", "clipped", "rejected")]
         assert len(answered) == sum(c["plant_id"] == plant for c in commands.values())  # one each, the adapter's
@@ -128,8 +129,7 @@ def test_the_plants_frames_and_acks_come_from_the_adapters(both_runs):
 
 @pytest.mark.parametrize(("option", "named"), [
     (dict(drop_prob=0.1), "--drop-prob"), (dict(noise_scada_pct=1.0), "--noise-scada-pct"),
-    (dict(clock_skew_s=2.0), "--clock-skew-s"), (dict(realtime=True, meas_delay_s=5.0), "--meas-delay-s"),
-    (dict(secure=True), "--secure")])
+    (dict(clock_skew_s=2.0), "--clock-skew-s"), (dict(realtime=True, meas_delay_s=5.0), "--meas-delay-s")])
 def test_options_the_closed_loop_does_not_take_yet_are_refused_before_anything_starts(tmp_path, option, named):
     from cvvc.launch import LaunchError, RunConfig, run
 

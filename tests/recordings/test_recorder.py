@@ -130,7 +130,7 @@ def test_file_is_finished_when_the_block_raises(router_endpoint: str, tmp_path: 
 
 def _spawn_recorder(out: Path, endpoint: str, flush_period_s: float) -> subprocess.Popen[bytes]:
     return subprocess.Popen(
-        [sys.executable, "-m", "cvvc", "record", "--out", str(out), "--connect", endpoint,
+        [sys.executable, "-m", "cvvc", "record", "--out", str(out), "--connect", endpoint, "--insecure",
          "--flush-period-s", str(flush_period_s), "--feeder-fingerprint", "fp"],
         cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=os.environ | {"PYTHONPATH": str(REPO)})
 

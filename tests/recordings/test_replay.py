@@ -129,7 +129,8 @@ def test_bad_inputs(router_endpoint: str, tmp_path: Path) -> None:
 def test_cli_replay_without_subscriber(router_endpoint: str, tmp_path: Path,
                                        capsys: pytest.CaptureFixture[str]) -> None:
     path = write_recording(tmp_path / "day.mcap", [(EXAMPLE_KEYS[m.HeadFrame], head_frame(0))])
-    assert cvvc_main(["replay", str(path), "--fast", "--wait-s", "0.2", "--connect", router_endpoint]) == 2
+    assert cvvc_main(["replay", str(path), "--fast", "--wait-s", "0.2", "--connect", router_endpoint,
+                      "--insecure"]) == 2
     err = capsys.readouterr().err
     assert err.startswith("cvvc replay: error: no subscriber") and err.count("\n") == 1
 

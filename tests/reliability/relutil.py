@@ -65,7 +65,9 @@ class Procs:
 
     def start(self, name: str, args: list[str]) -> Proc:
         self._n += 1
-        p = Proc(f"{self._n:02d}-{name}", [*args, "--connect", self.endpoint], self.log_dir)
+        # --insecure (a plain router) unless the test gives the child its certificates (--secure-dir)
+        security = [] if "--secure-dir" in args else ["--insecure"]
+        p = Proc(f"{self._n:02d}-{name}", [*args, "--connect", self.endpoint, *security], self.log_dir)
         self.children.append(p)
         return p
 

@@ -71,3 +71,38 @@ def test_in_secure_mode_a_command_under_another_source_name_is_still_a_replay(se
                 sub.undeclare()
     finally:
         procs.close()
+
+
+def test_in_secure_mode_commands_count_only_from_the_agent_role(secure, tmp_path: Path, rel_cache: Path) -> None:
+    """Commands from a ``devices`` or a ``recorder`` certificate (a compromised gateway or recorder host) reach no
+    device: the bridge neither applies nor acks them, while the agent's certificate, sent after them, is acked."""
+    endpoint, d = secure
+    procs = Procs(tmp_path, endpoint, None, rel_cache)
+    seen = Seen()
+    key = f"cvvc/{FEEDER}/cmd/pv/{PLANT}"
+    try:
+        with zenoh.open(zenoh_config(BusConfig(connect=(endpoint,), tls_dir=str(d), role=COMMAND_ROLE))) as agent, \
+                zenoh.open(zenoh_config(BusConfig(connect=(endpoint,), tls_dir=str(d), role="devices"))) as gateway, \
+                zenoh.open(zenoh_config(BusConfig(connect=(endpoint,), tls_dir=str(d), role="recorder"))) as rec:
+            subs = [agent.declare_subscriber(f"cvvc/{FEEDER}/meas/head", seen.on_head),
+                    agent.declare_subscriber(f"cvvc/{FEEDER}/ack/pv/{PLANT}", seen.on_ack)]
+            pubs = {who: s.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK)
+                    for who, s in (("agent", agent), ("devices", gateway), ("recorder", rec))}
+            bridge = procs.start("bridge", ["bridge", "--feeder", str(FEEDER_MAP), "--cache-dir", str(rel_cache),
+                                            "--start", NOON, "--truth-every", "0", "--realtime", "--speed", "60",
+                                            "--steps", "100000", "--wait-agent-s", "0", "--secure-dir", str(d)])
+            assert wait_for(lambda: bool(seen.head_t_ns) and bool(pubs["agent"].matching_status.matching), 60.0), \
+                bridge.log()[-2000:]
+            with seen.lock:
+                t = seen.head_t_ns[-1]
+            for seq, who in enumerate(("devices", "recorder", "agent"), start=1):
+                cmd = m.PvCommand(t_ns=t, seq=seq, source="agent", cmd_id=f"from-{who}", in_reply_to=0,
+                                  valid_until_t_ns=t + 10 * MIN_NS, plant_id=PLANT, q_kvar=50.0 * seq)
+                pubs[who].put(msgspec.json.encode(cmd))
+            assert wait_for(lambda: "from-agent" in seen.acks, 30.0), bridge.log()[-2000:]
+            assert seen.acks["from-agent"].status in ("accepted", "clipped")
+            assert "from-devices" not in seen.acks and "from-recorder" not in seen.acks
+            for sub in subs:
+                sub.undeclare()
+    finally:
+        procs.close()

@@ -131,6 +131,24 @@ def test_unknown_key_type_is_counted(router_endpoint):
         assert inbox.rejects.by_kind() == {"unknown_key": 1}
 
 
+def test_an_oversized_list_is_refused_and_counted_then_the_next_frame_taken(router_endpoint):
+    """A head frame with 100,000 quality flags (0.9 MB, under the payload limit) through the real bus: refused as
+    ``out_of_range`` by its list bound, counted, nothing enqueued; the valid frame after it is taken."""
+    from schemas.bus import wait_for
+
+    with open_session(BusConfig(mode="peer", connect=(router_endpoint,))) as session:
+        inbox = Inbox()
+        inbox.subscribe(session, "cvvc/ieee13/meas/**")  # the agent's subscription: the type from the key
+        pub = session.declare_publisher("cvvc/ieee13/meas/head", congestion_control=zenoh.CongestionControl.BLOCK)
+        assert wait_for(lambda: bool(pub.matching_status.matching), 5.0)
+        head = msgspec.structs.replace(example(m.HeadFrame), feeder_id="ieee13")
+        pub.put(msgspec.json.encode(msgspec.structs.replace(head, quality=["noisy"] * 100_000)))
+        pub.put(msgspec.json.encode(head))
+        assert wait_for(lambda: inbox.accepted == 1, 5.0)
+        assert inbox.rejects.by_kind() == {"out_of_range": 1}
+        assert [r.msg for r in inbox.drain()] == [head]
+
+
 def test_free_port_is_bindable():
     port = free_port()
     assert 1024 <= port <= 65535

@@ -216,3 +216,43 @@ def test_every_message_float_is_bounded_so_decode_alone_refuses_non_finite(msg_t
     from schemas.bus import _has_unbounded_float
 
     assert not _has_unbounded_float(msgspec.inspect.type_info(msg_type), set())
+
+
+def _unbounded(t: msgspec.inspect.Type, path: str, seen: set[type]) -> list[str]:
+    """Paths in ``t`` of a list, dict, string or byte string without a maximal length."""
+    mi = msgspec.inspect
+    if isinstance(t, mi.StructType):
+        if t.cls in seen:
+            return []
+        seen.add(t.cls)
+        return [x for f in t.fields for x in _unbounded(f.type, f"{path}.{f.name}", seen)]
+    if isinstance(t, mi.StrType | mi.BytesType):
+        return [] if t.max_length is not None else [path]
+    if isinstance(t, mi.ListType | mi.VarTupleType | mi.SetType | mi.FrozenSetType):
+        own = [] if t.max_length is not None else [path]
+        return own + _unbounded(t.item_type, f"{path}[]", seen)
+    if isinstance(t, mi.DictType):
+        own = [] if t.max_length is not None else [path]
+        return own + _unbounded(t.key_type, f"{path}{{key}}", seen) + _unbounded(t.value_type, f"{path}{{}}", seen)
+    if isinstance(t, mi.UnionType):
+        return [x for u in t.types for x in _unbounded(u, path, seen)]
+    return []
+
+
+@pytest.mark.parametrize("msg_type", MESSAGE_TYPES, ids=lambda t: t.__name__)
+def test_every_list_dict_and_string_of_every_message_has_a_bound(msg_type):
+    assert _unbounded(msgspec.inspect.type_info(msg_type), msg_type.__name__, set()) == []
+
+
+@pytest.mark.parametrize(("msg_type", "field", "value"), [
+    (m.HeadFrame, "quality", ["noisy"] * 100_000),  # 0.9 MB of flags: under the payload limit, not under the bound
+    (m.StepEnd, "pv", ["pv1"] * 5_000),
+    (m.AgentStatus, "rejected", {f"kind{i}": 1 for i in range(5_000)}),
+    (m.HeadFrame, "source", "x" * 65),
+])
+def test_an_oversized_list_or_string_fails_cleanly_as_out_of_range(msg_type, field, value):
+    raw = msgspec.json.encode(msgspec.structs.replace(EXAMPLES[msg_type], **{field: value}))
+    assert len(raw) < codec_for(msg_type).max_bytes
+    with pytest.raises(BadMessage) as e:
+        codec_for(msg_type).decode(raw)
+    assert e.value.kind == "out_of_range", e.value

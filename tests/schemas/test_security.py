@@ -233,3 +233,59 @@ def test_each_role_gets_exactly_its_flows(security_dir, secure_router):
                         and recorded.get("cvvc/F/ack/pv/x", b"ack") == 1, 5.0)
         token.undeclare()
 
+
+
+def _program_args(*flags: str):
+    import argparse
+
+    from schemas.bus import add_bus_arguments
+
+    parser = argparse.ArgumentParser()
+    add_bus_arguments(parser)
+    return parser.parse_args(["--connect", "tcp/127.0.0.1:7447", *flags])
+
+
+def test_every_program_is_secure_by_default_with_a_local_ca_apart_from_the_role_keys(tmp_path, monkeypatch, caplog):
+    """A program given no security flag presents its role's certificate of ``<cache>/security``, issued on first use
+    from a CA created without a question in ``<cache>/ca``; ``--insecure`` warns; both flags at once are refused."""
+    from schemas.bus import bus_config_from_args
+
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    cache = tmp_path / "xdg" / "cvvc-edge"
+    bus = bus_config_from_args(_program_args(), role="agent")
+    assert bus.tls_dir == str(cache / "security") and bus.role == "agent"
+    assert role_paths(cache / "ca", "ca")[1].is_file() and not role_paths(cache / "security", "ca")[1].exists()
+    assert all(role_paths(cache / "security", r)[0].is_file() for r in ROLES)
+    conf = str(zenoh_config(bus))
+    assert "tls/127.0.0.1:7447" in conf and "tcp/127.0.0.1:7447" not in conf
+    before = role_paths(cache / "security", "agent")[0].read_bytes()
+    assert bus_config_from_args(_program_args(), role="devices").tls_dir == bus.tls_dir
+    assert role_paths(cache / "security", "agent")[0].read_bytes() == before  # issued once
+    with caplog.at_level("WARNING"):
+        plain = bus_config_from_args(_program_args("--insecure"), role="agent")
+    assert plain.tls_dir is None and "--insecure: the bus runs without TLS" in caplog.text
+    with pytest.raises(SystemExit):
+        _program_args("--insecure", "--secure-dir", str(tmp_path))
+
+
+def test_a_security_dir_issued_by_another_ca_is_issued_again(tmp_path):
+    d = tmp_path / "security"
+    init_ca(tmp_path / "ca1")
+    init_security_dir(d, ca_dir=tmp_path / "ca1")
+    old = role_paths(d, "agent")[0].read_bytes()
+    init_ca(tmp_path / "ca2")
+    written = init_security_dir(d, ca_dir=tmp_path / "ca2")
+    assert role_paths(d, "agent")[0] in written and role_paths(d, "agent")[0].read_bytes() != old
+    assert role_paths(d, "ca")[0].read_bytes() == role_paths(tmp_path / "ca2", "ca")[0].read_bytes()
+    with pytest.raises(SecurityError, match="folder of its own"):
+        from schemas.security import ensure_local_security
+
+        ensure_local_security(d, ca_dir=d)
+
+
+def test_a_router_mode_session_of_any_role_enforces_the_policy(security_dir) -> None:
+    """A bridge that only listens is the router: it carries the deny-by-default policy even with the devices
+    certificate, so its clients are not allowed everything."""
+    conf = str(zenoh_config(BusConfig(mode="router", listen=(f"tcp/127.0.0.1:{free_port()}",),
+                                      tls_dir=str(security_dir), role="devices")))
+    assert '"default_permission":"deny"' in conf.replace(" ", "")

@@ -51,5 +51,7 @@ def bridge_config(device_map_path: Path, cache_dir: Path, **kw: Any) -> Any:
 
 
 def bridge_cmd(endpoint: str, device_map_path: Path, cache_dir: Path, *extra: str) -> list[str]:
+    """A bridge process on ``endpoint``: ``--insecure`` unless ``extra`` gives its certificates (``--secure-dir``)."""
+    security = [] if "--secure-dir" in extra else ["--insecure"]
     return [sys.executable, "-m", "cvvc", "bridge", "--feeder", str(device_map_path), "--connect", endpoint,
-            "--cache-dir", str(cache_dir), "--start", T0, "--json", *extra]
+            *security, "--cache-dir", str(cache_dir), "--start", T0, "--json", *extra]
