@@ -31,7 +31,8 @@ def test_train_json_then_accuracy(tmp_path, monkeypatch, capsys):
     assert all(e["max_abs_pu"] < 0.01 for e in report["errors"])
     assert main(argv) == 0  # the text form: the bounds' line says whether they held within 2x of their promise
     (line,) = [x for x in capsys.readouterr().out.splitlines() if x.startswith("calibrated bounds")]
-    held = report["bound_miss_rate"][next(iter(report["bound_alpha"]))] <= 2 * next(iter(report["bound_alpha"].values()))
+    ((label, alpha),) = report["bound_alpha"].items()
+    held = report["bound_miss_rate"][label] <= 2 * alpha
     assert ("held, within 2x" in line) == held and ("NOT held" in line) == (not held)
 
 
