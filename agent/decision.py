@@ -44,6 +44,8 @@ class MeasurementSnapshot:
     cap_control_value : (C,) what the bank's local control compares with its ON/OFF settings, in its unit
         (``CapFrame.control_value``), NaN where missing or when the bank is held by a command (not on local control);
         empty: unknown.
+    reg_v120_noise : (R,) the noise of the regulator's readings at its present tap over the reading window [V on 120
+        V base] (``agent.runtime.reading_noise_v120``), NaN with too few; None: unknown.
     reg_fresh : (R,) bool, the regulator's reading is this step's own frame (not a last-good one standing in for
         a lost frame); None: every reading is.
     head_fresh : the head frame is this step's own.
@@ -75,6 +77,7 @@ class MeasurementSnapshot:
     pv_fresh: np.ndarray | None = None
     reg_v120_now: np.ndarray | None = None
     cap_control_value: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    reg_v120_noise: np.ndarray | None = None
     pv_age_s: np.ndarray | None = None
 
 

@@ -171,6 +171,7 @@ def snapshot_from(aligned: AlignedFrames, model: CvvcModel, *, reading_window_s:
         pv_ok[k] = True
     reg_v, reg_vc, reg_tap = np.full(n_reg, 120.0), np.full(n_reg, 120.0), np.zeros(n_reg, int)
     reg_ok = np.zeros(n_reg, bool)
+    reg_noise = np.full(n_reg, np.nan)
     reg_fresh = np.array([aligned.vr.get(reg.id) is not None for reg in model.regulators], bool)
     for r, reg in enumerate(model.regulators):
         f = aligned.vr.get(reg.id)
@@ -184,6 +185,7 @@ def snapshot_from(aligned: AlignedFrames, model: CvvcModel, *, reading_window_s:
         reg_tap[r] = f.tap
         since = aligned.t_ns - int(reading_window_s * 1e9)
         same_tap = [x for x in recent if x.t_ns > since and x.tap == f.tap and x.phases]
+        reg_noise[r] = reading_noise_v120([x.phases[0].v_120 for x in same_tap])
         if reading_window_s > 0 and len(same_tap) > 1:
             reg_v[r] = float(np.mean([x.phases[0].v_120 for x in same_tap]))
             reg_vc[r] = float(np.mean([x.v_compared_120 for x in same_tap]))
@@ -209,7 +211,17 @@ def snapshot_from(aligned: AlignedFrames, model: CvvcModel, *, reading_window_s:
         cap_steps=cap_steps, cap_valid=cap_ok, cap_v_v=cap_v, reg_fresh=reg_fresh, head_fresh=aligned.head is not None,
         pv_fresh=np.array([plant.id in aligned.pv for plant in model.pv], bool), pv_age_s=pv_age,
         reg_v120_now=np.array([_own_reading(aligned.vr.get(reg.id)) for reg in model.regulators], float),
-        cap_control_value=cap_value)
+        cap_control_value=cap_value, reg_v120_noise=reg_noise)
+
+
+def reading_noise_v120(readings: list[float]) -> float:
+    """The noise of a regulator's consecutive readings at one tap [V on 120 V base]: the standard deviation of their
+    second differences over sqrt(6) (white noise of sigma gives 6 sigma^2; a load's slow drift nearly cancels); NaN
+    with fewer than 4 readings.
+    """
+    if len(readings) < 4:
+        return float("nan")
+    return float(np.std(np.diff(np.asarray(readings, float), n=2)) / np.sqrt(6.0))
 
 
 def _own_reading(frame: m.RegFrame | None) -> float:

@@ -584,3 +584,28 @@ def test_a_tap_move_is_not_reversed_soon_after_unless_the_limits_need_it():
     np.testing.assert_array_equal(later.reg_tap, free.reg_tap)
     with pytest.raises(AgentInputError, match="tap_reversal_lockout_s"):
         controller(tap_reversal_lockout_s=-1.0)
+
+
+def test_noisy_readings_widen_the_bounds_from_their_window_mean_not_the_last_reading():
+    """The bounds' gap takes eq. (6) from the step's own reading when the readings are quiet, and from the reading
+    window's mean when they are noisier than a quarter of a tap step: one noisy reading would otherwise widen and
+    narrow the bounds at random every decision (rural winter, 1 % SCADA noise: NTC 15 -> 72)."""
+    from agent.runtime import reading_noise_v120
+
+    rng = np.random.default_rng(1)
+    assert reading_noise_v120([120.0, 120.1, 120.2, 120.3, 120.4]) == pytest.approx(0.0, abs=1e-9)  # a drift
+    assert reading_noise_v120(list(120.0 + 1.2 * rng.standard_normal(400))) == pytest.approx(1.2, rel=0.1)
+    assert np.isnan(reading_noise_v120([120.0, 121.0, 122.0]))
+    jump_pu = 0.006
+    step_v = min(r.step_v120 for r in MODEL.regulators)
+
+    def high_bound(noise_v: float) -> np.ndarray:
+        c = CvvcController(_bounded_model(0.001, 0.001), mode="taps", correction=True, bandwidth_v120=4.0,
+                           correction_window_s=3000.0, bounds_cover_filter=True)
+        s = snapshot(0)
+        last = s.reg_v120 + jump_pu / ARRAYS.reg_pu_per_v120  # the step's own reading, above the window's mean
+        return c.decide(dataclasses.replace(s, reg_v120_now=last, reg_v120_noise=np.full(R, noise_v))).v_bound_high_pu
+
+    quiet, noisy = high_bound(0.1 * step_v), high_bound(1.2)
+    np.testing.assert_allclose(noisy, 0.001)  # the window's mean is what the filter took in: no gap
+    assert quiet.max() == pytest.approx(0.001 + jump_pu, abs=1e-9)  # the last reading's gap, on its side
