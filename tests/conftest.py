@@ -61,5 +61,11 @@ def ieee13_model(tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="session")
 def profile_cache(tmp_path_factory) -> Path:
-    """One profile cache for the whole session (profiles of a feeder and seed take seconds to make)."""
-    return tmp_path_factory.getbasetemp() / "profiles"
+    """One profile cache for the whole session (profiles of a feeder and seed take seconds to make).
+
+    Files are named by feeder, fingerprint and seed, so every test shares it; its parent is a cache root
+    (``cache=`` of a run or evaluation finds it as ``<root>/profiles``).
+    """
+    folder = tmp_path_factory.getbasetemp() / "profiles"
+    folder.mkdir(exist_ok=True)
+    return folder
