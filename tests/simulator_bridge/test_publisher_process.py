@@ -138,10 +138,9 @@ def test_the_publisher_process_fails_the_run_and_is_stopped(client: Client, rout
     finally:
         pub.PublisherProcess.__init__ = orig  # type: ignore[method-assign]
     assert len(procs) == 1
-    t = time.monotonic()
     os.kill(procs[0].pid, signal.SIGKILL)
-    th.join(timeout=30)
-    assert not th.is_alive() and time.monotonic() - t < 10.0
+    th.join(timeout=30)  # the bounded wait: a run of 100000 steps at speed 600 that went on would still be alive
+    assert not th.is_alive()  # ended by itself: ``stop`` is only set below
     stop.set()
     assert out and "publisher process" in str(out[0]), out
     assert not procs[0].is_alive()
