@@ -12,6 +12,8 @@ import pytest
 from cvvc.cluster import ClusterError, Outcome, Task, dask_client, run_tasks
 from schemas.bus import wait_for
 
+pytestmark = pytest.mark.process  # local Dask clusters of worker processes
+
 
 def _holds_its_worker(release: str) -> str:
     """Task: holds its worker thread until the Dask event ``release`` is set (bounded: 60 s)."""

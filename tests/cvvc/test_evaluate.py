@@ -144,6 +144,7 @@ def test_results_list_each_agent_runs_soft_and_hold_decisions_and_its_decision_t
     assert f"decision time (the agent's, per control step): p50 {d.decision_ms['p50']:.1f} ms" in report
 
 
+@pytest.mark.process  # ``cvvc evaluate`` as a program
 def test_unknown_case_or_season_is_a_clear_error(tmp_path):
     with pytest.raises(EvaluateError, match="unknown case.*E.*choose from A,B,C,D,none,local"):
         parse_cases("D,E")

@@ -149,6 +149,7 @@ def test_an_oversized_list_is_refused_and_counted_then_the_next_frame_taken(rout
         assert [r.msg for r in inbox.drain()] == [head]
 
 
+@pytest.mark.bus
 def test_free_port_is_bindable():
     port = free_port()
     assert 1024 <= port <= 65535
