@@ -25,6 +25,7 @@ _MARKS_BY_FIXTURE: dict[str, tuple[str, ...]] = {
     "fleet_router": ("bus",),             # tests/cvvc/test_fleet.py: a secure router of two feeders
     "dask_scheduler": ("process",),       # tests/cvvc/conftest.py: a LocalCluster of two worker processes
     "user_cluster": ("process",),         # tests/cvvc/test_campaign.py: a scheduler and workers as programs
+    "campaign_out": ("process", "slow"),  # tests/cvvc/test_campaign.py: a campaign of evaluations on them
     "model13": ("process", "slow"),       # tests/reliability/conftest.py: ``cvvc train`` as a program
     "procs": ("process",),                # tests/reliability/conftest.py: ``cvvc`` programs on the bus
     "ieee13_model": ("slow",),            # IEEE 13 trained on real power flows
