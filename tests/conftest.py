@@ -4,8 +4,9 @@ IEEE 13 model, the profile cache) and the test tiers.
 Tiers (docs/testing.md): a test that opens a Zenoh session is marked ``bus``, one that starts processes (``cvvc``
 programs, a Dask cluster, a publisher process) ``process``, one that trains a model on a real feeder or runs a
 closed loop or an evaluation ``slow``. ``make check`` runs the tests with none of the three; ``make test`` runs
-every test. A test is marked by the fixtures it uses (``_MARKS_BY_FIXTURE``, its whole fixture closure counts) or
-by its module's ``pytestmark``; each tier has its own timeout (``TIMEOUT_S``), the longest of the test's tiers.
+every test. A test is marked by the fixtures it uses (``_MARKS_BY_FIXTURE``, its whole fixture closure counts), by
+its module's ``pytestmark`` or on itself; each tier has its own timeout (``TIMEOUT_S``), the longest of the
+test's tiers.
 """
 
 from __future__ import annotations
@@ -42,7 +43,7 @@ _MARKS_BY_FIXTURE: dict[str, tuple[str, ...]] = {
 }
 
 # per-test timeout of each tier [s] (setup and teardown included: the first test to use a session fixture pays it)
-TIMEOUT_S = {"fast": 60, "bus": 180, "process": 300, "slow": 600}
+TIMEOUT_S = {"fast": 60, "bus": 120, "process": 180, "slow": 600}
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:

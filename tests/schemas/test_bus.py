@@ -50,6 +50,7 @@ def test_config_file_is_read_and_multicast_still_forced_off(tmp_path):
     assert conf.get_json("scouting/multicast/enabled") == "false"
 
 
+@pytest.mark.process
 def test_two_processes_exchange_typed_messages_and_count_a_bad_one(router_endpoint):
     good = example(m.PvCommand)
     peer = subprocess.Popen([sys.executable, str(PEER), router_endpoint, "2"], env=_peer_env())

@@ -26,7 +26,8 @@ from schemas.truth import truth_arrays
 
 
 # ------------------------------------------------------------------------------------ tests
-@pytest.mark.parametrize("publisher", ["inline", "process"])  # IEEE 13 is small: "auto" would be inline
+# IEEE 13 is small: "auto" would be inline
+@pytest.mark.parametrize("publisher", ["inline", pytest.param("process", marks=pytest.mark.process)])
 def test_commands_are_acked_and_show_in_the_next_frames(client: Client, router_endpoint: str,
                                                         device_map_path: Path, cache_dir: Path,
                                                         publisher: str) -> None:
@@ -215,6 +216,7 @@ def test_no_oracle_unless_asked_for(client: Client, router_endpoint: str, device
     assert replies == [] and summary.oracle_replies == 0
 
 
+@pytest.mark.process
 def test_lockstep_with_a_silent_agent_times_out_and_goes_on(client: Client, router_endpoint: str,
                                                             device_map_path: Path, cache_dir: Path,
                                                             repo_root_module: Path) -> None:
@@ -249,7 +251,7 @@ def test_lockstep_with_a_silent_agent_times_out_and_goes_on(client: Client, rout
         watch.undeclare()
 
 
-@pytest.mark.parametrize("publisher", ["inline", "process"])
+@pytest.mark.parametrize("publisher", ["inline", pytest.param("process", marks=pytest.mark.process)])
 def test_realtime_keeps_its_clock_and_serves_commands_without_an_agent(
         client: Client, router_endpoint: str, device_map_path: Path, cache_dir: Path, publisher: str) -> None:
     # 1-minute steps at speed 1200: 20 steps per wall second; real time never waits for anyone
@@ -290,6 +292,7 @@ def test_lockstep_without_an_agent_token_does_not_wait(client: Client, router_en
     assert not summary.agent_alive and summary.decision_wait_s < 30.0
 
 
+@pytest.mark.process
 def test_sigterm_ends_the_run_cleanly(client: Client, router_endpoint: str, device_map_path: Path,
                                       cache_dir: Path, repo_root_module: Path) -> None:
     proc = subprocess.Popen(
@@ -316,6 +319,7 @@ def test_sigterm_ends_the_run_cleanly(client: Client, router_endpoint: str, devi
     assert final.steps == summary["steps"]
 
 
+@pytest.mark.process
 def test_a_stopped_run_publishes_every_simulated_step_before_its_final_metrics(
         client: Client, router_endpoint: str, device_map_path: Path, cache_dir: Path) -> None:
     th, stop, out = bridge_thread(bridge_config(device_map_path, cache_dir, steps=100000, clock="realtime",
