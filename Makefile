@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test lint bench fuzz clean install
+.PHONY: demo test check lint bench fuzz clean install
 
 $(STAMP): pyproject.toml
 	$(PY) -m venv $(VENV)
@@ -19,6 +19,11 @@ demo: $(STAMP)
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q
+
+# the fast tier for the edit loop (< 2 minutes on 2 cores): no bus, no processes, no training on a real feeder;
+# markers in pyproject.toml, tiers in docs/testing.md
+check: $(STAMP)
+	$(BIN)/python -m pytest -q -m "not bus and not process and not slow"
 
 lint: $(STAMP)
 	$(BIN)/ruff check .

@@ -1,4 +1,13 @@
-"""Shared fixtures: free loopback ports, a router-mode Zenoh session, paths to the shared test feeders."""
+"""Shared fixtures (free loopback ports, a router-mode Zenoh session, paths to the shared test feeders, a trained
+IEEE 13 model, the profile cache) and the test tiers.
+
+Tiers (docs/testing.md): a test that opens a Zenoh session is marked ``bus``, one that starts processes (``cvvc``
+programs, a Dask cluster, a publisher process) ``process``, one that trains a model on a real feeder or runs a
+closed loop or an evaluation ``slow``. ``make check`` runs the tests with none of the three; ``make test`` runs
+every test. A test is marked by the fixtures it uses (``_MARKS_BY_FIXTURE``, its whole fixture closure counts), by
+its module's ``pytestmark`` or on itself; each tier has its own timeout (``TIMEOUT_S``), the longest of the
+test's tiers.
+"""
 
 from __future__ import annotations
 
@@ -9,6 +18,44 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_FEEDERS = (REPO.parent / "shared" / "feeders").resolve()
+
+# the fixtures that put a test in a tier (a test using one, directly or through another fixture, is marked)
+_MARKS_BY_FIXTURE: dict[str, tuple[str, ...]] = {
+    "router_endpoint": ("bus",),          # a router-mode Zenoh session
+    "secure_router": ("bus",),            # tests/schemas/test_security.py: a router with the access policy
+    "fleet_router": ("bus",),             # tests/cvvc/test_fleet.py: a secure router of two feeders
+    "dask_scheduler": ("process",),       # tests/cvvc/conftest.py: a LocalCluster of two worker processes
+    "user_cluster": ("process",),         # tests/cvvc/test_campaign.py: a scheduler and workers as programs
+    "campaign_out": ("process", "slow"),  # tests/cvvc/test_campaign.py: a campaign of evaluations on them
+    "model13": ("process", "slow"),       # tests/reliability/conftest.py: ``cvvc train`` as a program
+    "procs": ("process",),                # tests/reliability/conftest.py: ``cvvc`` programs on the bus
+    "ieee13_model": ("slow",),            # IEEE 13 trained on real power flows
+    "trained_123": ("slow",),             # tests/training/conftest.py: IEEE 123 trained on real power flows
+    "models": ("slow",),                  # tests/training/test_extended.py: IEEE 13 with banks, trained twice
+    "calendar_model": ("slow",),          # tests/training/test_extended.py
+    "banks_only": ("slow",),              # tests/training/test_bank_sensitivities.py
+    "one_hour_run": ("process", "slow"),  # tests/cvvc/test_run.py: one ``cvvc run`` of an hour
+    "both_runs": ("process", "slow"),     # tests/cvvc/test_run_sunspec.py
+    "ami_run": ("process", "slow"),       # tests/cvvc/test_ami_run.py
+    "caps_run": ("process", "slow"),      # tests/cvvc/test_run_caps.py
+    "small_evaluation": ("process", "slow"),  # tests/cvvc/test_evaluate.py
+    "tiny_evaluation": ("process", "slow"),   # tests/cvvc/test_report.py
+}
+
+# per-test timeout of each tier [s] (setup and teardown included: the first test to use a session fixture pays it)
+TIMEOUT_S = {"fast": 60, "bus": 120, "process": 180, "slow": 600}
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Mark each test by the fixtures it uses, then give it its tiers' timeout unless it names its own."""
+    for item in items:
+        for fixture in getattr(item, "fixturenames", ()):
+            for name in _MARKS_BY_FIXTURE.get(fixture, ()):
+                if item.get_closest_marker(name) is None:
+                    item.add_marker(name)
+        if item.get_closest_marker("timeout") is None:
+            tiers = [t for t in ("bus", "process", "slow") if item.get_closest_marker(t) is not None] or ["fast"]
+            item.add_marker(pytest.mark.timeout(max(TIMEOUT_S[t] for t in tiers)))
 
 
 @pytest.fixture(scope="session", autouse=True)
@@ -61,5 +108,11 @@ def ieee13_model(tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="session")
 def profile_cache(tmp_path_factory) -> Path:
-    """One profile cache for the whole session (profiles of a feeder and seed take seconds to make)."""
-    return tmp_path_factory.getbasetemp() / "profiles"
+    """One profile cache for the whole session (profiles of a feeder and seed take seconds to make).
+
+    Files are named by feeder, fingerprint and seed, so every test shares it; its parent is a cache root
+    (``cache=`` of a run or evaluation finds it as ``<root>/profiles``).
+    """
+    folder = tmp_path_factory.getbasetemp() / "profiles"
+    folder.mkdir(exist_ok=True)
+    return folder

@@ -8,9 +8,13 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from schemas import keys
 from schemas import messages as m
 from schemas.bus import BusConfig, Inbox, free_port, open_session, wait_for
+
+pytestmark = [pytest.mark.bus, pytest.mark.process]  # ``cvvc adapter`` programs on a router
 
 REPO = Path(__file__).resolve().parents[2]
 

@@ -37,6 +37,7 @@ def _meter(node: str, meter_id: str = "ami1", interval_s: int = 900) -> MeterSpe
     return MeterSpec(id=meter_id, node=node, interval_s=interval_s)
 
 
+@pytest.mark.process
 def test_a_reading_moves_its_node_by_its_offset_to_the_estimate_of_its_minute(model):
     n, node = len(model.critical_nodes), model.critical_nodes[2].name
     ami = AmiReadings(model, [_meter(node)])

@@ -17,8 +17,10 @@ def dask_scheduler() -> Iterator[str]:
     """
     from distributed import LocalCluster
 
+    # its HTTP server on a free loopback port, as cvvc.cluster's: None means port 8787, taken by any other suite
+    # running on the machine (and Dask's warning is an error here)
     cluster = LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
-                           dashboard_address=None, protocol="tcp")
+                           dashboard_address="127.0.0.1:0", protocol="tcp")
     try:
         yield cluster.scheduler_address
     finally:

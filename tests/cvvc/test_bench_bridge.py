@@ -7,6 +7,8 @@ import pytest
 from benchmarks.bench_bridge import bench_bridge
 from benchmarks.results import BridgeBench, decode_result, to_json
 
+pytestmark = [pytest.mark.bus, pytest.mark.process]  # the bench's bridge and its publisher process on a bus
+
 REPO = Path(__file__).resolve().parents[2]
 
 

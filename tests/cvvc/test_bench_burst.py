@@ -1,7 +1,11 @@
 """``benchmarks.bench_burst``: a real short run on loopback (Zenoh, a subscriber process) read back typed."""
 
+import pytest
+
 from benchmarks.bench_burst import bench_burst
 from benchmarks.results import BurstBench, decode_result, to_json
+
+pytestmark = [pytest.mark.bus, pytest.mark.process]  # a Zenoh router and a subscriber process
 
 
 def test_a_short_burst_bench_delivers_every_decision_both_ways() -> None:

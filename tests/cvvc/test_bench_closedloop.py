@@ -7,6 +7,8 @@ import pytest
 from benchmarks.bench_closedloop import bench_closedloop
 from benchmarks.results import ClosedLoopBench, decode_result, to_json
 
+pytestmark = [pytest.mark.bus, pytest.mark.process]  # the bench's ``cvvc run``
+
 REPO = Path(__file__).resolve().parents[2]
 
 

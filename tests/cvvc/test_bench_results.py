@@ -48,6 +48,7 @@ def test_decode_rejects_what_is_not_the_result() -> None:
         decode_result('{"exit": 0}', SolverRun)
 
 
+@pytest.mark.bus  # the suite's burst bench on a loopback router
 def test_suite_prints_and_writes_a_real_run_read_back_typed(tmp_path: Path, capsys: pytest.CaptureFixture[str],
                                                              monkeypatch: pytest.MonkeyPatch) -> None:
     def broken(quick: bool) -> SolverRun:

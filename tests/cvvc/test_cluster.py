@@ -3,20 +3,30 @@
 from __future__ import annotations
 
 import socket
-import time
+import threading
+import uuid
 from pathlib import Path
 
 import pytest
 
 from cvvc.cluster import ClusterError, Outcome, Task, dask_client, run_tasks
+from schemas.bus import wait_for
+
+pytestmark = pytest.mark.process  # local Dask clusters of worker processes
 
 
-def _tasks_on_the_workers() -> int:
-    """Task: how many tasks the scheduler has handed to workers while this one runs (itself included)."""
-    from distributed import get_client
+def _holds_its_worker(release: str) -> str:
+    """Task: holds its worker thread until the Dask event ``release`` is set (bounded: 60 s)."""
+    from distributed import Event
 
-    time.sleep(0.2)
-    return sum(len(keys) for keys in get_client().processing().values())
+    if not Event(release).wait(timeout=60):
+        raise TimeoutError(f"the event {release} was never set")
+    return "released"
+
+
+def _scheduler_transitions(dask_scheduler, prefix: str) -> list[tuple[str, str, str]]:
+    """On the scheduler: its transitions (key, from, to) of the tasks whose key starts with ``prefix``, in order."""
+    return [(str(t.key), t.start, t.finish) for t in dask_scheduler.transition_log if str(t.key).startswith(prefix)]
 
 
 def _fails_the_first_time(marker: str) -> str:
@@ -36,16 +46,38 @@ def _always_fails(marker: str) -> None:
 
 
 def test_never_more_tasks_on_the_workers_than_worker_threads(dask_scheduler):
-    """Five tasks on two one-thread workers: each, while running, sees at most two tasks handed out (Dask alone
-    would hand all five out at once)."""
-    from distributed import Client
+    """Five tasks on two one-thread workers, the first two holding both workers until the test releases them: the
+    scheduler's own log shows never more than two handed out at a time, in the given order (Dask alone would hand
+    all five out at once)."""
+    from distributed import Client, Event
 
+    label = f"held{uuid.uuid4().hex[:8]}"
+    release = f"{label}-release"
     outcomes: list[Outcome] = []
     with Client(dask_scheduler, set_as_default=False) as client:
-        run_tasks(client, [Task(label=f"probe{i}", fn=_tasks_on_the_workers, args=()) for i in range(5)],
-                  outcomes.append)
-    assert [o.error for o in outcomes] == [None] * 5
-    assert all(1 <= o.result <= 2 for o in outcomes), [o.result for o in outcomes]
+        tasks = [Task(label=f"{label}-{i}", fn=_holds_its_worker, args=(release,)) for i in range(5)]
+        runner = threading.Thread(target=run_tasks, args=(client, tasks, outcomes.append), daemon=True)
+        runner.start()
+        try:
+            # both workers hold a task: whatever run_tasks would hand out more is at the scheduler by now
+            both_busy = wait_for(lambda: sum(len([k for k in keys if label in str(k)])
+                                             for keys in client.processing().values()) >= 2, 60)
+        finally:
+            Event(release, client=client).set()
+            runner.join(timeout=60)
+        log = client.run_on_scheduler(_scheduler_transitions, prefix=f"cvvc-{label}-")
+    assert both_busy and not runner.is_alive()
+    assert [o.error for o in outcomes] == [None] * 5 and [o.result for o in outcomes] == ["released"] * 5
+    handed_out, peak, started = 0, 0, []
+    for key, start, finish in log:
+        if finish == "processing":
+            handed_out += 1
+            started.append(key)
+        elif start == "processing":
+            handed_out -= 1
+        peak = max(peak, handed_out)
+    assert peak == 2, log
+    assert [key.split("-")[2] for key in started] == ["0", "1", "2", "3", "4"], started  # in the given order
 
 
 def test_a_task_is_retried_once_then_reported_and_the_others_go_on(dask_scheduler, tmp_path):

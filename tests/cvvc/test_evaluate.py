@@ -63,6 +63,7 @@ def test_evaluate_writes_results_json_with_every_run(small_evaluation):
     assert "local Dask cluster, jobs=2" in (out / "results.md").read_text()
 
 
+@pytest.mark.bus
 def test_runs_on_a_local_cluster_of_two_workers_measure_what_they_measure_in_process(small_evaluation, tmp_path):
     """The same two runs, each through cvvc.launch.run in this process, give the same metrics frames."""
     from cvvc.evaluate import _run_config
@@ -144,6 +145,7 @@ def test_results_list_each_agent_runs_soft_and_hold_decisions_and_its_decision_t
     assert f"decision time (the agent's, per control step): p50 {d.decision_ms['p50']:.1f} ms" in report
 
 
+@pytest.mark.process  # ``cvvc evaluate`` as a program
 def test_unknown_case_or_season_is_a_clear_error(tmp_path):
     with pytest.raises(EvaluateError, match="unknown case.*E.*choose from A,B,C,D,none,local"):
         parse_cases("D,E")
@@ -264,6 +266,7 @@ def test_opendss_case_is_not_a_robustness_variant_and_needs_a_step_dividing_a_mi
         evaluate(EvaluateConfig(feeder=str(IEEE13), cases=("opendss",), reference_step_s=7.0, out=str(tmp_path)))
 
 
+@pytest.mark.process
 def test_runs_with_lockstep_misses_are_listed_as_not_the_methods_figures(tmp_path, ieee13_model, profile_cache):
     """A bridge that waits only 1 ms for each decision goes on under local control at some control steps (a
     lockstep miss, as a starved machine causes); results.md lists the run apart, results.json counts the misses."""

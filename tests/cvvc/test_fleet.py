@@ -44,6 +44,7 @@ def _cvvc(*args: str, cwd: Path, timeout_s: float) -> subprocess.CompletedProces
                           timeout=timeout_s, check=False)
 
 
+@pytest.mark.process
 def test_a_secure_fleet_decides_on_every_feeder_and_keeps_them_apart(tmp_path, ieee13_model, profile_cache) -> None:
     cache = tmp_path / "cache"
     shutil.copytree(cache_year_profiles(IEEE13, profile_cache), cache / "profiles")
@@ -122,6 +123,7 @@ def fleet_router(tmp_path: Path) -> Iterator[tuple[str, Path]]:
         yield endpoint, root
 
 
+@pytest.mark.process
 def test_b_an_agent_certificate_of_one_feeder_cannot_command_or_read_another(fleet_router, tmp_path,
                                                                               profile_cache) -> None:
     endpoint, root = fleet_router
@@ -210,6 +212,7 @@ def test_the_fleet_policy_scopes_every_data_rule_of_a_feeder_and_leaves_the_role
 
 
 
+@pytest.mark.process
 def test_an_agent_subscribes_to_its_own_feeders_keys_only(router_endpoint, tmp_path, ieee13_model) -> None:
     """What keeps a plain fleet's agents apart: an agent of ``ieee13-a`` declares subscriptions that match its own
     feeder's frames and acks and no other feeder's (the router tells publishers whether any subscriber matches)."""

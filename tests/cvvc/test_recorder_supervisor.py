@@ -9,8 +9,12 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
+import pytest
+
 from cvvc.launch import _RecorderSupervisor
 from recordings.info import recording_info
+
+pytestmark = pytest.mark.process  # recorders started as programs
 
 
 def test_a_recorder_that_keeps_dying_is_restarted_at_most_n_times_then_given_up(tmp_path: Path) -> None:

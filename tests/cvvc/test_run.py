@@ -182,6 +182,7 @@ def test_offline_replay_reproduces_every_decision(one_hour_run):
     assert diff["changed"] == diff["missing"] == diff["extra"] == 0
 
 
+@pytest.mark.process  # ``cvvc run`` as a program
 def test_bad_arguments_give_a_clear_error(tmp_path, ieee13_model):
     proc = _cvvc("run", "--feeder", str(tmp_path / "nowhere.toml"), "--days", "0.01", cwd=tmp_path)
     assert proc.returncode == 2
@@ -240,6 +241,8 @@ def test_the_run_is_secure_by_default_and_says_so(one_hour_run):
     assert bridge["metrics"] == summary["metrics"]  # the children joined the TLS router and the run completed
 
 
+@pytest.mark.process
+@pytest.mark.slow  # a whole ``cvvc run``
 def test_an_insecure_run_warns_and_records_it(tmp_path):
     proc = _cvvc("run", "--feeder", str(REPO / "feeders" / "ieee13.toml"), "--case", "none", "--days", str(3 / 1440),
                  "--out", str(tmp_path / "out"), "--cache", str(tmp_path / "cache"), "--no-baseline", "--json",

@@ -16,6 +16,8 @@ from pathlib import Path
 import pytest
 from mcap.reader import make_reader
 
+pytestmark = [pytest.mark.process, pytest.mark.slow]  # every test is a ``cvvc run``
+
 REPO = Path(__file__).resolve().parents[2]
 STEPS = 12  # minutes from 11:00 on a summer day
 

@@ -14,9 +14,12 @@ import sys
 import time
 from pathlib import Path
 
+import pytest
 from mcap.reader import make_reader
 
 from recordings.info import recording_info
+
+pytestmark = pytest.mark.process  # a ``cvvc run`` whose recorder is killed
 
 REPO = Path(__file__).resolve().parents[2]
 DAYS = 2  # 2880 lockstep steps: several seconds of stepping, so the kill lands mid-run and a restart records

@@ -143,6 +143,7 @@ def _flushed_messages(path: Path) -> int:
 
 
 @pytest.mark.parametrize("n_before, n_after", [(400, 300)])
+@pytest.mark.process
 def test_sigkill_loses_nothing_before_the_last_flush(router_endpoint: str, tmp_path: Path, n_before: int,
                                                       n_after: int) -> None:
     out = tmp_path / "killed.mcap"
@@ -176,6 +177,7 @@ def test_sigkill_loses_nothing_before_the_last_flush(router_endpoint: str, tmp_p
     assert res.messages_by_topic == {"cvvc/rural/meas/head": len(seqs)}
 
 
+@pytest.mark.process
 def test_sigterm_finishes_the_file(router_endpoint: str, tmp_path: Path) -> None:
     out = tmp_path / "terminated.mcap"
     proc = _spawn_recorder(out, router_endpoint, flush_period_s=0.2)

@@ -329,14 +329,14 @@ def test_lost_command_lockstep_waits_bounded_counts_a_miss_and_goes_on(procs: Pr
                     fake.put(f"cvvc/{FEEDER}/agent/decision", msgspec_encode(m.Decision(
                         t_ns=t, seq=seq, source="fake", feeder_id=FEEDER, step_t_ns=t, in_reply_to=0,
                         status="optimal", commands=[lost])))
+            ended_by_itself = not bridge.alive()  # the bounded wait: a bridge stuck on the lost command is alive
             assert bridge.stop(timeout_s=30) == 0
         finally:
             sub.undeclare()
             token.undeclare()
-    wall_s = time.monotonic() - t0
+    assert ended_by_itself
     log = bridge.log()
     summary = json.loads(log[log.rindex("\n{\n") + 1:])
     assert summary["steps"] == 20 and summary["control_steps"] == 4
     assert summary["lockstep_misses"] == 4 and summary["decisions"] == 4
     assert "decision arrived but not all of its commands" in bridge.log()
-    assert wall_s < 60

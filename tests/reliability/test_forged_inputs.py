@@ -90,6 +90,7 @@ def attacked_run(tmp_path_factory, model13: Path, rel_cache: Path) -> Iterator[d
         procs.close()
 
 
+@pytest.mark.bus
 def test_forged_meter_readings_on_a_map_without_meters_change_nothing_and_are_counted(attacked_run):
     agent, sent = attacked_run["agent"], attacked_run["sent"]
     assert sent["meters"] == attacked_run["critical_nodes"] > 0

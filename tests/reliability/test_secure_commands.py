@@ -21,6 +21,8 @@ from schemas.bus import BusConfig, free_port, open_session, wait_for, zenoh_conf
 from schemas.security import COMMAND_ROLE, init_ca, init_security_dir
 from tests.busprobe import Seen
 
+pytestmark = [pytest.mark.bus, pytest.mark.process]  # a secure router and ``cvvc`` programs
+
 PLANT = "pv675"
 MIN_NS = 60 * 10**9
 

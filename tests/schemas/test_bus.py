@@ -50,6 +50,7 @@ def test_config_file_is_read_and_multicast_still_forced_off(tmp_path):
     assert conf.get_json("scouting/multicast/enabled") == "false"
 
 
+@pytest.mark.process
 def test_two_processes_exchange_typed_messages_and_count_a_bad_one(router_endpoint):
     good = example(m.PvCommand)
     peer = subprocess.Popen([sys.executable, str(PEER), router_endpoint, "2"], env=_peer_env())
@@ -149,6 +150,7 @@ def test_an_oversized_list_is_refused_and_counted_then_the_next_frame_taken(rout
         assert [r.msg for r in inbox.drain()] == [head]
 
 
+@pytest.mark.bus
 def test_free_port_is_bindable():
     port = free_port()
     assert 1024 <= port <= 65535

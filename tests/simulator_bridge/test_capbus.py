@@ -83,7 +83,7 @@ def _run(config: Any, endpoint: str, drive: Callable[[], None]) -> Any:
 
 
 # ------------------------------------------------------------------------------------ tests
-@pytest.mark.parametrize("publisher", ["inline", "process"])
+@pytest.mark.parametrize("publisher", ["inline", pytest.param("process", marks=pytest.mark.process)])
 def test_cap_commands_acked_applied_expired_and_counted(client: Client, router_endpoint: str, cap_map: Path,
                                                          cache_dir: Path, publisher: str) -> None:
     """Every ack outcome of a bank, its effect on the next frames, expiry back to local control, and the
@@ -238,6 +238,7 @@ def test_packed_cap_settings_come_back(cap_map: Path, cache_dir: Path) -> None:
     np.testing.assert_array_equal(back.readings.cap_v_v, res.readings.cap_v_v)
 
 
+@pytest.mark.process
 def test_inline_and_process_publish_the_same_cap_frames(router_endpoint: str, cap_map: Path,
                                                         cache_dir: Path) -> None:
     """The same lockstep run with bank commands, SCADA noise and drops, published inline and by the publisher

@@ -17,11 +17,6 @@ MAPS = REPO / "feeders"
 
 
 @pytest.fixture(scope="module")
-def map123() -> DeviceMap:
-    return load_device_map(MAPS / "ieee123.toml")
-
-
-@pytest.fixture(scope="module")
 def map13() -> DeviceMap:
     return load_device_map(MAPS / "ieee13.toml")
 

@@ -17,11 +17,6 @@ from simulator_bridge.oracle import Oracle
 REPO = Path(__file__).resolve().parents[2]
 
 
-@pytest.fixture(scope="module")
-def map123() -> DeviceMap:
-    return load_device_map(REPO / "feeders" / "ieee123.toml")
-
-
 def _busy_state(e: FeederEngine) -> None:
     """Loads, PV, every RegControl's tap and every bank away from the compiled state."""
     rng = np.random.default_rng(3)

@@ -13,7 +13,8 @@ import sys
 
 import pytest
 
-pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's environ (Linux only)")
+pytestmark = [pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's environ (Linux only)"),
+              pytest.mark.process]  # a child interpreter reads the environment
 
 
 def _entries(address: int) -> list[bytes]:

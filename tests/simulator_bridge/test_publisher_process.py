@@ -35,6 +35,7 @@ def _collect(client: Client, until: Callable[[str, Any], bool]) -> dict[str, dic
     return out
 
 
+@pytest.mark.process
 def test_the_publisher_process_sends_what_inline_publishing_sends(router_endpoint: str, device_map_path: Path,
                                                                   cache_dir: Path) -> None:
     """The same lockstep run (commands, noise, drops, volt-var, truth), published inline and by the process:
@@ -116,6 +117,7 @@ def test_packed_steps_come_back_as_they_went_in(device_map_path: Path, cache_dir
     assert not packer.pack(fs, ints, res, 8, settings)
 
 
+@pytest.mark.process
 def test_the_publisher_process_fails_the_run_and_is_stopped(client: Client, router_endpoint: str,
                                                             device_map_path: Path, cache_dir: Path) -> None:
     """A publisher process killed mid-run: the bridge stops with an error at its next hand-over, in bounded time,
@@ -138,10 +140,9 @@ def test_the_publisher_process_fails_the_run_and_is_stopped(client: Client, rout
     finally:
         pub.PublisherProcess.__init__ = orig  # type: ignore[method-assign]
     assert len(procs) == 1
-    t = time.monotonic()
     os.kill(procs[0].pid, signal.SIGKILL)
-    th.join(timeout=30)
-    assert not th.is_alive() and time.monotonic() - t < 10.0
+    th.join(timeout=30)  # the bounded wait: a run of 100000 steps at speed 600 that went on would still be alive
+    assert not th.is_alive()  # ended by itself: ``stop`` is only set below
     stop.set()
     assert out and "publisher process" in str(out[0]), out
     assert not procs[0].is_alive()
@@ -200,6 +201,7 @@ def _gone(pid: int, timeout_s: float) -> bool:
 
 
 @pytest.mark.parametrize("how", ["sigterm", "sigkill"])
+@pytest.mark.process
 def test_the_publisher_process_ends_with_the_bridge(client: Client, router_endpoint: str, device_map_path: Path,
                                                     cache_dir: Path, repo_root_module: Path, how: str) -> None:
     """SIGTERM: the bridge ends cleanly (final metrics from the child, exit 0) and so does its child. SIGKILL of the

@@ -2,17 +2,13 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import msgspec
 import numpy as np
 import pytest
 
-from schemas.devicemap import DeviceMap, load_device_map
+from schemas.devicemap import DeviceMap
 from simulator_bridge.engine import FeederEngine
 from simulator_bridge.qsts import VOLT_VAR_RESPONSE, Qsts, QstsError, tap_direction, volt_var_q_pu
-
-MAPS = Path(__file__).resolve().parents[2] / "feeders"
 
 
 class ArrayProfiles:
@@ -38,11 +34,6 @@ class ArrayProfiles:
 def constant(engine: FeederEngine, n: int, load_frac: float, pv_frac: float) -> ArrayProfiles:
     return ArrayProfiles(np.tile(engine.load_kw_nominal * load_frac, (n, 1)),
                          np.tile(engine.pv_pmpp_kw * pv_frac, (n, 1)))
-
-
-@pytest.fixture(scope="module")
-def map123() -> DeviceMap:
-    return load_device_map(MAPS / "ieee123.toml")
 
 
 @pytest.fixture

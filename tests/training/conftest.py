@@ -1,4 +1,5 @@
-"""Fixtures of the training tests: one IEEE 123 model trained once per session (3x3 blocks, ~2 s)."""
+"""Fixtures of the training tests: one IEEE 123 model trained once per session (3x3 blocks, ~2 s) on the session's
+profile cache (tests/conftest.py)."""
 
 from __future__ import annotations
 
@@ -8,11 +9,6 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[2]
 IEEE123 = REPO / "feeders" / "ieee123.toml"
-
-
-@pytest.fixture(scope="session")
-def profile_cache(tmp_path_factory) -> Path:
-    return tmp_path_factory.mktemp("profiles")
 
 
 @pytest.fixture(scope="session")

@@ -2,10 +2,13 @@
 
 import json
 
+import pytest
+
 from tests.training.conftest import REPO
 from tests.training.test_train import _map
 
 
+@pytest.mark.slow  # trains IEEE 13
 def test_train_json_then_accuracy(tmp_path, monkeypatch, capsys):
     from cvvc.cli import main
 

@@ -29,6 +29,7 @@ def test_movable_nodes(dv_dtap, dv_dq, kva, expected):
     assert got.tolist() == expected
 
 
+@pytest.mark.slow  # trains EPRI K1
 def test_ltc_primary_and_other_feeders_are_never_critical_on_epri_k1(tmp_path):
     """epri-k1: the 69 kV primary of LTC t2 (trans_equiv) and the second feeder K22 lie upstream of the meter."""
     from schemas.devicemap import load_device_map

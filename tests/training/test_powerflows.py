@@ -1,4 +1,5 @@
 import numpy as np
+import pytest
 
 from training.powerflows import BASE, COMBINED, PowerFlowSet, q_plan
 
@@ -27,6 +28,7 @@ def test_q_plan_perturbs_one_plant_at_a_time_and_combined_all():
     assert combined == [[50.0, 200.0]]  # half of each plant's own headroom, all at once
 
 
+@pytest.mark.process  # a pool of worker processes
 def test_worker_processes_give_the_same_flows_as_one_process():
     from schemas.devicemap import load_device_map
     from simulator_bridge.engine import FeederEngine
