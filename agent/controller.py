@@ -608,10 +608,10 @@ class CvvcController:
                               estimate_s=t_est - t0)
         # Case A solves cold (as it always has): its rows are every live node, not the critical nodes.
         solution = solve_cvvc(inputs, warm_start=self._warm if oracle is None else None)
-        no_down, no_up = self.reversal_locks(int(snap.t_ns))
-        held_by_lock = (no_down | no_up) & (solution.taps_new[:n_reg] == np.asarray(state.taps, int))
-        if solution.status != "optimal" and held_by_lock.any():
-            # the limits may need a reverse move after all (a locked regulator stayed put): offer it
+        if solution.status != "optimal" and any(lock.any() for lock in self.reversal_locks(int(snap.t_ns))):
+            # the limits are not met with the locks: the soft form trades every lever, the reverse moves included
+            # (keeping the locks there distorted every decision of a feeder always in the soft form: epri-ckt24
+            # winter day, NVV 54,765 against 413)
             unlocked = self.problem(snap, state, out_of_envelope=bool(outside), plants=plants, locked=False)
             solution = solve_cvvc(unlocked, warm_start=self._warm if oracle is None else None)
         sec = solution.seconds
