@@ -36,18 +36,27 @@ import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
 
 import msgspec
 import numpy as np
 
 from cvvc.cluster import ClusterError, Outcome, Task, check_scheduler, dask_client, run_tasks
 from cvvc.evaluate_tables import render_results_md
+from cvvc.evaluation import (
+    EVALUATION_YEAR,
+    ROBUSTNESS_VARIANTS,
+    SEASONS,
+    EvaluateConfig,
+    Evaluation,
+    RunFailure,
+    RunResult,
+    RunSpec,
+    Season,
+    Variant,
+)
 from cvvc.launch import CASES, Case, LaunchError, RunConfig, RunSummary
 from cvvc.reference import REFERENCE_CASE, ReferenceConfig
-from schemas import messages as m
 from schemas.errors import CvvcError
-from simulator_bridge.live_accuracy import LiveAccuracy
 
 __all__ = [
     "EVALUATE_CASES",
@@ -76,48 +85,10 @@ __all__ = [
 #: Every case ``--cases`` accepts: the bus runs (``cvvc.launch.CASES``) and OpenDSS's own loop (``opendss``).
 EVALUATE_CASES: tuple[str, ...] = (*CASES, REFERENCE_CASE)
 _BUS_CASES: dict[str, Case] = {c: c for c in CASES}  # the cases run through the bus (cvvc run)
-Season = Literal["winter", "spring", "summer", "fall"]
-SEASONS: tuple[Season, ...] = ("winter", "spring", "summer", "fall")
-EVALUATION_YEAR = 2023  # the calendar year of the generated profiles (``make_profiles`` default)
-Variant = Literal["nominal", "noise-pmu", "noise-scada", "drop-1", "drop-5", "model-error"]
-ROBUSTNESS_VARIANTS: tuple[Variant, ...] = ("nominal", "noise-pmu", "noise-scada", "drop-1", "drop-5", "model-error")
 
 
 class EvaluateError(LaunchError):
     """An evaluation that cannot be planned or whose run failed; the message says which and what to do."""
-
-
-class EvaluateConfig(msgspec.Struct, frozen=True, kw_only=True):
-    """Everything ``cvvc evaluate`` needs; built from the command line."""
-
-    feeder: str | None = None  # None: the embedded rural feeder
-    model: str | None = None
-    cases: tuple[str, ...] = CASES
-    seasons: tuple[Season, ...] = SEASONS
-    bandwidths_v120: tuple[float, ...] = (4.0,)
-    year_seed: int = 2
-    train_seed: int = 1
-    days_per_season: float | None = None  # None: the whole month
-    jobs: int = 1  # the local Dask cluster's worker processes (runs at a time); unused with ``scheduler``
-    scheduler: str | None = None  # a running Dask scheduler (tcp://HOST:PORT) instead of a local cluster
-    out: str = "runs/evaluate"
-    cache: str | None = None  # cache root; None: schemas.cache.default_cache_root()
-    robustness: bool = False
-    pv_margin_window_s: float | None = None  # the agent's PV variability margin window; None: its default, 0: off
-    setpoint_hold: bool = False  # the agent's opt-in set-point hold (cases C/D)
-    control_banks: bool = False  # the agent's opt-in capacitor-bank decisions
-    resume: bool = False  # reuse a run whose folder already holds a finished summary.json of the same spec
-    perturbation_pct: float = 10.0
-    perturbation_seed: int = 7
-    progress: bool = True
-    reference_step_s: float = 5.0  # OpenDSS's time step in the ``opendss`` case [s] (docs/simulation.md)
-    # how long the bridge waits for the agent's decision at a control step before going on under local control [s].
-    # Longer than ``cvvc run``'s 10 s: a miss is a starved machine, not the method, and its steps under local
-    # control make the run's figures something else (IEEE 8500 summer on a loaded machine: 12 misses, 8 in a row,
-    # the regulators' commands expired and the feeder went to 1.07 pu: NVV 8,380 against 764 on a quiet machine)
-    lockstep_timeout_s: float = 60.0
-    secure: bool = True  # every run's bus with mTLS and the access policy (``RunConfig.secure``); False: --insecure
-    ca_dir: str | None = None  # the CA of the certificates; None: <cache>/ca, created on the first run
 
 
 def longest_first(specs: list[RunSpec]) -> list[RunSpec]:
@@ -126,65 +97,6 @@ def longest_first(specs: list[RunSpec]) -> list[RunSpec]:
     the rest keep their order.
     """
     return sorted(specs, key=lambda s: s.case != "A")
-
-
-class RunSpec(msgspec.Struct, frozen=True, kw_only=True):
-    """One run of the evaluation: a case on a season's window, with a bandwidth and a robustness variant."""
-
-    case: str
-    season: Season
-    bandwidth_v120: float
-    variant: Variant = "nominal"
-    start: str  # YYYY-MM-DD, the first day of the season's month
-    days: float
-
-    @property
-    def name(self) -> str:
-        """The run's folder name: season, case, the band on the 120 V base [V] in cases C/D, and the variant."""
-        band = f"-bw{self.bandwidth_v120:g}" if self.case in ("C", "D") else ""
-        var = "" if self.variant == "nominal" else f"-{self.variant}"
-        return f"{self.season}-{self.case}{band}{var}"
-
-
-class RunResult(msgspec.Struct, frozen=True, kw_only=True):
-    """What one run measured: its spec, the final metrics frame (paper IV.F) and the run's summary."""
-
-    spec: RunSpec
-    metrics: m.MetricsFrame  # the bridge's final metrics frame
-    wall_s: float
-    steps: int
-    decisions: int
-    lockstep_misses: int
-    out_dir: str
-    recording: str | None
-    attempts: int = 1  # how many times the run was started (a failed attempt is retried once)
-    soft: int = 0  # decisions on the soft form (eq. 17), as the agent counted them
-    holds: int = 0  # decisions without a command
-    reasons: dict[str, int] = {}  # the reasons of soft and hold decisions, by kind
-    decision_ms: dict[str, float] = {}  # the agent's wall time per decision [ms]: p50, p99, max
-    live: LiveAccuracy | None = None  # the agent's estimates and bounds against the truth of their step
-
-
-class RunFailure(msgspec.Struct, frozen=True, kw_only=True):
-    """A run that did not finish: its spec and why (the run folder keeps the processes' logs)."""
-
-    spec: RunSpec
-    error: str
-    out_dir: str
-    attempts: int = 1  # how many times the run was started (a failed run is retried once)
-
-
-class Evaluation(msgspec.Struct, frozen=True, kw_only=True):
-    """A whole evaluation: its configuration, every run's result, the failed runs and the total wall time."""
-
-    config: EvaluateConfig
-    feeder_id: str
-    feeder: str
-    model: str
-    control_period_s: int
-    runs: tuple[RunResult, ...]
-    wall_s: float
-    failures: tuple[RunFailure, ...] = ()
 
 
 # ---------------------------------------------------------------------------------------------------

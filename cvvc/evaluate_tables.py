@@ -8,7 +8,7 @@ from cvvc.reference import REFERENCE_CASE
 from cvvc.run_report import top_reasons
 
 if TYPE_CHECKING:
-    from cvvc.evaluate import Evaluation, RunResult
+    from cvvc.evaluation import Evaluation, RunResult
 
 __all__ = ["kvarh_from_mvar_intervals", "render_results_md"]
 

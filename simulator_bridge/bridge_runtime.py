@@ -28,6 +28,7 @@ from schemas.devicemap import DeviceMap
 from schemas.logs import RateLimitedLog
 from schemas.security import COMMAND_ROLE
 from simulator_bridge import devices as dv
+from simulator_bridge.bridge_config import BridgeConfig
 from simulator_bridge.device_bank import BridgeCounters, DeviceBank
 from simulator_bridge.errors import BridgeError
 from simulator_bridge.live_accuracy import LiveAccuracyAccumulator
@@ -38,7 +39,6 @@ from simulator_bridge.publishing import FINITE_READING_FIELDS, FramePublisher, F
 from simulator_bridge.sunspec_fleet import SunSpecFleet, plant_phases
 
 if TYPE_CHECKING:
-    from simulator_bridge.bridge import BridgeConfig
     from simulator_bridge.engine import FeederEngine
     from simulator_bridge.profiles import YearProfiles
     from simulator_bridge.qsts import Qsts, StepResult

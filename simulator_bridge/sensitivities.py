@@ -10,16 +10,51 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import numpy as np
 
 from simulator_bridge.errors import EngineError
 
-if TYPE_CHECKING:
-    from simulator_bridge.engine import FeederEngine
 
-__all__ = ["Sensitivities", "one_step_each", "perturbation_sensitivities"]
+class _PvOutput(Protocol):
+    @property
+    def pv_p_kw(self) -> np.ndarray:
+        """(K, phases) each plant's output [kW]."""
+
+
+class PerturbedEngine(Protocol):
+    """What the perturbation needs of an engine (``simulator_bridge.engine.FeederEngine`` is one): its plants' ratings,
+    the regulators' top taps, the solver tolerance, the setters and readers it moves and reads.
+    """
+
+    pv_kva: np.ndarray
+    pv_pmpp_kw: np.ndarray
+    reg_tap_max: np.ndarray
+    tolerance: float
+
+    def set_pv(self, p_kw: np.ndarray, q_kvar: np.ndarray) -> np.ndarray:
+        """Set each plant's available P [kW] and Q set point [kvar]; the Q applied [kvar]."""
+
+    def pv_setpoints(self) -> tuple[np.ndarray, np.ndarray]:
+        """The plants' present P [kW] and Q [kvar] set points."""
+
+    def set_taps(self, taps: np.ndarray) -> None:
+        """Set every regulator's tap [steps]."""
+
+    def taps(self) -> np.ndarray:
+        """Every regulator's tap [steps]."""
+
+    def solve(self) -> None:
+        """Solve the power flow."""
+
+    def node_voltages_pu(self) -> np.ndarray:
+        """Every node's voltage [pu]."""
+
+    def readings(self) -> _PvOutput:
+        """What the field devices measure (the plants' output among them)."""
+
+__all__ = ["PerturbedEngine", "Sensitivities", "one_step_each", "perturbation_sensitivities"]
 
 log = logging.getLogger(__name__)
 
@@ -47,7 +82,7 @@ class Sensitivities:
     restore_drift_pu: float = 0.0
 
 
-def one_step_each(engine: FeederEngine, positions0: np.ndarray, top: np.ndarray,
+def one_step_each(engine: PerturbedEngine, positions0: np.ndarray, top: np.ndarray,
                   set_positions: Callable[[np.ndarray], None], read: Callable[[], np.ndarray],
                   read0: np.ndarray) -> np.ndarray:
     """The change of ``read()`` per step of each device (taps or bank steps), one device at a time.
@@ -78,7 +113,7 @@ def one_step_each(engine: FeederEngine, positions0: np.ndarray, top: np.ndarray,
     return out
 
 
-def perturbation_sensitivities(engine: FeederEngine, dq_kvar: float = 100.0, dp_kw: float = 100.0, *,
+def perturbation_sensitivities(engine: PerturbedEngine, dq_kvar: float = 100.0, dp_kw: float = 100.0, *,
                                restore: bool = True) -> Sensitivities:
     """Voltage sensitivities by perturbation from the present state (the case-A oracle).
 
