@@ -55,7 +55,7 @@ def _sunspec(args: argparse.Namespace) -> int:
 
 def _sim(args: argparse.Namespace) -> int:
     from adapters.sunspec_runtime import parse_modbus_endpoint
-    from simulator_bridge.sunspec_sim import SimulatedSunSpecInverter
+    from simulator_bridge.field.sunspec_sim import SimulatedSunSpecInverter
 
     host, port = parse_modbus_endpoint(args.modbus)
     inv = SimulatedSunSpecInverter(plant_id=args.device, s_rated_kva=args.s_rated_kva, v_nominal_v=args.v_nominal_v,

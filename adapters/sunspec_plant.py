@@ -1,7 +1,7 @@
 """A PV plant behind SunSpec Modbus as a device of the cvvc bus, without the bus: scans -> frames, commands -> acks.
 
-The command contract is the simulated plants' (``simulator_bridge.devices``: the same checks, in the same order,
-by the same :class:`~simulator_bridge.devices.PvInverter` guard), then the SunSpec hop:
+The command contract is the simulated plants' (``simulator_bridge.field.devices``: the same checks, in the same order,
+by the same :class:`~simulator_bridge.field.devices.PvInverter` guard), then the SunSpec hop:
 
 1. The generic checks (wrong device, non-finite, expired, out of window, replay) at the adapter's present time.
 2. The link is down: ``rejected`` with reason ``link_down`` (nothing is written).
@@ -39,7 +39,7 @@ from adapters.errors import DeviceRefusedError, LinkDownError, ModelMissingError
 from adapters.sunspec import InverterReading, SunSpecLink
 from schemas import messages as m
 from schemas.logs import RateLimitedLog
-from simulator_bridge import devices as dv
+from simulator_bridge.field import devices as dv
 
 __all__ = ["PlantSettings", "SunSpecPlant"]
 

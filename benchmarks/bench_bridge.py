@@ -156,9 +156,9 @@ def bench_bridge(device_map: str | Path, steps: int, *, seed: int = 1, truth_eve
 
 def _bare_times(dm: Any, steps: int, *, seed: int, cache_dir: str | None) -> tuple[float, float, int]:
     """Wall and CPU time [s] of ``steps`` ``Qsts.step()`` alone on a fresh engine, and the feeder's node count."""
-    from simulator_bridge.bridge import cached_profiles, start_step_of
-    from simulator_bridge.engine import FeederEngine
-    from simulator_bridge.qsts import Qsts
+    from simulator_bridge.bus.bridge import cached_profiles, start_step_of
+    from simulator_bridge.opendss.engine import FeederEngine
+    from simulator_bridge.simulation.qsts import Qsts
 
     engine = FeederEngine(dm)
     try:
@@ -176,7 +176,7 @@ def _bare_times(dm: Any, steps: int, *, seed: int, cache_dir: str | None) -> tup
 def _bridge_run(device_map: str | Path, endpoint: str, steps: int, *, seed: int, truth_every: int,
                 cache_dir: str | None, publisher: Publisher) -> Any:
     from schemas.bus import BusConfig
-    from simulator_bridge.bridge import BridgeConfig, run_bridge
+    from simulator_bridge.bus.bridge import BridgeConfig, run_bridge
 
     config = BridgeConfig(device_map_path=str(device_map), start=_START, steps=steps, clock="lockstep",
                           timeout_s=5.0, wait_agent_s=10.0, year_seed=seed, truth_every=truth_every,
@@ -189,7 +189,7 @@ def main(argv: list[str] | None = None) -> int:
     publisher settings, default ``inline process``).
     """
     from schemas.cache import cache_root
-    from simulator_bridge.default_feeder import ensure_default_feeder
+    from simulator_bridge.rural.default_feeder import ensure_default_feeder
 
     args = sys.argv[1:] if argv is None else argv
     steps = int(args[0]) if args else 1440

@@ -71,8 +71,8 @@ def _bare_s(device_map: Path, cache: Path, start: str, year_seed: int, map_taps:
     """Best of ``repeats`` bare OpenDSS runs of the steps, with the map's taps and banks as given per step."""
     from schemas.cache import profiles_dir
     from schemas.devicemap import load_device_map
-    from simulator_bridge.bridge import cached_profiles, start_step_of
-    from simulator_bridge.engine import FeederEngine
+    from simulator_bridge.bus.bridge import cached_profiles, start_step_of
+    from simulator_bridge.opendss.engine import FeederEngine
 
     dm = load_device_map(device_map)
     engine = FeederEngine(dm)
@@ -105,7 +105,7 @@ def bench_closedloop(days: float = 7.0, *, case: Literal["A", "B", "C", "D", "no
     """
     from cvvc.launch import RunConfig, run
     from schemas.cache import cache_root
-    from simulator_bridge.bridge import BridgeSummary
+    from simulator_bridge.bus.bridge import BridgeSummary
 
     with tempfile.TemporaryDirectory(prefix="cvvc-bench-loop-") as tmp:
         folder = Path(out) if out else Path(tmp) / "run"

@@ -58,10 +58,10 @@ def bench_decision(
     from schemas import messages as m
     from schemas.cache import cache_root
     from schemas.devicemap import load_device_map
-    from simulator_bridge import devices as dv
-    from simulator_bridge.engine import FeederEngine
-    from simulator_bridge.profiles import month_steps
-    from simulator_bridge.qsts import Qsts
+    from simulator_bridge.field import devices as dv
+    from simulator_bridge.opendss.engine import FeederEngine
+    from simulator_bridge.simulation.profiles import month_steps
+    from simulator_bridge.simulation.qsts import Qsts
     from training.extended import default_feature_options
     from training.train import TRAINING_REVISION, load_profiles, train
 

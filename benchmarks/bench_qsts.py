@@ -24,9 +24,9 @@ import numpy as np
 
 from benchmarks.results import QstsBench, to_json
 from schemas.devicemap import load_device_map
-from simulator_bridge.engine import FeederEngine
-from simulator_bridge.profiles import make_profiles, month_steps
-from simulator_bridge.qsts import Qsts
+from simulator_bridge.opendss.engine import FeederEngine
+from simulator_bridge.simulation.profiles import make_profiles, month_steps
+from simulator_bridge.simulation.qsts import Qsts
 
 __all__ = ["bench_qsts"]
 

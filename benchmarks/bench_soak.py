@@ -120,7 +120,7 @@ def bench_soak(days: float = 30.0, feeder: str | None = None, *, start: str = "2
     from schemas import messages as m
     from schemas.bus import BusConfig, Inbox, free_port, has_subscribers, open_session, wait_for
     from schemas.devicemap import load_device_map
-    from simulator_bridge.bridge import BridgeSummary
+    from simulator_bridge.bus.bridge import BridgeSummary
 
     dm_path, model_path = prepare_feeder_and_model(RunConfig(feeder=feeder, cache=cache, progress=False))
     dm = load_device_map(dm_path)

@@ -82,7 +82,7 @@ def bench_sunspec(n: int = 200) -> SunspecBench:
     from adapters.sunspec import SunSpecLink
     from adapters.sunspec_runtime import AdapterConfig, run_adapter
     from schemas.bus import BusConfig, free_port, open_session
-    from simulator_bridge.sunspec_sim import SimulatedSunSpecInverter
+    from simulator_bridge.field.sunspec_sim import SimulatedSunSpecInverter
 
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     peer = BusConfig(mode="peer", connect=(endpoint,))

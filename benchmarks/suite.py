@@ -55,7 +55,7 @@ __all__ = ["BENCHES", "RESULT_TYPES", "Result", "main", "read_results"]
 
 
 def _rural() -> Path:
-    from simulator_bridge.default_feeder import ensure_default_feeder
+    from simulator_bridge.rural.default_feeder import ensure_default_feeder
 
     return ensure_default_feeder(cache_root(None))
 

@@ -45,7 +45,7 @@ from cvvc.evaluate import (
 )
 from schemas import messages as m
 from schemas.errors import CvvcError
-from simulator_bridge.live_accuracy import LiveAccuracy
+from simulator_bridge.simulation.live_accuracy import LiveAccuracy
 
 __all__ = ["EMBEDDED_FEEDER", "Campaign", "CampaignResult", "Variant", "campaign_rows", "load_campaign",
            "run_campaign"]

@@ -21,7 +21,7 @@ __all__ = ["main", "build_parser", "CliError"]
 # Packages whose ``cli.register`` adds verbs, in the order they appear in ``--help``.
 _VERB_MODULES = (
     "schemas.cli",
-    "simulator_bridge.cli",
+    "simulator_bridge.bus.cli",
     "training.cli",
     "agent.cli",
     "recordings.cli",

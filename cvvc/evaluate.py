@@ -2,7 +2,8 @@
 
 Each (case, season, bandwidth) is one :func:`cvvc.launch.run`: bridge, agent and recorder as separate processes in
 lockstep, one month per season at 1-minute resolution (paper IV: January, April, July, October, see
-``simulator_bridge.profiles.season_month``), on the evaluation year (``year_seed``, 2 by default) while the model
+``simulator_bridge.simulation.profiles.season_month``), on the evaluation year (``year_seed``, 2 by default) while the
+model
 was trained on another year (``train_seed``, 1). Each run is a task on dask.distributed (``cvvc.cluster``): a
 ``LocalCluster`` of ``jobs`` worker processes on loopback, or a running cluster (``scheduler``); the feeder, the
 model and the year profiles are built once here and the runs read them by path from the cache. A run that raises is
@@ -125,7 +126,7 @@ def parse_seasons(text: str) -> tuple[Season, ...]:
 
 def season_window(season: Season, days_per_season: float | None, year: int = EVALUATION_YEAR) -> tuple[str, float]:
     """The first day and the length [days] of a season's evaluation window: its month, or its first N days."""
-    from simulator_bridge.profiles import season_month
+    from simulator_bridge.simulation.profiles import season_month
 
     month = season_month(season)
     month_days = calendar.monthrange(year, month)[1]
@@ -395,8 +396,8 @@ def _ensure_year_profiles(dm_paths: list[Path], config: EvaluateConfig) -> None:
     """The evaluation year's profiles of each map, made once here into the shared cache (the runs read them)."""
     from schemas.cache import profiles_dir
     from schemas.devicemap import load_device_map
-    from simulator_bridge.engine import FeederEngine
-    from simulator_bridge.profiles import feeder_profiles, profiles_cache_path
+    from simulator_bridge.opendss.engine import FeederEngine
+    from simulator_bridge.simulation.profiles import feeder_profiles, profiles_cache_path
 
     cache = profiles_dir(config.cache)
     for path in dm_paths:

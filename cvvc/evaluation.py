@@ -10,7 +10,7 @@ import msgspec
 
 from cvvc.launch import CASES
 from schemas import messages as m
-from simulator_bridge.live_accuracy import LiveAccuracy
+from simulator_bridge.simulation.live_accuracy import LiveAccuracy
 
 __all__ = ["EVALUATION_YEAR", "ROBUSTNESS_VARIANTS", "SEASONS", "EvaluateConfig", "Evaluation", "RunFailure",
            "RunResult", "RunSpec", "Season", "Variant"]

@@ -46,7 +46,7 @@ from cvvc.launch import (
     prepare_feeder_and_model,
 )
 from schemas import messages as m
-from simulator_bridge.bridge import BridgeSummary
+from simulator_bridge.bus.bridge import BridgeSummary
 
 __all__ = ["FleetConfig", "FleetFeeder", "FleetFile", "load_fleet_file", "run_fleet"]
 
@@ -134,7 +134,7 @@ def _log(msg: str) -> None:
 def _prepare(config: FleetConfig, entry: FleetFeeder, out: Path) -> _Member:
     from schemas.cache import cache_root
     from schemas.devicemap import load_device_map
-    from simulator_bridge.default_feeder import ensure_default_feeder
+    from simulator_bridge.rural.default_feeder import ensure_default_feeder
 
     if (entry.map is None) == (entry.rural_seed is None):
         raise LaunchError(f"fleet feeder {entry}: give exactly one of map and rural_seed")

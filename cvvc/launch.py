@@ -44,8 +44,8 @@ from cvvc.run_summary import RunSummary
 from recordings.info import RecorderGap
 from schemas import messages as m
 from schemas.cache import cache_root, profiles_dir
-from simulator_bridge.bridge import BridgeSummary
-from simulator_bridge.metrics import Metrics
+from simulator_bridge.bus.bridge import BridgeSummary
+from simulator_bridge.simulation.metrics import Metrics
 
 if TYPE_CHECKING:
     from agent.runtime import AgentSettings
@@ -188,7 +188,7 @@ def prepare_feeder_and_model(config: RunConfig) -> tuple[Path, Path]:
     model would be, and may not exist.
     """
     from schemas.devicemap import load_device_map, resolve_device_map_path
-    from simulator_bridge.default_feeder import ensure_default_feeder
+    from simulator_bridge.rural.default_feeder import ensure_default_feeder
 
     cache = cache_root(config.cache)
     dm_path = resolve_device_map_path(config.feeder) if config.feeder else ensure_default_feeder(cache)
@@ -553,9 +553,9 @@ def _progress(total: int, enabled: bool, label: str = "simulated"):
 def no_control_baseline(dm_path: Path, start: dt.datetime, steps: int, year_seed: int, cache: Path) -> Metrics:
     """The same days with no central control (regulators local, PV unity PF), simulated in-process."""
     from schemas.devicemap import load_device_map
-    from simulator_bridge.engine import FeederEngine
-    from simulator_bridge.metrics_stream import MetricsAccumulator
-    from simulator_bridge.qsts import Qsts
+    from simulator_bridge.opendss.engine import FeederEngine
+    from simulator_bridge.simulation.metrics_stream import MetricsAccumulator
+    from simulator_bridge.simulation.qsts import Qsts
     from training.train import load_profiles
 
     dm = load_device_map(dm_path)

@@ -1,7 +1,7 @@
 """``cvvc run --pv-protocol``: how the PV plants reach the bus, ``bus`` (the bridge's own frames) or ``sunspec``.
 
 With ``sunspec`` every PV plant of the feeder is behind a simulated SunSpec inverter that the bridge serves on a
-free ``127.0.0.1`` port (``simulator_bridge.sunspec_fleet``), and one ``cvvc adapter sunspec --clock head`` per
+free ``127.0.0.1`` port (``simulator_bridge.bus.sunspec_fleet``), and one ``cvvc adapter sunspec --clock head`` per
 plant reads it over Modbus TCP, publishes the plant's frames and acks, and writes the agent's commands to it
 (docs/sunspec.md). This module only builds the adapters' and the bridge's flags; ``cvvc.launch`` starts them.
 """

@@ -2,7 +2,7 @@
 
 The same feeder, year profiles (``year_seed``), days, loads and PV (unity power factor, as in the ``none`` case)
 as the bus runs, stepped minute by minute by OpenDSS's own RegControls and CapControls in its time-driven control
-mode at ``step_s`` [s] (:func:`simulator_bridge.opendss_loop.reference_metrics`), with the same metrics on the
+mode at ``step_s`` [s] (:func:`simulator_bridge.opendss.opendss_loop.reference_metrics`), with the same metrics on the
 feeder zone. It is OpenDSS's reference, not a field-device run: nothing goes through the bus, no process is
 started, and nothing is recorded; the run folder gets a ``summary.json`` (so ``--resume`` reuses it) and a
 ``report.md``.
@@ -40,9 +40,9 @@ class ReferenceConfig(msgspec.Struct, frozen=True, kw_only=True):
 def run_reference(config: ReferenceConfig) -> RunSummary:
     """Run the reference case (see the module docstring); write ``summary.json`` and ``report.md``."""
     from schemas.devicemap import load_device_map
-    from simulator_bridge.engine import EngineError, FeederEngine
-    from simulator_bridge.opendss_loop import reference_metrics
-    from simulator_bridge.publishing import metrics_frame
+    from simulator_bridge.bus.publishing import metrics_frame
+    from simulator_bridge.opendss.engine import EngineError, FeederEngine
+    from simulator_bridge.opendss.opendss_loop import reference_metrics
     from training.train import load_profiles
 
     try:

@@ -31,7 +31,7 @@ import numpy as np
 from cvvc.errors import CommandError
 from schemas.errors import CvvcError
 from schemas.truth import TruthDecodeError, decode_truth
-from simulator_bridge.live_accuracy import LiveAccuracy, LiveAccuracyAccumulator
+from simulator_bridge.simulation.live_accuracy import LiveAccuracy, LiveAccuracyAccumulator
 
 if TYPE_CHECKING:
     from cvvc.launch import RunSummary
@@ -92,7 +92,7 @@ class RunTrace:
 @dataclass(frozen=True)
 class NodeTrace:
     """One critical node at every decision (``t_ns`` (D,)): the estimate, its bounds as promised and the truth [pu];
-    ``accuracy`` the run's live figures (``simulator_bridge.live_accuracy``) over every estimated node.
+    ``accuracy`` the run's live figures (``simulator_bridge.simulation.live_accuracy``) over every estimated node.
     """
 
     node: str

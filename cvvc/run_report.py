@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
     from cvvc.run_summary import RunSummary
-    from simulator_bridge.live_accuracy import LiveAccuracy
+    from simulator_bridge.simulation.live_accuracy import LiveAccuracy
 
 __all__ = ["decision_time_text", "live_accuracy_text", "render_summary", "top_reasons"]
 

@@ -8,8 +8,8 @@ import msgspec
 
 from recordings.info import RecorderGap
 from schemas import messages as m
-from simulator_bridge.live_accuracy import LiveAccuracy
-from simulator_bridge.metrics import Metrics
+from simulator_bridge.simulation.live_accuracy import LiveAccuracy
+from simulator_bridge.simulation.metrics import Metrics
 
 __all__ = ["RunSummary"]
 

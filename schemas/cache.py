@@ -7,8 +7,8 @@ there: the default is a per-user cache folder, ``$XDG_CACHE_HOME/cvvc-edge`` (``
 
 Layout under the cache root::
 
-    feeders/rural-v<generator version>-s<seed>/    the embedded rural feeder (simulator_bridge.default_feeder)
-    profiles/profiles-<feeder>-<fingerprint>-<seed>.npz   year profiles (simulator_bridge.profiles)
+    feeders/rural-v<generator version>-s<seed>/    the embedded rural feeder (simulator_bridge.rural.default_feeder)
+    profiles/profiles-<feeder>-<fingerprint>-<seed>.npz   year profiles (simulator_bridge.simulation.profiles)
     models/                                         models trained by ``cvvc run`` / ``cvvc evaluate``
     security/                                       the role certificates and keys of the bus (mTLS, the default)
     ca/                                             the local certificate authority that issues them, made on the

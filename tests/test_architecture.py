@@ -61,14 +61,17 @@ def _all_imports(*, typing: bool = False) -> dict[str, list[tuple[str, int]]]:
 
 
 def _narrower(module: str, name: str) -> str | None:
-    """The rules finer than a package: who may import OpenDSS, what of simulator_bridge the adapters may use."""
-    if name.split(".")[0] == "opendssdirect" and module != "simulator_bridge.dss_context":
-        return "only simulator_bridge/dss_context.py imports opendssdirect"
+    """The rules finer than a package: who may import OpenDSS, which of simulator_bridge's rooms the others may use."""
+    if name.split(".")[0] == "opendssdirect" and module != "simulator_bridge.opendss.dss_context":
+        return "only simulator_bridge/opendss/dss_context.py imports opendssdirect"
     if module.startswith("adapters.") and name.startswith("simulator_bridge"):
-        devices = name == "simulator_bridge" or name.startswith("simulator_bridge.devices")
-        sim = module == "adapters.cli" and name.startswith("simulator_bridge.sunspec_sim")
-        if not (devices or sim):
-            return "adapters use simulator_bridge.devices (and, in cli.py, sunspec_sim for `adapter sim`) only"
+        if not (name.startswith("simulator_bridge.field") or name in ("simulator_bridge", "simulator_bridge.errors")):
+            return "adapters use simulator_bridge.field (the device contracts) only"
+    if module.startswith("training.") and name.startswith("simulator_bridge.bus"):
+        return "training drives OpenDSS through simulator_bridge's engine, never the bus side (simulator_bridge.bus)"
+    if module.startswith("simulator_bridge.") and not module.startswith("simulator_bridge.bus") \
+            and name.startswith("simulator_bridge.bus"):
+        return "only simulator_bridge.bus knows Zenoh: no other room of simulator_bridge imports it"
     return None
 
 
@@ -105,8 +108,8 @@ def test_no_import_circle_between_modules() -> None:
     assert not circles, "\n".join(" -> ".join(c) for c in circles)
 
 
-@pytest.mark.parametrize("bad", ["simulator_bridge.engine", "opendssdirect"])
+@pytest.mark.parametrize("bad", ["simulator_bridge.opendss.engine", "opendssdirect"])
 def test_the_rules_catch_a_wrong_import(bad: str) -> None:
     """The check is not vacuous: an adapter importing the engine or OpenDSS is caught."""
     assert _narrower("adapters.sunspec_plant", bad) is not None
-    assert _narrower("adapters.cli", "simulator_bridge.sunspec_sim") is None
+    assert _narrower("adapters.cli", "simulator_bridge.field.sunspec_sim") is None

@@ -1,7 +1,7 @@
 """Accuracy report: the trained estimator against OpenDSS over a month at 1-minute resolution.
 
 Simulates one month of a year (usually another seed than training: out of sample) with regulator local
-control (``simulator_bridge.qsts.Qsts``, PV at unity power factor), then estimates every critical node of
+control (``simulator_bridge.simulation.qsts.Qsts``, PV at unity power factor), then estimates every critical node of
 each model with paper eq. (5) and with the correction of eq. (6)-(7), and compares with OpenDSS's
 voltages. At sampled minutes it also compares the eq. (3) sensitivities with perturbation truth
 (``FeederEngine.perturbation_sensitivities``). Writes a PNG like the paper's Fig. 8.
@@ -130,7 +130,7 @@ def simulate_month(
     """
     from tqdm import tqdm
 
-    from simulator_bridge.qsts import Qsts
+    from simulator_bridge.simulation.qsts import Qsts
 
     steps = list(steps)
     phases = np.asarray([n.rpartition(".")[2] for n in engine.node_names])
@@ -245,8 +245,8 @@ def accuracy_report(
     ami_latency_min : minutes from a reading to its first use. See ``training.ami`` for the estimate.
     """
     from schemas.devicemap import load_device_map
-    from simulator_bridge.engine import FeederEngine
-    from simulator_bridge.profiles import feeder_profiles, month_steps
+    from simulator_bridge.opendss.engine import FeederEngine
+    from simulator_bridge.simulation.profiles import feeder_profiles, month_steps
 
     paths = [Path(model_path)] if isinstance(model_path, (str, Path)) else [Path(p) for p in model_path]
     if not paths:

@@ -91,7 +91,7 @@ def calibrate_bounds(model: CvvcModel, engine, profiles, *, training_steps: np.n
     setpoint_offset_taps : every other window moves each regulator's set point by up to this many of its tap steps
         (module docstring); 0: every window under local control at the default set points.
     """
-    from simulator_bridge.profiles import month_steps
+    from simulator_bridge.simulation.profiles import month_steps
     from training.accuracy import simulate_month
 
     if not 0.0 < alpha < 1.0:

@@ -30,7 +30,7 @@ __all__ = ["register", "register_accuracy"]
 def _feeder_path(feeder: str | None, cache: str | None) -> Path:
     from schemas.cache import cache_root
     from schemas.devicemap import resolve_device_map_path
-    from simulator_bridge.default_feeder import ensure_default_feeder
+    from simulator_bridge.rural.default_feeder import ensure_default_feeder
 
     if feeder is None:
         return ensure_default_feeder(cache_root(cache))

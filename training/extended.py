@@ -24,7 +24,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from regression.model import FeatureSet, features
-from simulator_bridge.sensitivities import one_step_each
+from simulator_bridge.opendss.sensitivities import one_step_each
 
 __all__ = ["EXTENDED_OPTIONS", "PAPER_OPTIONS", "SINGLE_TAP_SHIFTS", "TAP_SHIFTS", "FeatureOptions", "Perturbations",
            "default_feature_options", "device_shifted_voltages", "near_extreme_cover", "perturb_devices",

@@ -211,7 +211,7 @@ def settle_taps(engine, *, max_rounds: int = 64) -> np.ndarray:
     (``reg_default_setpoint_v120 +/- reg_default_band_v120 / 2``) one step towards it. Stops when all are
     in band, when a tap limit is hit, or when a state repeats (band narrower than a step).
     """
-    from simulator_bridge.qsts import tap_direction
+    from simulator_bridge.simulation.qsts import tap_direction
 
     seen: set[tuple[int, ...]] = set()
     for _ in range(max_rounds):
@@ -234,7 +234,7 @@ _WORKER: dict = {}
 
 def _init_worker(device_map_path: str, tolerance: float, taps: list[int]) -> None:
     from schemas.devicemap import load_device_map
-    from simulator_bridge.engine import FeederEngine
+    from simulator_bridge.opendss.engine import FeederEngine
 
     engine = FeederEngine(load_device_map(device_map_path), tolerance=tolerance)
     engine.set_taps(np.asarray(taps, int))

@@ -1,7 +1,7 @@
 """Training pipeline: scenarios (II.A), power flows (II.B, Algorithm 1), critical nodes (II.C), fits (II.D).
 
 ``train(device_map_path, ...)`` returns a ``TrainResult`` holding the model (``regression.model.CvvcModel``)
-and a summary of what was done. It drives OpenDSS only through ``simulator_bridge.engine.FeederEngine``.
+and a summary of what was done. It drives OpenDSS only through ``simulator_bridge.opendss.engine.FeederEngine``.
 """
 
 from __future__ import annotations
@@ -115,8 +115,8 @@ class TrainResult:
 
 
 def load_profiles(device_map, engine, *, seed: int, cache_dir: str | Path | None):
-    """The feeder's year profiles for ``seed`` (see ``simulator_bridge.profiles.feeder_profiles``)."""
-    from simulator_bridge.profiles import feeder_profiles
+    """The feeder's year profiles for ``seed`` (see ``simulator_bridge.simulation.profiles.feeder_profiles``)."""
+    from simulator_bridge.simulation.profiles import feeder_profiles
 
     return feeder_profiles(device_map, engine, seed=seed, cache_dir=cache_dir)
 
@@ -273,8 +273,8 @@ def train(
         No PV plant or regulator in the map, no usable scenario, a singular regression.
     """
     from schemas.devicemap import load_device_map
-    from simulator_bridge.engine import FeederEngine
-    from simulator_bridge.profiles import UTC_OFFSET_H
+    from simulator_bridge.opendss.engine import FeederEngine
+    from simulator_bridge.simulation.profiles import UTC_OFFSET_H
 
     t_start = time.perf_counter()
     device_map_path = Path(device_map_path)

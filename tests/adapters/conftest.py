@@ -8,7 +8,7 @@ from collections.abc import Iterator
 import pytest
 
 from schemas.bus import free_port
-from simulator_bridge.sunspec_sim import SimulatedSunSpecInverter
+from simulator_bridge.field.sunspec_sim import SimulatedSunSpecInverter
 
 RATING_KVA = 1000.0
 P_PHASE_KW = 200.0  # 600 kW: headroom sqrt(1000² − 600²) = 800 kvar

@@ -12,8 +12,8 @@ from adapters.errors import RegisterValueError
 from adapters.sunspec import SunSpecLink
 from adapters.sunspec_plant import PlantSettings, SunSpecPlant
 from schemas.bus import free_port
-from simulator_bridge.qsts import IEEE1547_CAT_B_Q_PU, IEEE1547_CAT_B_V_PU
-from simulator_bridge.sunspec_sim import SimulatedSunSpecInverter
+from simulator_bridge.field.sunspec_sim import SimulatedSunSpecInverter
+from simulator_bridge.simulation.qsts import IEEE1547_CAT_B_Q_PU, IEEE1547_CAT_B_V_PU
 
 PERIOD_NS = 300 * 1_000_000_000
 

@@ -190,7 +190,7 @@ def test_model_error_map_perturbs_lines_and_loads_within_ten_percent(tmp_path):
     assert perturbation_commands(text, pct=10.0, seed=3) == cmds
 
     from schemas.devicemap import load_device_map
-    from simulator_bridge.engine import FeederEngine
+    from simulator_bridge.opendss.engine import FeederEngine
 
     path = perturbed_device_map(IEEE13, tmp_path / "perturbed", pct=10.0, seed=7)
     nominal, perturbed = load_device_map(IEEE13), load_device_map(path)

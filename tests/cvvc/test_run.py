@@ -16,8 +16,8 @@ from mcap.reader import make_reader
 from schemas import messages as m
 from schemas.devicemap import load_device_map
 from schemas.truth import to_truth_frame
-from simulator_bridge.engine import FeederEngine
-from simulator_bridge.metrics_stream import MetricsAccumulator
+from simulator_bridge.opendss.engine import FeederEngine
+from simulator_bridge.simulation.metrics_stream import MetricsAccumulator
 
 REPO = Path(__file__).resolve().parents[2]
 

@@ -49,5 +49,5 @@ def test_path_helpers_need_no_sideways_import():
     repo = Path(__file__).resolve().parents[2]
     for p in (repo / "agent").rglob("*.py"):
         assert not any(m.startswith("simulator_bridge") for m in _imports(p)), p.name
-    assert "simulator_bridge.cli" not in _imports(repo / "simulator_bridge" / "bridge_cli.py")
-    assert "simulator_bridge.cli" not in _imports(repo / "training" / "cli.py")
+    assert "simulator_bridge.bus.cli" not in _imports(repo / "simulator_bridge" / "bus" / "bridge_cli.py")
+    assert "simulator_bridge.bus.cli" not in _imports(repo / "training" / "cli.py")

@@ -25,7 +25,7 @@ STARTUP_S = 90.0
 
 def bridge_thread(config: Any, endpoint: str) -> tuple[Job, threading.Event, list[Any]]:
     """``run_bridge`` on the session's OpenDSS thread (``dssthread``); the job's ``out`` gets its summary."""
-    from simulator_bridge.bridge import run_bridge
+    from simulator_bridge.bus.bridge import run_bridge
 
     stop = threading.Event()
     job = run_in_dss_thread(lambda: run_bridge(config, BusConfig(mode="peer", connect=(endpoint,)), stop=stop))
@@ -42,7 +42,7 @@ def finish(th: Job, stop: threading.Event, out: list[Any], *, stop_now: bool = F
 
 
 def bridge_config(device_map_path: Path, cache_dir: Path, **kw: Any) -> Any:
-    from simulator_bridge.bridge import BridgeConfig
+    from simulator_bridge.bus.bridge import BridgeConfig
 
     base = dict(device_map_path=str(device_map_path), start=T0, steps=10, clock="lockstep", timeout_s=10.0,
                 wait_agent_s=10.0, cache_dir=str(cache_dir), truth_every=0)

@@ -37,7 +37,7 @@ def repo_root_module() -> Path:
 def cache_dir(profile_cache: Path, device_map_path: Path) -> Path:
     """The session's profile cache (shared with training's tests: same file names), with IEEE 13's year made
     once (about 5 s) and then loaded from .npz by every bridge run."""
-    from simulator_bridge.profiles import profiles_cache_path
+    from simulator_bridge.simulation.profiles import profiles_cache_path
 
     cache_year_profiles(device_map_path, profile_cache)
     # the cache is shared: training's tests add maps of IEEE 13 with other fingerprints beside this one

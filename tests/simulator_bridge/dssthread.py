@@ -2,7 +2,7 @@
 
 Introduced against a segfault in OpenDSS's ``ctx_New`` met three times in CI, always in a fresh bridge thread.
 Its cause turned out to be elsewhere (the library read the C environment through a pointer glibc had freed once
-pytest set ``PYTEST_CURRENT_TEST``; fixed by ``simulator_bridge.pinned_environ``: with it, the crash that the
+pytest set ``PYTEST_CURRENT_TEST``; fixed by ``simulator_bridge.opendss.pinned_environ``: with it, the crash that the
 re-laid simulator_bridge made deterministic, 2 of 2 runs of ``test_bridge.py`` with ``test_engine.py``, is gone,
 3 of 3). The thread stays: a bridge of the tests runs where a bridge runs in production, on one thread that
 outlives its engines, and a stuck bridge shows as a job that never ends, not as a stray thread.
@@ -50,7 +50,7 @@ def _loop() -> None:
 
 
 def _warm_up() -> None:
-    from simulator_bridge.dss_context import new_context
+    from simulator_bridge.opendss.dss_context import new_context
 
     new_context()  # made and dropped in this thread: FreePascal's per-thread state exists from now on
 

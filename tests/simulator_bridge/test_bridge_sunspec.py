@@ -190,7 +190,7 @@ def test_the_plant_takes_the_local_mode_its_adapter_set_in_705(client: Client, r
 
 def test_a_plant_that_is_not_on_the_feeder_or_a_bad_endpoint_is_refused(device_map_path: Path,
                                                                          cache_dir: Path) -> None:
-    from simulator_bridge.bridge import BridgeError, run_bridge
+    from simulator_bridge.bus.bridge import BridgeError, run_bridge
 
     for pv_sunspec, why in (({"pv999": f"tcp/127.0.0.1:{free_port()}"}, "pv999"),
                             ({"pv675": "tcp/192.0.2.1:502"}, "127.0.0.1 only"),

@@ -55,7 +55,7 @@ def client(router_endpoint: str) -> Iterator[Client]:
 
 
 def _config(cap_map: Path, cache_dir: Path, **kw: Any) -> Any:
-    from simulator_bridge.bridge import BridgeConfig
+    from simulator_bridge.bus.bridge import BridgeConfig
 
     base = dict(device_map_path=str(cap_map), start=T0, steps=11, clock="lockstep", timeout_s=10.0,
                 wait_agent_s=10.0, cache_dir=str(cache_dir), truth_every=1)
@@ -66,7 +66,7 @@ def _config(cap_map: Path, cache_dir: Path, **kw: Any) -> Any:
 def _run(config: Any, endpoint: str, drive: Callable[[], None]) -> Any:
     """Run the bridge on the session's OpenDSS thread (``dssthread``) while ``drive()`` plays the agent; returns
     the bridge's summary."""
-    from simulator_bridge.bridge import run_bridge
+    from simulator_bridge.bus.bridge import run_bridge
 
     stop = threading.Event()
     th = run_in_dss_thread(lambda: run_bridge(config, BusConfig(mode="peer", connect=(endpoint,)), stop=stop))
@@ -209,11 +209,11 @@ def test_cap_tokens_and_frames_every_step(client: Client, router_endpoint: str, 
 
 def test_packed_cap_settings_come_back(cap_map: Path, cache_dir: Path) -> None:
     """The publisher process's slot layout carries the banks' states, switchings and the commands in force."""
-    from simulator_bridge.bridge import cached_profiles
-    from simulator_bridge.engine import FeederEngine
-    from simulator_bridge.publisher_process import StepPacker
-    from simulator_bridge.publishing import DeviceSettings
-    from simulator_bridge.qsts import Qsts
+    from simulator_bridge.bus.bridge import cached_profiles
+    from simulator_bridge.bus.publisher_process import StepPacker
+    from simulator_bridge.bus.publishing import DeviceSettings
+    from simulator_bridge.opendss.engine import FeederEngine
+    from simulator_bridge.simulation.qsts import Qsts
 
     dm = load_device_map(cap_map)
     engine = FeederEngine(dm)

@@ -16,9 +16,9 @@ import numpy as np
 import pytest
 
 from schemas.devicemap import DeviceMap, load_device_map
-from simulator_bridge.control_check import compare_with_opendss
-from simulator_bridge.controls import LocalControls, RegControlSettings
-from simulator_bridge.engine import FeederEngine
+from simulator_bridge.opendss.control_check import compare_with_opendss
+from simulator_bridge.opendss.controls import LocalControls, RegControlSettings
+from simulator_bridge.opendss.engine import FeederEngine
 
 MAPS = Path(__file__).resolve().parents[2] / "feeders"
 MINUTES = 120
@@ -88,7 +88,7 @@ def test_device_against_opendss_own_loop(case: str) -> None:
 def test_ieee123_day_against_opendss_own_loop() -> None:
     """IEEE 123, a day of a sinusoidal load multiplier 0.3-1.1: its seven regulators (LDC, default delays 15 s
     and tapdelay 2 s) make the same tap sequences in the same minutes as OpenDSS at 1 s steps."""
-    from simulator_bridge.control_check import day_multiplier
+    from simulator_bridge.opendss.control_check import day_multiplier
 
     dm = _map("ieee123")
     eng = FeederEngine(dm)

@@ -10,7 +10,7 @@ import pytest
 
 from schemas import messages as m
 from schemas.bus import codec_for
-from simulator_bridge import devices as dv
+from simulator_bridge.field import devices as dv
 
 NOW = 1_700_000_000 * 10**9
 MIN = 60 * 10**9

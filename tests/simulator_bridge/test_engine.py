@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from schemas.devicemap import DeviceMap, DeviceMapError, load_device_map
-from simulator_bridge.circuit_survey import opendss_snapshot
-from simulator_bridge.engine import EngineError, FeederEngine
+from simulator_bridge.opendss.engine import EngineError, FeederEngine
+from simulator_bridge.survey.circuit_survey import opendss_snapshot
 
 REPO = Path(__file__).resolve().parents[2]
 MAPS = REPO / "feeders"

@@ -10,9 +10,9 @@ import pytest
 
 from cvvc.cli import main
 from schemas.devicemap import load_device_map
-from simulator_bridge.cli import default_feeder_dir, ensure_default_feeder
-from simulator_bridge.engine import FeederEngine
-from simulator_bridge.generator import (
+from simulator_bridge.bus.cli import default_feeder_dir, ensure_default_feeder
+from simulator_bridge.opendss.engine import FeederEngine
+from simulator_bridge.rural.generator import (
     CONDUCTORS,
     GeneratorError,
     generate_rural_feeder,

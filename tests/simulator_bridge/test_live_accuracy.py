@@ -1,9 +1,10 @@
-"""The agent's estimates and bounds judged against the truth of their step (``simulator_bridge.live_accuracy``)."""
+"""The agent's estimates and bounds judged against the truth of their step
+(``simulator_bridge.simulation.live_accuracy``)."""
 
 import numpy as np
 import pytest
 
-from simulator_bridge.live_accuracy import MISS_TOLERANCE_PU, LiveAccuracyAccumulator
+from simulator_bridge.simulation.live_accuracy import MISS_TOLERANCE_PU, LiveAccuracyAccumulator
 
 NAMES = ["a.1", "b.1", "c.1", "d.1", "e.1"]
 

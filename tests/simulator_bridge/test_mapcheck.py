@@ -9,8 +9,8 @@ import json
 
 import pytest
 
-from simulator_bridge.survey import CircuitSurvey, SurveyBus, SurveyEdge, SurveyLoad
-from simulator_bridge.zone import feeder_zone
+from simulator_bridge.survey.survey import CircuitSurvey, SurveyBus, SurveyEdge, SurveyLoad
+from simulator_bridge.survey.zone import feeder_zone
 from tests.conftest import REPO, SHARED_FEEDERS
 
 IEEE13 = (REPO / "feeders" / "ieee13.toml").read_text().replace(

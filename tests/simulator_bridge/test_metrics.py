@@ -1,11 +1,11 @@
-"""The paper's IV.F metrics on small hand-made series with known answers (simulator_bridge/metrics.py)."""
+"""The paper's IV.F metrics on small hand-made series with known answers (simulator_bridge/simulation/metrics.py)."""
 
 import msgspec
 import numpy as np
 import pytest
 
 from schemas.errors import CvvcError
-from simulator_bridge.metrics import (
+from simulator_bridge.simulation.metrics import (
     Metrics,
     MetricsError,
     combine_metrics,
@@ -15,7 +15,7 @@ from simulator_bridge.metrics import (
     tap_cost_per_regulator,
     violation_pu,
 )
-from simulator_bridge.metrics_stream import MetricsAccumulator
+from simulator_bridge.simulation.metrics_stream import MetricsAccumulator
 
 REGS = ("vr1", "vr2")
 PVS = ("pv1", "pv2")
@@ -346,7 +346,7 @@ def test_only_the_judged_nodes_count():
 
 def test_for_feeder_judges_the_zone_phase_nodes_of_ieee13(repo_root):
     from schemas.devicemap import load_device_map
-    from simulator_bridge.engine import FeederEngine
+    from simulator_bridge.opendss.engine import FeederEngine
 
     dm = load_device_map(repo_root / "feeders" / "ieee13.toml")
     engine = FeederEngine(dm)

@@ -15,11 +15,11 @@ import numpy as np
 import pytest
 
 from schemas.devicemap import load_device_map
-from simulator_bridge.control_check import MinuteProfiles
-from simulator_bridge.engine import EngineError, FeederEngine
-from simulator_bridge.metrics_stream import MetricsAccumulator
-from simulator_bridge.opendss_loop import OpenDssLoop, reference_metrics
-from simulator_bridge.qsts import Qsts
+from simulator_bridge.opendss.control_check import MinuteProfiles
+from simulator_bridge.opendss.engine import EngineError, FeederEngine
+from simulator_bridge.opendss.opendss_loop import OpenDssLoop, reference_metrics
+from simulator_bridge.simulation.metrics_stream import MetricsAccumulator
+from simulator_bridge.simulation.qsts import Qsts
 
 MAPS = Path(__file__).resolve().parents[2] / "feeders"
 _NS = 1_000_000_000

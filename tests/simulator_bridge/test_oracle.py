@@ -11,8 +11,8 @@ import pytest
 from schemas.bus import MAX_PAYLOAD_BYTES, codec_for
 from schemas.devicemap import DeviceMap, load_device_map
 from schemas.messages import OracleReply
-from simulator_bridge.engine import EngineError, FeederEngine
-from simulator_bridge.oracle import Oracle
+from simulator_bridge.opendss.engine import EngineError, FeederEngine
+from simulator_bridge.simulation.oracle import Oracle
 
 REPO = Path(__file__).resolve().parents[2]
 

@@ -1,7 +1,8 @@
 """The C environment array OpenDSS's library captured stays valid while Python adds variables.
 
 DSS C-API reads the environment through the ``environ`` pointer it copied when it was loaded; glibc reallocates
-(frees) its own array when a variable is added, which made ``ctx_New`` segfault (``simulator_bridge.pinned_environ``).
+(frees) its own array when a variable is added, which made ``ctx_New`` segfault
+(``simulator_bridge.opendss.pinned_environ``).
 """
 
 from __future__ import annotations
@@ -27,8 +28,8 @@ def _entries(address: int) -> list[bytes]:
 
 
 def test_the_pinned_array_outlives_new_variables_and_the_environment_still_works():
-    import simulator_bridge.dss_context  # noqa: F401 - loads the library after pinning
-    from simulator_bridge.pinned_environ import _pinned
+    import simulator_bridge.opendss.dss_context  # noqa: F401 - loads the library after pinning
+    from simulator_bridge.opendss.pinned_environ import _pinned
 
     assert _pinned, "the environment was not pinned before OpenDSS loaded"
     pinned = ctypes.addressof(_pinned[0])

@@ -1,4 +1,4 @@
-"""Statistics and contracts of the synthetic year of load and PV (simulator_bridge/profiles.py)."""
+"""Statistics and contracts of the synthetic year of load and PV (simulator_bridge/simulation/profiles.py)."""
 
 import datetime as dt
 
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from schemas.errors import CvvcError
-from simulator_bridge.profiles import (
+from simulator_bridge.simulation.profiles import (
     ARCHETYPES,
     ProfileError,
     YearProfiles,

@@ -1,4 +1,4 @@
-"""The publisher process (``simulator_bridge/publisher_process.py``) in real bridge runs on real Zenoh and OpenDSS
+"""The publisher process (``simulator_bridge/bus/publisher_process.py``) in real bridge runs on real Zenoh and OpenDSS
 (IEEE 13): the same messages as inline publishing, the shared-memory slot layout, its failure and its end."""
 
 from __future__ import annotations
@@ -81,11 +81,11 @@ def test_the_publisher_process_sends_what_inline_publishing_sends(router_endpoin
 
 def test_packed_steps_come_back_as_they_went_in(device_map_path: Path, cache_dir: Path) -> None:
     """The shared-memory slot layout: a real step and the device settings in force, packed and unpacked."""
-    from simulator_bridge.bridge import cached_profiles
-    from simulator_bridge.engine import FeederEngine
-    from simulator_bridge.publisher_process import StepPacker
-    from simulator_bridge.publishing import DeviceSettings
-    from simulator_bridge.qsts import Qsts
+    from simulator_bridge.bus.bridge import cached_profiles
+    from simulator_bridge.bus.publisher_process import StepPacker
+    from simulator_bridge.bus.publishing import DeviceSettings
+    from simulator_bridge.opendss.engine import FeederEngine
+    from simulator_bridge.simulation.qsts import Qsts
 
     engine = FeederEngine(load_device_map(device_map_path))
     try:
@@ -122,7 +122,7 @@ def test_the_publisher_process_fails_the_run_and_is_stopped(client: Client, rout
                                                             device_map_path: Path, cache_dir: Path) -> None:
     """A publisher process killed mid-run: the bridge stops with an error at its next hand-over, in bounded time,
     and withdraws its tokens (the client sees the bridge's token go)."""
-    import simulator_bridge.publisher_process as pub
+    import simulator_bridge.bus.publisher_process as pub
 
     procs: list[Any] = []
     orig = pub.PublisherProcess.__init__
@@ -149,7 +149,7 @@ def test_the_publisher_process_fails_the_run_and_is_stopped(client: Client, rout
 
 
 def test_publisher_process_cannot_hold_frames_for_latency(device_map_path: Path, cache_dir: Path) -> None:
-    from simulator_bridge.bridge import BridgeError, run_bridge
+    from simulator_bridge.bus.bridge import BridgeError, run_bridge
 
     with pytest.raises(BridgeError, match="latency"):
         run_bridge(bridge_config(device_map_path, cache_dir, latency_s=0.1, publisher="process"),
@@ -158,8 +158,8 @@ def test_publisher_process_cannot_hold_frames_for_latency(device_map_path: Path,
 
 def test_auto_publishes_from_a_process_where_it_pays_and_the_child_can_join(device_map_path: Path,
                                                                              cache_dir: Path) -> None:
-    from simulator_bridge.bridge import BridgeError
-    from simulator_bridge.bridge_runtime import publisher_bus
+    from simulator_bridge.bus.bridge import BridgeError
+    from simulator_bridge.bus.bridge_runtime import publisher_bus
 
     router = BusConfig(mode="peer", connect=("tcp/127.0.0.1:7447",))
     auto = bridge_config(device_map_path, cache_dir)

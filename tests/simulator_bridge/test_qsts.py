@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from schemas.devicemap import DeviceMap
-from simulator_bridge.engine import FeederEngine
-from simulator_bridge.qsts import VOLT_VAR_RESPONSE, Qsts, QstsError, tap_direction, volt_var_q_pu
+from simulator_bridge.opendss.engine import FeederEngine
+from simulator_bridge.simulation.qsts import VOLT_VAR_RESPONSE, Qsts, QstsError, tap_direction, volt_var_q_pu
 
 
 class ArrayProfiles:

@@ -13,11 +13,11 @@ import numpy as np
 import pytest
 
 from schemas.devicemap import load_device_map
-from simulator_bridge.circuit_survey import survey_circuit
-from simulator_bridge.engine import FeederEngine
-from simulator_bridge.mapcheck import check_device_map
-from simulator_bridge.scaffold import PV_KVA_PER_KW, scaffold_device_map
-from simulator_bridge.zone import feeder_zone
+from simulator_bridge.opendss.engine import FeederEngine
+from simulator_bridge.survey.circuit_survey import survey_circuit
+from simulator_bridge.survey.mapcheck import check_device_map
+from simulator_bridge.survey.scaffold import PV_KVA_PER_KW, scaffold_device_map
+from simulator_bridge.survey.zone import feeder_zone
 from tests.conftest import REPO, SHARED_FEEDERS
 
 # folder, master, the head element the feeder's EnergyMeter meters (or the first line out), the load(s) of

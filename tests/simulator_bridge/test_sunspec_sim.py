@@ -7,7 +7,7 @@ import sunspec2.modbus.client as sunspec_client
 from sunspec2.modbus.modbus import ModbusClientError, ModbusClientException
 
 from schemas.bus import free_port
-from simulator_bridge.sunspec_sim import SimulatedSunSpecInverter, SunSpecSimError
+from simulator_bridge.field.sunspec_sim import SimulatedSunSpecInverter, SunSpecSimError
 
 
 class FakeClock:

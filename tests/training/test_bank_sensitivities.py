@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from schemas.devicemap import load_device_map
-from simulator_bridge.engine import FeederEngine
+from simulator_bridge.opendss.engine import FeederEngine
 
 REPO = Path(__file__).resolve().parents[2]
 

@@ -33,7 +33,7 @@ def test_movable_nodes(dv_dtap, dv_dq, kva, expected):
 def test_ltc_primary_and_other_feeders_are_never_critical_on_epri_k1(tmp_path):
     """epri-k1: the 69 kV primary of LTC t2 (trans_equiv) and the second feeder K22 lie upstream of the meter."""
     from schemas.devicemap import load_device_map
-    from simulator_bridge.engine import FeederEngine
+    from simulator_bridge.opendss.engine import FeederEngine
     from training.train import train
 
     path = REPO / "feeders" / "epri-k1.toml"

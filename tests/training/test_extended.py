@@ -76,7 +76,7 @@ def calendar_model(ieee13_caps, profile_cache):
 def _state(path, model, *, caps, step=None):
     """Solve one minute of the training year at the model's taps and the given banks; return estimator inputs."""
     from schemas.devicemap import load_device_map
-    from simulator_bridge.engine import FeederEngine
+    from simulator_bridge.opendss.engine import FeederEngine
     from training.train import load_profiles
 
     dm = load_device_map(path)

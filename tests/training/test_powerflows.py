@@ -31,7 +31,7 @@ def test_q_plan_perturbs_one_plant_at_a_time_and_combined_all():
 @pytest.mark.process  # a pool of worker processes
 def test_worker_processes_give_the_same_flows_as_one_process():
     from schemas.devicemap import load_device_map
-    from simulator_bridge.engine import FeederEngine
+    from simulator_bridge.opendss.engine import FeederEngine
     from tests.training.conftest import REPO
     from training.powerflows import ScenarioInput, run_power_flows
 

@@ -58,7 +58,7 @@ def test_estimates_opendss_out_of_sample(trained_123, profile_cache):
     """Random minutes of another year (seed 2), random plant Q and taps near tap0: eq. (5)-(7) vs OpenDSS."""
     from regression.batch import estimate_v_pu, eval_sensitivities, sensitivity_arrays
     from schemas.devicemap import load_device_map
-    from simulator_bridge.engine import FeederEngine
+    from simulator_bridge.opendss.engine import FeederEngine
     from training.train import load_profiles
 
     m = trained_123.model

@@ -1,0 +1,1 @@
+"""The embedded synthetic rural feeder, generated from a seed."""

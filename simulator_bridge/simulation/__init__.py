@@ -1,0 +1,1 @@
+"""Simulated time: year profiles, the QSTS stepping, the paper's metrics, live accuracy, the oracle."""
