@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from simulator_bridge.errors import SimulatorError
-from simulator_bridge.opendss.linecodes import (
+from simulator_bridge.rural.linecodes import (
     CONDUCTORS,
     LINECODES,
     Conductor,
