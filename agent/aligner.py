@@ -15,7 +15,7 @@ produce the same aligned sets. The rule, documented in docs/agent.md:
 - A frame's identity is the device of the model its key and its device id name (``head``, ``pv/<id>``,
   ``vr/<id>``, ``cap/<id>``), never the ``source`` the payload declares: sequences are kept, and the clock rule
   below counts, per device of the map, so made-up sources count for nothing.
-- No single frame moves the clock (issue "Robust by default"): a frame more than ``max_jump_ns`` (one control
+- No single frame moves the clock: a frame more than ``max_jump_ns`` (one control
   period) ahead of the newest accepted frame, or any frame before the first accepted one, is *held* until
   frames of at least two devices (one if the model has a single device) agree on the new time within
   ``max_jump_ns``; then the held frames are taken in arrival order. Lost-frame bursts and the start of a run
@@ -31,15 +31,14 @@ produce the same aligned sets. The rule, documented in docs/agent.md:
   tolerance would snap onto it) neither replaces the step's real frame nor refuses the device's next ones.
 - A scan's end marker (``StepEnd``, sent after a step's frames by whoever collects them) names the devices that
   sent a frame for its time: once those have arrived, the group is released at once, the rest listed as
-  ``missing``, instead of waiting for the late-frame window (issue "Robust by default", item 7: a lost frame
-  cost a 2 s stall per control step in lockstep). A marker never moves the clock, never releases a group that
+  ``missing``, instead of waiting for the late-frame window. A marker never moves the clock, never releases a group that
   has no frame, and never makes a group wait longer; at most ``_EXPECT_MAX`` are kept ahead of their frames, so
   a forged marker can at worst have one step decided early on the frames that had arrived.
 - A device's first frame of a time stays: another frame of the same device for a time already received (e.g. one
   stamped a few seconds off the step and snapped onto it) is refused as ``duplicate``, so it never replaces it.
 - Only groups on a control step (``t_ns`` a multiple of the control period) are released as decisions to
   make; the others only refresh the last-known state.
-- Field clocks off by a little (issue "Robust by default", item 7: +-2 s skew between the devices and the agent):
+- Field clocks off by a little:
   a frame or scan-end marker stamped within ``clock_tolerance_ns`` of a control step is taken as that step's
   (its ``t_ns`` is set to the step's, counted in ``snapped``); before, a frame stamped 2 s off never fell on a
   control step and nothing was decided. Frames between control steps keep their stamps.

@@ -1,6 +1,6 @@
 """A regulator's reading fitted on the feeder head's readings: noise filtering without lag (beyond the paper, opt-in).
 
-Issue 17, item 7: SCADA-class noise of 1 % is 1.2 V on a 120 V-base regulator reading. The mean of the readings of
+SCADA-class noise of 1 % is 1.2 V on a 120 V-base regulator reading. The mean of the readings of
 one control period (``AgentSettings.reading_window_s``, five 1-minute frames) leaves 0.54 V, more than half a tap
 step (0.375 V), the margin eq. (8) leaves between the band edge and the desired tap; a longer mean lags the load
 (a 10-minute mean let the noiseless rural winter week violate). The head meter's P, Q and voltage (PMU class)

@@ -434,7 +434,7 @@ class DecisionMaker:
 
 
     def _clamp(self, value: float, accepted: tuple[float, float]) -> float:
-        """``value`` rounded and brought into a regulator's ``accepted`` range (issue 17 (g)); counts clamps.
+        """``value`` rounded and brought into a regulator's ``accepted`` range; counts clamps.
 
         Eq. (8) can ask for a set point outside what a controller accepts (a large tap change from an extreme
         reading); the nearest accepted value moves the regulator the same way instead of being refused.

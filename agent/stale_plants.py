@@ -1,8 +1,8 @@
 """A PV plant behind a stale frame: its present output and Q as the controller takes them (beyond the paper).
 
-Issue 17, item 7. When a plant's frames are lost the runtime lets its last good frame stand in (``AgentSettings.
+When a plant's frames are lost the runtime lets its last good frame stand in (``AgentSettings.
 last_good_s``). That frame's P is from before the loss, its Q from before the commands sent since. In the rural
-winter week with 5 % of the frames lost in 10-minute outages (docs/results.md, "Robust by default: session 4") the
+winter week with 5 % of the frames lost in 10-minute outages the
 11:55 decision of 19 January stood on pv3's frame of 11:49: its P from before a midday rise (the estimate of
 b0138.1 0.027 pu low) and its Q of -373 kvar where the 11:50 command had taken it to -895 kvar. The QP then moved
 pv3 to -39 kvar, a 856 kvar rise it counted as 334, and b0138.1 reached 1.07 pu.

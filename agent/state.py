@@ -71,8 +71,7 @@ class CorrectionFilter:
     and a last-good one standing in), a fresh reading's ``eps`` is applied as it is (eq. 6 as in the paper) and does
     not enter the mean: the estimate then misses the change since the stale frame (at sunset on 17 July of the rural
     summer week the plants' Q went from 370 kvar to 0 during a head outage), the mean knows nothing of it, and the
-    fresh reading measures it. The mean alone let the 10-minute average fall to 0.962 pu there (NVV 97 with 20 %
-    of the frames lost in 10-minute outages, 0 with eq. 6 unfiltered; docs/results.md, session 4).
+    fresh reading measures it. The mean alone let the 10-minute average fall to 0.962 pu there.
     """
 
     def __init__(self, n_regulators: int, weight: float) -> None:

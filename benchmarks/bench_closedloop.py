@@ -3,8 +3,8 @@
 ``bench_closedloop`` runs ``cvvc.launch.run`` (bridge, agent and recorder as processes, lockstep, recording on),
 then, in this process, bare OpenDSS (``FeederEngine.bare_steps_s``) over the same steps: the same loads and PV of the
 same profile year, and the closed loop's own regulator taps and bank states replayed from the recording's truth
-frames, so bare pays the same re-factorisations after tap moves. It prints both times and their ratio (issue 19: a
-recorded month within 2x of bare), the bridge's loop alone, and the truth channel's bytes per simulated week.
+frames, so bare pays the same re-factorisations after tap moves. It prints both times and their ratio, the bridge's
+loop alone, and the truth channel's bytes per simulated week.
 
 Run: ``python -m benchmarks.bench_closedloop [DAYS [CACHE]]`` (default 7 days, the user's cache). ``make bench``
 runs 2 days (1 with ``--quick``); the month is measured by hand with ``python -m benchmarks.bench_closedloop 30``

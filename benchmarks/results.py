@@ -170,7 +170,7 @@ class BurstBench(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_field
 class ClosedLoopBench(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
     """``bench_closedloop``: a recorded ``cvvc run`` (bridge, agent, recorder) against bare OpenDSS of the same steps.
 
-    ``ratio`` = run wall time / bare time (issue 19's goal: <= 2 on a month); ``loop_ratio`` the same with the
+    ``ratio`` = run wall time / bare time; ``loop_ratio`` the same with the
     bridge's stepping loop alone (no process start-up, no profile or model loading). ``bare_s`` steps the same loads,
     PV and the closed loop's own taps (read back from the recording's truth) with nothing else. ``truth_*``: the
     truth channel's payload per simulated week, as sent and after zstd in 1 MiB chunks (the recorder's chunking).

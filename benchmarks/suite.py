@@ -11,11 +11,10 @@ result from ``benchmarks.results`` as JSON; ``read_results`` reads a ``--json`` 
 - ``solver``: the CVVC solver at the paper's size, cold and warm, and the rounding gap to the exact MILP;
 - ``decision``: the agent's decision time (aligned frames in -> commands out) vs case A's per-interval
   cost (perturbation power flows + all-node problem) on the rural feeder, IEEE 8500 and epri-ckt24 (goal >= 50x);
-- ``recording``: messages/s through Zenoh into MCAP vs the bare MCAP writer (goal > 50 %; issue 19: >= 60 %), offline
+- ``recording``: messages/s through Zenoh into MCAP vs the bare MCAP writer (goal: >= 60 %), offline
   replay speed;
-- ``closedloop``: a recorded ``cvvc run`` of case D on the rural feeder vs bare OpenDSS of the same steps and taps
-  (issue 19: a month within 2x; here 2 days, 1 with ``--quick``: a month is ``python -m benchmarks.bench_closedloop
-  30``), the truth's bytes per simulated week;
+- ``closedloop``: a recorded ``cvvc run`` of case D on the rural feeder vs bare OpenDSS of the same steps and taps,
+the truth's bytes per simulated week;
 - ``soak``: a simulated month in lockstep: memory growth of every process (goal < 10 %), dropped/late frames;
 - ``sunspec``: the round trip a PV plant behind SunSpec Modbus adds per decision (command -> ack through the
   adapter and a simulated inverter vs the same bus round trip acked at once).
@@ -123,7 +122,7 @@ def bench_decision(quick: bool) -> dict[str, DecisionBench]:
     out = {"rural": run(_rural(), control_steps=12 if quick else 96, cache=cache_root(None))}
     if not quick:
         out["ieee8500"] = run(FEEDERS / "ieee8500.toml", control_steps=24, cache=cache_root(None))
-        # the largest EPRI feeder (6058 buses, 7522 nodes; issue 16's goal: decision p99 under 5 ms)
+        # the largest EPRI feeder (6058 buses, 7522 nodes; the goal: decision p99 under 5 ms)
         out["epri-ckt24"] = run(FEEDERS / "epri-ckt24.toml", control_steps=24, cache=cache_root(None))
     return out
 

@@ -13,7 +13,7 @@ What it does, in order:
 8. a summary (printed, ``summary.json``, ``report.md``) with where the MCAP and the model are.
 
 A bridge or agent that dies early stops everything: the others are stopped, the recording finished, exit 1.
-The recorder is off the control path (issue "Robust by default", item 2): when it dies, the crash is logged, a
+The recorder is off the control path: when it dies, the crash is logged, a
 new recorder writes the next part of the recording (at most ``recorder_restarts_max`` times), control goes on,
 and at the end the parts are joined into one file where each span the recording missed is a ``RecorderGap``
 (``recordings.join``); the summary says how many restarts there were.
@@ -384,7 +384,7 @@ def run(config: RunConfig) -> RunSummary:
     connect += ["--secure-dir", security_dir] if security_dir else ["--insecure"]
     children: list[_Child] = []
     # The run's figures come from the processes the launcher started, never from the bus, where any session
-    # could publish a metrics frame or a decision (issue "Robust by default" (c)): each writes its own summary.
+    # could publish a metrics frame or a decision: each writes its own summary.
     agent_summary_path, bridge_summary_path = out / "agent-summary.json", out / "bridge-summary.json"
     agent_summary: AgentSummary | None = None
     recorder: _RecorderSupervisor | None = None
@@ -515,7 +515,7 @@ def _security_dir(config: RunConfig) -> str | None:
 
 def check_mostly_held(summary: RunSummary) -> None:
     """Raise ``LaunchError`` when most of a run's decisions were ``hold``: such a run did not control the feeder,
-    and its metrics must not read as a result (issue "Real utility feeders (2/2)": 288 of 288 held, silently).
+    and its metrics must not read as a result.
     """
     if summary.decisions and 2 * summary.holds > summary.decisions:
         raise LaunchError(f"{summary.holds} of {summary.decisions} decisions were 'hold' (no command sent): the run "

@@ -1,6 +1,6 @@
 """One recording from the parts of a restarted recorder, with what it missed recorded as a gap.
 
-``cvvc run`` keeps the recorder off the control path (issue "Robust by default", item 2): when the recorder
+``cvvc run`` keeps the recorder off the control path: when the recorder
 process dies, the run goes on, a new recorder writes a new part, and at the end the parts are joined here into
 one finished MCAP file:
 

@@ -420,7 +420,7 @@ class RejectCounter:
     """Thread-safe counts of rejected messages per (topic, kind).
 
     Logs at most one line per kind per ``log_period_s`` whatever the topic (a flood on made-up keys wrote one line
-    per key: issue "Robust by default" (f)); :meth:`log_suppressed` counts the lines not written, by kind.
+    per key); :meth:`log_suppressed` counts the lines not written, by kind.
     """
 
     def __init__(self, name: str = "bus", *, log_period_s: float = 10.0) -> None:

@@ -126,7 +126,7 @@ class PvPlantSpec(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fiel
 
 
 class MeterSpec(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
-    """An AMI meter at a customer node: beyond the paper's measurements, an explicit option (issue 16).
+    """An AMI meter at a customer node: beyond the paper's measurements, an explicit option.
 
     It reads the voltage of OpenDSS node ``node`` (``bus.phase``) every ``interval_s`` seconds of simulated time
     (at multiples of ``interval_s`` since midnight UTC) and its reading reaches the bus as a ``MeterFrame``. The

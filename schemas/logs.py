@@ -1,7 +1,7 @@
 """Rate-limited logging: a flood of the same event writes one line per period and counts the rest.
 
 Every process logs through the standard ``logging`` module; a hostile or broken peer must not be able to fill a
-log (issue "Robust by default": 2,485 warning lines in 91 s). Each *kind* of event (a short fixed string, e.g.
+log. Each *kind* of event (a short fixed string, e.g.
 ``"command_rejected"``) writes at most one line per ``period_s``; the next line written for that kind says how
 many were suppressed since the last one, and :attr:`RateLimitedLog.suppressed` keeps the totals.
 """

@@ -477,7 +477,7 @@ class StepEnd(Message, frozen=True, kw_only=True, forbid_unknown_fields=True):
     in simulation), after those frames.
 
     Lets a receiver decide on a step as soon as every frame that was sent has arrived, instead of waiting out a
-    late-frame window for frames that were lost (issue "Robust by default", item 7). A device of the feeder not
+    late-frame window for frames that were lost. A device of the feeder not
     listed sent nothing for this step.
     """
 

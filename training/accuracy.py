@@ -28,7 +28,7 @@ from training.errors import TrainingError
 __all__ = ["AccuracyReport", "ErrorStats", "MonthTruth", "accuracy_report", "error_stats", "simulate_month"]
 
 WITHIN_PU = 0.01
-EXTREME_GAP_PU = 0.002  # issue 16's goal: the zone's extremes within this of a critical node's
+EXTREME_GAP_PU = 0.002  #'s goal: the zone's extremes within this of a critical node's
 
 
 class ErrorStats(msgspec.Struct, frozen=True, kw_only=True):

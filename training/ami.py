@@ -2,8 +2,8 @@
 
 The paper's estimator (eq. (5)-(7)) sees only feeder-level measurements, so a critical node deep in a
 240 V / 120 V customer secondary, whose voltage follows its own customer's load, keeps an error no
-feeder-level measurement removes (issue 16 allows extra measurements only "as an explicit option with its
-gain shown"). This module is that option for the accuracy report (the live agent's is ``agent.ami``, same rule):
+feeder-level measurement removes. This module is that option for the accuracy report (the live agent's is
+``agent.ami``, same rule):
 
 * placement, from training information only: the ``K`` critical nodes with the widest calibrated bounds
   (``upper_pu + lower_pu`` of ``CvvcModel.bounds``), ties broken by the lower critical-node index;

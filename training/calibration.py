@@ -1,4 +1,4 @@
-"""Calibrated estimate bounds (issue 16, item 2): split conformal on held-out minutes of the training year.
+"""Calibrated estimate bounds: split conformal on held-out minutes of the training year.
 
 After the regressions are fitted, the feeder is simulated (QSTS, regulators on local control, PV at unity power
 factor) over windows of the training year that no training scenario used: one per month, the hour of day moving

@@ -334,7 +334,7 @@ class BridgeRuntime:
         """The bridge's status message now (its ``seq`` is the next)."""
         self.counters.seqs["status"] += 1
         # before the first step (now_t_ns one step before it) the status is stamped at the first simulated instant,
-        # so that a recording of the session starts there, not a step earlier (issue 19 item 4)
+        # so that a recording of the session starts there, not a step earlier
         t_ns = max(self.now_t_ns, self.spec.run_start_t_ns)
         return m.BridgeStatus(t_ns=t_ns, seq=self.counters.seqs["status"], source="bridge",
                               feeder_id=self.fid, step=self.steps, steps_total=self.config.steps,

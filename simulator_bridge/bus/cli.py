@@ -271,6 +271,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     scaffold.add_argument("--force", action="store_true", help="overwrite --out if it exists")
     scaffold.set_defaults(func=_scaffold)
 
-    from simulator_bridge.bus.bridge_cli import register_bridge  # the `bridge` verb (issue 4)
+    from simulator_bridge.bus.bridge_cli import register_bridge  # the `bridge` verb
 
     register_bridge(subparsers)

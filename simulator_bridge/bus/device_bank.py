@@ -40,7 +40,7 @@ class BridgeCounters:
 
     Attributes
     ----------
-    rlog : every log line a peer can provoke, rate limited (issue "Robust by default" (f)).
+    rlog : every log line a peer can provoke, rate limited.
     seqs : the sequence numbers of the bridge's own messages, by key (``ack:<source>``, ``oracle``, ``status``).
     acks : acks sent, by status. rejected : rejected commands and queries, by reason.
     """

@@ -141,8 +141,7 @@ class CommandGuard:
     ``sender_identity``: None keys the replay state on each command's ``source``, which the sender writes
     itself. In secure mode the bus's access policy lets one certificate alone publish commands
     (``schemas.security.COMMAND_ROLE``), so every command that reaches the device was sent under that
-    identity: the state is keyed on it, and a command cannot escape the sequence by naming another ``source``
-    (issue "Robust by default", item 1).
+    identity: the state is keyed on it, and a command cannot escape the sequence by naming another ``source``.
     """
 
     def __init__(self, device_id: str, *, period_ns: int = DEFAULT_PERIOD_NS,

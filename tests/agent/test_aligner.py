@@ -108,7 +108,7 @@ def test_good_frame_after_bad_is_handled(aligner):
 
 # ------------------------------------------------------------------ no single frame moves the clock or locks out
 def test_one_frame_from_the_future_does_not_blind_the_aligner(aligner):
-    """Issue 17 (a): a schema-valid head frame stamped 2100 made every real frame 'stale' for the rest of the run."""
+    """A schema-valid head frame stamped 2100 made every real frame 'stale' for the rest of the run."""
     for k, f in (head(T0, 1), pv(T0, 1), vr(T0, 1)):
         aligner.add(k, f)
     forged_t = 4_102_444_800_000_000_000  # 2100-01-01
@@ -153,7 +153,7 @@ def test_a_burst_of_lost_frames_passes_at_once(aligner):
 
 
 def test_a_forged_huge_seq_is_held_and_refused_when_the_devices_next_frame_does_not_confirm_it(aligner):
-    """Issue 17 (a): a head frame with seq 2**63-1 made the agent hold for the rest of the run; then it locked the
+    """A head frame with seq 2**63-1 made the agent hold for the rest of the run; then it locked the
     head out for a control period. Now the jump waits for the head's next frame, which refuses it."""
     for k, f in (head(T0, 1), pv(T0, 1), vr(T0, 1)):
         aligner.add(k, f)
@@ -213,7 +213,7 @@ def test_capacitor_bank_frames_are_ignored_not_fatal(aligner):
     assert out.complete
 
 
-# ------------------------------------------------------------------ scan-end markers (issue 17, item 7)
+# ------------------------------------------------------------------ scan-end markers
 def step_end(t_ns, *, head=True, pvs=(), vrs=(), feeder="rural", key_feeder="rural"):
     return keys.meas_step(key_feeder), m.StepEnd(t_ns=t_ns, seq=1, source="bridge", feeder_id=feeder, head=head,
                                                  pv=list(pvs), vr=list(vrs))
@@ -266,7 +266,7 @@ def test_step_end_markers_ahead_of_their_frames_are_bounded(aligner):
 
 
 def test_a_control_step_carries_its_regulators_readings_of_the_period_and_the_snapshot_averages_them(aligner):
-    """Issue "Robust by default" item 7: the regulator readings of the snapshot are the mean of the control
+    """The regulator readings of the snapshot are the mean of the control
     period's frames at the present tap (a noisy single reading made the set points hunt)."""
     from agent.runtime import snapshot_from
     from benchmarks.synthetic import synthetic_model
@@ -298,7 +298,7 @@ def test_a_control_step_carries_its_regulators_readings_of_the_period_and_the_sn
 
 
 def test_a_head_or_regulator_frame_lost_at_a_control_step_is_replaced_by_its_last_good_value(aligner):
-    """Issue "Robust by default" item 7: a lost head frame at a control step made the step a hold (98 holds and
+    """A lost head frame at a control step made the step a hold (98 holds and
     NVV 446 in a rural winter week at 5 % lost frames); the latest one within ``last_good_s`` stands in."""
     from agent.runtime import AgentSettings, snapshot_from
     from benchmarks.synthetic import synthetic_model

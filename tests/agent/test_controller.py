@@ -329,7 +329,7 @@ def _bounded_model(upper: float, lower: float, head_p_range: tuple[float, float]
 
 
 def test_calibrated_bounds_tighten_the_estimated_nodes_limits():
-    """Issue 16 item 2: each critical node's limits are tightened by its estimate's calibrated bounds."""
+    """Each critical node's limits are tightened by its estimate's calibrated bounds."""
     plain = controller().decide(snapshot(reading_error_pu=HIGH))
     bounded = CvvcController(_bounded_model(0.004, 0.003), mode="taps", correction=True, bandwidth_v120=4.0)
     d = bounded.decide(snapshot(reading_error_pu=HIGH))

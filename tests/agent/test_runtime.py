@@ -137,7 +137,7 @@ def test_full_visibility_cannot_run_offline(model):
 
 
 def test_eq8_set_points_are_clamped_into_the_accepted_range_and_counted(model):
-    """Issue 17 (g): eq. (8) set points outside a controller's accepted range were sent and came back refused."""
+    """Eq. (8) set points outside a controller's accepted range were sent and came back refused."""
     import dataclasses
 
     import numpy as np

@@ -80,7 +80,7 @@ def test_runs_on_a_local_cluster_of_two_workers_measure_what_they_measure_in_pro
 
 
 def test_a_recordings_time_span_starts_at_the_first_simulated_minute(small_evaluation):
-    """Issue 19 item 4, end to end: the agent's status before its first frame (t_ns 0) does not pull the recorded
+    """The agent's status before its first frame (t_ns 0) does not pull the recorded
     span back to 1970; the span starts at 2023-07-01 00:00 local standard time (UTC-5) and covers the window."""
     from mcap.reader import make_reader
 
@@ -121,7 +121,7 @@ def test_results_md_has_the_paper_table_rows(small_evaluation):
 
 
 def test_results_list_each_agent_runs_soft_and_hold_decisions_and_its_decision_time(small_evaluation):
-    """Issue 16 item 5: the soft and hold counts (read by hand from each run's agent-summary.json before) and the
+    """The soft and hold counts (read by hand from each run's agent-summary.json before) and the
     agent's decision time of every run, in results.json and results.md; none for the baseline, which has no agent."""
     out, ev = small_evaluation
     d, none = ev.runs

@@ -151,7 +151,7 @@ def test_no_process_left_behind_and_outputs_written(one_hour_run):
     for name in ("summary.json", "report.md", "model.json", "session.mcap"):
         assert (out / name).is_file(), name
     assert json.loads((out / "summary.json").read_text())["metrics"] == summary["metrics"]
-    # issue 17 (c): the run's figures are the processes' own (their summaries), not whatever the bus carried
+    # (c): the run's figures are the processes' own (their summaries), not whatever the bus carried
     bridge, agent = (json.loads((out / f"{who}-summary.json").read_text()) for who in ("bridge", "agent"))
     assert bridge["metrics"] == summary["metrics"]
     assert agent["decisions"] == summary["decisions"] and agent["holds"] == summary["holds"]
@@ -159,7 +159,7 @@ def test_no_process_left_behind_and_outputs_written(one_hour_run):
 
 
 def test_a_run_whose_decisions_mostly_held_ends_with_a_clear_error():
-    """Issue 16: 288 of 288 decisions 'hold' printed like a result; now the run ends with the reasons."""
+    """: 288 of 288 decisions 'hold' printed like a result; now the run ends with the reasons."""
     import msgspec
 
     from cvvc.launch import LaunchError, RunSummary, check_mostly_held

@@ -1,4 +1,4 @@
-"""``cvvc run`` with the recorder killed mid-run (issue 17, item 2): control goes on, the gap is recorded.
+"""``cvvc run`` with the recorder killed mid-run: control goes on, the gap is recorded.
 
 Real processes on IEEE 13 in lockstep, real Zenoh on loopback, real OpenDSS, real MCAP; the recorder is killed
 with SIGKILL by its pid once the recording holds head frames.

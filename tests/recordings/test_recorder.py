@@ -225,7 +225,7 @@ def test_unwritable_output_is_a_clear_error(router_endpoint: str, tmp_path: Path
 
 
 def test_junk_goes_to_quarantine_and_channels_are_bounded(router_endpoint: str, tmp_path: Path) -> None:
-    """Issue 17 (e): junk on a real key sat on the real channel; a flood of made-up keys opened 813 channels."""
+    """Junk on a real key sat on the real channel; a flood of made-up keys opened 813 channels."""
     out = tmp_path / "junk.mcap"
     bus = BusConfig(mode="peer", connect=(router_endpoint,))
     good = encode(head_frame(1))
@@ -257,7 +257,7 @@ def test_junk_goes_to_quarantine_and_channels_are_bounded(router_endpoint: str, 
 
 
 def test_the_time_span_is_the_sessions_not_the_epochs(router_endpoint: str, tmp_path: Path) -> None:
-    """Issue "Scale out" item 4: an agent's status before its first frame (t_ns 0) and a payload with no t_ns are
+    """An agent's status before its first frame (t_ns 0) and a payload with no t_ns are
     logged at the session's instants, so the file spans the simulated session, not 1970 (or today) to 2023."""
     from schemas import messages as m
     from schemas.examples import T0_NS

@@ -1,4 +1,4 @@
-"""Field clocks off the agent's, late frames in real time, and frames lost in outages (issue 17, item 7).
+"""Field clocks off the agent's, late frames in real time, and frames lost in outages.
 
 Real agent and bridge processes on IEEE 13, real Zenoh on loopback, real OpenDSS. The bridge stamps its frames
 2 s off its own clock (``--clock-skew-s``), holds every frame 30 simulated seconds (``--latency-s`` in wall

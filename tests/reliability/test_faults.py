@@ -282,7 +282,7 @@ def test_burst_of_frames_memory_stays_bounded_and_the_agent_keeps_deciding(procs
     during = watcher.messages(m.Decision, lambda d: burst_start_t_ns < d.step_t_ns <= burst_end_t_ns)
     print(f"\n{bursts} bursts of {n} frames: agent VmRSS {rss_kib_after} KiB, VmHWM {rss_kib(agent.pid, 'VmHWM')} "
           f"KiB, rejected {counted.rejected}, decisions during the bursts {len(during)}")
-    # refusing most of what it received, the agent said so (issue 17: 'degraded' with the reason), and kept deciding
+    # refusing most of what it received, the agent said so, and kept deciding
     assert counted.state == "degraded" and "unknown_device" in counted.reason and agent.alive()
     # every frame is accounted for (rejected as unknown device, or dropped as queue_full)
     assert sum(counted.rejected.get(k, 0) - before.rejected.get(k, 0) for k in ("unknown_device", "queue_full")) \

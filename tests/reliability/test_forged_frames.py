@@ -1,4 +1,4 @@
-"""Adversarial frames against a live agent (issue "Robust by default", point 1 and failure (a)).
+"""Adversarial frames against a live agent.
 
 A plain-zenoh client (no credentials, as an intruder or a broken device) publishes schema-valid frames that
 once blinded or stalled the agent for the rest of a run: a head frame stamped 2100-01-01, a head frame with

@@ -120,7 +120,7 @@ def test_live_agent_bridge_and_recorder_survive_12000_bad_messages(procs: Procs,
     assert recorder.stop() == 0, recorder.log()
     info = recording_info(mcap)
     assert info.complete, info.problems
-    # ... on its key's channel if it decodes as that key's type, else on the quarantine channel (issue 17 (e))
+    # ... on its key's channel if it decodes as that key's type, else on the quarantine channel
     recorded: Counter[str] = Counter()
     with open(mcap, "rb") as f:
         for _, channel, message in make_reader(f).iter_messages(log_time_order=False):

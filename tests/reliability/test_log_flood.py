@@ -1,4 +1,4 @@
-"""A flood of bad input writes a bounded number of log lines, and the rest is counted (issue 17, item 3).
+"""A flood of bad input writes a bounded number of log lines, and the rest is counted.
 
 Real agent and bridge processes on IEEE 13, real Zenoh on loopback: a plain session puts undecodable payloads
 on thousands of made-up device keys, measurement keys for the agent and command keys for the bridge. Before,

@@ -1,4 +1,4 @@
-"""Lost frames in lockstep (issue 17, item 7): a step with a lost frame is decided at once, with what arrived.
+"""Lost frames in lockstep: a step with a lost frame is decided at once, with what arrived.
 
 Real agent and bridge processes on IEEE 13, real Zenoh on loopback, real OpenDSS; the bridge drops 20 % of the
 device frames (seeded) and ends each step with a scan-end marker listing what it sent. Before the marker, each

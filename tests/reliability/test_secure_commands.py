@@ -1,4 +1,4 @@
-"""Secure mode: the devices' replay protection is keyed on the authenticated identity (issue 17, item 1).
+"""Secure mode: the devices' replay protection is keyed on the authenticated identity.
 
 A real bridge process on IEEE 13 joins a router that enforces the access policy with mTLS (real certificates,
 real Zenoh on loopback); a client with the agent's certificate, the only one the policy lets command, sends

@@ -104,7 +104,7 @@ def test_init_makes_one_certificate_per_role_signed_by_the_ca_and_is_idempotent(
     assert init_ca(ca_dir) == list(role_paths(ca_dir, "ca")) and init_ca(ca_dir) == []
     written = init_security_dir(d, ca_dir=ca_dir)
     assert len(written) == 1 + 2 * len(ROLES)  # the CA's certificate and each role's two files
-    assert not role_paths(d, "ca")[1].exists()  # issue 17 (j): the CA key never sits in the run's directory
+    assert not role_paths(d, "ca")[1].exists()  # (j): the CA key never sits in the run's directory
     ca = x509.load_pem_x509_certificate(role_paths(d, "ca")[0].read_bytes())
     for role in ROLES:
         cert_path, key_path = role_paths(d, role)

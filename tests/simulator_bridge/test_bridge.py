@@ -171,7 +171,7 @@ def test_oracle_answers_from_the_stepping_thread(client: Client, router_endpoint
         t0 = client.head().t_ns
         replies = list(client.session.get(f"cvvc/{FEEDER}/sim/oracle",
                                           payload=msgspec.json.encode(m.OracleRequest(t_ns=t0)), timeout=10.0))
-        # issue 17 (i): at most two replies per simulated step; the third query is refused, not computed
+        # (i): at most two replies per simulated step; the third query is refused, not computed
         more = [list(client.session.get(f"cvvc/{FEEDER}/sim/oracle",
                                         payload=msgspec.json.encode(m.OracleRequest(t_ns=t0)), timeout=10.0))
                 for _ in range(2)]
@@ -201,7 +201,7 @@ def test_oracle_answers_from_the_stepping_thread(client: Client, router_endpoint
 
 def test_no_oracle_unless_asked_for(client: Client, router_endpoint: str, device_map_path: Path,
                                     cache_dir: Path) -> None:
-    """Issue 17 (i): the oracle answered any session with every node's true voltage; now only case A has one."""
+    """ (i): the oracle answered any session with every node's true voltage; now only case A has one."""
     client.be_agent()
     th, stop, out = bridge_thread(bridge_config(device_map_path, cache_dir, steps=1, wait_agent_s=0.0), router_endpoint)
     try:

@@ -73,7 +73,7 @@ def test_replays_are_rejected_per_source(pv: dv.PvInverter) -> None:
 
 
 def test_a_forged_huge_seq_locks_a_source_out_for_at_most_one_period(pv: dv.PvInverter) -> None:
-    """Issue 17 (b): two commands from 'agent' with seq 2**63-1 locked the real agent out for good."""
+    """ (b): two commands from 'agent' with seq 2**63-1 locked the real agent out for good."""
     forged = _pv_cmd(seq=2**63 - 1)
     assert pv.check(forged, now_t_ns=NOW) is None
     pv.guard.apply(forged, forged.q_kvar)
@@ -91,7 +91,7 @@ def test_without_an_identity_each_source_has_its_own_sequence(pv: dv.PvInverter)
 
 
 def test_with_an_authenticated_identity_naming_another_source_does_not_escape_replay_protection() -> None:
-    """Issue 17 item 1: in secure mode every command comes under the one certificate that may command, so the
+    """in secure mode every command comes under the one certificate that may command, so the
     sequence is that identity's, whatever ``source`` a command names; forgetting a lost sender forgets it.
     """
     from schemas.security import COMMAND_ROLE
@@ -193,7 +193,7 @@ def test_frames_from_readings_decode_within_schema_bounds(pv: dv.PvInverter, reg
     night = dv.pv_frame(plant=pv, t_ns=NOW, seq=2, p_kw=np.zeros(3), q_kvar=np.zeros(3), v_v=np.full(3, 2400.0),
                         available_p_kw=0.0, q_setpoint_kvar=None)
     assert night.q_available_kvar == 0.0  # no reactive power without active power (unless q_at_night)
-    # issue 17 (h): the frame reports the set point the inverter applies, not the request
+    # (h): the frame reports the set point the inverter applies, not the request
     huge = dv.pv_frame(plant=pv, t_ns=NOW, seq=3, p_kw=np.full(3, 200.0), q_kvar=np.full(3, 266.0),
                        v_v=np.full(3, 2400.0), available_p_kw=600.0, q_setpoint_kvar=1e6)
     assert huge.q_setpoint_kvar == pytest.approx(800.0)

@@ -1,4 +1,4 @@
-"""The case-A oracle (issue 16, item 4): its perturbations run on a twin engine, so the simulated state is never
+"""The case-A oracle: its perturbations run on a twin engine, so the simulated state is never
 disturbed, and its answers equal perturbing the stepping engine itself. Real OpenDSS (IEEE 123 with caps moved)."""
 
 from __future__ import annotations
@@ -89,7 +89,7 @@ def test_the_oracle_leaves_the_simulation_untouched_and_answers_as_perturbing_it
 
 
 def test_the_oracle_reply_has_its_own_size_limit() -> None:
-    """Issue 16: epri-ckt24's reply (7,516 zone nodes) was 1.49 MB; every other message keeps the 1 MiB bound."""
+    """: epri-ckt24's reply (7,516 zone nodes) was 1.49 MB; every other message keeps the 1 MiB bound."""
     n, cols = 7522, 12
     reply = OracleReply(t_ns=1, seq=1, source="bridge", feeder_id="f", node_names=[f"bus{i}.1" for i in range(n)],
                         v_pu=[1.0123456789] * n, dv_dq_pu_per_kvar=[[1.23456789e-5] * 3] * n,

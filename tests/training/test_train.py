@@ -120,7 +120,7 @@ def test_accuracy_report_on_a_short_window(trained_123, profile_cache, tmp_path)
         assert e.max_abs_pu < 0.01 and e.within_001 == 1.0
     assert rep.sensitivities[0].minutes == 3 and rep.sensitivities[0].median_rel_err < 0.05
     assert (tmp_path / "fig8.png").stat().st_size > 10_000
-    # issue 16 item 2: the calibrated bounds, predicted against realised out of sample (a July the training never saw)
+    # the calibrated bounds, predicted against realised out of sample (a July the training never saw)
     assert rep.bound_alpha == {"guided": 0.01}
     assert rep.bound_miss_rate["guided"] < 0.05, rep.bound_miss_rate  # zero-width bounds would miss about half
 
