@@ -196,11 +196,11 @@ class FitStats(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=
 class EstimateBounds(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
     """Calibrated error bounds of the corrected estimates and the envelope of the training inputs.
 
-    Split conformal on minutes of the training year that no training scenario used (``training.calibration``):
-    for critical node ``n``, ``true - estimate <= upper_pu[n]`` and ``estimate - true <= lower_pu[n]`` each held in
-    at least ``1 - alpha / 2`` of the calibration minutes' exchangeable draws, so the interval
-    ``[estimate - lower, estimate + upper]`` holds the true voltage with probability ``>= 1 - alpha`` (minutes are
-    correlated in time: the guarantee is approximate, and ``cvvc report accuracy`` measures it out of sample).
+    Conformal on minutes of the training year that no training scenario used (``training.calibration``,
+    ``training.conformal``): for critical node ``n``, the interval ``[estimate - lower_pu[n], estimate + upper_pu[n]]``
+    holds the true voltage in at least ``1 - alpha`` of a held-out calibration window's node-minutes (the windows'
+    minutes are correlated in time: the guarantee is approximate; ``cvvc report accuracy`` measures it on another
+    year, every run live).
     ``envelope_lo``/``envelope_hi``: the range of each regression feature over the training power flows; inputs
     outside it are extrapolation.
     """
@@ -211,6 +211,11 @@ class EstimateBounds(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_f
     calibration_minutes: int
     envelope_lo: list[Finite]
     envelope_hi: list[Finite]
+    # the one-sided quantile level the bounds were taken at (``training.conformal``: raised above 1 - alpha / 2 until
+    # held-out calibration windows miss at most alpha) and that level's held-out miss rate; 0: a model calibrated
+    # before (per-node quantiles at 1 - alpha / 2)
+    level: Finite = 0.0
+    held_out_miss: Finite = 0.0
     # AMI meters (explicit option, ``agent.ami``): the same bounds for a node whose estimate is moved by a meter reading
     # at most ``ami_interval_s`` old (empty lists: a model calibrated before meters existed)
     ami_interval_s: int = 0

@@ -1,18 +1,20 @@
-"""Calibrated estimate bounds: split conformal on held-out minutes of the training year.
+"""Calibrated estimate bounds: conformal, on held-out minutes of the training year.
 
 After the regressions are fitted, the feeder is simulated (QSTS, regulators on local control, PV at unity power
 factor) over windows of the training year that no training scenario used: one per month, the hour of day moving
 through the day (four seasonal windows under-covered: 4.0 % of January's node-minutes outside 1 % bounds on the rural
 feeder, against 0.6 % with twelve). The corrected estimate (eq. 5-7, as the agent computes it) of every critical
-node is compared with OpenDSS's voltage, minute by minute. Each node's one-sided error quantiles are its bounds:
+node is compared with OpenDSS's voltage, minute by minute, and the bounds are conformal quantiles of those errors
+(``training.conformal``): each node's errors scaled by its own RMS error and pooled over the nodes, at the one-sided
+level at which bounds computed without a window miss at most ``alpha`` of that window's node-minutes:
 
-    upper[n] = the ceil((T + 1)(1 - alpha / 2))-th smallest of (true - estimate)   (0 at least)
-    lower[n] = the same of (estimate - true)
+    upper[n] = scale[n] * q_level((true - estimate) / scale)   over every node and minute   (0 at least)
+    lower[n] = scale[n] * q_level((estimate - true) / scale)
 
-so ``[estimate - lower, estimate + upper]`` holds the true voltage in at least ``1 - alpha`` of exchangeable
-minutes (split conformal prediction; Lei et al. 2018). Minutes of one window are correlated, so the guarantee is
-approximate: ``cvvc report accuracy`` reports the realised rate on another year. The agent tightens each critical
-node's limits by its bounds (``agent.controller``), and widens them when its inputs leave the training envelope.
+so ``[estimate - lower, estimate + upper]`` holds the true voltage in at least ``1 - alpha`` of a window's
+node-minutes the bounds did not see. ``cvvc report accuracy`` reports the realised rate on another year, every run
+the rate live. The agent tightens each critical node's limits by its bounds (``agent.controller``), and widens them
+when its inputs leave the training envelope.
 
 Calibration sees the tap states the agent creates: in every other window each regulator's local set point is moved by
 a whole number of its tap steps, drawn uniformly within ``±setpoint_offset_taps`` (seeded), so its taps rest away from
@@ -27,16 +29,18 @@ The same minutes give each node's bounds when an AMI meter reads it every 15 min
 
 from __future__ import annotations
 
-import math
+from typing import NamedTuple
 
 import numpy as np
 
 from regression.batch import estimate_v_pu
 from regression.model import CvvcModel, EstimateBounds, ModelArrays
 from training.ami import ami_estimate_v_pu
+from training.conformal import pooled_bounds
 
 __all__ = [
-    "AMI_INTERVAL_S", "CALIBRATION_WINDOWS", "ami_residual", "calibrate_bounds", "conformal_quantile", "envelope",
+    "AMI_INTERVAL_S", "CALIBRATION_WINDOWS", "CalibrationResiduals", "ami_residual", "calibrate_bounds",
+    "calibration_residuals", "envelope",
 ]
 
 #: (month, day, local hour) of the calibration windows: one per month, the hour moving through the day.
@@ -53,25 +57,59 @@ SETPOINT_OFFSET_TAPS = 8  # the largest set-point offset of a calibration window
 _SETPOINT_SEED = 20261128
 
 
-def conformal_quantile(scores: np.ndarray, level: float) -> np.ndarray:
-    """Split-conformal quantile of ``scores`` (T, N) along axis 0: the ceil((T + 1) level)-th smallest.
-
-    With too few samples for the level (``ceil((T + 1) level) > T``) it is the largest score (the exact conformal
-    bound would be infinite). Never below 0.
-    """
-    s = np.sort(np.asarray(scores, float), axis=0)
-    t = s.shape[0]
-    if t == 0:
-        raise ValueError("conformal_quantile: no calibration samples")
-    k = min(t, math.ceil((t + 1) * level))
-    return np.maximum(s[k - 1], 0.0)
-
-
 def envelope(features: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(lo, hi) of each feature over ``features`` (F, M), widened by 5 % of its range on each side."""
     lo, hi = features.min(axis=0), features.max(axis=0)
     pad = _ENVELOPE_SLACK * np.maximum(hi - lo, 1e-9)
     return lo - pad, hi + pad
+
+
+class CalibrationResiduals(NamedTuple):
+    """The calibration minutes' errors ``true - corrected estimate`` [pu] at the critical nodes.
+
+    ``err`` (T, N); ``window`` (T,) the calibration window of each row (rows of one window are correlated);
+    ``ami`` (T', N) the same after an AMI reading's correction (``ami_residual``), ``ami_window`` (T',) theirs.
+    """
+
+    err: np.ndarray
+    window: np.ndarray
+    ami: np.ndarray
+    ami_window: np.ndarray
+
+
+def calibration_residuals(model: CvvcModel, engine, profiles, *, training_steps: np.ndarray, minutes: int = 1440,
+                          progress: bool = False,
+                          setpoint_offset_taps: int = SETPOINT_OFFSET_TAPS) -> CalibrationResiduals:
+    """Simulate the calibration windows (module docstring) and return the corrected estimates' errors.
+
+    Parameters as :func:`calibrate_bounds`.
+    """
+    from simulator_bridge.simulation.profiles import month_steps
+    from training.accuracy import simulate_month
+
+    per_window = max(1, int(minutes) // len(CALIBRATION_WINDOWS))
+    names = {n: i for i, n in enumerate(engine.node_names)}
+    nodes = np.asarray([names[c.name] for c in model.critical_nodes], int)
+    arrays = ModelArrays.of(model)
+    held_out = set(np.asarray(training_steps, int).tolist())
+    residuals, windows, ami_residuals, ami_windows = [], [], [], []
+    rng = np.random.default_rng(AMI_NOISE_SEED)
+    offsets = _setpoint_offsets_v120(model, len(CALIBRATION_WINDOWS), setpoint_offset_taps)
+    for w, (month, day, hour) in enumerate(CALIBRATION_WINDOWS):
+        first = month_steps(profiles, month).start + (day - 1) * 1440 + hour * 60
+        steps = range(first - _WARMUP_MIN, min(first + per_window, profiles.n_steps))
+        truth = simulate_month(engine, profiles, steps, nodes, sens_minutes=0, progress=progress,
+                               setpoint_offset_v120=offsets[w])
+        keep = np.array([s >= first and s not in held_out for s in truth.steps])
+        est = estimate_v_pu(arrays, truth.features, truth.taps, truth.reg_v120, caps=truth.cap_states,
+                            cap_v_v=truth.cap_v_v, t_ns=truth.t_ns)  # row by row: the warm-up rows too
+        err = truth.v_pu - est
+        residuals.append(err[keep])
+        windows.append(np.full(int(keep.sum()), w, int))
+        ami_residuals.append(ami_residual(err, truth.t_ns, keep, AMI_INTERVAL_S, AMI_NOISE_PU, rng))
+        ami_windows.append(np.full(ami_residuals[-1].shape[0], w, int))
+    return CalibrationResiduals(err=np.concatenate(residuals), window=np.concatenate(windows),
+                                ami=np.concatenate(ami_residuals), ami_window=np.concatenate(ami_windows))
 
 
 def calibrate_bounds(model: CvvcModel, engine, profiles, *, training_steps: np.ndarray,
@@ -91,43 +129,25 @@ def calibrate_bounds(model: CvvcModel, engine, profiles, *, training_steps: np.n
     setpoint_offset_taps : every other window moves each regulator's set point by up to this many of its tap steps
         (module docstring); 0: every window under local control at the default set points.
     """
-    from simulator_bridge.simulation.profiles import month_steps
-    from training.accuracy import simulate_month
-
     if not 0.0 < alpha < 1.0:
         raise ValueError(f"alpha {alpha} must be in (0, 1)")
-    per_window = max(1, int(minutes) // len(CALIBRATION_WINDOWS))
-    names = {n: i for i, n in enumerate(engine.node_names)}
-    nodes = np.asarray([names[c.name] for c in model.critical_nodes], int)
-    arrays = ModelArrays.of(model)
-    held_out = set(np.asarray(training_steps, int).tolist())
-    residuals, ami_residuals = [], []
-    rng = np.random.default_rng(AMI_NOISE_SEED)
-    offsets = _setpoint_offsets_v120(model, len(CALIBRATION_WINDOWS), setpoint_offset_taps)
-    for w, (month, day, hour) in enumerate(CALIBRATION_WINDOWS):
-        first = month_steps(profiles, month).start + (day - 1) * 1440 + hour * 60
-        steps = range(first - _WARMUP_MIN, min(first + per_window, profiles.n_steps))
-        truth = simulate_month(engine, profiles, steps, nodes, sens_minutes=0, progress=progress,
-                               setpoint_offset_v120=offsets[w])
-        keep = np.array([s >= first and s not in held_out for s in truth.steps])
-        est = estimate_v_pu(arrays, truth.features, truth.taps, truth.reg_v120, caps=truth.cap_states,
-                            cap_v_v=truth.cap_v_v, t_ns=truth.t_ns)  # row by row: the warm-up rows too
-        err = truth.v_pu - est
-        residuals.append(err[keep])
-        ami_residuals.append(ami_residual(err, truth.t_ns, keep, AMI_INTERVAL_S, AMI_NOISE_PU, rng))
-    r = np.concatenate(residuals)
-    r_ami = np.concatenate(ami_residuals)
+    res = calibration_residuals(model, engine, profiles, training_steps=training_steps, minutes=minutes,
+                                progress=progress, setpoint_offset_taps=setpoint_offset_taps)
     lo, hi = envelope(np.asarray(training_features, float))
+    b = pooled_bounds(res.err, res.window, alpha)
+    ami = pooled_bounds(res.ami, res.ami_window, alpha) if res.ami.shape[0] else None
     return EstimateBounds(
         alpha=float(alpha),
-        upper_pu=[float(x) for x in conformal_quantile(r, 1.0 - alpha / 2.0)],
-        lower_pu=[float(x) for x in conformal_quantile(-r, 1.0 - alpha / 2.0)],
-        calibration_minutes=int(r.shape[0]),
+        upper_pu=[float(x) for x in b.upper],
+        lower_pu=[float(x) for x in b.lower],
+        calibration_minutes=int(res.err.shape[0]),
         envelope_lo=[float(x) for x in lo],
         envelope_hi=[float(x) for x in hi],
-        ami_interval_s=AMI_INTERVAL_S if r_ami.shape[0] else 0,
-        ami_upper_pu=[float(x) for x in conformal_quantile(r_ami, 1.0 - alpha / 2.0)] if r_ami.shape[0] else [],
-        ami_lower_pu=[float(x) for x in conformal_quantile(-r_ami, 1.0 - alpha / 2.0)] if r_ami.shape[0] else [],
+        level=b.level,
+        held_out_miss=b.held_out_miss,
+        ami_interval_s=AMI_INTERVAL_S if ami is not None else 0,
+        ami_upper_pu=[] if ami is None else [float(x) for x in ami.upper],
+        ami_lower_pu=[] if ami is None else [float(x) for x in ami.lower],
     )
 
 

@@ -95,7 +95,8 @@ def _train(args: argparse.Namespace) -> int:
     )
     if s.calibration_minutes:
         print(f"  estimate bounds: median ±{s.bound_p50_pu:.4f} pu, calibrated on {s.calibration_minutes} held-out "
-              f"minutes in {s.seconds_calibration:.1f} s")
+              f"minutes in {s.seconds_calibration:.1f} s (level {s.bound_level:.4f}: held-out windows missed "
+              f"{100 * s.bound_held_out_miss:.2f} %)")
     print(f"  seconds:         {s.seconds:.1f}")
     return 0
 

@@ -60,12 +60,13 @@ from training.scenarios import ScenarioSet, calendar_cover, select_scenarios, su
 __all__ = ["DEFAULT_Q_STEPS_PCT", "TRAINING_REVISION", "TrainResult", "TrainSummary", "load_profiles", "train"]
 
 #: Bump when training changes what it produces, so cached models (``cvvc run``'s cache) are retrained.
-TRAINING_REVISION = 9  # 3: critical nodes in the zone, movable only; 4: model format 2; 5: bounds and banks;
+TRAINING_REVISION = 10  # 3: critical nodes in the zone, movable only; 4: model format 2; 5: bounds and banks;
 # 6: cvvc run trains the extended set on feeders with banks (training.extended.default_feature_options);
 # 7: the extended set's cover also takes each regulator zone's extremes (training.extended.zone_extreme_cover);
 # 8: the extended set's calendar cover, seasonal and weekly calendar terms (training.extended.EXTENDED_OPTIONS);
 # 9: the bounds are calibrated over set-point-shifted windows too (training.calibration.SETPOINT_OFFSET_TAPS);
-# the banks' local controls as the agent predicts them (training.capbanks.bank_controls)
+# the banks' local controls as the agent predicts them (training.capbanks.bank_controls);
+# 10: bounds from node-scaled scores pooled, the level set by held-out windows (training.conformal)
 
 DEFAULT_Q_STEPS_PCT = tuple(float(p) for p in range(-100, 101, 20))
 DEFAULT_COMBINED_PCT = (-100.0, -50.0, 50.0, 100.0)
@@ -102,6 +103,8 @@ class TrainSummary(msgspec.Struct, frozen=True, kw_only=True):
     power_fits_with_negative_b: int
     calibration_minutes: int = 0  # held-out minutes the estimate bounds were calibrated on (0: no bounds)
     bound_p50_pu: float = 0.0  # median over critical nodes of the calibrated bound (upper + lower) / 2
+    bound_level: float = 0.0  # the one-sided quantile level the bounds were taken at (training.conformal)
+    bound_held_out_miss: float = 0.0  # that level's miss rate on held-out calibration windows
     seconds_calibration: float = 0.0
     cover_minutes: int = 0  # calendar cover: base-flow minutes beyond the scenarios (``calendar_cover_per_cell``)
 
@@ -481,6 +484,8 @@ def train(
         sensitivity_forms=forms,
         calibration_minutes=0 if b is None else b.calibration_minutes,
         bound_p50_pu=0.0 if b is None else float(np.median((np.add(b.upper_pu, b.lower_pu)) / 2.0)),
+        bound_level=0.0 if b is None else b.level,
+        bound_held_out_miss=0.0 if b is None else b.held_out_miss,
         seconds_calibration=round(seconds_cal, 3),
         power_fits_with_negative_b=neg_b,
         cover_minutes=int(cover.size),

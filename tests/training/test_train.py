@@ -140,7 +140,7 @@ def test_the_model_carries_calibrated_bounds_and_the_training_envelope(trained_1
 
 
 def test_conformal_quantile_is_the_ceil_n_plus_1_level_th_score():
-    from training.calibration import conformal_quantile
+    from training.conformal import conformal_quantile
 
     scores = np.arange(1.0, 100.0)[:, None]  # 1..99
     assert conformal_quantile(scores, 0.9)[0] == 90.0  # ceil(100 * 0.9) = 90th smallest
