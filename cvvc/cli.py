@@ -22,6 +22,7 @@ __all__ = ["main", "build_parser", "CliError"]
 _VERB_MODULES = (
     "schemas.cli",
     "simulator_bridge.bus.cli",
+    "cvvc.advise_cli",  # a sub-verb of `feeder`: after it
     "training.cli",
     "agent.cli",
     "recordings.cli",
