@@ -55,6 +55,7 @@ def register_evaluate(sub: argparse._SubParsersAction) -> None:
 
 
 def _evaluate(args: argparse.Namespace) -> int:
+    from cvvc.case import agent_options_from_args
     from cvvc.errors import CliError
     from cvvc.evaluate import EvaluateConfig, EvaluateError, evaluate, parse_cases, parse_seasons
     from cvvc.launch import CASES
@@ -73,8 +74,7 @@ def _evaluate(args: argparse.Namespace) -> int:
                             out=args.out, cache=args.cache,
                             robustness=args.robustness, resume=args.resume,
                             reference_step_s=args.reference_step_s, lockstep_timeout_s=args.lockstep_timeout_s,
-                            pv_margin_window_s=args.pv_margin_window_s, setpoint_hold=args.setpoint_hold,
-                            control_banks=args.control_banks, cases=CASES if cases is None else cases,
+                            agent=agent_options_from_args(args), cases=CASES if cases is None else cases,
                             secure=not args.insecure, ca_dir=args.ca_dir)
     try:
         ev = evaluate(config)

@@ -10,6 +10,7 @@ import msgspec
 
 from cvvc.launch import CASES
 from schemas import messages as m
+from schemas.settings import AgentOptions
 from simulator_bridge.simulation.live_accuracy import LiveAccuracy
 
 __all__ = ["EVALUATION_YEAR", "ROBUSTNESS_VARIANTS", "SEASONS", "EvaluateConfig", "Evaluation", "RunFailure",
@@ -29,7 +30,7 @@ class EvaluateConfig(msgspec.Struct, frozen=True, kw_only=True):
     model: str | None = None
     cases: tuple[str, ...] = CASES
     seasons: tuple[Season, ...] = SEASONS
-    bandwidths_v120: tuple[float, ...] = (4.0,)
+    bandwidths_v120: tuple[float, ...] = (AgentOptions().bandwidth_v120,)
     year_seed: int = 2
     train_seed: int = 1
     days_per_season: float | None = None  # None: the whole month
@@ -38,9 +39,7 @@ class EvaluateConfig(msgspec.Struct, frozen=True, kw_only=True):
     out: str = "runs/evaluate"
     cache: str | None = None  # cache root; None: schemas.cache.default_cache_root()
     robustness: bool = False
-    pv_margin_window_s: float | None = None  # the agent's PV variability margin window; None: its default, 0: off
-    setpoint_hold: bool = False  # the agent's opt-in set-point hold (cases C/D)
-    control_banks: bool = False  # the agent's opt-in capacitor-bank decisions
+    agent: AgentOptions = msgspec.field(default_factory=AgentOptions)  # a case file's [agent]; the band: bandwidths
     resume: bool = False  # reuse a run whose folder already holds a finished summary.json of the same spec
     perturbation_pct: float = 10.0
     perturbation_seed: int = 7
