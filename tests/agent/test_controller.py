@@ -620,3 +620,19 @@ def test_noisy_readings_widen_the_bounds_from_their_window_mean_not_the_last_rea
     quiet, noisy = high_bound(0.1 * step_v), high_bound(1.2)
     np.testing.assert_allclose(noisy, 0.001)  # the window's mean is what the filter took in: no gap
     assert quiet.max() == pytest.approx(0.001 + jump_pu, abs=1e-9)  # the last reading's gap, on its side
+
+
+def test_the_controllers_defaults_are_the_shipped_agents():
+    """A controller given no option is the agent process's with ``AgentSettings``' defaults (one place for each
+    default: ``schemas.settings``), and decides as it does."""
+    from agent.runtime import DecisionMaker
+    from schemas.settings import AgentSettings
+
+    shipped, plain = DecisionMaker(MODEL, AgentSettings(mode="taps")).controller, controller()
+    for name in ("sensitivity_error", "bounds_in_margin", "bounds_cover_filter", "predict_banks", "stale_plants",
+                 "setpoint_hold", "control_banks", "bandwidth_v120"):
+        assert getattr(plain, name) == getattr(shipped, name), name
+    assert plain.sensitivity_error == AgentSettings().sensitivity_error > 0  # not the paper's eq. (17)
+    for t in range(3):
+        snap = snapshot(t * 300 * 10**9, reading_error_pu=HIGH)
+        assert shipped.decide(snap).same_content(plain.decide(snap))
