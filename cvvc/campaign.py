@@ -45,7 +45,7 @@ from cvvc.evaluate import (
 )
 from schemas import messages as m
 from schemas.errors import CvvcError
-from schemas.settings import AgentOptions
+from schemas.settings import AgentOptions, RunCase
 from simulator_bridge.simulation.live_accuracy import LiveAccuracy
 
 __all__ = ["EMBEDDED_FEEDER", "Campaign", "CampaignResult", "Variant", "campaign_rows", "load_campaign",
@@ -80,8 +80,8 @@ class Campaign(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=
     cases: Annotated[list[str], msgspec.Meta(min_length=1)]
     seasons: Annotated[list[Season], msgspec.Meta(min_length=1)]
     days_per_season: Annotated[float, msgspec.Meta(gt=0)] | None = None
-    year_seed: int = 2
-    train_seed: int = 1
+    year_seed: int = RunCase().window.year_seed
+    train_seed: int = RunCase().feeder.train_seed
     variants: dict[_Name, Variant] = msgspec.field(default_factory=lambda: {"base": Variant()})
 
 

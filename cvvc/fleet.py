@@ -46,7 +46,7 @@ from cvvc.launch import (
     prepare_feeder_and_model,
 )
 from schemas import messages as m
-from schemas.settings import AgentOptions
+from schemas.settings import AgentOptions, RunCase
 from simulator_bridge.bus.bridge import BridgeSummary
 
 __all__ = ["FleetConfig", "FleetFeeder", "FleetFile", "load_fleet_file", "run_fleet"]
@@ -64,8 +64,8 @@ class FleetFeeder(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fiel
     rural_seed: int | None = None
     id: str | None = None
     model: str | None = None
-    year_seed: int = 2
-    train_seed: int = 1
+    year_seed: int = RunCase().window.year_seed
+    train_seed: int = RunCase().feeder.train_seed
     case: Case | None = None
 
 
@@ -86,12 +86,12 @@ class FleetConfig(msgspec.Struct, frozen=True, kw_only=True):
 
     feeders: list[FleetFeeder]
     days: float = 0.25
-    start: str = "2023-01-16"
-    case: Case = "D"
+    start: str = RunCase().window.start
+    case: Case = RunCase().case
     out: str | None = None
     cache: str | None = None
-    record: bool = True
-    truth_every: int = 1
+    record: bool = RunCase().output.record
+    truth_every: int = RunCase().bridge.truth_every
     lockstep_timeout_s: float = 30.0  # 2 cores shared by every feeder's processes: a step may wait its turn
     secure: bool = True  # mTLS + the access policy; False: --insecure
     ca_dir: str | None = None  # None: <cache>/ca, created on the first run
