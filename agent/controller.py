@@ -31,7 +31,7 @@ from __future__ import annotations
 import time
 from collections import deque
 from collections.abc import Callable, Iterable
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 
@@ -75,7 +75,7 @@ minute, and the rule at every one of them took the rural winter week from 20 to 
 _SHIPPED = AgentOptions()  # the keyword defaults are the shipped agent's (``schemas.settings``), written there once
 
 
-def controller_options(options: AgentOptions) -> dict[str, float | bool]:
+def controller_options(options: AgentOptions) -> dict[str, Any]:
     """The keyword arguments of :class:`CvvcController` that ``options`` sets (mode, correction and meters aside):
     the one mapping from the settings tree to the controller, used by the runtime and by the tests.
     """

@@ -71,7 +71,7 @@ def _fleet(args: argparse.Namespace) -> int:
                          start=pick(args.start, "start", defaults.start), case=pick(args.case, "case", defaults.case),
                          out=args.out, cache=args.cache, record=not args.no_record, truth_every=args.truth_every,
                          lockstep_timeout_s=args.lockstep_timeout_s, secure=not args.insecure, ca_dir=args.ca_dir,
-                         progress=not args.json, **({"agent": fleet.agent} if fleet and fleet.agent else {}))
+                         progress=not args.json, agent=fleet.agent if fleet and fleet.agent else defaults.agent)
     summary = run_fleet(config)
     if args.json:
         sys.stdout.write(msgspec.json.format(msgspec.json.encode(summary), indent=2).decode() + "\n")

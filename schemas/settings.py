@@ -35,7 +35,7 @@ CASES: tuple[Case, ...] = ("A", "B", "C", "D", "none", "local")
 PvProtocol = Literal["bus", "sunspec"]
 
 class AgentOptions(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
-    """The agent's decision settings a case file's ``[agent]`` section sets (docs/agent.md)."""
+    """The agent's decision settings (docs/agent.md); the case sets the mode and the correction."""
 
     bandwidth_v120: Annotated[float, Meta(gt=0, description=(
         "regulator band sent with eq. (8) set points, cases C/D [V on the 120 V base]"))] = 4.0
@@ -118,7 +118,7 @@ class FeederSection(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fi
 
 
 class WindowSection(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
-    """The simulated days (1-minute steps: the device map's ``step_s``)."""
+    """The simulated days (their steps are the device map's step_s, 1 minute)."""
 
     start: Annotated[str, Meta(description=(
         "first simulated instant, YYYY-MM-DD[THH:MM], local standard time (UTC-5)"))] = "2023-01-16"

@@ -201,3 +201,17 @@ def test_cvvc_run_of_a_case_file_runs_it_and_records_the_case(tmp_path, ieee13_m
         load_case(path).window, days=10 / 1440))
     assert f"case file: `{path}`" in (folder / "out" / "report.md").read_text()
     assert (folder / "cache" / "security").is_dir()  # the cache the file names, relative to it
+
+
+def test_a_fleet_files_agent_section_is_a_case_files(tmp_path):
+    from cvvc.fleet import load_fleet_file
+    from cvvc.launch import LaunchError
+
+    path = tmp_path / "fleet.toml"
+    path.write_text('case = "D"\n[agent]\npv_margin_window_s = 0.0\n[[feeder]]\nrural_seed = 1\n')
+    assert load_fleet_file(path).agent == AgentOptions(pv_margin_window_s=0.0)
+    path.write_text('[[feeder]]\nrural_seed = 1\n')  # a fleet file without it: the defaults
+    assert load_fleet_file(path).agent is None
+    path.write_text('[agent]\npv_margin = 0.0\n[[feeder]]\nrural_seed = 1\n')
+    with pytest.raises(LaunchError, match="pv_margin"):
+        load_fleet_file(path)
