@@ -50,8 +50,6 @@ from simulator_bridge.simulation.metrics import Metrics
 __all__ = ["CASES", "CASE_AGENT", "CaseAgent", "LaunchError", "RunConfig", "RunSummary", "agent_settings_args",
            "bridge_args", "case_agent_settings", "check_mostly_held", "run"]
 
-
-
 _DEFAULT = RunCase()  # the tree's defaults: RunConfig's
 _RENAMED = {("feeder", "map"): "feeder"}  # a case file's (section, key) -> RunConfig's field, where they differ
 _AGENT_UP_S = 60.0  # the longest the agent may take to come up; the bridge waits that long for it [s]
