@@ -21,7 +21,8 @@ import msgspec
 from cvvc.errors import CommandError
 from schemas.settings import SECTIONS, AgentOptions, RunCase
 
-__all__ = ["PATH_KEYS", "RUN_FLAGS", "CaseFileError", "agent_options_from_args", "apply_flags", "case_toml",
+__all__ = ["PATH_KEYS", "RUN_FLAGS", "CaseFileError", "absolute_paths", "agent_options_from_args", "apply_flags",
+           "case_toml",
            "load_case", "write_case"]
 
 
@@ -125,6 +126,17 @@ def _set(case: RunCase, section: str | None, key: str, value: object) -> RunCase
     if section is None:
         return msgspec.structs.replace(case, **{key: value})
     return msgspec.structs.replace(case, **{section: msgspec.structs.replace(getattr(case, section), **{key: value})})
+
+
+def absolute_paths(case: RunCase) -> RunCase:
+    """``case`` with its relative paths (``PATH_KEYS``) made absolute from the working folder: a printed case saved
+    to another folder names the same files.
+    """
+    for section, key in PATH_KEYS:
+        value = getattr(case if section is None else getattr(case, section), key)
+        if value is not None:
+            case = _set(case, section, key, str(Path(value).absolute()))
+    return case
 
 
 def apply_flags(case: RunCase, args: argparse.Namespace) -> RunCase:

@@ -93,7 +93,7 @@ def _init(args: argparse.Namespace) -> int:
 def _run(args: argparse.Namespace) -> int:
     import msgspec
 
-    from cvvc.case import apply_flags, case_toml, load_case
+    from cvvc.case import absolute_paths, apply_flags, case_toml, load_case
     from cvvc.launch import RunConfig, run
     from cvvc.run_report import render_summary
 
@@ -101,7 +101,7 @@ def _run(args: argparse.Namespace) -> int:
     if args.print_case:
         given = f"resolved from {args.case_file} and the flags given" if args.case_file else \
             "resolved from the defaults and the flags given"
-        sys.stdout.write(case_toml(case, header=f"the case `cvvc run` would run, {given}"))
+        sys.stdout.write(case_toml(absolute_paths(case), header=f"the case `cvvc run` would run, {given}"))
         return 0
     summary = run(RunConfig.of_case(case, progress=not args.json, case_file=args.case_file))
     if args.json:

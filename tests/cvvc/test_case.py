@@ -91,7 +91,7 @@ def test_a_bad_case_file_is_refused_in_one_line_naming_the_key(tmp_path, capsys,
     assert named in err and len(err.strip().splitlines()) == 1 and str(path) in err
 
 
-def test_print_case_prints_the_resolved_case_and_runs_nothing(tmp_path, capsys):
+def test_print_case_prints_the_resolved_case_and_runs_nothing(tmp_path, capsys, monkeypatch):
     path = tmp_path / "case.toml"
     path.write_text('[window]\ndays = 0.5\n[output]\nout = "here"\n')
     assert main(["run", str(path), "--print-case", "--case", "B", "--noise-pmu-pct", "0.1"]) == 0
@@ -100,6 +100,10 @@ def test_print_case_prints_the_resolved_case_and_runs_nothing(tmp_path, capsys):
     assert resolved.case == "B" and resolved.window.days == 0.5 and resolved.bridge.noise_pmu_pct == 0.1
     assert resolved.output.out == str(tmp_path / "here")
     assert not (tmp_path / "here").exists()  # nothing ran
+    monkeypatch.chdir(tmp_path)  # a flag's path is printed absolute: the printed case runs the same run elsewhere
+    assert main(["run", "--print-case", "--feeder", "maps/f.toml"]) == 0
+    assert msgspec.toml.decode(capsys.readouterr().out.encode(), type=RunCase).feeder.map == str(
+        tmp_path / "maps" / "f.toml")
     assert main(["run", "--print-case"]) == 0  # no file: the defaults
     assert msgspec.toml.decode(capsys.readouterr().out.encode(), type=RunCase) == RunCase()
 
