@@ -7,7 +7,11 @@ import json
 from pathlib import Path
 from typing import Any
 
+from schemas.settings import AgentSettings
+
 __all__ = ["register"]
+
+_SHIPPED = AgentSettings()  # the flags' defaults: the settings tree's (schemas.settings)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -25,35 +29,41 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--feeder", default=None,
                    help="device map of the feeder: refuse the model if its fingerprint differs; its AMI meters "
                         "([[meter]]) are the only ones whose readings count (none without it)")
-    p.add_argument("--mode", choices=["taps", "setpoints"], default="setpoints",
+    p.add_argument("--mode", choices=["taps", "setpoints"], default=_SHIPPED.mode,
                    help="command tap positions (cases A/B) or eq. 8 voltage set points (cases C/D)")
-    p.add_argument("--correction", choices=["on", "off"], default="on", help="eq. 6-7 correction (case D)")
-    p.add_argument("--bandwidth-v", type=float, default=4.0, help="regulator band sent with set points [V on 120 V]")
+    p.add_argument("--correction", choices=["on", "off"], default="on" if _SHIPPED.correction else "off",
+                   help="eq. 6-7 correction (case D)")
+    p.add_argument("--bandwidth-v", type=float, default=_SHIPPED.bandwidth_v120,
+                   help="regulator band sent with set points [V on 120 V]")
     p.add_argument("--pv-margin-window-s", type=float, default=None,
                    help="beyond the paper: tighten each node's limits by the voltage change if the plants went back "
                         "to their highest/lowest output of this many recent seconds; 0 = off (the paper's method) "
-                        "[default: AgentSettings, 1800]")
+                        f"[default {_SHIPPED.pv_margin_window_s:g}]")
     p.add_argument("--pv-margin-cap-pu", type=float, default=None,
-                   help="largest PV variability margin on either side [pu] [default: AgentSettings, 0.01]")
+                   help=f"largest PV variability margin on either side [pu] [default {_SHIPPED.pv_margin_cap_pu:g}]")
     p.add_argument("--setpoint-hold", choices=["on", "off"], default=None,
                    help="beyond the paper (setpoints mode): re-send the last set point unchanged when no tap change is "
-                        "decided, instead of re-centring the band on the reading [default: off]")
+                        "decided, instead of re-centring the band on the reading "
+                        f"[default: {'on' if _SHIPPED.setpoint_hold else 'off'}]")
     p.add_argument("--control-banks", choices=["on", "off"], default=None,
                    help="beyond the paper: decide and command the capacitor banks (else they stay on their local "
-                        "control) [default: off]")
+                        "control) "
+                        f"[default: {'on' if _SHIPPED.control_banks else 'off'}]")
     p.add_argument("--reading-window-s", type=float, default=None,
                    help="regulator readings averaged over this many seconds at the present tap (robust to "
-                        "SCADA-class noise); 0: the last reading alone [default: AgentSettings, 300]")
+                        f"SCADA-class noise); 0: the last reading alone [default {_SHIPPED.reading_window_s:g}]")
     p.add_argument("--reading-fit-s", type=float, default=None,
                    help="beyond the paper, opt-in: regulator readings of this many seconds regressed on the head's "
-                        "P, Q and voltage and evaluated now (agent/readings.py); 0: off [default: AgentSettings, 0]")
+                        "P, Q and voltage and evaluated now (agent/readings.py); 0: off "
+                        f"[default {_SHIPPED.reading_fit_s:g}]")
     p.add_argument("--filtered-setpoints", choices=["on", "off"], default=None,
                    help="beyond the paper (setpoints mode, with the correction filter): eq. (8) starts from the "
-                        "estimate plus the filtered reading-minus-estimate, not the noisy reading [default: on]")
+                        "estimate plus the filtered reading-minus-estimate, not the noisy reading "
+                        f"[default: {'on' if _SHIPPED.filtered_setpoints else 'off'}]")
     p.add_argument("--full-visibility", action="store_true",
                    help="case A: true voltages and sensitivities of every node from the bridge's oracle")
-    p.add_argument("--agent-id", default="agent")
-    p.add_argument("--stale-after-s", type=float, default=10.0)
+    p.add_argument("--agent-id", default=_SHIPPED.agent_id)
+    p.add_argument("--stale-after-s", type=float, default=_SHIPPED.stale_after_s)
     p.add_argument("--json", action="store_true", help="print a JSON summary at exit")
     p.add_argument("--summary-out", metavar="FILE", help="write the JSON summary at exit to FILE (the launcher "
                    "reads the run's decision counts from the agent itself, not from the bus)")

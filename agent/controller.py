@@ -31,7 +31,7 @@ from __future__ import annotations
 import time
 from collections import deque
 from collections.abc import Callable, Iterable
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 
@@ -54,8 +54,9 @@ from agent.state import (
 from regression.estimator import SensitivityTable, dv_dp_pu_per_kw, pv_variability_margins_pu
 from regression.model import CvvcModel, ModelArrays, features
 from schemas.devicemap import MeterSpec
+from schemas.settings import AgentOptions
 
-__all__ = ["CvvcController", "Decision", "DecisionTimings", "MeasurementSnapshot"]
+__all__ = ["CvvcController", "Decision", "DecisionTimings", "MeasurementSnapshot", "controller_options"]
 
 #: Plausible ranges; a value outside makes its frame invalid (the schemas bound the wire values already).
 _V120_RANGE = (60.0, 180.0)
@@ -71,12 +72,31 @@ is treated by ``agent.stale_plants``; a younger one as it is (20 % of the frames
 minute, and the rule at every one of them took the rural winter week from 20 to 144 tap changes)."""
 
 
+_SHIPPED = AgentOptions()  # the keyword defaults are the shipped agent's (``schemas.settings``), written there once
+
+
+def controller_options(options: AgentOptions) -> dict[str, Any]:
+    """The keyword arguments of :class:`CvvcController` that ``options`` sets (mode, correction and meters aside):
+    the one mapping from the settings tree to the controller, used by the runtime and by the tests.
+    """
+    return {"bandwidth_v120": options.bandwidth_v120, "pv_margin_window_s": options.pv_margin_window_s,
+            "pv_margin_cap_pu": options.pv_margin_cap_pu, "setpoint_hold": options.setpoint_hold,
+            "control_banks": options.control_banks, "correction_window_s": options.correction_window_s,
+            "sensitivity_error": options.sensitivity_error, "bounds_in_margin": options.bounds_in_margin,
+            "filtered_setpoints": options.filtered_setpoints, "stale_plants": options.stale_plants,
+            "command_valid_periods": options.valid_intervals, "bounds_cover_filter": options.bounds_cover_filter,
+            "predict_banks": options.predict_banks, "tap_reversal_lockout_s": options.tap_reversal_lockout_s}
+
+
 def _finite(*arrays: np.ndarray) -> bool:
     return all(bool(np.all(np.isfinite(a))) for a in arrays)
 
 
 class CvvcController:
     """Estimation (eq. 5-7), sensitivities (eq. 3-4), CVVC (eq. 9-17) and eq. (8), with the hold rule.
+
+    Every keyword's default is the shipped agent's (``schemas.settings.AgentOptions``, through
+    :func:`controller_options`); ``schemas.settings.PAPER_AGENT`` is the paper's method (every option beyond it off).
 
     Parameters
     ----------
@@ -120,20 +140,20 @@ class CvvcController:
         *,
         mode: Literal["taps", "setpoints"],
         correction: bool,
-        bandwidth_v120: float,
-        pv_margin_window_s: float = 0.0,
-        pv_margin_cap_pu: float = 0.01,
-        setpoint_hold: bool = False,
-        control_banks: bool = False,
-        correction_window_s: float = 0.0,
-        sensitivity_error: float = 0.0,
-        bounds_in_margin: bool = False,
-        filtered_setpoints: bool = False,
-        stale_plants: bool = False,
-        command_valid_periods: float = 2.0,
-        bounds_cover_filter: bool = False,
-        predict_banks: bool = False,
-        tap_reversal_lockout_s: float = 0.0,
+        bandwidth_v120: float = _SHIPPED.bandwidth_v120,
+        pv_margin_window_s: float = _SHIPPED.pv_margin_window_s,
+        pv_margin_cap_pu: float = _SHIPPED.pv_margin_cap_pu,
+        setpoint_hold: bool = _SHIPPED.setpoint_hold,
+        control_banks: bool = _SHIPPED.control_banks,
+        correction_window_s: float = _SHIPPED.correction_window_s,
+        sensitivity_error: float = _SHIPPED.sensitivity_error,
+        bounds_in_margin: bool = _SHIPPED.bounds_in_margin,
+        filtered_setpoints: bool = _SHIPPED.filtered_setpoints,
+        stale_plants: bool = _SHIPPED.stale_plants,
+        command_valid_periods: float = _SHIPPED.valid_intervals,
+        bounds_cover_filter: bool = _SHIPPED.bounds_cover_filter,
+        predict_banks: bool = _SHIPPED.predict_banks,
+        tap_reversal_lockout_s: float = _SHIPPED.tap_reversal_lockout_s,
         meters: Iterable[MeterSpec] = (),
     ) -> None:
         if mode not in ("taps", "setpoints"):

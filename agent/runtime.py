@@ -27,7 +27,7 @@ import numpy as np
 
 from agent.aligner import AlignedFrames, FrameAligner
 from agent.ami import REFUSED_KINDS
-from agent.controller import CvvcController, MeasurementSnapshot
+from agent.controller import CvvcController, MeasurementSnapshot, controller_options
 from agent.controller import Decision as ControllerDecision
 from agent.decision import decision_time_ms, reason_kind
 from agent.readings import fitted_reading_v120
@@ -35,8 +35,8 @@ from agent.state import OracleSource
 from regression.model import CvvcModel
 from schemas import keys
 from schemas import messages as m
-from schemas.devicemap import MeterSpec
 from schemas.logs import RateLimitedLog
+from schemas.settings import AgentSettings
 
 __all__ = ["AgentSettings", "AgentSummary", "DecisionMaker", "decide_offline", "run_agent", "snapshot_from"]
 
@@ -50,50 +50,6 @@ _FIT_MIN = 16  # readings a fit needs: with four terms, fewer are noisier than t
 DECISION_TIMES_KEPT = 100_000
 #: Commands whose ids an ack may answer (the latest sent; a day of decisions on a feeder of ~40 devices).
 SENT_COMMANDS_KEPT = 16_384
-
-
-class AgentSettings(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
-    """Everything that shapes the agent's decisions (recorded with a session for the offline re-run)."""
-
-    feeder_id: str = "rural-s1"
-    agent_id: str = "agent"
-    mode: Literal["taps", "setpoints"] = "setpoints"
-    correction: bool = True
-    bandwidth_v120: float = 4.0
-    full_visibility: bool = False
-    valid_intervals: float = 2.0  # commands expire this many control periods after their step
-    late_window_s: float = 2.0  # live only: how long an incomplete step waits for late frames [s]
-    stale_after_s: float = 10.0  # live only: no frame for this long -> "stale" [s]
-    oracle_timeout_s: float = 30.0  # case A: how long to wait for the bridge's oracle [s]
-    pv_margin_window_s: float = 1800.0  # beyond the paper: PV variability margin window, 0 = off [s]
-    pv_margin_cap_pu: float = 0.01  # its largest value on either side [pu]
-    setpoint_hold: bool = False  # beyond the paper: re-send the last set point when no tap change is decided
-    control_banks: bool = False  # beyond the paper: decide and command the model's capacitor banks
-    reading_window_s: float = 300.0  # regulator readings averaged over this at the present tap [s]; 0: last reading
-    # (600 s let the nominal rural winter week violate: NVV 8)
-    last_good_s: float = 900.0  # a head/PV/regulator frame lost at a control step: its latest within this [s]
-    # (240 s held 82 and 278 steps and gave NVV 597 and 1,158 with 10-minute outages in the rural winter week)
-    reading_fit_s: float = 0.0  # > 0: regulator readings of this long regressed on the head's P and Q [s]
-    clock_tolerance_s: float = 5.0  # a frame stamped this close to a control step is that step's (clock skew) [s]
-    correction_window_s: float = 3000.0  # eq. (6)'s corrections: exponential mean over about this [s]; 0: off
-    # (rural winter week with 1 % SCADA noise: NVV 10 -> 0, NTC 196 -> 66; agent.state.CorrectionFilter)
-    filtered_setpoints: bool = True  # beyond the paper: eq. (8) from the filtered compared reading (with the filter)
-    # (rural winter week with 1 % SCADA noise: NTC 66 -> 25, summer 134 -> 73; CvvcController)
-    sensitivity_error: float = 0.3  # soft form: relative error of the estimated Q sensitivities [-]; 0: eq. (17)
-    # (epri-ckt24, first winter day: plants pulling against each other, Q cost 2,130 -> 57 at NVV 435 -> 441)
-    bounds_in_margin: bool = True  # the estimate bounds tighten a limit only past the optimization/judged gap
-    bounds_cover_filter: bool = True  # the estimate bounds cover eq. (6) as computed and as filtered
-    # (agent.state.filter_gap_bounds_pu; epri-m1 case D, 1 July: 37 % of node-decisions outside the bounds without)
-    tap_reversal_lockout_s: float = 900.0  # a regulator's move is not reversed within this [s] unless needed (agent.
-    # controller.CvvcController.reversal_locks; 0: off)
-    predict_banks: bool = True  # banks on their local control: the decision keeps them from switching because of it
-    # (agent.bank_rows; needs a model of training revision 9)
-    stale_plants: bool = True  # a plant behind a stale frame: P projected, Q our command, not raised, margin
-    # for its P (agent.stale_plants)
-    # (rural winter week, 5 % lost in 10-minute outages: NVV 3 -> 0, NTC 72 -> 25; 20 % outages: NTC 98 -> 70)
-    # the device map's AMI meters ([[meter]]): the only meters whose readings count, each for its node and at its
-    # interval in the map (agent.ami); none: every reading is refused
-    meters: tuple[MeterSpec, ...] = ()
 
 
 class AgentSummary(msgspec.Struct, frozen=True, kw_only=True):
@@ -292,21 +248,7 @@ class DecisionMaker:
                                     capacitor_ids=tuple(c.id for c in model.capacitors),
                                     clock_tolerance_ns=int(settings.clock_tolerance_s * 1e9))
         self.controller = CvvcController(model, mode=settings.mode, correction=settings.correction,
-                                         bandwidth_v120=settings.bandwidth_v120,
-                                         pv_margin_window_s=settings.pv_margin_window_s,
-                                         pv_margin_cap_pu=settings.pv_margin_cap_pu,
-                                         setpoint_hold=settings.setpoint_hold,
-                                         control_banks=settings.control_banks,
-                                         correction_window_s=settings.correction_window_s,
-                                         sensitivity_error=settings.sensitivity_error,
-                                         bounds_in_margin=settings.bounds_in_margin,
-                                         filtered_setpoints=settings.filtered_setpoints,
-                                         stale_plants=settings.stale_plants,
-                                         command_valid_periods=settings.valid_intervals,
-                                         bounds_cover_filter=settings.bounds_cover_filter,
-                                         predict_banks=settings.predict_banks,
-                                         tap_reversal_lockout_s=settings.tap_reversal_lockout_s,
-                                         meters=settings.meters)
+                                         meters=settings.meters, **controller_options(settings))
         self.oracle: OracleSource | None = None  # case A: set by the live runtime once its session is open
         self.seq = 0
         self.holds = 0

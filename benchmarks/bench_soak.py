@@ -149,7 +149,7 @@ def bench_soak(days: float = 30.0, feeder: str | None = None, *, start: str = "2
             if not wait_for(lambda: has_subscribers(probe), 60.0):
                 raise SoakError(f"the recorder did not subscribe within 60 s; see {out / 'recorder.log'}")
             probe.undeclare()
-            case_d = case_agent_settings("D", fid, 4.0)
+            case_d = case_agent_settings("D", fid)
             if case_d is None:
                 raise SoakError("case D runs no agent: the case table is broken")
             procs["agent"] = _spawn("agent", ["agent", "--model", str(model_path), *agent_settings_args(case_d),

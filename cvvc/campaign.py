@@ -45,19 +45,27 @@ from cvvc.evaluate import (
 )
 from schemas import messages as m
 from schemas.errors import CvvcError
+from schemas.settings import AgentOptions, RunCase
 from simulator_bridge.simulation.live_accuracy import LiveAccuracy
 
 __all__ = ["EMBEDDED_FEEDER", "Campaign", "CampaignResult", "Variant", "campaign_rows", "load_campaign",
-           "run_campaign"]
+           "run_campaign", "variant_agent"]
 
 EMBEDDED_FEEDER = "rural"  # a campaign's name for the embedded rural feeder (``--feeder`` left out)
 _Name = Annotated[str, msgspec.Meta(pattern=r"^[A-Za-z0-9_.-]+$", max_length=64)]
 
 
 class Variant(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
-    """Options of one variant: each overrides the evaluation's default (``cvvc evaluate``'s flag of that name)."""
+    """Options of one variant: each overrides the evaluation's default (``cvvc evaluate``'s flag of that name).
+
+    ``[variants.NAME.agent]`` is a case file's ``[agent]`` section (``schemas.settings.AgentOptions``: any of its
+    keys, the rest their defaults); ``pv_margin_window_s``, ``setpoint_hold`` and ``control_banks`` written at the
+    variant's level are the same settings (files written before the section existed), and an ``[agent]``
+    ``bandwidth_v120`` is the variant's one bandwidth when ``bandwidths_v120`` is left out.
+    """
 
     bandwidths_v120: tuple[float, ...] | None = None  # --bandwidth-v [V on the 120 V base]
+    agent: AgentOptions | None = None  # [variants.NAME.agent]: the agent's options
     pv_margin_window_s: float | None = None  # --pv-margin-window-s [s]
     setpoint_hold: bool | None = None  # --setpoint-hold
     control_banks: bool | None = None  # --control-banks
@@ -72,8 +80,8 @@ class Campaign(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=
     cases: Annotated[list[str], msgspec.Meta(min_length=1)]
     seasons: Annotated[list[Season], msgspec.Meta(min_length=1)]
     days_per_season: Annotated[float, msgspec.Meta(gt=0)] | None = None
-    year_seed: int = 2
-    train_seed: int = 1
+    year_seed: int = RunCase().window.year_seed
+    train_seed: int = RunCase().feeder.train_seed
     variants: dict[_Name, Variant] = msgspec.field(default_factory=lambda: {"base": Variant()})
 
 
@@ -99,6 +107,26 @@ def load_campaign(path: str | Path) -> Campaign:
     return campaign
 
 
+_AGENT_KEYS = ("pv_margin_window_s", "setpoint_hold", "control_banks")  # a variant's agent settings of old
+
+
+def variant_agent(variant: Variant, name: str = "") -> AgentOptions:
+    """The agent options of a variant: its ``[agent]`` section with the variant-level agent keys laid over it;
+    ``EvaluateError`` when the two say different things.
+    """
+    agent = variant.agent or AgentOptions()
+    for key in _AGENT_KEYS:
+        value = getattr(variant, key)
+        if value is None:
+            continue
+        if variant.agent is not None and getattr(agent, key) != value and \
+                getattr(variant.agent, key) != getattr(AgentOptions(), key):
+            raise EvaluateError(f"variant {name!r}: {key} is {value} at the variant's level and "
+                                f"{getattr(variant.agent, key)} in its [agent] section; keep one")
+        agent = msgspec.structs.replace(agent, **{key: value})
+    return agent
+
+
 def _feeder_label(feeder: str) -> str:
     if feeder == EMBEDDED_FEEDER:
         return feeder
@@ -119,6 +147,11 @@ def _configs(campaign: Campaign, base: Path, out: Path, *, jobs: int, scheduler:
                 raise EvaluateError(f"two feeders of the campaign are both named {label!r}: give them folders or "
                                     "files of different names")
             opts = {k: val for k, val in msgspec.structs.asdict(v).items() if val is not None}
+            opts["agent"] = variant_agent(v, name)
+            for key in _AGENT_KEYS:
+                opts.pop(key, None)
+            if v.bandwidths_v120 is None and opts["agent"].bandwidth_v120 != AgentOptions().bandwidth_v120:
+                opts["bandwidths_v120"] = (opts["agent"].bandwidth_v120,)
             if "model" in opts:
                 opts["model"] = str(base / opts["model"])
             configs[(label, name)] = EvaluateConfig(

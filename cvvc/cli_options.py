@@ -4,17 +4,23 @@ from __future__ import annotations
 
 import argparse
 
+from schemas.settings import AgentOptions
+
 __all__ = ["add_agent_option_arguments", "add_security_arguments"]
+
+_AGENT = AgentOptions()  # the defaults the help texts name
 
 
 def add_agent_option_arguments(p: argparse.ArgumentParser) -> None:
-    """The agent's options beyond the paper, as ``cvvc run`` and ``cvvc evaluate`` pass them on (docs/agent.md)."""
+    """The agent's options beyond the paper, as ``cvvc run`` and ``cvvc evaluate`` pass them on (docs/agent.md);
+    each None when not given (``cvvc.case.agent_options_from_args`` lays the given ones over the settings tree).
+    """
     p.add_argument("--pv-margin-window-s", type=float, default=None,
-                   help="the agent's PV variability margin window [s] (cases A-D; default: the agent's, 1800; "
-                        "0 = the paper's method)")
-    p.add_argument("--setpoint-hold", action="store_true",
+                   help=f"the agent's PV variability margin window [s] (cases A-D; default "
+                        f"{_AGENT.pv_margin_window_s:g}; 0 = the paper's method)")
+    p.add_argument("--setpoint-hold", action="store_const", const=True, default=None,
                    help="the agent re-sends its last set point when no tap change is decided (cases C/D)")
-    p.add_argument("--control-banks", action="store_true",
+    p.add_argument("--control-banks", action="store_const", const=True, default=None,
                    help="the agent decides and commands the capacitor banks (cases B-D; default: they stay on "
                         "their local control)")
 

@@ -222,9 +222,9 @@ def _run_config(spec: RunSpec, config: EvaluateConfig, dm_path: Path, model: Pat
     return RunConfig(
         feeder=str(perturbed if spec.variant == "model-error" else dm_path), model=str(model), days=spec.days,
         start=spec.start, case=case, out=str(out / spec.name), train_seed=config.train_seed,
-        year_seed=config.year_seed, bandwidth_v120=spec.bandwidth_v120, cache=config.cache, baseline=False,
-        pv_margin_window_s=config.pv_margin_window_s, setpoint_hold=config.setpoint_hold,
-        control_banks=config.control_banks, lockstep_timeout_s=config.lockstep_timeout_s,
+        year_seed=config.year_seed, cache=config.cache, baseline=False,
+        agent=msgspec.structs.replace(config.agent, bandwidth_v120=spec.bandwidth_v120),
+        lockstep_timeout_s=config.lockstep_timeout_s,
         progress=config.progress, progress_label=spec.name,
         noise_pmu_pct=0.1 if spec.variant == "noise-pmu" else 0.0,
         noise_scada_pct=1.0 if spec.variant == "noise-scada" else 0.0,

@@ -6,6 +6,7 @@ import argparse
 
 from cvvc.cli_options import add_agent_option_arguments
 from schemas.cache import CACHE_HELP
+from schemas.settings import RunCase
 
 __all__ = ["register_evaluate", "register_report_plots"]
 
@@ -23,9 +24,13 @@ def register_evaluate(sub: argparse._SubParsersAction) -> None:
                    help="comma-separated cases among A,B,C,D,none,local and opendss (OpenDSS's own control loop on "
                         "the same days, no bus) (default: A,B,C,D,none,local; D with --robustness)")
     p.add_argument("--seasons", default="winter,spring,summer,fall", help="comma-separated seasons")
-    p.add_argument("--bandwidth-v", default="4", help="comma-separated regulator bands on 120 V for cases C/D")
-    p.add_argument("--year-seed", type=int, default=2, help="profile year evaluated (default 2: out of sample)")
-    p.add_argument("--train-seed", type=int, default=1, help="profile year of the training (default 1)")
+    d = RunCase()  # the settings tree's defaults
+    p.add_argument("--bandwidth-v", default=f"{d.agent.bandwidth_v120:g}",
+                   help="comma-separated regulator bands on 120 V for cases C/D")
+    p.add_argument("--year-seed", type=int, default=d.window.year_seed,
+                   help=f"profile year evaluated (default {d.window.year_seed}: out of sample)")
+    p.add_argument("--train-seed", type=int, default=d.feeder.train_seed,
+                   help=f"profile year of the training (default {d.feeder.train_seed})")
     p.add_argument("--days-per-season", type=float, default=None,
                    help="days from the first of each season's month (default: the whole month)")
     p.add_argument("--jobs", type=int, default=1,
@@ -55,6 +60,7 @@ def register_evaluate(sub: argparse._SubParsersAction) -> None:
 
 
 def _evaluate(args: argparse.Namespace) -> int:
+    from cvvc.case import agent_options_from_args
     from cvvc.errors import CliError
     from cvvc.evaluate import EvaluateConfig, EvaluateError, evaluate, parse_cases, parse_seasons
     from cvvc.launch import CASES
@@ -73,8 +79,7 @@ def _evaluate(args: argparse.Namespace) -> int:
                             out=args.out, cache=args.cache,
                             robustness=args.robustness, resume=args.resume,
                             reference_step_s=args.reference_step_s, lockstep_timeout_s=args.lockstep_timeout_s,
-                            pv_margin_window_s=args.pv_margin_window_s, setpoint_hold=args.setpoint_hold,
-                            control_banks=args.control_banks, cases=CASES if cases is None else cases,
+                            agent=agent_options_from_args(args), cases=CASES if cases is None else cases,
                             secure=not args.insecure, ca_dir=args.ca_dir)
     try:
         ev = evaluate(config)

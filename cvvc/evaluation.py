@@ -10,6 +10,7 @@ import msgspec
 
 from cvvc.launch import CASES
 from schemas import messages as m
+from schemas.settings import AgentOptions, RunCase
 from simulator_bridge.simulation.live_accuracy import LiveAccuracy
 
 __all__ = ["EVALUATION_YEAR", "ROBUSTNESS_VARIANTS", "SEASONS", "EvaluateConfig", "Evaluation", "RunFailure",
@@ -17,6 +18,7 @@ __all__ = ["EVALUATION_YEAR", "ROBUSTNESS_VARIANTS", "SEASONS", "EvaluateConfig"
 
 Season = Literal["winter", "spring", "summer", "fall"]
 SEASONS: tuple[Season, ...] = ("winter", "spring", "summer", "fall")
+_DEFAULT = RunCase()  # the settings tree's defaults (``schemas.settings``)
 EVALUATION_YEAR = 2023  # the calendar year of the generated profiles (``make_profiles`` default)
 Variant = Literal["nominal", "noise-pmu", "noise-scada", "drop-1", "drop-5", "model-error"]
 ROBUSTNESS_VARIANTS: tuple[Variant, ...] = ("nominal", "noise-pmu", "noise-scada", "drop-1", "drop-5", "model-error")
@@ -29,18 +31,16 @@ class EvaluateConfig(msgspec.Struct, frozen=True, kw_only=True):
     model: str | None = None
     cases: tuple[str, ...] = CASES
     seasons: tuple[Season, ...] = SEASONS
-    bandwidths_v120: tuple[float, ...] = (4.0,)
-    year_seed: int = 2
-    train_seed: int = 1
+    bandwidths_v120: tuple[float, ...] = (_DEFAULT.agent.bandwidth_v120,)
+    year_seed: int = _DEFAULT.window.year_seed
+    train_seed: int = _DEFAULT.feeder.train_seed
     days_per_season: float | None = None  # None: the whole month
     jobs: int = 1  # the local Dask cluster's worker processes (runs at a time); unused with ``scheduler``
     scheduler: str | None = None  # a running Dask scheduler (tcp://HOST:PORT) instead of a local cluster
     out: str = "runs/evaluate"
     cache: str | None = None  # cache root; None: schemas.cache.default_cache_root()
     robustness: bool = False
-    pv_margin_window_s: float | None = None  # the agent's PV variability margin window; None: its default, 0: off
-    setpoint_hold: bool = False  # the agent's opt-in set-point hold (cases C/D)
-    control_banks: bool = False  # the agent's opt-in capacitor-bank decisions
+    agent: AgentOptions = msgspec.field(default_factory=AgentOptions)  # a case file's [agent]; the band: bandwidths
     resume: bool = False  # reuse a run whose folder already holds a finished summary.json of the same spec
     perturbation_pct: float = 10.0
     perturbation_seed: int = 7

@@ -46,6 +46,7 @@ from cvvc.launch import (
     prepare_feeder_and_model,
 )
 from schemas import messages as m
+from schemas.settings import AgentOptions, RunCase
 from simulator_bridge.bus.bridge import BridgeSummary
 
 __all__ = ["FleetConfig", "FleetFeeder", "FleetFile", "load_fleet_file", "run_fleet"]
@@ -63,8 +64,8 @@ class FleetFeeder(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fiel
     rural_seed: int | None = None
     id: str | None = None
     model: str | None = None
-    year_seed: int = 2
-    train_seed: int = 1
+    year_seed: int = RunCase().window.year_seed
+    train_seed: int = RunCase().feeder.train_seed
     case: Case | None = None
 
 
@@ -76,6 +77,7 @@ class FleetFile(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields
     days: float | None = None
     start: str | None = None
     case: Case | None = None
+    agent: AgentOptions | None = None  # [agent]: every feeder's agent options (a case file's [agent] section)
     feeder: list[FleetFeeder] = []
 
 
@@ -84,18 +86,19 @@ class FleetConfig(msgspec.Struct, frozen=True, kw_only=True):
 
     feeders: list[FleetFeeder]
     days: float = 0.25
-    start: str = "2023-01-16"
-    case: Case = "D"
+    start: str = RunCase().window.start
+    case: Case = RunCase().case
     out: str | None = None
     cache: str | None = None
-    record: bool = True
-    truth_every: int = 1
+    record: bool = RunCase().output.record
+    truth_every: int = RunCase().bridge.truth_every
     lockstep_timeout_s: float = 30.0  # 2 cores shared by every feeder's processes: a step may wait its turn
     secure: bool = True  # mTLS + the access policy; False: --insecure
     ca_dir: str | None = None  # None: <cache>/ca, created on the first run
     probe_cross_feeder: bool = True  # secure mode: the cross-feeder command probe (``CrossFeederProbe``)
     progress: bool = True
     recorder_restarts_max: int = 3
+    agent: AgentOptions = msgspec.field(default_factory=AgentOptions)  # every feeder's agent options (cases A-D)
 
 
 def load_fleet_file(path: str | Path) -> FleetFile:
@@ -143,7 +146,7 @@ def _prepare(config: FleetConfig, entry: FleetFeeder, out: Path) -> _Member:
                     case=entry.case or config.case, year_seed=entry.year_seed, train_seed=entry.train_seed,
                     cache=config.cache, record=config.record, progress=config.progress,
                     lockstep_timeout_s=config.lockstep_timeout_s, truth_every=config.truth_every,
-                    secure=config.secure, ca_dir=config.ca_dir)
+                    secure=config.secure, ca_dir=config.ca_dir, agent=config.agent)
     dm_path, model = prepare_feeder_and_model(run)
     dm = load_device_map(dm_path)
     fid = entry.id or dm.feeder.name
@@ -219,7 +222,7 @@ def run_fleet(config: FleetConfig) -> FleetSummary:
     settings = {}
     for mb in members:
         mb.out.mkdir(parents=True, exist_ok=True)
-        s = case_agent_settings(mb.run.case, mb.feeder_id, mb.run.bandwidth_v120)
+        s = case_agent_settings(mb.run.case, mb.feeder_id, mb.run.agent)
         if s is not None:
             from regression.model import read_model
             from schemas.devicemap import load_device_map

@@ -6,6 +6,7 @@ import argparse
 import sys
 
 from schemas.cache import CACHE_HELP
+from schemas.settings import RunCase
 
 __all__ = ["register"]
 
@@ -27,10 +28,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--start", default=None, help="first simulated instant, YYYY-MM-DD[THH:MM] (default 2023-01-16)")
     p.add_argument("--case", default=None, choices=["A", "B", "C", "D", "none", "local"],
                    help="every feeder's case unless its fleet entry names one (default D)")
-    p.add_argument("--year-seed", type=int, default=2, help="profile year of the --feeders/--rural-seeds feeders")
+    p.add_argument("--year-seed", type=int, default=RunCase().window.year_seed,
+                   help="profile year of the --feeders/--rural-seeds feeders")
     p.add_argument("--lockstep-timeout-s", type=float, default=30.0,
                    help="how long each bridge waits for its agent's decision [s] (default 30)")
-    p.add_argument("--truth-every", type=int, default=1, metavar="N",
+    p.add_argument("--truth-every", type=int, default=RunCase().bridge.truth_every, metavar="N",
                    help="record every feeder's truth frame every N steps (0: never; default 1)")
     p.add_argument("--out", default=None, help="output folder (default runs/fleet-<n>-<time>)")
     p.add_argument("--cache", default=None, help=CACHE_HELP)
@@ -64,11 +66,12 @@ def _fleet(args: argparse.Namespace) -> int:
         value = getattr(fleet, key) if fleet else None
         return default if value is None else value
 
-    config = FleetConfig(feeders=feeders, days=pick(args.days, "days", 0.25),
-                         start=pick(args.start, "start", "2023-01-16"), case=pick(args.case, "case", "D"),
+    defaults = FleetConfig(feeders=[])
+    config = FleetConfig(feeders=feeders, days=pick(args.days, "days", defaults.days),
+                         start=pick(args.start, "start", defaults.start), case=pick(args.case, "case", defaults.case),
                          out=args.out, cache=args.cache, record=not args.no_record, truth_every=args.truth_every,
                          lockstep_timeout_s=args.lockstep_timeout_s, secure=not args.insecure, ca_dir=args.ca_dir,
-                         progress=not args.json)
+                         progress=not args.json, agent=fleet.agent if fleet and fleet.agent else defaults.agent)
     summary = run_fleet(config)
     if args.json:
         sys.stdout.write(msgspec.json.format(msgspec.json.encode(summary), indent=2).decode() + "\n")

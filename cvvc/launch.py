@@ -32,31 +32,26 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from types import MappingProxyType
-from typing import TYPE_CHECKING, Literal, TypeVar
+from typing import Literal, TypeVar
 
 import msgspec
 
 from agent.runtime import AgentSummary
 from cvvc.errors import CommandError
-from cvvc.pv_protocol import PvProtocol
 from cvvc.run_report import render_summary, top_reasons
 from cvvc.run_summary import RunSummary
 from recordings.info import RecorderGap
 from schemas import messages as m
 from schemas.cache import cache_root, profiles_dir
+from schemas.settings import CASES, SECTIONS, AgentOptions, AgentSettings, Case, PvProtocol, RunCase
 from simulator_bridge.bus.bridge import BridgeSummary
 from simulator_bridge.simulation.metrics import Metrics
-
-if TYPE_CHECKING:
-    from agent.runtime import AgentSettings
 
 __all__ = ["CASES", "CASE_AGENT", "CaseAgent", "LaunchError", "RunConfig", "RunSummary", "agent_settings_args",
            "bridge_args", "case_agent_settings", "check_mostly_held", "run"]
 
-Case = Literal["A", "B", "C", "D", "none", "local"]
-CASES: tuple[Case, ...] = ("A", "B", "C", "D", "none", "local")
-
-
+_DEFAULT = RunCase()  # the tree's defaults: RunConfig's
+_RENAMED = {("feeder", "map"): "feeder"}  # a case file's (section, key) -> RunConfig's field, where they differ
 _AGENT_UP_S = 60.0  # the longest the agent may take to come up; the bridge waits that long for it [s]
 
 
@@ -65,42 +60,64 @@ class LaunchError(CommandError):
 
 
 class RunConfig(msgspec.Struct, frozen=True, kw_only=True):
-    """Everything ``cvvc run`` needs; built from the command line."""
+    """Everything ``cvvc run`` needs: the case (``schemas.settings.RunCase``, flattened: ``of_case`` and
+    ``settings`` convert; every default is the tree's) and what only the launcher sets (progress, checks).
+    """
 
-    feeder: str | None = None  # device map TOML or folder; None: embedded rural feeder
-    model: str | None = None
-    days: float = 1.0
-    start: str = "2023-01-16"  # a winter weekday; YYYY-MM-DD[THH:MM] local standard time (UTC-5)
-    case: Case = "D"
-    realtime: bool = False
-    speed: float = 60.0
-    out: str | None = None
-    train_seed: int = 1
-    year_seed: int = 2  # out of sample: not the training year
-    bandwidth_v120: float = 4.0
-    pv_margin_window_s: float | None = None  # the agent's PV variability margin window; None: its default, 0: off
-    setpoint_hold: bool = False  # the agent's opt-in set-point hold (cases C/D)
-    control_banks: bool = False  # the agent's opt-in capacitor-bank decisions (cases B-D)
-    lockstep_timeout_s: float = 10.0
-    cache: str | None = None  # cache root; None: schemas.cache.default_cache_root()
-    record: bool = True
-    baseline: bool = True
+    feeder: str | None = _DEFAULT.feeder.map  # device map TOML or folder; None: embedded rural feeder
+    model: str | None = _DEFAULT.feeder.model
+    days: float = _DEFAULT.window.days
+    start: str = _DEFAULT.window.start  # YYYY-MM-DD[THH:MM] local standard time (UTC-5)
+    case: Case = _DEFAULT.case
+    realtime: bool = _DEFAULT.bridge.realtime
+    speed: float = _DEFAULT.bridge.speed
+    out: str | None = _DEFAULT.output.out
+    train_seed: int = _DEFAULT.feeder.train_seed
+    year_seed: int = _DEFAULT.window.year_seed
+    agent: AgentOptions = msgspec.field(default_factory=AgentOptions)  # the agent's options (cases A-D)
+    lockstep_timeout_s: float = _DEFAULT.bridge.lockstep_timeout_s
+    cache: str | None = _DEFAULT.cache  # cache root; None: schemas.cache.default_cache_root()
+    record: bool = _DEFAULT.output.record
+    baseline: bool = _DEFAULT.output.baseline
     progress: bool = True
-    noise_pmu_pct: float = 0.0
-    noise_scada_pct: float = 0.0
-    drop_prob: float = 0.0
-    drop_burst_min: float = 0.0  # > 0: frames lost in per-device outages of this long, drop_prob the share [min]
-    meas_delay_s: float = 0.0  # real time only: frames reach the agent this late [simulated s]
-    clock_skew_s: float = 0.0  # the field devices' clocks this far off the bridge's and the agent's [s]
-    truth_every: int = 1  # the recording keeps the truth, so metrics can be recomputed from it
-    secure: bool = True  # mTLS + the deny-by-default access policy, certificates in <cache>/security; False: --insecure
-    ca_dir: str | None = None  # secure: the CA that issues them; None: <cache>/ca, created on the first run
+    noise_pmu_pct: float = _DEFAULT.bridge.noise_pmu_pct
+    noise_scada_pct: float = _DEFAULT.bridge.noise_scada_pct
+    drop_prob: float = _DEFAULT.bridge.drop_prob
+    drop_burst_min: float = _DEFAULT.bridge.drop_burst_min
+    meas_delay_s: float = _DEFAULT.bridge.meas_delay_s
+    clock_skew_s: float = _DEFAULT.bridge.clock_skew_s
+    truth_every: int = _DEFAULT.bridge.truth_every
+    secure: bool = _DEFAULT.security.secure  # False: --insecure
+    ca_dir: str | None = _DEFAULT.security.ca_dir
     progress_label: str = "simulated"  # the progress bar's label (``cvvc evaluate`` names the run)
     # False only for the model-error study (``cvvc evaluate --robustness``): the simulated feeder is deliberately
     # not the one the model was trained on, so its fingerprint differs from the model's.
     check_model_fingerprint: bool = True
-    recorder_restarts_max: int = 3  # a recorder that dies is restarted at most this many times per run
-    pv_protocol: PvProtocol = "bus"  # sunspec: every plant behind a simulated inverter and an adapter (pv_protocol)
+    recorder_restarts_max: int = _DEFAULT.output.recorder_restarts_max
+    pv_protocol: PvProtocol = _DEFAULT.bridge.pv_protocol
+    case_file: str | None = None  # the case file the run was read from (recorded in the summary and report)
+
+    @classmethod
+    def of_case(cls, case: RunCase, **launcher: object) -> RunConfig:
+        """The run of ``case``; ``launcher``: the fields only the launcher sets (``progress``, ``case_file``...)."""
+        flat: dict[str, object] = {"case": case.case, "cache": case.cache, "agent": case.agent}
+        for section in SECTIONS:
+            if section != "agent":
+                for name, value in msgspec.structs.asdict(getattr(case, section)).items():
+                    flat[_RENAMED.get((section, name), name)] = value
+        return cls(**flat, **launcher)  # type: ignore[arg-type]
+
+    def settings(self) -> RunCase:
+        """The case this run runs (what ``of_case`` was given, with the launcher's fields left out)."""
+        sections: dict[str, object] = {}
+        for section in SECTIONS:
+            kind = type(getattr(_DEFAULT, section))
+            if section == "agent":
+                sections[section] = self.agent
+                continue
+            sections[section] = kind(**{name: getattr(self, _RENAMED.get((section, name), name))
+                                        for name in kind.__struct_fields__})
+        return RunCase(case=self.case, cache=self.cache, **sections)  # type: ignore[arg-type]
 
 
 class CaseAgent(msgspec.Struct, frozen=True, kw_only=True):
@@ -123,28 +140,25 @@ CASE_AGENT: Mapping[Case, CaseAgent | None] = MappingProxyType({
 })
 
 
-def case_agent_settings(case: Case, feeder_id: str, bandwidth_v120: float, pv_margin_window_s: float | None = None,
-                        setpoint_hold: bool = False, control_banks: bool = False) -> AgentSettings | None:
-    """The agent's settings of a case (``CASE_AGENT``), or None when the case runs no agent.
+def case_agent_settings(case: Case, feeder_id: str, options: AgentOptions | None = None) -> AgentSettings | None:
+    """The agent's settings of a case (``CASE_AGENT``) with the run's ``options`` (None: the defaults), or None when
+    the case runs no agent.
 
-    ``pv_margin_window_s`` [s] (None: the agent's default) and ``setpoint_hold`` (cases C/D) are the agent's
-    options beyond the paper (docs/agent.md); ``bandwidth_v120`` [V on the 120 V base] applies to cases C/D.
-    The agent process and the recording get these settings encoded (``agent_settings_args``).
+    What the case fixes wins: the band and the set-point hold apply to cases C/D only (A and B keep the defaults),
+    and case A never switches banks (the oracle has no bank terms). The agent process and the recording get these
+    settings encoded (``agent_settings_args``).
     """
-    from agent.runtime import AgentSettings
-
     row = CASE_AGENT[case]
     if row is None:
         return None
-    settings = AgentSettings(feeder_id=feeder_id, mode=row.mode, correction=row.correction,
-                             full_visibility=row.full_visibility)
-    if pv_margin_window_s is not None:
-        settings = msgspec.structs.replace(settings, pv_margin_window_s=float(pv_margin_window_s))
-    if control_banks and not row.full_visibility:  # case A never switches banks (the oracle has no bank terms)
-        settings = msgspec.structs.replace(settings, control_banks=True)
-    if row.setpoints:
-        settings = msgspec.structs.replace(settings, bandwidth_v120=float(bandwidth_v120),
-                                           setpoint_hold=bool(setpoint_hold))
+    options = options or AgentOptions()
+    fixed: dict[str, object] = {}
+    if not row.setpoints:
+        fixed.update(bandwidth_v120=_DEFAULT.agent.bandwidth_v120, setpoint_hold=_DEFAULT.agent.setpoint_hold)
+    if row.full_visibility:
+        fixed.update(control_banks=False)
+    settings = AgentSettings(**{**msgspec.structs.asdict(options), **fixed}, feeder_id=feeder_id, mode=row.mode,
+                             correction=row.correction, full_visibility=row.full_visibility)
     return msgspec.convert(msgspec.to_builtins(settings), AgentSettings)  # checks the settings' constraints
 
 
@@ -360,8 +374,7 @@ def run(config: RunConfig) -> RunSummary:
     dm = load_device_map(dm_path)
     feeder_id = dm.feeder.name
     fingerprint = dm.fingerprint()
-    agent_settings = case_agent_settings(config.case, feeder_id, config.bandwidth_v120, config.pv_margin_window_s,
-                                         config.setpoint_hold, config.control_banks)
+    agent_settings = case_agent_settings(config.case, feeder_id, config.agent)
     if agent_settings is not None and dm.meter:  # the only meters whose readings the agent takes
         agent_settings = msgspec.structs.replace(agent_settings, meters=tuple(dm.meter))
     if agent_settings is not None and config.check_model_fingerprint:
@@ -481,7 +494,8 @@ def run(config: RunConfig) -> RunSummary:
         decision_ms=dict(agent_summary.decision_ms) if agent_summary else {},
         recorder_restarts=recorder.restarts if recorder is not None else 0, recording_gaps=gaps,
         recorder_gave_up=recorder.gave_up if recorder is not None else False, pv_protocol=config.pv_protocol,
-        sunspec_frame_misses=bridge_summary.sunspec_frame_misses, live=live, secure=config.secure)
+        sunspec_frame_misses=bridge_summary.sunspec_frame_misses, live=live, secure=config.secure,
+        case_file=config.case_file, settings=config.settings())
     (out / "summary.json").write_bytes(msgspec.json.format(msgspec.json.encode(summary), indent=2))
     (out / "report.md").write_text(render_summary(summary))
     check_mostly_held(summary)

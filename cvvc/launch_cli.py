@@ -1,4 +1,4 @@
-"""``cvvc run`` (and later ``evaluate``, ``report``): the launchers' command line."""
+"""``cvvc init``, ``cvvc run`` (and ``evaluate``, ``report``): the launchers' command line."""
 
 from __future__ import annotations
 
@@ -7,44 +7,66 @@ import sys
 
 from cvvc.cli_options import add_agent_option_arguments, add_security_arguments
 from schemas.cache import CACHE_HELP
+from schemas.settings import CASES, RunCase
 
 __all__ = ["register"]
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    """Add the ``run`` and ``report`` verbs to the ``cvvc`` command line's ``sub``."""
+    """Add the ``init``, ``run`` and ``report`` verbs to the ``cvvc`` command line's ``sub``."""
+    i = sub.add_parser("init", help="write a case file with every setting of a run and its default",
+                       description="Write a commented TOML case file (docs/case-file.md) with every setting of "
+                                   "`cvvc run`, its description and its default; edit it, then `cvvc run FILE`.")
+    i.add_argument("case_file", metavar="FILE", help="the case file to write (e.g. case.toml)")
+    i.add_argument("--force", action="store_true", help="overwrite FILE if it exists")
+    i.set_defaults(func=_init)
+    d = RunCase()  # the defaults the help texts name: every flag's default is the settings tree's
     p = sub.add_parser("run", help="the main job: bridge + agent + recorder on one simulated day (case D)",
                        description="Generate or reuse the feeder and model, then run bridge, agent and recorder "
-                                   "as separate processes on loopback and print a summary.")
+                                   "as separate processes on loopback and print a summary. The settings come from "
+                                   "the defaults, then the case file FILE (`cvvc init FILE`), then the flags given.")
+    p.add_argument("case_file", nargs="?", metavar="FILE", default=None,
+                   help="a case file (`cvvc init FILE` writes one); flags given override it")
+    p.add_argument("--print-case", action="store_true",
+                   help="print the resolved case (defaults, FILE, flags) as TOML and exit without running")
     p.add_argument("--feeder", default=None, help="device map TOML or folder (default: embedded rural feeder)")
     p.add_argument("--model", default=None, help="model file (default: train once and cache)")
-    p.add_argument("--days", type=float, default=1.0, help="simulated days (default 1; 1/24 = one hour)")
-    p.add_argument("--start", default="2023-01-16",
-                   help="first simulated instant, YYYY-MM-DD[THH:MM], local standard time (default 2023-01-16)")
-    p.add_argument("--case", default="D", choices=["A", "B", "C", "D", "none", "local"],
-                   help="paper case A-D, or a baseline: none (no central control), local (+ IEEE 1547 volt-var)")
+    p.add_argument("--days", type=float, default=None, help=f"simulated days (default {d.window.days:g}; 1/24 = one "
+                   "hour)")
+    p.add_argument("--start", default=None, help=f"first simulated instant, YYYY-MM-DD[THH:MM], local standard time "
+                   f"(default {d.window.start})")
+    p.add_argument("--case", default=None, choices=list(CASES),
+                   help=f"paper case A-D, or a baseline: none (no central control), local (+ IEEE 1547 volt-var) "
+                        f"(default {d.case})")
     p.add_argument("--realtime", action="store_true", help="step on the wall clock instead of lockstep")
-    p.add_argument("--speed", type=float, default=60.0, help="with --realtime: simulated s per wall s")
+    p.add_argument("--speed", type=float, default=None,
+                   help=f"with --realtime: simulated s per wall s (default {d.bridge.speed:g})")
+    p.add_argument("--lockstep-timeout-s", type=float, default=None, metavar="S",
+                   help=f"in lockstep, how long the bridge waits for a decision [s] "
+                        f"(default {d.bridge.lockstep_timeout_s:g})")
     p.add_argument("--out", default=None, help="output folder (default runs/<feeder>-<case>-<time>)")
-    p.add_argument("--year-seed", type=int, default=2, help="profile year of the run (default 2: out of sample)")
-    p.add_argument("--train-seed", type=int, default=1, help="profile year used for training (default 1)")
-    p.add_argument("--bandwidth-v", type=float, default=4.0, help="regulator band on 120 V in cases C/D")
+    p.add_argument("--year-seed", type=int, default=None,
+                   help=f"profile year of the run (default {d.window.year_seed}: out of sample)")
+    p.add_argument("--train-seed", type=int, default=None,
+                   help=f"profile year used for training (default {d.feeder.train_seed})")
+    p.add_argument("--bandwidth-v", type=float, default=None,
+                   help=f"regulator band on 120 V in cases C/D (default {d.agent.bandwidth_v120:g})")
     add_agent_option_arguments(p)
-    p.add_argument("--drop-prob", type=float, default=0.0, metavar="P",
+    p.add_argument("--drop-prob", type=float, default=None, metavar="P",
                    help="the bridge drops each measurement frame with probability P (robustness runs; default 0)")
-    p.add_argument("--drop-burst-min", type=float, default=0.0, metavar="MIN",
+    p.add_argument("--drop-burst-min", type=float, default=None, metavar="MIN",
                    help="with --drop-prob: each device loses its frames in outages of MIN minutes, P being the "
                         "share of frames lost (default 0: each frame independently)")
-    p.add_argument("--meas-delay-s", type=float, default=0.0, metavar="S",
+    p.add_argument("--meas-delay-s", type=float, default=None, metavar="S",
                    help="with --realtime: every measurement frame reaches the agent S simulated seconds late")
-    p.add_argument("--clock-skew-s", type=float, default=0.0, metavar="S",
+    p.add_argument("--clock-skew-s", type=float, default=None, metavar="S",
                    help="the field devices' clocks are S seconds off the bridge's and the agent's: frames "
                         "stamped t + S (default 0)")
-    p.add_argument("--noise-scada-pct", type=float, default=0.0, metavar="PCT",
+    p.add_argument("--noise-scada-pct", type=float, default=None, metavar="PCT",
                    help="SCADA-class noise on PV, regulator and capacitor readings [%%] (default 0)")
-    p.add_argument("--noise-pmu-pct", type=float, default=0.0, metavar="PCT",
+    p.add_argument("--noise-pmu-pct", type=float, default=None, metavar="PCT",
                    help="PMU-class noise on the feeder-head meter [%%] (default 0)")
-    p.add_argument("--pv-protocol", choices=["bus", "sunspec"], default="bus",
+    p.add_argument("--pv-protocol", choices=["bus", "sunspec"], default=None,
                    help="how the PV plants reach the bus: bus (the simulator's own frames, default) or sunspec "
                         "(each plant behind a simulated SunSpec Modbus inverter and a `cvvc adapter sunspec`; "
                         "docs/sunspec.md)")
@@ -60,23 +82,28 @@ def register(sub: argparse._SubParsersAction) -> None:
     register_evaluate(sub)
 
 
+def _init(args: argparse.Namespace) -> int:
+    from cvvc.case import write_case
+
+    path = write_case(args.case_file, force=args.force)
+    print(f"wrote {path}: every setting of a run with its default; edit it, then `cvvc run {path}`")
+    return 0
+
+
 def _run(args: argparse.Namespace) -> int:
     import msgspec
 
+    from cvvc.case import absolute_paths, apply_flags, case_toml, load_case
     from cvvc.launch import RunConfig, run
     from cvvc.run_report import render_summary
 
-    config = RunConfig(feeder=args.feeder, model=args.model, days=args.days, start=args.start, case=args.case,
-                       realtime=args.realtime, speed=args.speed, out=args.out, train_seed=args.train_seed,
-                       year_seed=args.year_seed, bandwidth_v120=args.bandwidth_v, record=not args.no_record,
-                       pv_margin_window_s=args.pv_margin_window_s, setpoint_hold=args.setpoint_hold,
-                       control_banks=args.control_banks,
-                       baseline=not args.no_baseline, cache=args.cache, progress=not args.json,
-                       secure=not args.insecure, ca_dir=args.ca_dir, drop_prob=args.drop_prob,
-                       noise_scada_pct=args.noise_scada_pct, noise_pmu_pct=args.noise_pmu_pct,
-                       drop_burst_min=args.drop_burst_min, meas_delay_s=args.meas_delay_s,
-                       clock_skew_s=args.clock_skew_s, pv_protocol=args.pv_protocol)
-    summary = run(config)
+    case = apply_flags(load_case(args.case_file) if args.case_file else RunCase(), args)
+    if args.print_case:
+        given = f"resolved from {args.case_file} and the flags given" if args.case_file else \
+            "resolved from the defaults and the flags given"
+        sys.stdout.write(case_toml(absolute_paths(case), header=f"the case `cvvc run` would run, {given}"))
+        return 0
+    summary = run(RunConfig.of_case(case, progress=not args.json, case_file=args.case_file))
     if args.json:
         sys.stdout.write(msgspec.json.format(msgspec.json.encode(summary), indent=2).decode() + "\n")
     else:

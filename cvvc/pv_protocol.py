@@ -8,14 +8,11 @@ plant reads it over Modbus TCP, publishes the plant's frames and acks, and write
 
 from __future__ import annotations
 
-from typing import Literal
-
 from cvvc.errors import CommandError
 from schemas.devicemap import DeviceMap
+from schemas.settings import PvProtocol
 
 __all__ = ["PvProtocol", "adapter_args", "bridge_args", "check_pv_protocol", "sunspec_endpoints"]
-
-PvProtocol = Literal["bus", "sunspec"]
 
 
 def check_pv_protocol(protocol: str, *, noise_scada_pct: float, drop_prob: float, meas_delay_s: float,

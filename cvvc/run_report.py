@@ -72,7 +72,9 @@ def render_summary(s: RunSummary) -> str:
                "- **bus: insecure** (`--insecure`): no TLS, no access control; any local process could read "
                "and command"),
               f"- recording: `{s.recording}`" if s.recording else "- recording: off", *_recorder_lines(s),
-              f"- model: `{s.model}`" if s.model else "- model: none (baseline case)", ""]
+              f"- model: `{s.model}`" if s.model else "- model: none (baseline case)",
+              f"- case file: `{s.case_file}` (every setting of the run: `settings` in summary.json)" if s.case_file
+              else "- case file: none (flags and defaults; every setting of the run: `settings` in summary.json)", ""]
     return "\n".join(lines)
 
 

@@ -8,6 +8,7 @@ import msgspec
 
 from recordings.info import RecorderGap
 from schemas import messages as m
+from schemas.settings import RunCase
 from simulator_bridge.simulation.live_accuracy import LiveAccuracy
 from simulator_bridge.simulation.metrics import Metrics
 
@@ -42,3 +43,5 @@ class RunSummary(msgspec.Struct, frozen=True, kw_only=True):
     sunspec_frame_misses: int = 0  # sunspec: steps some adapter's PV frame did not reach the bridge in time
     live: LiveAccuracy | None = None  # the agent's estimates and bounds against the truth of their step (bridge)
     secure: bool = False  # the bus ran with mTLS and the access policy (False: ``--insecure``)
+    case_file: str | None = None  # the case file the run was read from (``cvvc run case.toml``)
+    settings: RunCase | None = None  # the resolved case: every setting of the run, file and flags applied

@@ -13,7 +13,11 @@ import sys
 import threading
 from pathlib import Path
 
+from schemas.settings import BridgeSection
+
 __all__ = ["register_bridge"]
+
+_REALISM = BridgeSection()  # the realism flags' defaults: a case file's [bridge] section's
 
 
 def _bridge(args: argparse.Namespace) -> int:
@@ -113,14 +117,16 @@ def register_bridge(subparsers: argparse._SubParsersAction) -> None:
     clock.add_argument("--wait-agent-s", type=float, default=0.0,
                        help="before the first step, wait this long for an agent liveliness token [s]")
     out = p.add_argument_group("simulation topics and measurement realism (off by default)")
-    out.add_argument("--truth-every", type=int, default=1, help="TruthFrame every N steps (0: none)")
-    out.add_argument("--noise-pmu-pct", type=float, default=0.0, help="PMU-class noise, e.g. 0.1 [%%]")
-    out.add_argument("--noise-scada-pct", type=float, default=0.0, help="SCADA-class noise, e.g. 1 [%%]")
-    out.add_argument("--drop-prob", type=float, default=0.0, help="probability that a frame is dropped")
-    out.add_argument("--drop-burst-min", type=float, default=0.0,
+    out.add_argument("--truth-every", type=int, default=_REALISM.truth_every, help="TruthFrame every N steps (0: none)")
+    out.add_argument("--noise-pmu-pct", type=float, default=_REALISM.noise_pmu_pct,
+                     help="PMU-class noise, e.g. 0.1 [%%]")
+    out.add_argument("--noise-scada-pct", type=float, default=_REALISM.noise_scada_pct,
+                     help="SCADA-class noise, e.g. 1 [%%]")
+    out.add_argument("--drop-prob", type=float, default=_REALISM.drop_prob, help="probability that a frame is dropped")
+    out.add_argument("--drop-burst-min", type=float, default=_REALISM.drop_burst_min,
                      help="with --drop-prob: each device loses its frames in outages of this many minutes, "
                           "--drop-prob being the share lost (default 0: each frame independently)")
-    out.add_argument("--clock-skew-s", type=float, default=0.0,
+    out.add_argument("--clock-skew-s", type=float, default=_REALISM.clock_skew_s,
                      help="the field devices' clocks are this far off the bridge's: frames stamped t + skew [s]")
     out.add_argument("--latency-s", type=float, default=0.0, help="fixed frame latency [s of wall time]")
     out.add_argument("--noise-seed", type=int, default=0, help="seed of noise and drops")

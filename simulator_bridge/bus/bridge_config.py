@@ -8,7 +8,11 @@ from typing import Literal
 
 import msgspec
 
+from schemas.settings import BridgeSection
+
 __all__ = ["BridgeConfig"]
+
+_REALISM = BridgeSection()  # the realism defaults are a case file's [bridge] section's (``schemas.settings``)
 
 
 class BridgeConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
@@ -61,16 +65,16 @@ class BridgeConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fie
     wait_agent_s: float = 0.0
     year_seed: int = 1
     pv_local: Literal["unity", "volt_var"] = "unity"
-    truth_every: int = 1
-    noise_pmu_pct: float = 0.0
-    noise_scada_pct: float = 0.0
-    drop_prob: float = 0.0
+    truth_every: int = _REALISM.truth_every
+    noise_pmu_pct: float = _REALISM.noise_pmu_pct
+    noise_scada_pct: float = _REALISM.noise_scada_pct
+    drop_prob: float = _REALISM.drop_prob
     latency_s: float = 0.0
     noise_seed: int = 0
     cache_dir: str | None = None  # year-profile cache folder; None: no cache (the CLI passes its --cache's)
     publisher: Literal["auto", "inline", "process"] = "auto"
     oracle: bool = False
-    drop_burst_min: float = 0.0
-    clock_skew_s: float = 0.0
+    drop_burst_min: float = _REALISM.drop_burst_min
+    clock_skew_s: float = _REALISM.clock_skew_s
     pv_sunspec: dict[str, str] = {}  # plant id -> tcp/127.0.0.1:PORT: the plant behind a simulated SunSpec inverter
     own_commands_only: bool = False

@@ -6,13 +6,14 @@ import msgspec
 import numpy as np
 import pytest
 
-from agent.controller import CvvcController, Decision, MeasurementSnapshot
+from agent.controller import CvvcController, Decision, MeasurementSnapshot, controller_options
 from agent.errors import AgentInputError
 from agent.state import GridState, oracle_state
 from benchmarks.synthetic import synthetic_model
 from regression.estimator import dv_dp_pu_per_kw, estimate_voltages_pu, pv_variability_margins_pu
 from regression.model import ModelArrays, ModelError, features
 from schemas import messages as m
+from schemas.settings import PAPER_AGENT
 
 MODEL = synthetic_model(0)
 ARRAYS = ModelArrays.of(MODEL)
@@ -54,8 +55,18 @@ def snapshot(
 
 
 def controller(**kw) -> CvvcController:
-    args = {"mode": "taps", "correction": True, "bandwidth_v120": 4.0, **kw}
+    """The shipped controller (``schemas.settings.AgentOptions``' defaults), in taps mode with the correction."""
+    args = {"mode": "taps", "correction": True, **kw}
     return CvvcController(MODEL, **args)
+
+
+#: The paper's configuration (every option beyond the paper off): the tests of one option against the paper's method.
+PAPER = controller_options(PAPER_AGENT)
+
+
+def paper_controller(model=MODEL, **kw) -> CvvcController:
+    """The paper's controller (``PAPER``) in taps mode with the correction; ``kw`` sets options on top."""
+    return CvvcController(model, **{"mode": "taps", "correction": True, **PAPER, **kw})
 
 
 HIGH = np.full(R, 0.01)  # regulator readings 1 % above the estimate: corrected estimate over 1.04 pu
@@ -113,7 +124,7 @@ def test_missing_pv_frame_keeps_last_q_and_sends_no_command():
 
 
 def test_missing_regulator_is_not_moved_nor_used_for_correction():
-    c = controller()
+    c = paper_controller()
     taps = np.array([1, 0, 0, 2, 0, 0, 0, 0])
     c.decide(snapshot(0, taps=taps))
     err = np.full(R, 0.003)
@@ -123,7 +134,7 @@ def test_missing_regulator_is_not_moved_nor_used_for_correction():
     d = c.decide(snapshot(1, taps=taps, reading_error_pu=err, reg_valid=reg_valid, reg_tap=reading))
     assert d.missing == ("vr3",) and not d.reg_command[3] and d.reg_command.sum() == R - 1
     assert d.reg_tap[3] == 2  # last known tap, not the (invalid) reading
-    ref = controller(correction=False).decide(snapshot(1, taps=taps))
+    ref = paper_controller(correction=False).decide(snapshot(1, taps=taps))
     behind_3 = ARRAYS.upstream_regulator == 3
     np.testing.assert_allclose(d.v_pu[behind_3], ref.v_pu[behind_3], atol=1e-12)  # no eps from vr3
     behind_0 = ARRAYS.upstream_regulator == 0
@@ -221,7 +232,7 @@ def test_nan_in_a_valid_frame_is_rejected_before_the_solver(field, index, device
 def test_pv_variability_margin_tightens_the_limits_after_a_cloud():
     """A plant that produced more 10 minutes ago may do so again within the interval: the nodes it raises
     get a lower upper limit, by the linear model's dV/dP times the output they could regain."""
-    plain, margin = controller(), controller(pv_margin_window_s=1800.0, pv_margin_cap_pu=0.01)
+    plain, margin = paper_controller(), paper_controller(pv_margin_window_s=1800.0, pv_margin_cap_pu=0.01)
     minute = 60_000_000_000
     for t, p in ((0, 1100.0), (5 * minute, 1100.0), (10 * minute, 300.0)):  # a cloud at the third step
         snap = snapshot(t, pv_p_kw=p, reading_error_pu=HIGH)
@@ -258,7 +269,7 @@ def test_case_a_tightens_every_node_by_the_oracle_dv_dp():
 
     def case_a(oracle_reply, **kw):
         """A case-A controller after three steps (a cloud at the third), the third decided from the oracle."""
-        c = controller(**kw)
+        c = paper_controller(**kw)
         asked = []
 
         def oracle(t_ns):
@@ -330,8 +341,8 @@ def _bounded_model(upper: float, lower: float, head_p_range: tuple[float, float]
 
 def test_calibrated_bounds_tighten_the_estimated_nodes_limits():
     """Each critical node's limits are tightened by its estimate's calibrated bounds."""
-    plain = controller().decide(snapshot(reading_error_pu=HIGH))
-    bounded = CvvcController(_bounded_model(0.004, 0.003), mode="taps", correction=True, bandwidth_v120=4.0)
+    plain = paper_controller().decide(snapshot(reading_error_pu=HIGH))
+    bounded = paper_controller(_bounded_model(0.004, 0.003))
     d = bounded.decide(snapshot(reading_error_pu=HIGH))
     lo, hi = MODEL.optimization_limits_pu
     assert plain.v_pred_pu.max() == pytest.approx(hi, abs=1e-5)  # without bounds the plain limit binds
@@ -361,7 +372,7 @@ def test_bounds_within_the_judged_limits_gap_leave_the_optimization_limits():
 
 def test_inputs_outside_the_training_envelope_widen_the_bounds_and_say_so():
     model = _bounded_model(0.004, 0.003, head_p_range=(0.0, 500.0))  # the snapshot's 800 kW per phase is outside
-    d = CvvcController(model, mode="taps", correction=True, bandwidth_v120=4.0).decide(snapshot(reading_error_pu=HIGH))
+    d = paper_controller(model).decide(snapshot(reading_error_pu=HIGH))
     _, hi = MODEL.optimization_limits_pu
     assert d.status == "optimal" and d.v_pred_pu.max() <= hi - 0.008 + 1e-5  # twice the bound
     np.testing.assert_array_equal(d.v_bound_high_pu, 0.008)
@@ -400,15 +411,15 @@ def test_sensitivity_error_reaches_the_soft_form_of_estimates_only():
     state = GridState(v0_pu=np.full(n, 1.0), dv_dq_pu_per_kvar=np.full((n, K), 1e-5),
                       dv_dtap_pu=np.full((n, R), 0.00625), dv_dp_pu_per_kw=np.zeros((n, K)), taps=np.zeros(R, int),
                       corrected=True, critical=True)
-    c = controller(sensitivity_error=0.3)
+    c = paper_controller(sensitivity_error=0.3)
     c.decide(snap)  # the plants' last P and Q
     assert c.problem(snap, state).dv_dq_rel_error == 0.3
     assert c.problem(snap, dataclasses.replace(state, critical=False)).dv_dq_rel_error == 0.0
-    plain = controller()
+    plain = paper_controller()
     plain.decide(snap)
     assert plain.problem(snap, state).dv_dq_rel_error == 0.0
     with pytest.raises(AgentInputError, match="sensitivity_error"):
-        controller(sensitivity_error=-0.1)
+        paper_controller(sensitivity_error=-0.1)
 
 
 def test_correction_filter_takes_only_fresh_readings_into_its_mean():
@@ -564,7 +575,7 @@ def test_a_tap_move_is_not_reversed_soon_after_unless_the_limits_need_it():
     dear_q = msgspec.structs.replace(MODEL, pv=[msgspec.structs.replace(p, cost_per_kvar=0.05) for p in MODEL.pv])
 
     def pair(lockout_s: float, kva: float = 1200.0, second_t_s: int = 300) -> tuple[Decision, Decision]:
-        c = CvvcController(dear_q, mode="taps", correction=True, bandwidth_v120=4.0,
+        c = paper_controller(dear_q,
                            tap_reversal_lockout_s=lockout_s)
         d1 = c.decide(snapshot(0, reading_error_pu=low))
         s2 = snapshot(second_t_s * 10**9, reading_error_pu=high, taps=d1.reg_tap)
@@ -583,7 +594,7 @@ def test_a_tap_move_is_not_reversed_soon_after_unless_the_limits_need_it():
     _, later = pair(900.0, second_t_s=1200)
     np.testing.assert_array_equal(later.reg_tap, free.reg_tap)
     with pytest.raises(AgentInputError, match="tap_reversal_lockout_s"):
-        controller(tap_reversal_lockout_s=-1.0)
+        paper_controller(tap_reversal_lockout_s=-1.0)
 
 
 def test_noisy_readings_widen_the_bounds_from_their_window_mean_not_the_last_reading():
@@ -609,3 +620,19 @@ def test_noisy_readings_widen_the_bounds_from_their_window_mean_not_the_last_rea
     quiet, noisy = high_bound(0.1 * step_v), high_bound(1.2)
     np.testing.assert_allclose(noisy, 0.001)  # the window's mean is what the filter took in: no gap
     assert quiet.max() == pytest.approx(0.001 + jump_pu, abs=1e-9)  # the last reading's gap, on its side
+
+
+def test_the_controllers_defaults_are_the_shipped_agents():
+    """A controller given no option is the agent process's with ``AgentSettings``' defaults (one place for each
+    default: ``schemas.settings``), and decides as it does."""
+    from agent.runtime import DecisionMaker
+    from schemas.settings import AgentSettings
+
+    shipped, plain = DecisionMaker(MODEL, AgentSettings(mode="taps")).controller, controller()
+    for name in ("sensitivity_error", "bounds_in_margin", "bounds_cover_filter", "predict_banks", "stale_plants",
+                 "setpoint_hold", "control_banks", "bandwidth_v120"):
+        assert getattr(plain, name) == getattr(shipped, name), name
+    assert plain.sensitivity_error == AgentSettings().sensitivity_error > 0  # not the paper's eq. (17)
+    for t in range(3):
+        snap = snapshot(t * 300 * 10**9, reading_error_pu=HIGH)
+        assert shipped.decide(snap).same_content(plain.decide(snap))

@@ -212,8 +212,10 @@ def test_case_flags_give_the_settings_the_agent_records(case, window, hold, expe
 
     from agent.cli import register, settings_from_args
     from cvvc.launch import agent_settings_args, case_agent_settings
+    from schemas.settings import AgentOptions
 
-    settings = case_agent_settings(case, "ieee13", 4.0, window, hold)
+    options = AgentOptions(setpoint_hold=hold, **({} if window is None else {"pv_margin_window_s": window}))
+    settings = case_agent_settings(case, "ieee13", options)
     assert settings is not None
     for name, value in expect.items():
         assert getattr(settings, name) == value, name
@@ -222,8 +224,8 @@ def test_case_flags_give_the_settings_the_agent_records(case, window, hold, expe
     register(parser.add_subparsers())
     args = parser.parse_args(["agent", "--model", "-", *agent_settings_args(settings), "--mode", "taps"])
     assert settings_from_args(args) == settings
-    assert case_agent_settings("none", "ieee13", 4.0, 0.0, True) is None
-    assert case_agent_settings("local", "ieee13", 4.0) is None
+    assert case_agent_settings("none", "ieee13", options) is None
+    assert case_agent_settings("local", "ieee13") is None
 
 
 def test_the_run_is_secure_by_default_and_says_so(one_hour_run):

@@ -1,0 +1,188 @@
+"""The one settings tree of a run (``cvvc run case.toml``): frozen structs, every default written once, here.
+
+A case file is this tree in TOML (``cvvc init case.toml`` writes it with every setting, its default and its
+description). Its sections::
+
+    case = "D"            # the paper's case (A-D) or a baseline (none, local)
+    cache = ...           # the cache root (models, profiles, certificates)
+    [feeder]              # FeederSection: the device map, the model and its training year
+    [window]              # WindowSection: the simulated days and their profile year
+    [agent]               # AgentOptions: the agent's decision settings (the part of AgentSettings a case may set)
+    [bridge]              # BridgeSection: the bridge's clock and realism (noise, lost frames, delays, skew)
+    [output]              # OutputSection: the run's folder, recording and baseline
+    [security]            # SecuritySection: mTLS and the access policy, the certificate authority
+
+``AgentSettings`` (what the agent process decides with, recorded with every session) is ``AgentOptions`` plus what
+the case and the feeder fix (feeder id, mode, correction, full visibility, AMI meters); ``CvvcController``'s keyword
+defaults, ``cvvc run``'s flags, ``RunConfig`` and the bridge's realism defaults all read their defaults from here.
+Every field's ``Meta(description=...)`` is the line ``cvvc init`` writes above it: a new setting is one field here.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+import msgspec
+from msgspec import Meta
+
+from schemas.devicemap import MeterSpec
+
+__all__ = ["CASES", "PAPER_AGENT", "SECTIONS", "AgentOptions", "AgentSettings", "BridgeSection", "Case",
+           "FeederSection", "OutputSection", "PvProtocol", "RunCase", "SecuritySection", "WindowSection"]
+
+Case = Literal["A", "B", "C", "D", "none", "local"]
+CASES: tuple[Case, ...] = ("A", "B", "C", "D", "none", "local")
+PvProtocol = Literal["bus", "sunspec"]
+
+class AgentOptions(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """The agent's decision settings (docs/agent.md); the case sets the mode and the correction."""
+
+    bandwidth_v120: Annotated[float, Meta(gt=0, description=(
+        "regulator band sent with eq. (8) set points, cases C/D [V on the 120 V base]"))] = 4.0
+    valid_intervals: Annotated[float, Meta(gt=0, description=(
+        "commands expire this many control periods after their step"))] = 2.0
+    late_window_s: Annotated[float, Meta(ge=0, description=(
+        "live only: how long an incomplete step waits for late frames [s]"))] = 2.0
+    stale_after_s: Annotated[float, Meta(gt=0, description="live only: no frame for this long -> 'stale' [s]")] = 10.0
+    oracle_timeout_s: Annotated[float, Meta(gt=0, description=(
+        "case A: how long to wait for the bridge's oracle [s]"))] = 30.0
+    pv_margin_window_s: Annotated[float, Meta(ge=0, description=(
+        "beyond the paper: PV variability margin window, 0 = off (the paper's method) [s]"))] = 1800.0
+    pv_margin_cap_pu: Annotated[float, Meta(ge=0, le=0.05, description=(
+        "the PV variability margin's largest value on either side [pu]"))] = 0.01
+    setpoint_hold: Annotated[bool, Meta(description=(
+        "beyond the paper, cases C/D: re-send the last set point when no tap change is decided"))] = False
+    control_banks: Annotated[bool, Meta(description=(
+        "beyond the paper, cases B-D: decide and command the capacitor banks"))] = False
+    reading_window_s: Annotated[float, Meta(ge=0, description=(
+        "regulator readings averaged over this at the present tap [s]; 0: the last reading"))] = 300.0
+    # (600 s let the nominal rural winter week violate: NVV 8)
+    last_good_s: Annotated[float, Meta(ge=0, description=(
+        "a head/PV/regulator frame lost at a control step: its latest within this stands in [s]"))] = 900.0
+    # (240 s held 82 and 278 steps and gave NVV 597 and 1,158 with 10-minute outages in the rural winter week)
+    reading_fit_s: Annotated[float, Meta(ge=0, description=(
+        "> 0: regulator readings of this long regressed on the head's P and Q [s]; 0: off"))] = 0.0
+    clock_tolerance_s: Annotated[float, Meta(ge=0, description=(
+        "a frame stamped this close to a control step is that step's (clock skew) [s]"))] = 5.0
+    correction_window_s: Annotated[float, Meta(ge=0, description=(
+        "eq. (6)'s corrections: exponential mean over about this [s]; 0: off"))] = 3000.0
+    # (rural winter week with 1 % SCADA noise: NVV 10 -> 0, NTC 196 -> 66; agent.state.CorrectionFilter)
+    filtered_setpoints: Annotated[bool, Meta(description=(
+        "beyond the paper: eq. (8) from the filtered compared reading (with the correction filter)"))] = True
+    # (rural winter week with 1 % SCADA noise: NTC 66 -> 25, summer 134 -> 73; CvvcController)
+    sensitivity_error: Annotated[float, Meta(ge=0, le=1, description=(
+        "soft form: relative error of the estimated Q sensitivities; 0: the paper's eq. (17) [-]"))] = 0.3
+    # (epri-ckt24, first winter day: plants pulling against each other, Q cost 2,130 -> 57 at NVV 435 -> 441)
+    bounds_in_margin: Annotated[bool, Meta(description=(
+        "the estimate bounds tighten a limit only past the optimization/judged gap"))] = True
+    bounds_cover_filter: Annotated[bool, Meta(description=(
+        "the estimate bounds cover eq. (6) as computed and as filtered"))] = True
+    # (agent.state.filter_gap_bounds_pu; epri-m1 case D, 1 July: 37 % of node-decisions outside the bounds without)
+    tap_reversal_lockout_s: Annotated[float, Meta(ge=0, description=(
+        "a regulator's move is not reversed within this unless needed [s]; 0: off"))] = 900.0
+    predict_banks: Annotated[bool, Meta(description=(
+        "banks on their local control: the decision keeps them from switching because of it"))] = True
+    stale_plants: Annotated[bool, Meta(description=(
+        "a plant behind a stale frame: P projected, Q our command, not raised, margin for its P"))] = True
+    # (rural winter week, 5 % lost in 10-minute outages: NVV 3 -> 0, NTC 72 -> 25; 20 % outages: NTC 98 -> 70)
+
+
+#: The paper's method: every option beyond the paper off (tests of the equations as the paper writes them).
+PAPER_AGENT = AgentOptions(pv_margin_window_s=0.0, correction_window_s=0.0, filtered_setpoints=False,
+                           sensitivity_error=0.0, bounds_in_margin=False, bounds_cover_filter=False,
+                           tap_reversal_lockout_s=0.0, predict_banks=False, stale_plants=False)
+
+
+class AgentSettings(AgentOptions, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """Everything that shapes the agent's decisions (recorded with a session for the offline re-run): the options
+    and what the case (mode, correction, full visibility) and the feeder (id, AMI meters) fix.
+    """
+
+    feeder_id: str = "rural-s1"
+    agent_id: str = "agent"
+    mode: Literal["taps", "setpoints"] = "setpoints"
+    correction: bool = True
+    full_visibility: bool = False
+    # the device map's AMI meters ([[meter]]): the only meters whose readings count, each for its node and at its
+    # interval in the map (agent.ami); none: every reading is refused
+    meters: tuple[MeterSpec, ...] = ()
+
+
+class FeederSection(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """The feeder and the model."""
+
+    map: Annotated[str | None, Meta(description=(
+        "device map TOML or folder; not set: the embedded rural feeder"))] = None
+    model: Annotated[str | None, Meta(description="model file; not set: trained once and cached")] = None
+    train_seed: Annotated[int, Meta(description="profile year the model is trained on")] = 1
+
+
+class WindowSection(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """The simulated days (their steps are the device map's step_s, 1 minute)."""
+
+    start: Annotated[str, Meta(description=(
+        "first simulated instant, YYYY-MM-DD[THH:MM], local standard time (UTC-5)"))] = "2023-01-16"
+    days: Annotated[float, Meta(gt=0, le=366, description="simulated days (1/24: one hour)")] = 1.0
+    year_seed: Annotated[int, Meta(description="profile year of the run (2: out of sample, not the training year)")] = 2
+
+
+class BridgeSection(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """The simulator bridge's clock and realism."""
+
+    realtime: Annotated[bool, Meta(description="step on the wall clock instead of lockstep")] = False
+    speed: Annotated[float, Meta(gt=0, description="realtime: simulated seconds per wall second")] = 60.0
+    lockstep_timeout_s: Annotated[float, Meta(gt=0, description=(
+        "lockstep: how long the bridge waits for a decision before going on under local control [s]"))] = 10.0
+    noise_pmu_pct: Annotated[float, Meta(ge=0, description="PMU-class noise on the feeder-head meter [%]")] = 0.0
+    noise_scada_pct: Annotated[float, Meta(ge=0, description=(
+        "SCADA-class noise on PV, regulator and capacitor readings [%]"))] = 0.0
+    drop_prob: Annotated[float, Meta(ge=0, le=1, description=(
+        "the bridge drops each measurement frame with this probability"))] = 0.0
+    drop_burst_min: Annotated[float, Meta(ge=0, description=(
+        "> 0: frames lost in per-device outages of this long, drop_prob the share lost [min]"))] = 0.0
+    meas_delay_s: Annotated[float, Meta(ge=0, description=(
+        "realtime only: frames reach the agent this late [simulated s]"))] = 0.0
+    clock_skew_s: Annotated[float, Meta(description=(
+        "the field devices' clocks are this far off the bridge's and the agent's [s]"))] = 0.0
+    truth_every: Annotated[int, Meta(ge=0, description=(
+        "a truth frame every this many steps (0: never); the recording keeps it for the metrics"))] = 1
+    pv_protocol: Annotated[PvProtocol, Meta(description=(
+        "how the PV plants reach the bus: bus (the bridge's frames) or sunspec (docs/sunspec.md)"))] = "bus"
+
+
+class OutputSection(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """The run's folder, its recording and its baseline."""
+
+    out: Annotated[str | None, Meta(description="output folder; not set: runs/<feeder>-<case>-<time>")] = None
+    record: Annotated[bool, Meta(description="record the session to MCAP (session.mcap)")] = True
+    baseline: Annotated[bool, Meta(description="simulate the no-control baseline of the same days")] = True
+    recorder_restarts_max: Annotated[int, Meta(ge=0, description=(
+        "a recorder that dies is restarted at most this many times per run"))] = 3
+
+
+class SecuritySection(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """The bus's security (docs/security.md)."""
+
+    secure: Annotated[bool, Meta(description=(
+        "mTLS and the deny-by-default access policy (false: `--insecure`, warned and recorded)"))] = True
+    ca_dir: Annotated[str | None, Meta(description=(
+        "the certificate authority; not set: <cache>/ca, created on the first run"))] = None
+
+
+class RunCase(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """A case file: everything ``cvvc run`` runs (docs/case-file.md)."""
+
+    case: Annotated[Case, Meta(description=(
+        "paper case A-D, or a baseline: none (no central control), local (+ IEEE 1547 volt-var)"))] = "D"
+    cache: Annotated[str | None, Meta(description=(
+        "cache root (models, profiles, certificates); not set: the default cache"))] = None
+    feeder: FeederSection = msgspec.field(default_factory=FeederSection)
+    window: WindowSection = msgspec.field(default_factory=WindowSection)
+    agent: AgentOptions = msgspec.field(default_factory=AgentOptions)
+    bridge: BridgeSection = msgspec.field(default_factory=BridgeSection)
+    output: OutputSection = msgspec.field(default_factory=OutputSection)
+    security: SecuritySection = msgspec.field(default_factory=SecuritySection)
+
+
+#: The sections of ``RunCase`` in the order a case file lists them.
+SECTIONS: tuple[str, ...] = ("feeder", "window", "agent", "bridge", "output", "security")
