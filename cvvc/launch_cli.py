@@ -82,6 +82,12 @@ def _run(args: argparse.Namespace) -> int:
     else:
         print(render_summary(summary))
         print(f"output: {summary.out_dir} (summary.json, report.md{', session.mcap' if summary.recording else ''})")
+    if summary.integrity.degraded:  # the run finished, but the agent did not control the feeder all along
+        from cvvc.integrity import EXIT_DEGRADED
+
+        print(f"cvvc run: degraded for more than one control period: {summary.integrity.degraded} (exit "
+              f"{EXIT_DEGRADED}; {summary.out_dir}/summary.json, 'integrity')", file=sys.stderr)
+        return EXIT_DEGRADED
     return 0
 
 
