@@ -135,7 +135,8 @@ class SunSpecFleet:
 
     def foreign_master_writes(self) -> dict[str, int]:
         """Writes each inverter refused because they came from another connection than its adapter's (its one Modbus
-        master), by plant; plants without any left out."""
+        master), by plant; plants without any left out.
+        """
         return {pid: inv.foreign_master_writes for pid, inv in self.inverters.items() if inv.foreign_master_writes}
 
     def on_frame(self, plant_id: str, t_ns: int) -> None:
