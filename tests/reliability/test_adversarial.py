@@ -16,14 +16,19 @@ carries every attack at once:
   commands are applied; only the ``agent`` certificate may put decisions);
 * ``rejected`` acks, PV and capacitor, for commands the agent never sent.
 
-Asserted: no rogue command applied, every input refused and counted, at least 95 % of the due decisions made, NVV
-within 100 node-minutes of the clean window. The rogue Modbus master (``--pv-protocol sunspec``) is refused by the
-inverter itself: tests/simulator_bridge/test_sunspec_sim.py.
+A third window runs the same half hour with every plant behind a simulated SunSpec inverter and its adapter process
+(``cvvc run --pv-protocol sunspec``): from the second control step on, a rogue Modbus master connects to every
+inverter and writes full absorption at each control step.
+
+Asserted: no rogue command or set point applied, every input refused and counted, at least 95 % of the due decisions
+made, NVV within 100 node-minutes of the clean window.
 """
 
 from __future__ import annotations
 
 import datetime as dt
+import queue
+import threading
 from pathlib import Path
 
 import msgspec
@@ -31,12 +36,14 @@ import pytest
 import zenoh
 from relutil import FEEDER, Attack, secure_window
 
+from adapters.errors import AdapterError, DeviceRefusedError
+from adapters.sunspec import SunSpecLink
 from agent.runtime import AgentSummary
 from cvvc.integrity import run_integrity
 from regression.model import read_model
 from schemas import keys
 from schemas import messages as m
-from schemas.bus import codec_for, wait_for
+from schemas.bus import codec_for, free_port, wait_for
 from schemas.examples import example
 from simulator_bridge.bus.bridge import BridgeSummary
 
@@ -138,6 +145,53 @@ class OnEachControlStep(Attack):
         self.count("decisions")
 
 
+class RogueMaster(Attack):
+    """A second Modbus master on the plants' network: from the second control step on, at each control step it writes
+    full absorption (-800 kvar, an hour's revert time) into every inverter. The writes run on a thread of their own."""
+
+    def __init__(self, endpoints: dict[str, str]) -> None:
+        super().__init__()
+        self.endpoints = endpoints
+        self.links: dict[str, SunSpecLink] = {}
+        self.steps: queue.Queue[int | None] = queue.Queue()
+        self.thread = threading.Thread(target=self._write, name="rogue-master", daemon=True)
+        self.seen: set[int] = set()
+
+    def arm(self, forger: zenoh.Session) -> None:
+        codec = codec_for(m.HeadFrame)
+        self.sub = forger.declare_subscriber(keys.meas_head(FEEDER), lambda s: self._on_head(codec, s))
+        self.thread.start()
+
+    def _on_head(self, codec, sample: zenoh.Sample) -> None:
+        t = codec.decode(sample.payload.to_bytes()).t_ns
+        if t % PERIOD_NS == 0 and t >= T0 + PERIOD_NS and t not in self.seen:  # the adapters are connected by then
+            self.seen.add(t)
+            self.steps.put(t)
+
+    def _write(self) -> None:
+        while self.steps.get() is not None:
+            for pid, ep in self.endpoints.items():
+                host, port = ep.removeprefix("tcp/").rsplit(":", 1)
+                try:
+                    if pid not in self.links:
+                        self.links[pid] = SunSpecLink(host, int(port), timeout_s=2.0)
+                        self.links[pid].read()  # learns the scale factors, as any master would
+                    self.links[pid].write_var_setpoint(-800.0, 3600)
+                    self.count("applied")
+                except DeviceRefusedError:
+                    self.count("refused")
+                except AdapterError as e:  # the test says what went wrong instead of a dead thread
+                    self.count(f"failed: {e}"[:200])
+
+    def close(self) -> None:
+        if self.thread.is_alive():
+            self.steps.put(None)
+            self.thread.join(30.0)
+        for link in self.links.values():
+            link.close()
+        self.links.clear()
+
+
 @pytest.fixture(scope="module")
 def clean(tmp_path_factory, model13: Path, rel_cache: Path, secure_certs: Path) -> dict:
     """The window without an attacker (run once per module)."""
@@ -217,3 +271,30 @@ def test_rejected_acks_for_commands_the_agent_never_sent_are_refused_and_counted
     assert agent["rejected"]["foreign_ack"] == sent["acks_pv"] + sent["acks_cap"] == 10
     assert agent["acks"].get("rejected", 0) == 0 and agent.get("commands_refused", {}) == {}
     assert agent["acks"].get("accepted", 0) + agent["acks"].get("clipped", 0) == agent["commands"] > 0
+
+
+@pytest.fixture(scope="module")
+def sunspec_attacked(tmp_path_factory, model13: Path, rel_cache: Path, secure_certs: Path) -> dict:
+    """The window with every plant behind SunSpec and a rogue Modbus master at every inverter (run once per module)."""
+    endpoints = {pid: f"tcp/127.0.0.1:{free_port()}" for pid in ("pv675", "pv680", "pv633")}
+    rogue = RogueMaster(endpoints)
+    return secure_window(tmp_path_factory.mktemp("sunspec"), model13, rel_cache, secure_certs, steps=STEPS,
+                         attacks=(rogue,), sunspec=endpoints)
+
+
+def test_a_rogue_modbus_master_is_refused_by_every_inverter_and_changes_nothing(sunspec_attacked, clean):
+    """Before, the simulated inverter took any connection's write: the rogue -800 kvar held until the adapter's next
+    scan undid it (a foreign write, counted). Now only the adapter's connection, the inverter's one master, writes."""
+    agent, bridge, links = sunspec_attacked["agent"], sunspec_attacked["bridge"], sunspec_attacked["links"]
+    sent = sunspec_attacked["sent"]["RogueMaster"]
+    assert set(sent) == {"refused"} and sent["refused"] >= 3 * (STEPS // 5 - 2), sent  # none applied, none failed
+    assert sum(bridge["sunspec_foreign_master_writes"].values()) == sent["refused"]
+    assert set(bridge["sunspec_foreign_master_writes"]) == set(links)
+    assert all(link["foreign_writes"] == 0 for link in links.values())  # no scan found a set point not its adapter's
+    assert agent["acks"].get("accepted", 0) + agent["acks"].get("clipped", 0) == agent["commands"] > 0
+    assert agent["decisions"] >= 0.95 * bridge["control_steps"] and bridge["lockstep_misses"] == 0
+    assert bridge["metrics"]["nvv"] <= clean["bridge"]["metrics"]["nvv"] + 100
+    integrity = run_integrity(msgspec.convert(agent, AgentSummary), msgspec.convert(bridge, BridgeSummary),
+                              {pid: msgspec.convert(x, m.LinkStatus) for pid, x in links.items()}, step_s=60,
+                              control_period_s=300)
+    assert integrity.degraded == "" and sum(integrity.foreign_master_writes.values()) == sent["refused"]
