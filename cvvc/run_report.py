@@ -87,8 +87,8 @@ def _integrity_lines(s: RunSummary) -> list[str]:
     g = s.integrity
     if s.case in ("none", "local"):
         return []
-    lines = [f"- decisions: {s.decisions} of {g.decisions_due} due ({g.decisions_missing} missing); inputs refused: "
-             f"{_counts(g.inputs_refused)}; foreign acks {g.foreign_acks}; meter readings refused: "
+    lines = [f"- integrity: {s.decisions} of {g.decisions_due} decisions due ({g.decisions_missing} missing); inputs "
+             f"refused: {_counts(g.inputs_refused)}; foreign acks {g.foreign_acks}; meter readings refused: "
              f"{_counts(g.meter_readings_refused)}; commands refused by device: {_counts(g.commands_refused)}; "
              f"refused by the bridge: {_counts(g.bridge_refused)}; decisions not the agent's: {g.foreign_decisions}"]
     if s.pv_protocol == "sunspec":

@@ -249,7 +249,7 @@ def test_a_clean_run_says_nothing_was_refused_or_missed_and_exits_0(one_hour_run
     assert g["lockstep_misses"] == 0 and g["foreign_acks"] == 0 and g["foreign_decisions"] == 0
     assert g["commands_refused"] == {} and g["meter_readings_refused"] == {} and g["degraded"] == ""
     report = (out / "report.md").read_text()
-    assert "decisions: 12 of 12 due (0 missing)" in report and "degraded" not in report
+    assert "integrity: 12 of 12 decisions due (0 missing)" in report and "degraded" not in report
 
 
 @pytest.mark.process
