@@ -15,7 +15,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     """Add the ``run`` and ``report`` verbs to the ``cvvc`` command line's ``sub``."""
     p = sub.add_parser("run", help="the main job: bridge + agent + recorder on one simulated day (case D)",
                        description="Generate or reuse the feeder and model, then run bridge, agent and recorder "
-                                   "as separate processes on loopback and print a summary.")
+                                   "as separate processes on loopback and print a summary. Exit status: 0 a clean "
+                                   "run, 2 an error, 3 a run in which the agent lost control for more than one "
+                                   "control period (summary.json's 'integrity' says what was refused, missed or "
+                                   "overwritten).")
     p.add_argument("--feeder", default=None, help="device map TOML or folder (default: embedded rural feeder)")
     p.add_argument("--model", default=None, help="model file (default: train once and cache)")
     p.add_argument("--days", type=float, default=1.0, help="simulated days (default 1; 1/24 = one hour)")
