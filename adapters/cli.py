@@ -47,6 +47,10 @@ def _sunspec(args: argparse.Namespace) -> int:
     parse_modbus_endpoint(config.modbus)  # a bad endpoint is refused before joining the bus
     bus = bus_config_from_args(args, role="devices")
     status = _with_stop(lambda stop: run_adapter(config, bus, stop=stop))
+    if args.summary_out:  # the launcher sums the links' counts from these files, never from the bus
+        from pathlib import Path
+
+        Path(args.summary_out).write_bytes(msgspec.json.encode(status))
     print(f"adapter {config.device_id} ({config.modbus}): {status.state}, {status.scans} scans, {status.frames} "
           f"frames, {status.commands} commands ({status.commands_failed} failed), refused values "
           f"{dict(status.refused) or 'none'}, foreign writes {status.foreign_writes}")
@@ -103,6 +107,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--clock", choices=["wall", "head"], default="wall",
                    help="wall: scan on --scan-period-s of the UTC clock; head: scan at each new feeder-head frame and "
                         "take its time (the feeder's scan drives the adapter)")
+    s.add_argument("--summary-out", metavar="FILE",
+                   help="write the link's last LinkStatus as JSON to FILE at exit (the launcher reads it)")
     add_bus_arguments(s)
     s.set_defaults(func=_sunspec)
     sim = verbs.add_parser("sim", help="serve a simulated SunSpec inverter (models 1, 701, 702, 704) to try on",

@@ -17,7 +17,8 @@ and ignored.
 Identity from the device map, never from the payload: a reading counts only from a meter the map declares
 (``[[meter]]``, ``AgentSettings.meters``), for that meter's node, and it serves for the *map's* interval of that
 meter (a reading's own ``interval_s`` is ignored: a forged 86,400 s would let one reading serve two days). A map
-without meters takes no reading at all. A reading stamped more than a step ahead of the newest frame is refused.
+without meters takes no reading at all. A reading stamped more than ``FUTURE_TOLERANCE_NS`` (5 s) ahead of the newest
+frame is refused ``future``.
 """
 
 from __future__ import annotations
@@ -37,9 +38,11 @@ __all__ = ["AmiReadings", "REFUSED_KINDS"]
 
 #: Decisions whose estimates are kept to pair with readings (a day of 5-minute control periods).
 HISTORY_STEPS = 288
-#: How far ahead of the newest frame a reading may be stamped [ns]: one 1-minute step (a step's reading is published
-#: before that step's frames).
-FUTURE_TOLERANCE_NS = 60 * 1_000_000_000
+#: How far ahead of the newest frame a reading may be stamped [ns]: 5 s, as the agent's default clock tolerance
+#: (``AgentSettings.clock_tolerance_s``). A step's readings follow its head frame, so a meter of the feeder's clock is
+#: never ahead; a reading whose step's head frame was lost is refused ``future`` (the next one serves). Up to a whole
+#: 1-minute step (the former tolerance), a forged reading stamped 59 s ahead stood as the meter's newest.
+FUTURE_TOLERANCE_NS = 5 * 1_000_000_000
 #: Why a reading is refused (counted with the agent's rejected inputs), by the kind ``add`` returns; the other
 #: kinds (a declared meter at a node that is not critical) are only counted in ``counts``.
 REFUSED_KINDS = {"ami_unknown_meter": "unknown_device", "ami_wrong_node": "unknown_device",

@@ -75,6 +75,7 @@ class AgentSummary(msgspec.Struct, frozen=True, kw_only=True):
     released_by_step_end: int = 0  # steps with lost frames decided at once, on a marker, not after the late window
     decided_after_late_window: int = 0  # live: control steps decided only once the late-frame window was over
     clock_snapped: int = 0  # frames stamped off a control step within ``clock_tolerance_s``, taken as on it
+    commands_refused: dict[str, int] = {}  # by device: its 'rejected' acks to this agent's commands (taken acks only)
 
 
 def snapshot_from(aligned: AlignedFrames, model: CvvcModel, *, reading_window_s: float = 300.0,
@@ -424,6 +425,7 @@ def run_agent(model: CvvcModel, settings: AgentSettings, bus, *, stop: threading
     maker = DecisionMaker(model, settings)
     f = settings.feeder_id
     acks: Counter[str] = Counter()
+    refused_by: Counter[str] = Counter()  # device -> our commands it answered 'rejected'
     rlog = RateLimitedLog(log)
     health = _FrameHealth(maker.aligner)
     with open_session(bus) as session:
@@ -475,6 +477,7 @@ def run_agent(model: CvvcModel, settings: AgentSettings, bus, *, stop: threading
                     elif isinstance(msg, m.Ack):
                         acks[msg.status] += 1
                         if msg.status == "rejected":
+                            refused_by[msg.device_id] += 1
                             rlog.warning("command_rejected", "command %s rejected by %s: %s", msg.cmd_id,
                                          msg.device_id, msg.reason)
                             maker.controller.refuse_bank(msg.device_id, msg.t_ns)  # a bank is then held
@@ -524,7 +527,8 @@ def run_agent(model: CvvcModel, settings: AgentSettings, bus, *, stop: threading
                         decision_ms=decision_time_ms(maker.decision_s),
                         ami=dict(maker.controller.ami.counts),
                         step_ends=maker.aligner.step_ends, released_by_step_end=maker.aligner.released_by_step_end,
-                        decided_after_late_window=late_decided, clock_snapped=maker.aligner.snapped)
+                        decided_after_late_window=late_decided, clock_snapped=maker.aligner.snapped,
+                        commands_refused=dict(refused_by))
 
 
 def _suppressed(rlog: RateLimitedLog, rejects: dict[str, int]) -> dict[str, int]:

@@ -30,6 +30,7 @@ import msgspec
 
 from agent.runtime import AgentSummary
 from cvvc.fleet_report import CrossFeederProbe, FeederRow, FleetSummary, check_recording, percentile_ms
+from cvvc.integrity import run_integrity
 from cvvc.launch import (
     Case,
     LaunchError,
@@ -331,6 +332,9 @@ def run_fleet(config: FleetConfig) -> FleetSummary:
 def _row(mb: _Member, has_agent: bool, decision_s: list[float] | None) -> FeederRow:
     bridge = _read_summary(mb.out / "bridge-summary.json", BridgeSummary, "bridge")
     agent = _read_summary(mb.out / "agent-summary.json", AgentSummary, "agent") if has_agent else None
+    from schemas.devicemap import load_device_map
+
+    dm = load_device_map(mb.dm_path)
     final = bridge.metrics
     if final is None:
         raise LaunchError(f"{mb.feeder_id}: the bridge finished without final metrics:\n"
@@ -346,7 +350,9 @@ def _row(mb: _Member, has_agent: bool, decision_s: list[float] | None) -> Feeder
         decision_p99_ms=percentile_ms(decision_s, 99), round_trip_p50_ms=ms(bridge.round_trip_p50_s),
         round_trip_p99_ms=ms(bridge.round_trip_p99_s), lockstep_misses=bridge.lockstep_misses, nvv=final.nvv,
         mvvm_pu=final.mvvm_pu, ntc=final.ntc, agent_refused=sum(agent.rejected.values()) if agent else 0,
-        bridge_rejected=sum(bridge.rejected.values()), bridge_wall_s=bridge.wall_s, out_dir=str(mb.out))
+        bridge_rejected=sum(bridge.rejected.values()), bridge_wall_s=bridge.wall_s, out_dir=str(mb.out),
+        integrity=run_integrity(agent, bridge, {}, step_s=dm.feeder.step_s,
+                                control_period_s=dm.feeder.control_period_s))
 
 
 class _Prober:

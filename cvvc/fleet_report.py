@@ -11,6 +11,8 @@ from pathlib import Path
 import msgspec
 import numpy as np
 
+from cvvc.run_summary import RunIntegrity
+
 __all__ = ["CrossFeederProbe", "FeederRow", "FleetSummary", "RecordingCheck", "check_recording", "render_fleet"]
 
 
@@ -40,6 +42,7 @@ class FeederRow(msgspec.Struct, frozen=True, kw_only=True):
     bridge_rejected: int  # commands the bridge's devices rejected (any reason), from its summary
     bridge_wall_s: float
     out_dir: str
+    integrity: RunIntegrity = RunIntegrity()  # what was refused, missed or overwritten; whether control was lost
 
 
 class CrossFeederProbe(msgspec.Struct, frozen=True, kw_only=True):
@@ -184,7 +187,9 @@ def render_fleet(s: FleetSummary) -> str:
                      f"| {_ms(r.decision_p50_ms)} / {_ms(r.decision_p99_ms)} "
                      f"| {_ms(r.round_trip_p50_ms)} / {_ms(r.round_trip_p99_ms)} | {r.lockstep_misses} | {r.nvv} "
                      f"| {r.mvvm_pu:.4f} | {r.ntc} | {r.agent_refused} / {r.bridge_rejected} |")
-    lines += ["", f"- wall time {s.wall_s:.1f} s for the whole fleet (one router, one recorder; preparing feeders "
+    lines += [""] + [f"- **{r.feeder_id} degraded for more than one control period**: {r.integrity.degraded}"
+                     for r in s.feeders if r.integrity.degraded]
+    lines += [f"- wall time {s.wall_s:.1f} s for the whole fleet (one router, one recorder; preparing feeders "
               f"and models before it: {s.prepare_s:.1f} s)"]
     if s.recording:
         lines.append(f"- recording `{s.recording}`: {s.recorded_messages} messages, {s.messages_checked} carry a "

@@ -38,6 +38,7 @@ import msgspec
 
 from agent.runtime import AgentSummary
 from cvvc.errors import CommandError
+from cvvc.integrity import run_integrity
 from cvvc.run_report import render_summary, top_reasons
 from cvvc.run_summary import RunSummary
 from recordings.info import RecorderGap
@@ -396,6 +397,7 @@ def run(config: RunConfig) -> RunSummary:
     security_dir = _security_dir(config)
     connect += ["--secure-dir", security_dir] if security_dir else ["--insecure"]
     children: list[_Child] = []
+    endpoints: dict[str, str] = {}  # sunspec: plant -> its inverter's Modbus endpoint
     # The run's figures come from the processes the launcher started, never from the bus, where any session
     # could publish a metrics frame or a decision: each writes its own summary.
     agent_summary_path, bridge_summary_path = out / "agent-summary.json", out / "bridge-summary.json"
@@ -423,7 +425,8 @@ def run(config: RunConfig) -> RunSummary:
             endpoints = pvp.sunspec_endpoints(dm, free_port) if config.pv_protocol == "sunspec" else {}
             for pid, ep in endpoints.items():  # up before the bridge: it waits for their tokens, then steps
                 children.append(_spawn(f"adapter.{pid}", pvp.adapter_args(
-                    dm, feeder_id, pid, ep, volt_var=config.case == "local", connect=connect), out))
+                    dm, feeder_id, pid, ep, volt_var=config.case == "local", connect=connect,
+                    summary_out=str(out / f"adapter.{pid}-summary.json")), out))
             pv_watch = LivelinessWatcher(session, f"{keys.ROOT}/{feeder_id}/alive/pv/*") if endpoints else None
             if pv_watch is not None and not wait_for(
                     lambda: all(pv_watch.is_alive(keys.alive(feeder_id, "pv", p)) for p in endpoints), 60.0):
@@ -474,6 +477,10 @@ def run(config: RunConfig) -> RunSummary:
     if agent_settings is not None:
         agent_summary = _read_summary(agent_summary_path, AgentSummary, "agent")
     gaps = recorder.finish() if recorder is not None else []
+    links = {pid: _read_summary(out / f"adapter.{pid}-summary.json", m.LinkStatus, f"adapter.{pid}")
+             for pid in endpoints}
+    integrity = run_integrity(agent_summary, bridge_summary, links, step_s=dm.feeder.step_s,
+                              control_period_s=dm.feeder.control_period_s)
 
     baseline = None
     if config.baseline and config.case != "none":
@@ -495,7 +502,7 @@ def run(config: RunConfig) -> RunSummary:
         recorder_restarts=recorder.restarts if recorder is not None else 0, recording_gaps=gaps,
         recorder_gave_up=recorder.gave_up if recorder is not None else False, pv_protocol=config.pv_protocol,
         sunspec_frame_misses=bridge_summary.sunspec_frame_misses, live=live, secure=config.secure,
-        case_file=config.case_file, settings=config.settings())
+        case_file=config.case_file, settings=config.settings(), integrity=integrity)
     (out / "summary.json").write_bytes(msgspec.json.format(msgspec.json.encode(summary), indent=2))
     (out / "report.md").write_text(render_summary(summary))
     check_mostly_held(summary)
@@ -537,7 +544,7 @@ def check_mostly_held(summary: RunSummary) -> None:
                           f"(the whole summary: {Path(summary.out_dir) / 'summary.json'})")
 
 
-_S = TypeVar("_S", AgentSummary, BridgeSummary)
+_S = TypeVar("_S", AgentSummary, BridgeSummary, m.LinkStatus)
 
 
 def _read_summary(path: Path, kind: type[_S], who: str) -> _S:

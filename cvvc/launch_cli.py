@@ -24,7 +24,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("run", help="the main job: bridge + agent + recorder on one simulated day (case D)",
                        description="Generate or reuse the feeder and model, then run bridge, agent and recorder "
                                    "as separate processes on loopback and print a summary. The settings come from "
-                                   "the defaults, then the case file FILE (`cvvc init FILE`), then the flags given.")
+                                   "the defaults, then the case file FILE (`cvvc init FILE`), then the flags given. "
+                                   "Exit status: 0 a clean run, 2 an error, 3 a run in which the agent lost control "
+                                   "for more than one control period (summary.json's 'integrity' says what was "
+                                   "refused, missed or overwritten).")
     p.add_argument("case_file", nargs="?", metavar="FILE", default=None,
                    help="a case file (`cvvc init FILE` writes one); flags given override it")
     p.add_argument("--print-case", action="store_true",
@@ -109,6 +112,12 @@ def _run(args: argparse.Namespace) -> int:
     else:
         print(render_summary(summary))
         print(f"output: {summary.out_dir} (summary.json, report.md{', session.mcap' if summary.recording else ''})")
+    if summary.integrity.degraded:  # the run finished, but the agent did not control the feeder all along
+        from cvvc.integrity import EXIT_DEGRADED
+
+        print(f"cvvc run: degraded for more than one control period: {summary.integrity.degraded} (exit "
+              f"{EXIT_DEGRADED}; {summary.out_dir}/summary.json, 'integrity')", file=sys.stderr)
+        return EXIT_DEGRADED
     return 0
 
 

@@ -71,11 +71,34 @@ def render_summary(s: RunSummary) -> str:
               ("- bus: mTLS with per-role certificates and the deny-by-default access policy" if s.secure else
                "- **bus: insecure** (`--insecure`): no TLS, no access control; any local process could read "
                "and command"),
+              *_integrity_lines(s),
               f"- recording: `{s.recording}`" if s.recording else "- recording: off", *_recorder_lines(s),
               f"- model: `{s.model}`" if s.model else "- model: none (baseline case)",
               f"- case file: `{s.case_file}` (every setting of the run: `settings` in summary.json)" if s.case_file
               else "- case file: none (flags and defaults; every setting of the run: `settings` in summary.json)", ""]
     return "\n".join(lines)
+
+
+def _counts(d: dict[str, int]) -> str:
+    """``a 3, b 1``: counts by key, most first (``none`` when empty)."""
+    return ", ".join(f"{k} {n:,}" for k, n in sorted(d.items(), key=lambda kv: (-kv[1], kv[0]))) or "none"
+
+
+def _integrity_lines(s: RunSummary) -> list[str]:
+    """The report's lines on what the run refused, missed or found overwritten, and whether control was lost."""
+    g = s.integrity
+    if s.case in ("none", "local"):
+        return []
+    lines = [f"- integrity: {s.decisions} of {g.decisions_due} decisions due ({g.decisions_missing} missing); inputs "
+             f"refused: {_counts(g.inputs_refused)}; foreign acks {g.foreign_acks}; meter readings refused: "
+             f"{_counts(g.meter_readings_refused)}; commands refused by device: {_counts(g.commands_refused)}; "
+             f"refused by the bridge: {_counts(g.bridge_refused)}; decisions not the agent's: {g.foreign_decisions}"]
+    if s.pv_protocol == "sunspec":
+        lines.append(f"- SunSpec: set points another master held, scans by plant: {_counts(g.foreign_writes)}; "
+                     f"Modbus writes refused from another master: {_counts(g.foreign_master_writes)}")
+    if g.degraded:
+        lines.append(f"- **degraded for more than one control period**: {g.degraded} (`cvvc run` exits 3)")
+    return lines
 
 
 def _recorder_lines(s: RunSummary) -> list[str]:

@@ -12,7 +12,29 @@ from schemas.settings import RunCase
 from simulator_bridge.simulation.live_accuracy import LiveAccuracy
 from simulator_bridge.simulation.metrics import Metrics
 
-__all__ = ["RunSummary"]
+__all__ = ["RunIntegrity", "RunSummary"]
+
+
+class RunIntegrity(msgspec.Struct, frozen=True, kw_only=True):
+    """What a run refused, missed or found overwritten: the signs of an attack (or a fault), each taken from the
+    summary a process of the run wrote itself (``cvvc.integrity``), never from the bus.
+
+    ``degraded`` says why the agent did not control the feeder for more than one control period (the run then exits
+    ``cvvc.integrity.EXIT_DEGRADED``); empty when it did.
+    """
+
+    decisions_due: int = 0  # control steps of the run (the bridge's)
+    decisions_missing: int = 0  # control steps the agent made no decision for
+    lockstep_misses: int = 0  # control steps the bridge went on without a complete decision
+    inputs_refused: dict[str, int] = {}  # the agent's refused frames, readings and acks, by reason
+    foreign_acks: int = 0  # acks that answered no command of the agent (or not first): refused
+    meter_readings_refused: dict[str, int] = {}  # AMI readings refused, by kind (unknown meter, future, ...)
+    commands_refused: dict[str, int] = {}  # by device: the agent's commands it answered 'rejected'
+    bridge_refused: dict[str, int] = {}  # commands, decisions and payloads the bridge refused, by reason
+    foreign_decisions: int = 0  # decisions the bridge took beyond those the agent made
+    foreign_writes: dict[str, int] = {}  # SunSpec, by plant: scans that found a set point its adapter had not written
+    foreign_master_writes: dict[str, int] = {}  # SunSpec, by plant: Modbus writes refused, not from its adapter
+    degraded: str = ""  # why the agent was degraded for more than a control period; empty: it was not
 
 
 class RunSummary(msgspec.Struct, frozen=True, kw_only=True):
@@ -45,3 +67,4 @@ class RunSummary(msgspec.Struct, frozen=True, kw_only=True):
     secure: bool = False  # the bus ran with mTLS and the access policy (False: ``--insecure``)
     case_file: str | None = None  # the case file the run was read from (``cvvc run case.toml``)
     settings: RunCase | None = None  # the resolved case: every setting of the run, file and flags applied
+    integrity: RunIntegrity = RunIntegrity()  # what was refused, missed or overwritten; whether control was lost

@@ -117,6 +117,7 @@ class BridgeSummary(msgspec.Struct, frozen=True, kw_only=True):
     publisher: Literal["inline", "process"] = "inline"
     log_suppressed: dict[str, int] = {}  # log lines not written by the rate limit, by kind (rejected_<kind>: bus)
     sunspec_frame_misses: int = 0  # steps some SunSpec adapter's frame did not come within the time-out
+    sunspec_foreign_master_writes: dict[str, int] = {}  # Modbus writes an inverter refused: not its adapter's, by plant
     live_accuracy: LiveAccuracy | None = None  # the agent's estimates against the truth of their step
 
 
@@ -278,6 +279,7 @@ def _loop(rt: BridgeRuntime, stop: threading.Event, on_ready: Callable[[], None]
         publisher="inline" if rt.child is None else "process",
         log_suppressed=rt.log_suppressed(),
         sunspec_frame_misses=rt.fleet.frame_misses if rt.fleet is not None else 0,
+        sunspec_foreign_master_writes=rt.fleet.foreign_master_writes() if rt.fleet is not None else {},
         live_accuracy=rt.live.result() if rt.decisions else None)
 
 

@@ -133,6 +133,12 @@ class SunSpecFleet:
             k = self.index[pid]
             inv.set_measurements(p_kw=p_kw[k].tolist(), v_v=v_v[k].tolist(), q_kvar=q_kvar[k].tolist())
 
+    def foreign_master_writes(self) -> dict[str, int]:
+        """Writes each inverter refused because they came from another connection than its adapter's (its one Modbus
+        master), by plant; plants without any left out.
+        """
+        return {pid: inv.foreign_master_writes for pid, inv in self.inverters.items() if inv.foreign_master_writes}
+
     def on_frame(self, plant_id: str, t_ns: int) -> None:
         """An adapter's frame of ``plant_id`` at ``t_ns`` [ns] arrived (others' frames are ignored)."""
         if plant_id in self.last_frame_t_ns and t_ns > self.last_frame_t_ns[plant_id]:

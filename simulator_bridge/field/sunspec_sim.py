@@ -21,6 +21,10 @@ The inverter's own logic (its "firmware"), run on every Modbus request:
   including the deadline, as a bus command up to its ``valid_until_t_ns``), the set point reverts: to
   ``VarSetRvrt`` if ``VarSetEnaRvrt = 1``, else the function is disabled (``VarSetEna = 0``: the local default).
   So a command that expires reverts *in the inverter*, whether or not anyone is still talking to it.
+* **One master**: as a plant controller configured for one Modbus master, the inverter takes writes only from its
+  registered master: the first connection opened while no master is connected (in a run, its adapter's), until that
+  connection closes. A write from any other connection is refused with Modbus exception 1 (*illegal function*),
+  changes nothing, is counted (:attr:`foreign_master_writes`) and logged once; reads are open to every connection.
 
 The inverter's clock is ``clock_ns`` (default ``time.monotonic_ns``): the bridge passes its simulation time.
 Link loss is simulated by :meth:`stop` (the server goes away) and :meth:`start` again on the same port.
@@ -29,6 +33,9 @@ Link loss is simulated by :meth:`stop` (the server goes away) and :meth:`start` 
 from __future__ import annotations
 
 import asyncio
+import contextvars
+import itertools
+import logging
 import math
 import threading
 import time
@@ -38,6 +45,8 @@ from typing import Any
 from simulator_bridge.errors import SimulatorError
 
 __all__ = ["SUNSPEC_BASE_ADDR", "SimulatedSunSpecInverter", "SunSpecSimError"]
+
+log = logging.getLogger(__name__)
 
 SUNSPEC_BASE_ADDR = 40000
 """Where the ``SunS`` marker is (the usual SunSpec base address; pysunspec2 also tries 0 and 50000)."""
@@ -54,6 +63,9 @@ _PHASES = ("a", "b", "c")
 _VARS_MODE = 4  # 704 VarSetMod symbol VARS: the set point is in vars
 _MAX_REVERT_S = 86_400
 _INT16_MAX = 32767
+_ILLEGAL_FUNCTION = 1  # Modbus exception to a write from a connection that is not the registered master
+#: The connection a request came on, set in its handler's task (each request is handled in a task of its own)
+_CONNECTION: contextvars.ContextVar[int | None] = contextvars.ContextVar("sunspec_connection", default=None)
 
 
 def _close_all(transports: list[Any]) -> None:
@@ -92,12 +104,14 @@ class SimulatedSunSpecInverter:
         plant's local default is volt-var) or disabled (False: unity power factor); None: no model 705. Of its
         points only ``Ena`` takes writes (0 or 1; the curve is fixed here: other writes are refused as outside
         704); :meth:`volt_var_enabled` is what the plant's driver applies.
+    single_master : writes only from the registered master's connection (module docstring); False: from any
+        connection (an inverter without that setting, where a second master can overwrite the set point).
     """
 
     def __init__(self, *, plant_id: str, s_rated_kva: float, v_nominal_v: float, port: int,
                  phases: Sequence[str] = _PHASES, unit: int = 1, host: str = "127.0.0.1",
                  clock_ns: Callable[[], int] = time.monotonic_ns, q_at_night: bool = False,
-                 volt_var: bool | None = None) -> None:
+                 volt_var: bool | None = None, single_master: bool = True) -> None:
         from sunspec2 import device
 
         if not (math.isfinite(s_rated_kva) and 0.0 < s_rated_kva <= 1e6):
@@ -117,7 +131,11 @@ class SimulatedSunSpecInverter:
         self._clock = clock_ns
         self._lock = threading.Lock()
         self.refused_writes = 0
+        self.foreign_master_writes = 0  # writes refused because they came on another connection than the master's
         self.writes = 0
+        self.single_master = bool(single_master)
+        self._master: int | None = None  # the connection that may write (see the module docstring)
+        self._conn_ids = itertools.count(1)
         self.reverts = 0
         self._deadline_ns: int | None = None
         self._p_kw = [0.0, 0.0, 0.0]
@@ -418,6 +436,10 @@ class SimulatedSunSpecInverter:
         with self._lock:
             self._tick()
             if values is not None and func_code in (6, 16):
+                conn = _CONNECTION.get()
+                if self.single_master and (conn is None or conn != self._master):
+                    self._refuse_foreign_master(conn, address, len(values))
+                    return ExcCodes(_ILLEGAL_FUNCTION)
                 ena = self._ena_705_addr()
                 code = (self._write_705_ena([int(v) for v in values]) if ena is not None and address == ena
                         and len(values) == 1 else self._write_704(start, address, [int(v) for v in values]))
@@ -425,6 +447,28 @@ class SimulatedSunSpecInverter:
                     return ExcCodes(code)
             registers[:len(self._image)] = self._image
         return None
+
+    def _refuse_foreign_master(self, conn: int | None, address: int, count: int) -> None:
+        """Count a write from a connection that is not the master's; the first is logged (lock held)."""
+        self.foreign_master_writes += 1
+        if self.foreign_master_writes == 1:
+            log.warning("%s: refused a write of %d register(s) at %d from Modbus connection %s, not the registered "
+                        "master's (%s); further ones are counted in foreign_master_writes", self.plant_id, count,
+                        address, conn, self._master)
+
+    def _on_connect(self) -> int:
+        """A new connection's id; it becomes the master when none is connected."""
+        with self._lock:
+            conn = next(self._conn_ids)
+            if self._master is None:
+                self._master = conn
+            return conn
+
+    def _on_disconnect(self, conn: int) -> None:
+        """A connection closed: when it was the master's, the next connection to open becomes the master."""
+        with self._lock:
+            if self._master == conn:
+                self._master = None
 
     def start(self) -> SimulatedSunSpecInverter:
         """Serve on ``host:port`` from a background thread; returns when it listens (SunSpecSimError if not)."""
@@ -449,13 +493,26 @@ class SimulatedSunSpecInverter:
 
             def tracked() -> Any:  # every connection's transport, so stop() can close what pymodbus left open
                 proto = make()
-                made = proto.connection_made
+                made, lost, handle = proto.connection_made, proto.connection_lost, proto.handle_request
+                conn: list[int] = []
 
                 def connection_made(transport: Any) -> None:
                     conns.append(transport)
+                    conn.append(self._on_connect())
                     made(transport)
 
+                def connection_lost(exc: Exception | None) -> None:
+                    if conn:
+                        self._on_disconnect(conn[0])
+                    lost(exc)
+
+                async def handle_request() -> None:  # in the request's own task: the action sees its connection
+                    _CONNECTION.set(conn[0] if conn else None)
+                    await handle()
+
                 proto.connection_made = connection_made
+                proto.connection_lost = connection_lost
+                proto.handle_request = handle_request
                 return proto
 
             server.callback_new_connection = tracked  # type: ignore[method-assign]
@@ -524,6 +581,8 @@ class SimulatedSunSpecInverter:
                 loop.run_until_complete(asyncio.sleep(0.01))
                 loop.close()
         self._loop = self._thread = self._server = None
+        with self._lock:
+            self._master = None  # every connection is gone
 
     def __enter__(self) -> SimulatedSunSpecInverter:
         return self.start()

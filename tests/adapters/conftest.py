@@ -29,10 +29,22 @@ def inverter_clock() -> ShiftedClock:
     return ShiftedClock()
 
 
+def _inverter(clock: ShiftedClock, single_master: bool) -> SimulatedSunSpecInverter:
+    inv = SimulatedSunSpecInverter(plant_id="pv1", s_rated_kva=RATING_KVA, v_nominal_v=7200.0, port=free_port(),
+                                   clock_ns=clock, single_master=single_master)
+    inv.set_measurements(p_kw=[P_PHASE_KW] * 3, v_v=[7250.0, 7260.0, 7270.0])
+    return inv
+
+
 @pytest.fixture
 def inverter(inverter_clock) -> Iterator[SimulatedSunSpecInverter]:
-    inv = SimulatedSunSpecInverter(plant_id="pv1", s_rated_kva=RATING_KVA, v_nominal_v=7200.0, port=free_port(),
-                                   clock_ns=inverter_clock)
-    inv.set_measurements(p_kw=[P_PHASE_KW] * 3, v_v=[7250.0, 7260.0, 7270.0])
-    with inv:
+    """An inverter that takes writes from its registered Modbus master only (the first connection)."""
+    with _inverter(inverter_clock, single_master=True) as inv:
+        yield inv
+
+
+@pytest.fixture
+def open_inverter(inverter_clock) -> Iterator[SimulatedSunSpecInverter]:
+    """An inverter that takes writes from any Modbus connection (no master setting): a second master can write."""
+    with _inverter(inverter_clock, single_master=False) as inv:
         yield inv

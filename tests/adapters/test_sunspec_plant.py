@@ -156,9 +156,12 @@ def test_a_good_endpoint_parses():
     assert parse_modbus_endpoint("tcp/[::1]:502") == ("::1", 502)
 
 
-def test_a_set_point_the_adapter_did_not_write_is_counted_logged_once_reasserted_and_shown(plant, inverter, caplog):
-    """A second Modbus master writes full absorption over our command: each scan finds it, writes ours again, and
-    the link's status counts it; without a command in force a foreign set point is switched off."""
+def test_a_set_point_the_adapter_did_not_write_is_counted_logged_once_reasserted_and_shown(open_inverter, caplog):
+    """On an inverter that takes any master's writes, a second Modbus master writes full absorption over our command:
+    each scan finds it, writes ours again, and the link's status counts it; without a command in force a foreign set
+    point is switched off."""
+    inverter = open_inverter
+    plant = _plant(inverter)
     plant.scan(0)
     now = time.time_ns()
     assert plant.command(_cmd(-100.0, now), now).status == "accepted"
@@ -182,3 +185,4 @@ def test_a_set_point_the_adapter_did_not_write_is_counted_logged_once_reasserted
         assert plant.foreign_writes == 3
     finally:
         rogue.close()
+        plant.link.close()

@@ -70,6 +70,19 @@ def test_old_foreign_and_implausible_readings_are_counted_and_never_used(model):
         "ami_not_critical": 1, "ami_out_of_range": 1, "ami_future": 1, "ami_not_newer": 1}
 
 
+def test_a_reading_stamped_more_than_5_s_ahead_of_the_newest_frame_is_refused_future(model):
+    """A meter's reading may be 5 s ahead of the agent's clock (its newest frame), not more: a forged one stamped 30 s
+    ahead was taken (the tolerance was a whole step) and stood as the meter's newest, so the meter's real readings
+    of the next half minute were refused as not newer."""
+    n, node = len(model.critical_nodes), model.critical_nodes[0].name
+    ami = AmiReadings(model, [_meter(node)])
+    ami.correct(T0, _state(np.full(n, 1.0)))
+    kind, why = ami.add(_frame(node, T0 + 30 * _NS, 0.80), T0)
+    assert kind == "ami_future" and "future" in why
+    assert ami.add(_frame(node, T0 + 5 * _NS, 1.02), T0) is None  # within the tolerance: a clock a little ahead
+    assert ami.counts["ami_future"] == 1 and ami.counts["ami_readings"] == 1
+
+
 def test_a_model_without_ami_bounds_keeps_the_ordinary_bounds_of_a_metered_node(model):
     bare = msgspec.structs.replace(model, bounds=msgspec.structs.replace(model.bounds, ami_interval_s=0,
                                                                           ami_upper_pu=[], ami_lower_pu=[]))

@@ -65,6 +65,8 @@ def test_a_secure_fleet_decides_on_every_feeder_and_keeps_them_apart(tmp_path, i
         assert r["decisions"] >= 14 and r["lockstep_misses"] == 0, (fid, r)
         assert r["agent_refused"] == 0 and r["bridge_rejected"] == 0, (fid, r)
         assert r["decision_p50_ms"] is not None and r["round_trip_p50_ms"] is not None
+        g = r["integrity"]  # the run's integrity per feeder: every decision due made, nothing refused, not degraded
+        assert g["decisions_due"] == r["decisions"] and g["degraded"] == "" and g["foreign_decisions"] == 0, (fid, g)
     probe = s["probe"]
     assert probe["sender"] == "ieee13-a" and probe["target"] == "ieee13-b", probe
     assert not probe["reached"] and not probe["acked"] and probe["target_acks_after"] > 0, probe

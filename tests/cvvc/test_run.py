@@ -243,6 +243,34 @@ def test_the_run_is_secure_by_default_and_says_so(one_hour_run):
     assert bridge["metrics"] == summary["metrics"]  # the children joined the TLS router and the run completed
 
 
+def test_a_clean_run_says_nothing_was_refused_or_missed_and_exits_0(one_hour_run):
+    """The fixture's run exited 0; its summary and report say every decision came and nothing was refused."""
+    out, summary = one_hour_run
+    g = summary["integrity"]
+    assert g["decisions_due"] == summary["decisions"] == 12 and g["decisions_missing"] == 0
+    assert g["lockstep_misses"] == 0 and g["foreign_acks"] == 0 and g["foreign_decisions"] == 0
+    assert g["commands_refused"] == {} and g["meter_readings_refused"] == {} and g["degraded"] == ""
+    report = (out / "report.md").read_text()
+    assert "integrity: 12 of 12 decisions due (0 missing)" in report and "degraded" not in report
+
+
+@pytest.mark.process
+@pytest.mark.slow  # a whole ``cvvc run`` that waits out its lockstep time-outs (10 s each)
+def test_a_run_without_decisions_for_more_than_a_control_period_exits_3_and_says_why(tmp_path, ieee13_model):
+    """Every frame lost (``--drop-prob 1``): the agent decides nothing for two control periods. The run still writes
+    its summary and report, and exits 3 (not 0, not an error's 2) with one line saying why."""
+    out = tmp_path / "out"
+    proc = _cvvc("run", "--feeder", str(REPO / "feeders" / "ieee13.toml"), "--model", str(ieee13_model),
+                 "--days", str(10 / 1440), "--start", "2023-07-10T11:00", "--out", str(out), "--cache",
+                 str(tmp_path / "cache"), "--no-baseline", "--no-record", "--drop-prob", "1", "--json", cwd=tmp_path)
+    assert proc.returncode == 3, proc.stderr[-3000:]
+    lines = [x for x in proc.stderr.splitlines() if x.startswith("cvvc run: degraded")]
+    assert len(lines) == 1 and "2 of 2 control steps without a decision of the agent" in lines[0], proc.stderr[-2000:]
+    summary = json.loads(proc.stdout)
+    assert summary["integrity"]["decisions_missing"] == 2 and summary["integrity"]["degraded"]
+    assert "**degraded for more than one control period**" in (out / "report.md").read_text()
+
+
 @pytest.mark.process
 @pytest.mark.slow  # a whole ``cvvc run``
 def test_an_insecure_run_warns_and_records_it(tmp_path):

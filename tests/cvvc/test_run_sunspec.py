@@ -99,6 +99,16 @@ def test_the_same_decisions_and_metrics_within_the_scale_factors_rounding(both_r
     assert max(abs(q_a[k] - q_b[k]) for k in q_a) <= Q_TOL_KVAR
 
 
+def test_the_sunspec_run_counts_no_foreign_write_and_is_not_degraded(both_runs):
+    """The adapters' own summaries (``--summary-out``) are summed into the run's integrity: nobody else wrote."""
+    (out, ss) = both_runs["sunspec"]
+    g = ss["integrity"]
+    assert g["foreign_writes"] == {} and g["foreign_master_writes"] == {} and g["degraded"] == ""
+    for pid in PLANTS:
+        link = json.loads((out / f"adapter.{pid}-summary.json").read_text())
+        assert link["device_id"] == pid and link["foreign_writes"] == 0 and link["commands"] > 0
+
+
 def test_the_plants_frames_and_acks_come_from_the_adapters(both_runs):
     _, ss = both_runs["sunspec"]
     rec = _messages(ss["recording"])

@@ -36,6 +36,17 @@ def model13(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return out
 
 
+@pytest.fixture(scope="session")
+def secure_certs(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A CA and the role certificates it issued (agent, devices, recorder, router), made once per session."""
+    from schemas.security import init_ca, init_security_dir
+
+    tmp = tmp_path_factory.mktemp("rel-security")
+    init_ca(tmp / "ca")
+    init_security_dir(tmp / "security", ca_dir=tmp / "ca")
+    return tmp / "security"
+
+
 @pytest.fixture
 def procs(tmp_path: Path, router_endpoint: str, model13: Path, rel_cache: Path) -> Iterator[Procs]:
     p = Procs(tmp_path, router_endpoint, model13, rel_cache)

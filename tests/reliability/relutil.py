@@ -93,3 +93,80 @@ def rss_kib(pid: int, field: str = "VmRSS") -> int:
         if line.startswith(field + ":"):
             return int(line.split()[1])
     raise RuntimeError(f"no {field} in /proc/{pid}/status")
+
+
+class Attack:
+    """One attack on a secure lockstep window: ``arm`` runs once the agent is up and before the bridge starts, with
+    the attacker's open session (declare publishers and subscribers, put what goes before the run); callbacks do what
+    goes during it. ``sent`` counts what was put, by kind."""
+
+    def __init__(self) -> None:
+        self.sent: dict[str, int] = {}
+
+    def arm(self, forger) -> None:  # a zenoh.Session
+        raise NotImplementedError
+
+    def count(self, kind: str, n: int = 1) -> None:
+        self.sent[kind] = self.sent.get(kind, 0) + n
+
+    def close(self) -> None:
+        """Stop what the attack started (threads, connections); called once the window is over."""
+
+
+def secure_window(tmp: Path, model: Path, cache: Path, sec: Path, *, steps: int, attacks: tuple[Attack, ...] = (),
+                  attacker_role: str = "devices", sunspec: dict[str, str] | None = None) -> dict:
+    """One lockstep window of IEEE 13 from ``NOON`` in the default (secure) mode: a router with the access policy on
+    a free loopback port, the agent (with the device map) and a lockstep bridge as processes with their certificates
+    of ``sec``, and, when ``attacks`` are given, an attacker's session holding the ``attacker_role`` certificate.
+    ``sunspec`` (plant -> ``tcp/127.0.0.1:PORT``): those plants behind the bridge's simulated SunSpec inverters, each
+    read and commanded by its ``cvvc adapter sunspec`` process (``cvvc run --pv-protocol sunspec``'s flags).
+    Returns the agent's, the bridge's and the adapters' own summaries (``agent``, ``bridge``, ``links`` by plant)
+    and each attack's ``sent`` counts.
+    """
+    import json
+
+    import zenoh
+
+    from cvvc import pv_protocol as pvp
+    from schemas.bus import BusConfig, free_port, open_session, wait_for, zenoh_config
+    from schemas.devicemap import load_device_map
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    procs = Procs(tmp, endpoint, model, cache)
+    secure = ["--secure-dir", str(sec)]
+    sunspec = sunspec or {}
+    try:
+        with open_session(BusConfig(mode="router", listen=(endpoint,), tls_dir=str(sec), role="router")), \
+                zenoh.open(zenoh_config(BusConfig(connect=(endpoint,), tls_dir=str(sec),
+                                                  role=attacker_role))) as forger:
+            agent = procs.start("agent", ["agent", "--model", str(model), "--feeder-id", FEEDER,
+                                          "--feeder", str(FEEDER_MAP), "--summary-out", str(tmp / "agent.json"),
+                                          *secure])
+            probe = forger.declare_publisher(f"cvvc/{FEEDER}/meas/pv/pv675")  # the agent subscribes to meas/**
+            assert wait_for(lambda: bool(probe.matching_status.matching), 60.0), agent.log()[-2000:]
+            dm = load_device_map(FEEDER_MAP)
+            adapters = [procs.start(f"adapter.{pid}", pvp.adapter_args(
+                dm, FEEDER, pid, ep, volt_var=False, connect=secure, summary_out=str(tmp / f"adapter.{pid}.json")))
+                for pid, ep in sunspec.items()]
+            for attack in attacks:
+                attack.arm(forger)
+            bridge = procs.start("bridge", ["bridge", "--feeder", str(FEEDER_MAP), "--cache-dir", str(cache),
+                                            "--start", NOON, "--truth-every", "0", "--lockstep", "--timeout-s", "5",
+                                            "--steps", str(steps), "--wait-agent-s", "60",
+                                            "--summary-out", str(tmp / "bridge.json"), *pvp.bridge_args(sunspec),
+                                            *secure])
+            assert wait_for(lambda: not bridge.alive(), 240.0), bridge.log()[-2000:]
+            assert bridge.proc.returncode == 0, bridge.log()[-2000:]
+            for attack in attacks:
+                attack.close()
+            assert agent.stop() == 0, agent.log()[-2000:]
+            for adapter in adapters:
+                assert adapter.stop() == 0, adapter.log()[-2000:]
+        return {"agent": json.loads((tmp / "agent.json").read_text()),
+                "bridge": json.loads((tmp / "bridge.json").read_text()),
+                "links": {pid: json.loads((tmp / f"adapter.{pid}.json").read_text()) for pid in sunspec},
+                "sent": {type(a).__name__: dict(a.sent) for a in attacks}}
+    finally:
+        for attack in attacks:
+            attack.close()
+        procs.close()

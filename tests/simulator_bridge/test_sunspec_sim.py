@@ -150,3 +150,58 @@ def test_a_bad_rating_is_refused_at_construction(kwargs):
     base = dict(plant_id="pv1", s_rated_kva=100.0, v_nominal_v=240.0, port=free_port())
     with pytest.raises(SunSpecSimError):
         SimulatedSunSpecInverter(**{**base, **kwargs})
+
+
+def _client(inverter) -> sunspec_client.SunSpecModbusClientDeviceTCP:
+    dev = sunspec_client.SunSpecModbusClientDeviceTCP(slave_id=1, ipaddr="127.0.0.1", ipport=inverter.port,
+                                                      timeout=1.0)
+    dev.scan()
+    dev.connect()
+    return dev
+
+
+def test_only_the_registered_master_may_write_another_connection_gets_an_exception_counted_logged_once(
+        client, inverter, caplog):
+    """The first connection is the inverter's one Modbus master (its adapter's); a second connection may read but its
+    writes are refused with exception 1 and change nothing. Before, any connection's write was taken."""
+    _set_var(client, 250_000.0)
+    rogue = _client(inverter)
+    try:
+        rogue.DERMeasureAC[0].read()  # reading is open to all
+        assert rogue.DERMeasureAC[0].W.cvalue == pytest.approx(1_230_000.0)
+        with caplog.at_level("WARNING", logger="simulator_bridge.field.sunspec_sim"):
+            for var in (-800_000.0, 0.0):
+                ctl = rogue.DERCtlAC[0]
+                ctl.VarSet.cvalue = var
+                with pytest.raises(ModbusClientException, match="1"):  # illegal function
+                    ctl.VarSet.write()
+                with pytest.raises(ModbusClientException, match="1"):
+                    ctl.VarSetEna.write()
+        assert inverter.q_command_kvar() == pytest.approx(250.0)  # the master's set point stands
+        assert inverter.foreign_master_writes == 4 and inverter.refused_writes == 0
+        assert caplog.text.count("not the registered master") == 1
+        _set_var(client, 100_000.0)  # the master still writes
+        assert inverter.q_command_kvar() == pytest.approx(100.0)
+        client.disconnect()  # the master goes: the connection still open does not take its place ...
+        with pytest.raises(ModbusClientException, match="1"):
+            rogue.DERCtlAC[0].VarSetEna.write()
+        again = _client(inverter)  # ... the next one to open does (an adapter that reconnects)
+        try:
+            _set_var(again, 50_000.0)
+            assert inverter.q_command_kvar() == pytest.approx(50.0) and inverter.foreign_master_writes == 5
+        finally:
+            again.disconnect()
+    finally:
+        rogue.disconnect()
+
+
+def test_an_inverter_without_the_master_setting_takes_any_connections_write(clock):
+    with SimulatedSunSpecInverter(plant_id="pv1", s_rated_kva=1860.0, v_nominal_v=7200.0, port=free_port(),
+                                  clock_ns=clock, single_master=False) as inverter:
+        first, second = _client(inverter), _client(inverter)
+        try:
+            _set_var(second, 250_000.0)
+            assert inverter.var_setpoint_kvar() == pytest.approx(250.0) and inverter.foreign_master_writes == 0
+        finally:
+            first.disconnect()
+            second.disconnect()
