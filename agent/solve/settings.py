@@ -46,8 +46,6 @@ MAX_ITER_RESOLVE = 400
 FIRST_CHUNK_ITER = 25
 #: Iteration budget of one solve (all chunks) [ADMM iterations].
 MAX_ITER = 4000
-#: Largest active set the polish solves (its cost grows with the cube); larger ones are left to ADMM.
-POLISH_MAX_ACTIVE = 300
 #: OSQP tolerance accepted after half the iteration budget (scaled units: 1e-6 pu of voltage).
 LOOSE_EPS = 1e-4
 #: Tolerance of the KKT optimality check in scaled units (% of voltage, fraction of rating, steps).
