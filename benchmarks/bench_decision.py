@@ -281,7 +281,7 @@ def _relaxations(model: Any, fid: str, steps: list[list[tuple[str, Any]]], solve
 
 
 def _osqp_seconds(qp: Any, settings: Any) -> float:
-    """Seconds of OSQP's own set-up and solve of ``qp`` (its own polishing on, no warm start, at most 4000 iterations)."""
+    """Seconds of OSQP's own set-up and solve of ``qp`` (its polishing on, no warm start, at most 4000 iterations)."""
     import osqp
 
     t0 = time.perf_counter()

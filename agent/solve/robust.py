@@ -15,6 +15,7 @@ proves infeasibility exactly as an LP would, in tens of microseconds instead of 
 from __future__ import annotations
 
 import numpy as np
+
 from agent.cvvc_qp import CvvcInputs, build_cvvc_qp
 from agent.solve.active_set import solve_dense_qp
 
