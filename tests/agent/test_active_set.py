@@ -1,4 +1,4 @@
-"""The dense dual active-set QP solve (agent/solve/active_set.py, DAQP) against Clarabel and HiGHS on random problems."""
+"""The dense dual active-set QP solve (agent/solve/active_set.py, DAQP) against Clarabel and HiGHS, random problems."""
 
 from __future__ import annotations
 
