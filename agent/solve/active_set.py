@@ -81,11 +81,14 @@ def solve_dense_qp(
         return ActiveSetResult("failed", zeros.x, zeros.y, 0, "inconsistent data (P not positive, lo > hi or shapes)")
     # One single-entry row per variable becomes a simple bound (scaled by its entry); the others stay rows.
     nonzero = a != 0.0
-    single = np.flatnonzero(nonzero.sum(axis=1) == 1)
-    column = np.argmax(nonzero[single], axis=1)
-    column, first = np.unique(column, return_index=True)
-    bound_rows = single[first]
-    general = np.setdiff1d(np.arange(m), bound_rows, assume_unique=True)
+    single = np.count_nonzero(nonzero, axis=1) == 1
+    singles = np.flatnonzero(single)
+    _, first = np.unique(np.argmax(nonzero[singles], axis=1), return_index=True)  # the first row of each variable
+    is_bound = np.zeros(m, bool)
+    is_bound[singles[first]] = True
+    bound_rows = np.flatnonzero(is_bound)
+    general = np.flatnonzero(~is_bound)
+    column = np.argmax(nonzero[bound_rows], axis=1)
     coef = a[bound_rows, column]
     b_lo = np.full(n, -np.inf)
     b_hi = np.full(n, np.inf)
