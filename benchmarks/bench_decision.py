@@ -272,11 +272,11 @@ def _relaxations(model: Any, fid: str, steps: list[list[tuple[str, Any]]], solve
             kept.append(solution.relaxed_problem)
         return solution
 
-    controller.solve_cvvc = keeping  # type: ignore[assignment]
+    controller.solve_cvvc = keeping
     try:
         _run_agent(model, fid, steps)
     finally:
-        controller.solve_cvvc = solve  # type: ignore[assignment]
+        controller.solve_cvvc = solve
     return kept[1:]
 
 

@@ -60,7 +60,7 @@ INTEGRAL_TOL_STEPS = 1e-6
 #: hard limits (``agent.solve.milp.milp_tap_changes``): a node limit (never a time limit: same inputs, same taps), a
 #: 0.1 % gap, and no presolve or primal heuristics (sub-MIPs, feasibility jump, RINS/RENS: most of HiGHS's time on
 #: these small dense problems; docs/optimizer.md).
-MILP_OPTIONS: Mapping[str, object] = MappingProxyType(
+MILP_OPTIONS: Mapping[str, bool | float | str] = MappingProxyType(
     {
         "output_flag": False,
         "mip_rel_gap": 1e-3,
