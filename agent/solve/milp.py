@@ -6,17 +6,20 @@ the nodes that keep them when no rounding within one tap of the relaxation does 
 *net* form: one integer change per regulator and a continuous ``t >= |change|`` for its cost. Same optimum, half
 the integer variables and none of the split form's symmetry (a change of k steps is also k+j up and j down):
 on the 24 fallback problems of IEEE 8500's decision bench, HiGHS's median time 0.21 s against 0.49 s, its largest
-0.31 s against 1.25 s (docs/agent.md).
+0.31 s against 1.25 s (docs/agent.md). The fallback calls HiGHS through ``highspy`` with the heuristics and presolve
+off: on the 85 fallback problems of a whole IEEE 8500 day, median 0.20 s against 0.89 s with HiGHS's defaults (same
+run), the same taps in 77 (an equal-cost alternative in the other 8).
 """
 
 from __future__ import annotations
 
+import highspy
 import numpy as np
 import scipy.optimize
 import scipy.sparse as sp
 
 from agent.cvvc_qp import CvvcInputs, CvvcQp, build_cvvc_qp
-from agent.solve.settings import MILP_NODE_LIMIT
+from agent.solve.settings import MILP_OPTIONS
 from agent.solve.solution import MilpReference
 
 __all__ = ["milp_tap_changes", "solve_milp_reference"]
@@ -44,7 +47,9 @@ def milp_tap_changes(inputs: CvvcInputs, soft_nodes: np.ndarray, nodes: np.ndarr
     its own form), violation variables at ``soft_nodes``, rows of ``nodes`` only (default: all). Variables
     ``[d (R, integer), t (R), Q+, Q-, violations]`` with ``t >= d``, ``t >= -d`` and the tap cost on ``t``; the
     voltage rows take ``d`` with a step up's coefficients (``build_cvvc_qp`` gives a step down the negated ones).
-    Bounded by a node limit, not a time limit, so that the same inputs give the same taps.
+    Bounded by a node limit, not a time limit, so that the same inputs give the same taps. HiGHS through ``highspy``
+    with its primal heuristics and presolve off (``MILP_OPTIONS``): on this small dense problem they were most of
+    its time (its sub-MIPs 0.32 of 0.54 s in one IEEE 8500 problem).
     """
     qp = build_cvvc_qp(inputs, soft=soft_nodes, nodes=nodes)
     lay, r, n = qp.layout, inputs.n_reg, qp.nodes.size
@@ -65,23 +70,37 @@ def milp_tap_changes(inputs: CvvcInputs, soft_nodes: np.ndarray, nodes: np.ndarr
         ],
         format="csr",
     )
-    res = scipy.optimize.milp(
-        np.concatenate([np.zeros(r), qp.c[lay.tap_up], qp.c[rest]]),
-        integrality=np.concatenate([np.ones(r), np.zeros(r + lay.n - lay.tap_down.stop)]),
-        bounds=scipy.optimize.Bounds(
-            np.concatenate([-rest_hi[lay.tap_down], np.zeros(r), rest_lo[rest]]),
-            np.concatenate([rest_hi[lay.tap_up], np.full(r, np.inf), rest_hi[rest]]),
-        ),
-        constraints=scipy.optimize.LinearConstraint(
-            rows,
-            np.concatenate([qp.lower[:n], np.zeros(2 * r)]),
-            np.concatenate([qp.upper[:n], np.full(2 * r, np.inf)]),
-        ),
-        options={"mip_rel_gap": 1e-3, "node_limit": MILP_NODE_LIMIT},
-    )
-    if res.x is None or res.status not in (0, 1):  # 1: a limit reached with a feasible point in hand
+    cost = np.concatenate([np.zeros(r), qp.c[lay.tap_up], qp.c[rest]])
+    integer = np.concatenate([np.ones(r, bool), np.zeros(r + lay.n - lay.tap_down.stop, bool)])
+    col_lo = np.concatenate([-rest_hi[lay.tap_down], np.zeros(r), rest_lo[rest]])
+    col_hi = np.concatenate([rest_hi[lay.tap_up], np.full(r, np.inf), rest_hi[rest]])
+    row_lo = np.concatenate([qp.lower[:n], np.zeros(2 * r)])
+    row_hi = np.concatenate([qp.upper[:n], np.full(2 * r, np.inf)])
+    x = _highs_milp(cost, integer, col_lo, col_hi, rows.tocsc(), row_lo, row_hi)
+    return None if x is None else np.round(x[:r])
+
+
+def _highs_milp(cost: np.ndarray, integer: np.ndarray, col_lo: np.ndarray, col_hi: np.ndarray, a: sp.csc_matrix,
+                row_lo: np.ndarray, row_hi: np.ndarray) -> np.ndarray | None:
+    """A feasible (at the node limit) or optimal point of the MILP by HiGHS through ``highspy``, or None."""
+    lp = highspy.HighsLp()
+    lp.num_col_, lp.num_row_ = cost.size, a.shape[0]
+    lp.col_cost_, lp.col_lower_, lp.col_upper_ = cost, col_lo, col_hi
+    lp.row_lower_, lp.row_upper_ = row_lo, row_hi
+    lp.a_matrix_.format_ = highspy.MatrixFormat.kColwise
+    lp.a_matrix_.num_col_, lp.a_matrix_.num_row_ = cost.size, a.shape[0]
+    lp.a_matrix_.start_, lp.a_matrix_.index_, lp.a_matrix_.value_ = a.indptr, a.indices, a.data
+    lp.integrality_ = [highspy.HighsVarType.kInteger if i else highspy.HighsVarType.kContinuous for i in integer]
+    h = highspy.Highs()
+    for name, value in MILP_OPTIONS.items():
+        h.setOptionValue(name, value)
+    h.passModel(lp)
+    h.run()
+    if (h.getModelStatus() == highspy.HighsModelStatus.kInfeasible
+            or h.getInfo().primal_solution_status != highspy.SolutionStatus.kSolutionStatusFeasible):
         return None
-    return np.round(res.x[:r])
+    x = np.asarray(h.getSolution().col_value, float)
+    return x if x.shape == cost.shape and np.all(np.isfinite(x)) else None
 
 
 def solve_milp_reference(inputs: CvvcInputs) -> MilpReference:

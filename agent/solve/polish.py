@@ -1,4 +1,4 @@
-"""The exact polish: the dual active-set method from a guessed active set, accepted by a KKT check."""
+"""The exact polish: the dual active-set method (DAQP) from a guessed active set, accepted by a KKT check."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import numpy as np
 
 from agent.cvvc_qp import CvvcQp
 from agent.solve.active_set import solve_dense_qp
-from agent.solve.settings import KKT_TOL, POLISH_MAX_ACTIVE
+from agent.solve.settings import KKT_TOL
 from agent.solve.solution import Run
 
 __all__ = ["active_set_polish", "kkt_ok", "warm_polish"]
@@ -31,7 +31,7 @@ def active_set_polish(
         lower = (lo == hi) | (z - lo < -y0)
         upper = ~lower & (hi - z < y0)
         guess = upper.astype(np.int8) - lower.astype(np.int8)
-    out = solve_dense_qp(qp.p_diag, qp.c, a_dense, lo, hi, guess=guess, max_active=POLISH_MAX_ACTIVE)
+    out = solve_dense_qp(qp.p_diag, qp.c, a_dense, lo, hi, guess=guess)
     if out.status == "infeasible":
         return Run(False, True, "infeasible (active set)", out.x, out.y, 0)
     if out.status != "optimal" or not kkt_ok(a_dense, qp.p_diag, qp.c, lo, hi, out.x, out.y):

@@ -46,8 +46,6 @@ MAX_ITER_RESOLVE = 400
 FIRST_CHUNK_ITER = 25
 #: Iteration budget of one solve (all chunks) [ADMM iterations].
 MAX_ITER = 4000
-#: Largest active set the polish solves (its cost grows with the cube); larger ones are left to ADMM.
-POLISH_MAX_ACTIVE = 300
 #: OSQP tolerance accepted after half the iteration budget (scaled units: 1e-6 pu of voltage).
 LOOSE_EPS = 1e-4
 #: Tolerance of the KKT optimality check in scaled units (% of voltage, fraction of rating, steps).
@@ -58,9 +56,25 @@ MAX_ENUMERATED_FRACTIONAL = 3
 FRACTIONAL_TOL_STEPS = 1e-4
 #: A relaxed tap change this close to an integer is taken as integral: its Q needs no re-solve [steps].
 INTEGRAL_TOL_STEPS = 1e-6
-#: Branch-and-bound nodes of the MILP that looks for integer taps beyond one tap of the relaxation when no rounding
-#: meets the hard limits (``agent.solve.milp.milp_tap_changes``).
-MILP_NODE_LIMIT = 500
+#: HiGHS options of the MILP that looks for integer taps beyond one tap of the relaxation when no rounding meets the
+#: hard limits (``agent.solve.milp.milp_tap_changes``): a node limit (never a time limit: same inputs, same taps), a
+#: 0.1 % gap, and no presolve or primal heuristics (sub-MIPs, feasibility jump, RINS/RENS: most of HiGHS's time on
+#: these small dense problems; docs/optimizer.md).
+MILP_OPTIONS: Mapping[str, bool | float | str] = MappingProxyType(
+    {
+        "output_flag": False,
+        "mip_rel_gap": 1e-3,
+        "mip_max_nodes": 500,
+        "presolve": "off",
+        "mip_heuristic_effort": 0.0,
+        "mip_heuristic_run_feasibility_jump": False,
+        "mip_heuristic_run_rins": False,
+        "mip_heuristic_run_rens": False,
+        "mip_heuristic_run_root_reduced_cost": False,
+        "mip_heuristic_run_zi_round": False,
+        "mip_heuristic_run_shifting": False,
+    }
+)
 #: Stop trying rounding candidates once one scores within this fraction of the relaxed objective.
 ROUNDING_GAP_REL = 0.01
 #: Row generation for large problems (every node of a big feeder): problems up to ROWGEN_MIN_NODES critical
