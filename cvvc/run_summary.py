@@ -9,7 +9,6 @@ import msgspec
 from recordings.info import RecorderGap
 from schemas import messages as m
 from simulator_bridge.simulation.live_accuracy import LiveAccuracy
-from simulator_bridge.simulation.metrics import Metrics
 
 __all__ = ["RunSummary"]
 
@@ -25,7 +24,8 @@ class RunSummary(msgspec.Struct, frozen=True, kw_only=True):
     steps: int
     wall_s: float
     metrics: m.MetricsFrame  # the bridge's final metrics frame (paper IV.F)
-    baseline: Metrics | None  # the no-control baseline of the same days
+    # the no-control baseline of the same days, in the same form as ``metrics`` (its plotted series: baseline_trace.npz)
+    baseline: m.MetricsFrame | None
     lockstep_misses: int
     decisions: int
     out_dir: str

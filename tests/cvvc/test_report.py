@@ -177,3 +177,29 @@ def test_missing_inputs_are_clear_errors(tmp_path):
     (tmp_path / "results.json").write_text('{"runs": []}')
     with pytest.raises(ReportError, match="results.json: not a cvvc evaluate result of this version"):
         plot_evaluation(tmp_path)
+
+
+def test_truth_series_reduces_like_the_envelope_and_survives_its_file(tmp_path):
+    """The baseline's series (``cvvc run`` fills it from simulated steps) reduce as the recording's do, and the
+    ``.npz`` written beside the run reads back equal."""
+    from cvvc.run_trace import TruthSeries, read_series, write_series
+
+    rng = np.random.default_rng(3)
+    v = 1.0 + 0.02 * rng.standard_normal((25, 7))
+    q = rng.standard_normal((25, 2))
+    series = TruthSeries()
+    for t in range(25):
+        series.add(1_700_000_000_000_000_000 + t * 60_000_000_000, v[t], np.array([t % 3, -t % 2]), q[t],
+                   np.array([1]))
+    trace = series.trace(regulator_ids=("r1", "r2"), pv_ids=("p1", "p2"), limits_pu=(0.95, 1.05),
+                         capacitor_ids=("c1",))
+    vmax, vmin = window_envelope_pu(v)
+    np.testing.assert_allclose(trace.v_env_max_pu, vmax, atol=1e-12)
+    np.testing.assert_allclose(trace.v_env_min_pu, vmin, atol=1e-12)
+    np.testing.assert_allclose(trace.pv_q_kvar[-1], q[20:].mean(axis=0), atol=1e-12)
+    assert trace.taps.shape == (25, 2) and trace.cap_states.shape == (25, 1)
+    back = read_series(write_series(tmp_path / "b.npz", trace))
+    for name in ("t_ns", "step_t_ns", "v_env_max_pu", "v_env_min_pu", "taps", "pv_q_kvar", "cap_states"):
+        np.testing.assert_array_equal(getattr(back, name), getattr(trace, name))
+    assert (back.regulator_ids, back.pv_ids, back.capacitor_ids, back.limits_pu) == (
+        ("r1", "r2"), ("p1", "p2"), ("c1",), (0.95, 1.05))
