@@ -545,10 +545,9 @@ def _recorder_agent_args(settings: AgentSettings | None, model: Path) -> list[st
 def _progress(total: int, enabled: bool, label: str = "simulated"):
     if not enabled:
         return None
-    from tqdm import tqdm
+    from cvvc.progress import progress_bar
 
-    return tqdm(total=total, unit="min", desc=label, file=sys.stderr, dynamic_ncols=True,
-                disable=not sys.stderr.isatty())
+    return progress_bar(total, enabled=enabled, desc=label, unit="min")
 
 
 def no_control_baseline(dm_path: Path, start: dt.datetime, steps: int, year_seed: int, cache: Path, *,

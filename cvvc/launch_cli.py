@@ -6,6 +6,7 @@ import argparse
 import sys
 
 from cvvc.cli_options import add_agent_option_arguments, add_security_arguments
+from cvvc.progress import QUIET_HELP, progress_wanted
 from schemas.cache import CACHE_HELP
 
 __all__ = ["register"]
@@ -51,7 +52,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-record", action="store_true", help="do not record the session to MCAP")
     p.add_argument("--no-baseline", action="store_true", help="skip the no-control baseline")
     p.add_argument("--cache", default=None, help=CACHE_HELP)
-    p.add_argument("--json", action="store_true", help="print the summary as JSON")
+    p.add_argument("--json", action="store_true", help="print the summary as JSON (no progress bars)")
+    p.add_argument("--quiet", action="store_true", help=QUIET_HELP)
     add_security_arguments(p)
     p.set_defaults(func=_run)
     register_report(sub)
@@ -71,7 +73,7 @@ def _run(args: argparse.Namespace) -> int:
                        year_seed=args.year_seed, bandwidth_v120=args.bandwidth_v, record=not args.no_record,
                        pv_margin_window_s=args.pv_margin_window_s, setpoint_hold=args.setpoint_hold,
                        control_banks=args.control_banks,
-                       baseline=not args.no_baseline, cache=args.cache, progress=not args.json,
+                       baseline=not args.no_baseline, cache=args.cache, progress=progress_wanted(args),
                        secure=not args.insecure, ca_dir=args.ca_dir, drop_prob=args.drop_prob,
                        noise_scada_pct=args.noise_scada_pct, noise_pmu_pct=args.noise_pmu_pct,
                        drop_burst_min=args.drop_burst_min, meas_delay_s=args.meas_delay_s,

@@ -18,7 +18,7 @@ Handler = Callable[[argparse.Namespace], int]
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add the ``record``, ``recording`` and ``replay`` verbs to the ``cvvc`` command line's ``sub``."""
-    from schemas.bus import add_bus_arguments
+    from schemas.bus_args import add_bus_arguments
 
     r = sub.add_parser("record", help="record every bus message to an MCAP file",
                        description="Subscribe to KEYS and write every sample, bytes unchanged, to an MCAP file "
