@@ -34,6 +34,7 @@ from schemas.errors import CvvcError
 from schemas.keys import message_type_for_key
 from schemas.logs import RateLimitedLog
 from schemas.messages import OracleReply, Wire, wire_of
+from schemas.wire import typed_decoder, typed_encoder
 
 __all__ = [
     "BadMessage",
@@ -273,16 +274,12 @@ class Codec(Generic[T]):
         # the walk for NaN/inf after a decode finds nothing when every float of the type is bounded (msgspec refuses
         # NaN and inf there at decode, in JSON and MessagePack): skipped then, as the recorder does
         self._walk_after_decode = _has_unbounded_float(msgspec.inspect.type_info(msg_type), set())
-        self._decoder: msgspec.json.Decoder[T] | msgspec.msgpack.Decoder[T]
-        self._encoder: msgspec.json.Encoder | msgspec.msgpack.Encoder
-        if self.wire == "msgpack":
-            self._decoder, self._encoder = msgspec.msgpack.Decoder(msg_type), msgspec.msgpack.Encoder()
-        else:
-            self._decoder, self._encoder = msgspec.json.Decoder(msg_type), msgspec.json.Encoder()
+        self._decoder = typed_decoder(msg_type)
+        self._encoder = typed_encoder(msg_type)
 
     def encode(self, msg: T) -> bytes:
-        """The bytes of ``msg`` (its wire: JSON or MessagePack), after checking that every number in it is finite
-        (``NonFiniteError``).
+        """The bytes of ``msg`` (its wire: JSON, or Protobuf for the truth), after checking that every number in it
+        is finite (``NonFiniteError``).
         """
         check_finite(msg)
         return self._encoder.encode(msg)
@@ -350,6 +347,8 @@ def codec_for(msg_type: type[T]) -> Codec[T]:
 # --------------------------------------------------------------------------------------- publishing
 def zenoh_encoding(wire: Wire) -> zenoh.Encoding:
     """The Zenoh encoding of a payload of ``wire`` (``schemas.messages.wire_of``)."""
+    if wire == "protobuf":
+        return zenoh.Encoding("application/protobuf")
     return zenoh.Encoding("application/msgpack") if wire == "msgpack" else zenoh.Encoding.APPLICATION_JSON
 
 

@@ -25,8 +25,7 @@ from cvvc.report import (
     taps_figure,
     window_envelope_pu,
 )
-from schemas.messages import TruthPack
-from schemas.truth import to_truth_frame
+from schemas.truth import to_truth_frame, truth_pack
 
 REPO = Path(__file__).resolve().parents[2]
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -44,7 +43,7 @@ def tiny_evaluation(tmp_path_factory, ieee13_model, profile_cache, dask_schedule
 
 def _truth(path: Path) -> list[dict]:
     with path.open("rb") as f:
-        return [msgspec.to_builtins(to_truth_frame(msgspec.msgpack.decode(m.data, type=TruthPack)))
+        return [msgspec.to_builtins(to_truth_frame(truth_pack(m.data, ch.message_encoding)))
                 for _, ch, m in make_reader(f).iter_messages(log_time_order=True) if ch.topic.endswith("/sim/truth")]
 
 
@@ -138,9 +137,10 @@ def test_figures_draw_the_trace(tiny_evaluation):
     assert list(ax_hi.lines[1].get_ydata()) == [hi, hi] and list(ax_lo.lines[1].get_ydata()) == [lo, lo]
     fig_pv = pv_figure(traces, "t")
     (ax,) = fig_pv.axes
-    assert len(ax.lines) == trace.pv_q_kvar.shape[1]
-    for k, line in enumerate(ax.lines):
+    assert len(ax.lines) == trace.pv_q_kvar.shape[1] + 1  # every plant, then the zero line between the signs
+    for k, line in enumerate(ax.lines[:-1]):
         np.testing.assert_array_equal(line.get_ydata(), trace.pv_q_kvar[:, k])
+    assert list(ax.lines[-1].get_ydata()) == [0.0, 0.0]
     fig_taps = taps_figure(traces, "t")
     (ax,) = fig_taps.axes
     assert len(ax.lines) == trace.taps.shape[1]

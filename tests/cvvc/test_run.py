@@ -15,7 +15,7 @@ from mcap.reader import make_reader
 
 from schemas import messages as m
 from schemas.devicemap import load_device_map
-from schemas.truth import to_truth_frame
+from schemas.truth import to_truth_frame, truth_pack
 from simulator_bridge.opendss.engine import FeederEngine
 from simulator_bridge.simulation.metrics_stream import MetricsAccumulator
 
@@ -54,9 +54,9 @@ def one_hour_run(tmp_path_factory, ieee13_model):
 
 
 def _as_dict(raw: bytes, encoding: str) -> dict:
-    """A recorded message as a dict: JSON as it is, the truth (msgpack ``TruthPack``) in its JSON form."""
-    if encoding == "msgpack":
-        return msgspec.to_builtins(to_truth_frame(msgspec.msgpack.decode(raw, type=m.TruthPack)))
+    """A recorded message as a dict: JSON as it is, the truth (Protobuf ``cvvc.Truth``) in its JSON form."""
+    if encoding == "protobuf":
+        return msgspec.to_builtins(to_truth_frame(truth_pack(raw, encoding)))
     return json.loads(raw)
 
 
