@@ -232,9 +232,9 @@ def test_a_run_whose_decisions_mostly_held_ends_with_a_clear_error():
         check_mostly_held(msgspec.structs.replace(base, holds=288, reasons={"case A: no oracle reply": 288}))
 
 
-def test_offline_replay_reproduces_every_decision(one_hour_run):
+def test_offline_replay_reproduces_every_decision(one_hour_run, tmp_path):
     out, summary = one_hour_run
-    proc = _cvvc("replay", summary["recording"], "--offline", "--json", cwd=out)
+    proc = _cvvc("replay", summary["recording"], "--offline", "--json", cwd=tmp_path)  # from another directory
     assert proc.returncode == 0, proc.stderr[-2000:]
     diff = json.loads(proc.stdout)["diff"]
     assert diff["recorded"] == diff["identical"] == 12
