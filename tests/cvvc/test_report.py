@@ -203,3 +203,25 @@ def test_truth_series_reduces_like_the_envelope_and_survives_its_file(tmp_path):
         np.testing.assert_array_equal(getattr(back, name), getattr(trace, name))
     assert (back.regulator_ids, back.pv_ids, back.capacitor_ids, back.limits_pu) == (
         ("r1", "r2"), ("p1", "p2"), ("c1",), (0.95, 1.05))
+
+
+def test_the_time_axis_is_hour_of_day_or_date_and_hour():
+    """One day: hours of that day; several: date and hour, local standard time (UTC-5), both on the x axis label."""
+    import matplotlib.pyplot as plt
+
+    from cvvc.report import envelope_figure
+    from cvvc.run_trace import TruthSeries
+
+    t0 = 1_689_008_400_000_000_000  # 2023-07-10 12:00 at UTC-5
+    for minutes, expect, first_tick in ((120, "hour of day, 2023-07-10", "12:00"),
+                                        (3 * 1440, "date and hour", "07-10")):
+        series = TruthSeries()
+        for t in range(minutes):
+            series.add(t0 + t * 60_000_000_000, np.full(3, 1.0), np.zeros(1), np.zeros(1), np.zeros(0))
+        fig = envelope_figure({"case D": series.trace()}, "t")
+        fig.canvas.draw()
+        ax_lo = fig.axes[1]
+        assert expect in ax_lo.get_xlabel() and "UTC-5" in ax_lo.get_xlabel()
+        assert any(label.get_text().startswith(first_tick) for label in ax_lo.get_xticklabels()), [
+            label.get_text() for label in ax_lo.get_xticklabels()]
+        plt.close(fig)
