@@ -6,6 +6,7 @@ stderr with the rate and the time left, drawn only when stderr is a terminal and
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from typing import Any
 
@@ -25,5 +26,11 @@ def progress_bar(total: float, *, enabled: bool = True, desc: str = "", unit: st
     """
     from tqdm import tqdm
 
-    return tqdm(total=total, desc=desc, unit=unit, file=sys.stderr, dynamic_ncols=True,
+    try:  # a terminal that says it has no size (a pseudo-terminal nobody sized): 100 x 24, else tqdm draws nothing
+        size = os.get_terminal_size(sys.stderr.fileno())
+        sized = size.columns > 0 and size.lines > 0
+    except (OSError, ValueError):
+        sized = False
+    return tqdm(total=total, desc=desc, unit=unit, file=sys.stderr, dynamic_ncols=sized,
+                ncols=None if sized else 100, nrows=None if sized else 24,
                 disable=not (enabled and sys.stderr.isatty()))

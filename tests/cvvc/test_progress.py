@@ -44,6 +44,22 @@ def test_the_bar_shows_rate_and_time_left_on_a_terminal(monkeypatch):
     assert "<" in shown  # tqdm's "elapsed<remaining": the time left
 
 
+def test_the_bar_shows_on_a_terminal_that_gives_no_size(monkeypatch):
+    """A pseudo-terminal nobody sized (0 x 0, as under ``script`` or a container's -t): tqdm alone drew nothing."""
+    master, slave = os.openpty()
+    with os.fdopen(slave, "w") as tty:
+        assert os.get_terminal_size(tty.fileno()).columns == 0
+        monkeypatch.setattr(sys, "stderr", tty)
+        bar = progress_bar(10, desc="training", unit="pf")
+        bar.update(3)
+        bar.refresh()
+        bar.close()
+        tty.flush()
+        shown = os.read(master, 65536).decode(errors="replace")
+    os.close(master)
+    assert "training" in shown and "3/10" in shown
+
+
 def test_the_bar_is_off_without_a_terminal_or_when_not_wanted(monkeypatch, tmp_path):
     with (tmp_path / "stderr.txt").open("w") as f:
         monkeypatch.setattr(sys, "stderr", f)
