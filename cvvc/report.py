@@ -212,13 +212,34 @@ def _decode(path: Path, typ: type[_T], what: str) -> _T:
                           "or run it again") from e
 
 
+def _decode_summary(path: Path, typ: type[_T]) -> _T:
+    """A run's ``summary.json``; one written before the baseline took the case's form (the simulator's ``Metrics``:
+    lists by device, ``n_steps``) is read with its baseline turned into that form.
+    """
+    try:
+        raw = msgspec.json.decode(path.read_bytes())
+        base = raw.get("baseline") if isinstance(raw, dict) else None
+        if isinstance(base, dict) and "n_steps" in base and isinstance(raw.get("metrics"), dict):
+            from simulator_bridge.bus.publishing import metrics_frame
+            from simulator_bridge.simulation.metrics import Metrics
+
+            case = raw["metrics"]
+            raw["baseline"] = msgspec.to_builtins(metrics_frame(
+                msgspec.convert(base, Metrics), t_ns=int(case.get("t_ns", 0)), seq=1,
+                feeder_id=str(case.get("feeder_id", "")), start_t_ns=int(case.get("start_t_ns", 0)), final=True))
+        return msgspec.convert(raw, typ)
+    except (msgspec.DecodeError, msgspec.ValidationError, ValueError, TypeError) as e:
+        raise ReportError(f"{path}: not a cvvc run summary of this version ({e}); plot it with the version that "
+                          "wrote it, or run it again") from e
+
+
 def _run_meta(run_dir: Path) -> tuple[RunSummary, tuple[str, ...], tuple[str, ...], tuple[float, float]]:
     from cvvc.launch import RunSummary
 
     summary_path = run_dir / "summary.json"
     if not summary_path.is_file():
         raise ReportError(f"{run_dir}: no summary.json; pass a cvvc run output folder")
-    summary = _decode(summary_path, RunSummary, "cvvc run summary")
+    summary = _decode_summary(summary_path, RunSummary)
     mt = summary.metrics
     limits = (0.965, 1.05)
     try:

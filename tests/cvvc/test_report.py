@@ -225,3 +225,32 @@ def test_the_time_axis_is_hour_of_day_or_date_and_hour():
         assert any(label.get_text().startswith(first_tick) for label in ax_lo.get_xticklabels()), [
             label.get_text() for label in ax_lo.get_xticklabels()]
         plt.close(fig)
+
+
+def test_a_summary_written_before_the_baseline_took_the_cases_form_still_reads(tmp_path):
+    """summary.json of earlier versions kept the baseline as the simulator's Metrics (lists by device, n_steps):
+    read with it turned into the case's form, the same figures."""
+    from cvvc.report import _decode_summary
+    from cvvc.run_summary import RunSummary
+    from schemas import messages as m
+    from schemas.examples import example
+    from simulator_bridge.simulation.metrics import metrics_from_series
+
+    rng = np.random.default_rng(5)
+    old = metrics_from_series(1.0 + 0.04 * rng.standard_normal((30, 4)), rng.integers(0, 2, (30, 2)),
+                              rng.normal(0, 50, (30, 3)), regulator_ids=["r1", "r2"], pv_ids=["p1", "p2", "p3"],
+                              cost_per_tap=0.14, cost_per_kvar=0.001)
+    case = example(m.MetricsFrame)
+    summary = RunSummary(feeder="f.toml", feeder_id=case.feeder_id, case="D", start="2023-01-16", days=1.0,
+                         steps=30, wall_s=1.0, metrics=case, baseline=None, lockstep_misses=0, decisions=6,
+                         out_dir="out", recording=None, model=None)
+    raw = msgspec.to_builtins(summary)
+    raw["baseline"] = msgspec.to_builtins(old)
+    (tmp_path / "summary.json").write_bytes(msgspec.json.encode(raw))
+    back = _decode_summary(tmp_path / "summary.json", RunSummary)
+    assert isinstance(back.baseline, m.MetricsFrame) and back.metrics == case
+    b = back.baseline
+    assert (b.steps, b.nvv, b.ntc, b.start_t_ns) == (old.n_steps, old.nvv, old.ntc, case.start_t_ns)
+    assert b.q_cost == pytest.approx(old.q_cost) and b.total_cost == pytest.approx(old.total_cost)
+    assert b.taps_changes == dict(zip(old.regulator_ids, old.tap_changes_per_regulator, strict=True))
+    assert list(b.q_mvar_intervals) == ["p1", "p2", "p3"]
