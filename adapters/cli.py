@@ -80,7 +80,7 @@ def _sim(args: argparse.Namespace) -> int:
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add the ``adapter`` verb (sub-verbs ``sunspec`` and ``sim``) to the ``cvvc`` command line."""
-    from schemas.bus import add_bus_arguments
+    from schemas.bus_args import add_bus_arguments
 
     p = sub.add_parser("adapter", help="field-protocol adapters: real devices as devices of the bus")
     verbs = p.add_subparsers(dest="adapter_verb", metavar="SUBVERB", required=True)

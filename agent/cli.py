@@ -16,7 +16,7 @@ _SHIPPED = AgentSettings()  # the flags' defaults: the settings tree's (schemas.
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add the ``agent`` verb to the ``cvvc`` command line."""
-    from schemas.bus import add_bus_arguments
+    from schemas.bus_args import add_bus_arguments
 
     p = sub.add_parser("agent", help="run the CVVC agent on the bus",
                        description="Subscribe to the feeder's measurement frames, decide every control step "

@@ -63,11 +63,12 @@ def _bare_writer(msgs: list[tuple[str, bytes]], path: Path) -> float:
         t_ns: int = 0
 
     from schemas.keys import message_type_for_key
-    from schemas.messages import wire_of
+    from schemas.messages import TruthPack, wire_of
+    from schemas.wire import typed_decoder
 
-    json_dec, msgpack_dec = msgspec.json.Decoder(_T), msgspec.msgpack.Decoder(_T)
-    decoders = {key: msgpack_dec if wire_of(message_type_for_key(key) or _T) == "msgpack" else json_dec
-                for key in dict(msgs)}  # the truth is MessagePack
+    json_dec = msgspec.json.Decoder(_T)
+    decoders = {key: typed_decoder(TruthPack) if wire_of(message_type_for_key(key) or _T) == "protobuf" else json_dec
+                for key in dict(msgs)}  # the truth is Protobuf: its t_ns from its whole decode, as the recorder has it
     with open(path, "wb") as f:
         t0 = time.perf_counter()
         w = Writer(f, compression=CompressionType.ZSTD)

@@ -56,6 +56,7 @@ from cvvc.evaluation import (
     Variant,
 )
 from cvvc.launch import CASES, Case, LaunchError, RunConfig, RunSummary
+from cvvc.progress import progress_bar
 from cvvc.reference import REFERENCE_CASE, ReferenceConfig
 from schemas.errors import CvvcError
 
@@ -225,7 +226,7 @@ def _run_config(spec: RunSpec, config: EvaluateConfig, dm_path: Path, model: Pat
         year_seed=config.year_seed, cache=config.cache, baseline=False,
         agent=msgspec.structs.replace(config.agent, bandwidth_v120=spec.bandwidth_v120),
         lockstep_timeout_s=config.lockstep_timeout_s,
-        progress=config.progress, progress_label=spec.name,
+        progress=False, progress_label=spec.name,
         noise_pmu_pct=0.1 if spec.variant == "noise-pmu" else 0.0,
         noise_scada_pct=1.0 if spec.variant == "noise-scada" else 0.0,
         drop_prob={"drop-1": 0.01, "drop-5": 0.05}.get(spec.variant, 0.0),
@@ -464,18 +465,26 @@ def run_prepared(preps: list[PreparedEvaluation], config: EvaluateConfig) -> Non
              else f"a local Dask cluster of {config.jobs} worker(s)")
     _log(f"{len(tasks)} run(s) on {where}")
     done = 0
+    # one bar over every run, in simulated minutes (a month's run weighs 30 days' runs), time left from the runs done;
+    # the runs' own bars are off (RunConfig.progress): workers of several runs would draw over each other
+    bar = progress_bar(sum(round(t.tag[1].days * 1440) for t in tasks), enabled=config.progress,
+                       desc="evaluation (simulated)", unit="min")
 
     def on_done(outcome: Outcome) -> None:
         nonlocal done
         done += 1
         prep, spec = outcome.task.tag
-        prep.record(spec, outcome, f"[{done}/{len(tasks)}] ")
+        with bar.external_write_mode(file=sys.stderr):  # the run's line above the bar, not through it
+            prep.record(spec, outcome, f"[{done}/{len(tasks)}] ")
+        bar.update(round(spec.days * 1440))
 
     try:
         with dask_client(config.jobs, config.scheduler) as client:
             run_tasks(client, tasks, on_done)
     except ClusterError as e:
         raise EvaluateError(str(e)) from e
+    finally:
+        bar.close()
 
 
 def evaluate(config: EvaluateConfig) -> Evaluation:

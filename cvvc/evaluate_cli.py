@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 
 from cvvc.cli_options import add_agent_option_arguments
+from cvvc.progress import QUIET_HELP, progress_wanted
 from schemas.cache import CACHE_HELP
 from schemas.settings import RunCase
 
@@ -53,6 +54,7 @@ def register_evaluate(sub: argparse._SubParsersAction) -> None:
                    help="reuse runs already finished in --out (same case and window); run only the others")
     p.add_argument("--cache", default=None, help=CACHE_HELP)
     p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--quiet", action="store_true", help=QUIET_HELP)
     from cvvc.cli_options import add_security_arguments
 
     add_security_arguments(p)
@@ -80,7 +82,7 @@ def _evaluate(args: argparse.Namespace) -> int:
                             robustness=args.robustness, resume=args.resume,
                             reference_step_s=args.reference_step_s, lockstep_timeout_s=args.lockstep_timeout_s,
                             agent=agent_options_from_args(args), cases=CASES if cases is None else cases,
-                            secure=not args.insecure, ca_dir=args.ca_dir)
+                            secure=not args.insecure, ca_dir=args.ca_dir, progress=progress_wanted(args))
     try:
         ev = evaluate(config)
     except EvaluateError as e:
@@ -103,7 +105,7 @@ def _campaign(args: argparse.Namespace) -> int:
                        "variants")
     try:
         result = run_campaign(args.campaign, args.out, jobs=args.jobs, scheduler=args.scheduler, cache=args.cache,
-                              resume=args.resume)
+                              resume=args.resume, progress=progress_wanted(args))
     except EvaluateError as e:
         raise CliError(str(e)) from e
     print(f"output: {result.csv} and one folder per feeder and variant (results.md); {result.wall_s:.0f} s")

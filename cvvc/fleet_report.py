@@ -116,7 +116,6 @@ class _AckReason(msgspec.Struct, frozen=True):
 
 
 _decode_id = msgspec.json.Decoder(_FeederId).decode
-_decode_packed_id = msgspec.msgpack.Decoder(_FeederId).decode  # the truth (schemas.truth.TruthPack) is MessagePack
 _decode_times = msgspec.json.Decoder(_DecisionTimes).decode
 _decode_reason = msgspec.json.Decoder(_AckReason).decode
 
@@ -128,6 +127,7 @@ def check_recording(path: str | Path, feeder_ids: list[str]) -> RecordingCheck:
     from recordings.replay import RecordedMessages
     from schemas.keys import message_type_for_key
     from schemas.messages import wire_of
+    from schemas.truth_proto import decode_truth_proto
 
     known = set(feeder_ids)
     messages = checked = crossing = 0
@@ -142,7 +142,8 @@ def check_recording(path: str | Path, feeder_ids: list[str]) -> RecordingCheck:
             if feeder not in known:
                 foreign.add(msg.topic)
             msg_type = message_type_for_key(msg.topic)
-            decode = _decode_packed_id if msg_type is not None and wire_of(msg_type) == "msgpack" else _decode_id
+            # the truth is Protobuf (RecordedMessages gives an earlier recording's MessagePack truth as Protobuf too)
+            decode = decode_truth_proto if msg_type is not None and wire_of(msg_type) == "protobuf" else _decode_id
             try:
                 fid = decode(msg.data).feeder_id
             except (msgspec.DecodeError, msgspec.ValidationError):

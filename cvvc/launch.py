@@ -41,12 +41,12 @@ from cvvc.errors import CommandError
 from cvvc.integrity import run_integrity
 from cvvc.run_report import render_summary, top_reasons
 from cvvc.run_summary import RunSummary
+from cvvc.run_trace import BASELINE_TRACE, TruthSeries, write_series
 from recordings.info import RecorderGap
 from schemas import messages as m
 from schemas.cache import cache_root, profiles_dir
 from schemas.settings import CASES, SECTIONS, AgentOptions, AgentSettings, Case, PvProtocol, RunCase
 from simulator_bridge.bus.bridge import BridgeSummary
-from simulator_bridge.simulation.metrics import Metrics
 
 __all__ = ["CASES", "CASE_AGENT", "CaseAgent", "LaunchError", "RunConfig", "RunSummary", "agent_settings_args",
            "bridge_args", "case_agent_settings", "check_mostly_held", "run"]
@@ -485,7 +485,8 @@ def run(config: RunConfig) -> RunSummary:
     baseline = None
     if config.baseline and config.case != "none":
         _log("simulating the no-control baseline of the same days")
-        baseline = no_control_baseline(dm_path, start, steps, config.year_seed, cache_root(config.cache))
+        baseline = no_control_baseline(dm_path, start, steps, config.year_seed, cache_root(config.cache),
+                                       trace_path=out / BASELINE_TRACE, progress=config.progress)
     live = bridge_summary.live_accuracy
     if live is not None and agent_settings is not None:
         live = msgspec.structs.replace(live, promised_miss_rate=promised_miss_rate(kept_model))
@@ -565,15 +566,19 @@ def _recorder_agent_args(settings: AgentSettings | None, model: Path) -> list[st
 def _progress(total: int, enabled: bool, label: str = "simulated"):
     if not enabled:
         return None
-    from tqdm import tqdm
+    from cvvc.progress import progress_bar
 
-    return tqdm(total=total, unit="min", desc=label, file=sys.stderr, dynamic_ncols=True,
-                disable=not sys.stderr.isatty())
+    return progress_bar(total, enabled=enabled, desc=label, unit="min")
 
 
-def no_control_baseline(dm_path: Path, start: dt.datetime, steps: int, year_seed: int, cache: Path) -> Metrics:
-    """The same days with no central control (regulators local, PV unity PF), simulated in-process."""
+def no_control_baseline(dm_path: Path, start: dt.datetime, steps: int, year_seed: int, cache: Path, *,
+                        trace_path: Path | None = None, progress: bool = False) -> m.MetricsFrame:
+    """The same days with no central control (regulators local, PV unity PF), simulated in-process: its metrics in
+    the run's own form (the bridge's final ``MetricsFrame``), and its plotted series in ``trace_path`` (``.npz``,
+    ``cvvc.run_trace``) when given.
+    """
     from schemas.devicemap import load_device_map
+    from simulator_bridge.bus.publishing import metrics_frame
     from simulator_bridge.opendss.engine import FeederEngine
     from simulator_bridge.simulation.metrics_stream import MetricsAccumulator
     from simulator_bridge.simulation.qsts import Qsts
@@ -585,7 +590,21 @@ def no_control_baseline(dm_path: Path, start: dt.datetime, steps: int, year_seed
     first = int((start - dt.datetime(start.year, 1, 1)).total_seconds()) // dm.feeder.step_s
     sim = Qsts(engine, profiles, start_step=first, pv_local="unity")
     acc = MetricsAccumulator.for_feeder(dm, engine)
+    series = TruthSeries()
+    bar = _progress(steps, progress, "no control")
     for _ in range(steps):
         r = sim.step()
         acc.update(r.v_pu, r.tap_changes, r.pv_q_kvar, r.cap_switches)
-    return acc.result()
+        series.add(r.t_ns, r.v_pu, r.taps, r.pv_q_kvar, r.cap_states)
+        if bar is not None:
+            bar.update(1)
+    if bar is not None:
+        bar.close()
+    result = acc.result()
+    if trace_path is not None:
+        lo, hi = dm.feeder.judged_limits_pu
+        write_series(trace_path, series.trace(regulator_ids=tuple(engine.regulator_ids), pv_ids=tuple(engine.pv_ids),
+                                              limits_pu=(float(lo), float(hi)),
+                                              capacitor_ids=tuple(result.capacitor_ids)))
+    return metrics_frame(result, t_ns=profiles.t_ns(first + steps), seq=1, feeder_id=dm.feeder.name,
+                         start_t_ns=profiles.t_ns(first), final=True)

@@ -6,6 +6,7 @@ import argparse
 import sys
 
 from cvvc.cli_options import add_agent_option_arguments, add_security_arguments
+from cvvc.progress import QUIET_HELP, progress_wanted
 from schemas.cache import CACHE_HELP
 from schemas.settings import CASES, RunCase
 
@@ -76,7 +77,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-record", action="store_true", help="do not record the session to MCAP")
     p.add_argument("--no-baseline", action="store_true", help="skip the no-control baseline")
     p.add_argument("--cache", default=None, help=CACHE_HELP)
-    p.add_argument("--json", action="store_true", help="print the summary as JSON")
+    p.add_argument("--json", action="store_true", help="print the summary as JSON (no progress bars)")
+    p.add_argument("--quiet", action="store_true", help=QUIET_HELP)
     add_security_arguments(p)
     p.set_defaults(func=_run)
     register_report(sub)
@@ -106,7 +108,7 @@ def _run(args: argparse.Namespace) -> int:
             "resolved from the defaults and the flags given"
         sys.stdout.write(case_toml(absolute_paths(case), header=f"the case `cvvc run` would run, {given}"))
         return 0
-    summary = run(RunConfig.of_case(case, progress=not args.json, case_file=args.case_file))
+    summary = run(RunConfig.of_case(case, progress=progress_wanted(args), case_file=args.case_file))
     if args.json:
         sys.stdout.write(msgspec.json.format(msgspec.json.encode(summary), indent=2).decode() + "\n")
     else:

@@ -1,10 +1,12 @@
 """``cvvc report run|evaluate``: PNG plots from the MCAP recording(s) of a run or an evaluation (paper Figs. 8-11).
 
-What is plotted (matplotlib, Agg backend, no display needed):
+What is plotted (matplotlib, Agg backend, no display needed), every run's series beside no control's when the run
+simulated it (``cvvc run`` writes the baseline's series to ``baseline_trace.npz``; dashed, in its own panel where
+the plot has one per run), times in hour of day (date and hour over several days), local standard time (UTC-5):
 
 - ``voltage_envelope.png`` (Fig. 9): every node's voltage averaged over 10-minute windows, then the max and min
   over nodes, against time, with the judged limits;
-- ``pv_q.png`` (Fig. 10): each PV plant's reactive power (truth), 10-minute averages [kvar];
+- ``pv_q.png`` (Fig. 10): each PV plant's reactive power (truth), 10-minute averages [kvar, + injects];
 - ``taps.png`` (Fig. 11): each regulator's tap position (truth) at every step;
 - ``cap_states.png`` (feeders with capacitor banks in their device map): each bank's closed steps (truth) at every
   step, with its switchings in the legend;
@@ -13,15 +15,16 @@ What is plotted (matplotlib, Agg backend, no display needed):
 - ``worst_node.png``: at the critical node whose calibrated bounds missed most often (``simulator_bridge.
   live_accuracy``), the agent's estimate, the bounds it promised around it and the true voltage at every decision.
 
-The data come from ``cvvc/<F>/sim/truth`` (TruthPack, or TruthFrame in older recordings, read as arrays by
-``schemas.truth``: ``v_pu`` per node, ``taps``, ``pv_q_kvar``, ``cap_states``) and ``cvvc/<F>/agent/decision``
-(Decision: ``estimates``), read with ``mcap.reader.make_reader``, the decisions decoded with a lean msgspec type
-(only the fields used). A month of truth is streamed: nothing per node and step is kept.
+``cvvc report run`` also writes ``report.md`` (the run's report, ``cvvc.run_report``, with the plots in it).
+The data come from ``cvvc/<F>/sim/truth`` (read as arrays by ``schemas.truth`` in every encoding it was recorded
+in: ``v_pu`` per node, ``taps``, ``pv_q_kvar``, ``cap_states``) and ``cvvc/<F>/agent/decision`` (Decision:
+``estimates``), read with ``mcap.reader.make_reader``, the decisions decoded with a lean msgspec type (only the
+fields used). A month of truth is streamed (``cvvc.run_trace.TruthSeries``): nothing per node and step is kept.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING, TypeVar
 
@@ -29,19 +32,27 @@ import msgspec
 import numpy as np
 
 from cvvc.errors import CommandError
+from cvvc.run_trace import (
+    BASELINE_TRACE,
+    WINDOW_STEPS,
+    NodeTrace,
+    RunTrace,
+    TruthSeries,
+    read_series,
+    window_envelope_pu,
+)
 from schemas.errors import CvvcError
 from schemas.truth import TruthDecodeError, decode_truth
-from simulator_bridge.simulation.live_accuracy import LiveAccuracy, LiveAccuracyAccumulator
+from simulator_bridge.simulation.live_accuracy import LiveAccuracyAccumulator
 
 if TYPE_CHECKING:
     from cvvc.launch import RunSummary
 
 _T = TypeVar("_T")
 
-__all__ = ["NodeTrace", "ReportError", "RunTrace", "envelope_figure", "errors_figure", "plot_evaluation", "plot_run",
-           "pv_figure", "read_trace", "taps_figure", "window_envelope_pu", "worst_node_figure"]
-
-WINDOW_STEPS = 10  # 10-minute averages at the 1-minute step
+__all__ = ["NO_CONTROL", "NodeTrace", "ReportError", "RunTrace", "envelope_figure", "errors_figure", "plot_evaluation",
+           "plot_run", "pv_figure", "read_trace", "run_traces", "taps_figure", "window_envelope_pu",
+           "worst_node_figure"]
 
 
 class ReportError(CommandError):
@@ -58,67 +69,6 @@ class _Estimate(msgspec.Struct):
 class _Decision(msgspec.Struct):
     step_t_ns: int
     estimates: list[_Estimate] = []
-
-
-@dataclass(frozen=True)
-class RunTrace:
-    """One run's recording reduced for plotting. Times are ``t_ns`` of the window's first step.
-
-    ``v_env_*`` are (W,) max/min over nodes of the 10-minute average voltage [pu]; ``taps`` (T, R) the taps at
-    every step ``step_t_ns`` (T,); ``pv_q_kvar`` (W, K) 10-minute averages; ``err_t_ns`` (D,) decision times with
-    ``err_max_pu``/``err_min_pu``/``err_rms_pu`` over the estimated nodes, and ``errors_pu`` every error.
-    ``cap_states`` (T, C) each capacitor bank's closed steps at every step (C = 0 without banks).
-    """
-
-    t_ns: np.ndarray
-    step_t_ns: np.ndarray
-    v_env_max_pu: np.ndarray
-    v_env_min_pu: np.ndarray
-    taps: np.ndarray
-    pv_q_kvar: np.ndarray
-    regulator_ids: tuple[str, ...]
-    pv_ids: tuple[str, ...]
-    err_t_ns: np.ndarray
-    err_max_pu: np.ndarray
-    err_min_pu: np.ndarray
-    err_rms_pu: np.ndarray
-    errors_pu: np.ndarray
-    limits_pu: tuple[float, float]
-    cap_states: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
-    capacitor_ids: tuple[str, ...] = ()
-    worst: NodeTrace | None = None  # the critical node whose bounds missed most often
-
-
-@dataclass(frozen=True)
-class NodeTrace:
-    """One critical node at every decision (``t_ns`` (D,)): the estimate, its bounds as promised and the truth [pu];
-    ``accuracy`` the run's live figures (``simulator_bridge.simulation.live_accuracy``) over every estimated node.
-    """
-
-    node: str
-    t_ns: np.ndarray
-    v_est_pu: np.ndarray
-    bound_low_pu: np.ndarray
-    bound_high_pu: np.ndarray
-    v_true_pu: np.ndarray
-    accuracy: LiveAccuracy
-
-
-def window_envelope_pu(v_pu: np.ndarray, window_steps: int = WINDOW_STEPS) -> tuple[np.ndarray, np.ndarray]:
-    """Max and min over nodes of the per-node ``window_steps`` average voltage (paper Fig. 9).
-
-    Parameters
-    ----------
-    v_pu : (T, N) node voltages [pu]; a last partial window is averaged over the steps it has.
-
-    Returns
-    -------
-    (W,) max and (W,) min [pu], W = ceil(T / window_steps).
-    """
-    v = np.asarray(v_pu, dtype=float)
-    n_win = -(-v.shape[0] // window_steps)
-    means = np.stack([v[w * window_steps:(w + 1) * window_steps].mean(axis=0) for w in range(n_win)])
-    return means.max(axis=1), means.min(axis=1)
 
 
 def _topic(reader, suffix: str) -> str | None:
@@ -152,36 +102,20 @@ def read_trace(mcap_path: str | Path, *, regulator_ids: tuple[str, ...] = (), pv
                 if d.estimates:
                     estimates[d.step_t_ns] = d.estimates
         node_index: dict[str, int] = {}
-        t_list, step_t, vmax, vmin, taps, pvq, caps = [], [], [], [], [], [], []
+        series = TruthSeries(WINDOW_STEPS)
         err_t, err_max, err_min, err_rms, errors = [], [], [], [], []
         judged: list[tuple[int, list[_Estimate], np.ndarray]] = []  # (t_ns, estimates, true v at their nodes)
         live: LiveAccuracyAccumulator | None = None
-        acc_v = acc_q = np.zeros(0)  # the window's sums, started afresh at each window's first step
-        n_acc = 0
         for _, channel, msg in reader.iter_messages(topics=[truth_topic]):
-            try:  # compact (msgpack) or, in recordings made before it, JSON
+            try:  # every encoding the truth was ever recorded in (schemas.truth)
                 tr = decode_truth(msg.data, channel.message_encoding)
             except TruthDecodeError as bad:
                 raise ReportError(f"{path}: {truth_topic} at {msg.log_time}: {bad}") from bad
             if tr.node_names:
                 node_index = {n: i for i, n in enumerate(tr.node_names)}
                 live = LiveAccuracyAccumulator(tr.node_names)
-            v, q = tr.v_pu, tr.pv_q_kvar
-            step_t.append(tr.t_ns)
-            taps.append(tr.taps.tolist())
-            caps.append(tr.cap_states.tolist())
-            if n_acc == 0:
-                t_list.append(tr.t_ns)
-                acc_v, acc_q = v.copy(), q.copy()
-            else:
-                acc_v += v
-                acc_q += q
-            n_acc += 1
-            if n_acc == WINDOW_STEPS:
-                vmax.append(float((acc_v / n_acc).max()))
-                vmin.append(float((acc_v / n_acc).min()))
-                pvq.append(acc_q / n_acc)
-                n_acc = 0
+            v = tr.v_pu
+            series.add(tr.t_ns, v, tr.taps, tr.pv_q_kvar, tr.cap_states)
             est = estimates.get(tr.t_ns)
             if est and node_index:
                 e = np.array([x.v_pu - v[node_index[x.node]] for x in est if x.node in node_index])
@@ -196,22 +130,12 @@ def read_trace(mcap_path: str | Path, *, regulator_ids: tuple[str, ...] = (), pv
                     err_min.append(e.min())
                     err_rms.append(float(np.sqrt(np.mean(e ** 2))))
                     errors.append(e)
-        if n_acc:
-            vmax.append(float((acc_v / n_acc).max()))
-            vmin.append(float((acc_v / n_acc).min()))
-            pvq.append(acc_q / n_acc)
-    if not t_list:
+    if not series.step_t_ns:
         raise ReportError(f"{path}: the truth channel holds no frame")
-    n_pv = len(pvq[0]) if pvq else 0
-    return RunTrace(
-        t_ns=np.asarray(t_list, dtype=np.int64), step_t_ns=np.asarray(step_t, dtype=np.int64),
-        v_env_max_pu=np.asarray(vmax), v_env_min_pu=np.asarray(vmin),
-        taps=np.asarray(taps, dtype=float).reshape(len(step_t), -1), pv_q_kvar=np.asarray(pvq).reshape(-1, n_pv),
-        regulator_ids=regulator_ids, pv_ids=pv_ids, err_t_ns=np.asarray(err_t, dtype=np.int64),
-        err_max_pu=np.asarray(err_max), err_min_pu=np.asarray(err_min), err_rms_pu=np.asarray(err_rms),
-        errors_pu=np.concatenate(errors) if errors else np.zeros(0), limits_pu=limits_pu,
-        cap_states=np.asarray(caps, dtype=float).reshape(len(step_t), -1), capacitor_ids=capacitor_ids,
-        worst=_worst_node(live, judged))
+    trace = series.trace(regulator_ids=regulator_ids, pv_ids=pv_ids, limits_pu=limits_pu, capacitor_ids=capacitor_ids)
+    return replace(trace, err_t_ns=np.asarray(err_t, dtype=np.int64), err_max_pu=np.asarray(err_max),
+                   err_min_pu=np.asarray(err_min), err_rms_pu=np.asarray(err_rms),
+                   errors_pu=np.concatenate(errors) if errors else np.zeros(0), worst=_worst_node(live, judged))
 
 
 def _worst_node(live: LiveAccuracyAccumulator | None,
@@ -232,6 +156,12 @@ def _worst_node(live: LiveAccuracyAccumulator | None,
 # Plots
 # ---------------------------------------------------------------------------------------------------
 
+NO_CONTROL = "no control"  # the label of the baseline a ``cvvc run`` simulated beside the case
+LOCAL_UTC_OFFSET_NS = -5 * 3_600_000_000_000  # the profiles' fixed local standard time, UTC-5 (docs/conventions.md)
+_LEGEND = {"loc": "upper left", "bbox_to_anchor": (1.01, 1.0), "borderaxespad": 0.0}  # outside the data, right
+Q_LABEL = "Q [kvar]\n(+ injects, - absorbs)"
+TAP_LABEL = "tap [steps]\n(+ raises voltage)"
+
 
 def _plt():
     import matplotlib
@@ -242,8 +172,36 @@ def _plt():
     return plt
 
 
-def _days(t_ns: np.ndarray, t0_ns: int) -> np.ndarray:
-    return (np.asarray(t_ns, dtype=np.int64) - t0_ns) / 86_400e9
+def _clock(t_ns: np.ndarray) -> np.ndarray:
+    """Simulation times [ns since the UTC epoch] as local standard time (UTC-5), ``datetime64[ns]`` for the x axis."""
+    return (np.asarray(t_ns, dtype=np.int64) + LOCAL_UTC_OFFSET_NS).astype("datetime64[ns]")
+
+
+def _time_axis(ax, traces: dict[str, RunTrace]) -> None:
+    """Label the x axis in hour of day (one day) or date and hour (several days), local standard time."""
+    import matplotlib.dates as mdates
+
+    first = min(int(tr.step_t_ns[0]) for tr in traces.values() if tr.step_t_ns.size)
+    last = max(int(tr.step_t_ns[-1]) for tr in traces.values() if tr.step_t_ns.size)
+    day0 = str(_clock(np.array([first]))[0])[:10]
+    if last - first <= 86_400 * 10**9:
+        ax.xaxis.set_major_formatter(mdates.DateFormatter("%H:%M"))
+        ax.set_xlabel(f"hour of day, {day0} (local standard time, UTC-5)")
+    else:
+        ax.xaxis.set_major_formatter(mdates.DateFormatter("%m-%d %H:%M"))
+        ax.set_xlabel("date and hour (local standard time, UTC-5)")
+        for label in ax.get_xticklabels():
+            label.set_rotation(20)
+
+
+def _style(label: str) -> dict[str, object]:
+    """The baseline dashed, every case solid (so a device keeps its colour across the panels)."""
+    return {"ls": "--"} if label == NO_CONTROL else {}
+
+
+def _panel_title(label: str) -> str:
+    return (f"{label}: regulators on their own local control, PV at unity power factor" if label == NO_CONTROL
+            else label)
 
 
 def _decode(path: Path, typ: type[_T], what: str) -> _T:
@@ -254,13 +212,34 @@ def _decode(path: Path, typ: type[_T], what: str) -> _T:
                           "or run it again") from e
 
 
+def _decode_summary(path: Path, typ: type[_T]) -> _T:
+    """A run's ``summary.json``; one written before the baseline took the case's form (the simulator's ``Metrics``:
+    lists by device, ``n_steps``) is read with its baseline turned into that form.
+    """
+    try:
+        raw = msgspec.json.decode(path.read_bytes())
+        base = raw.get("baseline") if isinstance(raw, dict) else None
+        if isinstance(base, dict) and "n_steps" in base and isinstance(raw.get("metrics"), dict):
+            from simulator_bridge.bus.publishing import metrics_frame
+            from simulator_bridge.simulation.metrics import Metrics
+
+            case = raw["metrics"]
+            raw["baseline"] = msgspec.to_builtins(metrics_frame(
+                msgspec.convert(base, Metrics), t_ns=int(case.get("t_ns", 0)), seq=1,
+                feeder_id=str(case.get("feeder_id", "")), start_t_ns=int(case.get("start_t_ns", 0)), final=True))
+        return msgspec.convert(raw, typ)
+    except (msgspec.DecodeError, msgspec.ValidationError, ValueError, TypeError) as e:
+        raise ReportError(f"{path}: not a cvvc run summary of this version ({e}); plot it with the version that "
+                          "wrote it, or run it again") from e
+
+
 def _run_meta(run_dir: Path) -> tuple[RunSummary, tuple[str, ...], tuple[str, ...], tuple[float, float]]:
     from cvvc.launch import RunSummary
 
     summary_path = run_dir / "summary.json"
     if not summary_path.is_file():
         raise ReportError(f"{run_dir}: no summary.json; pass a cvvc run output folder")
-    summary = _decode(summary_path, RunSummary, "cvvc run summary")
+    summary = _decode_summary(summary_path, RunSummary)
     mt = summary.metrics
     limits = (0.965, 1.05)
     try:
@@ -281,9 +260,19 @@ def _trace_of(run_dir: Path) -> tuple[RunSummary, RunTrace]:
     return summary, read_trace(path, regulator_ids=regs, pv_ids=pvs, limits_pu=limits, capacitor_ids=caps)
 
 
+def _baseline_of(run_dir: Path) -> RunTrace | None:
+    """The no-control baseline's series ``cvvc run`` wrote beside its recording (None: ``--no-baseline``)."""
+    path = run_dir / BASELINE_TRACE
+    if not path.is_file():
+        return None
+    try:
+        return read_series(path)
+    except (OSError, ValueError, KeyError) as e:
+        raise ReportError(f"{path}: not a baseline trace of this version ({e}); run it again") from e
+
+
 def _save(fig, path: Path) -> Path:
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=110, bbox_inches="tight")  # tight: the legends outside the axes are kept
     _plt().close(fig)
     return path
 
@@ -292,58 +281,57 @@ def envelope_figure(traces: dict[str, RunTrace], title: str):
     """The 10-minute average voltage envelope (max and min over nodes [pu]) of each trace, with the limits."""
     plt = _plt()
     fig, (ax_hi, ax_lo) = plt.subplots(2, 1, figsize=(12, 6.5), sharex=True)
-    t0 = min(int(tr.t_ns[0]) for tr in traces.values())
     lo, hi = next(iter(traces.values())).limits_pu
     for i, (label, tr) in enumerate(traces.items()):
-        x = _days(tr.t_ns, t0)
-        ax_hi.plot(x, tr.v_env_max_pu, color=f"C{i}", lw=0.9, label=label)
-        ax_lo.plot(x, tr.v_env_min_pu, color=f"C{i}", lw=0.9, label=label)
-    for ax, limit, which in ((ax_hi, hi, "max"), (ax_lo, lo, "min")):
-        ax.axhline(limit, color="k", lw=0.8, ls=":", label=f"limit {limit:g} pu")
-        ax.set_ylabel(f"{which} over nodes [pu]")
+        x = _clock(tr.t_ns)
+        ax_hi.plot(x, tr.v_env_max_pu, color=f"C{i}", lw=0.9, label=label, **_style(label))
+        ax_lo.plot(x, tr.v_env_min_pu, color=f"C{i}", lw=0.9, label=label, **_style(label))
+    for ax, limit, which in ((ax_hi, hi, "highest"), (ax_lo, lo, "lowest")):
+        ax.axhline(limit, color="k", lw=0.8, ls=":", label=f"judged limit {limit:g} pu")
+        ax.set_ylabel(f"{which} node\n[pu of nominal L-N]")
         ax.grid(alpha=0.3)
+        ax.legend(fontsize=8, **_LEGEND)
     ax_hi.set_title(title)
-    ax_hi.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))
-    ax_lo.set_xlabel("time [days from start]")
+    _time_axis(ax_lo, traces)
     return fig
 
 
 def pv_figure(traces: dict[str, RunTrace], title: str):
-    """Each plant's 10-minute average reactive power [kvar], one panel per trace."""
+    """Each plant's 10-minute average reactive power [kvar, + injects], one panel per trace (same scale)."""
     plt = _plt()
     n = len(traces)
-    fig, axes = plt.subplots(n, 1, figsize=(11, 2.4 * n + 0.6), sharex=True, squeeze=False)
-    t0 = min(int(tr.t_ns[0]) for tr in traces.values())
+    fig, axes = plt.subplots(n, 1, figsize=(11, 2.4 * n + 0.6), sharex=True, sharey=True, squeeze=False)
     for ax, (label, tr) in zip(axes[:, 0], traces.items(), strict=True):
-        x = _days(tr.t_ns, t0)
+        x = _clock(tr.t_ns)
         for k in range(tr.pv_q_kvar.shape[1]):
             name = tr.pv_ids[k] if k < len(tr.pv_ids) else f"pv{k}"
-            ax.plot(x[: tr.pv_q_kvar.shape[0]], tr.pv_q_kvar[:, k], lw=0.8, label=name)
-        ax.set_ylabel("Q [kvar]")
-        ax.set_title(f"{label}", fontsize=9)
+            ax.plot(x[: tr.pv_q_kvar.shape[0]], tr.pv_q_kvar[:, k], color=f"C{k}", lw=0.8, label=name,
+                    **_style(label))
+        ax.axhline(0.0, color="k", lw=0.5)
+        ax.set_ylabel(Q_LABEL)
+        ax.set_title(_panel_title(label), fontsize=9)
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=7, loc="upper right")
-    axes[-1, 0].set_xlabel("time [days from start]")
+        ax.legend(fontsize=7, **_LEGEND)
+    _time_axis(axes[-1, 0], traces)
     fig.suptitle(title)
     return fig
 
 
 def taps_figure(traces: dict[str, RunTrace], title: str):
-    """Each regulator's tap position [steps] over time, one panel per trace."""
+    """Each regulator's tap position [steps] over time, one panel per trace (same scale)."""
     plt = _plt()
     n = len(traces)
-    fig, axes = plt.subplots(n, 1, figsize=(11, 2.4 * n + 0.6), sharex=True, squeeze=False)
-    t0 = min(int(tr.t_ns[0]) for tr in traces.values())
+    fig, axes = plt.subplots(n, 1, figsize=(11, 2.4 * n + 0.6), sharex=True, sharey=True, squeeze=False)
     for ax, (label, tr) in zip(axes[:, 0], traces.items(), strict=True):
-        x = _days(tr.step_t_ns, t0)
+        x = _clock(tr.step_t_ns)
         for r in range(tr.taps.shape[1]):
             name = tr.regulator_ids[r] if r < len(tr.regulator_ids) else f"reg{r}"
-            ax.step(x, tr.taps[:, r], where="post", lw=0.8, label=name)
-        ax.set_ylabel("tap")
-        ax.set_title(f"{label}", fontsize=9)
+            ax.step(x, tr.taps[:, r], where="post", color=f"C{r}", lw=0.8, label=name, **_style(label))
+        ax.set_ylabel(TAP_LABEL)
+        ax.set_title(_panel_title(label), fontsize=9)
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=7, ncol=4, loc="upper right")
-    axes[-1, 0].set_xlabel("time [days from start]")
+        ax.legend(fontsize=7, **_LEGEND)
+    _time_axis(axes[-1, 0], traces)
     fig.suptitle(title)
     return fig
 
@@ -352,20 +340,20 @@ def caps_figure(traces: dict[str, RunTrace], title: str):
     """Each capacitor bank's closed steps at every step, one panel per run; switchings in the legend."""
     plt = _plt()
     n = len(traces)
-    fig, axes = plt.subplots(n, 1, figsize=(11, 2.4 * n + 0.6), sharex=True, squeeze=False)
-    t0 = min(int(tr.step_t_ns[0]) for tr in traces.values())
+    fig, axes = plt.subplots(n, 1, figsize=(11, 2.4 * n + 0.6), sharex=True, sharey=True, squeeze=False)
     for ax, (label, tr) in zip(axes[:, 0], traces.items(), strict=True):
-        x = _days(tr.step_t_ns, t0)
+        x = _clock(tr.step_t_ns)
         for c in range(tr.cap_states.shape[1]):
             name = tr.capacitor_ids[c] if c < len(tr.capacitor_ids) else f"cap {c}"
             states = tr.cap_states[:, c]
             switches = int(np.abs(np.diff(states)).sum())
-            ax.step(x, states + 0.04 * c, where="post", lw=0.9, label=f"{name} ({switches} switchings)")
+            ax.step(x, states + 0.04 * c, where="post", color=f"C{c}", lw=0.9,
+                    label=f"{name} ({switches} switchings)", **_style(label))
         ax.set_ylabel("closed steps")
-        ax.set_title(f"{label}", fontsize=9)
+        ax.set_title(_panel_title(label), fontsize=9)
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=7, ncol=3, loc="upper right")
-    axes[-1, 0].set_xlabel("time [days from start]")
+        ax.legend(fontsize=7, **_LEGEND)
+    _time_axis(axes[-1, 0], traces)
     fig.suptitle(title)
     return fig
 
@@ -377,23 +365,22 @@ def errors_figure(traces: dict[str, RunTrace], title: str):
         return None
     plt = _plt()
     fig, (ax, axh) = plt.subplots(1, 2, figsize=(12, 4.2), gridspec_kw={"width_ratios": [3, 1.2]})
-    t0 = min(int(tr.t_ns[0]) for tr in traces.values())
     for i, (label, tr) in enumerate(with_est.items()):
-        x = _days(tr.err_t_ns, t0)
+        x = _clock(tr.err_t_ns)
         ax.fill_between(x, tr.err_min_pu, tr.err_max_pu, color=f"C{i}", alpha=0.25, lw=0)
         ax.plot(x, tr.err_rms_pu, color=f"C{i}", lw=0.8, label=f"{label}: RMS (band: min..max)")
         axh.hist(tr.errors_pu, bins=60, color=f"C{i}", alpha=0.5,
                  label=f"{label}: RMS {np.sqrt(np.mean(tr.errors_pu ** 2)):.4f}, "
                        f"max |e| {np.abs(tr.errors_pu).max():.4f}")
     ax.axhline(0, color="k", lw=0.6)
-    ax.set_xlabel("time [days from start]")
-    ax.set_ylabel("estimate - truth [pu]")
+    _time_axis(ax, with_est)
+    ax.set_ylabel("estimate - truth [pu]\n(+: estimate too high)")
     ax.set_title(title)
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(0.0, -0.22), borderaxespad=0.0)
     ax.grid(alpha=0.3)
     axh.set_xlabel("estimate - truth [pu]")
     axh.set_ylabel("count")
-    axh.legend(fontsize=7)
+    axh.legend(fontsize=7, loc="upper left", bbox_to_anchor=(0.0, -0.22), borderaxespad=0.0)
     return fig
 
 
@@ -404,27 +391,26 @@ def worst_node_figure(trace: RunTrace, title: str):
         return None
     plt = _plt()
     fig, ax = plt.subplots(figsize=(12, 4.2))
-    hours = (w.t_ns - int(w.t_ns[0])) / 3.6e12
-    ax.fill_between(hours, w.v_est_pu - w.bound_low_pu, w.v_est_pu + w.bound_high_pu, step="mid", color="C0",
+    x = _clock(w.t_ns)
+    ax.fill_between(x, w.v_est_pu - w.bound_low_pu, w.v_est_pu + w.bound_high_pu, step="mid", color="C0",
                     alpha=0.25, lw=0, label="bounds the agent promised")
-    ax.plot(hours, w.v_est_pu, color="C0", lw=0.9, drawstyle="steps-mid", label="agent's estimate")
-    ax.plot(hours, w.v_true_pu, color="k", lw=0.9, drawstyle="steps-mid", label="true voltage")
+    ax.plot(x, w.v_est_pu, color="C0", lw=0.9, drawstyle="steps-mid", label="agent's estimate")
+    ax.plot(x, w.v_true_pu, color="k", lw=0.9, drawstyle="steps-mid", label="true voltage")
     a = w.accuracy
     ax.set_title(f"{title}: node {w.node} (bounds missed {a.bound_miss_rate:.1%} of node-decisions over every "
                  f"critical node)", fontsize=10)
-    ax.set_xlabel("hours from the first decision")
-    ax.set_ylabel("voltage [pu]")
-    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.0, 1.0))
+    _time_axis(ax, {"": trace})
+    ax.set_ylabel("voltage [pu of nominal L-N]")
+    ax.legend(fontsize=8, **_LEGEND)
     ax.grid(alpha=0.3)
-    fig.tight_layout()
     return fig
 
 
 def _plots(traces: dict[str, RunTrace], title: str, out: Path, prefix: str = "") -> list[Path]:
     out.mkdir(parents=True, exist_ok=True)
-    paths = [_save(envelope_figure(traces, f"{title}: 10-min average voltage envelope"),
+    paths = [_save(envelope_figure(traces, f"{title}: voltage envelope (10-min averages over every node)"),
                    out / f"{prefix}voltage_envelope.png"),
-             _save(pv_figure(traces, f"{title}: PV reactive power (10-min average)"), out / f"{prefix}pv_q.png"),
+             _save(pv_figure(traces, f"{title}: PV reactive power (10-min averages)"), out / f"{prefix}pv_q.png"),
              _save(taps_figure(traces, f"{title}: regulator taps"), out / f"{prefix}taps.png")]
     if any(tr.cap_states.size for tr in traces.values()):
         paths.append(_save(caps_figure(traces, f"{title}: capacitor banks"), out / f"{prefix}cap_states.png"))
@@ -432,15 +418,34 @@ def _plots(traces: dict[str, RunTrace], title: str, out: Path, prefix: str = "")
     return paths + ([_save(err, out / f"{prefix}estimation_error.png")] if err is not None else [])
 
 
-def plot_run(run_dir: str | Path, *, out: str | Path | None = None) -> list[Path]:
-    """The PNGs of one ``cvvc run`` folder (default into ``run_dir/plots``); returns their paths."""
+def run_traces(run_dir: str | Path) -> tuple[RunSummary, dict[str, RunTrace]]:
+    """A ``cvvc run`` folder's traces: the case's from its recording, then no control's when it was simulated."""
     d = Path(run_dir)
     summary, trace = _trace_of(d)
+    traces = {f"case {summary.case}": trace}
+    baseline = _baseline_of(d)
+    if baseline is not None:
+        traces[NO_CONTROL] = baseline
+    return summary, traces
+
+
+def plot_run(run_dir: str | Path, *, out: str | Path | None = None) -> list[Path]:
+    """The PNGs of one ``cvvc run`` folder (default into ``run_dir/plots``), the case against no control when the
+    run simulated it, and ``report.md`` beside them (the run's report with the plots); returns the PNGs' paths.
+    """
+    from cvvc.run_report import render_summary
+
+    d = Path(run_dir)
+    summary, traces = run_traces(d)
     title = f"{summary.feeder_id} case {summary.case} from {summary.start}"
     folder = Path(out) if out else d / "plots"
-    paths = _plots({f"case {summary.case}": trace}, title, folder)
-    worst = worst_node_figure(trace, title)
-    return paths + ([_save(worst, folder / "worst_node.png")] if worst is not None else [])
+    paths = _plots(traces, title, folder)
+    worst = worst_node_figure(traces[f"case {summary.case}"], title)
+    paths += [_save(worst, folder / "worst_node.png")] if worst is not None else []
+    report_dir = folder if out else d
+    links = [f"![{p.stem.replace('_', ' ')}]({p.relative_to(report_dir).as_posix()})" for p in paths]
+    (report_dir / "report.md").write_text(render_summary(summary) + "\n## Plots\n\n" + "\n\n".join(links) + "\n")
+    return paths
 
 
 def plot_evaluation(eval_dir: str | Path, *, out: str | Path | None = None) -> list[Path]:

@@ -1,5 +1,6 @@
-"""The report of one ``cvvc run`` (``report.md``, printed at its end): its metrics beside no control's, its
-decisions and their most frequent reasons, lockstep misses, the recording and its gaps.
+"""The report of one ``cvvc run`` (``report.md``, printed at its end): its metrics beside no control's, its costs
+and what they charge, a one-line verdict, its decisions and their most frequent reasons, lockstep misses, the
+recording and its gaps.
 """
 
 from __future__ import annotations
@@ -10,7 +11,7 @@ if TYPE_CHECKING:
     from cvvc.run_summary import RunSummary
     from simulator_bridge.simulation.live_accuracy import LiveAccuracy
 
-__all__ = ["decision_time_text", "live_accuracy_text", "render_summary", "top_reasons"]
+__all__ = ["cost_lines", "decision_time_text", "live_accuracy_text", "render_summary", "top_reasons", "verdict"]
 
 
 def top_reasons(reasons: dict[str, int], n: int = 3) -> str:
@@ -43,24 +44,27 @@ def live_accuracy_text(a: LiveAccuracy) -> str:
 
 
 def render_summary(s: RunSummary) -> str:
-    """The run's summary as a short markdown report."""
+    """The run's summary as a short markdown report: its metrics beside no control's, what the costs charge and a
+    one-line verdict.
+    """
     mt, base = s.metrics, s.baseline
-    rows = [("MVVM [pu]", "mvvm_pu"), ("NVV", "nvv"), ("minutes in violation", "minutes_in_violation"),
-            ("NTC (tap changes)", "ntc"), ("Q cost", "q_cost"), ("T cost", "t_cost"), ("total cost", "total_cost"),
+    rows = [("MVVM [pu]", "mvvm_pu"), ("NVV [node-minutes of 10-min average outside the judged limits]", "nvv"),
+            ("minutes in violation", "minutes_in_violation"), ("NTC [tap steps moved]", "ntc"),
             ("V min, 1-minute [pu]", "v_min_pu"), ("V max, 1-minute [pu]", "v_max_pu"),
             ("node-minutes outside the optimization limits", "node_minutes_outside_opt"),
             ("minutes with a node outside the optimization limits", "minutes_outside_opt"),
             ("node-minutes outside ANSI Range A (0.95-1.05 pu)", "node_minutes_outside_ansi"),
             ("minutes with a node outside ANSI Range A", "minutes_outside_ansi")]
     if mt.cap_switches_per_bank:  # capacitor banks in the device map
-        rows[4:4] = [("capacitor switchings", "cap_switches"), ("cap cost", "cap_cost")]
+        rows[4:4] = [("capacitor switchings", "cap_switches")]
     lines = [f"# cvvc run: case {s.case} on {s.feeder_id}, {s.start}, {s.days:g} day(s)", "",
              f"| metric | case {s.case} | no control |", "|---|---|---|"]
     for label, key in rows:
         b = "" if base is None else _fmt(getattr(base, key), key)
         lines.append(f"| {label} | {_fmt(getattr(mt, key), key)} | {b} |")
     why = f"; most frequent reasons: {top_reasons(s.reasons)}" if s.holds or s.soft else ""
-    lines += ["", f"- decisions: {s.decisions} (soft {s.soft}, hold {s.holds}{why}); lockstep misses: "
+    lines += ["", *cost_lines(s), "", f"**Verdict:** {verdict(s)}", "",
+              f"- decisions: {s.decisions} (soft {s.soft}, hold {s.holds}{why}); lockstep misses: "
               f"{s.lockstep_misses}; wall time {s.wall_s:.1f} s",
               *([f"- decision time (the agent's, per control step): {decision_time_text(s.decision_ms)}"]
                 if s.decision_ms else []),
@@ -99,6 +103,77 @@ def _integrity_lines(s: RunSummary) -> list[str]:
     if g.degraded:
         lines.append(f"- **degraded for more than one control period**: {g.degraded} (`cvvc run` exits 3)")
     return lines
+
+
+def cost_lines(s: RunSummary) -> list[str]:
+    """The cost table of a run (case and no control), each cost with what it charges, and why no control's costs
+    are what they are.
+    """
+    mt, base = s.metrics, s.baseline
+    prices = _prices(s.feeder)
+    rows = [("T cost (tap changes)", "t_cost", f"{prices.get('tap', 'the price')} per tap step moved, every "
+                                                  "regulator (eq. 14)"),
+            ("Q cost (PV reactive power)", "q_cost", f"{prices.get('kvar', 'the price')} per kvar of \\|Q\\| "
+                                                      "held for one 5-minute control interval, every plant (eq. 15)")]
+    if mt.cap_switches_per_bank:
+        rows.append(("cap cost (bank switchings)", "cap_cost", f"{prices.get('switch', 'the price')} per step a "
+                                                               "bank opens or closes"))
+    rows.append(("total cost", "total_cost", "the sum of the above"))
+    lines = ["## Costs", "", f"| cost [currency units] | case {s.case} | no control | what it charges |",
+             "|---|---|---|---|"]
+    for label, key, what in rows:
+        b = "" if base is None else _fmt(getattr(base, key), key)
+        lines.append(f"| {label} | {_fmt(getattr(mt, key), key)} | {b} | {what} |")
+    lines += ["", "Costs are in the device map's currency units (prices per device in the map: `cost_per_tap`, "
+              "`cost_per_kvar`, `cost_per_switch`). No control sends no command: its PV plants stay at unity power "
+              "factor (Q = 0), so it spends nothing on reactive power; its regulators"
+              + (" and banks" if mt.cap_switches_per_bank else "")
+              + " act on their own local control, and the tap steps they move are charged at the same price."]
+    return lines
+
+
+def verdict(s: RunSummary) -> str:
+    """One line: did the case keep the voltages better than no control, and at what cost."""
+    mt, base, case = s.metrics, s.baseline, f"case {s.case}"
+    if base is None:
+        return (f"no baseline to compare with ({case} ran without one): {mt.nvv:,} node-minutes of violation, "
+                f"total cost {_fmt(mt.total_cost)}.")
+    cost = f"total cost {_fmt(mt.total_cost)} against {_fmt(base.total_cost)} without control"
+    if mt.nvv < base.nvv:
+        return (f"{case} cut the violations from {base.nvv:,} to {mt.nvv:,} node-minutes (MVVM "
+                f"{_fmt(base.mvvm_pu)} -> {_fmt(mt.mvvm_pu)} pu); {cost}.")
+    if mt.nvv > base.nvv:
+        return (f"**{case} violated more than no control** ({mt.nvv:,} against {base.nvv:,} node-minutes, MVVM "
+                f"{_fmt(mt.mvvm_pu)} against {_fmt(base.mvvm_pu)} pu); {cost}.")
+    if mt.nvv == 0:
+        return (f"neither {case} nor no control left the judged limits; a node was outside the optimization "
+                f"limits in {mt.minutes_outside_opt:,} minutes against {base.minutes_outside_opt:,} (ANSI Range A: "
+                f"{mt.minutes_outside_ansi:,} against {base.minutes_outside_ansi:,}); {cost}.")
+    return (f"{case} left as many node-minutes of violation as no control ({mt.nvv:,}; MVVM {_fmt(mt.mvvm_pu)} "
+            f"against {_fmt(base.mvvm_pu)} pu); {cost}.")
+
+
+def _prices(feeder: str) -> dict[str, str]:
+    """The feeder's prices as text (``tap``, ``kvar``, ``switch``: a value, or a range when devices differ); empty
+    when the device map cannot be read any more.
+    """
+    from schemas.devicemap import load_device_map
+    from schemas.errors import CvvcError
+
+    try:
+        dm = load_device_map(feeder)
+    except (CvvcError, OSError):
+        return {}
+
+    def text(values: list[float]) -> str | None:
+        if not values:
+            return None
+        lo, hi = min(values), max(values)
+        return f"{lo:g}" if lo == hi else f"{lo:g}-{hi:g}"
+
+    found = {"tap": text([r.cost_per_tap for r in dm.regulator]), "kvar": text([p.cost_per_kvar for p in dm.pv]),
+             "switch": text([c.cost_per_switch for c in dm.capacitor])}
+    return {k: v for k, v in found.items() if v is not None}
 
 
 def _recorder_lines(s: RunSummary) -> list[str]:

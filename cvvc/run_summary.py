@@ -10,7 +10,6 @@ from recordings.info import RecorderGap
 from schemas import messages as m
 from schemas.settings import RunCase
 from simulator_bridge.simulation.live_accuracy import LiveAccuracy
-from simulator_bridge.simulation.metrics import Metrics
 
 __all__ = ["RunIntegrity", "RunSummary"]
 
@@ -48,7 +47,8 @@ class RunSummary(msgspec.Struct, frozen=True, kw_only=True):
     steps: int
     wall_s: float
     metrics: m.MetricsFrame  # the bridge's final metrics frame (paper IV.F)
-    baseline: Metrics | None  # the no-control baseline of the same days
+    # the no-control baseline of the same days, in the same form as ``metrics`` (its plotted series: baseline_trace.npz)
+    baseline: m.MetricsFrame | None
     lockstep_misses: int
     decisions: int
     out_dir: str

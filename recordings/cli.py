@@ -18,7 +18,7 @@ Handler = Callable[[argparse.Namespace], int]
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add the ``record``, ``recording`` and ``replay`` verbs to the ``cvvc`` command line's ``sub``."""
-    from schemas.bus import add_bus_arguments
+    from schemas.bus_args import add_bus_arguments
 
     r = sub.add_parser("record", help="record every bus message to an MCAP file",
                        description="Subscribe to KEYS and write every sample, bytes unchanged, to an MCAP file "
@@ -48,10 +48,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     c.add_argument("output", metavar="OUT")
     c.add_argument("--json", action="store_true", help="print JSON")
     c.set_defaults(func=_recover)
-    e = psub.add_parser("export-json", help="copy a recording with the compact truth re-encoded as JSON (Foxglove)",
-                        description="Write OUT: IN with every MessagePack channel (the truth, sim/truth) re-encoded "
-                                    "as JSON TruthFrame with its JSON Schema, so Foxglove can plot every node's "
-                                    "voltage; everything else is copied as it is.")
+    e = psub.add_parser("export-json", help="copy a recording with the truth re-encoded as JSON (older recordings "
+                                            "in Foxglove, JSON-only tools)",
+                        description="Write OUT: IN with the truth (sim/truth: Protobuf, or the MessagePack of "
+                                    "recordings of earlier versions, which Foxglove does not decode) re-encoded as "
+                                    "JSON TruthFrame with its JSON Schema; everything else is copied as it is. "
+                                    "Recordings of this version open in Foxglove as they are.")
     e.add_argument("input", metavar="IN")
     e.add_argument("output", metavar="OUT")
     e.add_argument("--json", action="store_true", help="print JSON")

@@ -1,11 +1,13 @@
-"""``cvvc recordings export-json``: a copy of a recording that Foxglove reads whole.
+"""``cvvc recordings export-json``: a copy of a recording with the truth as JSON.
 
-Recordings hold the truth compactly (``sim/truth``: ``TruthPack``, MessagePack with the voltages as float32 byte
-planes), which Foxglove does not decode (it reads JSON, Protobuf, FlatBuffers, ROS 1 and ROS 2 messages). The copy
-re-encodes every MessagePack channel into its JSON form (``schemas.truth.to_truth_frame``: ``TruthFrame``, message
-encoding ``json``, its JSON Schema), so ``/sim/truth.v_pu[3]`` plots there; every other channel, message (times,
-sequence) and metadata record is copied as it is. The copy is larger (the truth as JSON text is about four times
-the compact form after zstd): it is for viewing, the original stays the record.
+Recordings of this version hold the truth (``sim/truth``) as Protobuf with its schema, which Foxglove decodes as it
+is. Recordings of earlier versions hold it as MessagePack (``TruthPack``, the voltages as float32 byte planes),
+which Foxglove does not decode (it reads JSON, Protobuf, FlatBuffers, ROS 1 and ROS 2 messages): the copy re-encodes
+the truth, either encoding, into its JSON form (``schemas.truth.to_truth_frame``: ``TruthFrame``, message
+encoding ``json``, its JSON Schema), so ``/sim/truth.v_pu[3]`` plots there from an older recording too, and tools
+that read JSON only (``jq``) read every channel; every other channel, message (times, sequence) and metadata record
+is copied as it is. The copy is larger (the truth as JSON text is about three times the compact form after zstd):
+it is for viewing, the original stays the record.
 """
 
 from __future__ import annotations
@@ -22,7 +24,8 @@ from recordings.errors import RecordingError
 from recordings.info import MCAP_READ_ERRORS
 from schemas import messages as m
 from schemas.jsonschema import schema_bytes, schema_name
-from schemas.truth import to_truth_frame
+from schemas.truth import TruthDecodeError, to_truth_frame, truth_pack
+from schemas.truth_proto import TRUTH_PROTO_NAME
 
 __all__ = ["ExportResult", "export_json"]
 
@@ -37,6 +40,9 @@ class ExportResult(msgspec.Struct, frozen=True, kw_only=True):
     skipped_topics: dict[str, int] = {}
 
 
+_COMPACT_TRUTH = ("protobuf", "msgpack")  # the truth's encodings, today's and an earlier version's
+
+
 class _Copier:
     """Channels and schemas of the output, registered once per input channel."""
 
@@ -49,7 +55,8 @@ class _Copier:
         got = self._channels.get(channel.id)
         if got is not None:
             return got
-        truth = channel.message_encoding == "msgpack" and schema is not None and schema.name == schema_name(m.TruthPack)
+        truth = channel.message_encoding in _COMPACT_TRUTH and schema is not None and schema.name in (
+            schema_name(m.TruthPack), TRUTH_PROTO_NAME)
         if truth:
             name, encoding, data, message_encoding = (schema_name(m.TruthFrame), "jsonschema",
                                                       schema_bytes(m.TruthFrame), "json")
@@ -71,7 +78,8 @@ class _Copier:
 
 
 def export_json(in_path: str | Path, out_path: str | Path) -> ExportResult:
-    """Write ``out_path``: ``in_path`` with its MessagePack truth channels re-encoded as JSON ``TruthFrame``.
+    """Write ``out_path``: ``in_path`` with its truth channels (Protobuf, or an earlier version's MessagePack)
+    re-encoded as JSON ``TruthFrame``.
 
     A truth message that does not decode is left out and counted (``skipped``); the file is written to
     ``OUT.exporting`` and renamed at the end, so ``out_path`` is never half written.
@@ -85,7 +93,6 @@ def export_json(in_path: str | Path, out_path: str | Path) -> ExportResult:
     if src.resolve() == out.resolve():
         raise RecordingError(f"{out}: the export must go to another file than its input")
     tmp = out.with_name(out.name + ".exporting")
-    decode = msgspec.msgpack.Decoder(m.TruthPack).decode
     encode = msgspec.json.Encoder().encode
     messages = reencoded = skipped = 0
     skipped_topics: dict[str, int] = {}
@@ -100,8 +107,8 @@ def export_json(in_path: str | Path, out_path: str | Path) -> ExportResult:
                 data = msg.data
                 if truth:
                     try:
-                        data = encode(to_truth_frame(decode(msg.data)))
-                    except (msgspec.DecodeError, ValueError):  # ValidationError is a DecodeError
+                        data = encode(to_truth_frame(truth_pack(msg.data, channel.message_encoding)))
+                    except TruthDecodeError:
                         skipped += 1
                         skipped_topics[channel.topic] = skipped_topics.get(channel.topic, 0) + 1
                         continue

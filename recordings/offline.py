@@ -265,7 +265,7 @@ def run_offline(path: str | Path, *, model_path: str | Path | None = None, decid
     """
     info = recording_info(path)
     meta = info.metadata.get(METADATA_NAME, {})
-    model = str(model_path or meta.get("model_path", ""))
+    model = str(model_path or recorded_model(path, meta.get("model_path", "")))
     recorded = recorded_decisions(path)
     if not recorded:
         raise OfflineError(f"{path} holds no decodable agent decisions (cvvc/*/agent/decision) to compare with")
@@ -285,6 +285,18 @@ def run_offline(path: str | Path, *, model_path: str | Path | None = None, decid
                          simulated_s=simulated_s, wall_s=wall_s,
                          sim_minutes_per_wall_s=simulated_s / 60.0 / wall_s if wall_s > 0 else 0.0,
                          diff=diff_decisions(recorded, rerun))
+
+
+def recorded_model(path: str | Path, model_path: str) -> str:
+    """The model a recording names (``model_path`` of its metadata), found from any working directory: the path as
+    recorded when it is a file, else the file of that name beside the recording (``cvvc run`` keeps its model as
+    ``model.json`` beside ``session.mcap``; recordings of earlier versions named it relative to where the run
+    started); ``""`` when the recording names none.
+    """
+    if not model_path or Path(model_path).is_file():
+        return model_path
+    beside = Path(path).resolve().parent / Path(model_path).name
+    return str(beside) if beside.is_file() else model_path
 
 
 class _Counting:

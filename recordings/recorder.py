@@ -5,8 +5,9 @@ File layout (docs/recordings.md):
 - one channel per concrete Zenoh key (the topic is the key, e.g. ``cvvc/rural/meas/pv/pv1``), message
   encoding ``json``, with the JSON Schema of the key's message type (schema encoding ``jsonschema``, name
   ``cvvc.<Type>``, top-level ``"type": "object"`` so Foxglove can plot it); the truth (``sim/truth``,
-  ``TruthPack``) is ``msgpack``, with the same kind of schema (``cvvc recordings export-json`` writes a copy with
-  it as JSON, for Foxglove; ``schemas.truth`` reads it as arrays). Only payloads that decode into
+  ``TruthPack``) is ``protobuf``, with its Protobuf schema (name ``cvvc.Truth``, encoding ``protobuf``, data a
+  ``FileDescriptorSet``: ``schemas.truth_proto``), which Foxglove decodes too; ``schemas.truth`` reads it as
+  arrays. Only payloads that decode into
   their key's message type (msgspec's typed decode: types, bounds, unknown fields) reach these channels;
 - everything else goes to the **quarantine** channel ``cvvc.quarantine`` (schema ``cvvc.Quarantined``): the
   key, the reason and the payload (base64), so nothing is lost and nothing junk sits on a real channel: a key
@@ -46,7 +47,9 @@ from recordings.errors import RecordingError
 from schemas.bus import MAX_PAYLOAD_BYTES, BusConfig, open_session
 from schemas.jsonschema import schema_bytes, schema_name
 from schemas.keys import message_type_for_key
-from schemas.messages import Wire, wire_of
+from schemas.messages import TruthPack, Wire, wire_of
+from schemas.truth_proto import TRUTH_PROTO_NAME, truth_descriptor_set
+from schemas.wire import typed_decoder
 
 __all__ = ["METADATA_NAME", "QUARANTINE_TOPIC", "STATS_METADATA_NAME", "McapSink", "Quarantined", "Recorder",
            "RecorderConfig", "RecorderStats", "main"]
@@ -128,13 +131,14 @@ class McapSink:
             self._writer.add_metadata(METADATA_NAME, metadata)
         self._channels: dict[str, int] = {}
         self._schemas: dict[type, int] = {}
-        self._header_decoders: dict[str, msgspec.json.Decoder[_Header] | msgspec.msgpack.Decoder[_Header]] = {
-            "json": msgspec.json.Decoder(_Header), "msgpack": msgspec.msgpack.Decoder(_Header)}
+        self._header_decoders: dict[str, Any] = {  # t_ns and seq only (the truth's: its whole decode)
+            "json": msgspec.json.Decoder(_Header), "msgpack": msgspec.msgpack.Decoder(_Header),
+            "protobuf": typed_decoder(TruthPack)}
         self._add = self._writer.add_message
         self._max_channels = max_channels
-        self._decoders: dict[type, msgspec.json.Decoder[Any] | msgspec.msgpack.Decoder[Any]] = {}
+        self._decoders: dict[type, Any] = {}
         # key -> (channel id, decoder, message type), for the keys that have a channel
-        self._routes: dict[str, tuple[int, msgspec.json.Decoder[Any] | msgspec.msgpack.Decoder[Any], type]] = {}
+        self._routes: dict[str, tuple[int, Any, type]] = {}
         self._quarantine_channel = 0
         self.quarantined = 0
         self.messages = 0
@@ -178,7 +182,7 @@ class McapSink:
             self._routes[key] = (channel_id, decoder, msg_type)
         self._add_timed(channel_id, raw, recv_ns, msg.t_ns, msg.seq)
 
-    def _decoder(self, msg_type: type) -> msgspec.json.Decoder[Any] | msgspec.msgpack.Decoder[Any]:
+    def _decoder(self, msg_type: type) -> Any:
         """The typed decoder of ``msg_type`` on its wire (built once).
 
         msgspec's typed decode alone, without the bus codec's walk for non-finite numbers: bounded fields refuse
@@ -187,8 +191,7 @@ class McapSink:
         """
         decoder = self._decoders.get(msg_type)
         if decoder is None:
-            decoder = self._decoders[msg_type] = (msgspec.msgpack.Decoder(msg_type) if wire_of(msg_type) == "msgpack"
-                                                  else msgspec.json.Decoder(msg_type))
+            decoder = self._decoders[msg_type] = typed_decoder(msg_type)
         return decoder
 
     def _quarantine(self, raw: bytes, key: str, recv_ns: int, reason: str) -> None:
@@ -250,7 +253,10 @@ class McapSink:
     def _register_channel(self, key: str, msg_type: type) -> int:
         schema_id = self._schemas.get(msg_type, 0)
         if not schema_id:
-            schema_id = self._writer.register_schema(schema_name(msg_type), "jsonschema", schema_bytes(msg_type))
+            if wire_of(msg_type) == "protobuf":  # the truth: its Protobuf schema, which Foxglove decodes
+                schema_id = self._writer.register_schema(TRUTH_PROTO_NAME, "protobuf", truth_descriptor_set())
+            else:
+                schema_id = self._writer.register_schema(schema_name(msg_type), "jsonschema", schema_bytes(msg_type))
             self._schemas[msg_type] = schema_id
         channel_id = self._writer.register_channel(key, wire_of(msg_type), schema_id,
                                                    {"cvvc_message_type": msg_type.__name__})
@@ -418,7 +424,8 @@ def _recording_metadata(config: RecorderConfig) -> dict[str, str]:
     return {
         "project_version": _version(),
         "feeder_fingerprint": config.feeder_fingerprint,
-        "model_path": config.model_path,
+        # absolute: the recording names its model wherever it is read from (replay also looks beside the file)
+        "model_path": str(Path(config.model_path).resolve()) if config.model_path else "",
         "agent_settings": config.agent_settings_json,
         "bus_config": msgspec.json.encode(config.bus).decode(),
         "keys": json.dumps(list(config.keys)),

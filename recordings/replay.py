@@ -1,7 +1,8 @@
 """Replay: republish recorded messages onto Zenoh with their original spacing, scaled by a speed factor.
 
 Messages are read in ``log_time`` order (the messages' own ``t_ns``; ties keep file order) and each is
-published, bytes unchanged, on its recorded key at ``wall0 + (log_time - log_time0) / speed``. With
+published, bytes unchanged (but the MessagePack truth of an earlier version's recording, sent as today's Protobuf),
+on its recorded key at ``wall0 + (log_time - log_time0) / speed``. With
 ``speed=None`` they go out as fast as possible. Publishers use congestion control BLOCK so a fast replay
 loses nothing. Before the first message, replay waits (bounded) until every selected key has a matching
 subscriber; if none has one by then it stops with an error, if some have it goes ahead.
@@ -80,6 +81,19 @@ class RecordedMessage(msgspec.Struct, frozen=True, kw_only=True):
     log_time_ns: int
     publish_time_ns: int
     data: bytes
+
+
+def _truth_on_todays_wire(raw: bytes) -> bytes:
+    """A MessagePack truth (recordings of earlier versions) as Protobuf, the wire its key has today; bytes that do
+    not decode go out as recorded (a subscriber refuses and counts them).
+    """
+    from schemas.truth import TruthDecodeError, truth_pack
+    from schemas.truth_proto import encode_truth_proto
+
+    try:
+        return encode_truth_proto(truth_pack(raw, "msgpack"))
+    except TruthDecodeError:
+        return raw
 
 
 def parse_time_ns(text: str) -> int:
@@ -164,8 +178,11 @@ class RecordedMessages:
         try:
             for _, channel, message in self._reader.iter_messages(topics=self.topics, starting_at=self._start_ns,
                                                                   ending_before=self._end_ns, log_time_order=True):
+                data = bytes(message.data)
+                if channel.message_encoding == "msgpack":  # the truth of an earlier version: today's wire
+                    data = _truth_on_todays_wire(data)
                 yield RecordedMessage(topic=channel.topic, log_time_ns=message.log_time,
-                                      publish_time_ns=message.publish_time, data=bytes(message.data))
+                                      publish_time_ns=message.publish_time, data=data)
         except MCAP_READ_ERRORS as e:
             raise UnreadableError(f"{self.path}: a chunk cannot be read ({e}); run `cvvc recordings recover` "
                                   "to skip corrupt chunks") from e

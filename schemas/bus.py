@@ -29,10 +29,12 @@ import msgspec
 import msgspec.inspect
 import zenoh
 
+from schemas.bus_args import add_bus_arguments
 from schemas.errors import CvvcError
 from schemas.keys import message_type_for_key
 from schemas.logs import RateLimitedLog
 from schemas.messages import OracleReply, Wire, wire_of
+from schemas.wire import typed_decoder, typed_encoder
 
 __all__ = [
     "BadMessage",
@@ -173,27 +175,6 @@ def open_session(bus: BusConfig) -> zenoh.Session:
         raise BusError(f"cannot open a Zenoh session on {where}: {e}") from e
 
 
-def add_bus_arguments(parser: argparse.ArgumentParser) -> None:
-    """The Zenoh flags every program takes, the same way everywhere."""
-    g = parser.add_argument_group("bus (Zenoh)")
-    g.add_argument("--listen", action="append", default=[], metavar="ENDPOINT",
-                   help="listen on this endpoint, e.g. tcp/127.0.0.1:7447 (repeatable)")
-    g.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
-                   help="connect to this endpoint, e.g. tcp/127.0.0.1:7447 (repeatable)")
-    g.add_argument("--zenoh-config", metavar="FILE", default=None,
-                   help="a Zenoh JSON5 config file (multicast scouting is still forced off)")
-    g.add_argument("--zenoh-mode", choices=["peer", "router", "client"], default=None,
-                   help="session mode (default: peer, or router when only listening)")
-    sec = g.add_mutually_exclusive_group()
-    sec.add_argument("--secure-dir", metavar="DIR", default=None,
-                     help="mTLS with this program's certificate from DIR (made by `cvvc security init --dir DIR`); "
-                          "default: <cache>/security, issued on first use from a local CA made in <cache>/ca; "
-                          "tcp/ endpoints become tls/, peers join as clients (docs/security.md)")
-    sec.add_argument("--insecure", action="store_true",
-                     help="no TLS and no access control: any process that reaches the port may read and command "
-                          "(prints a warning)")
-
-
 def bus_config_from_args(args: argparse.Namespace, *, default_mode: Mode = "peer",
                          role: str | None = None) -> BusConfig:
     """The ``BusConfig`` of the parsed flags; ``role`` is the certificate the program presents.
@@ -293,16 +274,12 @@ class Codec(Generic[T]):
         # the walk for NaN/inf after a decode finds nothing when every float of the type is bounded (msgspec refuses
         # NaN and inf there at decode, in JSON and MessagePack): skipped then, as the recorder does
         self._walk_after_decode = _has_unbounded_float(msgspec.inspect.type_info(msg_type), set())
-        self._decoder: msgspec.json.Decoder[T] | msgspec.msgpack.Decoder[T]
-        self._encoder: msgspec.json.Encoder | msgspec.msgpack.Encoder
-        if self.wire == "msgpack":
-            self._decoder, self._encoder = msgspec.msgpack.Decoder(msg_type), msgspec.msgpack.Encoder()
-        else:
-            self._decoder, self._encoder = msgspec.json.Decoder(msg_type), msgspec.json.Encoder()
+        self._decoder = typed_decoder(msg_type)
+        self._encoder = typed_encoder(msg_type)
 
     def encode(self, msg: T) -> bytes:
-        """The bytes of ``msg`` (its wire: JSON or MessagePack), after checking that every number in it is finite
-        (``NonFiniteError``).
+        """The bytes of ``msg`` (its wire: JSON, or Protobuf for the truth), after checking that every number in it
+        is finite (``NonFiniteError``).
         """
         check_finite(msg)
         return self._encoder.encode(msg)
@@ -370,6 +347,8 @@ def codec_for(msg_type: type[T]) -> Codec[T]:
 # --------------------------------------------------------------------------------------- publishing
 def zenoh_encoding(wire: Wire) -> zenoh.Encoding:
     """The Zenoh encoding of a payload of ``wire`` (``schemas.messages.wire_of``)."""
+    if wire == "protobuf":
+        return zenoh.Encoding("application/protobuf")
     return zenoh.Encoding("application/msgpack") if wire == "msgpack" else zenoh.Encoding.APPLICATION_JSON
 
 

@@ -393,14 +393,15 @@ def unpack_v_pu(raw: bytes, n_nodes: int) -> np.ndarray:
 
 
 class TruthPack(Message, frozen=True, kw_only=True, forbid_unknown_fields=True):
-    """Every node's true voltage, compact (simulation only): the ``sim/truth`` message, MessagePack on the bus and
-    in recordings (``WIRE``). ``v_pu_f32`` holds ``n_nodes`` voltages [pu] as float32 (``pack_v_pu``; read them with
-    ``unpack_v_pu`` or ``schemas.truth.truth_arrays``); the rest is ``TruthFrame``'s, whose JSON form
-    ``schemas.truth.to_truth_frame`` gives (``cvvc recordings export-json``: a copy Foxglove reads). Decoding checks
-    the byte count and that every voltage is within 0..3 pu (NaN is not).
+    """Every node's true voltage, compact (simulation only): the ``sim/truth`` message, Protobuf ``cvvc.Truth`` on
+    the bus and in recordings (``WIRE``; ``schemas.truth_proto``), so Foxglove decodes it. In Python ``v_pu_f32``
+    holds ``n_nodes`` voltages [pu] as float32 (``pack_v_pu``; read them with ``unpack_v_pu`` or
+    ``schemas.truth.truth_arrays``); the rest is ``TruthFrame``'s, whose JSON form ``schemas.truth.to_truth_frame``
+    gives. Recordings of earlier versions hold it as MessagePack (``schemas.truth.decode_truth`` reads those).
+    Decoding checks the byte count and that every voltage is within 0..3 pu (NaN is not).
     """
 
-    WIRE: ClassVar[str] = "msgpack"
+    WIRE: ClassVar[str] = "protobuf"
     feeder_id: Ident
     n_nodes: Annotated[int, Meta(ge=0, le=MAX_NODES)]
     v_pu_f32: Annotated[bytes, Meta(max_length=4 * MAX_NODES)]
@@ -421,12 +422,15 @@ class TruthPack(Message, frozen=True, kw_only=True, forbid_unknown_fields=True):
             raise ValueError(f"node_names has {len(self.node_names)} names for {self.n_nodes} voltages")
 
 
-Wire = Literal["json", "msgpack"]
+Wire = Literal["json", "msgpack", "protobuf"]
 
 
 def wire_of(msg_type: type) -> Wire:
-    """How ``msg_type`` is encoded on the bus and in recordings: ``msgpack`` for ``TruthPack``, else ``json``."""
-    return "msgpack" if getattr(msg_type, "WIRE", "json") == "msgpack" else "json"
+    """How ``msg_type`` is encoded on the bus and in recordings: ``protobuf`` for ``TruthPack``, else ``json``
+    (``msgpack``: the truth in recordings of earlier versions, read only).
+    """
+    wire = getattr(msg_type, "WIRE", "json")
+    return "protobuf" if wire == "protobuf" else "msgpack" if wire == "msgpack" else "json"
 
 
 class MetricsFrame(Message, frozen=True, kw_only=True, forbid_unknown_fields=True):

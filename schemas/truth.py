@@ -1,10 +1,13 @@
 """Truth frames as arrays: the reader of ``sim/truth`` in every form it was written, and its JSON form.
 
-The bridge publishes ``TruthPack`` (MessagePack, voltages as float32 byte planes: ``schemas.messages.pack_v_pu``);
-recordings made before it hold ``TruthFrame`` (JSON text, message encoding ``json``). :func:`decode_truth` reads
-either into :class:`TruthArrays` (NumPy arrays), by the MCAP channel's message encoding; :func:`to_truth_frame`
-turns a pack into the JSON ``TruthFrame`` Foxglove can plot (``cvvc recordings export-json`` writes such a copy of
-a recording: Foxglove decodes JSON, Protobuf, FlatBuffers, ROS 1 and ROS 2 messages, not MessagePack).
+The bridge publishes ``TruthPack`` as Protobuf (``cvvc.Truth``, ``schemas.truth_proto``; message encoding
+``protobuf``), which Foxglove decodes from the schema in the recording. Recordings of earlier versions hold it as
+MessagePack (``msgpack``, voltages as float32 byte planes: ``schemas.messages.pack_v_pu``), and older ones as
+``TruthFrame`` (JSON text, ``json``). :func:`decode_truth` reads any of them into :class:`TruthArrays` (NumPy
+arrays), by the MCAP channel's message encoding; :func:`truth_pack` gives the ``TruthPack`` of a compact one (the
+replay of an older recording republishes it on today's wire); :func:`to_truth_frame` turns a pack into the JSON
+``TruthFrame`` (``cvvc recordings export-json``: a copy of a recording with the truth as JSON, which Foxglove plots
+for recordings whose truth is MessagePack).
 """
 
 from __future__ import annotations
@@ -16,8 +19,9 @@ import numpy as np
 
 from schemas import messages as m
 from schemas.errors import CvvcError
+from schemas.truth_proto import decode_truth_proto
 
-__all__ = ["TruthArrays", "TruthDecodeError", "decode_truth", "to_truth_frame", "truth_arrays"]
+__all__ = ["TruthArrays", "TruthDecodeError", "decode_truth", "to_truth_frame", "truth_arrays", "truth_pack"]
 
 _PACK = msgspec.msgpack.Decoder(m.TruthPack)
 _FRAME = msgspec.json.Decoder(m.TruthFrame)
@@ -68,8 +72,24 @@ def decode_truth(raw: bytes, message_encoding: str) -> TruthArrays:
 
     Parameters
     ----------
-    raw : the payload. message_encoding : the MCAP channel's: ``msgpack`` (``TruthPack``, this version) or
-        ``json`` (``TruthFrame``, recordings made before the compact form).
+    raw : the payload. message_encoding : the MCAP channel's: ``protobuf`` (``cvvc.Truth``, this version),
+        ``msgpack`` (``TruthPack``, earlier recordings) or ``json`` (``TruthFrame``, recordings before those).
+
+    Raises
+    ------
+    TruthDecodeError
+        Another encoding, or a payload that does not decode (types, bounds, byte count).
+    """
+    if message_encoding == "json":
+        try:
+            return truth_arrays(_FRAME.decode(raw))
+        except (msgspec.DecodeError, UnicodeDecodeError, RecursionError) as e:  # ValidationError is a DecodeError
+            raise TruthDecodeError(f"not a truth frame (json): {e}") from e
+    return truth_arrays(truth_pack(raw, message_encoding))
+
+
+def truth_pack(raw: bytes, message_encoding: str) -> m.TruthPack:
+    """The ``TruthPack`` of a compact truth payload: ``protobuf`` (this version) or ``msgpack`` (earlier ones).
 
     Raises
     ------
@@ -77,13 +97,14 @@ def decode_truth(raw: bytes, message_encoding: str) -> TruthArrays:
         Another encoding, or a payload that does not decode (types, bounds, byte count).
     """
     try:
+        if message_encoding == "protobuf":
+            return decode_truth_proto(raw)
         if message_encoding == "msgpack":
-            return truth_arrays(_PACK.decode(raw))
-        if message_encoding == "json":
-            return truth_arrays(_FRAME.decode(raw))
+            return _PACK.decode(raw)
     except (msgspec.DecodeError, UnicodeDecodeError, RecursionError) as e:  # ValidationError is a DecodeError
         raise TruthDecodeError(f"not a truth frame ({message_encoding}): {e}") from e
-    raise TruthDecodeError(f"truth frames are msgpack (TruthPack) or json (TruthFrame), not {message_encoding!r}")
+    raise TruthDecodeError(f"truth frames are protobuf (cvvc.Truth), msgpack (TruthPack) or json (TruthFrame), not "
+                           f"{message_encoding!r}")
 
 
 def to_truth_frame(msg: m.TruthPack) -> m.TruthFrame:

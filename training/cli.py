@@ -65,7 +65,7 @@ def _train(args: argparse.Namespace) -> int:
         blocks=(args.blocks[0], args.blocks[1]),
         workers=args.workers,
         combined_pct=() if args.no_combined else DEFAULT_COMBINED_PCT,
-        progress=not args.json,
+        progress=not (args.json or args.quiet),
         calibration_minutes=args.calibration_minutes,
         **options.train_kwargs(),
     )
@@ -115,7 +115,7 @@ def _accuracy(args: argparse.Namespace) -> int:
         cache_dir=profiles_dir(args.cache),
         png_path=args.png,
         max_minutes=args.max_minutes,
-        progress=not args.json,
+        progress=not (args.json or args.quiet),
         ami_meters=args.ami_meters,
         ami_interval_min=args.ami_interval_min,
         ami_noise_pu=args.ami_noise_pu,
@@ -199,6 +199,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="with a calendar: also the weekend and its daily harmonics among the features (ignored with "
                    "--features auto)")
     p.add_argument("--json", action="store_true", help="print the summary as JSON (no progress bar)")
+    p.add_argument("--quiet", action="store_true",
+                   help="no progress bars on stderr (they are off anyway when stderr is not a terminal)")
     p.add_argument("--cache", default=None, help=CACHE_HELP)
     p.set_defaults(func=_train)
 
@@ -214,6 +216,8 @@ def register_accuracy(report_subparsers: argparse._SubParsersAction) -> None:
     a.add_argument("--png", help="write a figure like the paper's Fig. 8 here")
     a.add_argument("--max-minutes", type=int, default=None, help="only the first N minutes of the month")
     a.add_argument("--json", action="store_true", help="print the report as JSON")
+    a.add_argument("--quiet", action="store_true",
+                   help="no progress bars on stderr (they are off anyway when stderr is not a terminal)")
     a.add_argument("--cache", default=None, help=CACHE_HELP)
     a.add_argument("--ami-meters", type=int, default=0, metavar="K",
                    help="explicit option, not the paper's: K AMI meters at the critical nodes of widest calibrated "

@@ -89,7 +89,7 @@ def _pv_sunspec(items: list[str] | None) -> dict[str, str]:
 
 def register_bridge(subparsers: argparse._SubParsersAction) -> None:
     """Add the ``bridge`` verb."""
-    from schemas.bus import add_bus_arguments
+    from schemas.bus_args import add_bus_arguments
     from schemas.cache import CACHE_HELP
 
     p = subparsers.add_parser("bridge", help="run the simulated feeder's field devices on the bus")

@@ -19,13 +19,13 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Literal
 
-import msgspec
 import numpy as np
 import zenoh
 
 from schemas import keys
 from schemas import messages as m
 from schemas.bus import has_subscribers, wait_for, zenoh_encoding
+from schemas.wire import typed_encoder
 from simulator_bridge.errors import SimulatorError
 from simulator_bridge.field import devices as dv
 from simulator_bridge.opendss.readout import FieldReadings
@@ -61,13 +61,15 @@ class FramePublisher:
     ``TypedPublisher`` walks every field of every message for NaN (about 60 µs a frame, more than a power
     flow of IEEE 13). Frames and truth come from arrays that were checked in one vectorised pass; metrics from
     the accumulator, which refuses non-finite inputs and clips what it reports; the status holds no float.
-    Same Zenoh settings and encoding as ``TypedPublisher`` (JSON; MessagePack with ``wire="msgpack"``, the truth's).
+    Same Zenoh settings and encoding as ``TypedPublisher``: the wire of ``msg_type`` (JSON; Protobuf for the truth,
+    ``TruthPack``).
     """
 
-    def __init__(self, session: zenoh.Session, key: str, *, reliable: bool = False, wire: m.Wire = "json") -> None:
-        self._enc = msgspec.msgpack.Encoder() if wire == "msgpack" else msgspec.json.Encoder()
+    def __init__(self, session: zenoh.Session, key: str, *, reliable: bool = False,
+                 msg_type: type[m.Message] = m.Message) -> None:
+        self._enc = typed_encoder(msg_type)
         self._pub = session.declare_publisher(
-            key, encoding=zenoh_encoding(wire),
+            key, encoding=zenoh_encoding(m.wire_of(msg_type)),
             congestion_control=zenoh.CongestionControl.BLOCK if reliable else zenoh.CongestionControl.DROP,
             priority=zenoh.Priority.REAL_TIME if reliable else zenoh.Priority.DATA, express=reliable)
 
@@ -178,7 +180,7 @@ class StepFramer:
         self.pub_cap = [FramePublisher(session, keys.meas_cap(f, cap.capacitor_id)) for cap in self.caps]
         self.pub_ami = [FramePublisher(session, keys.meas_ami(f, mid)) for mid, _, _ in s.meters]
         self.pub_step = FramePublisher(session, keys.meas_step(f))  # same QoS as the frames: queued behind them
-        self.pub_truth = FramePublisher(session, keys.sim_truth(f), reliable=True, wire=m.wire_of(m.TruthPack))
+        self.pub_truth = FramePublisher(session, keys.sim_truth(f), reliable=True, msg_type=m.TruthPack)
         self.pub_metrics = FramePublisher(session, keys.sim_metrics(f), reliable=True)
         self.seqs: Counter[str] = Counter()
         self.frames_published = self.frames_dropped = self.truth_frames = 0

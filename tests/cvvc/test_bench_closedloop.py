@@ -17,7 +17,7 @@ def test_bench_closedloop_figures_add_up(tmp_path: Path, ieee13_model: Path) -> 
                          out=str(tmp_path / "run"), feeder=str(REPO / "feeders" / "ieee13.toml"),
                          model=str(ieee13_model))
     assert (r.feeder, r.case, r.steps, r.truth_frames, r.lockstep_misses) == ("ieee13", "D", 30, 30, 0)
-    assert r.truth_encoding == "msgpack"  # the compact truth (TruthPack)
+    assert r.truth_encoding == "protobuf"  # the compact truth (TruthPack as cvvc.Truth), which Foxglove decodes
     assert 0.0 < r.bare_s and 0.0 < r.loop_wall_s < r.run_wall_s  # the run holds start-up and shut-down
     assert r.ratio == pytest.approx(r.run_wall_s / r.bare_s, rel=0.01, abs=0.01)  # ratios are rounded to 0.01
     assert r.loop_ratio == pytest.approx(r.loop_wall_s / r.bare_s, rel=0.01, abs=0.01)

@@ -25,8 +25,7 @@ from cvvc.report import (
     taps_figure,
     window_envelope_pu,
 )
-from schemas.messages import TruthPack
-from schemas.truth import to_truth_frame
+from schemas.truth import to_truth_frame, truth_pack
 
 REPO = Path(__file__).resolve().parents[2]
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -44,7 +43,7 @@ def tiny_evaluation(tmp_path_factory, ieee13_model, profile_cache, dask_schedule
 
 def _truth(path: Path) -> list[dict]:
     with path.open("rb") as f:
-        return [msgspec.to_builtins(to_truth_frame(msgspec.msgpack.decode(m.data, type=TruthPack)))
+        return [msgspec.to_builtins(to_truth_frame(truth_pack(m.data, ch.message_encoding)))
                 for _, ch, m in make_reader(f).iter_messages(log_time_order=True) if ch.topic.endswith("/sim/truth")]
 
 
@@ -138,9 +137,10 @@ def test_figures_draw_the_trace(tiny_evaluation):
     assert list(ax_hi.lines[1].get_ydata()) == [hi, hi] and list(ax_lo.lines[1].get_ydata()) == [lo, lo]
     fig_pv = pv_figure(traces, "t")
     (ax,) = fig_pv.axes
-    assert len(ax.lines) == trace.pv_q_kvar.shape[1]
-    for k, line in enumerate(ax.lines):
+    assert len(ax.lines) == trace.pv_q_kvar.shape[1] + 1  # every plant, then the zero line between the signs
+    for k, line in enumerate(ax.lines[:-1]):
         np.testing.assert_array_equal(line.get_ydata(), trace.pv_q_kvar[:, k])
+    assert list(ax.lines[-1].get_ydata()) == [0.0, 0.0]
     fig_taps = taps_figure(traces, "t")
     (ax,) = fig_taps.axes
     assert len(ax.lines) == trace.taps.shape[1]
@@ -177,3 +177,80 @@ def test_missing_inputs_are_clear_errors(tmp_path):
     (tmp_path / "results.json").write_text('{"runs": []}')
     with pytest.raises(ReportError, match="results.json: not a cvvc evaluate result of this version"):
         plot_evaluation(tmp_path)
+
+
+def test_truth_series_reduces_like_the_envelope_and_survives_its_file(tmp_path):
+    """The baseline's series (``cvvc run`` fills it from simulated steps) reduce as the recording's do, and the
+    ``.npz`` written beside the run reads back equal."""
+    from cvvc.run_trace import TruthSeries, read_series, write_series
+
+    rng = np.random.default_rng(3)
+    v = 1.0 + 0.02 * rng.standard_normal((25, 7))
+    q = rng.standard_normal((25, 2))
+    series = TruthSeries()
+    for t in range(25):
+        series.add(1_700_000_000_000_000_000 + t * 60_000_000_000, v[t], np.array([t % 3, -t % 2]), q[t],
+                   np.array([1]))
+    trace = series.trace(regulator_ids=("r1", "r2"), pv_ids=("p1", "p2"), limits_pu=(0.95, 1.05),
+                         capacitor_ids=("c1",))
+    vmax, vmin = window_envelope_pu(v)
+    np.testing.assert_allclose(trace.v_env_max_pu, vmax, atol=1e-12)
+    np.testing.assert_allclose(trace.v_env_min_pu, vmin, atol=1e-12)
+    np.testing.assert_allclose(trace.pv_q_kvar[-1], q[20:].mean(axis=0), atol=1e-12)
+    assert trace.taps.shape == (25, 2) and trace.cap_states.shape == (25, 1)
+    back = read_series(write_series(tmp_path / "b.npz", trace))
+    for name in ("t_ns", "step_t_ns", "v_env_max_pu", "v_env_min_pu", "taps", "pv_q_kvar", "cap_states"):
+        np.testing.assert_array_equal(getattr(back, name), getattr(trace, name))
+    assert (back.regulator_ids, back.pv_ids, back.capacitor_ids, back.limits_pu) == (
+        ("r1", "r2"), ("p1", "p2"), ("c1",), (0.95, 1.05))
+
+
+def test_the_time_axis_is_hour_of_day_or_date_and_hour():
+    """One day: hours of that day; several: date and hour, local standard time (UTC-5), both on the x axis label."""
+    import matplotlib.pyplot as plt
+
+    from cvvc.report import envelope_figure
+    from cvvc.run_trace import TruthSeries
+
+    t0 = 1_689_008_400_000_000_000  # 2023-07-10 12:00 at UTC-5
+    for minutes, expect, first_tick in ((120, "hour of day, 2023-07-10", "12:00"),
+                                        (3 * 1440, "date and hour", "07-10")):
+        series = TruthSeries()
+        for t in range(minutes):
+            series.add(t0 + t * 60_000_000_000, np.full(3, 1.0), np.zeros(1), np.zeros(1), np.zeros(0))
+        fig = envelope_figure({"case D": series.trace()}, "t")
+        fig.canvas.draw()
+        ax_lo = fig.axes[1]
+        assert expect in ax_lo.get_xlabel() and "UTC-5" in ax_lo.get_xlabel()
+        assert any(label.get_text().startswith(first_tick) for label in ax_lo.get_xticklabels()), [
+            label.get_text() for label in ax_lo.get_xticklabels()]
+        plt.close(fig)
+
+
+def test_a_summary_written_before_the_baseline_took_the_cases_form_still_reads(tmp_path):
+    """summary.json of earlier versions kept the baseline as the simulator's Metrics (lists by device, n_steps):
+    read with it turned into the case's form, the same figures."""
+    from cvvc.report import _decode_summary
+    from cvvc.run_summary import RunSummary
+    from schemas import messages as m
+    from schemas.examples import example
+    from simulator_bridge.simulation.metrics import metrics_from_series
+
+    rng = np.random.default_rng(5)
+    old = metrics_from_series(1.0 + 0.04 * rng.standard_normal((30, 4)), rng.integers(0, 2, (30, 2)),
+                              rng.normal(0, 50, (30, 3)), regulator_ids=["r1", "r2"], pv_ids=["p1", "p2", "p3"],
+                              cost_per_tap=0.14, cost_per_kvar=0.001)
+    case = example(m.MetricsFrame)
+    summary = RunSummary(feeder="f.toml", feeder_id=case.feeder_id, case="D", start="2023-01-16", days=1.0,
+                         steps=30, wall_s=1.0, metrics=case, baseline=None, lockstep_misses=0, decisions=6,
+                         out_dir="out", recording=None, model=None)
+    raw = msgspec.to_builtins(summary)
+    raw["baseline"] = msgspec.to_builtins(old)
+    (tmp_path / "summary.json").write_bytes(msgspec.json.encode(raw))
+    back = _decode_summary(tmp_path / "summary.json", RunSummary)
+    assert isinstance(back.baseline, m.MetricsFrame) and back.metrics == case
+    b = back.baseline
+    assert (b.steps, b.nvv, b.ntc, b.start_t_ns) == (old.n_steps, old.nvv, old.ntc, case.start_t_ns)
+    assert b.q_cost == pytest.approx(old.q_cost) and b.total_cost == pytest.approx(old.total_cost)
+    assert b.taps_changes == dict(zip(old.regulator_ids, old.tap_changes_per_regulator, strict=True))
+    assert list(b.q_mvar_intervals) == ["p1", "p2", "p3"]

@@ -15,7 +15,7 @@ from mcap.reader import make_reader
 
 from schemas import messages as m
 from schemas.devicemap import load_device_map
-from schemas.truth import to_truth_frame
+from schemas.truth import to_truth_frame, truth_pack
 from simulator_bridge.opendss.engine import FeederEngine
 from simulator_bridge.simulation.metrics_stream import MetricsAccumulator
 
@@ -54,9 +54,9 @@ def one_hour_run(tmp_path_factory, ieee13_model):
 
 
 def _as_dict(raw: bytes, encoding: str) -> dict:
-    """A recorded message as a dict: JSON as it is, the truth (msgpack ``TruthPack``) in its JSON form."""
-    if encoding == "msgpack":
-        return msgspec.to_builtins(to_truth_frame(msgspec.msgpack.decode(raw, type=m.TruthPack)))
+    """A recorded message as a dict: JSON as it is, the truth (Protobuf ``cvvc.Truth``) in its JSON form."""
+    if encoding == "protobuf":
+        return msgspec.to_builtins(to_truth_frame(truth_pack(raw, encoding)))
     return json.loads(raw)
 
 
@@ -140,15 +140,74 @@ def test_commands_are_applied_by_the_devices(one_hour_run):
 def test_violations_not_worse_than_no_control(one_hour_run):
     out, summary = one_hour_run
     base, ctrl = summary["baseline"], summary["metrics"]
-    assert base["n_steps"] == summary["steps"]
+    assert base["steps"] == summary["steps"]
     assert ctrl["nvv"] <= base["nvv"]
     assert ctrl["mvvm_pu"] <= base["mvvm_pu"] + 1e-9
+
+
+def test_summary_holds_the_case_and_the_baseline_in_the_same_shape(one_hour_run):
+    """The case and no control side by side: the same fields with the same JSON types (the baseline used to be the
+    simulator's Metrics, lists of numbers where the case had dicts by device id)."""
+    out, summary = one_hour_run
+    case, base = summary["metrics"], summary["baseline"]
+    assert base is not None and set(base) == set(case)
+    assert {k: type(v).__name__ for k, v in base.items()} == {k: type(v).__name__ for k, v in case.items()}
+    assert set(base["taps_changes"]) == set(case["taps_changes"]) == {"reg1", "reg2", "reg3"}
+    assert set(base["q_mvar_intervals"]) == {"pv675", "pv680", "pv633"}
+    assert base["q_cost"] == 0.0 and all(v == 0.0 for v in base["q_mvar_intervals"].values())  # unity PF
+    assert (base["start_t_ns"], base["steps"]) == (case["start_t_ns"], case["steps"])
+
+
+def test_report_run_draws_the_case_against_no_control(one_hour_run, tmp_path):
+    """``cvvc report run``: every plot holds the case and the baseline simulated in the same run, the x axis in
+    hours of the day, and report.md explains the costs, ends its story with a verdict and shows the plots."""
+    import matplotlib.pyplot as plt
+
+    from cvvc.report import NO_CONTROL, envelope_figure, plot_run, pv_figure, run_traces, taps_figure
+
+    out, summary = one_hour_run
+    run_summary, traces = run_traces(out)
+    assert list(traces) == ["case D", NO_CONTROL]
+    base = traces[NO_CONTROL]
+    assert base.step_t_ns.size == summary["steps"] and base.t_ns.size == 6  # 60 minutes in 10-minute windows
+    np.testing.assert_array_equal(base.step_t_ns, traces["case D"].step_t_ns)  # the same minutes
+    assert base.regulator_ids == ("reg1", "reg2", "reg3") and base.pv_ids == ("pv675", "pv680", "pv633")
+    assert np.all(base.pv_q_kvar == 0.0)  # no control: unity power factor
+    b = summary["baseline"]
+    assert b["v_min_pu"] - 1e-9 <= base.v_env_min_pu.min() and base.v_env_max_pu.max() <= b["v_max_pu"] + 1e-9
+
+    fig = envelope_figure(traces, "t")
+    ax_hi, ax_lo = fig.axes
+    assert [line.get_label() for line in ax_hi.lines[:2]] == ["case D", NO_CONTROL]
+    np.testing.assert_array_equal(ax_hi.lines[1].get_ydata(), base.v_env_max_pu)
+    np.testing.assert_array_equal(ax_lo.lines[1].get_ydata(), base.v_env_min_pu)
+    assert "hour of day, 2023-07-10" in ax_lo.get_xlabel() and "[pu" in ax_hi.get_ylabel()
+    legend = ax_hi.get_legend()
+    assert legend.get_bbox_to_anchor().x0 > ax_hi.get_window_extent().x1 - 1  # the legend is right of the data
+    fig_taps, fig_pv = taps_figure(traces, "t"), pv_figure(traces, "t")
+    for f, series in ((fig_taps, base.taps), (fig_pv, base.pv_q_kvar)):
+        ax_case, ax_base = f.axes
+        assert NO_CONTROL in ax_base.get_title()
+        for k, line in enumerate(ax_base.lines[: series.shape[1]]):
+            np.testing.assert_array_equal(line.get_ydata(), series[:, k])
+    assert "+ injects" in fig_pv.axes[0].get_ylabel()
+    for f in (fig, fig_taps, fig_pv):
+        plt.close(f)
+
+    paths = plot_run(out, out=tmp_path / "plots")
+    assert {p.name for p in paths} >= {"voltage_envelope.png", "pv_q.png", "taps.png"}
+    report = (tmp_path / "plots" / "report.md").read_text()
+    assert "## Costs" in report and "what it charges" in report and "0.14 per tap step" in report
+    assert "spends nothing on reactive power" in report
+    verdict = [line for line in report.splitlines() if line.startswith("**Verdict:**")]
+    assert len(verdict) == 1 and "case D" in verdict[0]
+    assert "![voltage envelope](voltage_envelope.png)" in report
 
 
 def test_no_process_left_behind_and_outputs_written(one_hour_run):
     out, summary = one_hour_run
     assert _processes_mentioning(str(out)) == []
-    for name in ("summary.json", "report.md", "model.json", "session.mcap"):
+    for name in ("summary.json", "report.md", "model.json", "session.mcap", "baseline_trace.npz"):
         assert (out / name).is_file(), name
     assert json.loads((out / "summary.json").read_text())["metrics"] == summary["metrics"]
     # (c): the run's figures are the processes' own (their summaries), not whatever the bus carried
@@ -173,9 +232,9 @@ def test_a_run_whose_decisions_mostly_held_ends_with_a_clear_error():
         check_mostly_held(msgspec.structs.replace(base, holds=288, reasons={"case A: no oracle reply": 288}))
 
 
-def test_offline_replay_reproduces_every_decision(one_hour_run):
+def test_offline_replay_reproduces_every_decision(one_hour_run, tmp_path):
     out, summary = one_hour_run
-    proc = _cvvc("replay", summary["recording"], "--offline", "--json", cwd=out)
+    proc = _cvvc("replay", summary["recording"], "--offline", "--json", cwd=tmp_path)  # from another directory
     assert proc.returncode == 0, proc.stderr[-2000:]
     diff = json.loads(proc.stdout)["diff"]
     assert diff["recorded"] == diff["identical"] == 12

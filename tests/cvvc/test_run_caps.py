@@ -48,7 +48,7 @@ def caps_run(tmp_path_factory, profile_cache):
     by_topic: dict[str, list[dict]] = {}
     with Path(summary["recording"]).open("rb") as f:
         for _, channel, message in make_reader(f).iter_messages(log_time_order=True):
-            if channel.message_encoding == "json":  # the truth is MessagePack (schemas.truth), not needed here
+            if channel.message_encoding == "json":  # the truth is Protobuf (schemas.truth), not needed here
                 by_topic.setdefault(channel.topic, []).append(json.loads(message.data))
     return result.model, by_topic
 

@@ -24,8 +24,7 @@ import msgspec
 import pytest
 from mcap.reader import make_reader
 
-from schemas import messages as m
-from schemas.truth import to_truth_frame
+from schemas.truth import to_truth_frame, truth_pack
 
 REPO = Path(__file__).resolve().parents[2]
 PLANTS = ("pv675", "pv680", "pv633")
@@ -65,9 +64,9 @@ def both_runs(tmp_path_factory, ieee13_model) -> dict[str, tuple[Path, dict]]:
 
 
 def _as_dict(raw: bytes, encoding: str) -> dict:
-    """A recorded message as a dict: JSON as it is, the truth (msgpack ``TruthPack``) in its JSON form."""
-    if encoding == "msgpack":
-        return msgspec.to_builtins(to_truth_frame(msgspec.msgpack.decode(raw, type=m.TruthPack)))
+    """A recorded message as a dict: JSON as it is, the truth (Protobuf ``cvvc.Truth``) in its JSON form."""
+    if encoding == "protobuf":
+        return msgspec.to_builtins(to_truth_frame(truth_pack(raw, encoding)))
     return json.loads(raw)
 
 

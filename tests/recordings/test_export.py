@@ -1,4 +1,5 @@
-"""``cvvc recordings export-json``: the compact truth re-encoded as JSON, everything else copied as it is."""
+"""``cvvc recordings export-json``: the compact truth (today's Protobuf, an earlier version's MessagePack)
+re-encoded as JSON, everything else copied as it is."""
 
 from __future__ import annotations
 
@@ -47,7 +48,7 @@ def test_the_truth_becomes_json_truth_frames_and_the_rest_is_unchanged(tmp_path:
     res = export_json(src, tmp_path / "out.mcap")
     assert (res.messages, res.reencoded, res.skipped) == (10, 5, 0)
     before, after = _read(src), _read(tmp_path / "out.mcap")
-    assert {e[0] for e in before[TRUTH]} == {"msgpack"}
+    assert {e[:3] for e in before[TRUTH]} == {("protobuf", "cvvc.Truth", "protobuf")}
     assert after[HEAD] == before[HEAD] == [("json", schema_name(m.HeadFrame), "jsonschema", h.t_ns, encode(h))
                                            for h in heads]
     for (enc, name, schema_enc, log_time, data), pack in zip(after[TRUTH], truth, strict=True):
@@ -63,16 +64,32 @@ def test_the_truth_becomes_json_truth_frames_and_the_rest_is_unchanged(tmp_path:
         assert {r.name for r in make_reader(f).iter_metadata()} == {"cvvc.recording"}
 
 
-def test_an_undecodable_truth_message_is_left_out_and_counted(tmp_path: Path) -> None:
-    src = tmp_path / "bad.mcap"
-    with src.open("wb") as f:  # written by hand: the recorder would have quarantined it
+def _messagepack_recording(path: Path, data: list[bytes]) -> Path:
+    """A truth channel as the recorder of an earlier version wrote it (MessagePack, the TruthPack JSON Schema)."""
+    with path.open("wb") as f:
         w = Writer(f)
         w.start()
         sid = w.register_schema(schema_name(m.TruthPack), "jsonschema", schema_bytes(m.TruthPack))
         cid = w.register_channel(TRUTH, "msgpack", sid)
-        w.add_message(cid, log_time=T0_NS, data=encode(_truth(0)), publish_time=T0_NS)
-        w.add_message(cid, log_time=T0_NS + 1, data=b"\xc1", publish_time=T0_NS + 1)
+        for i, raw in enumerate(data):
+            w.add_message(cid, log_time=T0_NS + i, data=raw, publish_time=T0_NS + i)
         w.finish()
+    return path
+
+
+def test_an_earlier_versions_messagepack_truth_becomes_json_too(tmp_path: Path) -> None:
+    truth = [_truth(i) for i in range(3)]
+    src = _messagepack_recording(tmp_path / "old.mcap", [msgspec.msgpack.encode(t) for t in truth])
+    res = export_json(src, tmp_path / "out.mcap")
+    assert (res.messages, res.reencoded, res.skipped) == (3, 3, 0)
+    for (enc, name, _, _, data), pack in zip(_read(tmp_path / "out.mcap")[TRUTH], truth, strict=True):
+        assert (enc, name) == ("json", schema_name(m.TruthFrame))
+        assert msgspec.json.decode(data, type=m.TruthFrame).v_pu == m.unpack_v_pu(pack.v_pu_f32, 200).tolist()
+
+
+def test_an_undecodable_truth_message_is_left_out_and_counted(tmp_path: Path) -> None:
+    # written by hand: the recorder would have quarantined it
+    src = _messagepack_recording(tmp_path / "bad.mcap", [msgspec.msgpack.encode(_truth(0)), b"\xc1"])
     res = export_json(src, tmp_path / "out.mcap")
     assert (res.messages, res.reencoded, res.skipped, res.skipped_topics) == (1, 1, 1, {TRUTH: 1})
     assert cvvc_main(["recordings", "export-json", str(src), str(tmp_path / "cli.mcap")]) == 1  # said, not hidden

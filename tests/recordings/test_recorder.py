@@ -29,7 +29,8 @@ from recordings.recorder import (
 from schemas.bus import BusConfig, codec_for, open_session, wait_for
 from schemas.examples import examples
 from schemas.jsonschema import schema_bytes, schema_name
-from schemas.messages import MESSAGE_TYPES, wire_of
+from schemas.messages import MESSAGE_TYPES, TruthPack, wire_of
+from schemas.truth_proto import truth_descriptor_set
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -90,6 +91,9 @@ def test_round_trip_every_message_type(router_endpoint: str, tmp_path: Path) -> 
             assert channel.message_encoding == ("json" if channel.topic == QUARANTINE_TOPIC else wire_of(msg_type))
             if key in ("test/oracle_request", "test/truth_frame"):
                 assert channel.topic == QUARANTINE_TOPIC and schema is not None and schema.name == "cvvc.Quarantined"
+            elif msg_type is TruthPack:  # the truth: Protobuf with its FileDescriptorSet, which Foxglove decodes
+                assert schema is not None and (schema.name, schema.encoding) == ("cvvc.Truth", "protobuf")
+                assert schema.data == truth_descriptor_set()
             else:
                 assert schema is not None
                 assert schema.encoding == "jsonschema"
@@ -105,7 +109,7 @@ def test_round_trip_every_message_type(router_endpoint: str, tmp_path: Path) -> 
     assert set(EXAMPLE_KEYS) == set(MESSAGE_TYPES)
     meta = metadata[METADATA_NAME]
     assert meta["feeder_fingerprint"] == "fp-123"
-    assert meta["model_path"] == "models/rural.json"
+    assert meta["model_path"] == str(Path("models/rural.json").resolve())  # absolute: readable from anywhere
     assert msgspec.json.decode(meta["bus_config"], type=BusConfig) == bus
     assert meta["project_version"]
     assert metadata[STATS_METADATA_NAME]["messages"] == str(n)

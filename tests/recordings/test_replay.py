@@ -149,3 +149,59 @@ def test_parse_time_ns(text: str, expected: int) -> None:
 def test_parse_time_ns_rejects_other_text() -> None:
     with pytest.raises(ReplayError, match="ISO 8601"):
         parse_time_ns("yesterday")
+
+
+def _old_truth_recording(path: Path, packs: list[m.TruthPack]) -> Path:
+    """A truth channel as the recorder of an earlier version wrote it: MessagePack, the TruthPack JSON Schema."""
+    from mcap.writer import Writer
+
+    from schemas.jsonschema import schema_bytes, schema_name
+
+    with path.open("wb") as f:
+        w = Writer(f)
+        w.start()
+        cid = w.register_channel(EXAMPLE_KEYS[m.TruthPack], "msgpack",
+                                 w.register_schema(schema_name(m.TruthPack), "jsonschema", schema_bytes(m.TruthPack)))
+        for p in packs:
+            w.add_message(cid, log_time=p.t_ns, data=msgspec.msgpack.encode(p), publish_time=p.t_ns)
+        w.finish()
+    return path
+
+
+def test_the_truth_of_any_recording_is_replayed_on_todays_wire(router_endpoint: str, tmp_path: Path) -> None:
+    """Today's Protobuf truth goes out as recorded; an earlier version's MessagePack truth goes out as Protobuf,
+    so a subscriber of today decodes both."""
+    from schemas.bus import codec_for
+
+    packs = [examples(t_ns=T0_NS + i * 60_000_000_000, seq=i + 1)[m.TruthPack] for i in range(4)]
+    new = write_recording(tmp_path / "new.mcap", [(EXAMPLE_KEYS[m.TruthPack], p) for p in packs])
+    old = _old_truth_recording(tmp_path / "old.mcap", packs)
+    bus = BusConfig(mode="peer", connect=(router_endpoint,))
+    for path in (new, old):
+        got = _Collector(expected=len(packs))
+        with open_session(bus) as sub_session, open_session(bus) as pub_session:
+            sub = sub_session.declare_subscriber("cvvc/**", got)
+            res = replay(pub_session, ReplayConfig(path=str(path), keys=("cvvc/*/sim/truth",), speed=None, bus=bus))
+            assert got.done.wait(10.0), got.items
+            sub.undeclare()
+        assert res.messages == len(packs)
+        assert [codec_for(m.TruthPack).decode(raw) for _, raw in got.items] == packs, path.name
+
+
+def test_the_model_a_recording_names_is_found_from_any_directory(tmp_path: Path, monkeypatch) -> None:
+    """Recordings of earlier versions named ``runs/x/model.json`` relative to where the run started: the file of that
+    name beside the recording is used; an absolute path that exists is kept; nothing named stays nothing."""
+    from recordings.offline import recorded_model
+
+    run = tmp_path / "runs" / "x"
+    run.mkdir(parents=True)
+    (run / "model.json").write_text("{}")
+    rec = run / "session.mcap"
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    assert recorded_model(rec, "runs/x/model.json") == str(run / "model.json")
+    assert recorded_model(Path("..") / "runs" / "x" / "session.mcap", "runs/x/model.json") == str(run / "model.json")
+    assert recorded_model(rec, str(run / "model.json")) == str(run / "model.json")
+    assert recorded_model(rec, "") == ""
+    assert recorded_model(rec, "nowhere/other.json") == "nowhere/other.json"  # not there: named as recorded

@@ -22,7 +22,7 @@ from hypothesis import strategies as st
 
 from schemas.bus import MAX_ORACLE_REPLY_BYTES, MAX_PAYLOAD_BYTES, BadMessage, codec_for
 from schemas.examples import examples
-from schemas.messages import MESSAGE_TYPES, OracleReply, TruthPack, pack_v_pu, wire_of
+from schemas.messages import MESSAGE_TYPES, OracleReply, TruthPack, pack_v_pu, unpack_v_pu, wire_of
 
 KINDS = {"oversize", "malformed", "unknown_field", "missing_field", "wrong_type", "out_of_range", "non_finite",
          "invalid"}
@@ -54,21 +54,29 @@ def _valid(msg_type: type) -> bytes:
 
 
 def _builtins(msg_type: type) -> dict[str, Any]:
-    return msgspec.to_builtins(EXAMPLES[msg_type], builtin_types=(bytes,) if _MSGPACK(msg_type) else ())
+    if _PROTOBUF(msg_type):  # the truth: the fields of its Protobuf message (cvvc.Truth)
+        ex = EXAMPLES[msg_type]
+        return {"t_ns": ex.t_ns, "seq": ex.seq, "source": ex.source, "feeder_id": ex.feeder_id,
+                "v_pu": unpack_v_pu(ex.v_pu_f32, ex.n_nodes).tolist(), "v_min_pu": ex.v_min_pu,
+                "v_max_pu": ex.v_max_pu, "node_names": list(ex.node_names or []), "taps": list(ex.taps),
+                "pv_q_kvar": list(ex.pv_q_kvar), "cap_states": list(ex.cap_states)}
+    return msgspec.to_builtins(EXAMPLES[msg_type])
 
 
-def _MSGPACK(msg_type: type) -> bool:  # noqa: N802  (reads as a constant test)
-    return wire_of(msg_type) == "msgpack"
+def _PROTOBUF(msg_type: type) -> bool:  # noqa: N802  (reads as a constant test)
+    return wire_of(msg_type) == "protobuf"
 
 
 def _wire(msg_type: type, tree: Any) -> bytes:
-    """``tree`` in ``msg_type``'s wire: JSON text, or MessagePack (the truth); an integer MessagePack cannot hold
-    (beyond 64 bits) is not a case for it: the example is skipped."""
-    if not _MSGPACK(msg_type):
+    """``tree`` in ``msg_type``'s wire: JSON text, or Protobuf (the truth); a value the Protobuf field cannot hold
+    (a string for a number, an integer beyond 64 bits...) is not a case for it: the example is skipped."""
+    if not _PROTOBUF(msg_type):
         return json.dumps(tree).encode()
+    from schemas.truth_proto import _truth_class
+
     try:
-        return msgspec.msgpack.encode(tree)
-    except OverflowError:
+        return _truth_class()(**tree).SerializeToString()
+    except (TypeError, ValueError, OverflowError):
         reject()
         raise
 
@@ -160,6 +168,8 @@ def test_field_mutations(msg_type: type, data: st.DataObject) -> None:
     tree = _builtins(msg_type)
     paths = _paths(tree)
     action = data.draw(st.sampled_from(["replace", "delete", "unknown"]))
+    if action == "unknown" and _PROTOBUF(msg_type):
+        return  # Protobuf readers skip unknown field numbers by design; a name of no field cannot be encoded
     if action == "unknown":
         tree[data.draw(st.text(min_size=1, max_size=12).filter(lambda k: k not in tree))] = data.draw(json_values)
         assert _check(msg_type, _wire(msg_type, tree)) == "unknown_field"
@@ -186,7 +196,7 @@ def test_bad_number_literals(msg_type: type, data: st.DataObject) -> None:
     if not numeric:
         return
     path = data.draw(st.sampled_from(numeric))
-    if _MSGPACK(msg_type):  # no literals in MessagePack: the non-finite and absurd numbers themselves
+    if _PROTOBUF(msg_type):  # no literals in Protobuf: the non-finite and absurd numbers themselves
         _set(tree, path, data.draw(st.sampled_from([math.nan, math.inf, -math.inf, 1e308, -(2**63), 2**64 - 1])))
         kind = _check(msg_type, _wire(msg_type, tree))
         assert kind != "ok" or path in (("seq",), ("t_ns",)) or abs(_get(tree, path)) < 1e300, path
@@ -216,7 +226,7 @@ def test_out_of_range_numbers(msg_type: type, value: float) -> None:
                                                                                                    bool)]
     for path in numeric[:3]:
         _set(tree, path, value)
-    if _MSGPACK(msg_type):
+    if _PROTOBUF(msg_type):
         raw = _wire(msg_type, tree)
     else:
         raw = (json.dumps(tree).encode() if math.isfinite(value)
@@ -229,10 +239,10 @@ def test_out_of_range_numbers(msg_type: type, value: float) -> None:
 @pytest.mark.parametrize("depth", [100, 10_000, 200_000])
 def test_deep_nesting(msg_type: type, depth: int) -> None:
     """Nested arrays and objects as a whole payload and inside a field: rejected, no RecursionError."""
-    if _MSGPACK(msg_type):  # MessagePack: arrays of one (0x91) and maps {"a": ...} (0x81 0xa1 "a") nested
-        assert _check(msg_type, b"\x91" * depth + b"\xc0") != "ok"
-        assert _check(msg_type, b"\x81\xa1a" * depth + b"\x01") != "ok"
-        assert _check(msg_type, b"\x91" * depth) != "ok"  # unterminated
+    if _PROTOBUF(msg_type):  # Protobuf: groups (field 1, start 0x0b / end 0x0c) nested, and JSON's nesting
+        assert _check(msg_type, b"\x0b" * depth + b"\x0c" * depth) != "ok"
+        assert _check(msg_type, b"\x0b" * depth) != "ok"  # unterminated
+        assert _check(msg_type, b"[" * depth + b"]" * depth) != "ok"
         return
     assert _check(msg_type, b"[" * depth + b"]" * depth) != "ok"
     assert _check(msg_type, b'{"a":' * depth + b"1" + b"}" * depth) != "ok"
@@ -244,12 +254,12 @@ def test_deep_nesting(msg_type: type, depth: int) -> None:
 
 
 def test_oversize_truth_is_refused_before_parsing() -> None:
-    """MessagePack cannot be padded: the largest truth frame within the limit decodes, four bytes more do not."""
+    """Protobuf cannot be padded: the largest truth frame within the limit decodes, four bytes more do not."""
     limit = codec_for(TruthPack).max_bytes
 
     def raw(n: int) -> bytes:
-        return msgspec.msgpack.encode(msgspec.structs.replace(EXAMPLES[TruthPack], n_nodes=n, node_names=None,
-                                                              v_pu_f32=pack_v_pu([1.0] * n)))
+        return codec_for(TruthPack).encode(msgspec.structs.replace(EXAMPLES[TruthPack], n_nodes=n, node_names=None,
+                                                                   v_pu_f32=pack_v_pu([1.0] * n)))
 
     n = (limit - len(raw(0))) // 4
     while len(raw(n)) > limit:
@@ -262,7 +272,7 @@ def test_oversize_truth_is_refused_before_parsing() -> None:
 def test_oversize_is_refused_before_parsing(msg_type: type) -> None:
     valid, limit = _valid(msg_type), codec_for(msg_type).max_bytes  # 1 MiB; the oracle's reply has its own
     assert limit == (MAX_ORACLE_REPLY_BYTES if msg_type is OracleReply else MAX_PAYLOAD_BYTES)
-    if _MSGPACK(msg_type):  # JSON padding: TruthPack's own test above
+    if _PROTOBUF(msg_type):  # JSON padding: TruthPack's own test above
         return
     padded = valid[:-1] + b" " * (limit - len(valid) + 1) + b"}"
     assert len(padded) > limit and _check(msg_type, padded) == "oversize"

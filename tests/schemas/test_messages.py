@@ -61,7 +61,7 @@ def _mutations(msg_type) -> list[tuple[str, bytes, str]]:
     return cases
 
 
-# JSON payloads; the one MessagePack type (TruthPack) has its own table in test_truth.py
+# JSON payloads; the one Protobuf type (TruthPack) has its own table in test_truth.py
 BAD = [(t, label, payload, kind) for t in MESSAGE_TYPES if m.wire_of(t) == "json"
        for (label, payload, kind) in _mutations(t)]
 

@@ -18,7 +18,7 @@ import zenoh
 
 from schemas import keys
 from schemas import messages as m
-from schemas.messages import wire_of
+from schemas.wire import typed_decoder
 
 __all__ = ["BusClient"]
 
@@ -74,8 +74,7 @@ class BusClient:
             mtype = keys.message_type_for_key(key)
             if mtype is None or parts[2] not in _BRIDGE_KINDS or mtype is m.OracleReply:
                 continue
-            wire = msgspec.msgpack if wire_of(mtype) == "msgpack" else msgspec.json  # the truth is MessagePack
-            msg = wire.decode(raw, type=mtype)
+            msg = typed_decoder(mtype).decode(raw)  # the truth is Protobuf, the rest JSON
             self.seen.append((key, msg, t))
             if pred(key, msg):
                 return msg
