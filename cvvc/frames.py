@@ -167,8 +167,9 @@ def summary_frame(run_dir: str | Path) -> pd.DataFrame:
     columns = {f"case {summary.case}": _metrics(summary.metrics)}
     if summary.baseline is not None:
         columns[NO_CONTROL] = _metrics(summary.baseline)
-    df = pd.DataFrame(columns)
-    df.index.name = "metric"
+    names = list(dict.fromkeys(k for column in columns.values() for k in column))  # the case's order first
+    df = pd.DataFrame([[column.get(k) for column in columns.values()] for k in names],
+                      index=pd.Index(names, name="metric"), columns=list(columns), dtype=object)  # counts stay int
     df.attrs["summary"] = summary
     return df
 
