@@ -32,7 +32,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from types import MappingProxyType
-from typing import Literal, TypeVar
+from typing import TYPE_CHECKING, Literal, TypeVar
 
 import msgspec
 
@@ -48,8 +48,11 @@ from schemas.cache import cache_root, profiles_dir
 from schemas.settings import CASES, SECTIONS, AgentOptions, AgentSettings, Case, PvProtocol, RunCase
 from simulator_bridge.bus.bridge import BridgeSummary
 
+if TYPE_CHECKING:
+    from schemas.devicemap import DeviceMap
+
 __all__ = ["CASES", "CASE_AGENT", "CaseAgent", "LaunchError", "RunConfig", "RunSummary", "agent_settings_args",
-           "bridge_args", "case_agent_settings", "check_mostly_held", "run"]
+           "bridge_args", "cached_model_path", "case_agent_settings", "check_mostly_held", "run", "train_model"]
 
 _DEFAULT = RunCase()  # the tree's defaults: RunConfig's
 _RENAMED = {("feeder", "map"): "feeder"}  # a case file's (section, key) -> RunConfig's field, where they differ
@@ -207,29 +210,43 @@ def prepare_feeder_and_model(config: RunConfig) -> tuple[Path, Path]:
 
     cache = cache_root(config.cache)
     dm_path = resolve_device_map_path(config.feeder) if config.feeder else ensure_default_feeder(cache)
-    dm = load_device_map(dm_path)
     if config.model:
         return dm_path, Path(config.model)
+    model_path = cached_model_path(load_device_map(dm_path), config.train_seed, cache)
+    if not model_path.is_file() and CASE_AGENT[config.case] is not None:  # cases without an agent need none
+        train_model(dm_path, model_path, train_seed=config.train_seed, cache=cache, progress=config.progress)
+    return dm_path, model_path
+
+
+def cached_model_path(dm: DeviceMap, train_seed: int, cache: Path) -> Path:
+    """Where ``cvvc run`` keeps the model of a feeder (its name and fingerprint), a training year and the training
+    revision in the cache root ``cache``.
+    """
     from training.train import TRAINING_REVISION
 
-    name = f"{dm.feeder.name}-{dm.fingerprint()}-y{config.train_seed}-r{TRAINING_REVISION}.json"
-    model_path = cache / "models" / name
-    if not model_path.is_file() and CASE_AGENT[config.case] is not None:  # cases without an agent need none
-        from regression.model import write_model
-        from training.extended import default_feature_options
-        from training.train import train
+    return cache / "models" / f"{dm.feeder.name}-{dm.fingerprint()}-y{train_seed}-r{TRAINING_REVISION}.json"
 
-        _log(f"training a model for {dm.feeder.name} (year seed {config.train_seed}); cached afterwards")
-        t0 = time.monotonic()
-        opts = default_feature_options(dm)
-        result = train(dm_path, year_seed=config.train_seed, selection="guided", cache_dir=cache / "profiles",
-                       progress=config.progress, **opts.train_kwargs())
-        model_path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = model_path.with_suffix(".tmp")
-        write_model(result.model, tmp)
-        os.replace(tmp, model_path)
-        _log(f"model trained in {time.monotonic() - t0:.1f} s: {model_path}")
-    return dm_path, model_path
+
+def train_model(dm_path: Path, model_path: Path, *, train_seed: int, cache: Path, progress: bool) -> Path:
+    """Train the model ``cvvc run`` uses for the feeder of ``dm_path`` (guided selection, the feeder's default
+    feature set) on the profile year ``train_seed`` and write it to ``model_path`` (whole or not at all).
+    """
+    from regression.model import write_model
+    from schemas.devicemap import load_device_map
+    from training.extended import default_feature_options
+    from training.train import train
+
+    dm = load_device_map(dm_path)
+    _log(f"training a model for {dm.feeder.name} (year seed {train_seed}) into {model_path}")
+    t0 = time.monotonic()
+    result = train(dm_path, year_seed=train_seed, selection="guided", cache_dir=cache / "profiles",
+                   progress=progress, **default_feature_options(dm).train_kwargs())
+    model_path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = model_path.with_name(model_path.name + ".tmp")
+    write_model(result.model, tmp)
+    os.replace(tmp, model_path)
+    _log(f"model trained in {time.monotonic() - t0:.1f} s: {model_path}")
+    return model_path
 
 
 @dataclass

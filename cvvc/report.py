@@ -46,13 +46,14 @@ from schemas.truth import TruthDecodeError, decode_truth
 from simulator_bridge.simulation.live_accuracy import LiveAccuracyAccumulator
 
 if TYPE_CHECKING:
+    from cvvc.evaluation import Evaluation
     from cvvc.launch import RunSummary
 
 _T = TypeVar("_T")
 
-__all__ = ["NO_CONTROL", "NodeTrace", "ReportError", "RunTrace", "envelope_figure", "errors_figure", "plot_evaluation",
-           "plot_run", "pv_figure", "read_trace", "run_traces", "taps_figure", "window_envelope_pu",
-           "worst_node_figure"]
+__all__ = ["NO_CONTROL", "NodeTrace", "ReportError", "RunTrace", "decode_evaluation", "decode_summary",
+           "envelope_figure", "errors_figure", "plot_evaluation", "plot_run", "pv_figure", "read_trace", "run_traces",
+           "taps_figure", "window_envelope_pu", "worst_node_figure"]
 
 
 class ReportError(CommandError):
@@ -212,7 +213,14 @@ def _decode(path: Path, typ: type[_T], what: str) -> _T:
                           "or run it again") from e
 
 
-def _decode_summary(path: Path, typ: type[_T]) -> _T:
+def decode_evaluation(path: Path) -> Evaluation:
+    """A ``cvvc evaluate`` folder's ``results.json``, or ``ReportError`` saying it is not one of this version."""
+    from cvvc.evaluation import Evaluation
+
+    return _decode(path, Evaluation, "cvvc evaluate result")
+
+
+def decode_summary(path: Path, typ: type[_T]) -> _T:
     """A run's ``summary.json``; one written before the baseline took the case's form (the simulator's ``Metrics``:
     lists by device, ``n_steps``) is read with its baseline turned into that form.
     """
@@ -239,7 +247,7 @@ def _run_meta(run_dir: Path) -> tuple[RunSummary, tuple[str, ...], tuple[str, ..
     summary_path = run_dir / "summary.json"
     if not summary_path.is_file():
         raise ReportError(f"{run_dir}: no summary.json; pass a cvvc run output folder")
-    summary = _decode_summary(summary_path, RunSummary)
+    summary = decode_summary(summary_path, RunSummary)
     mt = summary.metrics
     limits = (0.965, 1.05)
     try:
@@ -454,9 +462,7 @@ def plot_evaluation(eval_dir: str | Path, *, out: str | Path | None = None) -> l
     results_path = d / "results.json"
     if not results_path.is_file():
         raise ReportError(f"{d}: no results.json; pass a cvvc evaluate output folder")
-    from cvvc.evaluate import Evaluation
-
-    ev = _decode(results_path, Evaluation, "cvvc evaluate result")
+    ev = decode_evaluation(results_path)
     groups: dict[str, dict[str, RunTrace]] = {}
     for r in ev.runs:
         spec = r.spec

@@ -14,7 +14,7 @@ from cvvc.cli import build_parser
 from cvvc.progress import progress_bar, progress_wanted
 
 REPO = Path(__file__).resolve().parents[2]
-HEAVY = ("numpy", "zenoh", "matplotlib", "opendssdirect", "scipy", "mcap", "dask", "tqdm")
+HEAVY = ("numpy", "zenoh", "matplotlib", "opendssdirect", "scipy", "mcap", "dask", "tqdm", "pandas")
 
 
 def _terminal() -> tuple[int, int]:

@@ -230,7 +230,7 @@ def test_the_time_axis_is_hour_of_day_or_date_and_hour():
 def test_a_summary_written_before_the_baseline_took_the_cases_form_still_reads(tmp_path):
     """summary.json of earlier versions kept the baseline as the simulator's Metrics (lists by device, n_steps):
     read with it turned into the case's form, the same figures."""
-    from cvvc.report import _decode_summary
+    from cvvc.report import decode_summary
     from cvvc.run_summary import RunSummary
     from schemas import messages as m
     from schemas.examples import example
@@ -247,7 +247,7 @@ def test_a_summary_written_before_the_baseline_took_the_cases_form_still_reads(t
     raw = msgspec.to_builtins(summary)
     raw["baseline"] = msgspec.to_builtins(old)
     (tmp_path / "summary.json").write_bytes(msgspec.json.encode(raw))
-    back = _decode_summary(tmp_path / "summary.json", RunSummary)
+    back = decode_summary(tmp_path / "summary.json", RunSummary)
     assert isinstance(back.baseline, m.MetricsFrame) and back.metrics == case
     b = back.baseline
     assert (b.steps, b.nvv, b.ntc, b.start_t_ns) == (old.n_steps, old.nvv, old.ntc, case.start_t_ns)
