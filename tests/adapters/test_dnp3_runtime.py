@@ -14,7 +14,7 @@ from adapters.dnp3_runtime import Dnp3AdapterConfig, run_dnp3_adapter
 from schemas import keys
 from schemas import messages as m
 from schemas.bus import BusConfig, Inbox, TypedPublisher, free_port, open_session, wait_for
-from simulator_bridge.field.dnp3_sim import Dnp3SimError, SimulatedRegulatorControl
+from simulator_bridge.field.dnp3_sim import Dnp3SimError, SimulatedCapBankController, SimulatedRegulatorControl
 
 F, D = "f1", "reg1"
 S = 1_000_000_000
@@ -87,3 +87,42 @@ def test_a_non_loopback_endpoint_is_refused_before_the_bus():
     with pytest.raises(Dnp3SimError, match="tcp/127.0.0.1:PORT"):
         run_dnp3_adapter(Dnp3AdapterConfig(feeder_id=F, device_id=D, kind="vr", dnp3="tcp/192.0.2.1:20000"),
                          BusConfig(mode="peer", connect=("tcp/127.0.0.1:1",)), stop=threading.Event())
+
+
+def test_a_bank_over_the_bus_and_a_malformed_command_answered_by_nothing(router_endpoint):
+    sim = SimulatedCapBankController(capacitor_id="cap1", port=free_port(), clock_ns=time.time_ns)
+    config = Dnp3AdapterConfig(feeder_id=F, device_id="cap1", kind="cap", dnp3=sim.endpoint, scan_period_s=0.2,
+                               status_period_s=0.5, timeout_s=1.0, kvar_rated=300.0)
+    bus = BusConfig(mode="peer", connect=(router_endpoint,))
+    got: list = []
+    with sim, open_session(bus) as session:
+        sim.set_measurements(closed=False, v_v=2400.0, control_value=None)
+        inbox = Inbox()
+        for key in (keys.meas_cap(F, "cap1"), keys.ack(F, "cap", "cap1")):
+            inbox.subscribe(session, key)
+
+        def seen(msg_type: type) -> list:
+            got.extend(r.msg for r in inbox.drain())
+            return [x for x in got if isinstance(x, msg_type)]
+
+        commands = TypedPublisher(session, keys.cmd(F, "cap", "cap1"), m.CapCommand, reliable=True)
+        stop, ready, result = threading.Event(), threading.Event(), []
+        thread = threading.Thread(target=lambda: result.append(run_dnp3_adapter(config, bus, stop=stop,
+                                                                                 ready=ready)), daemon=True)
+        thread.start()
+        try:
+            assert ready.wait(20.0) and commands.wait_matched(10.0)
+            assert wait_for(lambda: seen(m.CapFrame), 10.0)
+            assert seen(m.CapFrame)[-1].kvar_rated == 300.0
+            session.put(keys.cmd(F, "cap", "cap1"), b"\x05\x64 not a command {")  # malformed: dropped, counted
+            now = time.time_ns()
+            commands.put(m.CapCommand(t_ns=now, seq=1, source="agent", cmd_id="agent:1:cap1", in_reply_to=1,
+                                      valid_until_t_ns=now + 600 * S, capacitor_id="cap1", closed_steps=1))
+            assert wait_for(lambda: seen(m.Ack), 10.0)
+            assert [(a.status, a.applied_value) for a in seen(m.Ack)] == [("accepted", 1.0)]  # one ack: ours
+            assert sim.commanded_closed() is True
+        finally:
+            stop.set()
+            thread.join(20.0)
+            inbox.undeclare()
+        assert not thread.is_alive() and result[0].commands == 1
