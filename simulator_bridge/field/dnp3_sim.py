@@ -268,17 +268,24 @@ class SimulatedRegulatorControl(_Outstation):
     regulator_id : the device id (the outstation's name in logs).
     tap_max : the tap range is ``-tap_max..tap_max``.
     default_setpoint_v120, default_band_v120 : its local set point and band [V, 120 V base].
+    setpoint_range_v120 : the set points it takes [V, 120 V base]: the command contract's by default; a control
+        configured with narrower limits refuses the others with ``OUT_OF_RANGE``.
     port : TCP port on 127.0.0.1. clock_ns : the device's clock [ns] for the hold timer.
     address, master_address : the DNP3 link addresses of the outstation and of its master.
     """
 
     def __init__(self, *, regulator_id: str, tap_max: int, default_setpoint_v120: float, default_band_v120: float,
                  port: int, host: str = "127.0.0.1", clock_ns: Callable[[], int] = time.monotonic_ns,
+                 setpoint_range_v120: tuple[float, float] = SETPOINT_RANGE_V120,
                  address: int = OUTSTATION_ADDR, master_address: int = MASTER_ADDR) -> None:
-        if not (SETPOINT_RANGE_V120[0] <= default_setpoint_v120 <= SETPOINT_RANGE_V120[1]
+        lo, hi = float(setpoint_range_v120[0]), float(setpoint_range_v120[1])
+        if not SETPOINT_RANGE_V120[0] <= lo < hi <= SETPOINT_RANGE_V120[1]:
+            raise Dnp3SimError(f"regulator {regulator_id!r}: set point range {setpoint_range_v120!r} is not within "
+                               f"{SETPOINT_RANGE_V120}")
+        if not (lo <= default_setpoint_v120 <= hi
                 and BAND_RANGE_V120[0] <= default_band_v120 <= BAND_RANGE_V120[1]):
             raise Dnp3SimError(f"regulator {regulator_id!r}: local set point {default_setpoint_v120!r} V / band "
-                               f"{default_band_v120!r} V outside {SETPOINT_RANGE_V120} / {BAND_RANGE_V120}")
+                               f"{default_band_v120!r} V outside {(lo, hi)} / {BAND_RANGE_V120}")
         if int(tap_max) <= 0:
             raise Dnp3SimError(f"regulator {regulator_id!r}: tap_max {tap_max!r} must be positive")
         super().__init__(name=regulator_id, port=port, host=host, clock_ns=clock_ns, address=address,
@@ -287,6 +294,7 @@ class SimulatedRegulatorControl(_Outstation):
         self.tap_max = int(tap_max)
         self.default_setpoint_v120 = float(default_setpoint_v120)
         self.default_band_v120 = float(default_band_v120)
+        self.setpoint_range_v120 = (lo, hi)
         self._v_compared_120 = 0.0
         self._tap = 0
         self._i_a = 0.0
@@ -326,9 +334,9 @@ class SimulatedRegulatorControl(_Outstation):
         value = float(command.value)
         match index:
             case RegulatorPoints.AO_SETPOINT_120:
-                if not SETPOINT_RANGE_V120[0] <= value <= SETPOINT_RANGE_V120[1]:
-                    return self._refuse(dnp3.CommandStatus.OUT_OF_RANGE,
-                                        f"set point {value} V outside {SETPOINT_RANGE_V120} V")
+                lo, hi = self.setpoint_range_v120
+                if not lo <= value <= hi:
+                    return self._refuse(dnp3.CommandStatus.OUT_OF_RANGE, f"set point {value} V outside {lo}..{hi} V")
                 if self._ao[RegulatorPoints.AO_HOLD_S] <= 0.0:
                     return self._refuse(dnp3.CommandStatus.BLOCKED, "set point with a hold time of 0: write "
                                         f"analog output {RegulatorPoints.AO_HOLD_S} first")

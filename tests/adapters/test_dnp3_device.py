@@ -174,3 +174,23 @@ def test_a_rogue_masters_operate_is_found_at_the_next_read_counted_and_undone(re
     assert reg_sim.setpoint_in_force().setpoint_v120 == 122.0  # ours again
     assert frame is not None and frame.setpoint_v120 == 122.0
     assert reg.scan(now + 120 * S) is not None and reg.foreign_writes == 1
+
+
+def test_a_set_point_the_device_refuses_is_rejected_with_its_status_and_counted_by_point(clock):
+    sim = SimulatedRegulatorControl(regulator_id="reg1", tap_max=16, default_setpoint_v120=120.0,
+                                    default_band_v120=2.0, port=free_port(), clock_ns=clock,
+                                    setpoint_range_v120=(114.0, 126.0))  # a control with narrower limits
+    with sim:
+        sim.set_measurements(v_compared_120=121.5, tap=4, load_current_a=180.0)
+        dev = _device(sim, "vr")
+        try:
+            now = clock.t_ns
+            assert dev.scan(now) is not None
+            ack = dev.command(_reg_cmd(130.0, now), now)  # within the command contract, beyond the device's
+            assert ack.status == "rejected" and ack.reason.startswith("device_refused")
+            assert "OUT_OF_RANGE" in ack.reason
+            assert dev.refused == {"ao0:OUT_OF_RANGE": 1} and dev.commands_failed == 1
+            assert sim.setpoint_in_force() is None and sim.refused_operates == 1
+            assert dev.command(_reg_cmd(125.0, now, seq=2), now).status == "accepted"
+        finally:
+            dev.master.close()
