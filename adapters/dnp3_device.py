@@ -200,7 +200,7 @@ class Dnp3Device:
             if active is None or active.valid_until_t_ns < t_ns:
                 self._operate_ok(self._hold_index(), 0.0)
             elif self.settings.kind == "vr" and isinstance(self.reg.action, m.SetpointAction):
-                self._write_setpoint(self.reg.action, active.valid_until_t_ns, t_ns)
+                self.write_setpoint(self.reg.action, active.valid_until_t_ns, t_ns)
             else:
                 self._write_switch(active.value > 0.0, active.valid_until_t_ns, t_ns)
             return self.master.read()
@@ -266,7 +266,7 @@ class Dnp3Device:
             if isinstance(cmd, m.RegCommand):
                 if not isinstance(cmd.action, m.SetpointAction):  # a TapAction was refused above
                     return _rejected("device_refused", "a tap command")
-                back = self._write_setpoint(cmd.action, cmd.valid_until_t_ns, now)
+                back = self.write_setpoint(cmd.action, cmd.valid_until_t_ns, now)
                 a = back.analog_outputs
                 if not (back.binary_inputs.get(RegulatorPoints.BI_REMOTE)
                         and abs(a.get(RegulatorPoints.AO_SETPOINT_120, math.nan) - cmd.action.setpoint_v120) <= _F32_TOL
@@ -308,7 +308,11 @@ class Dnp3Device:
             raise _Refused(f"ao{index}", f"the outstation answered {out.status} ({out.state}) to {value}")
         return out
 
-    def _write_setpoint(self, a: m.SetpointAction, valid_until_t_ns: int, now: int) -> Dnp3Reading:
+    def write_setpoint(self, a: m.SetpointAction, valid_until_t_ns: int, now: int) -> Dnp3Reading:
+        """Operate the hold time (until ``valid_until_t_ns`` from ``now`` [ns]), band and set point; the read back.
+
+        Raises Dnp3LinkError without an answer, and a ValueError naming the point the outstation refused.
+        """
         p = RegulatorPoints
         self._operate_ok(p.AO_HOLD_S, self._hold_s(valid_until_t_ns, now))
         self._operate_ok(p.AO_BAND_120, a.band_v120)
