@@ -226,8 +226,8 @@ class _Outstation(ABC):
 class _CommandHandler(dnp3.ICommandHandler):
     """opendnp3's command callbacks, on its thread, handed to the device under its lock.
 
-    A Python exception raised back into the C++ stack would end the process, so an unexpected one is logged,
-    counted as a refusal and answered ``HARDWARE_ERROR``: bad input never takes the device down.
+    No Python exception is let back into the C++ stack (whose thread has no handler for it): an unexpected one is
+    logged, counted as a refusal and answered ``HARDWARE_ERROR``, so bad input never takes the device down.
     """
 
     def __init__(self, device: _Outstation) -> None:
