@@ -1,4 +1,5 @@
-"""``cvvc adapter``: field-protocol adapters (``sunspec``) and a simulated SunSpec inverter to try them on (``sim``).
+"""``cvvc adapter``: field-protocol adapters (``sunspec``, ``dnp3``) and a simulated SunSpec inverter to try them on
+(``sim``).
 
 Nothing heavy is imported at module level; each handler parses its flags into a typed config and calls the
 runtime. SIGINT / SIGTERM end a run cleanly (token withdrawn, last status published, link closed, exit 0).
@@ -57,6 +58,36 @@ def _sunspec(args: argparse.Namespace) -> int:
     return 0
 
 
+def _dnp3(args: argparse.Namespace) -> int:
+    import msgspec
+
+    from adapters.dnp3_runtime import Dnp3AdapterConfig, run_dnp3_adapter
+    from schemas.bus import bus_config_from_args
+    from simulator_bridge.field.dnp3_sim import Dnp3SimError, parse_dnp3_endpoint
+
+    try:
+        config = msgspec.convert(dict(
+            feeder_id=args.feeder_id, device_id=args.device, kind=args.kind, dnp3=args.dnp3,
+            outstation_address=args.outstation_address, master_address=args.master_address,
+            scan_period_s=args.scan_period_s, control_period_s=args.control_period_s,
+            status_period_s=args.status_period_s, timeout_s=args.timeout_s, phase=args.phase,
+            kvar_rated=args.kvar_rated, control_type=args.control_type), Dnp3AdapterConfig)
+        parse_dnp3_endpoint(config.dnp3)  # a bad endpoint is refused before joining the bus
+    except (msgspec.ValidationError, Dnp3SimError) as e:
+        print(f"cvvc adapter dnp3: error: {e}", file=sys.stderr)
+        return 2
+    bus = bus_config_from_args(args, role="devices")
+    status = _with_stop(lambda stop: run_dnp3_adapter(config, bus, stop=stop))
+    if args.summary_out:
+        from pathlib import Path
+
+        Path(args.summary_out).write_bytes(msgspec.json.encode(status))
+    print(f"adapter {config.device_id} ({config.kind}, {config.dnp3}): {status.state}, {status.scans} scans, "
+          f"{status.frames} frames, {status.commands} commands ({status.commands_failed} failed), refused values "
+          f"{dict(status.refused) or 'none'}, foreign writes {status.foreign_writes}")
+    return 0
+
+
 def _sim(args: argparse.Namespace) -> int:
     from adapters.sunspec_runtime import parse_modbus_endpoint
     from simulator_bridge.field.sunspec_sim import SimulatedSunSpecInverter
@@ -79,7 +110,7 @@ def _sim(args: argparse.Namespace) -> int:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    """Add the ``adapter`` verb (sub-verbs ``sunspec`` and ``sim``) to the ``cvvc`` command line."""
+    """Add the ``adapter`` verb (sub-verbs ``sunspec``, ``dnp3`` and ``sim``) to the ``cvvc`` command line."""
     from schemas.bus_args import add_bus_arguments
 
     p = sub.add_parser("adapter", help="field-protocol adapters: real devices as devices of the bus")
@@ -111,6 +142,30 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="write the link's last LinkStatus as JSON to FILE at exit (the launcher reads it)")
     add_bus_arguments(s)
     s.set_defaults(func=_sunspec)
+    dn = verbs.add_parser("dnp3", help="a regulator control or capacitor bank controller behind DNP3 (IEEE 1815)",
+                          description="Poll the outstation (opendnp3 master), publish the device's frames, operate "
+                                      "the agent's commands with a hold time that follows their validity, and "
+                                      "acknowledge from the outstation's answer and a read back. See docs/dnp3.md.")
+    dn.add_argument("--feeder-id", required=True, help="feeder id of the keys (cvvc/<ID>/...)")
+    dn.add_argument("--device", required=True, metavar="ID", help="the regulator's or bank's id in the device map")
+    dn.add_argument("--kind", choices=["vr", "cap"], default="vr",
+                    help="vr: a regulator control; cap: a capacitor bank controller [default: vr]")
+    dn.add_argument("--dnp3", required=True, metavar="tcp/127.0.0.1:PORT", help="the outstation's endpoint")
+    dn.add_argument("--outstation-address", type=int, default=10, help="the outstation's link address")
+    dn.add_argument("--master-address", type=int, default=1, help="this master's link address")
+    dn.add_argument("--scan-period-s", type=float, default=60.0,
+                    help="read the outstation at every multiple of this period (UTC) and stamp the frame with it [s]")
+    dn.add_argument("--control-period-s", type=float, default=300.0,
+                    help="the feeder's control period: the unit of the command windows [s]")
+    dn.add_argument("--status-period-s", type=float, default=10.0, help="publish the link status this often [s]")
+    dn.add_argument("--timeout-s", type=float, default=2.0, help="time-out of one DNP3 request [s]")
+    dn.add_argument("--phase", choices=["a", "b", "c"], default="a", help="the regulator's phase (its frames)")
+    dn.add_argument("--kvar-rated", type=float, default=600.0, help="the bank's rating (its frames) [kvar]")
+    dn.add_argument("--control-type", default="none",
+                    help="the bank's local control type, as in its frames (none, voltage, kvar, ...)")
+    dn.add_argument("--summary-out", metavar="FILE", help="write the link's last LinkStatus as JSON to FILE at exit")
+    add_bus_arguments(dn)
+    dn.set_defaults(func=_dnp3)
     sim = verbs.add_parser("sim", help="serve a simulated SunSpec inverter (models 1, 701, 702, 704) to try on",
                            description="A pymodbus server holding SunSpec models built by pysunspec2, at a fixed "
                                        "output; its reactive power follows the 704 set point and its revert timer.")

@@ -31,6 +31,7 @@ __all__ = [
     "SoakLosses",
     "SolverRun",
     "SunspecBench",
+    "Dnp3Bench",
     "TrainingBench",
     "decode_result",
     "to_json",
@@ -282,6 +283,17 @@ class SunspecBench(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fie
     bus_only: RoundTrip
     through_sunspec: RoundTrip
     modbus_write_read_back: RoundTrip
+    extra_per_decision_p50_ms: float
+    extra_per_decision_p99_ms: float
+
+
+class Dnp3Bench(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """``bench_dnp3``: regulator command -> ack with and without the DNP3 hop, and the DNP3 part alone."""
+
+    commands: int
+    bus_only: RoundTrip
+    through_dnp3: RoundTrip
+    dnp3_operates_read_back: RoundTrip
     extra_per_decision_p50_ms: float
     extra_per_decision_p99_ms: float
 

@@ -18,7 +18,8 @@ result from ``benchmarks.results`` as JSON; ``read_results`` reads a ``--json`` 
 the truth's bytes per simulated week;
 - ``soak``: a simulated month in lockstep: memory growth of every process (goal < 10 %), dropped/late frames;
 - ``sunspec``: the round trip a PV plant behind SunSpec Modbus adds per decision (command -> ack through the
-  adapter and a simulated inverter vs the same bus round trip acked at once).
+  adapter and a simulated inverter vs the same bus round trip acked at once);
+- ``dnp3``: the same for a regulator control behind DNP3 (``cvvc adapter dnp3`` and a simulated outstation).
 
 The machine is shared and small (2 cores): every ratio compares runs made side by side in this process.
 """
@@ -38,6 +39,7 @@ from benchmarks.results import (
     BridgeBench,
     ClosedLoopBench,
     DecisionBench,
+    Dnp3Bench,
     QstsBench,
     RecordingBench,
     SoakBench,
@@ -66,7 +68,8 @@ _EPRI = ("epri-k1", "epri-m1", "epri-ckt5", "epri-ckt24")
 
 #: What one benchmark of the suite returns: its result, or one result per feeder.
 Result = (dict[str, QstsBench] | dict[str, BridgeBench] | dict[str, TrainingBench] | SolverRun
-          | dict[str, DecisionBench] | RecordingBench | SoakBench | SunspecBench | ClosedLoopBench)
+          | dict[str, DecisionBench] | RecordingBench | SoakBench | SunspecBench | ClosedLoopBench
+          | Dnp3Bench)
 
 
 def bench_qsts_all(quick: bool) -> dict[str, QstsBench]:
@@ -159,6 +162,12 @@ def bench_sunspec(quick: bool) -> SunspecBench:
     return run(50 if quick else 200)
 
 
+def bench_dnp3(quick: bool) -> Dnp3Bench:
+    from benchmarks.bench_dnp3 import bench_dnp3 as run
+
+    return run(50 if quick else 200)
+
+
 BENCHES: dict[str, Callable[[bool], Result]] = {
     "qsts": bench_qsts_all,
     "bridge": bench_bridge_all,
@@ -169,6 +178,7 @@ BENCHES: dict[str, Callable[[bool], Result]] = {
     "closedloop": bench_closedloop,
     "soak": bench_soak,
     "sunspec": bench_sunspec,
+    "dnp3": bench_dnp3,
 }
 
 #: The type of each benchmark's result, by name (what ``read_results`` decodes).
@@ -182,6 +192,7 @@ RESULT_TYPES: dict[str, object] = {
     "closedloop": ClosedLoopBench,
     "soak": SoakBench,
     "sunspec": SunspecBench,
+    "dnp3": Dnp3Bench,
 }
 
 

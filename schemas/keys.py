@@ -12,7 +12,8 @@ Layout, for a feeder id ``F`` and a device id ``D``::
     cvvc/F/cmd/vr/D             RegCommand       agent -> regulator controller
     cvvc/F/cmd/cap/D            CapCommand       agent -> capacitor bank
     cvvc/F/ack/pv/D, ack/vr/D, ack/cap/D   Ack   device -> agent
-    cvvc/F/link/pv/D            LinkStatus       a field-protocol adapter's link to its device (SunSpec)
+    cvvc/F/link/pv/D, link/vr/D, link/cap/D   LinkStatus   a field-protocol adapter's link to its device
+                                             (SunSpec, DNP3)
     cvvc/F/agent/decision       Decision
     cvvc/F/agent/status         AgentStatus
     cvvc/F/sim/truth            TruthPack        simulation only (MessagePack: schemas.truth)
@@ -185,6 +186,8 @@ _BY_SUFFIX: dict[tuple[str, ...], type[msgspec.Struct]] = {
     ("ack", "vr"): m.Ack,
     ("ack", "cap"): m.Ack,
     ("link", "pv"): m.LinkStatus,
+    ("link", "vr"): m.LinkStatus,
+    ("link", "cap"): m.LinkStatus,
     ("agent", "decision"): m.Decision,
     ("agent", "status"): m.AgentStatus,
     ("sim", "truth"): m.TruthPack,

@@ -493,7 +493,8 @@ class StepEnd(Message, frozen=True, kw_only=True, forbid_unknown_fields=True):
 
 
 class LinkStatus(Message, frozen=True, kw_only=True, forbid_unknown_fields=True):
-    """A field-protocol adapter's link to one device (e.g. a PV inverter behind SunSpec Modbus).
+    """A field-protocol adapter's link to one device (a PV inverter behind SunSpec Modbus, a regulator control or
+    capacitor bank controller behind DNP3).
 
     Published by the adapter when the link's state changes and on a period. ``state``: ``starting`` (not yet
     read), ``ok`` (the last scan read valid values), ``down`` (the device does not answer: no frames are sent,
@@ -504,8 +505,8 @@ class LinkStatus(Message, frozen=True, kw_only=True, forbid_unknown_fields=True)
 
     feeder_id: Ident
     device_id: Ident
-    kind: Literal["pv"] = "pv"
-    protocol: Literal["sunspec"] = "sunspec"
+    kind: Literal["pv", "vr", "cap"] = "pv"
+    protocol: Literal["sunspec", "dnp3"] = "sunspec"
     endpoint: Annotated[str, Meta(max_length=200)] = ""
     state: Literal["starting", "ok", "down", "refusing"]
     scans: Count = 0

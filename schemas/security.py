@@ -347,7 +347,8 @@ def access_control_policy(feeders: tuple[str, ...] = ()) -> dict[str, Any]:
         _rule("devices-oracle", ["declare_queryable", "reply"], ["ingress"], [f"{r}/*/sim/oracle"]),
         _rule("devices-oracle-query", ["query"], ["egress"], [f"{r}/*/sim/oracle"]),
         _rule("devices-alive", ["liveliness_token"], ["ingress"],
-              [f"{r}/*/alive/bridge/*", f"{r}/*/alive/head/*", f"{r}/*/alive/pv/*", f"{r}/*/alive/vr/*"]),
+              [f"{r}/*/alive/bridge/*", f"{r}/*/alive/head/*", f"{r}/*/alive/pv/*", f"{r}/*/alive/vr/*",
+               f"{r}/*/alive/cap/*"]),  # cap: a bank's DNP3 adapter (cvvc adapter dnp3 --kind cap)
         _rule("devices-alive-watch", ["declare_liveliness_subscriber", "liveliness_query"], ["ingress"], [alive]),
         _rule("devices-alive-see", ["liveliness_token"], ["egress"], [alive]),
         # recorder: subscribe to everything, send nothing
