@@ -69,6 +69,9 @@ def _advise(args: argparse.Namespace) -> int:
         return 0
     print(f"# AMI meter sites on {advice.feeder}: {advice.minutes} minutes of months {advice.months}, year seed "
           f"{advice.year_seed}, a reading every {advice.interval_min} min (noise {advice.noise_pu} pu)")
+    if len(advice.sites) < advice.k:
+        print(f"only {len(advice.sites)} of the {advice.k} sites asked for gain from a meter: elsewhere its noise "
+              f"outweighs the estimate's error")
     if advice.already_metered:
         print(f"already metered (left out): {', '.join(advice.already_metered)}")
     print("\n| rank | node | RMSE [pu] | with a meter | share of the error removed | outside bounds | with a meter |")

@@ -56,8 +56,9 @@ class MeterSite(msgspec.Struct, frozen=True, kw_only=True):
 
 
 class MeterAdvice(msgspec.Struct, frozen=True, kw_only=True):
-    """The ``k`` best meter sites of a feeder's critical nodes, best first, and the feeder's figures without and
-    with them (every critical node: RMSE [pu], share within ±0.01 pu, share outside the bounds).
+    """The ``k`` best meter sites of a feeder's critical nodes, best first (fewer when fewer nodes gain from a meter),
+    and the feeder's figures without and with them (every critical node: RMSE [pu], share within ±0.01 pu, share
+    outside the bounds).
     """
 
     feeder: str
@@ -85,12 +86,13 @@ def _miss(err: np.ndarray, upper: np.ndarray, lower: np.ndarray) -> np.ndarray:
 
 def rank_sites(err: np.ndarray, err_metered: np.ndarray, exclude: Sequence[int] = ()) -> np.ndarray:
     """Critical-node indices, best meter site first: by the squared error a meter removes (``err`` (T, N) without
-    meters, ``err_metered`` (T, N) with one at every node), ties to the lower index; ``exclude`` left out.
+    meters, ``err_metered`` (T, N) with one at every node), ties to the lower index; ``exclude`` left out, and so is
+    every node where a meter removes nothing (its noise outweighs the estimate's error there).
     """
     gain = np.sum(np.square(err), axis=0) - np.sum(np.square(err_metered), axis=0)
     order = np.lexsort((np.arange(gain.size), -gain))
     skip = set(int(i) for i in exclude)
-    return np.array([int(i) for i in order if int(i) not in skip], int)
+    return np.array([int(i) for i in order if int(i) not in skip and gain[i] > 0.0], int)
 
 
 def advise_meters(model_path: str | Path, device_map_path: str | Path, *, k: int, months: Sequence[int] = (1, 7),
@@ -194,8 +196,8 @@ def write_advised_map(device_map_path: str | Path, advice: MeterAdvice, out: str
     first = max(used, default=0) + 1
     every = interval_s if interval_s is not None else advice.interval_min * 60
     lines = [f"\n# AMI meters advised by `cvvc feeder advise-meters` (model {Path(advice.model).name}, year seed "
-             f"{advice.year_seed}, months {advice.months}): the {advice.k} critical nodes where a meter read every "
-             f"{advice.interval_min} min removes the most squared error; without them the critical nodes' RMSE "
+             f"{advice.year_seed}, months {advice.months}): the {len(advice.sites)} critical nodes where a meter read "
+             f"every {advice.interval_min} min removes the most squared error; without them the critical nodes' RMSE "
              f"{advice.rmse_pu:.5f} pu, with them {advice.rmse_with_k_pu:.5f} pu."]
     for j, site in enumerate(advice.sites):
         lines += ["[[meter]]", f'id = "ami{first + j}"', f'node = "{site.node}"', f"interval_s = {every}", ""]
