@@ -12,7 +12,10 @@ import signal
 import sys
 import threading
 from collections.abc import Callable
-from typing import TypeVar
+from typing import TYPE_CHECKING, TypeVar
+
+if TYPE_CHECKING:
+    from schemas.messages import LinkStatus
 
 __all__ = ["register"]
 
@@ -28,6 +31,20 @@ def _with_stop(fn: Callable[[threading.Event], T]) -> T:
     finally:
         for s, h in previous.items():
             signal.signal(s, h)
+
+
+def _finish(status: LinkStatus, label: str, summary_out: str | None) -> int:
+    """Write the last ``LinkStatus`` to ``summary_out`` (if given) and say it on stdout under ``label``; 0."""
+    import msgspec
+
+    if summary_out:  # the launcher sums the links' counts from these files, never from the bus
+        from pathlib import Path
+
+        Path(summary_out).write_bytes(msgspec.json.encode(status))
+    print(f"adapter {label}: {status.state}, {status.scans} scans, {status.frames} frames, {status.commands} "
+          f"commands ({status.commands_failed} failed), refused values {dict(status.refused) or 'none'}, "
+          f"foreign writes {status.foreign_writes}")
+    return 0
 
 
 def _sunspec(args: argparse.Namespace) -> int:
@@ -48,14 +65,7 @@ def _sunspec(args: argparse.Namespace) -> int:
     parse_modbus_endpoint(config.modbus)  # a bad endpoint is refused before joining the bus
     bus = bus_config_from_args(args, role="devices")
     status = _with_stop(lambda stop: run_adapter(config, bus, stop=stop))
-    if args.summary_out:  # the launcher sums the links' counts from these files, never from the bus
-        from pathlib import Path
-
-        Path(args.summary_out).write_bytes(msgspec.json.encode(status))
-    print(f"adapter {config.device_id} ({config.modbus}): {status.state}, {status.scans} scans, {status.frames} "
-          f"frames, {status.commands} commands ({status.commands_failed} failed), refused values "
-          f"{dict(status.refused) or 'none'}, foreign writes {status.foreign_writes}")
-    return 0
+    return _finish(status, f"{config.device_id} ({config.modbus})", args.summary_out)
 
 
 def _dnp3(args: argparse.Namespace) -> int:
@@ -78,14 +88,7 @@ def _dnp3(args: argparse.Namespace) -> int:
         return 2
     bus = bus_config_from_args(args, role="devices")
     status = _with_stop(lambda stop: run_dnp3_adapter(config, bus, stop=stop))
-    if args.summary_out:
-        from pathlib import Path
-
-        Path(args.summary_out).write_bytes(msgspec.json.encode(status))
-    print(f"adapter {config.device_id} ({config.kind}, {config.dnp3}): {status.state}, {status.scans} scans, "
-          f"{status.frames} frames, {status.commands} commands ({status.commands_failed} failed), refused values "
-          f"{dict(status.refused) or 'none'}, foreign writes {status.foreign_writes}")
-    return 0
+    return _finish(status, f"{config.device_id} ({config.kind}, {config.dnp3})", args.summary_out)
 
 
 def _sim(args: argparse.Namespace) -> int:
