@@ -67,14 +67,10 @@ class Dnp3AdapterConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknow
 def run_dnp3_adapter(config: Dnp3AdapterConfig, bus: BusConfig, *, stop: threading.Event,
                      clock_ns: Callable[[], int] = time.time_ns,
                      ready: threading.Event | None = None) -> m.LinkStatus:
-    """Run until ``stop`` is set; returns the last ``LinkStatus``.
+    """Run the outstation as ``config`` says until ``stop`` is set; returns the last ``LinkStatus``.
 
-    Parameters
-    ----------
-    config : the adapter's settings. bus : how to join the bus.
-    stop : set it to end the run (the token is withdrawn, a last status is published, the link closed).
-    clock_ns : the adapter's clock [ns since the epoch]: frame times, command windows, hold times.
-    ready : set once the adapter is on the bus (tests wait for it).
+    ``bus``, ``stop``, ``clock_ns`` (frame times, command windows, hold times) and ``ready`` are
+    :func:`adapters.runtime.run_device`'s.
     """
     master = Dnp3Master(config.dnp3, address=config.master_address, outstation_address=config.outstation_address,
                         timeout_s=config.timeout_s)

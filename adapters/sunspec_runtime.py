@@ -84,14 +84,10 @@ def parse_modbus_endpoint(text: str) -> tuple[str, int]:
 def run_adapter(config: AdapterConfig, bus: BusConfig, *, stop: threading.Event,
                 clock_ns: Callable[[], int] = time.time_ns,
                 ready: threading.Event | None = None) -> m.LinkStatus:
-    """Run until ``stop`` is set; returns the last ``LinkStatus``.
+    """Run the inverter as ``config`` says until ``stop`` is set; returns the last ``LinkStatus``.
 
-    Parameters
-    ----------
-    config : the adapter's settings. bus : how to join the bus.
-    stop : set it to end the run (the token is withdrawn, a last status is published, the link closed).
-    clock_ns : the adapter's clock [ns since the epoch]: frame times, command windows, revert timers.
-    ready : set once the adapter is on the bus (tests wait for it).
+    ``bus``, ``stop``, ``clock_ns`` (frame times, command windows, revert timers) and ``ready`` are
+    :func:`adapters.runtime.run_device`'s.
     """
     host, port = parse_modbus_endpoint(config.modbus)
     link = SunSpecLink(host, port, unit=config.unit, timeout_s=config.timeout_s)
