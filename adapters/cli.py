@@ -112,6 +112,16 @@ def _sim(args: argparse.Namespace) -> int:
     return int(_with_stop(serve))
 
 
+def _add_loop_arguments(p: argparse.ArgumentParser, *, device: str, protocol: str, timeout_s: float) -> None:
+    """The flags of the adapters' loop (``adapters.runtime``): its periods, and the time-out of one request."""
+    p.add_argument("--scan-period-s", type=float, default=60.0,
+                   help=f"read {device} at every multiple of this period (UTC) and stamp the frame with it [s]")
+    p.add_argument("--control-period-s", type=float, default=300.0,
+                   help="the feeder's control period: the unit of the command windows [s]")
+    p.add_argument("--status-period-s", type=float, default=10.0, help="publish the link status this often [s]")
+    p.add_argument("--timeout-s", type=float, default=timeout_s, help=f"time-out of one {protocol} request [s]")
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     """Add the ``adapter`` verb (sub-verbs ``sunspec``, ``dnp3`` and ``sim``) to the ``cvvc`` command line."""
     from schemas.bus_args import add_bus_arguments
@@ -126,12 +136,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--device", required=True, metavar="PV_ID", help="the plant's id in the device map")
     s.add_argument("--modbus", required=True, metavar="tcp/HOST:PORT", help="the inverter's Modbus TCP endpoint")
     s.add_argument("--unit", type=int, default=1, help="Modbus unit (slave) id [default: 1]")
-    s.add_argument("--scan-period-s", type=float, default=60.0,
-                   help="read the inverter at every multiple of this period (UTC) and stamp the frame with it [s]")
-    s.add_argument("--control-period-s", type=float, default=300.0,
-                   help="the feeder's control period: the unit of the command windows [s]")
-    s.add_argument("--status-period-s", type=float, default=10.0, help="publish the link status this often [s]")
-    s.add_argument("--timeout-s", type=float, default=1.0, help="time-out of one Modbus request [s]")
+    _add_loop_arguments(s, device="the inverter", protocol="Modbus", timeout_s=1.0)
     s.add_argument("--local-mode", choices=["unity_pf", "volt_var"], default="unity_pf",
                    help="the inverter's local default, reported in its frames")
     s.add_argument("--set-local-mode", action="store_true",
@@ -156,12 +161,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     dn.add_argument("--dnp3", required=True, metavar="tcp/127.0.0.1:PORT", help="the outstation's endpoint")
     dn.add_argument("--outstation-address", type=int, default=10, help="the outstation's link address")
     dn.add_argument("--master-address", type=int, default=1, help="this master's link address")
-    dn.add_argument("--scan-period-s", type=float, default=60.0,
-                    help="read the outstation at every multiple of this period (UTC) and stamp the frame with it [s]")
-    dn.add_argument("--control-period-s", type=float, default=300.0,
-                    help="the feeder's control period: the unit of the command windows [s]")
-    dn.add_argument("--status-period-s", type=float, default=10.0, help="publish the link status this often [s]")
-    dn.add_argument("--timeout-s", type=float, default=2.0, help="time-out of one DNP3 request [s]")
+    _add_loop_arguments(dn, device="the outstation", protocol="DNP3", timeout_s=2.0)
     dn.add_argument("--phase", choices=["a", "b", "c"], default="a", help="the regulator's phase (its frames)")
     dn.add_argument("--kvar-rated", type=float, default=600.0, help="the bank's rating (its frames) [kvar]")
     dn.add_argument("--control-type", default="none",
