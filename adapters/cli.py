@@ -12,7 +12,10 @@ import signal
 import sys
 import threading
 from collections.abc import Callable
-from typing import TypeVar
+from typing import TYPE_CHECKING, TypeVar
+
+if TYPE_CHECKING:
+    from schemas.messages import LinkStatus
 
 __all__ = ["register"]
 
@@ -28,6 +31,20 @@ def _with_stop(fn: Callable[[threading.Event], T]) -> T:
     finally:
         for s, h in previous.items():
             signal.signal(s, h)
+
+
+def _finish(status: LinkStatus, label: str, summary_out: str | None) -> int:
+    """Write the last ``LinkStatus`` to ``summary_out`` (if given) and say it on stdout under ``label``; 0."""
+    import msgspec
+
+    if summary_out:  # the launcher sums the links' counts from these files, never from the bus
+        from pathlib import Path
+
+        Path(summary_out).write_bytes(msgspec.json.encode(status))
+    print(f"adapter {label}: {status.state}, {status.scans} scans, {status.frames} frames, {status.commands} "
+          f"commands ({status.commands_failed} failed), refused values {dict(status.refused) or 'none'}, "
+          f"foreign writes {status.foreign_writes}")
+    return 0
 
 
 def _sunspec(args: argparse.Namespace) -> int:
@@ -48,14 +65,7 @@ def _sunspec(args: argparse.Namespace) -> int:
     parse_modbus_endpoint(config.modbus)  # a bad endpoint is refused before joining the bus
     bus = bus_config_from_args(args, role="devices")
     status = _with_stop(lambda stop: run_adapter(config, bus, stop=stop))
-    if args.summary_out:  # the launcher sums the links' counts from these files, never from the bus
-        from pathlib import Path
-
-        Path(args.summary_out).write_bytes(msgspec.json.encode(status))
-    print(f"adapter {config.device_id} ({config.modbus}): {status.state}, {status.scans} scans, {status.frames} "
-          f"frames, {status.commands} commands ({status.commands_failed} failed), refused values "
-          f"{dict(status.refused) or 'none'}, foreign writes {status.foreign_writes}")
-    return 0
+    return _finish(status, f"{config.device_id} ({config.modbus})", args.summary_out)
 
 
 def _dnp3(args: argparse.Namespace) -> int:
@@ -78,14 +88,7 @@ def _dnp3(args: argparse.Namespace) -> int:
         return 2
     bus = bus_config_from_args(args, role="devices")
     status = _with_stop(lambda stop: run_dnp3_adapter(config, bus, stop=stop))
-    if args.summary_out:
-        from pathlib import Path
-
-        Path(args.summary_out).write_bytes(msgspec.json.encode(status))
-    print(f"adapter {config.device_id} ({config.kind}, {config.dnp3}): {status.state}, {status.scans} scans, "
-          f"{status.frames} frames, {status.commands} commands ({status.commands_failed} failed), refused values "
-          f"{dict(status.refused) or 'none'}, foreign writes {status.foreign_writes}")
-    return 0
+    return _finish(status, f"{config.device_id} ({config.kind}, {config.dnp3})", args.summary_out)
 
 
 def _sim(args: argparse.Namespace) -> int:
@@ -109,6 +112,16 @@ def _sim(args: argparse.Namespace) -> int:
     return int(_with_stop(serve))
 
 
+def _add_loop_arguments(p: argparse.ArgumentParser, *, device: str, protocol: str, timeout_s: float) -> None:
+    """The flags of the adapters' loop (``adapters.runtime``): its periods, and the time-out of one request."""
+    p.add_argument("--scan-period-s", type=float, default=60.0,
+                   help=f"read {device} at every multiple of this period (UTC) and stamp the frame with it [s]")
+    p.add_argument("--control-period-s", type=float, default=300.0,
+                   help="the feeder's control period: the unit of the command windows [s]")
+    p.add_argument("--status-period-s", type=float, default=10.0, help="publish the link status this often [s]")
+    p.add_argument("--timeout-s", type=float, default=timeout_s, help=f"time-out of one {protocol} request [s]")
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     """Add the ``adapter`` verb (sub-verbs ``sunspec``, ``dnp3`` and ``sim``) to the ``cvvc`` command line."""
     from schemas.bus_args import add_bus_arguments
@@ -123,12 +136,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--device", required=True, metavar="PV_ID", help="the plant's id in the device map")
     s.add_argument("--modbus", required=True, metavar="tcp/HOST:PORT", help="the inverter's Modbus TCP endpoint")
     s.add_argument("--unit", type=int, default=1, help="Modbus unit (slave) id [default: 1]")
-    s.add_argument("--scan-period-s", type=float, default=60.0,
-                   help="read the inverter at every multiple of this period (UTC) and stamp the frame with it [s]")
-    s.add_argument("--control-period-s", type=float, default=300.0,
-                   help="the feeder's control period: the unit of the command windows [s]")
-    s.add_argument("--status-period-s", type=float, default=10.0, help="publish the link status this often [s]")
-    s.add_argument("--timeout-s", type=float, default=1.0, help="time-out of one Modbus request [s]")
+    _add_loop_arguments(s, device="the inverter", protocol="Modbus", timeout_s=1.0)
     s.add_argument("--local-mode", choices=["unity_pf", "volt_var"], default="unity_pf",
                    help="the inverter's local default, reported in its frames")
     s.add_argument("--set-local-mode", action="store_true",
@@ -153,12 +161,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     dn.add_argument("--dnp3", required=True, metavar="tcp/127.0.0.1:PORT", help="the outstation's endpoint")
     dn.add_argument("--outstation-address", type=int, default=10, help="the outstation's link address")
     dn.add_argument("--master-address", type=int, default=1, help="this master's link address")
-    dn.add_argument("--scan-period-s", type=float, default=60.0,
-                    help="read the outstation at every multiple of this period (UTC) and stamp the frame with it [s]")
-    dn.add_argument("--control-period-s", type=float, default=300.0,
-                    help="the feeder's control period: the unit of the command windows [s]")
-    dn.add_argument("--status-period-s", type=float, default=10.0, help="publish the link status this often [s]")
-    dn.add_argument("--timeout-s", type=float, default=2.0, help="time-out of one DNP3 request [s]")
+    _add_loop_arguments(dn, device="the outstation", protocol="DNP3", timeout_s=2.0)
     dn.add_argument("--phase", choices=["a", "b", "c"], default="a", help="the regulator's phase (its frames)")
     dn.add_argument("--kvar-rated", type=float, default=600.0, help="the bank's rating (its frames) [kvar]")
     dn.add_argument("--control-type", default="none",

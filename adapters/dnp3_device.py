@@ -32,13 +32,13 @@ from __future__ import annotations
 
 import logging
 import math
-from collections import Counter
 from dataclasses import dataclass
 from typing import Literal
 
+from adapters.device import LinkedDevice
+from adapters.device import rejected as _rejected
 from adapters.dnp3 import Dnp3LinkError, Dnp3Master, Dnp3Reading, OperateOutcome
 from schemas import messages as m
-from schemas.logs import RateLimitedLog
 from simulator_bridge.field import devices as dv
 from simulator_bridge.field.dnp3_sim import HOLD_MAX_S, CapBankPoints, RegulatorPoints
 
@@ -81,36 +81,28 @@ class Dnp3DeviceSettings:
     control_type: m.CapControlType = "none"
 
 
-def _rejected(kind: str, why: str) -> dv.Verdict:
-    return dv.Verdict(status="rejected", reason=f"{kind}: {why}", reason_kind=kind)
-
-
-class Dnp3Device:
+class Dnp3Device(LinkedDevice):
     """One outstation's reads and commands. Not thread safe: the adapter's loop is its only user."""
 
     def __init__(self, settings: Dnp3DeviceSettings, master: Dnp3Master) -> None:
+        super().__init__(settings.feeder_id, settings.device_id, settings.kind, "dnp3", log)
         self.settings = settings
         self.master = master
         d = settings.device_id
         self.reg = dv.RegulatorController(d, 0, _TAP_MAX, 120.0, 2.0, period_ns=settings.control_period_ns)
         self.cap = dv.CapBankController(d, 0, 1, settings.kvar_rated, settings.control_type,
                                         period_ns=settings.control_period_ns)
-        self.state: Literal["starting", "ok", "down", "refusing"] = "starting"
-        self.reason = ""
         self.last: Dnp3Reading | None = None
-        self.last_ok_t_ns = 0
-        self.scans = self.scan_failures = self.frames = 0
-        self.commands = self.commands_failed = 0
-        self.refused: Counter[str] = Counter()
-        self.acks: Counter[str] = Counter()
-        self.foreign_writes = 0
-        self._seq = self._ack_seq = self._status_seq = 0
-        self.rlog = RateLimitedLog(log, period_s=10.0)
 
     @property
     def guard(self) -> dv.CommandGuard:
         """The command guard of the device's kind."""
         return self.reg.guard if self.settings.kind == "vr" else self.cap.guard
+
+    @property
+    def endpoint(self) -> str:
+        """The outstation's endpoint."""
+        return self.master.endpoint
 
     # ------------------------------------------------------------------------------------------- reads
     def scan(self, t_ns: int) -> m.RegFrame | m.CapFrame | None:
@@ -162,11 +154,6 @@ class Dnp3Device:
                 raise _Refused(f"ai{p.AI_BAND_120}", f"band {a[p.AI_BAND_120]} V outside (0, 12] V")
         elif not 0.0 <= a[CapBankPoints.AI_V] <= _V_MAX_V:
             raise _Refused(f"ai{CapBankPoints.AI_V}", f"{a[CapBankPoints.AI_V]} V outside 0..{_V_MAX_V:g} V")
-
-    def _fail(self, state: Literal["down", "refusing"], why: str) -> None:
-        self.scan_failures += 1
-        self.state, self.reason = state, why
-        self.rlog.warning(state, "%s: no frame: %s", self.settings.device_id, why)
 
     def _holds(self, r: Dnp3Reading, t_ns: int) -> bool | None:
         """Whether the device holds the command in force (or local control without one); None: not judged."""
@@ -233,17 +220,7 @@ class Dnp3Device:
                                                  "hold timer returned it to its local control"), t_ns)
 
     # ---------------------------------------------------------------------------------------- commands
-    def command(self, cmd: m.RegCommand | m.CapCommand, now_t_ns: int) -> m.Ack:
-        """Check, operate and read back one command at the adapter's time ``now_t_ns`` [ns]; its ack."""
-        self.commands += 1
-        verdict = self._command(cmd, now_t_ns)
-        if verdict.status == "rejected":
-            self.commands_failed += 1
-            self.rlog.info("command_rejected", "%s: rejected command %s: %s", self.settings.device_id,
-                           cmd.cmd_id, verdict.reason)
-        return self._ack(cmd.cmd_id, verdict, now_t_ns)
-
-    def _command(self, cmd: m.RegCommand | m.CapCommand, now: int) -> dv.Verdict:
+    def _verdict(self, cmd: m.RegCommand | m.CapCommand, now: int) -> dv.Verdict:
         match cmd:
             case m.RegCommand() if self.settings.kind == "vr":
                 verdict = self.reg.check(cmd, now_t_ns=now)
@@ -326,21 +303,3 @@ class Dnp3Device:
             self.refused[f"bo{CapBankPoints.BO_SWITCH}:{out.status}"] += 1
             raise _Refused(f"bo{CapBankPoints.BO_SWITCH}", f"the outstation answered {out.status} ({out.state})")
         return self.master.read()
-
-    def _ack(self, cmd_id: str, verdict: dv.Verdict, t_ns: int) -> m.Ack:
-        self._ack_seq += 1
-        self.acks[verdict.status] += 1
-        return dv.make_ack(device_id=self.settings.device_id, source=self.settings.device_id, cmd_id=cmd_id,
-                           verdict=verdict, t_ns=max(int(t_ns), 0), seq=self._ack_seq)
-
-    # ------------------------------------------------------------------------------------------ status
-    def status(self, t_ns: int) -> m.LinkStatus:
-        """The link's ``LinkStatus`` at ``t_ns`` [ns]."""
-        self._status_seq += 1
-        return m.LinkStatus(t_ns=max(int(t_ns), 0), seq=self._status_seq, source=self.settings.device_id,
-                            feeder_id=self.settings.feeder_id, device_id=self.settings.device_id,
-                            kind=self.settings.kind, protocol="dnp3", endpoint=self.master.endpoint[:200],
-                            state=self.state, scans=self.scans, scan_failures=self.scan_failures,
-                            frames=self.frames, refused=dict(self.refused), commands=self.commands,
-                            commands_failed=self.commands_failed, last_ok_t_ns=self.last_ok_t_ns,
-                            reason=self.reason[:500], foreign_writes=self.foreign_writes)

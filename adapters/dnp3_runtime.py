@@ -1,9 +1,8 @@
 """``cvvc adapter dnp3``'s process: one regulator control or capacitor bank controller behind DNP3 on the bus.
 
-The only module of the DNP3 adapter that knows Zenoh and clocks. One thread reads the outstation on the scan
-period and handles commands between reads, in their order of arrival (Zenoh's callbacks only decode them into a
-bounded :class:`~schemas.bus.Inbox`). On the bus, for feeder ``F``, kind ``K`` (``vr`` or ``cap``) and device
-``D``, as the simulated devices (so the agent cannot tell the difference):
+The outstation and its device, run by the adapters' loop (``adapters.runtime``: one thread reads the outstation
+on the scan period and handles commands between reads, in their order of arrival). On the bus, for feeder ``F``,
+kind ``K`` (``vr`` or ``cap``) and device ``D``, as the simulated devices (so the agent cannot tell the difference):
 
 * ``cvvc/F/meas/K/D`` ``RegFrame`` / ``CapFrame`` at every read with valid values, stamped with the scan's time
   (a multiple of the scan period on the adapter's clock, UTC);
@@ -30,14 +29,14 @@ from msgspec import Meta
 
 from adapters.dnp3 import Dnp3Master
 from adapters.dnp3_device import Dnp3Device, Dnp3DeviceSettings
+from adapters.runtime import run_device
 from schemas import keys
 from schemas import messages as m
-from schemas.bus import BusConfig, Inbox, LivelinessWatcher, Received, TypedPublisher, open_session
+from schemas.bus import BusConfig
 
 __all__ = ["Dnp3AdapterConfig", "run_dnp3_adapter"]
 
 log = logging.getLogger(__name__)
-_MAX_WAIT_S = 0.2  # the loop looks at its clock at least this often [s]
 
 
 class Dnp3AdapterConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
@@ -65,23 +64,13 @@ class Dnp3AdapterConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknow
     control_type: m.CapControlType = "none"
 
 
-class _SenderGone(msgspec.Struct, frozen=True):
-    """An agent's liveliness token was withdrawn: its command sequence ends."""
-
-    source: str
-
-
 def run_dnp3_adapter(config: Dnp3AdapterConfig, bus: BusConfig, *, stop: threading.Event,
                      clock_ns: Callable[[], int] = time.time_ns,
                      ready: threading.Event | None = None) -> m.LinkStatus:
-    """Run until ``stop`` is set; returns the last ``LinkStatus``.
+    """Run the outstation as ``config`` says until ``stop`` is set; returns the last ``LinkStatus``.
 
-    Parameters
-    ----------
-    config : the adapter's settings. bus : how to join the bus.
-    stop : set it to end the run (the token is withdrawn, a last status is published, the link closed).
-    clock_ns : the adapter's clock [ns since the epoch]: frame times, command windows, hold times.
-    ready : set once the adapter is on the bus (tests wait for it).
+    ``bus``, ``stop``, ``clock_ns`` (frame times, command windows, hold times) and ``ready`` are
+    :func:`adapters.runtime.run_device`'s.
     """
     master = Dnp3Master(config.dnp3, address=config.master_address, outstation_address=config.outstation_address,
                         timeout_s=config.timeout_s)
@@ -89,58 +78,9 @@ def run_dnp3_adapter(config: Dnp3AdapterConfig, bus: BusConfig, *, stop: threadi
     device = Dnp3Device(Dnp3DeviceSettings(feeder_id=f, device_id=d, kind=k,
                                            control_period_ns=int(config.control_period_s * 1e9), phase=config.phase,
                                            kvar_rated=config.kvar_rated, control_type=config.control_type), master)
-    period_ns = int(config.scan_period_s * 1e9)
-    frame_type: type[m.RegFrame] | type[m.CapFrame] = m.RegFrame if k == "vr" else m.CapFrame
-    cmd_type: type[m.RegCommand] | type[m.CapCommand] = m.RegCommand if k == "vr" else m.CapCommand
-    with open_session(bus) as session:
-        pub_frame = TypedPublisher(session, keys.meas_vr(f, d) if k == "vr" else keys.meas_cap(f, d), frame_type)
-        pub_ack = TypedPublisher(session, keys.ack(f, k, d), m.Ack, reliable=True)
-        pub_status = TypedPublisher(session, keys.link(f, k, d), m.LinkStatus, reliable=True)
-        inbox = Inbox(maxsize=256)
-        inbox.subscribe(session, keys.cmd(f, k, d), cmd_type)
-        token = session.liveliness().declare_token(keys.alive(f, k, d))
-
-        def on_agent(key: str, up: bool) -> None:  # a Zenoh thread: only enqueue, in order with the commands
-            if not up:
-                inbox.queue.put(Received(key, _SenderGone(key.rsplit("/", 1)[-1]), time.time_ns(), b""))
-
-        agents = LivelinessWatcher(session, f"{keys.ROOT}/{f}/alive/agent/*", on_agent)
-        master.open()
-        status = device.status(clock_ns())
-        pub_status.put(status)
-        if ready is not None:
-            ready.set()
-        next_scan = clock_ns() // period_ns * period_ns
-        last_state, status_due = device.state, time.monotonic() + config.status_period_s
-        try:
-            while not stop.is_set():
-                now = clock_ns()
-                if now >= next_scan:
-                    t = max(next_scan, now // period_ns * period_ns)  # a late loop skips to the present scan
-                    expired = device.expired(t)
-                    if expired is not None:
-                        pub_ack.put(expired)
-                    frame = device.scan(t)
-                    if frame is not None:
-                        pub_frame.put(frame)
-                    next_scan = t + period_ns
-                if device.state != last_state or time.monotonic() >= status_due:
-                    status = device.status(clock_ns())
-                    pub_status.put(status)
-                    last_state, status_due = device.state, time.monotonic() + config.status_period_s
-                item = inbox.get(timeout_s=min(max((next_scan - clock_ns()) / 1e9, 0.0), _MAX_WAIT_S))
-                if item is None:
-                    continue
-                msg = item.msg
-                if isinstance(msg, _SenderGone):
-                    device.guard.forget_source(msg.source)
-                elif isinstance(msg, m.RegCommand | m.CapCommand):
-                    pub_ack.put(device.command(msg, clock_ns()))
-        finally:
-            agents.undeclare()
-            token.undeclare()
-            inbox.undeclare()
-            master.close()
-            status = device.status(clock_ns())
-            pub_status.put(status)
-    return status
+    return run_device(device, bus, feeder_id=f, device_id=d, kind=k,
+                      frame_key=keys.meas_vr(f, d) if k == "vr" else keys.meas_cap(f, d),
+                      frame_type=m.RegFrame if k == "vr" else m.CapFrame,
+                      cmd_type=m.RegCommand if k == "vr" else m.CapCommand, scan_period_s=config.scan_period_s,
+                      status_period_s=config.status_period_s, stop=stop, clock_ns=clock_ns, ready=ready,
+                      open_link=master.open, close_link=master.close)

@@ -31,14 +31,14 @@ from __future__ import annotations
 
 import logging
 import math
-from collections import Counter
 from dataclasses import dataclass
 from typing import Literal
 
+from adapters.device import LinkedDevice
+from adapters.device import rejected as _rejected
 from adapters.errors import DeviceRefusedError, LinkDownError, ModelMissingError, RegisterValueError
 from adapters.sunspec import InverterReading, SunSpecLink
 from schemas import messages as m
-from schemas.logs import RateLimitedLog
 from simulator_bridge.field import devices as dv
 
 __all__ = ["PlantSettings", "SunSpecPlant"]
@@ -71,32 +71,27 @@ class PlantSettings:
     set_local_mode: bool = False
 
 
-def _rejected(kind: str, why: str) -> dv.Verdict:
-    return dv.Verdict(status="rejected", reason=f"{kind}: {why}", reason_kind=kind)
-
-
-class SunSpecPlant:
+class SunSpecPlant(LinkedDevice):
     """One inverter's scans and commands. Not thread safe: the adapter's loop is its only user."""
 
     def __init__(self, settings: PlantSettings, link: SunSpecLink) -> None:
+        super().__init__(settings.feeder_id, settings.device_id, "pv", "sunspec", log)
         self.settings = settings
         self.link = link
         self.plant = dv.PvInverter(settings.device_id, 0, 1.0, settings.local_mode,
                                    period_ns=settings.control_period_ns)
-        self.state: Literal["starting", "ok", "down", "refusing"] = "starting"
-        self.reason = ""
         self.last: InverterReading | None = None
-        self.last_ok_t_ns = 0
-        self.scans = self.scan_failures = self.frames = 0
-        self.commands = self.commands_failed = 0
-        self.refused: Counter[str] = Counter()
         self.local_mode_writes = self.local_mode_failures = 0  # 705 Ena written to set the local mode (failed)
-        self.acks: Counter[str] = Counter()
-        self.foreign_writes = 0  # scans that found a set point this adapter did not write (re-asserted)
-        self._seq = 0
-        self._ack_seq = 0
-        self._status_seq = 0
-        self.rlog = RateLimitedLog(log, period_s=10.0)
+
+    @property
+    def guard(self) -> dv.CommandGuard:
+        """The inverter's command guard."""
+        return self.plant.guard
+
+    @property
+    def endpoint(self) -> str:
+        """The inverter's Modbus endpoint."""
+        return self.link.endpoint
 
     # ------------------------------------------------------------------------------------------- scans
     def scan(self, t_ns: int) -> m.PvFrame | None:
@@ -162,11 +157,6 @@ class SunSpecPlant:
                               self.settings.device_id, e)
             return r
 
-    def _fail(self, state: Literal["down", "refusing"], why: str) -> None:
-        self.scan_failures += 1
-        self.state, self.reason = state, why
-        self.rlog.warning(state, "%s: no frame: %s", self.settings.device_id, why)
-
     def _frame(self, r: InverterReading, t_ns: int) -> m.PvFrame:
         by_phase = {p.phase: p for p in r.phases}
         p = [by_phase[ph].p_kw if ph in by_phase else 0.0 for ph in "abc"]
@@ -200,15 +190,8 @@ class SunSpecPlant:
         h = math.sqrt(max(r.s_rated_kva**2 - p**2, 0.0)) if p > 0.0 or self.settings.q_at_night else 0.0
         return min(h, r.var_max_inj_kvar), min(h, r.var_max_abs_kvar)
 
-    def command(self, cmd: m.PvCommand, now_t_ns: int) -> m.Ack:
-        """Check, write and read back one command at the adapter's time ``now_t_ns`` [ns]; its ack."""
-        self.commands += 1
-        verdict = self.plant.check(cmd, now_t_ns=now_t_ns) or self._apply(cmd, now_t_ns)
-        if verdict.status == "rejected":
-            self.commands_failed += 1
-            self.rlog.info("command_rejected", "%s: rejected command %s: %s", self.settings.device_id,
-                           cmd.cmd_id, verdict.reason)
-        return self._ack(cmd.cmd_id, verdict, now_t_ns)
+    def _verdict(self, cmd: m.PvCommand, now_t_ns: int) -> dv.Verdict:
+        return self.plant.check(cmd, now_t_ns=now_t_ns) or self._apply(cmd, now_t_ns)
 
     def _apply(self, cmd: m.PvCommand, now_t_ns: int) -> dv.Verdict:
         if self.state == "down" or self.last is None:
@@ -239,21 +222,3 @@ class SunSpecPlant:
         return dv.Verdict(status="clipped", applied_value=applied,
                           reason=f"{cmd.q_kvar:.3f} kvar is beyond what the inverter gives now (inject "
                                  f"{inj:.3f}, absorb {absorb:.3f} kvar); it applied {applied:.3f} kvar")
-
-    def _ack(self, cmd_id: str, verdict: dv.Verdict, t_ns: int) -> m.Ack:
-        self._ack_seq += 1
-        self.acks[verdict.status] += 1
-        return dv.make_ack(device_id=self.settings.device_id, source=self.settings.device_id, cmd_id=cmd_id,
-                           verdict=verdict, t_ns=max(int(t_ns), 0), seq=self._ack_seq)
-
-    # ------------------------------------------------------------------------------------------ status
-    def status(self, t_ns: int) -> m.LinkStatus:
-        """The link's ``LinkStatus`` at ``t_ns`` [ns]."""
-        self._status_seq += 1
-        return m.LinkStatus(t_ns=max(int(t_ns), 0), seq=self._status_seq, source=self.settings.device_id,
-                            feeder_id=self.settings.feeder_id, device_id=self.settings.device_id,
-                            endpoint=self.link.endpoint[:200], state=self.state, scans=self.scans,
-                            scan_failures=self.scan_failures, frames=self.frames, refused=dict(self.refused),
-                            commands=self.commands, commands_failed=self.commands_failed,
-                            last_ok_t_ns=self.last_ok_t_ns, reason=self.reason[:500],
-                            foreign_writes=self.foreign_writes)

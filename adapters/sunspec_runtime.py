@@ -1,8 +1,8 @@
 """``cvvc adapter sunspec``'s process: one PV inverter behind SunSpec Modbus TCP as a device of the cvvc bus.
 
-The only module of the adapter that knows Zenoh and clocks. One thread does everything that touches the
-inverter (pysunspec2's client is not thread safe): it scans on the scan period and handles commands between
-scans, in their order of arrival (Zenoh's callbacks only decode them into a bounded :class:`~schemas.bus.Inbox`).
+The inverter and its plant, run by the adapters' loop (``adapters.runtime``: one thread does everything that
+touches the inverter, as pysunspec2's client is not thread safe; it scans on the scan period and handles commands
+between scans, in their order of arrival).
 
 On the bus, for feeder ``F`` and device ``D`` (as the simulated plants, so the agent cannot tell the difference):
 
@@ -33,17 +33,17 @@ import msgspec
 from msgspec import Meta
 
 from adapters.errors import AdapterError
+from adapters.runtime import run_device
 from adapters.sunspec import SunSpecLink
 from adapters.sunspec_plant import PlantSettings, SunSpecPlant
 from schemas import keys
 from schemas import messages as m
-from schemas.bus import BusConfig, Inbox, LivelinessWatcher, Received, TypedPublisher, open_session
+from schemas.bus import BusConfig
 
 __all__ = ["AdapterConfig", "parse_modbus_endpoint", "run_adapter"]
 
 log = logging.getLogger(__name__)
 _ENDPOINT = re.compile(r"^tcp/(?P<host>[A-Za-z0-9_.\-]+|\[[0-9A-Fa-f:.]+\]):(?P<port>[0-9]{1,5})$")
-_MAX_WAIT_S = 0.2  # the loop looks at its clock at least this often [s]
 
 
 class AdapterConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
@@ -72,12 +72,6 @@ class AdapterConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fi
     set_local_mode: bool = False
 
 
-class _SenderGone(msgspec.Struct, frozen=True):
-    """An agent's liveliness token was withdrawn: its command sequence ends."""
-
-    source: str
-
-
 def parse_modbus_endpoint(text: str) -> tuple[str, int]:
     """``tcp/HOST:PORT`` -> (host, port); AdapterError for anything else."""
     match = _ENDPOINT.match(text)
@@ -90,14 +84,10 @@ def parse_modbus_endpoint(text: str) -> tuple[str, int]:
 def run_adapter(config: AdapterConfig, bus: BusConfig, *, stop: threading.Event,
                 clock_ns: Callable[[], int] = time.time_ns,
                 ready: threading.Event | None = None) -> m.LinkStatus:
-    """Run until ``stop`` is set; returns the last ``LinkStatus``.
+    """Run the inverter as ``config`` says until ``stop`` is set; returns the last ``LinkStatus``.
 
-    Parameters
-    ----------
-    config : the adapter's settings. bus : how to join the bus.
-    stop : set it to end the run (the token is withdrawn, a last status is published, the link closed).
-    clock_ns : the adapter's clock [ns since the epoch]: frame times, command windows, revert timers.
-    ready : set once the adapter is on the bus (tests wait for it).
+    ``bus``, ``stop``, ``clock_ns`` (frame times, command windows, revert timers) and ``ready`` are
+    :func:`adapters.runtime.run_device`'s.
     """
     host, port = parse_modbus_endpoint(config.modbus)
     link = SunSpecLink(host, port, unit=config.unit, timeout_s=config.timeout_s)
@@ -106,71 +96,7 @@ def run_adapter(config: AdapterConfig, bus: BusConfig, *, stop: threading.Event,
                                        local_mode=config.local_mode, q_at_night=config.q_at_night,
                                        set_local_mode=config.set_local_mode), link)
     f, d = config.feeder_id, config.device_id
-    period_ns = int(config.scan_period_s * 1e9)
-    with open_session(bus) as session:
-        pub_frame = TypedPublisher(session, keys.meas_pv(f, d), m.PvFrame)
-        pub_ack = TypedPublisher(session, keys.ack(f, "pv", d), m.Ack, reliable=True)
-        pub_status = TypedPublisher(session, keys.link(f, "pv", d), m.LinkStatus, reliable=True)
-        inbox = Inbox(maxsize=256)
-        inbox.subscribe(session, keys.cmd(f, "pv", d), m.PvCommand)
-        token = session.liveliness().declare_token(keys.alive(f, "pv", d))
-
-        def on_agent(key: str, up: bool) -> None:  # a Zenoh thread: only enqueue, in order with the commands
-            if not up:
-                inbox.queue.put(Received(key, _SenderGone(key.rsplit("/", 1)[-1]), time.time_ns(), b""))
-
-        agents = LivelinessWatcher(session, f"{keys.ROOT}/{f}/alive/agent/*", on_agent)
-        head_mode = config.clock == "head"
-        head_t = [0]  # the newest feeder-head frame's time [ns] (head clock)
-        if head_mode:
-            inbox.subscribe(session, keys.meas_head(f), m.HeadFrame)
-
-        def device_now() -> int:
-            return head_t[0] if head_mode else clock_ns()
-
-        def scan(t: int) -> None:
-            expired = plant.expired(t)
-            if expired is not None:
-                pub_ack.put(expired)
-            frame = plant.scan(t)
-            if frame is not None:
-                pub_frame.put(frame)
-
-        status = plant.status(device_now())
-        pub_status.put(status)
-        if ready is not None:
-            ready.set()
-        next_scan = clock_ns() // period_ns * period_ns
-        last_state, status_due = plant.state, time.monotonic() + config.status_period_s
-        try:
-            while not stop.is_set():
-                now = clock_ns()
-                if not head_mode and now >= next_scan:
-                    t = max(next_scan, now // period_ns * period_ns)  # a late loop skips to the present scan
-                    scan(t)
-                    next_scan = t + period_ns
-                if plant.state != last_state or time.monotonic() >= status_due:
-                    status = plant.status(device_now())
-                    pub_status.put(status)
-                    last_state, status_due = plant.state, time.monotonic() + config.status_period_s
-                wait_s = _MAX_WAIT_S if head_mode else min(max((next_scan - clock_ns()) / 1e9, 0.0), _MAX_WAIT_S)
-                item = inbox.get(timeout_s=wait_s)
-                if item is None:
-                    continue
-                msg = item.msg
-                if isinstance(msg, _SenderGone):
-                    plant.plant.guard.forget_source(msg.source)
-                elif isinstance(msg, m.HeadFrame):
-                    if msg.t_ns > head_t[0]:  # a repeated or older head frame moves nothing
-                        head_t[0] = msg.t_ns
-                        scan(msg.t_ns)
-                else:
-                    pub_ack.put(plant.command(msg, device_now()))
-        finally:
-            agents.undeclare()
-            token.undeclare()
-            inbox.undeclare()
-            link.close()
-            status = plant.status(device_now())
-            pub_status.put(status)
-    return status
+    return run_device(plant, bus, feeder_id=f, device_id=d, kind="pv", frame_key=keys.meas_pv(f, d),
+                      frame_type=m.PvFrame, cmd_type=m.PvCommand, scan_period_s=config.scan_period_s,
+                      status_period_s=config.status_period_s, stop=stop, clock_ns=clock_ns, ready=ready,
+                      close_link=link.close, head_clock=config.clock == "head")

@@ -24,9 +24,10 @@ fields used). A month of truth is streamed (``cvvc.run_trace.TruthSeries``): not
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
-from typing import TYPE_CHECKING, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import msgspec
 import numpy as np
@@ -304,66 +305,60 @@ def envelope_figure(traces: dict[str, RunTrace], title: str):
     return fig
 
 
-def pv_figure(traces: dict[str, RunTrace], title: str):
-    """Each plant's 10-minute average reactive power [kvar, + injects], one panel per trace (same scale)."""
+def _panels_figure(traces: dict[str, RunTrace], title: str, ylabel: str, draw: Callable[[Any, str, RunTrace], None]):
+    """One panel per trace (same scales, the time axis below), each drawn by ``draw(ax, label, trace)``."""
     plt = _plt()
     n = len(traces)
     fig, axes = plt.subplots(n, 1, figsize=(11, 2.4 * n + 0.6), sharex=True, sharey=True, squeeze=False)
     for ax, (label, tr) in zip(axes[:, 0], traces.items(), strict=True):
-        x = _clock(tr.t_ns)
-        for k in range(tr.pv_q_kvar.shape[1]):
-            name = tr.pv_ids[k] if k < len(tr.pv_ids) else f"pv{k}"
-            ax.plot(x[: tr.pv_q_kvar.shape[0]], tr.pv_q_kvar[:, k], color=f"C{k}", lw=0.8, label=name,
-                    **_style(label))
-        ax.axhline(0.0, color="k", lw=0.5)
-        ax.set_ylabel(Q_LABEL)
+        draw(ax, label, tr)
+        ax.set_ylabel(ylabel)
         ax.set_title(_panel_title(label), fontsize=9)
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7, **_LEGEND)
     _time_axis(axes[-1, 0], traces)
     fig.suptitle(title)
     return fig
+
+
+def _draw_pv(ax, label: str, tr: RunTrace) -> None:
+    x = _clock(tr.t_ns)
+    for k in range(tr.pv_q_kvar.shape[1]):
+        name = tr.pv_ids[k] if k < len(tr.pv_ids) else f"pv{k}"
+        ax.plot(x[: tr.pv_q_kvar.shape[0]], tr.pv_q_kvar[:, k], color=f"C{k}", lw=0.8, label=name, **_style(label))
+    ax.axhline(0.0, color="k", lw=0.5)
+
+
+def _draw_taps(ax, label: str, tr: RunTrace) -> None:
+    x = _clock(tr.step_t_ns)
+    for r in range(tr.taps.shape[1]):
+        name = tr.regulator_ids[r] if r < len(tr.regulator_ids) else f"reg{r}"
+        ax.step(x, tr.taps[:, r], where="post", color=f"C{r}", lw=0.8, label=name, **_style(label))
+
+
+def _draw_caps(ax, label: str, tr: RunTrace) -> None:
+    x = _clock(tr.step_t_ns)
+    for c in range(tr.cap_states.shape[1]):
+        name = tr.capacitor_ids[c] if c < len(tr.capacitor_ids) else f"cap {c}"
+        states = tr.cap_states[:, c]
+        switches = int(np.abs(np.diff(states)).sum())
+        ax.step(x, states + 0.04 * c, where="post", color=f"C{c}", lw=0.9,
+                label=f"{name} ({switches} switchings)", **_style(label))
+
+
+def pv_figure(traces: dict[str, RunTrace], title: str):
+    """Each plant's 10-minute average reactive power [kvar, + injects], one panel per trace (same scale)."""
+    return _panels_figure(traces, title, Q_LABEL, _draw_pv)
 
 
 def taps_figure(traces: dict[str, RunTrace], title: str):
     """Each regulator's tap position [steps] over time, one panel per trace (same scale)."""
-    plt = _plt()
-    n = len(traces)
-    fig, axes = plt.subplots(n, 1, figsize=(11, 2.4 * n + 0.6), sharex=True, sharey=True, squeeze=False)
-    for ax, (label, tr) in zip(axes[:, 0], traces.items(), strict=True):
-        x = _clock(tr.step_t_ns)
-        for r in range(tr.taps.shape[1]):
-            name = tr.regulator_ids[r] if r < len(tr.regulator_ids) else f"reg{r}"
-            ax.step(x, tr.taps[:, r], where="post", color=f"C{r}", lw=0.8, label=name, **_style(label))
-        ax.set_ylabel(TAP_LABEL)
-        ax.set_title(_panel_title(label), fontsize=9)
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize=7, **_LEGEND)
-    _time_axis(axes[-1, 0], traces)
-    fig.suptitle(title)
-    return fig
+    return _panels_figure(traces, title, TAP_LABEL, _draw_taps)
 
 
 def caps_figure(traces: dict[str, RunTrace], title: str):
     """Each capacitor bank's closed steps at every step, one panel per run; switchings in the legend."""
-    plt = _plt()
-    n = len(traces)
-    fig, axes = plt.subplots(n, 1, figsize=(11, 2.4 * n + 0.6), sharex=True, sharey=True, squeeze=False)
-    for ax, (label, tr) in zip(axes[:, 0], traces.items(), strict=True):
-        x = _clock(tr.step_t_ns)
-        for c in range(tr.cap_states.shape[1]):
-            name = tr.capacitor_ids[c] if c < len(tr.capacitor_ids) else f"cap {c}"
-            states = tr.cap_states[:, c]
-            switches = int(np.abs(np.diff(states)).sum())
-            ax.step(x, states + 0.04 * c, where="post", color=f"C{c}", lw=0.9,
-                    label=f"{name} ({switches} switchings)", **_style(label))
-        ax.set_ylabel("closed steps")
-        ax.set_title(_panel_title(label), fontsize=9)
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize=7, **_LEGEND)
-    _time_axis(axes[-1, 0], traces)
-    fig.suptitle(title)
-    return fig
+    return _panels_figure(traces, title, "closed steps", _draw_caps)
 
 
 def errors_figure(traces: dict[str, RunTrace], title: str):

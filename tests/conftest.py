@@ -1,5 +1,5 @@
 """Shared fixtures (free loopback ports, a router-mode Zenoh session, paths to the shared test feeders, a trained
-IEEE 13 model, the profile cache) and the test tiers.
+IEEE 13 model, the profile cache, a clock the test sets and simulated DNP3 outstations on it) and the test tiers.
 
 Tiers (docs/testing.md): a test that opens a Zenoh session is marked ``bus``, one that starts processes (``cvvc``
 programs, a Dask cluster, a publisher process) ``process``, one that trains a model on a real feeder or runs a
@@ -29,6 +29,7 @@ _MARKS_BY_FIXTURE: dict[str, tuple[str, ...]] = {
     "campaign_out": ("process", "slow"),  # tests/cvvc/test_campaign.py: a campaign of evaluations on them
     "model13": ("process", "slow"),       # tests/reliability/conftest.py: ``cvvc train`` as a program
     "procs": ("process",),                # tests/reliability/conftest.py: ``cvvc`` programs on the bus
+    "cvvc_program": ("process",),         # tests/adapters/conftest.py: ``cvvc adapter`` programs
     "ieee13_model": ("slow",),            # IEEE 13 trained on real power flows
     "trained_123": ("slow",),             # tests/training/conftest.py: IEEE 123 trained on real power flows
     "models": ("slow",),                  # tests/training/test_extended.py: IEEE 13 with banks, trained twice
@@ -116,3 +117,61 @@ def profile_cache(tmp_path_factory) -> Path:
     folder = tmp_path_factory.getbasetemp() / "profiles"
     folder.mkdir(exist_ok=True)
     return folder
+
+
+class SetClock:
+    """A clock [ns since the epoch] that only the test moves (``t_ns``): simulated devices' timers and adapters."""
+
+    def __init__(self, t_ns: int) -> None:
+        self.t_ns = t_ns
+
+    def __call__(self) -> int:
+        return self.t_ns
+
+
+@pytest.fixture
+def clock() -> SetClock:
+    """A :class:`SetClock` at 1000 s."""
+    return SetClock(1_000 * 10**9)
+
+
+@pytest.fixture
+def regulator_outstation(clock):
+    """Start a simulated regulator control ``reg1`` (DNP3, on ``clock``, a free port) with the measurements given
+    as keywords (``set_measurements``) and, if given, its ``setpoint_range_v120``; it stops at the end of the test.
+    """
+    from contextlib import ExitStack
+
+    from schemas.bus import free_port
+    from simulator_bridge.field.dnp3_sim import SimulatedRegulatorControl
+
+    with ExitStack() as stack:
+        def start(setpoint_range_v120=None, **measurements):
+            limits = {} if setpoint_range_v120 is None else {"setpoint_range_v120": setpoint_range_v120}
+            sim = stack.enter_context(SimulatedRegulatorControl(
+                regulator_id="reg1", tap_max=16, default_setpoint_v120=120.0, default_band_v120=2.0,
+                port=free_port(), clock_ns=clock, **limits))
+            sim.set_measurements(**measurements)
+            return sim
+
+        yield start
+
+
+@pytest.fixture
+def bank_outstation(clock):
+    """Start a simulated capacitor bank controller ``cap1`` (DNP3, on ``clock``, a free port), open, measuring
+    ``v_v`` [V] without a control value; it stops at the end of the test.
+    """
+    from contextlib import ExitStack
+
+    from schemas.bus import free_port
+    from simulator_bridge.field.dnp3_sim import SimulatedCapBankController
+
+    with ExitStack() as stack:
+        def start(v_v: float):
+            sim = stack.enter_context(SimulatedCapBankController(capacitor_id="cap1", port=free_port(),
+                                                                 clock_ns=clock))
+            sim.set_measurements(closed=False, v_v=v_v, control_value=None)
+            return sim
+
+        yield start

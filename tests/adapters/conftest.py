@@ -1,15 +1,21 @@
-"""Fixtures of the adapter tests: a simulated SunSpec inverter on a free loopback port, and its clock."""
+"""Fixtures of the adapter tests: a simulated SunSpec inverter on a free loopback port and its clock, and ``cvvc``
+programs run as processes."""
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from pathlib import Path
 
 import pytest
 
 from schemas.bus import free_port
 from simulator_bridge.field.sunspec_sim import SimulatedSunSpecInverter
 
+REPO = Path(__file__).resolve().parents[2]
 RATING_KVA = 1000.0
 P_PHASE_KW = 200.0  # 600 kW: headroom sqrt(1000² − 600²) = 800 kvar
 
@@ -48,3 +54,25 @@ def open_inverter(inverter_clock) -> Iterator[SimulatedSunSpecInverter]:
     """An inverter that takes writes from any Modbus connection (no master setting): a second master can write."""
     with _inverter(inverter_clock, single_master=False) as inv:
         yield inv
+
+
+@pytest.fixture
+def cvvc_program() -> Iterator[Callable[..., subprocess.Popen]]:
+    """Start ``python -m cvvc ARGS...`` (this checkout first on the path, text pipes); those still running at the
+    end of the test are killed.
+    """
+    env = dict(os.environ)
+    env["PYTHONPATH"] = str(REPO) + os.pathsep + env.get("PYTHONPATH", "")
+    started: list[subprocess.Popen] = []
+
+    def start(*args: str) -> subprocess.Popen:
+        proc = subprocess.Popen([sys.executable, "-m", "cvvc", *args], env=env, stdout=subprocess.PIPE,
+                                stderr=subprocess.PIPE, text=True)
+        started.append(proc)
+        return proc
+
+    yield start
+    for proc in started:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate(timeout=20)

@@ -4,12 +4,8 @@ with its last link status written; a non-loopback endpoint refused before the bu
 
 from __future__ import annotations
 
-import os
 import signal
-import subprocess
-import sys
 import time
-from pathlib import Path
 
 import msgspec
 import pytest
@@ -21,29 +17,19 @@ from simulator_bridge.field.dnp3_sim import SimulatedRegulatorControl
 
 pytestmark = [pytest.mark.bus, pytest.mark.process]  # a ``cvvc adapter`` program on a router
 
-REPO = Path(__file__).resolve().parents[2]
-
-
-def _cvvc(*args: str) -> subprocess.Popen:
-    env = dict(os.environ)
-    env["PYTHONPATH"] = str(REPO) + os.pathsep + env.get("PYTHONPATH", "")
-    return subprocess.Popen([sys.executable, "-m", "cvvc", *args], env=env, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)
-
-
-def test_the_adapter_puts_a_regulators_frames_on_the_bus_and_stops_cleanly(router_endpoint, tmp_path):
+def test_the_adapter_puts_a_regulators_frames_on_the_bus_and_stops_cleanly(router_endpoint, tmp_path,
+                                                                           cvvc_program):
     sim = SimulatedRegulatorControl(regulator_id="reg7", tap_max=16, default_setpoint_v120=121.0,
                                     default_band_v120=2.0, port=free_port(), clock_ns=time.time_ns)
     summary = tmp_path / "link.json"
-    adapter = None
     with sim, open_session(BusConfig(mode="peer", connect=(router_endpoint,))) as session:
         sim.set_measurements(v_compared_120=120.5, tap=-2, load_current_a=90.0)
         inbox = Inbox()
         inbox.subscribe(session, keys.meas_vr("f9", "reg7"))
         try:
-            adapter = _cvvc("adapter", "dnp3", "--feeder-id", "f9", "--device", "reg7", "--kind", "vr",
-                            "--dnp3", sim.endpoint, "--scan-period-s", "0.2", "--status-period-s", "0.5",
-                            "--summary-out", str(summary), "--connect", router_endpoint, "--insecure")
+            adapter = cvvc_program("adapter", "dnp3", "--feeder-id", "f9", "--device", "reg7", "--kind", "vr",
+                                   "--dnp3", sim.endpoint, "--scan-period-s", "0.2", "--status-period-s", "0.5",
+                                   "--summary-out", str(summary), "--connect", router_endpoint, "--insecure")
             got: list = []
 
             def frame_seen() -> bool:
@@ -60,14 +46,11 @@ def test_the_adapter_puts_a_regulators_frames_on_the_bus_and_stops_cleanly(route
             status = msgspec.json.decode(summary.read_bytes(), type=m.LinkStatus)
             assert (status.protocol, status.kind, status.state) == ("dnp3", "vr", "ok") and status.frames >= 1
         finally:
-            if adapter is not None and adapter.poll() is None:
-                adapter.kill()
-                adapter.communicate(timeout=20)
             inbox.undeclare()
 
 
-def test_a_non_loopback_endpoint_exits_2_before_joining_the_bus():
-    proc = _cvvc("adapter", "dnp3", "--feeder-id", "f9", "--device", "reg7", "--dnp3", "tcp/192.0.2.5:20000",
-                 "--insecure")
+def test_a_non_loopback_endpoint_exits_2_before_joining_the_bus(cvvc_program):
+    proc = cvvc_program("adapter", "dnp3", "--feeder-id", "f9", "--device", "reg7", "--dnp3",
+                        "tcp/192.0.2.5:20000", "--insecure")
     out, err = proc.communicate(timeout=60)
     assert proc.returncode == 2 and "loopback only" in err

@@ -11,42 +11,21 @@ import pytest
 from adapters.dnp3 import Dnp3Master
 from adapters.dnp3_device import Dnp3Device, Dnp3DeviceSettings
 from schemas import messages as m
-from schemas.bus import free_port
-from simulator_bridge.field.dnp3_sim import RegulatorPoints, SimulatedCapBankController, SimulatedRegulatorControl
+from simulator_bridge.field.dnp3_sim import RegulatorPoints
 
 S = 1_000_000_000
 PERIOD_NS = 300 * S
 _OPEN_S = 10.0
 
 
-class _Clock:
-    def __init__(self) -> None:
-        self.t_ns = 1_000_000 * S
-
-    def __call__(self) -> int:
-        return self.t_ns
+@pytest.fixture
+def reg_sim(regulator_outstation):
+    return regulator_outstation(v_compared_120=121.5, tap=4, load_current_a=180.0)
 
 
 @pytest.fixture
-def clock() -> _Clock:
-    return _Clock()
-
-
-@pytest.fixture
-def reg_sim(clock):
-    sim = SimulatedRegulatorControl(regulator_id="reg1", tap_max=16, default_setpoint_v120=120.0,
-                                    default_band_v120=2.0, port=free_port(), clock_ns=clock)
-    with sim:
-        sim.set_measurements(v_compared_120=121.5, tap=4, load_current_a=180.0)
-        yield sim
-
-
-@pytest.fixture
-def cap_sim(clock):
-    sim = SimulatedCapBankController(capacitor_id="cap1", port=free_port(), clock_ns=clock)
-    with sim:
-        sim.set_measurements(closed=False, v_v=2400.0, control_value=None)
-        yield sim
+def cap_sim(bank_outstation):
+    return bank_outstation(v_v=2400.0)
 
 
 def _device(sim, kind: str) -> Dnp3Device:
@@ -176,21 +155,18 @@ def test_a_rogue_masters_operate_is_found_at_the_next_read_counted_and_undone(re
     assert reg.scan(now + 120 * S) is not None and reg.foreign_writes == 1
 
 
-def test_a_set_point_the_device_refuses_is_rejected_with_its_status_and_counted_by_point(clock):
-    sim = SimulatedRegulatorControl(regulator_id="reg1", tap_max=16, default_setpoint_v120=120.0,
-                                    default_band_v120=2.0, port=free_port(), clock_ns=clock,
-                                    setpoint_range_v120=(114.0, 126.0))  # a control with narrower limits
-    with sim:
-        sim.set_measurements(v_compared_120=121.5, tap=4, load_current_a=180.0)
-        dev = _device(sim, "vr")
-        try:
-            now = clock.t_ns
-            assert dev.scan(now) is not None
-            ack = dev.command(_reg_cmd(130.0, now), now)  # within the command contract, beyond the device's
-            assert ack.status == "rejected" and ack.reason.startswith("device_refused")
-            assert "OUT_OF_RANGE" in ack.reason
-            assert dev.refused == {"ao0:OUT_OF_RANGE": 1} and dev.commands_failed == 1
-            assert sim.setpoint_in_force() is None and sim.refused_operates == 1
-            assert dev.command(_reg_cmd(125.0, now, seq=2), now).status == "accepted"
-        finally:
-            dev.master.close()
+def test_a_set_point_the_device_refuses_is_rejected_with_its_status_and_counted_by_point(regulator_outstation, clock):
+    sim = regulator_outstation(setpoint_range_v120=(114.0, 126.0),  # a control with narrower limits
+                               v_compared_120=121.5, tap=4, load_current_a=180.0)
+    dev = _device(sim, "vr")
+    try:
+        now = clock.t_ns
+        assert dev.scan(now) is not None
+        ack = dev.command(_reg_cmd(130.0, now), now)  # within the command contract, beyond the device's
+        assert ack.status == "rejected" and ack.reason.startswith("device_refused")
+        assert "OUT_OF_RANGE" in ack.reason
+        assert dev.refused == {"ao0:OUT_OF_RANGE": 1} and dev.commands_failed == 1
+        assert sim.setpoint_in_force() is None and sim.refused_operates == 1
+        assert dev.command(_reg_cmd(125.0, now, seq=2), now).status == "accepted"
+    finally:
+        dev.master.close()

@@ -11,7 +11,6 @@ import socket
 import pytest
 
 from adapters.dnp3 import Dnp3LinkError, Dnp3Master
-from schemas.bus import free_port
 from simulator_bridge.field.dnp3_sim import (
     CapBankPoints,
     Dnp3SimError,
@@ -26,34 +25,14 @@ _OPEN_S = 10.0  # the bound on a channel opening on loopback [s]
 _S = 10**9
 
 
-class _Clock:
-    def __init__(self) -> None:
-        self.t_ns = 1_000 * _S
-
-    def __call__(self) -> int:
-        return self.t_ns
+@pytest.fixture
+def regulator(regulator_outstation) -> SimulatedRegulatorControl:
+    return regulator_outstation(v_compared_120=121.37, tap=3, load_current_a=210.5)
 
 
 @pytest.fixture
-def clock() -> _Clock:
-    return _Clock()
-
-
-@pytest.fixture
-def regulator(clock: _Clock):
-    reg = SimulatedRegulatorControl(regulator_id="reg1", tap_max=16, default_setpoint_v120=120.0,
-                                    default_band_v120=2.0, port=free_port(), clock_ns=clock)
-    with reg:
-        reg.set_measurements(v_compared_120=121.37, tap=3, load_current_a=210.5)
-        yield reg
-
-
-@pytest.fixture
-def bank(clock: _Clock):
-    cap = SimulatedCapBankController(capacitor_id="cap1", port=free_port(), clock_ns=clock)
-    with cap:
-        cap.set_measurements(closed=False, v_v=2401.5, control_value=None)
-        yield cap
+def bank(bank_outstation) -> SimulatedCapBankController:
+    return bank_outstation(v_v=2401.5)
 
 
 def _master(device, *, retry_s: float = 0.5) -> Dnp3Master:
@@ -110,7 +89,7 @@ def test_regulator_refuses_out_of_range_unknown_and_blocked_operates_counts_them
 
 
 def test_regulator_set_point_ends_in_the_device_at_its_hold_time_and_hold_zero_releases_it(
-        regulator: SimulatedRegulatorControl, clock: _Clock) -> None:
+        regulator: SimulatedRegulatorControl, clock) -> None:
     with _master(regulator) as m:
         assert m.operate_analog(RegulatorPoints.AO_HOLD_S, 300.0).ok
         assert m.operate_analog(RegulatorPoints.AO_SETPOINT_120, 123.0).ok
@@ -131,7 +110,7 @@ def test_regulator_set_point_ends_in_the_device_at_its_hold_time_and_hold_zero_r
 
 
 def test_bank_switch_takes_select_before_operate_only_holds_then_returns_to_local_control(
-        bank: SimulatedCapBankController, clock: _Clock) -> None:
+        bank: SimulatedCapBankController, clock) -> None:
     with _master(bank) as m:
         r = m.read()
         assert r.binary_inputs[CapBankPoints.BI_CLOSED] is False

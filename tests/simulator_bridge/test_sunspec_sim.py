@@ -10,21 +10,6 @@ from schemas.bus import free_port
 from simulator_bridge.field.sunspec_sim import SimulatedSunSpecInverter, SunSpecSimError
 
 
-class FakeClock:
-    """The inverter's clock, moved by the test [ns]."""
-
-    def __init__(self) -> None:
-        self.t_ns = 1_000_000_000_000
-
-    def __call__(self) -> int:
-        return self.t_ns
-
-
-@pytest.fixture
-def clock() -> FakeClock:
-    return FakeClock()
-
-
 @pytest.fixture
 def inverter(clock):
     inv = SimulatedSunSpecInverter(plant_id="pv1", s_rated_kva=1860.0, v_nominal_v=7200.0, port=free_port(),
