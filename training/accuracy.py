@@ -112,6 +112,11 @@ class MonthTruth:
     sens_steps: np.ndarray  # (S,) minutes (row index into steps) where sensitivities were perturbed
     sens_q_pu_per_kvar: np.ndarray  # (S, len(nodes), K) perturbation truth
 
+    def corrected_estimate(self, arrays: ModelArrays) -> np.ndarray:
+        """(T, N) the model's corrected estimates (eq. 5-7, as the agent computes them) at these minutes [pu]."""
+        return estimate_v_pu(arrays, self.features, self.taps, self.reg_v120, caps=self.cap_states,
+                             cap_v_v=self.cap_v_v, t_ns=self.t_ns)
+
 
 def simulate_month(
     engine,
@@ -288,8 +293,7 @@ def accuracy_report(
         cols = [col[int(n)] for n in mn]
         v_true = truth.v_pu[:, cols]
         plain = estimate_v_pu(arrays, truth.features, truth.taps, caps=truth.cap_states, t_ns=truth.t_ns) - v_true
-        est_corr = estimate_v_pu(arrays, truth.features, truth.taps, truth.reg_v120, caps=truth.cap_states,
-                                 cap_v_v=truth.cap_v_v, t_ns=truth.t_ns)
+        est_corr = truth.corrected_estimate(arrays)
         corr = est_corr - v_true
         if m.bounds is not None:  # predicted against realised: the share of corrected estimates outside the bounds
             up, lo = np.asarray(m.bounds.upper_pu), np.asarray(m.bounds.lower_pu)

@@ -33,7 +33,6 @@ from typing import NamedTuple
 
 import numpy as np
 
-from regression.batch import estimate_v_pu
 from regression.model import CvvcModel, EstimateBounds, ModelArrays
 from training.ami import ami_estimate_v_pu
 from training.conformal import pooled_bounds
@@ -101,8 +100,7 @@ def calibration_residuals(model: CvvcModel, engine, profiles, *, training_steps:
         truth = simulate_month(engine, profiles, steps, nodes, sens_minutes=0, progress=progress,
                                setpoint_offset_v120=offsets[w])
         keep = np.array([s >= first and s not in held_out for s in truth.steps])
-        est = estimate_v_pu(arrays, truth.features, truth.taps, truth.reg_v120, caps=truth.cap_states,
-                            cap_v_v=truth.cap_v_v, t_ns=truth.t_ns)  # row by row: the warm-up rows too
+        est = truth.corrected_estimate(arrays)  # row by row: the warm-up rows too
         err = truth.v_pu - est
         residuals.append(err[keep])
         windows.append(np.full(int(keep.sum()), w, int))

@@ -23,7 +23,6 @@ Pure numpy.
 
 from __future__ import annotations
 
-import math
 from typing import NamedTuple
 
 import numpy as np
@@ -48,18 +47,20 @@ class PooledBounds(NamedTuple):
     held_out_miss: float
 
 
-def conformal_quantile(scores: np.ndarray, level: float) -> np.ndarray:
-    """Split-conformal quantile of ``scores`` (T, N) along axis 0: the ceil((T + 1) level)-th smallest.
-
-    With too few samples for the level (``ceil((T + 1) level) > T``) it is the largest score (the exact conformal
-    bound would be infinite). Never below 0.
+def _rank(n: int, levels: np.ndarray) -> np.ndarray:
+    """0-based index, in ``n`` sorted scores, of the split-conformal quantile at each of ``levels``: the
+    ceil((n + 1) level)-th smallest, or the largest when there are too few scores for the level (the exact conformal
+    bound would be infinite).
     """
+    return np.minimum(n, np.ceil((n + 1) * np.asarray(levels, float)).astype(int)) - 1
+
+
+def conformal_quantile(scores: np.ndarray, level: float) -> np.ndarray:
+    """Split-conformal quantile of ``scores`` (T, N) along axis 0, node by node (:func:`_rank`); never below 0."""
     s = np.sort(np.asarray(scores, float), axis=0)
-    t = s.shape[0]
-    if t == 0:
+    if s.shape[0] == 0:
         raise ValueError("conformal_quantile: no calibration samples")
-    k = min(t, math.ceil((t + 1) * level))
-    return np.maximum(s[k - 1], 0.0)
+    return np.maximum(s[int(_rank(s.shape[0], np.array([level]))[0])], 0.0)
 
 
 def node_scale(err: np.ndarray) -> np.ndarray:
@@ -76,7 +77,7 @@ def _pooled_quantiles(err: np.ndarray, levels: np.ndarray) -> tuple[np.ndarray, 
     scale = node_scale(err)
     s = (err / scale).ravel()
     hi, lo = np.sort(s), np.sort(-s)
-    k = np.minimum(s.size, np.ceil((s.size + 1) * levels).astype(int)) - 1
+    k = _rank(s.size, levels)
     return scale, np.maximum(hi[k], 0.0), np.maximum(lo[k], 0.0)
 
 

@@ -28,15 +28,12 @@ from pathlib import Path
 import msgspec
 import numpy as np
 
-from regression.batch import estimate_v_pu
 from regression.model import CvvcModel, ModelArrays, read_model
+from training.accuracy import WITHIN_PU
 from training.ami import AMI_SEED, ami_estimate_v_pu, check_ami_options
 from training.errors import TrainingError
 
 __all__ = ["MeterAdvice", "MeterSite", "advise_meters", "rank_sites", "write_advised_map"]
-
-WITHIN_PU = 0.01  # the accuracy band of the offline report [pu]
-
 
 class MeterSite(msgspec.Struct, frozen=True, kw_only=True):
     """One critical node as a meter site: its figures without and with a meter (errors in pu).
@@ -124,8 +121,7 @@ def advise_meters(model_path: str | Path, device_map_path: str | Path, *, k: int
     for month in months:
         steps = month_steps(profiles, month)[: int(minutes)]
         truth = simulate_month(engine, profiles, steps, nodes, sens_minutes=0, progress=progress)
-        est = estimate_v_pu(arrays, truth.features, truth.taps, truth.reg_v120, caps=truth.cap_states,
-                            cap_v_v=truth.cap_v_v, t_ns=truth.t_ns)
+        est = truth.corrected_estimate(arrays)
         errs.append(truth.v_pu - est)
         with_meter = ami_estimate_v_pu(est, truth.v_pu, interval_min=interval_min, noise_pu=noise_pu, latency_min=0,
                                        rng=rng)
