@@ -186,11 +186,10 @@ class Dnp3Device(LinkedDevice):
         try:
             if active is None or active.valid_until_t_ns < t_ns:
                 self._operate_ok(self._hold_index(), 0.0)
-            elif self.settings.kind == "vr" and isinstance(self.reg.action, m.SetpointAction):
-                self.write_setpoint(self.reg.action, active.valid_until_t_ns, t_ns)
-            else:
-                self._write_switch(active.value > 0.0, active.valid_until_t_ns, t_ns)
-            return self.master.read()
+                return self.master.read()
+            if self.settings.kind == "vr" and isinstance(self.reg.action, m.SetpointAction):
+                return self.write_setpoint(self.reg.action, active.valid_until_t_ns, t_ns)  # its read-back
+            return self._write_switch(active.value > 0.0, active.valid_until_t_ns, t_ns)
         except (Dnp3LinkError, _Refused) as e:
             self.rlog.warning("foreign_write_fix", "%s: could not operate again: %s", self.settings.device_id, e)
             return r

@@ -18,7 +18,6 @@ itself. Nothing raises out of the loop but a bus that cannot be opened.
 
 from __future__ import annotations
 
-import logging
 import threading
 import time
 from collections.abc import Callable
@@ -36,7 +35,6 @@ from schemas.bus import BusConfig
 
 __all__ = ["Dnp3AdapterConfig", "run_dnp3_adapter"]
 
-log = logging.getLogger(__name__)
 
 
 class Dnp3AdapterConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):

@@ -75,7 +75,7 @@ def run_device(device: LinkedDevice, bus: BusConfig, *, feeder_id: str, device_i
 
         def on_agent(key: str, up: bool) -> None:  # a Zenoh thread: only enqueue, in order with the commands
             if not up:
-                inbox.queue.put(Received(key, _SenderGone(key.rsplit("/", 1)[-1]), time.time_ns(), b""))
+                inbox.put(Received(key, _SenderGone(key.rsplit("/", 1)[-1]), time.time_ns(), b""))
 
         agents = LivelinessWatcher(session, f"{keys.ROOT}/{f}/alive/agent/*", on_agent)
         head_t = [0]  # the newest feeder-head frame's time [ns] (head clock)

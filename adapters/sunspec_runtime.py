@@ -22,7 +22,6 @@ that cannot be opened.
 
 from __future__ import annotations
 
-import logging
 import re
 import threading
 import time
@@ -42,7 +41,6 @@ from schemas.bus import BusConfig
 
 __all__ = ["AdapterConfig", "parse_modbus_endpoint", "run_adapter"]
 
-log = logging.getLogger(__name__)
 _ENDPOINT = re.compile(r"^tcp/(?P<host>[A-Za-z0-9_.\-]+|\[[0-9A-Fa-f:.]+\]):(?P<port>[0-9]{1,5})$")
 
 

@@ -60,7 +60,6 @@ def bench_decision(
     """
     from agent.runtime import AgentSettings, DecisionMaker, snapshot_from
     from agent.solve import solve_cvvc
-    from agent.solve.settings import OSQP_SETTINGS
     from agent.state import oracle_state
     from regression.model import read_model, write_model
     from schemas import keys
@@ -207,7 +206,7 @@ def bench_decision(
     per_step = np.array(runs) * 1e3  # (repeats, steps) [ms]
     first = per_step[0, 1:]  # the first run; its cold first decision apart
     best = per_step.min(axis=0)[1:]
-    floor = np.array([_osqp_seconds(qp, OSQP_SETTINGS) for qp in _relaxations(model, fid, steps, solve_cvvc)]) * 1e3
+    floor = np.array([_osqp_seconds(qp) for qp in _relaxations(model, fid, steps, solve_cvvc)]) * 1e3
     ca = np.array(case_a_s) * 1e3
     agent_there = per_step[0, case_a_at]
     return DecisionBench(
@@ -280,12 +279,16 @@ def _relaxations(model: Any, fid: str, steps: list[list[tuple[str, Any]]], solve
     return kept[1:]
 
 
-def _osqp_seconds(qp: Any, settings: Any) -> float:
-    """Seconds of OSQP's own set-up and solve of ``qp`` (its polishing on, no warm start, at most 4000 iterations)."""
+def _osqp_seconds(qp: Any) -> float:
+    """Seconds of OSQP's own set-up and solve of ``qp`` with the agent's settings for it (``osqp_settings``), its
+    polishing on, no warm start, at most 4000 iterations.
+    """
     import osqp
+
+    from agent.solve.relaxation import osqp_settings
 
     t0 = time.perf_counter()
     solver = osqp.OSQP(algebra="builtin")
-    solver.setup(qp.P, qp.c, qp.A, qp.lower, qp.upper, **{**settings, "max_iter": 4000, "polishing": True})
+    solver.setup(qp.P, qp.c, qp.A, qp.lower, qp.upper, **{**osqp_settings(qp), "max_iter": 4000, "polishing": True})
     solver.solve(raise_error=False)
     return time.perf_counter() - t0

@@ -31,6 +31,7 @@ from typing import Annotated
 
 import msgspec
 
+from cvvc.case import AGENT_FLAGS
 from cvvc.evaluate import (
     EvaluateConfig,
     EvaluateError,
@@ -107,15 +108,12 @@ def load_campaign(path: str | Path) -> Campaign:
     return campaign
 
 
-_AGENT_KEYS = ("pv_margin_window_s", "setpoint_hold", "control_banks")  # a variant's agent settings of old
-
-
 def variant_agent(variant: Variant, name: str = "") -> AgentOptions:
     """The agent options of a variant: its ``[agent]`` section with the variant-level agent keys laid over it;
     ``EvaluateError`` when the two say different things.
     """
     agent = variant.agent or AgentOptions()
-    for key in _AGENT_KEYS:
+    for key in AGENT_FLAGS:
         value = getattr(variant, key)
         if value is None:
             continue
@@ -148,7 +146,7 @@ def _configs(campaign: Campaign, base: Path, out: Path, *, jobs: int, scheduler:
                                     "files of different names")
             opts = {k: val for k, val in msgspec.structs.asdict(v).items() if val is not None}
             opts["agent"] = variant_agent(v, name)
-            for key in _AGENT_KEYS:
+            for key in AGENT_FLAGS:
                 opts.pop(key, None)
             if v.bandwidths_v120 is None and opts["agent"].bandwidth_v120 != AgentOptions().bandwidth_v120:
                 opts["bandwidths_v120"] = (opts["agent"].bandwidth_v120,)

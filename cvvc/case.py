@@ -21,9 +21,8 @@ import msgspec
 from cvvc.errors import CommandError
 from schemas.settings import SECTIONS, AgentOptions, RunCase
 
-__all__ = ["PATH_KEYS", "RUN_FLAGS", "CaseFileError", "absolute_paths", "agent_options_from_args", "apply_flags",
-           "case_toml",
-           "load_case", "write_case"]
+__all__ = ["AGENT_FLAGS", "PATH_KEYS", "RUN_FLAGS", "CaseFileError", "absolute_paths", "agent_options_from_args",
+           "apply_flags", "case_toml", "load_case", "write_case"]
 
 
 class CaseFileError(CommandError):
@@ -84,7 +83,9 @@ RUN_FLAGS: Mapping[str, tuple[str | None, str, Callable[[Any], object]]] = Mappi
     "ca_dir": ("security", "ca_dir", _same),
 })
 
-_AGENT_FLAGS = ("pv_margin_window_s", "setpoint_hold", "control_banks")  # cvvc.cli_options's
+#: The agent settings that have flags of their own (``cvvc.cli_options``) and, in campaign files of old, keys of a
+#: variant's own (``cvvc.campaign``).
+AGENT_FLAGS = ("pv_margin_window_s", "setpoint_hold", "control_banks")
 
 
 def _where(error: Exception) -> str:
@@ -148,10 +149,10 @@ def apply_flags(case: RunCase, args: argparse.Namespace) -> RunCase:
     return _check(case, "the command line")
 
 
-def agent_options_from_args(args: argparse.Namespace, base: AgentOptions | None = None) -> AgentOptions:
-    """``base`` (None: the defaults) with the agent flags that ``cvvc.cli_options`` adds, where given."""
-    case = msgspec.structs.replace(RunCase(), agent=base or AgentOptions())
-    for dest in _AGENT_FLAGS:
+def agent_options_from_args(args: argparse.Namespace) -> AgentOptions:
+    """The default agent options with the agent flags that ``cvvc.cli_options`` adds, where given."""
+    case = RunCase()
+    for dest in AGENT_FLAGS:
         value = getattr(args, dest, None)
         if _given(value):
             section, key, setting = RUN_FLAGS[dest]

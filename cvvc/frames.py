@@ -28,14 +28,15 @@ from schemas import messages as m
 from schemas.keys import message_type_for_key
 from schemas.truth import TruthArrays, TruthDecodeError, decode_truth
 from schemas.wire import typed_decoder
+from simulator_bridge.rural.synthesis import UTC_OFFSET_H
 
 if TYPE_CHECKING:
     import pandas as pd
 
 __all__ = ["LOCAL_TZ", "FramesError", "evaluation_frame", "recording_frames", "summary_frame"]
 
-#: The profiles' local standard time, UTC-5 without daylight saving (docs/conventions.md; POSIX names it GMT+5).
-LOCAL_TZ = "Etc/GMT+5"
+#: The profiles' local standard time, without daylight saving (docs/conventions.md; POSIX signs: Etc/GMT+5 is UTC-5).
+LOCAL_TZ = f"Etc/GMT{-UTC_OFFSET_H:+d}"
 _HEADER = ("seq", "source")  # the message header columns written after the time columns
 _NOT_METRICS = {"t_ns", "seq", "source", "feeder_id", "start_t_ns", "final"}
 

@@ -39,6 +39,7 @@ import msgspec
 from agent.runtime import AgentSummary
 from cvvc.errors import CommandError
 from cvvc.integrity import run_integrity
+from cvvc.progress import progress_bar
 from cvvc.run_report import render_summary, top_reasons
 from cvvc.run_summary import RunSummary
 from cvvc.run_trace import BASELINE_TRACE, TruthSeries, write_series
@@ -461,7 +462,7 @@ def run(config: RunConfig) -> RunSummary:
                     raise LaunchError(f"the agent did not come up within {_AGENT_UP_S:.0f} s:\n"
                                       f"{_tail(out / 'agent.log')}")
 
-            bar = _progress(steps, config.progress, config.progress_label)
+            bar = progress_bar(steps, enabled=config.progress, desc=config.progress_label, unit="min")
             while True:
                 restarted = recorder.check() if recorder is not None else None
                 if restarted is not None:
@@ -473,14 +474,13 @@ def run(config: RunConfig) -> RunSummary:
                                           f"{_tail(out / f'{child.name}.log')}")
                 item = inbox.get(timeout_s=0.2)
                 while item is not None:
-                    if isinstance(item.msg, m.BridgeStatus) and bar is not None:
+                    if isinstance(item.msg, m.BridgeStatus):
                         bar.n = item.msg.step
                         bar.refresh()
                     item = inbox.get(timeout_s=0.0)
                 if bridge.proc.poll() is not None:
                     break
-            if bar is not None:
-                bar.close()
+            bar.close()
             if bridge.proc.returncode != 0:
                 raise LaunchError(f"the bridge exited with {bridge.proc.returncode}:\n{_tail(out / 'bridge.log')}")
             _stop_all([child for child in children if child is not bridge])
@@ -580,14 +580,6 @@ def _recorder_agent_args(settings: AgentSettings | None, model: Path) -> list[st
     return ["--model", str(model), "--agent-settings", msgspec.json.encode(settings).decode()]
 
 
-def _progress(total: int, enabled: bool, label: str = "simulated"):
-    if not enabled:
-        return None
-    from cvvc.progress import progress_bar
-
-    return progress_bar(total, enabled=enabled, desc=label, unit="min")
-
-
 def no_control_baseline(dm_path: Path, start: dt.datetime, steps: int, year_seed: int, cache: Path, *,
                         trace_path: Path | None = None, progress: bool = False) -> m.MetricsFrame:
     """The same days with no central control (regulators local, PV unity PF), simulated in-process: its metrics in
@@ -608,15 +600,13 @@ def no_control_baseline(dm_path: Path, start: dt.datetime, steps: int, year_seed
     sim = Qsts(engine, profiles, start_step=first, pv_local="unity")
     acc = MetricsAccumulator.for_feeder(dm, engine)
     series = TruthSeries()
-    bar = _progress(steps, progress, "no control")
+    bar = progress_bar(steps, enabled=progress, desc="no control", unit="min")
     for _ in range(steps):
         r = sim.step()
         acc.update(r.v_pu, r.tap_changes, r.pv_q_kvar, r.cap_switches)
         series.add(r.t_ns, r.v_pu, r.taps, r.pv_q_kvar, r.cap_states)
-        if bar is not None:
-            bar.update(1)
-    if bar is not None:
-        bar.close()
+        bar.update(1)
+    bar.close()
     result = acc.result()
     if trace_path is not None:
         lo, hi = dm.feeder.judged_limits_pu

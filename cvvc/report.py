@@ -44,6 +44,7 @@ from cvvc.run_trace import (
 )
 from schemas.errors import CvvcError
 from schemas.truth import TruthDecodeError, decode_truth
+from simulator_bridge.rural.synthesis import UTC_OFFSET_H
 from simulator_bridge.simulation.live_accuracy import LiveAccuracyAccumulator
 
 if TYPE_CHECKING:
@@ -159,7 +160,7 @@ def _worst_node(live: LiveAccuracyAccumulator | None,
 # ---------------------------------------------------------------------------------------------------
 
 NO_CONTROL = "no control"  # the label of the baseline a ``cvvc run`` simulated beside the case
-LOCAL_UTC_OFFSET_NS = -5 * 3_600_000_000_000  # the profiles' fixed local standard time, UTC-5 (docs/conventions.md)
+LOCAL_UTC_OFFSET_NS = UTC_OFFSET_H * 3_600_000_000_000  # the profiles' fixed local standard time (docs/conventions.md)
 _LEGEND = {"loc": "upper left", "bbox_to_anchor": (1.01, 1.0), "borderaxespad": 0.0}  # outside the data, right
 Q_LABEL = "Q [kvar]\n(+ injects, - absorbs)"
 TAP_LABEL = "tap [steps]\n(+ raises voltage)"

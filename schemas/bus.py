@@ -489,7 +489,7 @@ class Inbox:
                     if why:
                         self.rejects.reject(key, "rejected", why)
                         return
-                self._put(Received(key, msg, time.time_ns(), raw))
+                self.put(Received(key, msg, time.time_ns(), raw))
             except BadMessage as e:
                 self.rejects.reject(key, e.kind, e.detail)
             except Exception as e:  # never let anything escape into Zenoh's thread
@@ -497,7 +497,8 @@ class Inbox:
 
         self._subs.append(session.declare_subscriber(key_expr, on_sample))
 
-    def _put(self, item: Received) -> None:
+    def put(self, item: Received) -> None:
+        """Enqueue ``item`` without ever blocking (safe in a Zenoh callback): when full, the oldest is dropped."""
         with self._lock:
             while True:
                 try:

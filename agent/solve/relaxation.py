@@ -7,6 +7,7 @@ only from the caller's iterate. Same inputs -> bit-identical iterates.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Mapping
 
 import numpy as np
 import osqp
@@ -16,13 +17,18 @@ from agent.solve.polish import active_set_polish, kkt_ok, warm_polish
 from agent.solve.settings import FIRST_CHUNK_ITER, LARGE_OSQP_SETTINGS, LOOSE_EPS, MAX_ITER, OSQP_SETTINGS
 from agent.solve.solution import Run
 
-__all__ = ["osqp_run", "setup_osqp", "solve_qp"]
+__all__ = ["osqp_run", "osqp_settings", "setup_osqp", "solve_qp"]
+
+
+def osqp_settings(qp: CvvcQp) -> Mapping[str, object]:
+    """OSQP's fixed settings for ``qp``: the dense-size ones, or the large feeders' when ``qp`` is sparse."""
+    return OSQP_SETTINGS if qp.a_dense is not None else LARGE_OSQP_SETTINGS
 
 
 def setup_osqp(qp: CvvcQp) -> osqp.OSQP | None:
     """An OSQP solver set up on ``qp`` with the fixed settings, or ``None`` if OSQP refuses the data."""
     solver = osqp.OSQP(algebra="builtin")  # naming it skips a slow probe of optional algebras
-    settings = OSQP_SETTINGS if qp.a_dense is not None else LARGE_OSQP_SETTINGS
+    settings = osqp_settings(qp)
     try:
         solver.setup(qp.P, qp.c, qp.A, qp.lower, qp.upper, **settings)
     except (ValueError, osqp.OSQPException):

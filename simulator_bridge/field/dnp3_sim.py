@@ -436,12 +436,6 @@ class SimulatedCapBankController(_Outstation):
                 self._publish()
             return None if self._commanded is None else self._commanded[0]
 
-    @property
-    def hold_s(self) -> float:
-        """The hold time as last written [s]."""
-        with self._lock:
-            return self._hold_s
-
     @staticmethod
     def _crob_close(command: Any) -> bool | None:
         """True: close, False: trip, None: a code the controller does not take."""
