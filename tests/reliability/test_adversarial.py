@@ -83,6 +83,7 @@ class FarFutureHeads(Attack):
 
     def arm(self, forger: zenoh.Session) -> None:
         pub = _publisher(forger, keys.meas_head(FEEDER))
+        assert wait_for(lambda: bool(pub.matching_status.matching), 10.0)
         for source in ("x1", "x2"):
             pub.put(codec_for(m.HeadFrame).encode(msgspec.structs.replace(
                 example(m.HeadFrame), t_ns=T_2100, seq=10**12, source=source, feeder_id=FEEDER)))
@@ -95,6 +96,7 @@ class ForeignAcks(Attack):
     def arm(self, forger: zenoh.Session) -> None:
         for kind, device in (("pv", PLANT), ("cap", BANK)):
             pub = _publisher(forger, keys.ack(FEEDER, kind, device))
+            assert wait_for(lambda p=pub: bool(p.matching_status.matching), 10.0)  # or the acks reach no one
             for i in range(5):
                 pub.put(codec_for(m.Ack).encode(m.Ack(
                     t_ns=T0, seq=i + 1, source=device, cmd_id=f"agent:{T0}:{device}:{i}", device_id=device,
