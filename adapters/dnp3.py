@@ -1,8 +1,8 @@
 """Dnp3Master: a DNP3 (IEEE 1815) master on one outstation over TCP, through opendnp3 (PyPI ``yadnp3``).
 
-Reads with explicit headers (g30v5 analog inputs, g1v2 binary inputs, g40v3 analog output status, g10v2 binary
-output status: float32 analog values, whatever static variations the outstation defaults to), operates analog
-outputs (g41v3, float32) and CROBs (g12v1) by select-before-operate or direct operate, and returns the
+Reads with explicit headers (g30v6 analog inputs, g1v2 binary inputs, g40v4 analog output status, g10v2 binary
+output status: double-precision analog values, whatever static variations the outstation defaults to), operates
+analog outputs (g41v4, double precision) and CROBs (g12v1) by select-before-operate or direct operate, and returns the
 outstation's answer per point. opendnp3 runs its callbacks on its own threads; every call here waits for its
 result on an event with a deadline, and one call runs at a time. docs/dnp3.md.
 """
@@ -19,7 +19,7 @@ from simulator_bridge.field.dnp3_sim import MASTER_ADDR, OUTSTATION_ADDR, parse_
 
 __all__ = ["Dnp3LinkError", "Dnp3Master", "Dnp3Reading", "OperateOutcome"]
 
-_READ_HEADERS = ((30, 5), (1, 2), (40, 3), (10, 2))
+_READ_HEADERS = ((30, 6), (1, 2), (40, 4), (10, 2))
 _ONLINE = 0x01  # the ONLINE bit of a point's flags (IEEE 1815 quality flags)
 
 
@@ -196,8 +196,10 @@ class Dnp3Master:
                                    offline=tuple(collector.offline))
 
     def operate_analog(self, index: int, value: float, *, select: bool = True) -> OperateOutcome:
-        """Write ``value`` to analog output ``index`` (g41v3), by select-before-operate or direct operate."""
-        return self._operate(dnp3.AnalogOutputFloat32(float(value)), index, select=select)
+        """Write ``value`` to analog output ``index`` (g41v4, double precision), by select-before-operate or direct
+        operate.
+        """
+        return self._operate(dnp3.AnalogOutputDouble64(float(value)), index, select=select)
 
     def operate_crob(self, index: int, *, close: bool, select: bool = True) -> OperateOutcome:
         """A CROB on binary output ``index``: ``PULSE_ON`` with ``CLOSE`` (close) or ``TRIP``."""
