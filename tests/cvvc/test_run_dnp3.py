@@ -18,7 +18,6 @@ import pytest
 from tests.closed_loop import run_side_by_side
 from tests.recorded import messages_by_topic
 
-REPO = Path(__file__).resolve().parents[2]
 REGULATORS = ("reg1", "reg2", "reg3")
 STEPS = 30
 
@@ -67,26 +66,3 @@ def test_the_regulators_frames_and_acks_come_from_the_adapters(dnp3_runs):
         acks = [a for a in rec[f"cvvc/ieee13/ack/vr/{reg}"] if a["status"] != "expired"]
         assert len(acks) == sum(c["regulator_id"] == reg for c in commands.values()) == link["commands"]
         assert all(a["status"] == "accepted" and a["source"] == reg for a in acks), acks
-
-
-@pytest.mark.parametrize(("option", "named"), [
-    (dict(case="A"), "case A"), (dict(case="B"), "case B"), (dict(drop_prob=0.1), "--drop-prob"),
-    (dict(noise_scada_pct=1.0), "--noise-scada-pct"), (dict(clock_skew_s=2.0), "--clock-skew-s"),
-    (dict(realtime=True, meas_delay_s=5.0), "--meas-delay-s")])
-def test_options_the_dnp3_loop_does_not_take_are_refused_before_anything_starts(tmp_path, option, named):
-    from cvvc.launch import LaunchError, RunConfig, run
-
-    config = RunConfig(feeder=str(REPO / "feeders" / "ieee13.toml"), field_protocol="dnp3", out=str(tmp_path / "o"),
-                       cache=str(tmp_path / "c"), **option)
-    with pytest.raises(LaunchError, match=named):
-        run(config)
-    assert not (tmp_path / "o").exists() and not (tmp_path / "c").exists()  # refused before anything was made
-
-
-def test_an_unknown_field_protocol_is_refused():
-    from cvvc.errors import CommandError
-    from cvvc.field_protocol import check_field_protocol
-
-    with pytest.raises(CommandError, match="choose bus or dnp3"):
-        check_field_protocol("modbus", case="D", noise_scada_pct=0.0, drop_prob=0.0, meas_delay_s=0.0,
-                             clock_skew_s=0.0)
