@@ -74,6 +74,10 @@ def dnp3_devices(dm_path: Path) -> tuple[Dnp3Device, ...]:
         if several:
             raise CommandError(f"--field-protocol dnp3: banks {several} have several steps; the DNP3 bank map serves "
                                "banks of one step (docs/dnp3.md); run with --field-protocol bus")
+        shared = sorted(set(engine.regulator_ids) & set(engine.capacitor_ids))
+        if shared:
+            raise CommandError(f"--field-protocol dnp3: {shared} name both a regulator and a bank; each DNP3 adapter "
+                               "is named by its device's id: rename one in the device map")
         regs = [Dnp3Device(rid, "vr", phase=phase)
                 for rid, phase in zip(engine.regulator_ids, regulator_phases(engine), strict=True)]
         caps = [Dnp3Device(cid, "cap", kvar_rated=float(engine.cap_kvar[k]),

@@ -452,6 +452,10 @@ def run(config: RunConfig) -> RunSummary:
                     "--summary-out", str(agent_summary_path), *connect], out))
             endpoints = pvp.sunspec_endpoints(dm, free_port) if config.pv_protocol == "sunspec" else {}
             dnp3_endpoints = fdp.dnp3_endpoints(dnp3_devices, free_port)
+            if set(endpoints) & set(dnp3_endpoints):
+                raise LaunchError(f"{sorted(set(endpoints) & set(dnp3_endpoints))} name both a PV plant and a "
+                                  "regulator or bank; each adapter is named by its device's id: rename one in the "
+                                  "device map")
             adapted = {keys.alive(feeder_id, "pv", pid): pid for pid in endpoints}  # token -> the adapter's name
             for pid, ep in endpoints.items():  # up before the bridge: it waits for their tokens, then steps
                 children.append(_spawn(f"adapter.{pid}", pvp.adapter_args(
