@@ -81,7 +81,7 @@ def _dnp3(args: argparse.Namespace) -> int:
             outstation_address=args.outstation_address, master_address=args.master_address,
             scan_period_s=args.scan_period_s, control_period_s=args.control_period_s,
             status_period_s=args.status_period_s, timeout_s=args.timeout_s, phase=args.phase,
-            kvar_rated=args.kvar_rated, control_type=args.control_type), Dnp3AdapterConfig)
+            kvar_rated=args.kvar_rated, control_type=args.control_type, clock=args.clock), Dnp3AdapterConfig)
         parse_dnp3_endpoint(config.dnp3)  # a bad endpoint is refused before joining the bus
     except (msgspec.ValidationError, Dnp3SimError) as e:
         print(f"cvvc adapter dnp3: error: {e}", file=sys.stderr)
@@ -120,6 +120,9 @@ def _add_loop_arguments(p: argparse.ArgumentParser, *, device: str, protocol: st
                    help="the feeder's control period: the unit of the command windows [s]")
     p.add_argument("--status-period-s", type=float, default=10.0, help="publish the link status this often [s]")
     p.add_argument("--timeout-s", type=float, default=timeout_s, help=f"time-out of one {protocol} request [s]")
+    p.add_argument("--clock", choices=["wall", "head"], default="wall",
+                   help="wall: scan on --scan-period-s of the UTC clock; head: scan at each new feeder-head frame and "
+                        "take its time (the feeder's scan drives the adapter)")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -143,9 +146,6 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="write --local-mode into the inverter's model 705 (volt-var curve enabled or not) whenever a "
                         "scan finds it otherwise; without this flag 705 is only read")
     s.add_argument("--q-at-night", action="store_true", help="the inverter gives reactive power at zero output")
-    s.add_argument("--clock", choices=["wall", "head"], default="wall",
-                   help="wall: scan on --scan-period-s of the UTC clock; head: scan at each new feeder-head frame and "
-                        "take its time (the feeder's scan drives the adapter)")
     s.add_argument("--summary-out", metavar="FILE",
                    help="write the link's last LinkStatus as JSON to FILE at exit (the launcher reads it)")
     add_bus_arguments(s)

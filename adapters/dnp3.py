@@ -1,8 +1,8 @@
 """Dnp3Master: a DNP3 (IEEE 1815) master on one outstation over TCP, through opendnp3 (PyPI ``yadnp3``).
 
-Reads with explicit headers (g30v5 analog inputs, g1v2 binary inputs, g40v3 analog output status, g10v2 binary
-output status: float32 analog values, whatever static variations the outstation defaults to), operates analog
-outputs (g41v3, float32) and CROBs (g12v1) by select-before-operate or direct operate, and returns the
+Reads with explicit headers (g30v6 analog inputs, g1v2 binary inputs, g40v4 analog output status, g10v2 binary
+output status: double-precision analog values, whatever static variations the outstation defaults to), operates
+analog outputs (g41v4, double precision) and CROBs (g12v1) by select-before-operate or direct operate, and returns the
 outstation's answer per point. opendnp3 runs its callbacks on its own threads; every call here waits for its
 result on an event with a deadline, and one call runs at a time. docs/dnp3.md.
 """
@@ -19,7 +19,7 @@ from simulator_bridge.field.dnp3_sim import MASTER_ADDR, OUTSTATION_ADDR, parse_
 
 __all__ = ["Dnp3LinkError", "Dnp3Master", "Dnp3Reading", "OperateOutcome"]
 
-_READ_HEADERS = ((30, 5), (1, 2), (40, 3), (10, 2))
+_READ_HEADERS = ((30, 6), (1, 2), (40, 4), (10, 2))
 _ONLINE = 0x01  # the ONLINE bit of a point's flags (IEEE 1815 quality flags)
 
 
@@ -84,17 +84,36 @@ class _Collector(dnp3.ISOEHandler):
 
 
 class _App(dnp3.IMasterApplication):
-    """Signals the end of the user task (a read) with its result."""
+    """Counts the user tasks (reads and operates) started and completed, and keeps the last one's result.
+
+    Tasks complete in the order they were started, so a read waits until the completions reach its own number: an
+    operate's completion, or a read that timed out and completes later, cannot end the next read (whose values go
+    to its own collector).
+    """
 
     def __init__(self) -> None:
         super().__init__()
-        self.done = threading.Event()
+        self._cond = threading.Condition()
+        self._started = self._completed = 0
         self.result: Any = None
 
     def OnTaskComplete(self, info: Any) -> None:  # noqa: N802
         if info.type == dnp3.MasterTaskType.USER_TASK:
-            self.result = info.result
-            self.done.set()
+            with self._cond:
+                self._completed += 1
+                self.result = info.result
+                self._cond.notify_all()
+
+    def start(self) -> int:
+        """Count a user task about to start; its number."""
+        with self._cond:
+            self._started += 1
+            return self._started
+
+    def wait(self, number: int, timeout_s: float) -> bool:
+        """Wait up to ``timeout_s`` for task ``number`` to complete; whether it did (its result is ``result``)."""
+        with self._cond:
+            return self._cond.wait_for(lambda: self._completed >= number, timeout_s)
 
     def AssignClassDuringStartup(self) -> bool:  # noqa: N802
         return False
@@ -180,10 +199,10 @@ class Dnp3Master:
             raise Dnp3LinkError("the master is not open")
         with self._call:
             collector = _Collector()
-            self._app.done.clear()
             headers = [dnp3.Header.AllObjects(g, v) for g, v in _READ_HEADERS]
+            task = self._app.start()
             self._master.Scan(headers, collector)
-            if not self._app.done.wait(self.timeout_s * 2 + 1.0):
+            if not self._app.wait(task, self.timeout_s * 2 + 1.0):
                 raise Dnp3LinkError(f"no answer from {self.endpoint} within {self.timeout_s * 2 + 1.0:.1f} s")
             if self._app.result != dnp3.TaskCompletion.SUCCESS:
                 raise Dnp3LinkError(f"read of {self.endpoint} failed: {self._app.result.name}")
@@ -196,8 +215,10 @@ class Dnp3Master:
                                    offline=tuple(collector.offline))
 
     def operate_analog(self, index: int, value: float, *, select: bool = True) -> OperateOutcome:
-        """Write ``value`` to analog output ``index`` (g41v3), by select-before-operate or direct operate."""
-        return self._operate(dnp3.AnalogOutputFloat32(float(value)), index, select=select)
+        """Write ``value`` to analog output ``index`` (g41v4, double precision), by select-before-operate or direct
+        operate.
+        """
+        return self._operate(dnp3.AnalogOutputDouble64(float(value)), index, select=select)
 
     def operate_crob(self, index: int, *, close: bool, select: bool = True) -> OperateOutcome:
         """A CROB on binary output ``index``: ``PULSE_ON`` with ``CLOSE`` (close) or ``TRIP``."""
@@ -219,6 +240,7 @@ class Dnp3Master:
                     out.append(OperateOutcome(status=points[0][1], state=points[0][0]))
                 done.set()
 
+            self._app.start()  # an operate is a user task too: counted, so that no read takes its completion
             if select:
                 self._master.SelectAndOperate(command, int(index), on_result)
             else:

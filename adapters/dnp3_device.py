@@ -14,8 +14,8 @@ Dnp3Master`; the point maps are docs/dnp3.md's. The command contract is the simu
 4. An operate the outstation refuses (its ``CommandStatus``: ``OUT_OF_RANGE``, ``NOT_SUPPORTED``, ``BLOCKED``, ...)
    is ``rejected`` with reason ``device_refused`` and counted by point (``refused``: ``ao0:OUT_OF_RANGE``); no
    answer is ``rejected`` with ``link_down``.
-5. Read back: the ack is ``accepted`` when the device holds what was written (the analog outputs within float32
-   rounding and the "remote in force" input set; for the bank, the switch's output status), else
+5. Read back: the ack is ``accepted`` when the device holds what was written (the analog outputs as written, in
+   double precision, and the "remote in force" input set; for the bank, the switch's output status), else
    ``rejected``, ``device_refused``.
 
 Each read also verifies what the device does (as the SunSpec adapter): with a command in force the device must
@@ -46,7 +46,7 @@ __all__ = ["Dnp3Device", "Dnp3DeviceSettings"]
 
 log = logging.getLogger(__name__)
 _EXPIRY_MARGIN_NS = 2_000_000_000  # the hold is whole seconds, rounded up, on the device's own clock
-_F32_TOL = 1e-4  # float32 rounding of a value written and read back [V, s]
+_READ_BACK_TOL = 1e-9  # a value written and read back (g41v4 / g40v4, double precision) [V, s]
 _V120_MAX = 200.0
 _TAP_MAX = 16
 _V_MAX_V = 1e6
@@ -126,7 +126,7 @@ class Dnp3Device(LinkedDevice):
     def _check(self, r: Dnp3Reading) -> None:
         if self.settings.kind == "vr":
             p = RegulatorPoints
-            ai = [p.AI_V_COMPARED_120, p.AI_TAP, p.AI_LOAD_CURRENT_A, p.AI_SETPOINT_120, p.AI_BAND_120]
+            ai = [p.AI_V_COMPARED_120, p.AI_TAP, p.AI_LOAD_CURRENT_A, p.AI_SETPOINT_120, p.AI_BAND_120, p.AI_V_120]
             bi = [p.BI_REMOTE]
         else:
             c = CapBankPoints
@@ -143,7 +143,7 @@ class Dnp3Device(LinkedDevice):
         a = r.analog_inputs
         if self.settings.kind == "vr":
             p = RegulatorPoints
-            for i in (p.AI_V_COMPARED_120, p.AI_SETPOINT_120):
+            for i in (p.AI_V_COMPARED_120, p.AI_SETPOINT_120, p.AI_V_120):
                 if not 0.0 <= a[i] <= _V120_MAX:
                     raise _Refused(f"ai{i}", f"{a[i]} V outside 0..{_V120_MAX} V (120 V base)")
             if not (a[p.AI_TAP] == round(a[p.AI_TAP]) and abs(a[p.AI_TAP]) <= _TAP_MAX):
@@ -167,8 +167,8 @@ class Dnp3Device(LinkedDevice):
                 return not remote
             a = self.reg.action
             return (remote and isinstance(a, m.SetpointAction)
-                    and abs(r.analog_inputs[RegulatorPoints.AI_SETPOINT_120] - a.setpoint_v120) <= _F32_TOL
-                    and abs(r.analog_inputs[RegulatorPoints.AI_BAND_120] - a.band_v120) <= _F32_TOL)
+                    and abs(r.analog_inputs[RegulatorPoints.AI_SETPOINT_120] - a.setpoint_v120) <= _READ_BACK_TOL
+                    and abs(r.analog_inputs[RegulatorPoints.AI_BAND_120] - a.band_v120) <= _READ_BACK_TOL)
         remote = r.binary_inputs[CapBankPoints.BI_REMOTE]
         if not ours or active is None:
             return not remote
@@ -201,7 +201,7 @@ class Dnp3Device(LinkedDevice):
         if self.settings.kind == "vr":
             p = RegulatorPoints
             return dv.reg_frame(reg=self.reg, t_ns=t_ns, seq=self._seq, phase=self.settings.phase,
-                                v120=a[p.AI_V_COMPARED_120], v_compared_120=a[p.AI_V_COMPARED_120],
+                                v120=a[p.AI_V_120], v_compared_120=a[p.AI_V_COMPARED_120],
                                 tap=int(a[p.AI_TAP]), setpoint_v120=a[p.AI_SETPOINT_120],
                                 band_v120=a[p.AI_BAND_120], mode="local")
         c = CapBankPoints
@@ -243,10 +243,10 @@ class Dnp3Device(LinkedDevice):
                 if not isinstance(cmd.action, m.SetpointAction):  # a TapAction was refused above
                     return _rejected("device_refused", "a tap command")
                 back = self.write_setpoint(cmd.action, cmd.valid_until_t_ns, now)
-                a = back.analog_outputs
+                a, tol = back.analog_outputs, _READ_BACK_TOL
                 if not (back.binary_inputs.get(RegulatorPoints.BI_REMOTE)
-                        and abs(a.get(RegulatorPoints.AO_SETPOINT_120, math.nan) - cmd.action.setpoint_v120) <= _F32_TOL
-                        and abs(a.get(RegulatorPoints.AO_BAND_120, math.nan) - cmd.action.band_v120) <= _F32_TOL):
+                        and abs(a.get(RegulatorPoints.AO_SETPOINT_120, math.nan) - cmd.action.setpoint_v120) <= tol
+                        and abs(a.get(RegulatorPoints.AO_BAND_120, math.nan) - cmd.action.band_v120) <= tol):
                     return _rejected("device_refused", f"read back: the device holds set point "
                                      f"{a.get(RegulatorPoints.AO_SETPOINT_120)} V, band "
                                      f"{a.get(RegulatorPoints.AO_BAND_120)} V, remote "

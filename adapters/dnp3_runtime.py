@@ -5,7 +5,8 @@ on the scan period and handles commands between reads, in their order of arrival
 kind ``K`` (``vr`` or ``cap``) and device ``D``, as the simulated devices (so the agent cannot tell the difference):
 
 * ``cvvc/F/meas/K/D`` ``RegFrame`` / ``CapFrame`` at every read with valid values, stamped with the scan's time
-  (a multiple of the scan period on the adapter's clock, UTC);
+  (a multiple of the scan period on the adapter's clock, UTC); or, with the head clock, at each newer feeder-head
+  frame, stamped with its ``t_ns``;
 * ``cvvc/F/cmd/K/D`` ``RegCommand`` / ``CapCommand`` in, ``cvvc/F/ack/K/D`` ``Ack`` out
   (``adapters.dnp3_device``);
 * ``cvvc/F/link/K/D`` ``LinkStatus`` when the link's state changes and on the status period;
@@ -36,7 +37,6 @@ from schemas.bus import BusConfig
 __all__ = ["Dnp3AdapterConfig", "run_dnp3_adapter"]
 
 
-
 class Dnp3AdapterConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
     """What ``cvvc adapter dnp3`` runs: which outstation, as which device, on which periods.
 
@@ -44,7 +44,10 @@ class Dnp3AdapterConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknow
     ``outstation_address`` / ``master_address`` the DNP3 link addresses. ``scan_period_s`` [s]: frames at its
     multiples; ``control_period_s`` [s]: the unit of the command windows; ``status_period_s`` [s]: ``LinkStatus``
     at least this often; ``timeout_s`` [s]: one DNP3 request. ``phase`` (regulator), ``kvar_rated`` and
-    ``control_type`` (bank): what the frames say of the device beyond its points.
+    ``control_type`` (bank): what the frames say of the device beyond its points. ``clock``: ``wall`` reads on
+    the scan period of ``clock_ns``; ``head`` reads when a newer feeder-head frame arrives (``cvvc/F/meas/head``)
+    and takes its ``t_ns`` as the adapter's time: frames, command windows and hold times then follow the feeder's
+    scan (a simulation in lockstep, or a SCADA poll cycle).
     """
 
     feeder_id: Annotated[str, Meta(pattern=r"^[A-Za-z0-9_.\-]{1,64}$")]
@@ -60,6 +63,7 @@ class Dnp3AdapterConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknow
     phase: m.Phase = "a"
     kvar_rated: Annotated[float, Meta(gt=0.0, le=1e6)] = 600.0
     control_type: m.CapControlType = "none"
+    clock: Literal["wall", "head"] = "wall"
 
 
 def run_dnp3_adapter(config: Dnp3AdapterConfig, bus: BusConfig, *, stop: threading.Event,
@@ -81,4 +85,4 @@ def run_dnp3_adapter(config: Dnp3AdapterConfig, bus: BusConfig, *, stop: threadi
                       frame_type=m.RegFrame if k == "vr" else m.CapFrame,
                       cmd_type=m.RegCommand if k == "vr" else m.CapCommand, scan_period_s=config.scan_period_s,
                       status_period_s=config.status_period_s, stop=stop, clock_ns=clock_ns, ready=ready,
-                      open_link=master.open, close_link=master.close)
+                      open_link=master.open, close_link=master.close, head_clock=config.clock == "head")

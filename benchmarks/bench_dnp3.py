@@ -40,7 +40,7 @@ def bench_dnp3(n: int = 200) -> Dnp3Bench:
         sim = SimulatedRegulatorControl(regulator_id=D, tap_max=16, default_setpoint_v120=120.0,
                                         default_band_v120=2.0, port=free_port(), clock_ns=time.time_ns)
         with sim:
-            sim.set_measurements(v_compared_120=121.0, tap=0, load_current_a=100.0)
+            sim.set_measurements(v_compared_120=121.0, v_120=121.0, tap=0, load_current_a=100.0)
             config = Dnp3AdapterConfig(feeder_id=F, device_id=D, kind="vr", dnp3=sim.endpoint, scan_period_s=60.0)
             through_dnp3 = bench.through_adapter(run_dnp3_adapter, config)
             with Dnp3Master(sim.endpoint) as master:

@@ -75,6 +75,7 @@ RUN_FLAGS: Mapping[str, tuple[str | None, str, Callable[[Any], object]]] = Mappi
     "meas_delay_s": ("bridge", "meas_delay_s", _same),
     "clock_skew_s": ("bridge", "clock_skew_s", _same),
     "pv_protocol": ("bridge", "pv_protocol", _same),
+    "field_protocol": ("bridge", "field_protocol", _same),
     "out": ("output", "out", _same),
     "no_record": ("output", "record", _false),
     "no_baseline": ("output", "baseline", _false),

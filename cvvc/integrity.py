@@ -2,13 +2,14 @@
 
 The agent counts what it refused (frames, readings, acks by reason) and which devices answered its commands
 ``rejected``; the bridge counts the control steps, the decisions it took, its lockstep misses and what it refused; each
-SunSpec adapter counts the scans that found a set point it had not written (``LinkStatus.foreign_writes``), and the
-bridge's simulated inverters the Modbus writes they refused from another master. None of it is read from the bus,
+field-protocol adapter (SunSpec, DNP3) counts the scans that found a command it had not written
+(``LinkStatus.foreign_writes``), and the bridge's simulated inverters the Modbus writes they refused from another
+master. None of it is read from the bus,
 where any session could publish a figure.
 
 The agent was **degraded** when, for more than one control period, it did not control the feeder: more than one
 control step without its decision (or with a lockstep miss), or one device that refused more than one of its
-commands, or one plant whose set point another master held for more than a control period (foreign writes times the
+commands, or one device whose command another master held for more than a control period (foreign writes times the
 scan period), or more than one decision the bridge took that the agent did not make. ``cvvc run`` then exits
 ``EXIT_DEGRADED`` with one line saying why (docs/security.md).
 """
@@ -32,7 +33,7 @@ EXIT_DEGRADED = 3
 def run_integrity(agent: AgentSummary | None, bridge: BridgeSummary, links: Mapping[str, m.LinkStatus], *,
                   step_s: float, control_period_s: float) -> RunIntegrity:
     """The run's ``RunIntegrity`` from the agent's summary (None: a case without an agent), the bridge's and the
-    SunSpec adapters' last ``LinkStatus`` by plant; ``step_s`` [s] is the adapters' scan period (one per step),
+    field-protocol adapters' last ``LinkStatus`` by device; ``step_s`` [s] is the adapters' scan period (one per step),
     ``control_period_s`` [s] the feeder's.
     """
     foreign_writes = {pid: s.foreign_writes for pid, s in links.items() if s.foreign_writes}

@@ -46,7 +46,7 @@ from cvvc.run_trace import BASELINE_TRACE, TruthSeries, write_series
 from recordings.info import RecorderGap
 from schemas import messages as m
 from schemas.cache import cache_root, profiles_dir
-from schemas.settings import CASES, SECTIONS, AgentOptions, AgentSettings, Case, PvProtocol, RunCase
+from schemas.settings import CASES, SECTIONS, AgentOptions, AgentSettings, Case, FieldProtocol, PvProtocol, RunCase
 from simulator_bridge.bus.bridge import BridgeSummary
 
 if TYPE_CHECKING:
@@ -100,6 +100,7 @@ class RunConfig(msgspec.Struct, frozen=True, kw_only=True):
     check_model_fingerprint: bool = True
     recorder_restarts_max: int = _DEFAULT.output.recorder_restarts_max
     pv_protocol: PvProtocol = _DEFAULT.bridge.pv_protocol
+    field_protocol: FieldProtocol = _DEFAULT.bridge.field_protocol
     case_file: str | None = None  # the case file the run was read from (recorded in the summary and report)
 
     @classmethod
@@ -379,12 +380,16 @@ def run(config: RunConfig) -> RunSummary:
         raise LaunchError(f"--days {config.days} must be in (0, 366]")
     if config.meas_delay_s and not config.realtime:
         raise LaunchError("--meas-delay-s needs --realtime (in lockstep the bridge waits for each decision)")
+    from cvvc import field_protocol as fdp
     from cvvc import pv_protocol as pvp
 
     try:
         pvp.check_pv_protocol(config.pv_protocol, noise_scada_pct=config.noise_scada_pct, drop_prob=config.drop_prob,
                               meas_delay_s=config.meas_delay_s, clock_skew_s=config.clock_skew_s,
                               secure=config.secure)
+        fdp.check_field_protocol(config.field_protocol, case=config.case, noise_scada_pct=config.noise_scada_pct,
+                                 drop_prob=config.drop_prob, meas_delay_s=config.meas_delay_s,
+                                 clock_skew_s=config.clock_skew_s)
     except CommandError as e:
         raise LaunchError(str(e)) from e
 
@@ -393,6 +398,10 @@ def run(config: RunConfig) -> RunSummary:
     dm = load_device_map(dm_path)
     feeder_id = dm.feeder.name
     fingerprint = dm.fingerprint()
+    try:  # the feeder's regulators and banks, as their DNP3 adapters describe them (a bank of several steps refused)
+        dnp3_devices = fdp.dnp3_devices(dm_path) if config.field_protocol == "dnp3" else ()
+    except CommandError as e:
+        raise LaunchError(str(e)) from e
     agent_settings = case_agent_settings(config.case, feeder_id, config.agent)
     if agent_settings is not None and dm.meter:  # the only meters whose readings the agent takes
         agent_settings = msgspec.structs.replace(agent_settings, meters=tuple(dm.meter))
@@ -416,6 +425,7 @@ def run(config: RunConfig) -> RunSummary:
     connect += ["--secure-dir", security_dir] if security_dir else ["--insecure"]
     children: list[_Child] = []
     endpoints: dict[str, str] = {}  # sunspec: plant -> its inverter's Modbus endpoint
+    dnp3_endpoints: dict[str, str] = {}  # dnp3: regulator or bank -> its outstation's endpoint
     # The run's figures come from the processes the launcher started, never from the bus, where any session
     # could publish a metrics frame or a decision: each writes its own summary.
     agent_summary_path, bridge_summary_path = out / "agent-summary.json", out / "bridge-summary.json"
@@ -441,17 +451,31 @@ def run(config: RunConfig) -> RunSummary:
                     "agent", "--model", str(kept_model), *agent_settings_args(agent_settings),
                     "--summary-out", str(agent_summary_path), *connect], out))
             endpoints = pvp.sunspec_endpoints(dm, free_port) if config.pv_protocol == "sunspec" else {}
+            dnp3_endpoints = fdp.dnp3_endpoints(dnp3_devices, free_port)
+            if set(endpoints) & set(dnp3_endpoints):
+                raise LaunchError(f"{sorted(set(endpoints) & set(dnp3_endpoints))} name both a PV plant and a "
+                                  "regulator or bank; each adapter is named by its device's id: rename one in the "
+                                  "device map")
+            adapted = {keys.alive(feeder_id, "pv", pid): pid for pid in endpoints}  # token -> the adapter's name
             for pid, ep in endpoints.items():  # up before the bridge: it waits for their tokens, then steps
                 children.append(_spawn(f"adapter.{pid}", pvp.adapter_args(
                     dm, feeder_id, pid, ep, volt_var=config.case == "local", connect=connect,
                     summary_out=str(out / f"adapter.{pid}-summary.json")), out))
-            pv_watch = LivelinessWatcher(session, f"{keys.ROOT}/{feeder_id}/alive/pv/*") if endpoints else None
-            if pv_watch is not None and not wait_for(
-                    lambda: all(pv_watch.is_alive(keys.alive(feeder_id, "pv", p)) for p in endpoints), 60.0):
-                raise LaunchError(f"the SunSpec adapters did not come up within 60 s:\n"
-                                  f"{_tail(out / f'adapter.{next(iter(endpoints))}.log')}")
+            for device in dnp3_devices:
+                did = device.device_id
+                adapted[keys.alive(feeder_id, device.kind, did)] = did
+                children.append(_spawn(f"adapter.{did}", fdp.adapter_args(
+                    dm, feeder_id, device, dnp3_endpoints[did], connect=connect,
+                    summary_out=str(out / f"adapter.{did}-summary.json")), out))
+            watch = LivelinessWatcher(session, f"{keys.ROOT}/{feeder_id}/alive/**") if adapted else None
+            if watch is not None and not wait_for(lambda: all(watch.is_alive(k) for k in adapted), 60.0):
+                down = [name for k, name in adapted.items() if not watch.is_alive(k)]
+                raise LaunchError(f"the field-protocol adapters {down} did not come up within 60 s:\n"
+                                  f"{_tail(out / f'adapter.{down[0]}.log')}")
             bridge = _spawn("bridge", [*bridge_args(config, dm_path, feeder_id, start_text, steps, agent_settings,
-                                                    bridge_summary_path, pvp.bridge_args(endpoints)), *connect,
+                                                    bridge_summary_path, [*pvp.bridge_args(endpoints),
+                                                                          *fdp.bridge_args(dnp3_endpoints)]),
+                                       *connect,
                                        *(["--wait-agent-s", str(_AGENT_UP_S)] if agent_settings is not None else [])],
                             out)
             children.append(bridge)
@@ -494,8 +518,8 @@ def run(config: RunConfig) -> RunSummary:
     if agent_settings is not None:
         agent_summary = _read_summary(agent_summary_path, AgentSummary, "agent")
     gaps = recorder.finish() if recorder is not None else []
-    links = {pid: _read_summary(out / f"adapter.{pid}-summary.json", m.LinkStatus, f"adapter.{pid}")
-             for pid in endpoints}
+    links = {did: _read_summary(out / f"adapter.{did}-summary.json", m.LinkStatus, f"adapter.{did}")
+             for did in [*endpoints, *dnp3_endpoints]}
     integrity = run_integrity(agent_summary, bridge_summary, links, step_s=dm.feeder.step_s,
                               control_period_s=dm.feeder.control_period_s)
 
@@ -519,7 +543,8 @@ def run(config: RunConfig) -> RunSummary:
         decision_ms=dict(agent_summary.decision_ms) if agent_summary else {},
         recorder_restarts=recorder.restarts if recorder is not None else 0, recording_gaps=gaps,
         recorder_gave_up=recorder.gave_up if recorder is not None else False, pv_protocol=config.pv_protocol,
-        sunspec_frame_misses=bridge_summary.sunspec_frame_misses, live=live, secure=config.secure,
+        sunspec_frame_misses=bridge_summary.sunspec_frame_misses, field_protocol=config.field_protocol,
+        dnp3_frame_misses=bridge_summary.dnp3_frame_misses, live=live, secure=config.secure,
         case_file=config.case_file, settings=config.settings(), integrity=integrity)
     (out / "summary.json").write_bytes(msgspec.json.format(msgspec.json.encode(summary), indent=2))
     (out / "report.md").write_text(render_summary(summary))

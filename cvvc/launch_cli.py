@@ -74,6 +74,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="how the PV plants reach the bus: bus (the simulator's own frames, default) or sunspec "
                         "(each plant behind a simulated SunSpec Modbus inverter and a `cvvc adapter sunspec`; "
                         "docs/sunspec.md)")
+    p.add_argument("--field-protocol", choices=["bus", "dnp3"], default=None,
+                   help="how the regulators and capacitor banks reach the bus: bus (the simulator's own frames, "
+                        "default) or dnp3 (each behind a simulated DNP3 outstation and a `cvvc adapter dnp3`; cases "
+                        "C, D, none and local; docs/dnp3.md)")
     p.add_argument("--no-record", action="store_true", help="do not record the session to MCAP")
     p.add_argument("--no-baseline", action="store_true", help="skip the no-control baseline")
     p.add_argument("--cache", default=None, help=CACHE_HELP)

@@ -75,6 +75,7 @@ def render_summary(s: RunSummary) -> str:
               ("- bus: mTLS with per-role certificates and the deny-by-default access policy" if s.secure else
                "- **bus: insecure** (`--insecure`): no TLS, no access control; any local process could read "
                "and command"),
+              *_field_lines(s),
               *_integrity_lines(s),
               f"- recording: `{s.recording}`" if s.recording else "- recording: off", *_recorder_lines(s),
               f"- model: `{s.model}`" if s.model else "- model: none (baseline case)",
@@ -88,6 +89,17 @@ def _counts(d: dict[str, int]) -> str:
     return ", ".join(f"{k} {n:,}" for k, n in sorted(d.items(), key=lambda kv: (-kv[1], kv[0]))) or "none"
 
 
+def _field_lines(s: RunSummary) -> list[str]:
+    """The report's line on how the field devices reached the bus (none when every frame was the bridge's)."""
+    if s.pv_protocol == "bus" and s.field_protocol == "bus":
+        return []
+    pv = ("PV plants behind SunSpec (a `cvvc adapter sunspec` each; steps some frame came late: "
+          f"{s.sunspec_frame_misses})" if s.pv_protocol == "sunspec" else "PV plants on the bridge's frames")
+    field = ("regulators and banks behind DNP3 (a `cvvc adapter dnp3` each; steps some frame came late: "
+             f"{s.dnp3_frame_misses})" if s.field_protocol == "dnp3" else "regulators and banks on the bridge's frames")
+    return [f"- field devices: {pv}; {field}"]
+
+
 def _integrity_lines(s: RunSummary) -> list[str]:
     """The report's lines on what the run refused, missed or found overwritten, and whether control was lost."""
     g = s.integrity
@@ -97,9 +109,11 @@ def _integrity_lines(s: RunSummary) -> list[str]:
              f"refused: {_counts(g.inputs_refused)}; foreign acks {g.foreign_acks}; meter readings refused: "
              f"{_counts(g.meter_readings_refused)}; commands refused by device: {_counts(g.commands_refused)}; "
              f"refused by the bridge: {_counts(g.bridge_refused)}; decisions not the agent's: {g.foreign_decisions}"]
-    if s.pv_protocol == "sunspec":
-        lines.append(f"- SunSpec: set points another master held, scans by plant: {_counts(g.foreign_writes)}; "
-                     f"Modbus writes refused from another master: {_counts(g.foreign_master_writes)}")
+    if s.pv_protocol == "sunspec" or s.field_protocol == "dnp3":
+        modbus = (f"; Modbus writes refused from another master: {_counts(g.foreign_master_writes)}"
+                  if s.pv_protocol == "sunspec" else "")
+        lines.append(f"- adapters: commands another master held in the device, scans by device: "
+                     f"{_counts(g.foreign_writes)}{modbus}")
     if g.degraded:
         lines.append(f"- **degraded for more than one control period**: {g.degraded} (`cvvc run` exits 3)")
     return lines

@@ -63,6 +63,8 @@ class RunSummary(msgspec.Struct, frozen=True, kw_only=True):
     recorder_gave_up: bool = False  # the recorder died more than recorder_restarts_max times: recording stopped
     pv_protocol: str = "bus"  # how the PV plants reached the bus (``RunConfig.pv_protocol``)
     sunspec_frame_misses: int = 0  # sunspec: steps some adapter's PV frame did not reach the bridge in time
+    field_protocol: str = "bus"  # how the regulators and banks reached the bus (``RunConfig.field_protocol``)
+    dnp3_frame_misses: int = 0  # dnp3: steps some adapter's regulator or bank frame did not reach the bridge in time
     live: LiveAccuracy | None = None  # the agent's estimates and bounds against the truth of their step (bridge)
     secure: bool = False  # the bus ran with mTLS and the access policy (False: ``--insecure``)
     case_file: str | None = None  # the case file the run was read from (``cvvc run case.toml``)

@@ -320,6 +320,8 @@ def access_control_policy(feeders: tuple[str, ...] = ()) -> dict[str, Any]:
     agent can neither command another feeder's devices nor read its frames.
     """
     r = _ROOT
+    # what the bridge and the head-clocked adapters read of the devices behind a field protocol: frames and acks
+    adapted = [f"{r}/*/{group}/{kind}/*" for kind in ("pv", "vr", "cap") for group in ("meas", "ack")]
     alive = f"{r}/*/alive/**"
     rules = [
         # agent: commands, decisions and status out; frames and acks in; the oracle (case A). The only role that
@@ -338,12 +340,12 @@ def access_control_policy(feeders: tuple[str, ...] = ()) -> dict[str, Any]:
         # out; commands in
         _rule("devices-send", ["put"], ["ingress"],
               [f"{r}/*/meas/**", f"{r}/*/ack/**", f"{r}/*/link/**", f"{r}/*/sim/**"]),
-        # ... and, for SunSpec adapters clocked on the head (``--clock head``) and the bridge that waits for their
-        # frames, the head frame, the PV frames and the PV acks (what a devices certificate may send anyway)
+        # ... and, for SunSpec and DNP3 adapters clocked on the head (``--clock head``) and the bridge that waits for
+        # their frames, the head frame, the device frames and acks (what a devices certificate may send anyway)
         _rule("devices-subscribe", ["declare_subscriber"], ["ingress"], [f"{r}/*/cmd/**", f"{r}/*/agent/decision",
-              f"{r}/*/meas/head", f"{r}/*/meas/pv/*", f"{r}/*/ack/pv/*"]),
+              f"{r}/*/meas/head", *adapted]),
         _rule("devices-receive", ["put"], ["egress"], [f"{r}/*/cmd/**", f"{r}/*/agent/decision",
-              f"{r}/*/meas/head", f"{r}/*/meas/pv/*", f"{r}/*/ack/pv/*"]),
+              f"{r}/*/meas/head", *adapted]),
         _rule("devices-oracle", ["declare_queryable", "reply"], ["ingress"], [f"{r}/*/sim/oracle"]),
         _rule("devices-oracle-query", ["query"], ["egress"], [f"{r}/*/sim/oracle"]),
         _rule("devices-alive", ["liveliness_token"], ["ingress"],

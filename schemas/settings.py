@@ -28,11 +28,13 @@ from msgspec import Meta
 from schemas.devicemap import MeterSpec
 
 __all__ = ["CASES", "PAPER_AGENT", "SECTIONS", "AgentOptions", "AgentSettings", "BridgeSection", "Case",
-           "FeederSection", "OutputSection", "PvProtocol", "RunCase", "SecuritySection", "WindowSection"]
+           "FeederSection", "FieldProtocol", "OutputSection", "PvProtocol", "RunCase", "SecuritySection",
+           "WindowSection"]
 
 Case = Literal["A", "B", "C", "D", "none", "local"]
 CASES: tuple[Case, ...] = ("A", "B", "C", "D", "none", "local")
 PvProtocol = Literal["bus", "sunspec"]
+FieldProtocol = Literal["bus", "dnp3"]
 
 class AgentOptions(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
     """The agent's decision settings (docs/agent.md); the case sets the mode and the correction."""
@@ -148,6 +150,9 @@ class BridgeSection(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fi
         "a truth frame every this many steps (0: never); the recording keeps it for the metrics"))] = 1
     pv_protocol: Annotated[PvProtocol, Meta(description=(
         "how the PV plants reach the bus: bus (the bridge's frames) or sunspec (docs/sunspec.md)"))] = "bus"
+    field_protocol: Annotated[FieldProtocol, Meta(description=(
+        "how the regulators and capacitor banks reach the bus: bus (the bridge's frames) or dnp3 (each behind a "
+        "simulated DNP3 outstation and a cvvc adapter dnp3; cases C, D, none and local; docs/dnp3.md)"))] = "bus"
 
 
 class OutputSection(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):

@@ -37,6 +37,7 @@ _MARKS_BY_FIXTURE: dict[str, tuple[str, ...]] = {
     "banks_only": ("slow",),              # tests/training/test_bank_sensitivities.py
     "one_hour_run": ("process", "slow"),  # tests/cvvc/test_run.py: one ``cvvc run`` of an hour
     "both_runs": ("process", "slow"),     # tests/cvvc/test_run_sunspec.py
+    "dnp3_runs": ("process", "slow"),     # tests/cvvc/test_run_dnp3.py
     "ami_run": ("process", "slow"),       # tests/cvvc/test_ami_run.py
     "caps_run": ("process", "slow"),      # tests/cvvc/test_run_caps.py
     "small_evaluation": ("process", "slow"),  # tests/cvvc/test_evaluate.py

@@ -47,7 +47,7 @@ from schemas import messages as m
 from schemas.bus import BusConfig, open_session, wait_for
 from schemas.devicemap import DeviceMap, load_device_map
 from simulator_bridge.bus.bridge_config import BridgeConfig
-from simulator_bridge.bus.bridge_runtime import BridgeRuntime, sunspec_fleet
+from simulator_bridge.bus.bridge_runtime import BridgeRuntime, dnp3_fleet, sunspec_fleet
 from simulator_bridge.errors import BridgeError
 from simulator_bridge.simulation.live_accuracy import LiveAccuracy
 
@@ -68,7 +68,7 @@ log = logging.getLogger(__name__)
 
 _NS = 1_000_000_000
 _LOCAL_TZ = dt.timezone(dt.timedelta(hours=-5))  # the profiles' fixed local standard time (UTC-5)
-_ADAPTER_WAIT_S = 30.0  # before the first step, the longest wait for the SunSpec adapters' tokens [s]
+_ADAPTER_WAIT_S = 30.0  # before the first step, the longest wait for the field-protocol adapters' tokens [s]
 _STARTUP_PROBE_S = 1.0  # bounded look for an agent already alive, and for its subscription, at startup [s]
 
 
@@ -118,6 +118,7 @@ class BridgeSummary(msgspec.Struct, frozen=True, kw_only=True):
     log_suppressed: dict[str, int] = {}  # log lines not written by the rate limit, by kind (rejected_<kind>: bus)
     sunspec_frame_misses: int = 0  # steps some SunSpec adapter's frame did not come within the time-out
     sunspec_foreign_master_writes: dict[str, int] = {}  # Modbus writes an inverter refused: not its adapter's, by plant
+    dnp3_frame_misses: int = 0  # steps some DNP3 adapter's frame did not come within the time-out
     live_accuracy: LiveAccuracy | None = None  # the agent's estimates against the truth of their step
 
 
@@ -161,9 +162,9 @@ def _check_config(c: BridgeConfig) -> None:
         raise BridgeError(f"--drop-burst-min must be within 0..1440 min, got {c.drop_burst_min}")
     if not (math.isfinite(c.clock_skew_s) and abs(c.clock_skew_s) <= 600.0):
         raise BridgeError(f"--clock-skew-s must be within -600..600 s, got {c.clock_skew_s}")
-    if c.pv_sunspec and (c.noise_scada_pct or c.drop_prob or c.latency_s or c.clock_skew_s):
-        raise BridgeError("plants behind SunSpec (--pv-sunspec) take no SCADA noise, drops, latency or clock skew "
-                          "yet: the adapters publish their frames; run without those options")
+    if (c.pv_sunspec or c.field_dnp3) and (c.noise_scada_pct or c.drop_prob or c.latency_s or c.clock_skew_s):
+        raise BridgeError("devices behind SunSpec or DNP3 (--pv-sunspec, --field-dnp3) take no SCADA noise, drops, "
+                          "latency or clock skew yet: the adapters publish their frames; run without those options")
     if c.publisher == "process" and c.latency_s > 0.0:
         raise BridgeError("publisher='process' cannot hold frames for --latency-s (the stepping thread flushes "
                           "the delay line); use publisher='auto' or 'inline' with latency")
@@ -205,8 +206,9 @@ def run_bridge(config: BridgeConfig, bus: BusConfig, *, stop: threading.Event | 
                               f"({profiles.n_steps - start} steps left); start earlier or run fewer steps")
         qsts = Qsts(engine, profiles, start_step=start, pv_local=config.pv_local)
         fleet = sunspec_fleet(config, dm, engine, qsts)
+        dnp3 = dnp3_fleet(config, engine)
         with open_session(bus) as session:
-            rt = BridgeRuntime(config, bus, session, dm, engine, profiles, qsts, start, fleet)
+            rt = BridgeRuntime(config, bus, session, dm, engine, profiles, qsts, start, fleet, dnp3)
             try:
                 return _loop(rt, stop, on_ready)
             finally:
@@ -236,8 +238,8 @@ def _loop(rt: BridgeRuntime, stop: threading.Event, on_ready: Callable[[], None]
         elif rt.inbox.queue.qsize() or rt.held():
             rt.serve(0.0, stop)  # handle what is queued, without waiting
         res = rt.step()
-        if rt.fleet is not None:
-            rt.await_sunspec_frames(int(res.t_ns), stop)
+        if rt.frames is not None:
+            rt.await_adapter_frames(int(res.t_ns), stop)
         if rt.is_control_step(res.step):
             rt.control_steps += 1
             if c.clock == "lockstep":
@@ -278,8 +280,9 @@ def _loop(rt: BridgeRuntime, stop: threading.Event, on_ready: Callable[[], None]
         publisher_cpu_s=pub_cpu_s, decision_wait_s=rt.decision_wait_s,
         publisher="inline" if rt.child is None else "process",
         log_suppressed=rt.log_suppressed(),
-        sunspec_frame_misses=rt.fleet.frame_misses if rt.fleet is not None else 0,
+        sunspec_frame_misses=rt.frames.misses["sunspec"] if rt.frames is not None else 0,
         sunspec_foreign_master_writes=rt.fleet.foreign_master_writes() if rt.fleet is not None else {},
+        dnp3_frame_misses=rt.frames.misses["dnp3"] if rt.frames is not None else 0,
         live_accuracy=rt.live.result() if rt.decisions else None)
 
 
@@ -289,10 +292,10 @@ def _startup(rt: BridgeRuntime, stop: threading.Event) -> None:
     """
     c = rt.config
     deadline = time.monotonic() + c.wait_agent_s
-    if rt.fleet is not None and not rt.serve(time.monotonic() + max(c.wait_agent_s, _ADAPTER_WAIT_S), stop,
-                                             rt.adapters_alive):
-        log.warning("not every SunSpec adapter is on the bus (%s): their plants' frames will be missing",
-                    ", ".join(rt.fleet.plant_ids))
+    if rt.frames is not None and not rt.serve(time.monotonic() + max(c.wait_agent_s, _ADAPTER_WAIT_S), stop,
+                                              rt.adapters_alive):
+        log.warning("not every field-protocol adapter is on the bus (%s): their devices' frames will be missing",
+                    ", ".join(f"{k}/{d}" for k, d in rt.frames.protocol))
     if c.wait_agent_s > 0:
         rt.serve(deadline, stop, lambda: rt.agent_alive)
     if not rt.agent_alive:  # the watcher's history may still be on its way: ask once, bounded

@@ -46,7 +46,8 @@ def _bridge(args: argparse.Namespace) -> int:
             drop_burst_min=args.drop_burst_min, clock_skew_s=args.clock_skew_s,
             cache_dir=(str(profiles_dir(args.cache)) if args.cache_dir is None
                        else None if args.cache_dir == "" else args.cache_dir), publisher=args.publisher,
-            oracle=args.oracle, pv_sunspec=_pv_sunspec(args.pv_sunspec),
+            oracle=args.oracle, pv_sunspec=_device_endpoints("--pv-sunspec", "PV_ID", args.pv_sunspec),
+            field_dnp3=_device_endpoints("--field-dnp3", "DEVICE_ID", args.field_dnp3),
             own_commands_only=args.own_commands_only,
         )
         default_mode: Mode = "router" if args.listen and not args.connect else "peer"
@@ -74,16 +75,16 @@ def _bridge(args: argparse.Namespace) -> int:
     return 0
 
 
-def _pv_sunspec(items: list[str] | None) -> dict[str, str]:
-    """``--pv-sunspec PV_ID=tcp/127.0.0.1:PORT`` flags -> {plant: endpoint}; BridgeError when malformed."""
+def _device_endpoints(flag: str, name: str, items: list[str] | None) -> dict[str, str]:
+    """``FLAG ID=tcp/127.0.0.1:PORT`` flags -> {device: endpoint}; BridgeError when malformed."""
     from simulator_bridge.errors import BridgeError
 
     out: dict[str, str] = {}
     for item in items or []:
-        plant, sep, endpoint = item.partition("=")
-        if not sep or not plant or not endpoint or plant in out:
-            raise BridgeError(f"--pv-sunspec {item!r}: write PV_ID=tcp/127.0.0.1:PORT, once per plant")
-        out[plant] = endpoint
+        device, sep, endpoint = item.partition("=")
+        if not sep or not device or not endpoint or device in out:
+            raise BridgeError(f"{flag} {item!r}: write {name}=tcp/127.0.0.1:PORT, once per device")
+        out[device] = endpoint
     return out
 
 
@@ -140,6 +141,10 @@ def register_bridge(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--pv-sunspec", action="append", metavar="PV_ID=tcp/127.0.0.1:PORT",
                    help="serve this plant as a simulated SunSpec inverter on PORT and leave its frames, acks and "
                         "commands to a `cvvc adapter sunspec --clock head` (repeat per plant; docs/sunspec.md)")
+    p.add_argument("--field-dnp3", action="append", metavar="DEVICE_ID=tcp/127.0.0.1:PORT",
+                   help="serve this regulator or capacitor bank as a simulated DNP3 outstation on PORT and leave its "
+                        "frames, acks and commands to a `cvvc adapter dnp3 --clock head` (repeat per device; "
+                        "docs/dnp3.md)")
     p.add_argument("--own-commands-only", action="store_true",
                    help="subscribe to this feeder's commands only, not every feeder's (many feeders on one bus: "
                         "`cvvc fleet`); no wrong_feeder answers for commands sent to feeders without a bridge")

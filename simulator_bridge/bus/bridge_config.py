@@ -49,6 +49,9 @@ class BridgeConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fie
         there, and a ``cvvc adapter sunspec --clock head`` per plant publishes their frames and acks and takes
         their commands (``simulator_bridge.bus.sunspec_fleet``); the bridge waits, up to ``timeout_s``, for each
         adapter's frame of a step before the next one.
+    field_dnp3 : device id -> ``tcp/127.0.0.1:PORT``: these regulators and capacitor banks are behind simulated DNP3
+        outstations served there, and a ``cvvc adapter dnp3 --clock head`` per device publishes their frames and
+        acks and operates their commands (``simulator_bridge.bus.dnp3_fleet``); waited for as ``pv_sunspec``.
     own_commands_only : subscribe to this feeder's commands only (``cvvc/<id>/cmd/**``), not to every feeder's
         (``cvvc/*/cmd/**``, which answers a command sent to a feeder without a bridge: ``wrong_feeder``). For
         many feeders on one bus (``cvvc fleet``): each bridge otherwise receives every feeder's commands, and one
@@ -78,3 +81,4 @@ class BridgeConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fie
     clock_skew_s: float = _REALISM.clock_skew_s
     pv_sunspec: dict[str, str] = {}  # plant id -> tcp/127.0.0.1:PORT: the plant behind a simulated SunSpec inverter
     own_commands_only: bool = False
+    field_dnp3: dict[str, str] = {}  # regulator or bank id -> tcp/127.0.0.1:PORT: the device behind a DNP3 outstation

@@ -27,14 +27,15 @@ from schemas.bus import BusConfig, Inbox, LivelinessWatcher, Received
 from schemas.devicemap import DeviceMap
 from schemas.logs import RateLimitedLog
 from schemas.security import COMMAND_ROLE
+from simulator_bridge.bus.adapter_frames import AdapterFrames, Protocol
 from simulator_bridge.bus.bridge_config import BridgeConfig
 from simulator_bridge.bus.device_bank import BridgeCounters, DeviceBank
+from simulator_bridge.bus.dnp3_fleet import Dnp3Fleet, regulator_phases
 from simulator_bridge.bus.oracle_serving import OracleQuery, OracleServer
 from simulator_bridge.bus.publisher_process import PublisherProcess, StepPacker, child_bus
 from simulator_bridge.bus.publishing import FINITE_READING_FIELDS, FramePublisher, FramerSpec, StepFramer
 from simulator_bridge.bus.sunspec_fleet import SunSpecFleet, plant_phases
 from simulator_bridge.errors import BridgeError
-from simulator_bridge.field import devices as dv
 from simulator_bridge.simulation.live_accuracy import LiveAccuracyAccumulator
 from simulator_bridge.simulation.metrics_stream import MetricsAccumulator, zone_phase_nodes
 
@@ -43,7 +44,7 @@ if TYPE_CHECKING:
     from simulator_bridge.simulation.profiles import YearProfiles
     from simulator_bridge.simulation.qsts import Qsts, StepResult
 
-__all__ = ["BridgeRuntime", "publisher_bus", "sunspec_fleet"]
+__all__ = ["BridgeRuntime", "dnp3_fleet", "publisher_bus", "sunspec_fleet"]
 
 log = logging.getLogger("simulator_bridge.bus.bridge")  # the bridge's log lines, under the bridge's name
 
@@ -94,6 +95,17 @@ def sunspec_fleet(c: BridgeConfig, dm: DeviceMap, engine: FeederEngine, qsts: Qs
                         q_at_night=bool(qsts.pv_q_at_night), volt_var=c.pv_local == "volt_var")
 
 
+def dnp3_fleet(c: BridgeConfig, engine: FeederEngine) -> Dnp3Fleet | None:
+    """The simulated DNP3 outstations of ``c.field_dnp3`` (not serving yet), or None without any.
+
+    Raises
+    ------
+    BridgeError
+        A device the feeder does not have, an endpoint that is not ``tcp/127.0.0.1:PORT``, a bank of several steps.
+    """
+    return Dnp3Fleet(c.field_dnp3, engine) if c.field_dnp3 else None
+
+
 def publisher_bus(c: BridgeConfig, bus: BusConfig, n_nodes: int) -> BusConfig | None:
     """The publisher process's bus, or None to publish inline (``BridgeConfig.publisher``).
 
@@ -126,12 +138,13 @@ class BridgeRuntime:
     config : the run. bus : the bridge's bus settings. session : its open Zenoh session. dm : the device map.
     engine, profiles, qsts : the feeder, its year profiles and the simulation. start_step : the profile step of the
     run's first step. fleet : the simulated inverters of the plants behind SunSpec (:func:`sunspec_fleet`), not
-    started yet (started here, stopped by :meth:`close`), or None.
+    started yet (started here, stopped by :meth:`close`), or None. dnp3 : the simulated outstations of the
+    regulators and banks behind DNP3 (:func:`dnp3_fleet`), the same way, or None.
     """
 
     def __init__(self, config: BridgeConfig, bus: BusConfig, session: zenoh.Session, dm: DeviceMap,
                  engine: FeederEngine, profiles: YearProfiles, qsts: Qsts, start_step: int,
-                 fleet: SunSpecFleet | None = None) -> None:
+                 fleet: SunSpecFleet | None = None, dnp3: Dnp3Fleet | None = None) -> None:
         c = self.config = config
         self.session, self.dm, self.engine, self.profiles, self.qsts = session, dm, engine, profiles, qsts
         self.counters = BridgeCounters(rlog=RateLimitedLog(log))  # every line a peer can provoke
@@ -141,16 +154,21 @@ class BridgeRuntime:
         self.start_step = start_step
         local: Literal["unity_pf", "volt_var"] = "volt_var" if c.pv_local == "volt_var" else "unity_pf"
         self.fleet = fleet  # the plants behind SunSpec (``sunspec_fleet``), if any
+        self.dnp3 = dnp3  # the regulators and banks behind DNP3 (``dnp3_fleet``), if any
         external = frozenset(self.fleet.plant_ids) if self.fleet is not None else frozenset()
+        external_vr = frozenset(dnp3.regulator_ids) if dnp3 is not None else frozenset()
+        external_cap = frozenset(dnp3.capacitor_ids) if dnp3 is not None else frozenset()
+        behind: dict[tuple[str, str], Protocol] = {("pv", p): "sunspec" for p in external}
+        behind |= {("vr", r): "dnp3" for r in external_vr} | {("cap", k): "dnp3" for k in external_cap}
+        self.frames = AdapterFrames(behind) if behind else None  # the adapters' frames each step waits for
         # secure: only the command role's certificate can put commands, so replay protection is keyed on it
         self.bank = DeviceBank(session, self.fid, engine, qsts, local=local,
                                period_ns=int(dm.feeder.control_period_s) * _NS,  # the commands' time window unit
                                sender=COMMAND_ROLE if bus.tls_dir is not None else None, counters=self.counters,
-                               external_pv=external)
+                               external_pv=external, external_vr=external_vr, external_cap=external_cap)
         self.bank.now_t_ns = int(profiles.t_ns(start_step)) - self.step_s * _NS  # nothing simulated yet
         bank = self.bank
-        self.reg_phase = [dv.PHASE_NAMES[int(engine.node_names[n].split(".")[1]) - 1]
-                          for n in engine.reg_secondary_node]
+        self.reg_phase = list(regulator_phases(engine))
         self.spec = FramerSpec(
             feeder_id=self.fid, step_s=self.step_s, control_every=self.control_every,
             profile_start_t_ns=int(profiles.start_t_ns), run_start_t_ns=int(profiles.t_ns(start_step)),
@@ -163,7 +181,8 @@ class BridgeRuntime:
             noise_seed=c.noise_seed, metrics=MetricsAccumulator.for_feeder(dm, engine, step_s=self.step_s),
             drop_burst_s=60.0 * c.drop_burst_min, clock_skew_s=c.clock_skew_s,
             caps=tuple((k.capacitor_id, k.index, k.steps, k.kvar_rated, k.control_type) for k in bank.caps.values()),
-            pv_external=tuple(sorted(external)), meters=_meters(dm, engine.node_names))
+            pv_external=tuple(sorted(external)), meters=_meters(dm, engine.node_names),
+            vr_external=tuple(sorted(external_vr)), cap_external=tuple(sorted(external_cap)))
         self.steps = self.control_steps = self.misses = self.skipped = self.decisions = 0
         self.late_steps = 0
         self.round_trips: list[float] = []
@@ -175,9 +194,10 @@ class BridgeRuntime:
         self._control_truth: dict[int, np.ndarray] = {}
         self._ctrl_pub_wall_ns: dict[int, int] = {}  # inline: when a control step's head frame was put
         self.oracle: OracleServer | None = None
-        if self.fleet is not None:
-            self.fleet.start()  # before the adapters' first scan; stopped by close()
         try:
+            for served in (self.fleet, self.dnp3):
+                if served is not None:
+                    served.start()  # before the adapters' first scan; stopped by close()
             self._declare()
             self.child: PublisherProcess | None = None
             self.framer: StepFramer | None = None
@@ -189,8 +209,9 @@ class BridgeRuntime:
                                     len(engine.capacitor_ids))
                 self.child = PublisherProcess(self.spec, packer, child)
         except BaseException:
-            if self.fleet is not None:  # no close() follows a failed construction: the servers stop here
-                self.fleet.close()
+            for served in (self.fleet, self.dnp3):  # no close() follows a failed construction: they stop here
+                if served is not None:
+                    served.close()
             raise
 
     @property
@@ -211,11 +232,14 @@ class BridgeRuntime:
         self.inbox.subscribe(s, f"{keys.ROOT}/{f if self.config.own_commands_only else '*'}/cmd/**")
         self.inbox.subscribe(s, keys.agent_decision(f), m.Decision)
         self.agents = LivelinessWatcher(s, f"{keys.ROOT}/{f}/alive/agent/*", self._on_agent)
-        self.pv_tokens: LivelinessWatcher | None = None
-        if self.fleet is not None:  # the adapters' frames (the step's wait) and acks (the lockstep's commands)
-            self.inbox.subscribe(s, keys.meas_pv(f), m.PvFrame)
-            self.inbox.subscribe(s, keys.ack(f, "pv"), m.Ack)
-            self.pv_tokens = LivelinessWatcher(s, f"{keys.ROOT}/{f}/alive/pv/*")
+        self.adapter_tokens: list[LivelinessWatcher] = []
+        frames = {"pv": (keys.meas_pv(f), m.PvFrame), "vr": (keys.meas_vr(f), m.RegFrame),
+                  "cap": (keys.meas_cap(f), m.CapFrame)}
+        for kind, (key, frame_type) in frames.items():  # the adapters' frames (the step's wait), acks (lockstep)
+            if self.frames is not None and any(self.frames.devices(kind)):
+                self.inbox.subscribe(s, key, frame_type)
+                self.inbox.subscribe(s, keys.ack(f, kind), m.Ack)  # type: ignore[arg-type]
+                self.adapter_tokens.append(LivelinessWatcher(s, f"{keys.ROOT}/{f}/alive/{kind}/*"))
         if self.config.oracle:  # compiles its twin engine now, not at the first query
             self.oracle = OracleServer(s, f, self.engine, self.qsts, self.inbox, self.counters)
 
@@ -225,10 +249,11 @@ class BridgeRuntime:
         """
         if self.child is not None:
             self.child.close(None)  # nothing more when the run closed it already
-        if self.fleet is not None:
-            self.fleet.close()
+        for served in (self.fleet, self.dnp3):
+            if served is not None:
+                served.close()
         declared = [self.oracle.undeclare] if self.oracle is not None else []
-        declared += [self.pv_tokens.undeclare] if self.pv_tokens is not None else []
+        declared += [w.undeclare for w in self.adapter_tokens]
         for undeclare in [*declared, self.inbox.undeclare, self.agents.undeclare,
                           self.bank.bridges.undeclare, *(t.undeclare for t in self.tokens)]:
             try:
@@ -297,10 +322,13 @@ class BridgeRuntime:
             self._on_decision(msg, item.recv_wall_ns)
         elif isinstance(msg, m.PvCommand | m.RegCommand | m.CapCommand):
             self.bank.on_command(item.key, msg)
-        elif isinstance(msg, m.PvFrame) and self.fleet is not None:
-            self.fleet.on_frame(msg.plant_id, msg.t_ns)
-        elif isinstance(msg, m.Ack) and self.fleet is not None and msg.device_id in self.fleet.index:
-            self.bank.remember(msg.cmd_id)  # the adapter handled it: the lockstep's decision may be complete
+        elif isinstance(msg, m.PvFrame | m.RegFrame | m.CapFrame) and self.frames is not None:
+            kind, device = _frame_device(msg)
+            self.frames.on_frame(kind, device, msg.t_ns)
+        elif isinstance(msg, m.Ack) and self.frames is not None:
+            parts = keys.parse_device_key(item.key)
+            if parts is not None and (parts[2], parts[3]) in self.frames.protocol:
+                self.bank.remember(msg.cmd_id)  # the adapter handled it: the lockstep's decision may be complete
 
     def _on_decision(self, d: m.Decision, recv_wall_ns: int) -> None:
         if d.feeder_id != self.fid:
@@ -365,6 +393,12 @@ class BridgeRuntime:
                 self.qsts.set_pv_local(k, volt_var)
             for k, q_kvar in self.fleet.commands(t_next).items():
                 self.qsts.command_pv_q(k, q_kvar)
+        if self.dnp3 is not None:  # what the outstations hold in force (hold timers on the step's time), if changed
+            reg_changes, cap_changes = self.dnp3.commands(t_next)
+            for r, held in reg_changes.items():
+                self.qsts.command_setpoint(r, *(held or (None, None)))
+            for c, closed_steps in cap_changes.items():
+                self.qsts.command_cap(c, closed_steps)
         res = self.qsts.step()
         self.bank.now_t_ns = int(res.t_ns)
         if self.is_control_step(res.step):  # the truth the decision of this step is judged against
@@ -373,10 +407,15 @@ class BridgeRuntime:
                 self._control_truth.pop(next(iter(self._control_truth)))
         self.bank.pv_p_kw = res.pv_p_kw
         self.steps += 1
-        if self.fleet is not None:  # before the head frame is put: the adapters scan when it arrives
+        if self.frames is not None:  # before the head frame is put: the adapters scan when it arrives
             check_finite_step(res)
             rd = res.readings
-            self.fleet.measure(int(res.t_ns), rd.pv_p_kw, rd.pv_q_kvar, rd.pv_v_v)
+            if self.fleet is not None:
+                self.fleet.measure(int(res.t_ns), rd.pv_p_kw, rd.pv_q_kvar, rd.pv_v_v)
+            if self.dnp3 is not None:
+                self.dnp3.measure(int(res.t_ns), v_compared_120=rd.reg_v120_compared, v_120=rd.reg_v120,
+                                  taps=res.taps, cap_states=rd.cap_states, cap_v_v=rd.cap_v_v,
+                                  cap_control_value=rd.cap_control_value)
         if self.child is not None:
             if not self.child.submit(res, self.steps, self.bank.settings(),
                                      metrics_after=self.is_control_step(res.step)):
@@ -387,25 +426,29 @@ class BridgeRuntime:
         return res
 
     def adapters_alive(self) -> bool:
-        """Whether every SunSpec adapter's liveliness token (``alive/pv/<id>``) is up (True without any)."""
-        if self.fleet is None or self.pv_tokens is None:
-            return True
-        alive = self.pv_tokens.alive()
-        return all(keys.alive(self.fid, "pv", pid) in alive for pid in self.fleet.plant_ids)
-
-    def await_sunspec_frames(self, t_ns: int, stop: threading.Event) -> None:
-        """Serve the queue until every SunSpec adapter's frame of the step at ``t_ns`` [ns] arrived, at most
-        ``timeout_s``; a step whose frames did not all come is counted (``SunSpecFleet.frame_misses``), and the
-        plants that missed it are not waited for again until their next frame (``SunSpecFleet.missed``).
+        """Whether every field-protocol adapter's liveliness token (``alive/<kind>/<id>``) is up and every DNP3
+        outstation has its master connected (True without any).
         """
-        fleet = self.fleet
-        if fleet is None or self.serve(time.monotonic() + self.config.timeout_s, stop,
-                                       lambda: fleet.frames_in(t_ns)) or stop.is_set():
+        if self.frames is None:
+            return True
+        if self.dnp3 is not None and not self.dnp3.masters_connected():
+            return False
+        alive = set().union(*(w.alive() for w in self.adapter_tokens))
+        return all(keys.alive(self.fid, kind, d) in alive for kind, d in self.frames.protocol)  # type: ignore[arg-type]
+
+    def await_adapter_frames(self, t_ns: int, stop: threading.Event) -> None:
+        """Serve the queue until every field-protocol adapter's frame of the step at ``t_ns`` [ns] arrived, at most
+        ``timeout_s``; a step whose frames did not all come is counted (``AdapterFrames.misses``, by protocol), and
+        the devices that missed it are not waited for again until their next frame (``AdapterFrames.missed``).
+        """
+        frames = self.frames
+        if frames is None or self.serve(time.monotonic() + self.config.timeout_s, stop,
+                                        lambda: frames.frames_in(t_ns)) or stop.is_set():
             return
-        late = fleet.missed(t_ns)
-        self.counters.rlog.warning("sunspec_frame_miss", "no frame of %s at t_ns=%d within %.3f s (%d steps so far); "
+        late = frames.missed(t_ns)
+        self.counters.rlog.warning("adapter_frame_miss", "no frame of %s at t_ns=%d within %.3f s (%s steps so far); "
                                    "not waiting for them until their next frame", late, t_ns, self.config.timeout_s,
-                                   fleet.frame_misses)
+                                   dict(frames.misses))
 
     def flush(self, now_s: float) -> None:
         """Frames held by the latency line (inline publishing only) that are due go out."""
@@ -419,6 +462,18 @@ class BridgeRuntime:
     def is_control_step(self, step_index: int) -> bool:
         """Whether profile step ``step_index`` is a control step."""
         return step_index % self.control_every == 0
+
+
+def _frame_device(frame: m.PvFrame | m.RegFrame | m.CapFrame) -> tuple[str, str]:
+    """A device frame's ``(kind, device id)``."""
+    match frame:
+        case m.PvFrame(plant_id=d):
+            return "pv", d
+        case m.RegFrame(regulator_id=d):
+            return "vr", d
+        case m.CapFrame(capacitor_id=d):
+            return "cap", d
+    raise TypeError(f"not a device frame: {type(frame).__name__}")
 
 
 def _meters(dm: DeviceMap, node_names: list[str] | tuple[str, ...]) -> tuple[tuple[str, int, int], ...]:

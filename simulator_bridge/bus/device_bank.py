@@ -69,12 +69,16 @@ class DeviceBank:
     external_pv : plants behind a field-protocol adapter (``simulator_bridge.bus.sunspec_fleet``): no token, ack,
         command or watchdog here; the adapter does all that, and its acks mark the commands handled
         (:meth:`remember`).
+    external_vr, external_cap : regulators and banks behind a field-protocol adapter
+        (``simulator_bridge.bus.dnp3_fleet``), the same way.
     """
 
     def __init__(self, session: zenoh.Session, feeder_id: str, engine: FeederEngine, qsts: Qsts, *,
                  local: Literal["unity_pf", "volt_var"], period_ns: int, sender: str | None,
-                 counters: BridgeCounters, external_pv: frozenset[str] = frozenset()) -> None:
+                 counters: BridgeCounters, external_pv: frozenset[str] = frozenset(),
+                 external_vr: frozenset[str] = frozenset(), external_cap: frozenset[str] = frozenset()) -> None:
         self.session, self.fid, self.qsts, self.counters = session, feeder_id, qsts, counters
+        self.external = {"pv": external_pv, "vr": external_vr, "cap": external_cap}  # by kind: the adapters' devices
         self.external_pv = external_pv
         self.now_t_ns = 0  # the simulation time of the step just simulated (set by the runtime)
         self.pv_p_kw = engine.pv_setpoints()[0]  # the plants' available power at that step [kW]
@@ -102,15 +106,15 @@ class DeviceBank:
         s, f = self.session, self.fid
         lv = s.liveliness()
         tokens = [lv.declare_token(keys.alive(f, "pv", p)) for p in self.pvs if p not in self.external_pv]
-        tokens += [lv.declare_token(keys.alive(f, "vr", r)) for r in self.regs]
-        tokens += [lv.declare_token(keys.alive(f, "cap", k)) for k in self.caps]
+        tokens += [lv.declare_token(keys.alive(f, "vr", r)) for r in self.regs if r not in self.external["vr"]]
+        tokens += [lv.declare_token(keys.alive(f, "cap", k)) for k in self.caps if k not in self.external["cap"]]
         # a decision's acks come in a burst that nobody waits for: batched by Zenoh, not one write each
         self.ack_pv = {p: TypedPublisher(s, keys.ack(f, "pv", p), m.Ack, reliable=True, express=False)
                        for p in self.pvs if p not in self.external_pv}
         self.ack_vr = {r: TypedPublisher(s, keys.ack(f, "vr", r), m.Ack, reliable=True, express=False)
-                       for r in self.regs}
+                       for r in self.regs if r not in self.external["vr"]}
         self.ack_cap = {k: TypedPublisher(s, keys.ack(f, "cap", k), m.Ack, reliable=True, express=False)
-                        for k in self.caps}
+                        for k in self.caps if k not in self.external["cap"]}
         self.bridges = LivelinessWatcher(s, f"{keys.ROOT}/*/alive/bridge/*")
         return tokens
 
@@ -157,10 +161,11 @@ class DeviceBank:
     def on_command(self, key: str, cmd: m.PvCommand | m.RegCommand | m.CapCommand) -> None:
         """Handle one command received on ``key``: check, apply and ack it, or reject it with a reason.
 
-        A command to a plant behind an adapter (``external_pv``) is the adapter's: left alone.
+        A command to a device behind an adapter (``external_pv``, ``external_vr``, ``external_cap``) is the adapter's:
+        left alone.
         """
         parts = keys.parse_device_key(key)
-        if parts is not None and parts[0] == self.fid and parts[2] == "pv" and parts[3] in self.external_pv:
+        if parts is not None and parts[0] == self.fid and parts[3] in self.external.get(parts[2], ()):
             return
         self.remember(cmd.cmd_id)
         if parts is None:
@@ -244,6 +249,8 @@ class DeviceBank:
                     status="expired", reason=f"valid until {gone.valid_until_t_ns}; back to local "
                                              f"{pv.local_mode}"))
         for reg in self.regs.values():
+            if reg.regulator_id in self.external["vr"]:  # its outstation's hold timer ends it; its adapter acks
+                continue
             gone = reg.expire(t_ns)
             if gone is not None:
                 self.qsts.command_tap(reg.index, None)
@@ -253,6 +260,8 @@ class DeviceBank:
                                      reason=f"valid until {gone.valid_until_t_ns}; back to local control at "
                                             f"{reg.default_setpoint_v120:.2f} V, band {reg.default_band_v120:.2f} V"))
         for cap in self.caps.values():
+            if cap.capacitor_id in self.external["cap"]:
+                continue
             gone = cap.expire(t_ns)
             if gone is not None:
                 self.qsts.command_cap(cap.index, None)

@@ -103,6 +103,8 @@ class FramerSpec:
     pv_external : plants whose frames an adapter publishes (``simulator_bridge.bus.sunspec_fleet``): no frame here, but
     listed in the step's ``StepEnd``, so the agent waits for the adapter's. meters : AMI meters (``MeterSpec``):
     each puts a ``MeterFrame`` of its node's voltage at the steps whose time is a multiple of its interval.
+    vr_external, cap_external : regulators and banks whose frames an adapter publishes
+    (``simulator_bridge.bus.dnp3_fleet``): as ``pv_external``.
     """
 
     feeder_id: str
@@ -127,6 +129,8 @@ class FramerSpec:
     clock_skew_s: float = 0.0
     pv_external: tuple[str, ...] = ()
     meters: tuple[tuple[str, int, int], ...] = ()  # AMI meters (explicit option): (meter_id, node index, interval_s)
+    vr_external: tuple[str, ...] = ()
+    cap_external: tuple[str, ...] = ()
 
     def is_control_t(self, t_ns: int) -> bool:
         """Whether the step at ``t_ns`` [ns since the UTC epoch] is a control step.
@@ -176,8 +180,10 @@ class StepFramer:
         self.pub_head = FramePublisher(session, keys.meas_head(f))
         self.pub_pv = [None if pv.plant_id in s.pv_external else FramePublisher(session, keys.meas_pv(f, pv.plant_id))
                        for pv in self.pvs]  # an external plant's frames are its adapter's
-        self.pub_vr = [FramePublisher(session, keys.meas_vr(f, reg.regulator_id)) for reg in self.regs]
-        self.pub_cap = [FramePublisher(session, keys.meas_cap(f, cap.capacitor_id)) for cap in self.caps]
+        self.pub_vr = [None if reg.regulator_id in s.vr_external else FramePublisher(session, keys.meas_vr(
+            f, reg.regulator_id)) for reg in self.regs]  # an external device's frames are its adapter's
+        self.pub_cap = [None if cap.capacitor_id in s.cap_external else FramePublisher(session, keys.meas_cap(
+            f, cap.capacitor_id)) for cap in self.caps]
         self.pub_ami = [FramePublisher(session, keys.meas_ami(f, mid)) for mid, _, _ in s.meters]
         self.pub_step = FramePublisher(session, keys.meas_step(f))  # same QoS as the frames: queued behind them
         self.pub_truth = FramePublisher(session, keys.sim_truth(f), reliable=True, msg_type=m.TruthPack)
@@ -278,6 +284,9 @@ class StepFramer:
         taps = np.asarray(res.taps).tolist()
         for reg, pub, sp, bw, mode in zip(self.regs, self.pub_vr, settings.reg_setpoint_v120,
                                           settings.reg_band_v120, settings.reg_mode, strict=True):
+            if pub is None:
+                sent["vr"].append(reg.regulator_id)
+                continue
             r = reg.index
             v120, vc = v120s[r], vcs[r]
             if noise is not None:
@@ -316,6 +325,9 @@ class StepFramer:
         values = np.asarray(rd.cap_control_value, dtype=float).tolist()
         commands = settings.cap_command or (None,) * len(self.caps)
         for cap, pub, command in zip(self.caps, self.pub_cap, commands, strict=True):
+            if pub is None:
+                sent.append(cap.capacitor_id)
+                continue
             c = cap.index
             v, cv = volts[c], values[c]
             cv = None if math.isnan(cv) else cv

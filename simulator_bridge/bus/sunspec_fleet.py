@@ -16,9 +16,10 @@ stands between that inverter and the bus, as it would in the field. The bridge t
   frame reads this step's values;
 * publishes no frame, no ack and no liveliness token for these plants, and takes none of their commands from the
   bus: the adapters do. It still lists them in the step's ``StepEnd`` (the agent waits for their frames);
-* waits, bounded, for every adapter's frame of a step before the next step (:meth:`SunSpecFleet.frames_in`), so a
-  lagging adapter never reads the next step's values and the agent gets the step's PV frames before the next head
-  frame; a PV command counts as handled (lockstep) when its adapter's ack arrives.
+* waits, bounded, for every adapter's frame of a step before the next step
+  (:class:`~simulator_bridge.bus.adapter_frames.AdapterFrames`), so a lagging adapter never reads the next step's
+  values and the agent gets the step's PV frames before the next head frame; a PV command counts as handled
+  (lockstep) when its adapter's ack arrives.
 
 Measurement noise, drops, latency and clock skew are applied by the bridge to the frames it publishes; for plants
 behind SunSpec they are not implemented (the bridge refuses those options with ``pv_sunspec``).
@@ -65,9 +66,6 @@ class SunSpecFleet:
         self.clock_ns = 0  # the inverters' clock: the simulation time the bridge is at [ns]
         self.index: dict[str, int] = {}
         self.inverters: dict[str, SimulatedSunSpecInverter] = {}
-        self.last_frame_t_ns: dict[str, int] = {}
-        self.frame_misses = 0  # steps whose frame of some plant did not come within the bound
-        self.lagging: set[str] = set()  # plants whose frame did not come in time: not waited for until the next
         for pid, endpoint in endpoints.items():
             port = _loopback_port(pid, endpoint)
             k = pv_ids.index(pid)
@@ -81,7 +79,6 @@ class SunSpecFleet:
             except SunSpecSimError as e:
                 raise BridgeError(f"plant {pid}: {e}") from e
             self.index[pid] = k
-            self.last_frame_t_ns[pid] = -1
 
     def _clock(self) -> int:
         return self.clock_ns
@@ -138,26 +135,6 @@ class SunSpecFleet:
         master), by plant; plants without any left out.
         """
         return {pid: inv.foreign_master_writes for pid, inv in self.inverters.items() if inv.foreign_master_writes}
-
-    def on_frame(self, plant_id: str, t_ns: int) -> None:
-        """An adapter's frame of ``plant_id`` at ``t_ns`` [ns] arrived (others' frames are ignored)."""
-        if plant_id in self.last_frame_t_ns and t_ns > self.last_frame_t_ns[plant_id]:
-            self.last_frame_t_ns[plant_id] = int(t_ns)
-            self.lagging.discard(plant_id)
-
-    def frames_in(self, t_ns: int) -> bool:
-        """Whether the frame of the step at ``t_ns`` [ns] (or a later one) arrived from every plant not lagging."""
-        return all(t >= t_ns for pid, t in self.last_frame_t_ns.items() if pid not in self.lagging)
-
-    def missed(self, t_ns: int) -> list[str]:
-        """The step at ``t_ns`` [ns] went without some plants' frames: count it, and wait for those plants no more
-        until a frame of theirs comes again (an adapter whose link is down costs one wait, not one per step).
-        Returns the plants that missed it.
-        """
-        late = [pid for pid, t in self.last_frame_t_ns.items() if t < t_ns and pid not in self.lagging]
-        self.frame_misses += 1
-        self.lagging.update(late)
-        return late
 
 
 def _loopback_port(plant_id: str, endpoint: str) -> int:

@@ -65,6 +65,7 @@ class RegulatorPoints:
     AI_LOAD_CURRENT_A = 2
     AI_SETPOINT_120 = 3
     AI_BAND_120 = 4
+    AI_V_120 = 5
     BI_REMOTE = 0
     AO_SETPOINT_120 = 0
     AO_BAND_120 = 1
@@ -135,6 +136,7 @@ class _Outstation(ABC):
         self._outstation: Any = None
         self._ticker: threading.Thread | None = None
         self._stop = threading.Event()
+        self._listener = _ChannelListener()
         self.operates = 0  # operates taken
         self.refused_operates = 0  # selects and operates refused (out of range, not supported, blocked)
         self._refusals_logged = 0
@@ -147,7 +149,7 @@ class _Outstation(ABC):
                 return
             manager = dnp3.DNP3Manager(1)
             channel = manager.AddTCPServer(self.name, dnp3.LogLevels(), dnp3.ServerAcceptMode.CloseNew,
-                                           dnp3.IPEndpoint(self.host, self.port), None)
+                                           dnp3.IPEndpoint(self.host, self.port), self._listener)
             cfg = dnp3.OutstationStackConfig(dnp3.DatabaseConfig(self._DB_SIZE))
             cfg.link.LocalAddr = self.address
             cfg.link.RemoteAddr = self.master_address
@@ -183,6 +185,11 @@ class _Outstation(ABC):
     def endpoint(self) -> str:
         """``tcp/host:port``."""
         return f"tcp/{self.host}:{self.port}"
+
+    @property
+    def master_connected(self) -> bool:
+        """Whether a master's TCP connection is open now."""
+        return self._listener.opened.is_set()
 
     # -------------------------------------------------------------------------------------------- the device
     def _tick_loop(self) -> None:
@@ -221,6 +228,20 @@ class _Outstation(ABC):
     @abstractmethod
     def _publish(self) -> None:
         """Put the device's state into the outstation's database."""
+
+
+class _ChannelListener(dnp3.IChannelListener):
+    """The server channel's state, on opendnp3's thread: ``opened`` is set while a master's connection is open."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.opened = threading.Event()
+
+    def OnStateChange(self, state: Any) -> None:  # noqa: N802 - opendnp3's interface
+        if state == dnp3.ChannelState.OPEN:
+            self.opened.set()
+        else:
+            self.opened.clear()
 
 
 class _CommandHandler(dnp3.ICommandHandler):
@@ -263,6 +284,8 @@ class _CommandHandler(dnp3.ICommandHandler):
 class SimulatedRegulatorControl(_Outstation):
     """A regulator control behind DNP3 on ``tcp/127.0.0.1:port``.
 
+    Its database holds 6 points of every type (analog inputs 0..5).
+
     Parameters
     ----------
     regulator_id : the device id (the outstation's name in logs).
@@ -273,6 +296,8 @@ class SimulatedRegulatorControl(_Outstation):
     port : TCP port on 127.0.0.1. clock_ns : the device's clock [ns] for the hold timer.
     address, master_address : the DNP3 link addresses of the outstation and of its master.
     """
+
+    _DB_SIZE = 6
 
     def __init__(self, *, regulator_id: str, tap_max: int, default_setpoint_v120: float, default_band_v120: float,
                  port: int, host: str = "127.0.0.1", clock_ns: Callable[[], int] = time.monotonic_ns,
@@ -296,6 +321,7 @@ class SimulatedRegulatorControl(_Outstation):
         self.default_band_v120 = float(default_band_v120)
         self.setpoint_range_v120 = (lo, hi)
         self._v_compared_120 = 0.0
+        self._v_120 = 0.0
         self._tap = 0
         self._i_a = 0.0
         # analog outputs as last written (what the master reads back, g40)
@@ -304,10 +330,13 @@ class SimulatedRegulatorControl(_Outstation):
         self._remote: RemoteSetpoint | None = None
         self.expiries = 0
 
-    def set_measurements(self, *, v_compared_120: float, tap: int, load_current_a: float) -> None:
-        """The control's readings: compared voltage [V, 120 V base], tap [steps], load current [A]."""
+    def set_measurements(self, *, v_compared_120: float, v_120: float, tap: int, load_current_a: float) -> None:
+        """The control's readings: compared voltage and the secondary voltage without line-drop compensation
+        [V, 120 V base], tap [steps], load current [A].
+        """
         with self._lock:
             self._v_compared_120 = float(v_compared_120)
+            self._v_120 = float(v_120)
             self._tap = int(tap)
             self._i_a = float(load_current_a)
             self._expire(self._clock())
@@ -382,6 +411,7 @@ class SimulatedRegulatorControl(_Outstation):
         b.Update(dnp3.Analog(self._v_compared_120), RegulatorPoints.AI_V_COMPARED_120)
         b.Update(dnp3.Analog(float(self._tap)), RegulatorPoints.AI_TAP)
         b.Update(dnp3.Analog(self._i_a), RegulatorPoints.AI_LOAD_CURRENT_A)
+        b.Update(dnp3.Analog(self._v_120), RegulatorPoints.AI_V_120)
         b.Update(dnp3.Analog(self.default_setpoint_v120 if remote is None else remote.setpoint_v120),
                  RegulatorPoints.AI_SETPOINT_120)
         b.Update(dnp3.Analog(self.default_band_v120 if remote is None else remote.band_v120),

@@ -23,7 +23,7 @@ def test_the_adapter_puts_a_regulators_frames_on_the_bus_and_stops_cleanly(route
                                     default_band_v120=2.0, port=free_port(), clock_ns=time.time_ns)
     summary = tmp_path / "link.json"
     with sim, open_session(BusConfig(mode="peer", connect=(router_endpoint,))) as session:
-        sim.set_measurements(v_compared_120=120.5, tap=-2, load_current_a=90.0)
+        sim.set_measurements(v_compared_120=120.5, v_120=121.5, tap=-2, load_current_a=90.0)
         inbox = Inbox()
         inbox.subscribe(session, keys.meas_vr("f9", "reg7"))
         try:

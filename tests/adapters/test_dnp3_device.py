@@ -20,7 +20,7 @@ _OPEN_S = 10.0
 
 @pytest.fixture
 def reg_sim(regulator_outstation):
-    return regulator_outstation(v_compared_120=121.5, tap=4, load_current_a=180.0)
+    return regulator_outstation(v_compared_120=121.5, v_120=123.5, tap=4, load_current_a=180.0)
 
 
 @pytest.fixture
@@ -67,7 +67,7 @@ def test_a_regulator_read_makes_its_frame_and_a_set_point_is_operated_read_back_
     frame = reg.scan(now)
     assert isinstance(frame, m.RegFrame) and reg.state == "ok"
     assert (frame.regulator_id, frame.tap, frame.setpoint_v120, frame.band_v120) == ("reg1", 4, 120.0, 2.0)
-    assert frame.v_compared_120 == pytest.approx(121.5) and frame.phases[0].phase == "b"
+    assert (frame.v_compared_120, frame.phases[0].v_120, frame.phases[0].phase) == (121.5, 123.5, "b")
     ack = reg.command(_reg_cmd(122.25, now), now)
     assert (ack.status, ack.applied_value) == ("accepted", 122.25)
     held = reg_sim.setpoint_in_force()
@@ -111,10 +111,11 @@ def test_a_bank_is_switched_by_select_before_operate_acked_and_released(cap, cap
 
 
 @pytest.mark.parametrize(("measurements", "point"), [
-    (dict(v_compared_120=121.0, tap=20, load_current_a=1.0), "ai1"),
-    (dict(v_compared_120=121.0, tap=1, load_current_a=-5.0), "ai2"),
-    (dict(v_compared_120=float("nan"), tap=1, load_current_a=1.0), "ai0"),
-    (dict(v_compared_120=250.0, tap=1, load_current_a=1.0), "ai0"),
+    (dict(v_compared_120=121.0, v_120=122.0, tap=20, load_current_a=1.0), "ai1"),
+    (dict(v_compared_120=121.0, v_120=122.0, tap=1, load_current_a=-5.0), "ai2"),
+    (dict(v_compared_120=float("nan"), v_120=122.0, tap=1, load_current_a=1.0), "ai0"),
+    (dict(v_compared_120=250.0, v_120=122.0, tap=1, load_current_a=1.0), "ai0"),
+    (dict(v_compared_120=121.0, v_120=-1.0, tap=1, load_current_a=1.0), "ai5"),
 ])
 def test_a_value_out_of_range_is_refused_by_point_and_gives_no_frame(reg, reg_sim, clock, measurements, point):
     reg_sim.set_measurements(**measurements)
@@ -157,7 +158,7 @@ def test_a_rogue_masters_operate_is_found_at_the_next_read_counted_and_undone(re
 
 def test_a_set_point_the_device_refuses_is_rejected_with_its_status_and_counted_by_point(regulator_outstation, clock):
     sim = regulator_outstation(setpoint_range_v120=(114.0, 126.0),  # a control with narrower limits
-                               v_compared_120=121.5, tap=4, load_current_a=180.0)
+                               v_compared_120=121.5, v_120=123.5, tap=4, load_current_a=180.0)
     dev = _device(sim, "vr")
     try:
         now = clock.t_ns

@@ -40,7 +40,7 @@ def test_frames_commands_acks_link_loss_and_recovery_over_the_bus(router_endpoin
         return [x for x in got if isinstance(x, msg_type)]
 
     with sim, open_session(bus) as session:
-        sim.set_measurements(v_compared_120=121.0, tap=2, load_current_a=150.0)
+        sim.set_measurements(v_compared_120=121.0, v_120=122.5, tap=2, load_current_a=150.0)
         inbox = Inbox()
         for key in (keys.meas_vr(F, D), keys.ack(F, "vr", D), keys.link(F, "vr", D)):
             inbox.subscribe(session, key)

@@ -198,9 +198,9 @@ def test_the_fleet_policy_scopes_every_data_rule_of_a_feeder_and_leaves_the_role
     scoped = {r["id"]: r for r in fleet["rules"][len(plain["rules"]):]}
     assert scoped["agent.f1-agent-send"]["key_exprs"] == ["cvvc/f1/cmd/**", "cvvc/f1/agent/decision",
                                                           "cvvc/f1/agent/status"]
-    assert scoped["devices.f2-devices-receive"]["key_exprs"] == ["cvvc/f2/cmd/**", "cvvc/f2/agent/decision",
-                                                                 "cvvc/f2/meas/head", "cvvc/f2/meas/pv/*",
-                                                                 "cvvc/f2/ack/pv/*"]
+    assert scoped["devices.f2-devices-receive"]["key_exprs"] == [
+        "cvvc/f2/cmd/**", "cvvc/f2/agent/decision", "cvvc/f2/meas/head",
+        *(f"cvvc/f2/{group}/{kind}/*" for kind in ("pv", "vr", "cap") for group in ("meas", "ack"))]
     for rid, rule in scoped.items():  # data rules on the feeder's keys only; interest-only rules on every feeder
         interest = set(rule["messages"]) <= {"declare_subscriber", "declare_liveliness_subscriber",
                                              "liveliness_query"}

@@ -11,13 +11,12 @@ from pathlib import Path
 import msgspec
 import numpy as np
 import pytest
-from mcap.reader import make_reader
 
 from schemas import messages as m
 from schemas.devicemap import load_device_map
-from schemas.truth import to_truth_frame, truth_pack
 from simulator_bridge.opendss.engine import FeederEngine
 from simulator_bridge.simulation.metrics_stream import MetricsAccumulator
+from tests.recorded import messages_by_topic
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -53,24 +52,9 @@ def one_hour_run(tmp_path_factory, ieee13_model):
     return out, json.loads(proc.stdout)
 
 
-def _as_dict(raw: bytes, encoding: str) -> dict:
-    """A recorded message as a dict: JSON as it is, the truth (Protobuf ``cvvc.Truth``) in its JSON form."""
-    if encoding == "protobuf":
-        return msgspec.to_builtins(to_truth_frame(truth_pack(raw, encoding)))
-    return json.loads(raw)
-
-
-def _messages(path: Path) -> dict[str, list[dict]]:
-    by_topic: dict[str, list[dict]] = {}
-    with path.open("rb") as f:
-        for _, channel, message in make_reader(f).iter_messages(log_time_order=True):
-            by_topic.setdefault(channel.topic, []).append(_as_dict(message.data, channel.message_encoding))
-    return by_topic
-
-
 def test_recording_holds_frames_decisions_and_acks(one_hour_run):
     out, summary = one_hour_run
-    rec = _messages(Path(summary["recording"]))
+    rec = messages_by_topic(Path(summary["recording"]))
     steps = summary["steps"]
     assert steps == 60
     assert len(rec["cvvc/ieee13/meas/head"]) == steps
@@ -88,7 +72,7 @@ def test_recording_holds_frames_decisions_and_acks(one_hour_run):
 
 def test_summary_metrics_equal_those_recomputed_from_the_recording(one_hour_run):
     out, summary = one_hour_run
-    rec = _messages(Path(summary["recording"]))
+    rec = messages_by_topic(Path(summary["recording"]))
     truth = rec["cvvc/ieee13/sim/truth"]
     assert len(truth) == summary["steps"]
     # judged on the feeder zone's phase nodes (downstream of the head meter), as the bridge judges them
@@ -118,7 +102,7 @@ def test_summary_metrics_equal_those_recomputed_from_the_recording(one_hour_run)
 def test_commands_are_applied_by_the_devices(one_hour_run):
     """Every PV set point the agent sent shows in that plant's next frame (as acked: accepted or clipped)."""
     out, summary = one_hour_run
-    rec = _messages(Path(summary["recording"]))
+    rec = messages_by_topic(Path(summary["recording"]))
     applied = {}
     for topic, msgs in rec.items():
         if "/ack/pv/" in topic:
@@ -219,7 +203,6 @@ def test_no_process_left_behind_and_outputs_written(one_hour_run):
 
 def test_a_run_whose_decisions_mostly_held_ends_with_a_clear_error():
     """: 288 of 288 decisions 'hold' printed like a result; now the run ends with the reasons."""
-    import msgspec
 
     from cvvc.launch import LaunchError, RunSummary, check_mostly_held
     from schemas.examples import example

@@ -15,18 +15,13 @@ power cost. Everything discrete must be the same: the number of decisions, NVV, 
 from __future__ import annotations
 
 import json
-import os
-import subprocess
-import sys
 from pathlib import Path
 
-import msgspec
 import pytest
-from mcap.reader import make_reader
 
-from schemas.truth import to_truth_frame, truth_pack
+from tests.closed_loop import run_side_by_side
+from tests.recorded import messages_by_topic
 
-REPO = Path(__file__).resolve().parents[2]
 PLANTS = ("pv675", "pv680", "pv633")
 STEP_KW = 0.1  # 701 W_SF = 2 for these plants (1.5 x rating within an int16): 100 W per phase
 Q_TOL_KVAR = 1.0
@@ -35,47 +30,9 @@ COST_REL = 1e-3
 
 @pytest.fixture(scope="module")
 def both_runs(tmp_path_factory, ieee13_model) -> dict[str, tuple[Path, dict]]:
-    from schemas.cache import profiles_dir
-    from tests.yearcache import cache_year_profiles
-
-    work = tmp_path_factory.mktemp("pvloop")
-    # the run's profile year (seed 2), made once here rather than by both runs at the same time
-    cache_year_profiles(REPO / "feeders" / "ieee13.toml", profiles_dir(str(work / "cache")), seed=2)
-    env = dict(os.environ, PYTHONPATH=str(REPO))
-    procs = {}
-    for protocol in ("bus", "sunspec"):
-        args = [sys.executable, "-m", "cvvc", "run", "--feeder", str(REPO / "feeders" / "ieee13.toml"),
-                "--model", str(ieee13_model), "--days", str(1 / 24), "--start", "2023-07-10T11:00",
-                "--out", str(work / protocol), "--cache", str(work / "cache"), "--no-baseline", "--json",
-                "--pv-protocol", protocol]
-        procs[protocol] = subprocess.Popen(args, cwd=work, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                           text=True)
-    out = {}
-    for protocol, proc in procs.items():
-        try:
-            stdout, stderr = proc.communicate(timeout=300)
-        finally:
-            if proc.poll() is None:
-                proc.kill()
-                proc.wait(10)
-        assert proc.returncode == 0, f"{protocol}: {stderr[-3000:]}"
-        out[protocol] = (work / protocol, json.loads(stdout))
-    return out
-
-
-def _as_dict(raw: bytes, encoding: str) -> dict:
-    """A recorded message as a dict: JSON as it is, the truth (Protobuf ``cvvc.Truth``) in its JSON form."""
-    if encoding == "protobuf":
-        return msgspec.to_builtins(to_truth_frame(truth_pack(raw, encoding)))
-    return json.loads(raw)
-
-
-def _messages(path: str) -> dict[str, list[dict]]:
-    by_topic: dict[str, list[dict]] = {}
-    with open(path, "rb") as f:
-        for _, channel, message in make_reader(f).iter_messages(log_time_order=True):
-            by_topic.setdefault(channel.topic, []).append(_as_dict(message.data, channel.message_encoding))
-    return by_topic
+    return run_side_by_side(tmp_path_factory.mktemp("pvloop"), ieee13_model,
+                            {p: ["--pv-protocol", p] for p in ("bus", "sunspec")}, days=1 / 24,
+                            start="2023-07-10T11:00")
 
 
 def test_the_same_decisions_and_metrics_within_the_scale_factors_rounding(both_runs):
@@ -89,7 +46,7 @@ def test_the_same_decisions_and_metrics_within_the_scale_factors_rounding(both_r
     assert b["q_cost"] == pytest.approx(a["q_cost"], rel=COST_REL)
     assert b["total_cost"] == pytest.approx(a["total_cost"], rel=COST_REL)
     assert a["q_cost"] > 0  # the agent did use the plants
-    rec_a, rec_b = _messages(bus["recording"]), _messages(ss["recording"])
+    rec_a, rec_b = messages_by_topic(bus["recording"]), messages_by_topic(ss["recording"])
     q_a = {(d["step_t_ns"], c["plant_id"]): c["q_kvar"] for d in rec_a["cvvc/ieee13/agent/decision"]
            for c in d["commands"] if "q_kvar" in c}
     q_b = {(d["step_t_ns"], c["plant_id"]): c["q_kvar"] for d in rec_b["cvvc/ieee13/agent/decision"]
@@ -110,7 +67,7 @@ def test_the_sunspec_run_counts_no_foreign_write_and_is_not_degraded(both_runs):
 
 def test_the_plants_frames_and_acks_come_from_the_adapters(both_runs):
     _, ss = both_runs["sunspec"]
-    rec = _messages(ss["recording"])
+    rec = messages_by_topic(ss["recording"])
     commands = {c["cmd_id"]: c for d in rec["cvvc/ieee13/agent/decision"] for c in d["commands"] if "q_kvar" in c}
     truth = rec["cvvc/ieee13/sim/truth"]
     truth_q = {t["t_ns"]: t["pv_q_kvar"] for t in truth}
@@ -134,16 +91,3 @@ def test_the_plants_frames_and_acks_come_from_the_adapters(both_runs):
             nxt = commands[a["cmd_id"]]["t_ns"] + 60 * 10**9
             if nxt in truth_q:
                 assert truth_q[nxt][k] == pytest.approx(a["applied_value"], abs=1e-6)
-
-
-@pytest.mark.parametrize(("option", "named"), [
-    (dict(drop_prob=0.1), "--drop-prob"), (dict(noise_scada_pct=1.0), "--noise-scada-pct"),
-    (dict(clock_skew_s=2.0), "--clock-skew-s"), (dict(realtime=True, meas_delay_s=5.0), "--meas-delay-s")])
-def test_options_the_closed_loop_does_not_take_yet_are_refused_before_anything_starts(tmp_path, option, named):
-    from cvvc.launch import LaunchError, RunConfig, run
-
-    config = RunConfig(feeder=str(REPO / "feeders" / "ieee13.toml"), pv_protocol="sunspec", out=str(tmp_path / "o"),
-                       cache=str(tmp_path / "c"), **option)
-    with pytest.raises(LaunchError, match=named):
-        run(config)
-    assert not (tmp_path / "o").exists() and not (tmp_path / "c").exists()  # refused before anything was made

@@ -27,7 +27,7 @@ _S = 10**9
 
 @pytest.fixture
 def regulator(regulator_outstation) -> SimulatedRegulatorControl:
-    return regulator_outstation(v_compared_120=121.37, tap=3, load_current_a=210.5)
+    return regulator_outstation(v_compared_120=121.37, v_120=123.8, tap=3, load_current_a=210.5)
 
 
 @pytest.fixture
@@ -46,7 +46,8 @@ def test_regulator_points_read_as_floats_and_a_set_point_by_select_before_operat
         regulator: SimulatedRegulatorControl) -> None:
     with _master(regulator) as m:
         r = m.read()
-        assert r.analog_inputs[RegulatorPoints.AI_V_COMPARED_120] == pytest.approx(121.37, abs=1e-4)
+        assert r.analog_inputs[RegulatorPoints.AI_V_COMPARED_120] == 121.37  # g30v6: the double, exactly
+        assert r.analog_inputs[RegulatorPoints.AI_V_120] == 123.8
         assert r.analog_inputs[RegulatorPoints.AI_TAP] == 3.0
         assert r.analog_inputs[RegulatorPoints.AI_LOAD_CURRENT_A] == pytest.approx(210.5)
         assert r.analog_inputs[RegulatorPoints.AI_SETPOINT_120] == 120.0  # the local set point
