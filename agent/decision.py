@@ -45,7 +45,7 @@ class MeasurementSnapshot:
         (``CapFrame.control_value``), NaN where missing or when the bank is held by a command (not on local control);
         empty: unknown.
     reg_v120_noise : (R,) the noise of the regulator's readings at its present tap over the reading window [V on 120
-        V base] (``agent.runtime.reading_noise_v120``), NaN with too few; None: unknown.
+        V base] (``agent.snapshot.reading_noise_v120``), NaN with too few; None: unknown.
     reg_fresh : (R,) bool, the regulator's reading is this step's own frame (not a last-good one standing in for
         a lost frame); None: every reading is.
     head_fresh : the head frame is this step's own.

@@ -601,7 +601,7 @@ def test_noisy_readings_widen_the_bounds_from_their_window_mean_not_the_last_rea
     """The bounds' gap takes eq. (6) from the step's own reading when the readings are quiet, and from the reading
     window's mean when they are noisier than a quarter of a tap step: one noisy reading would otherwise widen and
     narrow the bounds at random every decision (rural winter, 1 % SCADA noise: NTC 15 -> 72)."""
-    from agent.runtime import reading_noise_v120
+    from agent.snapshot import reading_noise_v120
 
     rng = np.random.default_rng(1)
     assert reading_noise_v120([120.0, 120.1, 120.2, 120.3, 120.4]) == pytest.approx(0.0, abs=1e-9)  # a drift
