@@ -38,7 +38,7 @@ import numpy as np
 from agent.ami import AmiReadings
 from agent.bank_rows import local_bank_rows, predicted_banks
 from agent.cvvc_qp import CvvcInputs
-from agent.decision import Decision, DecisionTimings, MeasurementSnapshot
+from agent.decision import Decision, MeasurementSnapshot
 from agent.errors import AgentInputError
 from agent.setpoints import expected_compared_v120, setpoint_for_tap_change
 from agent.solve import CvvcSolution, WarmStart, solve_cvvc
@@ -54,9 +54,10 @@ from agent.state import (
 from regression.estimator import SensitivityTable, dv_dp_pu_per_kw, pv_variability_margins_pu
 from regression.model import CvvcModel, ModelArrays, features
 from schemas.devicemap import MeterSpec
+from schemas.messages import Timings
 from schemas.settings import AgentOptions
 
-__all__ = ["CvvcController", "Decision", "DecisionTimings", "MeasurementSnapshot", "controller_options"]
+__all__ = ["CvvcController", "Decision", "MeasurementSnapshot", "controller_options"]
 
 #: Plausible ranges; a value outside makes its frame invalid (the schemas bound the wire values already).
 _V120_RANGE = (60.0, 180.0)
@@ -308,7 +309,7 @@ class CvvcController:
             objective=0.0,
             solver_status=solution.status if solution is not None else "not run",
             cap_command=np.zeros(len(self._cap_ids), bool),
-            timings=DecisionTimings(
+            timings=Timings(
                 estimate_s=float(estimate_s),
                 solve_s=sec.build_s + sec.relaxed_s if sec is not None else 0.0,
                 round_s=sec.rounding_s if sec is not None else 0.0,
@@ -694,7 +695,7 @@ class CvvcController:
             solver_status=solution.status,
             cap_steps=solution.taps_new[n_reg:].copy(),
             cap_command=self._cap_movable(snap, state),
-            timings=DecisionTimings(
+            timings=Timings(
                 estimate_s=t_est - t0,
                 solve_s=sec.build_s + sec.relaxed_s,
                 round_s=sec.rounding_s,

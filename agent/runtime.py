@@ -231,8 +231,7 @@ class DecisionMaker:
             solver=m.SolverStats(status=d.solver_status, iterations=d.iterations,
                                  objective=_within(d.objective, -1e12, 1e12),
                                  soft=d.status == "soft"),
-            timings=m.Timings(align_s=align_s, estimate_s=tm.estimate_s, solve_s=tm.solve_s, round_s=tm.round_s,
-                              total_s=tm.total_s + align_s),
+            timings=msgspec.structs.replace(tm, align_s=align_s, total_s=tm.total_s + align_s),
             corrected=d.corrected, missing=list(aligned.missing) + [x for x in d.missing if x not in aligned.missing],
             out_of_envelope=bool(d.out_of_envelope),
         )
