@@ -27,7 +27,7 @@ import numpy as np
 
 from agent.aligner import AlignedFrames, FrameAligner
 from agent.ami import REFUSED_KINDS
-from agent.controller import CvvcController, controller_options
+from agent.controller import CvvcController
 from agent.controller import Decision as ControllerDecision
 from agent.decision import decision_time_ms, reason_kind
 from agent.snapshot import snapshot_from
@@ -110,8 +110,8 @@ class DecisionMaker:
                                     control_period_ns=self.period_ns,
                                     capacitor_ids=tuple(c.id for c in model.capacitors),
                                     clock_tolerance_ns=int(settings.clock_tolerance_s * 1e9))
-        self.controller = CvvcController(model, mode=settings.mode, correction=settings.correction,
-                                         meters=settings.meters, **controller_options(settings))
+        self.controller = CvvcController(model, settings, mode=settings.mode, correction=settings.correction,
+                                         meters=settings.meters)
         self.oracle: OracleSource | None = None  # case A: set by the live runtime once its session is open
         self.seq = 0
         self.holds = 0
