@@ -31,14 +31,14 @@ from __future__ import annotations
 import time
 from collections import deque
 from collections.abc import Callable, Iterable
-from typing import Any, Literal
+from typing import Literal
 
 import numpy as np
 
 from agent.ami import AmiReadings
 from agent.bank_rows import local_bank_rows, predicted_banks
 from agent.cvvc_qp import CvvcInputs
-from agent.decision import Decision, DecisionTimings, MeasurementSnapshot
+from agent.decision import Decision, MeasurementSnapshot
 from agent.errors import AgentInputError
 from agent.setpoints import expected_compared_v120, setpoint_for_tap_change
 from agent.solve import CvvcSolution, WarmStart, solve_cvvc
@@ -54,9 +54,10 @@ from agent.state import (
 from regression.estimator import SensitivityTable, dv_dp_pu_per_kw, pv_variability_margins_pu
 from regression.model import CvvcModel, ModelArrays, features
 from schemas.devicemap import MeterSpec
+from schemas.messages import Timings
 from schemas.settings import AgentOptions
 
-__all__ = ["CvvcController", "Decision", "DecisionTimings", "MeasurementSnapshot", "controller_options"]
+__all__ = ["CvvcController", "Decision", "MeasurementSnapshot"]
 
 #: Plausible ranges; a value outside makes its frame invalid (the schemas bound the wire values already).
 _V120_RANGE = (60.0, 180.0)
@@ -72,20 +73,7 @@ is treated by ``agent.stale_plants``; a younger one as it is (20 % of the frames
 minute, and the rule at every one of them took the rural winter week from 20 to 144 tap changes)."""
 
 
-_SHIPPED = AgentOptions()  # the keyword defaults are the shipped agent's (``schemas.settings``), written there once
-
-
-def controller_options(options: AgentOptions) -> dict[str, Any]:
-    """The keyword arguments of :class:`CvvcController` that ``options`` sets (mode, correction and meters aside):
-    the one mapping from the settings tree to the controller, used by the runtime and by the tests.
-    """
-    return {"bandwidth_v120": options.bandwidth_v120, "pv_margin_window_s": options.pv_margin_window_s,
-            "pv_margin_cap_pu": options.pv_margin_cap_pu, "setpoint_hold": options.setpoint_hold,
-            "control_banks": options.control_banks, "correction_window_s": options.correction_window_s,
-            "sensitivity_error": options.sensitivity_error, "bounds_in_margin": options.bounds_in_margin,
-            "filtered_setpoints": options.filtered_setpoints, "stale_plants": options.stale_plants,
-            "command_valid_periods": options.valid_intervals, "bounds_cover_filter": options.bounds_cover_filter,
-            "predict_banks": options.predict_banks, "tap_reversal_lockout_s": options.tap_reversal_lockout_s}
+_SHIPPED = AgentOptions()  # the shipped agent's options (``schemas.settings``), written there once
 
 
 def _finite(*arrays: np.ndarray) -> bool:
@@ -95,15 +83,22 @@ def _finite(*arrays: np.ndarray) -> bool:
 class CvvcController:
     """Estimation (eq. 5-7), sensitivities (eq. 3-4), CVVC (eq. 9-17) and eq. (8), with the hold rule.
 
-    Every keyword's default is the shipped agent's (``schemas.settings.AgentOptions``, through
-    :func:`controller_options`); ``schemas.settings.PAPER_AGENT`` is the paper's method (every option beyond it off).
+    ``options`` are the settings tree's (``schemas.settings.AgentOptions``; the runtime passes its
+    ``AgentSettings``), by default the shipped agent's; ``schemas.settings.PAPER_AGENT`` is the paper's method (every
+    option beyond it off). Those the controller reads:
 
     Parameters
     ----------
     model : the trained model.
+    options : the agent's options, below.
     mode : ``taps`` (command tap positions: cases A/B) or ``setpoints`` (command eq. 8 set points and
         bands: cases C/D).
     correction : apply the eq. (6)-(7) correction from regulator secondary voltages.
+    meters : the device map's AMI meters (``AgentSettings.meters``): the only meters whose readings count
+        (``agent.ami``); none by default.
+
+    Options
+    -------
     bandwidth_v120 : regulator bandwidth ``B`` sent with set points [V on 120 V base] (paper case C: 4 V).
     pv_margin_window_s : beyond the paper: tighten each node's limits by how far its voltage would move if the
         plants went back to their highest or lowest output of this many recent seconds (control steps seen);
@@ -128,72 +123,60 @@ class CvvcController:
     stale_plants : beyond the paper: a plant behind a stand-in frame older than ``STALE_PLANT_AGE_S`` is taken as
         ``agent.stale_plants`` says (P projected from the fresh plants, Q our command in force and not raised, its
         P's own variability margin).
-    command_valid_periods : how many control periods a command stays in force after its step (the runtime's
-        ``AgentSettings.valid_intervals``): how long ``stale_plants`` takes our last Q command as the plant's Q.
-    meters : the device map's AMI meters (``AgentSettings.meters``): the only meters whose readings count
-        (``agent.ami``); none by default.
+    valid_intervals : how many control periods a command stays in force after its step (the runtime's too): how
+        long ``stale_plants`` takes our last Q command as the plant's Q.
+    correction_window_s, bounds_cover_filter, predict_banks, tap_reversal_lockout_s : see
+        ``schemas.settings.AgentOptions``.
     """
 
     def __init__(
         self,
         model: CvvcModel,
+        options: AgentOptions = _SHIPPED,
         *,
         mode: Literal["taps", "setpoints"],
         correction: bool,
-        bandwidth_v120: float = _SHIPPED.bandwidth_v120,
-        pv_margin_window_s: float = _SHIPPED.pv_margin_window_s,
-        pv_margin_cap_pu: float = _SHIPPED.pv_margin_cap_pu,
-        setpoint_hold: bool = _SHIPPED.setpoint_hold,
-        control_banks: bool = _SHIPPED.control_banks,
-        correction_window_s: float = _SHIPPED.correction_window_s,
-        sensitivity_error: float = _SHIPPED.sensitivity_error,
-        bounds_in_margin: bool = _SHIPPED.bounds_in_margin,
-        filtered_setpoints: bool = _SHIPPED.filtered_setpoints,
-        stale_plants: bool = _SHIPPED.stale_plants,
-        command_valid_periods: float = _SHIPPED.valid_intervals,
-        bounds_cover_filter: bool = _SHIPPED.bounds_cover_filter,
-        predict_banks: bool = _SHIPPED.predict_banks,
-        tap_reversal_lockout_s: float = _SHIPPED.tap_reversal_lockout_s,
         meters: Iterable[MeterSpec] = (),
     ) -> None:
+        o = options
         if mode not in ("taps", "setpoints"):
             raise AgentInputError(f"mode must be 'taps' or 'setpoints', not {mode!r}")
         steps = np.array([r.step_v120 for r in model.regulators], float)
-        if mode == "setpoints" and not (np.isfinite(bandwidth_v120) and np.all(bandwidth_v120 > steps)):
+        if mode == "setpoints" and not (np.isfinite(o.bandwidth_v120) and np.all(o.bandwidth_v120 > steps)):
             raise AgentInputError(
-                f"bandwidth {bandwidth_v120} V must exceed one tap step ({steps.max(initial=0.0)} V); use e.g. 4"
+                f"bandwidth {o.bandwidth_v120} V must exceed one tap step ({steps.max(initial=0.0)} V); use e.g. 4"
             )
-        if not (np.isfinite(pv_margin_window_s) and pv_margin_window_s >= 0.0):
-            raise AgentInputError(f"pv_margin_window_s must be >= 0, not {pv_margin_window_s}")
-        if not (np.isfinite(pv_margin_cap_pu) and 0.0 <= pv_margin_cap_pu <= 0.05):
-            raise AgentInputError(f"pv_margin_cap_pu must be within 0 to 0.05 pu, not {pv_margin_cap_pu}")
-        if not (np.isfinite(correction_window_s) and correction_window_s >= 0.0):
-            raise AgentInputError(f"correction_window_s must be >= 0, not {correction_window_s}")
-        if not (np.isfinite(sensitivity_error) and 0.0 <= sensitivity_error <= 1.0):
-            raise AgentInputError(f"sensitivity_error must be within 0 to 1, not {sensitivity_error}")
-        self.sensitivity_error = float(sensitivity_error)
-        self.bounds_in_margin = bool(bounds_in_margin)
-        self.bounds_cover_filter = bool(bounds_cover_filter)
-        self.predict_banks = bool(predict_banks)
-        if not (np.isfinite(tap_reversal_lockout_s) and tap_reversal_lockout_s >= 0.0):
-            raise AgentInputError(f"tap_reversal_lockout_s must be >= 0, not {tap_reversal_lockout_s}")
-        self._lockout_ns = int(tap_reversal_lockout_s * 1e9)
+        if not (np.isfinite(o.pv_margin_window_s) and o.pv_margin_window_s >= 0.0):
+            raise AgentInputError(f"pv_margin_window_s must be >= 0, not {o.pv_margin_window_s}")
+        if not (np.isfinite(o.pv_margin_cap_pu) and 0.0 <= o.pv_margin_cap_pu <= 0.05):
+            raise AgentInputError(f"pv_margin_cap_pu must be within 0 to 0.05 pu, not {o.pv_margin_cap_pu}")
+        if not (np.isfinite(o.correction_window_s) and o.correction_window_s >= 0.0):
+            raise AgentInputError(f"correction_window_s must be >= 0, not {o.correction_window_s}")
+        if not (np.isfinite(o.sensitivity_error) and 0.0 <= o.sensitivity_error <= 1.0):
+            raise AgentInputError(f"sensitivity_error must be within 0 to 1, not {o.sensitivity_error}")
+        self.sensitivity_error = float(o.sensitivity_error)
+        self.bounds_in_margin = bool(o.bounds_in_margin)
+        self.bounds_cover_filter = bool(o.bounds_cover_filter)
+        self.predict_banks = bool(o.predict_banks)
+        if not (np.isfinite(o.tap_reversal_lockout_s) and o.tap_reversal_lockout_s >= 0.0):
+            raise AgentInputError(f"tap_reversal_lockout_s must be >= 0, not {o.tap_reversal_lockout_s}")
+        self._lockout_ns = int(o.tap_reversal_lockout_s * 1e9)
         # each regulator's last decided move: its direction (+1, -1, 0 for none yet) and the step it was decided at
         self._last_move = np.zeros(len(model.regulators), int)
         self._last_move_t_ns = np.zeros(len(model.regulators), np.int64)
         self.model = model
         self.mode = mode
         self._eps_filter = (CorrectionFilter(len(model.regulators),
-                                             min(1.0, float(model.control_period_s) / correction_window_s))
-                            if correction_window_s > 0 else None)
+                                             min(1.0, float(model.control_period_s) / o.correction_window_s))
+                            if o.correction_window_s > 0 else None)
         self._cmp_filter = (CorrectionFilter(len(model.regulators),
-                                             min(1.0, float(model.control_period_s) / correction_window_s))
-                            if correction and correction_window_s > 0 and filtered_setpoints else None)
+                                             min(1.0, float(model.control_period_s) / o.correction_window_s))
+                            if correction and o.correction_window_s > 0 and o.filtered_setpoints else None)
         self.correction = correction
-        self.bandwidth_v120 = float(bandwidth_v120)
+        self.bandwidth_v120 = float(o.bandwidth_v120)
         self._arrays = ModelArrays.of(model)
-        self._margin_window_ns = int(pv_margin_window_s * 1e9)
-        self._margin_cap_pu = float(pv_margin_cap_pu)
+        self._margin_window_ns = int(o.pv_margin_window_s * 1e9)
+        self._margin_cap_pu = float(o.pv_margin_cap_pu)
         self._dv_dp = dv_dp_pu_per_kw(self._arrays, model.feature_names, len(model.pv))
         self._recent_pv_p: deque[tuple[int, np.ndarray]] = deque()  # (t_ns, (K,) P) at recent decisions
         self._sens = SensitivityTable.of(model.sens_q)
@@ -213,8 +196,8 @@ class CvvcController:
         self._pv_last_q_kvar: list[float | None] = [None] * n_pv
         self._reg_last_tap: list[int | None] = [None] * n_reg
         self._warm: WarmStart | None = None
-        self.setpoint_hold = bool(setpoint_hold)
-        self.control_banks = bool(control_banks)
+        self.setpoint_hold = bool(o.setpoint_hold)
+        self.control_banks = bool(o.control_banks)
         self._setpoint_hold_ns = 2 * int(model.control_period_s) * 1_000_000_000  # commands' validity
         self._last_setpoint: list[tuple[int, float] | None] = [None] * n_reg  # (t_ns, V on 120 V) last sent
         b = model.bounds  # calibrated estimate bounds and the training envelope (training.calibration)
@@ -232,9 +215,9 @@ class CvvcController:
         self._cap_last = np.array([c.closed0 for c in banks], int)  # last known state (training state at first)
         self._cap_refused_until = np.full(len(banks), -1, dtype=np.int64)  # t_ns until which a bank is held
         self._period_ns = int(model.control_period_s) * 1_000_000_000
-        self.stale_plants = bool(stale_plants)
+        self.stale_plants = bool(o.stale_plants)
         # our Q command is in force as long as the runtime's commands are valid (``AgentSettings.valid_intervals``)
-        self._stale = StalePlants(self._pv_rating_kva, int(command_valid_periods * self._period_ns))
+        self._stale = StalePlants(self._pv_rating_kva, int(o.valid_intervals * self._period_ns))
 
     # ------------------------------------------------------------------------------------------ bounds
     def bounds_pu(self, out_of_envelope: bool) -> tuple[np.ndarray, np.ndarray] | None:
@@ -308,7 +291,7 @@ class CvvcController:
             objective=0.0,
             solver_status=solution.status if solution is not None else "not run",
             cap_command=np.zeros(len(self._cap_ids), bool),
-            timings=DecisionTimings(
+            timings=Timings(
                 estimate_s=float(estimate_s),
                 solve_s=sec.build_s + sec.relaxed_s if sec is not None else 0.0,
                 round_s=sec.rounding_s if sec is not None else 0.0,
@@ -694,7 +677,7 @@ class CvvcController:
             solver_status=solution.status,
             cap_steps=solution.taps_new[n_reg:].copy(),
             cap_command=self._cap_movable(snap, state),
-            timings=DecisionTimings(
+            timings=Timings(
                 estimate_s=t_est - t0,
                 solve_s=sec.build_s + sec.relaxed_s,
                 round_s=sec.rounding_s,

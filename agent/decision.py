@@ -13,7 +13,9 @@ from typing import Literal
 
 import numpy as np
 
-__all__ = ["Decision", "DecisionTimings", "MeasurementSnapshot", "decision_time_ms", "reason_kind"]
+from schemas.messages import Timings
+
+__all__ = ["Decision", "MeasurementSnapshot", "decision_time_ms", "reason_kind"]
 
 _DECIMAL = re.compile(r"\d+\.\d+")
 
@@ -45,7 +47,7 @@ class MeasurementSnapshot:
         (``CapFrame.control_value``), NaN where missing or when the bank is held by a command (not on local control);
         empty: unknown.
     reg_v120_noise : (R,) the noise of the regulator's readings at its present tap over the reading window [V on 120
-        V base] (``agent.runtime.reading_noise_v120``), NaN with too few; None: unknown.
+        V base] (``agent.snapshot.reading_noise_v120``), NaN with too few; None: unknown.
     reg_fresh : (R,) bool, the regulator's reading is this step's own frame (not a last-good one standing in for
         a lost frame); None: every reading is.
     head_fresh : the head frame is this step's own.
@@ -82,16 +84,6 @@ class MeasurementSnapshot:
 
 
 @dataclass(frozen=True)
-class DecisionTimings:
-    """Wall time per stage [s]. Diagnostics only: excluded from ``Decision.same_content``."""
-
-    estimate_s: float = 0.0
-    solve_s: float = 0.0
-    round_s: float = 0.0
-    total_s: float = 0.0
-
-
-@dataclass(frozen=True)
 class Decision:
     """What the controller decided for one snapshot.
 
@@ -114,7 +106,8 @@ class Decision:
     missing : ids of devices whose frame was missing or invalid.
     iterations, objective : solver iterations and eq. (9) cost of the actions [cost units].
     solver_status : the solver's status (``optimal``/``soft``/``hold``), ``not run`` when it was not called.
-    timings : per-stage wall time (not deterministic).
+    timings : per-stage wall time [s] (not deterministic; excluded from ``same_content``): the message's
+        ``Timings`` without the aligner's ``align_s``, which the runtime adds.
     v_bound_low_pu, v_bound_high_pu : (N,) the estimate's calibrated bounds as applied (widened out of the
         envelope): the true voltage is expected within ``[v_pu - low, v_pu + high]``; None without bounds.
     out_of_envelope : the features outside what training covered ("" when inside, or without bounds).
@@ -139,7 +132,7 @@ class Decision:
     iterations: int
     objective: float
     solver_status: str
-    timings: DecisionTimings
+    timings: Timings
     v_bound_low_pu: np.ndarray | None = None
     v_bound_high_pu: np.ndarray | None = None
     out_of_envelope: str = ""

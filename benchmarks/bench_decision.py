@@ -58,7 +58,8 @@ def bench_decision(
         Sizes, the agent's per-decision times [ms] (p50, p99, max, the cold first decision, best-of-N), OSQP's,
         case A's mean time [ms], its oracle's share [ms], and the ratios.
     """
-    from agent.runtime import AgentSettings, DecisionMaker, snapshot_from
+    from agent.runtime import AgentSettings, DecisionMaker
+    from agent.snapshot import snapshot_from
     from agent.solve import solve_cvvc
     from agent.state import oracle_state
     from regression.model import read_model, write_model

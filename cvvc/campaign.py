@@ -148,8 +148,6 @@ def _configs(campaign: Campaign, base: Path, out: Path, *, jobs: int, scheduler:
             opts["agent"] = variant_agent(v, name)
             for key in AGENT_FLAGS:
                 opts.pop(key, None)
-            if v.bandwidths_v120 is None and opts["agent"].bandwidth_v120 != AgentOptions().bandwidth_v120:
-                opts["bandwidths_v120"] = (opts["agent"].bandwidth_v120,)
             if "model" in opts:
                 opts["model"] = str(base / opts["model"])
             configs[(label, name)] = EvaluateConfig(

@@ -31,7 +31,8 @@ class EvaluateConfig(msgspec.Struct, frozen=True, kw_only=True):
     model: str | None = None
     cases: tuple[str, ...] = CASES
     seasons: tuple[Season, ...] = SEASONS
-    bandwidths_v120: tuple[float, ...] = (_DEFAULT.agent.bandwidth_v120,)
+    # cases C/D's regulator bands [V on the 120 V base], one run each; empty: the agent's one (``agent.bandwidth_v120``)
+    bandwidths_v120: tuple[float, ...] = ()
     year_seed: int = _DEFAULT.window.year_seed
     train_seed: int = _DEFAULT.feeder.train_seed
     days_per_season: float | None = None  # None: the whole month
@@ -40,7 +41,7 @@ class EvaluateConfig(msgspec.Struct, frozen=True, kw_only=True):
     out: str = "runs/evaluate"
     cache: str | None = None  # cache root; None: schemas.cache.default_cache_root()
     robustness: bool = False
-    agent: AgentOptions = msgspec.field(default_factory=AgentOptions)  # a case file's [agent]; the band: bandwidths
+    agent: AgentOptions = msgspec.field(default_factory=AgentOptions)  # a case file's [agent]; its band per run above
     resume: bool = False  # reuse a run whose folder already holds a finished summary.json of the same spec
     perturbation_pct: float = 10.0
     perturbation_seed: int = 7
@@ -53,6 +54,11 @@ class EvaluateConfig(msgspec.Struct, frozen=True, kw_only=True):
     lockstep_timeout_s: float = 60.0
     secure: bool = True  # every run's bus with mTLS and the access policy (``RunConfig.secure``); False: --insecure
     ca_dir: str | None = None  # the CA of the certificates; None: <cache>/ca, created on the first run
+
+    def __post_init__(self) -> None:
+        """No bands given: the agent's own (written out, so that ``results.json`` says which)."""
+        if not self.bandwidths_v120:
+            msgspec.structs.force_setattr(self, "bandwidths_v120", (self.agent.bandwidth_v120,))
 
 
 class RunSpec(msgspec.Struct, frozen=True, kw_only=True):

@@ -25,6 +25,7 @@ import shutil
 import threading
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import msgspec
 
@@ -49,6 +50,9 @@ from cvvc.launch import (
 from schemas import messages as m
 from schemas.settings import AgentOptions, RunCase
 from simulator_bridge.bus.bridge import BridgeSummary
+
+if TYPE_CHECKING:
+    from schemas.devicemap import DeviceMap
 
 __all__ = ["FleetConfig", "FleetFeeder", "FleetFile", "load_fleet_file", "run_fleet"]
 
@@ -121,6 +125,7 @@ class _Member(msgspec.Struct, kw_only=True):
     run: RunConfig
     feeder_id: str
     dm_path: Path
+    dm: DeviceMap  # read once, in ``_prepare``
     model: Path
     out: Path
     pv_ids: list[str]
@@ -157,7 +162,7 @@ def _prepare(config: FleetConfig, entry: FleetFeeder, out: Path) -> _Member:
         feeder_all(fid)
     except KeyExprError as e:
         raise LaunchError(f"fleet feeder id: {e}") from e
-    return _Member(entry=entry, run=run, feeder_id=fid, dm_path=dm_path, model=model, out=out / fid,
+    return _Member(entry=entry, run=run, feeder_id=fid, dm_path=dm_path, dm=dm, model=model, out=out / fid,
                    pv_ids=[p.id for p in dm.pv])
 
 
@@ -226,12 +231,10 @@ def run_fleet(config: FleetConfig) -> FleetSummary:
         s = case_agent_settings(mb.run.case, mb.feeder_id, mb.run.agent)
         if s is not None:
             from regression.model import read_model
-            from schemas.devicemap import load_device_map
 
-            dm = load_device_map(mb.dm_path)
-            if dm.meter:  # the only meters whose readings the agent takes
-                s = msgspec.structs.replace(s, meters=tuple(dm.meter))
-            read_model(mb.model, expect_fingerprint=dm.fingerprint())
+            if mb.dm.meter:  # the only meters whose readings the agent takes
+                s = msgspec.structs.replace(s, meters=tuple(mb.dm.meter))
+            read_model(mb.model, expect_fingerprint=mb.dm.fingerprint())
             shutil.copyfile(mb.model, mb.out / "model.json")
         settings[mb.feeder_id] = s
     security_dir = _security(config, members)
@@ -332,9 +335,6 @@ def run_fleet(config: FleetConfig) -> FleetSummary:
 def _row(mb: _Member, has_agent: bool, decision_s: list[float] | None) -> FeederRow:
     bridge = _read_summary(mb.out / "bridge-summary.json", BridgeSummary, "bridge")
     agent = _read_summary(mb.out / "agent-summary.json", AgentSummary, "agent") if has_agent else None
-    from schemas.devicemap import load_device_map
-
-    dm = load_device_map(mb.dm_path)
     final = bridge.metrics
     if final is None:
         raise LaunchError(f"{mb.feeder_id}: the bridge finished without final metrics:\n"
@@ -351,8 +351,8 @@ def _row(mb: _Member, has_agent: bool, decision_s: list[float] | None) -> Feeder
         round_trip_p99_ms=ms(bridge.round_trip_p99_s), lockstep_misses=bridge.lockstep_misses, nvv=final.nvv,
         mvvm_pu=final.mvvm_pu, ntc=final.ntc, agent_refused=sum(agent.rejected.values()) if agent else 0,
         bridge_rejected=sum(bridge.rejected.values()), bridge_wall_s=bridge.wall_s, out_dir=str(mb.out),
-        integrity=run_integrity(agent, bridge, {}, step_s=dm.feeder.step_s,
-                                control_period_s=dm.feeder.control_period_s))
+        integrity=run_integrity(agent, bridge, {}, step_s=mb.dm.feeder.step_s,
+                                control_period_s=mb.dm.feeder.control_period_s))
 
 
 class _Prober:

@@ -127,7 +127,7 @@ def check_recording(path: str | Path, feeder_ids: list[str]) -> RecordingCheck:
     from recordings.replay import RecordedMessages
     from schemas.keys import message_type_for_key
     from schemas.messages import wire_of
-    from schemas.truth_proto import decode_truth_proto
+    from schemas.truth_proto import truth_feeder_id
 
     known = set(feeder_ids)
     messages = checked = crossing = 0
@@ -142,10 +142,11 @@ def check_recording(path: str | Path, feeder_ids: list[str]) -> RecordingCheck:
             if feeder not in known:
                 foreign.add(msg.topic)
             msg_type = message_type_for_key(msg.topic)
-            # the truth is Protobuf (RecordedMessages gives an earlier recording's MessagePack truth as Protobuf too)
-            decode = decode_truth_proto if msg_type is not None and wire_of(msg_type) == "protobuf" else _decode_id
+            # the truth is Protobuf (RecordedMessages gives an earlier recording's MessagePack truth as Protobuf too):
+            # its feeder id read alone, not the whole frame
+            truth = msg_type is not None and wire_of(msg_type) == "protobuf"
             try:
-                fid = decode(msg.data).feeder_id
+                fid = truth_feeder_id(msg.data) if truth else _decode_id(msg.data).feeder_id
             except (msgspec.DecodeError, msgspec.ValidationError):
                 fid = None  # not a message of ours: counted as a message, not as checked
             if fid is not None:

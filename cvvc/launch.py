@@ -547,7 +547,7 @@ def run(config: RunConfig) -> RunSummary:
         dnp3_frame_misses=bridge_summary.dnp3_frame_misses, live=live, secure=config.secure,
         case_file=config.case_file, settings=config.settings(), integrity=integrity)
     (out / "summary.json").write_bytes(msgspec.json.format(msgspec.json.encode(summary), indent=2))
-    (out / "report.md").write_text(render_summary(summary))
+    (out / "report.md").write_text(render_summary(summary, dm))
     check_mostly_held(summary)
     return summary
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 
 from cvvc.cli_options import add_agent_option_arguments, add_security_arguments
 from cvvc.progress import QUIET_HELP, progress_wanted
@@ -104,7 +105,6 @@ def _run(args: argparse.Namespace) -> int:
 
     from cvvc.case import absolute_paths, apply_flags, case_toml, load_case
     from cvvc.launch import RunConfig, run
-    from cvvc.run_report import render_summary
 
     case = apply_flags(load_case(args.case_file) if args.case_file else RunCase(), args)
     if args.print_case:
@@ -116,7 +116,7 @@ def _run(args: argparse.Namespace) -> int:
     if args.json:
         sys.stdout.write(msgspec.json.format(msgspec.json.encode(summary), indent=2).decode() + "\n")
     else:
-        print(render_summary(summary))
+        print(Path(summary.out_dir, "report.md").read_text())  # the report the run wrote
         print(f"output: {summary.out_dir} (summary.json, report.md{', session.mcap' if summary.recording else ''})")
     if summary.integrity.degraded:  # the run finished, but the agent did not control the feeder all along
         from cvvc.integrity import EXIT_DEGRADED

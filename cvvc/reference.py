@@ -71,7 +71,7 @@ def run_reference(config: ReferenceConfig) -> RunSummary:
                          wall_s=round(time.monotonic() - t0, 2), metrics=frame, baseline=None, lockstep_misses=0,
                          decisions=0, out_dir=str(out), recording=None, model=None)
     (out / "summary.json").write_bytes(msgspec.json.format(msgspec.json.encode(summary), indent=2))
-    (out / "report.md").write_text(render_summary(summary).replace(
+    (out / "report.md").write_text(render_summary(summary, dm).replace(
         "- model: none (baseline case)",
         f"- OpenDSS's own control loop at {config.step_s:g} s steps (no bus, no processes, no recording)"))
     return summary

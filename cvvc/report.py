@@ -50,6 +50,7 @@ from simulator_bridge.simulation.live_accuracy import LiveAccuracyAccumulator
 if TYPE_CHECKING:
     from cvvc.evaluation import Evaluation
     from cvvc.launch import RunSummary
+    from schemas.devicemap import DeviceMap
 
 _T = TypeVar("_T")
 
@@ -243,31 +244,32 @@ def decode_summary(path: Path, typ: type[_T]) -> _T:
                           "wrote it, or run it again") from e
 
 
-def _run_meta(run_dir: Path) -> tuple[RunSummary, tuple[str, ...], tuple[str, ...], tuple[float, float]]:
+def _run_meta(run_dir: Path) -> tuple[RunSummary, DeviceMap | None]:
+    """A run folder's summary and its device map, read once (None when the map cannot be read any more)."""
     from cvvc.launch import RunSummary
+    from schemas.devicemap import load_device_map
 
     summary_path = run_dir / "summary.json"
     if not summary_path.is_file():
         raise ReportError(f"{run_dir}: no summary.json; pass a cvvc run output folder")
     summary = decode_summary(summary_path, RunSummary)
-    mt = summary.metrics
-    limits = (0.965, 1.05)
     try:
-        from schemas.devicemap import load_device_map
-
-        lo, hi = load_device_map(summary.feeder).feeder.judged_limits_pu
-        limits = (float(lo), float(hi))
+        dm = load_device_map(summary.feeder)
     except (CvvcError, OSError):
-        pass  # the paper's limits
-    return summary, tuple(mt.taps_changes), tuple(mt.q_mvar_intervals), limits
+        dm = None
+    return summary, dm
 
 
-def _trace_of(run_dir: Path) -> tuple[RunSummary, RunTrace]:
-    summary, regs, pvs, limits = _run_meta(run_dir)
-    caps = tuple(summary.metrics.cap_switches_per_bank)
+def _trace_of(run_dir: Path, summary: RunSummary, dm: DeviceMap | None) -> RunTrace:
+    mt = summary.metrics
+    limits = (0.965, 1.05)  # the paper's limits, without the map
+    if dm is not None:
+        lo, hi = dm.feeder.judged_limits_pu
+        limits = (float(lo), float(hi))
     rec = summary.recording or str(run_dir / "session.mcap")
     path = Path(rec) if Path(rec).is_file() else run_dir / "session.mcap"
-    return summary, read_trace(path, regulator_ids=regs, pv_ids=pvs, limits_pu=limits, capacitor_ids=caps)
+    return read_trace(path, regulator_ids=tuple(mt.taps_changes), pv_ids=tuple(mt.q_mvar_intervals),
+                      limits_pu=limits, capacitor_ids=tuple(mt.cap_switches_per_bank))
 
 
 def _baseline_of(run_dir: Path) -> RunTrace | None:
@@ -424,13 +426,17 @@ def _plots(traces: dict[str, RunTrace], title: str, out: Path, prefix: str = "")
 
 def run_traces(run_dir: str | Path) -> tuple[RunSummary, dict[str, RunTrace]]:
     """A ``cvvc run`` folder's traces: the case's from its recording, then no control's when it was simulated."""
-    d = Path(run_dir)
-    summary, trace = _trace_of(d)
-    traces = {f"case {summary.case}": trace}
+    summary, _, traces = _run_traces(Path(run_dir))
+    return summary, traces
+
+
+def _run_traces(d: Path) -> tuple[RunSummary, DeviceMap | None, dict[str, RunTrace]]:
+    summary, dm = _run_meta(d)
+    traces = {f"case {summary.case}": _trace_of(d, summary, dm)}
     baseline = _baseline_of(d)
     if baseline is not None:
         traces[NO_CONTROL] = baseline
-    return summary, traces
+    return summary, dm, traces
 
 
 def plot_run(run_dir: str | Path, *, out: str | Path | None = None) -> list[Path]:
@@ -440,7 +446,7 @@ def plot_run(run_dir: str | Path, *, out: str | Path | None = None) -> list[Path
     from cvvc.run_report import render_summary
 
     d = Path(run_dir)
-    summary, traces = run_traces(d)
+    summary, dm, traces = _run_traces(d)
     title = f"{summary.feeder_id} case {summary.case} from {summary.start}"
     folder = Path(out) if out else d / "plots"
     paths = _plots(traces, title, folder)
@@ -448,7 +454,7 @@ def plot_run(run_dir: str | Path, *, out: str | Path | None = None) -> list[Path
     paths += [_save(worst, folder / "worst_node.png")] if worst is not None else []
     report_dir = folder if out else d
     links = [f"![{p.stem.replace('_', ' ')}]({p.relative_to(report_dir).as_posix()})" for p in paths]
-    (report_dir / "report.md").write_text(render_summary(summary) + "\n## Plots\n\n" + "\n\n".join(links) + "\n")
+    (report_dir / "report.md").write_text(render_summary(summary, dm) + "\n## Plots\n\n" + "\n\n".join(links) + "\n")
     return paths
 
 
@@ -467,7 +473,7 @@ def plot_evaluation(eval_dir: str | Path, *, out: str | Path | None = None) -> l
         run_dir = Path(r.out_dir)
         if not run_dir.is_dir():
             run_dir = d / Path(r.out_dir).name
-        _, trace = _trace_of(run_dir)
+        trace = _trace_of(run_dir, *_run_meta(run_dir))
         key: str
         label: str
         if spec.variant == "nominal":

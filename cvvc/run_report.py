@@ -9,6 +9,7 @@ from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
     from cvvc.run_summary import RunSummary
+    from schemas.devicemap import DeviceMap
     from simulator_bridge.simulation.live_accuracy import LiveAccuracy
 
 __all__ = ["cost_lines", "decision_time_text", "live_accuracy_text", "render_summary", "top_reasons", "verdict"]
@@ -43,9 +44,9 @@ def live_accuracy_text(a: LiveAccuracy) -> str:
     return text
 
 
-def render_summary(s: RunSummary) -> str:
-    """The run's summary as a short markdown report: its metrics beside no control's, what the costs charge and a
-    one-line verdict.
+def render_summary(s: RunSummary, dm: DeviceMap | None) -> str:
+    """The run's summary as a short markdown report: its metrics beside no control's, what the costs charge (the
+    prices of ``dm``, the run's device map; None: not named) and a one-line verdict.
     """
     mt, base = s.metrics, s.baseline
     rows = [("MVVM [pu]", "mvvm_pu"), ("NVV [node-minutes of 10-min average outside the judged limits]", "nvv"),
@@ -63,7 +64,7 @@ def render_summary(s: RunSummary) -> str:
         b = "" if base is None else _fmt(getattr(base, key), key)
         lines.append(f"| {label} | {_fmt(getattr(mt, key), key)} | {b} |")
     why = f"; most frequent reasons: {top_reasons(s.reasons)}" if s.holds or s.soft else ""
-    lines += ["", *cost_lines(s), "", f"**Verdict:** {verdict(s)}", "",
+    lines += ["", *cost_lines(s, dm), "", f"**Verdict:** {verdict(s)}", "",
               f"- decisions: {s.decisions} (soft {s.soft}, hold {s.holds}{why}); lockstep misses: "
               f"{s.lockstep_misses}; wall time {s.wall_s:.1f} s",
               *([f"- decision time (the agent's, per control step): {decision_time_text(s.decision_ms)}"]
@@ -119,12 +120,12 @@ def _integrity_lines(s: RunSummary) -> list[str]:
     return lines
 
 
-def cost_lines(s: RunSummary) -> list[str]:
+def cost_lines(s: RunSummary, dm: DeviceMap | None) -> list[str]:
     """The cost table of a run (case and no control), each cost with what it charges, and why no control's costs
     are what they are.
     """
     mt, base = s.metrics, s.baseline
-    prices = _prices(s.feeder)
+    prices = {} if dm is None else _prices(dm)
     rows = [("T cost (tap changes)", "t_cost", f"{prices.get('tap', 'the price')} per tap step moved, every "
                                                   "regulator (eq. 14)"),
             ("Q cost (PV reactive power)", "q_cost", f"{prices.get('kvar', 'the price')} per kvar of \\|Q\\| "
@@ -167,17 +168,8 @@ def verdict(s: RunSummary) -> str:
             f"against {_fmt(base.mvvm_pu)} pu); {cost}.")
 
 
-def _prices(feeder: str) -> dict[str, str]:
-    """The feeder's prices as text (``tap``, ``kvar``, ``switch``: a value, or a range when devices differ); empty
-    when the device map cannot be read any more.
-    """
-    from schemas.devicemap import load_device_map
-    from schemas.errors import CvvcError
-
-    try:
-        dm = load_device_map(feeder)
-    except (CvvcError, OSError):
-        return {}
+def _prices(dm: DeviceMap) -> dict[str, str]:
+    """The feeder's prices as text (``tap``, ``kvar``, ``switch``: a value, or a range when devices differ)."""
 
     def text(values: list[float]) -> str | None:
         if not values:

@@ -30,7 +30,7 @@ import numpy as np
 from schemas import messages as m
 
 __all__ = ["TRUTH_PROTO_NAME", "TruthProtoDecoder", "TruthProtoEncoder", "decode_truth_proto", "encode_truth_proto",
-           "truth_descriptor_set"]
+           "truth_descriptor_set", "truth_feeder_id"]
 
 TRUTH_PROTO_NAME = "cvvc.Truth"
 """The Protobuf message's full name: the MCAP schema name of a ``sim/truth`` channel (schema encoding ``protobuf``)."""
@@ -96,13 +96,7 @@ def decode_truth_proto(raw: bytes) -> m.TruthPack:
     msgspec.DecodeError
         Bytes that are not a ``cvvc.Truth`` message.
     """
-    from google.protobuf.message import DecodeError
-
-    p = _truth_class()()
-    try:
-        p.ParseFromString(raw)
-    except (DecodeError, ValueError, TypeError) as e:
-        raise msgspec.DecodeError(f"not a {TRUTH_PROTO_NAME} Protobuf message: {e}") from None
+    p = _parse(raw)
     v = np.asarray(p.v_pu, dtype="<f4")
     fields = {"t_ns": p.t_ns, "seq": p.seq, "source": p.source, "feeder_id": p.feeder_id, "n_nodes": int(v.size),
               "v_pu_f32": m.pack_v_pu(v), "v_min_pu": p.v_min_pu, "v_max_pu": p.v_max_pu,
@@ -112,6 +106,30 @@ def decode_truth_proto(raw: bytes) -> m.TruthPack:
         return msgspec.convert(fields, m.TruthPack)
     except ValueError as e:  # __post_init__'s own check, as msgspec reports it on a decode
         raise msgspec.ValidationError(str(e)) from None
+
+
+def truth_feeder_id(raw: bytes) -> str | None:
+    """The ``feeder_id`` of a truth frame's Protobuf bytes, the rest left unchecked and unconverted (a recording's
+    check of which feeder each message is of); None when it has none.
+
+    Raises
+    ------
+    msgspec.DecodeError
+        Bytes that are not a ``cvvc.Truth`` message.
+    """
+    return _parse(raw).feeder_id or None
+
+
+def _parse(raw: bytes) -> Any:
+    """The ``cvvc.Truth`` message of ``raw``; ``msgspec.DecodeError`` when it is not one."""
+    from google.protobuf.message import DecodeError
+
+    p = _truth_class()()
+    try:
+        p.ParseFromString(raw)
+    except (DecodeError, ValueError, TypeError) as e:
+        raise msgspec.DecodeError(f"not a {TRUTH_PROTO_NAME} Protobuf message: {e}") from None
+    return p
 
 
 class TruthProtoEncoder:

@@ -120,6 +120,21 @@ def profile_cache(tmp_path_factory) -> Path:
     return folder
 
 
+@pytest.fixture(scope="session")
+def sharing_profiles(profile_cache: Path):
+    """Makes ``folder`` a fresh cache root (a run's ``--cache``) whose year profiles are the session's
+    (``profile_cache``): a run still makes its own CA, keys and models there, but loads the profiles another test
+    made instead of making them again (seconds per feeder and seed). Returns the folder.
+    """
+
+    def make(folder: Path) -> Path:
+        folder.mkdir(parents=True, exist_ok=True)
+        (folder / "profiles").symlink_to(profile_cache, target_is_directory=True)
+        return folder
+
+    return make
+
+
 class SetClock:
     """A clock [ns since the epoch] that only the test moves (``t_ns``): simulated devices' timers and adapters."""
 

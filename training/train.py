@@ -10,7 +10,7 @@ import os
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Literal
+from typing import Literal, NamedTuple
 
 import msgspec
 import numpy as np
@@ -357,7 +357,8 @@ def train(
     cal = calendar_features(np.asarray([profiles.t_ns(int(all_steps[i])) for i in flows.scenario], np.int64),
                             UTC_OFFSET_H, calendar_seasonal, calendar_weekly) if calendar else np.zeros((flows.n, 0))
     ext = None if pert is None else _extended(dm, engine, flows, pert, nodes, cap0, rcond, feature_set, cal.shape[1],
-                                           float(UTC_OFFSET_H), (calendar_seasonal, calendar_weekly))
+                                           float(UTC_OFFSET_H),
+                                           _CalendarTerms(seasonal=calendar_seasonal, weekly=calendar_weekly))
     x = flows.features if ext is None else np.concatenate([flows.features, cal, ext.readings], axis=1)
     vfit, val_rmse, val_max = fit_voltages_with_holdout(flows.scenario, x, v_crit, rcond=rcond, weights=weights,
                                                         every=_HOLDOUT_EVERY)
@@ -493,6 +494,13 @@ def train(
     return TrainResult(model=model, summary=summ)
 
 
+class _CalendarTerms(NamedTuple):
+    """The calendar terms beyond time of day and day of year (``regression.model.calendar_features``)."""
+
+    seasonal: int  # the daily harmonics (0, 1 or 2) also taken times the yearly one
+    weekly: bool  # the weekend and its daily shape
+
+
 @dataclass(frozen=True)
 class _Extended:
     """The extended feature set's training products."""
@@ -517,7 +525,7 @@ def _bank_fields(banks: list, dv_dcap_pu: np.ndarray, ext: _Extended | None) -> 
 
 def _extended(
     dm, engine, flows: PowerFlowSet, pert, nodes: np.ndarray, cap0: np.ndarray, rcond: float, feature_set: str,
-    n_calendar: int, utc_offset_h: float, calendar_terms: tuple[int, bool],
+    n_calendar: int, utc_offset_h: float, calendar_terms: _CalendarTerms,
 ) -> _Extended:
     """The banks' static term, the feature mapping and (``extended_readings``) the readings as regressors."""
     n_reg = flows.reg_pu.shape[1]
@@ -552,8 +560,8 @@ def _extended(
         "feature_dcap": f_cap.tolist(),
         "reading_alpha": reading_fit.alpha.tolist() if use else [],
         "calendar": n_calendar > 0,
-        "calendar_seasonal": calendar_terms[0] if n_calendar else 0,
-        "calendar_weekly": calendar_terms[1] and n_calendar > 0,
+        "calendar_seasonal": calendar_terms.seasonal if n_calendar else 0,
+        "calendar_weekly": calendar_terms.weekly and n_calendar > 0,
         "utc_offset_h": utc_offset_h,
     }
     return _Extended(names=names, readings=readings, model_fields=fields)

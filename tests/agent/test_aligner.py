@@ -268,7 +268,7 @@ def test_step_end_markers_ahead_of_their_frames_are_bounded(aligner):
 def test_a_control_step_carries_its_regulators_readings_of_the_period_and_the_snapshot_averages_them(aligner):
     """The regulator readings of the snapshot are the mean of the control
     period's frames at the present tap (a noisy single reading made the set points hunt)."""
-    from agent.runtime import snapshot_from
+    from agent.snapshot import snapshot_from
     from benchmarks.synthetic import synthetic_model
 
     base = EX[m.RegFrame]
@@ -300,7 +300,8 @@ def test_a_control_step_carries_its_regulators_readings_of_the_period_and_the_sn
 def test_a_head_or_regulator_frame_lost_at_a_control_step_is_replaced_by_its_last_good_value(aligner):
     """A lost head frame at a control step made the step a hold (98 holds and
     NVV 446 in a rural winter week at 5 % lost frames); the latest one within ``last_good_s`` stands in."""
-    from agent.runtime import AgentSettings, snapshot_from
+    from agent.runtime import AgentSettings
+    from agent.snapshot import snapshot_from
     from benchmarks.synthetic import synthetic_model
 
     t1 = T0 + PERIOD_NS
@@ -326,7 +327,7 @@ def test_a_head_or_regulator_frame_lost_at_a_control_step_is_replaced_by_its_las
 def test_a_pv_frame_lost_at_a_control_step_is_replaced_by_its_last_good_value(aligner):
     """A plant whose frame was lost got no command; two in a row let its command expire, and it went back to unity
     power factor (NVV 188 in five minutes of a rural winter week at 5 % lost frames)."""
-    from agent.runtime import snapshot_from
+    from agent.snapshot import snapshot_from
     from benchmarks.synthetic import synthetic_model
 
     t1 = T0 + PERIOD_NS
@@ -390,7 +391,7 @@ def test_a_clock_tolerance_of_half_a_period_is_refused():
 def test_the_snapshot_can_fit_the_regulator_readings_on_the_heads_load_and_move_them_to_the_present_tap(aligner):
     """``reading_fit_s`` (opt-in, agent/readings.py): readings that fall as the head's load rises, with a tap change
     half-way, give the present reading exactly, where the 5-minute mean lags the load."""
-    from agent.runtime import snapshot_from
+    from agent.snapshot import snapshot_from
     from benchmarks.synthetic import synthetic_model
 
     base, hbase = EX[m.RegFrame], EX[m.HeadFrame]

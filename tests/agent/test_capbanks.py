@@ -21,6 +21,7 @@ from regression.capbanks import bank_voltage_pu, head_q_at_training_banks
 from regression.estimator import estimate_voltages_pu
 from regression.model import CapacitorInfo, ModelArrays, ModelError, features, read_model, write_model
 from schemas import messages as m
+from schemas.settings import AgentOptions
 
 # Bank A: 600 kvar, +0.006 / +0.004 pu per step at nodes 0 / 1; bank B: 300 kvar, +0.003 / +0.002 pu.
 DV_BANK = np.array([[0.006, 0.003], [0.004, 0.002]])
@@ -150,14 +151,14 @@ def test_banks_stay_on_local_control_unless_the_agent_is_told_to_control_them():
     lo, _ = MODEL.optimization_limits_pu
     snap = _shift_to(lo - 0.008, _snapshot())
     frozen = dataclasses.replace(snap, pv_kva_available=snap.pv_p_kw.copy())  # no Q headroom
-    d = CvvcController(MODEL, mode="taps", correction=False, bandwidth_v120=4.0).decide(frozen)
+    d = CvvcController(MODEL, AgentOptions(bandwidth_v120=4.0), mode="taps", correction=False).decide(frozen)
     assert not d.cap_command.any()
     assert d.cap_steps is None or d.cap_steps.tolist() == list(frozen.cap_steps)
     assert AgentSettings(feeder_id=MODEL.feeder_name).control_banks is False
 
 
 def test_a_low_voltage_decision_closes_a_bank_and_sends_its_command():
-    ctl = CvvcController(MODEL, mode="taps", correction=False, bandwidth_v120=4.0, control_banks=True)
+    ctl = CvvcController(MODEL, AgentOptions(bandwidth_v120=4.0, control_banks=True), mode="taps", correction=False)
     lo, _ = MODEL.optimization_limits_pu
     snap = _shift_to(lo - 0.008, _snapshot())
     frozen = dataclasses.replace(snap, pv_kva_available=snap.pv_p_kw.copy())  # no Q headroom
@@ -176,7 +177,7 @@ def test_a_low_voltage_decision_closes_a_bank_and_sends_its_command():
 
 
 def test_without_need_no_bank_switches():
-    ctl = CvvcController(MODEL, mode="taps", correction=False, bandwidth_v120=4.0, control_banks=True)
+    ctl = CvvcController(MODEL, AgentOptions(bandwidth_v120=4.0, control_banks=True), mode="taps", correction=False)
     lo, _ = MODEL.optimization_limits_pu
     d = ctl.decide(_shift_to(lo + 0.01, _snapshot()))
     assert d.status == "optimal", d.reason
@@ -185,7 +186,7 @@ def test_without_need_no_bank_switches():
 
 @pytest.mark.parametrize("why", ["stale", "refused"])
 def test_a_stale_or_refused_bank_is_held_without_a_command(why):
-    ctl = CvvcController(MODEL, mode="taps", correction=False, bandwidth_v120=4.0, control_banks=True)
+    ctl = CvvcController(MODEL, AgentOptions(bandwidth_v120=4.0, control_banks=True), mode="taps", correction=False)
     lo, _ = MODEL.optimization_limits_pu
     snap = _shift_to(lo - 0.008, _snapshot(t_ns=300_000_000_000))
     snap = dataclasses.replace(snap, pv_kva_available=snap.pv_p_kw.copy())
@@ -282,8 +283,8 @@ def test_a_bank_on_local_control_is_not_pushed_across_its_setting():
                                pv_kva_available=np.full(K, 1500.0))  # Q headroom: 1200 kvar each
 
     def after(predict: bool) -> tuple[float, object]:
-        d = CvvcController(model, mode="taps", correction=False, bandwidth_v120=4.0,
-                           predict_banks=predict).decide(snap)
+        d = CvvcController(model, AgentOptions(bandwidth_v120=4.0, predict_banks=predict), mode="taps",
+                           correction=False).decide(snap)
         assert d.status == "optimal", d.reason
         return 215.0 + float(np.dot(dq, d.pv_q_kvar - snap.pv_q_kvar)), d
 
@@ -293,9 +294,10 @@ def test_a_bank_on_local_control_is_not_pushed_across_its_setting():
     assert kept >= 210.0 - 1e-6 and d.v_pred_pu.min() >= lo - 1e-5 and d.v_pred_pu.size == N
     # a bank already past its setting switches whatever the decision: no row binds for it
     past = dataclasses.replace(snap, cap_control_value=np.array([np.nan, 195.0]))
-    d_past = CvvcController(model, mode="taps", correction=False, bandwidth_v120=4.0, predict_banks=True).decide(past)
-    np.testing.assert_allclose(d_past.pv_q_kvar, CvvcController(model, mode="taps", correction=False,
-                                                                bandwidth_v120=4.0).decide(past).pv_q_kvar, atol=1e-6)
+    d_past = CvvcController(model, AgentOptions(bandwidth_v120=4.0, predict_banks=True), mode="taps",
+                            correction=False).decide(past)
+    np.testing.assert_allclose(d_past.pv_q_kvar, CvvcController(model, AgentOptions(bandwidth_v120=4.0), mode="taps",
+                                                                correction=False).decide(past).pv_q_kvar, atol=1e-6)
 
 
 def test_bank_rows_keep_the_quantity_where_the_control_would_not_switch():

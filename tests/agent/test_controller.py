@@ -6,14 +6,14 @@ import msgspec
 import numpy as np
 import pytest
 
-from agent.controller import CvvcController, Decision, MeasurementSnapshot, controller_options
+from agent.controller import CvvcController, Decision, MeasurementSnapshot
 from agent.errors import AgentInputError
 from agent.state import GridState, oracle_state
 from benchmarks.synthetic import synthetic_model
 from regression.estimator import dv_dp_pu_per_kw, estimate_voltages_pu, pv_variability_margins_pu
 from regression.model import ModelArrays, ModelError, features
 from schemas import messages as m
-from schemas.settings import PAPER_AGENT
+from schemas.settings import PAPER_AGENT, AgentOptions
 
 MODEL = synthetic_model(0)
 ARRAYS = ModelArrays.of(MODEL)
@@ -54,19 +54,22 @@ def snapshot(
     return dataclasses.replace(snap, **changes)
 
 
+def _controller(model, base: AgentOptions, kw: dict) -> CvvcController:
+    """A controller in taps mode with the correction; ``kw``: ``mode``, ``correction``, ``meters`` or options set on
+    top of ``base``."""
+    own = {k: kw.pop(k) for k in ("mode", "correction", "meters") if k in kw}
+    return CvvcController(model, msgspec.structs.replace(base, **kw), **{"mode": "taps", "correction": True, **own})
+
+
 def controller(**kw) -> CvvcController:
     """The shipped controller (``schemas.settings.AgentOptions``' defaults), in taps mode with the correction."""
-    args = {"mode": "taps", "correction": True, **kw}
-    return CvvcController(MODEL, **args)
-
-
-#: The paper's configuration (every option beyond the paper off): the tests of one option against the paper's method.
-PAPER = controller_options(PAPER_AGENT)
+    return _controller(MODEL, AgentOptions(), kw)
 
 
 def paper_controller(model=MODEL, **kw) -> CvvcController:
-    """The paper's controller (``PAPER``) in taps mode with the correction; ``kw`` sets options on top."""
-    return CvvcController(model, **{"mode": "taps", "correction": True, **PAPER, **kw})
+    """The paper's controller (``PAPER_AGENT``: every option beyond the paper off) in taps mode with the correction;
+    ``kw`` sets options on top."""
+    return _controller(model, PAPER_AGENT, kw)
 
 
 HIGH = np.full(R, 0.01)  # regulator readings 1 % above the estimate: corrected estimate over 1.04 pu
@@ -202,8 +205,8 @@ def test_bad_shapes_hold_and_bad_configuration_is_refused():
         controller(mode="tap")
     # a model whose extended arrays do not fit its features: refused with a clear error, not misread
     with pytest.raises(ModelError, match="do not fit"):
-        CvvcController(msgspec.structs.replace(MODEL, feature_set="extended"), mode="taps", correction=True,
-                       bandwidth_v120=4.0)
+        CvvcController(msgspec.structs.replace(MODEL, feature_set="extended"), AgentOptions(bandwidth_v120=4.0),
+                       mode="taps", correction=True)
 
 
 @pytest.mark.parametrize(
@@ -359,11 +362,11 @@ def test_bounds_within_the_judged_limits_gap_leave_the_optimization_limits():
     lo, hi = MODEL.optimization_limits_pu
     judged_lo, judged_hi = MODEL.judged_limits_pu
     assert judged_hi - hi == pytest.approx(0.01) and lo - judged_lo == pytest.approx(0.01)
-    inside = CvvcController(_bounded_model(0.004, 0.003), mode="taps", correction=True, bandwidth_v120=4.0,
-                            bounds_in_margin=True).decide(snapshot(reading_error_pu=HIGH))
+    inside = CvvcController(_bounded_model(0.004, 0.003), AgentOptions(bandwidth_v120=4.0, bounds_in_margin=True),
+                            mode="taps", correction=True).decide(snapshot(reading_error_pu=HIGH))
     assert inside.status == "optimal" and inside.v_pred_pu.max() == pytest.approx(hi, abs=1e-5)
-    past = CvvcController(_bounded_model(0.014, 0.003), mode="taps", correction=True, bandwidth_v120=4.0,
-                          bounds_in_margin=True).decide(snapshot(reading_error_pu=HIGH))
+    past = CvvcController(_bounded_model(0.014, 0.003), AgentOptions(bandwidth_v120=4.0, bounds_in_margin=True),
+                          mode="taps", correction=True).decide(snapshot(reading_error_pu=HIGH))
     assert past.status == "optimal" and past.v_pred_pu.max() <= judged_hi - 0.014 + 1e-5  # 1.036, not 1.026
     assert past.v_pred_pu.max() > hi - 0.014 + 0.005
     assert past.v_pred_pu.min() >= lo - 1e-5
@@ -530,8 +533,8 @@ def test_bounds_cover_the_correction_as_computed_from_the_steps_own_reading():
     assert sec in below
 
     def last(cover: bool) -> Decision:
-        c = CvvcController(_bounded_model(0.001, 0.001), mode="taps", correction=True, bandwidth_v120=4.0,
-                           correction_window_s=3000.0, bounds_cover_filter=cover)
+        c = CvvcController(_bounded_model(0.001, 0.001), AgentOptions(
+            bandwidth_v120=4.0, correction_window_s=3000.0, bounds_cover_filter=cover), mode="taps", correction=True)
         d = None
         for i in range(12):  # a steady error learned, then a 0.006 pu step of it
             e = np.array([0.002 if i < 11 else 0.008] + [0.0] * (R - 1))
@@ -601,7 +604,7 @@ def test_noisy_readings_widen_the_bounds_from_their_window_mean_not_the_last_rea
     """The bounds' gap takes eq. (6) from the step's own reading when the readings are quiet, and from the reading
     window's mean when they are noisier than a quarter of a tap step: one noisy reading would otherwise widen and
     narrow the bounds at random every decision (rural winter, 1 % SCADA noise: NTC 15 -> 72)."""
-    from agent.runtime import reading_noise_v120
+    from agent.snapshot import reading_noise_v120
 
     rng = np.random.default_rng(1)
     assert reading_noise_v120([120.0, 120.1, 120.2, 120.3, 120.4]) == pytest.approx(0.0, abs=1e-9)  # a drift
@@ -611,8 +614,8 @@ def test_noisy_readings_widen_the_bounds_from_their_window_mean_not_the_last_rea
     step_v = min(r.step_v120 for r in MODEL.regulators)
 
     def high_bound(noise_v: float) -> np.ndarray:
-        c = CvvcController(_bounded_model(0.001, 0.001), mode="taps", correction=True, bandwidth_v120=4.0,
-                           correction_window_s=3000.0, bounds_cover_filter=True)
+        c = CvvcController(_bounded_model(0.001, 0.001), AgentOptions(
+            bandwidth_v120=4.0, correction_window_s=3000.0, bounds_cover_filter=True), mode="taps", correction=True)
         s = snapshot(0)
         last = s.reg_v120 + jump_pu / ARRAYS.reg_pu_per_v120  # the step's own reading, above the window's mean
         return c.decide(dataclasses.replace(s, reg_v120_now=last, reg_v120_noise=np.full(R, noise_v))).v_bound_high_pu

@@ -30,7 +30,7 @@ def _cvvc(*args: str, cwd: Path, timeout_s: float = 300.0) -> subprocess.Complet
 
 
 @pytest.fixture(scope="module")
-def ami_run(tmp_path_factory, ieee13_model):
+def ami_run(tmp_path_factory, ieee13_model, sharing_profiles):
     """One simulated hour of case D on IEEE 13 from 11:00, with a meter at the critical node of widest bounds."""
     model = read_model(ieee13_model)
     assert model.bounds is not None and model.bounds.ami_interval_s == 900  # calibration gives the AMI bounds
@@ -46,7 +46,7 @@ def ami_run(tmp_path_factory, ieee13_model):
     out = work / "out"
     proc = _cvvc("run", "--feeder", str(ami_map), "--model", str(ieee13_model),
                  "--days", str(1 / 24), "--start", "2023-07-10T11:00", "--out", str(out),
-                 "--cache", str(work / "cache"), "--json", cwd=work)
+                 "--cache", str(sharing_profiles(work / "cache")), "--json", cwd=work)
     assert proc.returncode == 0, proc.stderr[-3000:]
     return out, node, widest, model
 

@@ -175,6 +175,18 @@ def test_a_campaign_variants_agent_section_and_its_old_keys_are_one_setting(tmp_
         load_campaign(path)
 
 
+def test_an_evaluation_without_bands_runs_its_agents_band():
+    """One source for the band: ``bandwidths_v120`` left out is the agent's, written out in the configuration."""
+    from cvvc.evaluation import EvaluateConfig
+
+    assert EvaluateConfig().bandwidths_v120 == (AgentOptions().bandwidth_v120,)
+    assert EvaluateConfig(agent=AgentOptions(bandwidth_v120=3.0)).bandwidths_v120 == (3.0,)
+    assert EvaluateConfig(agent=AgentOptions(bandwidth_v120=3.0), bandwidths_v120=(2.0, 4.0)).bandwidths_v120 == \
+        (2.0, 4.0)
+    back = msgspec.json.decode(msgspec.json.encode(EvaluateConfig()), type=EvaluateConfig)
+    assert back == EvaluateConfig()
+
+
 @pytest.mark.bus
 @pytest.mark.process
 def test_cvvc_run_of_a_case_file_runs_it_and_records_the_case(tmp_path, ieee13_model):

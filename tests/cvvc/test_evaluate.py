@@ -281,6 +281,6 @@ def test_runs_with_lockstep_misses_are_listed_as_not_the_methods_figures(tmp_pat
     assert "## Runs with lockstep misses: not the method's figures" in md
     assert f"- summer-D-bw4: {run.lockstep_misses} of its control steps" in md
     summary = msgspec.json.decode((Path(run.out_dir) / "summary.json").read_bytes(), type=RunSummary)
-    assert f"**{run.lockstep_misses} lockstep miss(es)**" in render_summary(summary)
+    assert f"**{run.lockstep_misses} lockstep miss(es)**" in render_summary(summary, None)
     with pytest.raises(EvaluateError, match="lockstep-timeout-s"):
         evaluate(msgspec.structs.replace(ev.config, lockstep_timeout_s=0.0, out=str(tmp_path / "bad")))

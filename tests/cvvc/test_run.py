@@ -41,13 +41,13 @@ def _processes_mentioning(text: str) -> list[int]:
 
 
 @pytest.fixture(scope="module")
-def one_hour_run(tmp_path_factory, ieee13_model):
+def one_hour_run(tmp_path_factory, ieee13_model, sharing_profiles):
     """One simulated hour of case D on IEEE 13, from 11:00 on a summer day (PV producing)."""
     work = tmp_path_factory.mktemp("run")
     out = work / "out"
     proc = _cvvc("run", "--feeder", str(REPO / "feeders" / "ieee13.toml"), "--model", str(ieee13_model),
                  "--days", str(1 / 24), "--start", "2023-07-10T11:00", "--out", str(out),
-                 "--cache", str(work / "cache"), "--json", cwd=work)
+                 "--cache", str(sharing_profiles(work / "cache")), "--json", cwd=work)
     assert proc.returncode == 0, proc.stderr[-3000:]
     return out, json.loads(proc.stdout)
 
@@ -297,14 +297,16 @@ def test_a_clean_run_says_nothing_was_refused_or_missed_and_exits_0(one_hour_run
 
 
 @pytest.mark.process
-@pytest.mark.slow  # a whole ``cvvc run`` that waits out its lockstep time-outs (10 s each)
-def test_a_run_without_decisions_for_more_than_a_control_period_exits_3_and_says_why(tmp_path, ieee13_model):
+@pytest.mark.slow  # a whole ``cvvc run`` that waits out its lockstep time-outs (3 s each: no decision can come)
+def test_a_run_without_decisions_for_more_than_a_control_period_exits_3_and_says_why(tmp_path, ieee13_model,
+                                                                                      sharing_profiles):
     """Every frame lost (``--drop-prob 1``): the agent decides nothing for two control periods. The run still writes
     its summary and report, and exits 3 (not 0, not an error's 2) with one line saying why."""
     out = tmp_path / "out"
     proc = _cvvc("run", "--feeder", str(REPO / "feeders" / "ieee13.toml"), "--model", str(ieee13_model),
                  "--days", str(10 / 1440), "--start", "2023-07-10T11:00", "--out", str(out), "--cache",
-                 str(tmp_path / "cache"), "--no-baseline", "--no-record", "--drop-prob", "1", "--json", cwd=tmp_path)
+                 str(sharing_profiles(tmp_path / "cache")), "--no-baseline", "--no-record", "--drop-prob", "1",
+                 "--lockstep-timeout-s", "3", "--json", cwd=tmp_path)
     assert proc.returncode == 3, proc.stderr[-3000:]
     lines = [x for x in proc.stderr.splitlines() if x.startswith("cvvc run: degraded")]
     assert len(lines) == 1 and "2 of 2 control steps without a decision of the agent" in lines[0], proc.stderr[-2000:]
@@ -315,9 +317,10 @@ def test_a_run_without_decisions_for_more_than_a_control_period_exits_3_and_says
 
 @pytest.mark.process
 @pytest.mark.slow  # a whole ``cvvc run``
-def test_an_insecure_run_warns_and_records_it(tmp_path):
+def test_an_insecure_run_warns_and_records_it(tmp_path, sharing_profiles):
     proc = _cvvc("run", "--feeder", str(REPO / "feeders" / "ieee13.toml"), "--case", "none", "--days", str(3 / 1440),
-                 "--out", str(tmp_path / "out"), "--cache", str(tmp_path / "cache"), "--no-baseline", "--json",
+                 "--out", str(tmp_path / "out"), "--cache", str(sharing_profiles(tmp_path / "cache")), "--no-baseline",
+                 "--json",
                  "--insecure", cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "WARNING --insecure: the bus runs without TLS and without access control" in proc.stderr

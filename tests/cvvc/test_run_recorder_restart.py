@@ -59,14 +59,15 @@ def _wait(pred, timeout_s: float, what: str):
     raise AssertionError(f"no {what} within {timeout_s} s")
 
 
-def test_a_killed_recorder_is_restarted_control_goes_on_and_the_gap_is_recorded(tmp_path, ieee13_model):
+def test_a_killed_recorder_is_restarted_control_goes_on_and_the_gap_is_recorded(tmp_path, ieee13_model,
+                                                                                sharing_profiles):
     out = tmp_path / "out"
     mcap = out / "session.mcap"
     env = dict(os.environ, PYTHONPATH=str(REPO))
     run = subprocess.Popen(
         [sys.executable, "-m", "cvvc", "run", "--feeder", str(REPO / "feeders" / "ieee13.toml"),
          "--model", str(ieee13_model), "--days", str(DAYS), "--start", "2023-07-10", "--out", str(out),
-         "--cache", str(tmp_path / "cache"), "--no-baseline", "--json"],
+         "--cache", str(sharing_profiles(tmp_path / "cache")), "--no-baseline", "--json"],
         cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         _wait(lambda: _head_frames_recorded(mcap), 120, "head frame flushed into the recording")

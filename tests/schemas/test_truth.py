@@ -163,3 +163,15 @@ def test_the_arrays_do_not_share_the_message():
     a = truth_arrays(pack)
     a.v_pu[0] = 2.0
     assert truth_arrays(pack).v_pu[0] == 0.0
+
+
+def test_a_frames_feeder_id_reads_alone():
+    """The feeder id of a frame's Protobuf bytes, as the whole decode gives it; None without one; not Protobuf: the
+    decoders' error."""
+    from schemas.truth_proto import truth_feeder_id
+
+    raw = _proto()
+    assert truth_feeder_id(raw) == codec_for(m.TruthPack).decode(raw).feeder_id == "rural"
+    assert truth_feeder_id(b"") is None
+    with pytest.raises(msgspec.DecodeError):
+        truth_feeder_id(b"\xff\xff")

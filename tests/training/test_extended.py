@@ -254,6 +254,7 @@ def test_the_agent_runs_an_extended_model_with_the_same_estimate(ieee13_caps, mo
     """The controller decides with an extended model (banks, calendar, readings) and its critical-node estimate is
     the reports' (``estimate_v_pu``): one estimate online and offline. Bank 1 open, as the agent sees it."""
     from agent.controller import CvvcController, MeasurementSnapshot
+    from schemas.settings import AgentOptions
 
     model = calendar_model if which == 3 else models[which]
     v, f, taps, v120, caps, cap_v, t_ns = _state(ieee13_caps, model, caps=[0, 1])
@@ -265,7 +266,7 @@ def test_the_agent_runs_an_extended_model_with_the_same_estimate(ieee13_caps, mo
         reg_v120=v120[0], reg_v120_compared=v120[0], reg_tap=taps[0].astype(int), head_valid=True,
         pv_valid=np.ones(k, bool), reg_valid=np.ones(len(model.regulators), bool), cap_steps=caps[0].astype(int),
         cap_valid=np.ones(2, bool), cap_v_v=cap_v[0])
-    d = CvvcController(model, mode="taps", correction=True, bandwidth_v120=2.0).decide(snap)
+    d = CvvcController(model, AgentOptions(bandwidth_v120=2.0), mode="taps", correction=True).decide(snap)
     assert d.status != "hold", d.reason
     offline = estimate_v_pu(ModelArrays.of(model), f, taps, v120, caps=caps, cap_v_v=cap_v, t_ns=t_ns)[0]
     np.testing.assert_allclose(d.v_pu, offline, atol=1e-12)
