@@ -600,6 +600,27 @@ def test_a_tap_move_is_not_reversed_soon_after_unless_the_limits_need_it():
         paper_controller(tap_reversal_lockout_s=-1.0)
 
 
+def test_no_tap_moves_for_a_predicted_violation_within_the_deadband():
+    """No Q headroom and readings 3 % below the estimate: one tap up meets the limits; the taps held leave 0.003 pu
+    below them. Within a 0.004 pu deadband the taps stay (a soft decision that says why); 3.2 % below (0.005 pu) or
+    without the deadband, the tap moves."""
+
+    def decide(error_pu: float, deadband_pu: float) -> Decision:
+        snap = snapshot(0, reading_error_pu=np.full(R, error_pu))
+        return paper_controller(tap_deadband_pu=deadband_pu).decide(
+            dataclasses.replace(snap, pv_kva_available=np.full(K, 900.0)))
+
+    moved = decide(-0.03, 0.0)
+    assert moved.status == "optimal" and moved.reg_tap.sum() == 1
+    held = decide(-0.03, 0.004)
+    assert held.status == "soft" and not held.reg_tap.any() and "tap deadband" in held.reason
+    lo, _ = MODEL.optimization_limits_pu
+    assert 0.001 < lo - held.v_pred_pu.min() <= 0.004 + 1e-9
+    assert decide(-0.032, 0.004).reg_tap.sum() >= 1
+    with pytest.raises(AgentInputError, match="tap_deadband_pu"):
+        paper_controller(tap_deadband_pu=-0.001)
+
+
 def test_noisy_readings_widen_the_bounds_from_their_window_mean_not_the_last_reading():
     """The bounds' gap takes eq. (6) from the step's own reading when the readings are quiet, and from the reading
     window's mean when they are noisier than a quarter of a tap step: one noisy reading would otherwise widen and
