@@ -125,10 +125,10 @@ def test_recorder_sigkill_during_a_session_recover_keeps_everything_flushed(
     flush_s = 0.2
     mcap = tmp_path / "killed.mcap"
     recorder = procs.recorder(mcap, "--flush-period-s", str(flush_s))
+    # subscribed before the agent starts (a file that is not empty says so): its first status is then recorded
+    watcher.wait(lambda: mcap.exists() and mcap.stat().st_size > 0, 30, "the recorder's file")
     procs.agent()
     watcher.wait(lambda: watcher.is_alive(AGENT_KEY), 30, "the agent's liveliness token")
-    watcher.wait(lambda: watcher.is_alive(f"cvvc/{FEEDER}/alive/recorder/recorder")
-                 or mcap.exists() and mcap.stat().st_size > 0, 30, "the recorder's file")
     procs.bridge("--realtime", "--speed", "600", "--steps", "100000")
     watcher.wait(lambda: len(watcher.messages(m.Decision, lambda d: bool(d.commands))) >= 4, 30,
                  "four decisions with commands")
