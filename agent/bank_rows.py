@@ -13,10 +13,19 @@ the agent commands, or one without a reading gets a row that never binds.
 
 Each row is a pseudo-node of the problem, scaled so that the ON-OFF gap spans ``ROW_SPAN_PU``, like a band of
 voltages: ``u = 1 + ROW_SPAN_PU * (x - mid) / |on - off|``.
+
+A kvar or current control with ``VoltOverride`` closes its bank below ``Vmin`` and opens it above ``Vmax`` whatever
+its kvar; its kvar rule then often undoes the switching at once, and the override does it again: hunting (IEEE 8500,
+first three October days of case D: one bank 59 switchings, 3 with no control, the agent holding its bus at 0.984 pu,
+under its 0.9875 pu ``Vmin``, at night). Such a bank gets a second row, on the voltage its override tests (its bus
+reading times ``override_per_v``, scaled the same way over ``Vmin..Vmax``): an open bank's kept ``OVERRIDE_MARGIN``
+above ``Vmin``, a closed one's below ``Vmax``, always binding (a voltage already past the limit is brought back if
+the actions can: the override would switch the bank again at every decision otherwise).
 """
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -24,10 +33,11 @@ import numpy as np
 
 from regression.model import CapacitorInfo
 
-__all__ = ["BANK_MARGIN_SHARE", "ROW_SPAN_PU", "BankRows", "local_bank_rows", "predicted_banks"]
+__all__ = ["BANK_MARGIN_SHARE", "OVERRIDE_MARGIN", "ROW_SPAN_PU", "BankRows", "local_bank_rows", "predicted_banks"]
 
 BANK_MARGIN_SHARE = 0.1  # of the ON-OFF gap, kept between the predicted quantity and a setting
 ROW_SPAN_PU = 0.05  # the ON-OFF gap in the rows' scaled unit (a band of voltages' width)
+OVERRIDE_MARGIN = 0.0025  # of the override's limit, kept between the tested voltage and it (18 V of 7,110 V)
 _FREE = 10.0  # a limit that never binds, in the scaled unit
 
 
@@ -53,8 +63,9 @@ def predicted_banks(banks: Sequence[CapacitorInfo]) -> np.ndarray:
 
 
 def local_bank_rows(banks: Sequence[CapacitorInfo], value: np.ndarray, closed: np.ndarray, held: np.ndarray,
-                    n_pv: int, n_reg: int) -> BankRows:
-    """The rows of every predicted bank (:func:`predicted_banks` order).
+                    n_pv: int, n_reg: int, v_v: np.ndarray | None = None) -> BankRows:
+    """The rows of every predicted bank (:func:`predicted_banks` order), then the override rows of those with a
+    ``VoltOverride`` (same order).
 
     Parameters
     ----------
@@ -63,6 +74,7 @@ def local_bank_rows(banks: Sequence[CapacitorInfo], value: np.ndarray, closed: n
     closed : (C,) closed steps of each bank now.
     held : (C,) bool, banks this decision may command (their local control does not act): no binding row.
     n_pv, n_reg : plants and regulators of the problem.
+    v_v : (C,) each bank's bus reading [V] (``CapFrame.v_v``); NaN or absent: its override row is free.
     """
     idx = predicted_banks(banks)
     n_cap = len(banks)
@@ -90,7 +102,33 @@ def local_bank_rows(banks: Sequence[CapacitorInfo], value: np.ndarray, closed: n
         if np.isfinite(high):
             hi[j] = 1.0 + gain * (high - mid)
         binding[j] = True
-    return BankRows(u0=u0, du_dq=du_dq, du_dtap=du_dtap, lo=lo, hi=hi, binding=binding)
+    rows = BankRows(u0=u0, du_dq=du_dq, du_dtap=du_dtap, lo=lo, hi=hi, binding=binding)
+    v_v = np.zeros(0) if v_v is None else v_v
+    over = [_override_row(banks[c], float(v_v[c]) if c < len(v_v) else float("nan"), int(closed[c]), bool(held[c]),
+                          n_pv, n_reg + n_cap) for c in idx if banks[c].override_vmin_v > 0]
+    if not over:
+        return rows
+    return BankRows(**{f.name: np.concatenate([getattr(rows, f.name), *(getattr(o, f.name) for o in over)])
+                       for f in dataclasses.fields(BankRows)})
+
+
+def _override_row(bank: CapacitorInfo, v_v: float, closed: int, held: bool, n_pv: int, n_dev: int) -> BankRows:
+    """The one row of ``bank``'s ``VoltOverride`` (see the module docstring); free when ``held`` or unread."""
+    vmin, vmax = bank.override_vmin_v, bank.override_vmax_v
+    gain, mid = ROW_SPAN_PU / (vmax - vmin), 0.5 * (vmin + vmax)
+    du_dq, du_dtap = np.zeros((1, n_pv)), np.zeros((1, n_dev))
+    du_dq[0, : len(bank.override_dq)] = gain * np.asarray(bank.override_dq, float)
+    du_dtap[0, : len(bank.override_dtap)] = gain * np.asarray(bank.override_dtap, float)
+    v = bank.override_per_v * v_v
+    u0, lo, hi = np.ones(1), np.full(1, 1.0 - _FREE), np.full(1, 1.0 + _FREE)
+    bind = bool(np.isfinite(v)) and not held
+    if bind:
+        u0[0] = 1.0 + gain * (v - mid)
+        if closed < bank.steps:  # the override may close it
+            lo[0] = 1.0 + gain * (vmin * (1.0 + OVERRIDE_MARGIN) - mid)
+        if closed > 0:  # or open it
+            hi[0] = 1.0 + gain * (vmax * (1.0 - OVERRIDE_MARGIN) - mid)
+    return BankRows(u0=u0, du_dq=du_dq, du_dtap=du_dtap, lo=lo, hi=hi, binding=np.full(1, bind))
 
 
 def _keep_between(bank: CapacitorInfo, x: float, closed: int) -> tuple[float, float] | None:

@@ -42,7 +42,8 @@ from agent.cvvc_qp import CvvcInputs
 from agent.decision import Decision, MeasurementSnapshot
 from agent.errors import AgentInputError
 from agent.setpoints import expected_compared_v120, setpoint_for_tap_change
-from agent.solve import CvvcSolution, WarmStart, solve_cvvc
+from agent.solve import V_TOL_PU, CvvcSolution, WarmStart, solve_cvvc
+from agent.solve.solution import violation_pu
 from agent.stale_plants import StalePlants, stale_rise_pu
 from agent.state import (
     CorrectionFilter,
@@ -449,7 +450,7 @@ class CvvcController:
         recent = (self._last_move != 0) & (int(t_ns) - self._last_move_t_ns < self._lockout_ns)
         return recent & (self._last_move > 0), recent & (self._last_move < 0)
 
-    def tap_deadband(self, moving: CvvcSolution, held_problem: CvvcInputs) -> CvvcSolution:
+    def tap_deadband(self, moving: CvvcSolution, held_problem: CvvcInputs, n_nodes: int) -> CvvcSolution:
         """``moving`` (a decision that moves taps), or the decision with every tap held if that one predicts no
         violation of the tightened limits beyond ``tap_deadband_pu`` and costs no more.
 
@@ -458,13 +459,19 @@ class CvvcController:
         tightened by the estimate's calibrated bounds; whether a node ends a few mV/V inside or outside them moves with
         every estimate, and a tap moved for it is moved back at a later decision (IEEE 8500, first summer day: 150 of
         ~400 moves reversed within 30 minutes, the reversal locks released because the limits could not be met with
-        them). The held decision is the soft form's (eq. 17), and says so.
+        them). The held decision is the soft form's (eq. 17), and says so. The deadband is the nodes' alone: a
+        predicted bank's row (``agent.bank_rows``) may not come closer to its local control's setting than with the
+        move (without that rule, the first three October days of IEEE 8500: bank switchings 118 -> 240).
         """
         held = solve_cvvc(held_problem, warm_start=self._warm)
-        if held.status != "soft" or held.max_violation_pu > self.tap_deadband_pu or held.cost > moving.cost:
+        if held.status != "soft" or held.cost > moving.cost:
             return moving
-        note = (f"taps held: {held.max_violation_pu:.4f} pu predicted beyond the tightened limits, within the tap "
-                f"deadband {self.tap_deadband_pu:g} pu")
+        over, before = violation_pu(held_problem, held.v_pred_pu), violation_pu(held_problem, moving.v_pred_pu)
+        worst = float(over[:n_nodes].max(initial=0.0))
+        if worst > self.tap_deadband_pu or np.any(over[n_nodes:] > before[n_nodes:] + V_TOL_PU):
+            return moving
+        note = (f"taps held: {worst:.4f} pu predicted beyond the tightened limits, within the tap deadband "
+                f"{self.tap_deadband_pu:g} pu")
         return dataclasses.replace(held, reason=f"{note}; {held.reason}" if held.reason else note)
 
     def problem(self, snap: MeasurementSnapshot, state: GridState, *, out_of_envelope: bool = False,
@@ -519,7 +526,7 @@ class CvvcController:
         if self.predict_banks and predicted_banks(self.model.capacitors).size:
             # the banks on their local control, predicted: rows after the nodes (agent.bank_rows)
             rows = local_bank_rows(self.model.capacitors, snap.cap_control_value, self._cap_last, movable,
-                                   len(self._pv_ids), len(self._reg_ids))
+                                   len(self._pv_ids), len(self._reg_ids), v_v=snap.cap_v_v)
             v0, dv_dq = np.concatenate([v0, rows.u0]), np.vstack([dv_dq, rows.du_dq])
             dv_dtap = np.vstack([dv_dtap, rows.du_dtap])
             v_min_pu = np.concatenate([np.broadcast_to(np.asarray(v_min_pu, float), (n,)), rows.lo])
@@ -645,7 +652,7 @@ class CvvcController:
             solution = solve_cvvc(unlocked, warm_start=self._warm if oracle is None else None)
         if oracle is None and self.tap_deadband_pu > 0 and np.any(solution.taps_new[:n_reg] != state.taps):
             solution = self.tap_deadband(solution, self.problem(snap, state, out_of_envelope=bool(outside),
-                                                                plants=plants, locks="all"))
+                                                                plants=plants, locks="all"), state.v0_pu.shape[0])
         sec = solution.seconds
         if solution.status == "hold":
             return self._hold(snap, prefix + solution.reason, missing, t0, state=state, solution=solution,

@@ -133,6 +133,14 @@ class CapacitorInfo(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fi
     control_off: float = 0.0  # OFF setting
     control_dq: list[float] = []  # (K,) change of the controlled quantity per kvar of each plant's Q [unit/kvar]
     control_dtap: list[float] = []  # (R,) ... per tap step of each regulator [unit/step]
+    # its control's VoltOverride (a kvar or current control that a low voltage closes and a high one opens, whatever
+    # its own quantity): limits on the PT base [V] (0: none), the tested voltage per volt of the bank's bus reading
+    # (CapFrame.v_v), and that voltage's sensitivities to the plants' Q [V/kvar] and the taps [V/step]
+    override_vmin_v: float = 0.0
+    override_vmax_v: float = 0.0
+    override_per_v: float = 0.0
+    override_dq: list[float] = []
+    override_dtap: list[float] = []
 
 
 class PvInfo(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):

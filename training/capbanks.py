@@ -83,7 +83,9 @@ def bank_controls(engine, inputs, tap0: np.ndarray, cap0: np.ndarray,
     Finite differences from the base state (PV Q at 0, ``tap0``, ``cap0``) at the representative scenarios of
     :func:`bank_sensitivities`, averaged: each plant's Q moved by ``_DQ_SHARE`` of its rating (within its
     headroom), each regulator one tap up (down at its top). Banks without a control, or of a type that is not nearly
-    linear in them (power factor, time, follow), keep ``control_kind = "none"``.
+    linear in them (power factor, time, follow), keep ``control_kind = "none"``. A kvar or current control with
+    ``VoltOverride`` also gets the overriding voltage's limits and sensitivities, and that voltage per volt of the
+    bank's bus reading (``override_*``): a low voltage closes such a bank and a high one opens it, whatever its kvar.
     """
     index = np.asarray(engine.cap_control_index, int)
     predicted = [c for c in range(len(banks))
@@ -93,11 +95,16 @@ def bank_controls(engine, inputs, tap0: np.ndarray, cap0: np.ndarray,
         return banks
     n_pv, n_reg = len(engine.pv_ids), len(tap0)
     picks = _scenario_indices(len(inputs))
-    dq = np.zeros((len(banks), n_pv))
-    dtap = np.zeros((len(banks), n_reg))
+    # each predicted bank's controlled quantity, then the voltage its VoltOverride tests: one column each
+    dq = np.zeros((2 * len(banks), n_pv))
+    dtap = np.zeros((2 * len(banks), n_reg))
+    rows = np.concatenate([predicted, len(banks) + np.asarray(predicted, int)])
+    per_v = np.zeros(len(banks))
 
     def sensed() -> np.ndarray:
-        return np.asarray(engine.sense()[1], float)[index[predicted]]  # (reg_v120, cap_value, ...)
+        _, value, v_override, _ = engine.sense()  # (reg_v120, cap_value, cap_v, cap_q_kvar)
+        return np.concatenate([np.asarray(value, float)[index[predicted]],
+                               np.asarray(v_override, float)[index[predicted]]])
 
     for i in picks:
         s = inputs[i]
@@ -108,6 +115,8 @@ def bank_controls(engine, inputs, tap0: np.ndarray, cap0: np.ndarray,
         engine.set_pv(s.pv_kw, zero)
         engine.solve()
         base = sensed()
+        bus_v = np.asarray(engine.readings().cap_v_v, float)[predicted]
+        per_v[predicted] += base[len(predicted):] / np.where(bus_v > 0, bus_v, np.nan) / len(picks)
         for k in range(n_pv):
             q = zero.copy()
             q[k] = _DQ_SHARE * float(engine.pv_kva[k])
@@ -118,7 +127,7 @@ def bank_controls(engine, inputs, tap0: np.ndarray, cap0: np.ndarray,
             if abs(applied) < 1e-6:
                 continue
             engine.solve()
-            dq[predicted, k] += (sensed() - base) / applied / len(picks)
+            dq[rows, k] += (sensed() - base) / applied / len(picks)
         engine.set_pv(s.pv_kw, zero)
         for r in range(n_reg):
             step = 1 if tap0[r] < engine.reg_tap_max[r] else -1
@@ -126,7 +135,7 @@ def bank_controls(engine, inputs, tap0: np.ndarray, cap0: np.ndarray,
             taps[r] += step
             engine.set_taps(taps)
             engine.solve()
-            dtap[predicted, r] += (sensed() - base) / step / len(picks)
+            dtap[rows, r] += (sensed() - base) / step / len(picks)
         engine.set_taps(tap0)
     engine.solve()
     out = list(banks)
@@ -135,4 +144,9 @@ def bank_controls(engine, inputs, tap0: np.ndarray, cap0: np.ndarray,
         out[c] = msgspec.structs.replace(banks[c], control_kind=cc.kind, control_on=float(cc.on),
                                          control_off=float(cc.off), control_dq=dq[c].tolist(),
                                          control_dtap=dtap[c].tolist())
+        if cc.volt_override and cc.kind != "voltage" and np.isfinite(per_v[c]) and per_v[c] > 0:
+            o = len(banks) + c
+            out[c] = msgspec.structs.replace(out[c], override_vmin_v=float(cc.vmin_v), override_vmax_v=float(cc.vmax_v),
+                                             override_per_v=float(per_v[c]), override_dq=dq[o].tolist(),
+                                             override_dtap=dtap[o].tolist())
     return out

@@ -327,3 +327,31 @@ def test_bank_rows_keep_the_quantity_where_the_control_would_not_switch():
     held = local_bank_rows(banks, np.array([121.0, np.nan, np.nan]), np.array([0, 0, 1]),
                            np.array([True, False, False]), 1, 1)
     assert held.binding.tolist() == [False, False] and held.lo.max() < -5.0 and held.hi.min() > 5.0
+
+
+def test_a_volt_override_gets_a_row_on_the_voltage_it_tests():
+    """A kvar bank whose control closes it below Vmin: an open bank's tested voltage is kept OVERRIDE_MARGIN above
+    Vmin even when it is already below (the override would close it, and its kvar rule open it, at every decision);
+    a closed one's below Vmax; held or unread, free."""
+    from agent.bank_rows import OVERRIDE_MARGIN, ROW_SPAN_PU, local_bank_rows
+
+    bank = CapacitorInfo(id="k", steps=1, kvar_rated=300.0, phases=[1], closed0=0, control_kind="kvar",
+                         control_on=150.0, control_off=-225.0, control_dq=[-0.4], control_dtap=[-20.0],
+                         override_vmin_v=7110.0, override_vmax_v=7740.0, override_per_v=1.01, override_dq=[0.05],
+                         override_dtap=[40.0])
+    gain, mid = ROW_SPAN_PU / 630.0, 7425.0
+    rows = local_bank_rows([bank], np.array([-400.0]), np.array([0]), np.zeros(1, bool), 1, 1, v_v=np.array([7000.0]))
+    assert rows.u0.shape == (2,) and rows.binding.tolist() == [True, True]
+    assert rows.u0[1] == pytest.approx(1.0 + gain * (7070.0 - mid))  # 7000 V read, 7070 V tested: under Vmin
+    assert rows.lo[1] == pytest.approx(1.0 + gain * (7110.0 * (1 + OVERRIDE_MARGIN) - mid)) and rows.hi[1] > 5.0
+    np.testing.assert_allclose(rows.du_dq[1], [0.05 * gain])
+    np.testing.assert_allclose(rows.du_dtap[1], [40.0 * gain, 0.0])
+    closed = local_bank_rows([bank], np.array([-400.0]), np.array([1]), np.zeros(1, bool), 1, 1,
+                             v_v=np.array([7300.0]))
+    assert closed.hi[1] == pytest.approx(1.0 + gain * (7740.0 * (1 - OVERRIDE_MARGIN) - mid)) and closed.lo[1] < -5.0
+    for held, v in ((np.ones(1, bool), 7000.0), (np.zeros(1, bool), np.nan)):
+        free = local_bank_rows([bank], np.array([-400.0]), np.array([0]), held, 1, 1, v_v=np.array([v]))
+        assert not free.binding[1] and free.lo[1] < -5.0 and free.hi[1] > 5.0
+    plain = local_bank_rows([msgspec.structs.replace(bank, override_vmin_v=0.0)], np.array([-400.0]), np.array([0]),
+                            np.zeros(1, bool), 1, 1, v_v=np.array([7000.0]))
+    assert plain.u0.shape == (1,)  # no override: no second row

@@ -68,7 +68,7 @@ def test_a_banks_local_control_is_predicted_linearly(tmp_path):
     master = (REPO.parent / "shared" / "feeders" / "ieee13" / "IEEE13Nodeckt.dss").resolve()
     text = (f'[feeder]\nname = "t13cc"\nmaster = "{master}"\nhead_element = "Line.650632"\nsource_bus = "650"\n'
             'extra_commands = ["New CapControl.cc1 Capacitor=Cap1 Element=Line.692675 Terminal=1 Type=Current '
-            'CTratio=1 ON=300 OFF=200 Delay=30 DelayOFF=30"]\n'
+            'CTratio=1 ON=300 OFF=200 Delay=30 DelayOFF=30 VoltOverride=Y PTratio=1 Vmin=2300 Vmax=2600"]\n'
             '[[pv]]\nid = "pv1"\nbus = "675"\nkv_ll = 4.16\nkva = 500.0\npmpp_kw = 450.0\n'
             '[[regulator]]\nid = "reg1"\nregcontrol = "Reg1"\n'
             '[[capacitor]]\nid = "cap1"\ncapacitor = "Cap1"\ncapcontrol = "cc1"\n'
@@ -104,3 +104,13 @@ def test_a_banks_local_control_is_predicted_linearly(tmp_path):
         x_at = sensed(0.0, tap0, 200.0)
         down.append(sensed(0.0, tap0 - 1, 200.0) - x_at)
     assert np.mean(down) / -1.0 == pytest.approx(cap1.control_dtap[0], rel=0.15, abs=0.02)
+    # its VoltOverride: the limits, the tested voltage per volt of the bank's bus reading, its change per kvar
+    assert (cap1.override_vmin_v, cap1.override_vmax_v) == (2300.0, 2600.0) and cap2.override_vmin_v == 0.0
+    engine.set_loads_kw(base * 0.65)
+    x0 = sensed(0.0, tap0)
+    v_test = float(engine.sense()[2][engine.cap_control_index[0]])
+    assert v_test == pytest.approx(cap1.override_per_v * float(engine.readings().cap_v_v[0]), rel=0.01)
+    sensed(-150.0, tap0)
+    dv = (float(engine.sense()[2][engine.cap_control_index[0]]) - v_test) / -150.0
+    assert cap1.override_dq[0] == pytest.approx(dv, rel=0.15) and abs(dv) > 1e-3
+    assert len(cap1.override_dtap) == 1
