@@ -59,10 +59,13 @@ INTEGRAL_TOL_STEPS = 1e-6
 #: HiGHS options of the MILP that looks for integer taps beyond one tap of the relaxation when no rounding meets the
 #: hard limits (``agent.solve.milp.milp_tap_changes``): a node limit (never a time limit: same inputs, same taps), a
 #: 0.1 % gap, and no presolve or primal heuristics (sub-MIPs, feasibility jump, RINS/RENS: most of HiGHS's time on
-#: these small dense problems; docs/optimizer.md).
+#: these small dense problems; docs/optimizer.md). One thread: HiGHS's thread pool cost 20 % more CPU on the 56
+#: fallback problems of an IEEE 8500 day, and on a loaded machine its workers waited for cores (one root node took
+#: 6.4 s of wall time for 0.87 s of CPU).
 MILP_OPTIONS: Mapping[str, bool | float | str] = MappingProxyType(
     {
         "output_flag": False,
+        "threads": 1,
         "mip_rel_gap": 1e-3,
         "mip_max_nodes": 500,
         "presolve": "off",
