@@ -95,7 +95,11 @@ def _highs_milp(cost: np.ndarray, integer: np.ndarray, col_lo: np.ndarray, col_h
     for name, value in MILP_OPTIONS.items():
         h.setOptionValue(name, value)
     h.passModel(lp)
-    h.run()
+    if h.run() == highspy.HighsStatus.kError:
+        # HiGHS's one scheduler per process was started with another thread count (an earlier Highs object of this
+        # process): it refuses to run. Restart the scheduler with ours.
+        highspy.Highs.resetGlobalScheduler(True)
+        h.run()
     if (h.getModelStatus() == highspy.HighsModelStatus.kInfeasible
             or h.getInfo().primal_solution_status != highspy.SolutionStatus.kSolutionStatusFeasible):
         return None

@@ -2,6 +2,7 @@
 
 import itertools
 
+import highspy
 import numpy as np
 import pytest
 import qpsolvers
@@ -438,3 +439,16 @@ def test_robust_check_agrees_with_the_lp_it_replaces():
         assert verdict == _robust_lp_verdict(inputs, hard)
         verdicts.append(verdict)
     assert True in verdicts and False in verdicts
+
+
+def test_the_fallback_milp_runs_after_highs_started_with_another_thread_count():
+    """HiGHS keeps one thread scheduler per process and refuses to run a model asking for another thread count: the
+    fallback MILP (one thread) must still answer after a Highs object with two threads ran in the process."""
+    other = highspy.Highs()
+    other.setOptionValue("output_flag", False)
+    other.setOptionValue("threads", 2)
+    other.addVar(0.0, 1.0)
+    other.run()
+    inputs = random_cvvc_inputs(np.random.default_rng(5))
+    assert solve_milp_reference(inputs).status == "optimal"
+    assert milp_tap_changes(inputs, np.zeros(inputs.n_nodes, bool)) is not None
