@@ -78,6 +78,12 @@ MILP_OPTIONS: Mapping[str, bool | float | str] = MappingProxyType(
         "mip_heuristic_run_shifting": False,
     }
 )
+#: When no rounding meets the hard limits: the integer tap changes within k steps in all of no move are searched
+#: before the MILP (``agent.solve.lattice``), k the largest with at most this many points (12 regulators: k = 3,
+#: 2,625 points).
+LATTICE_MAX_POINTS = 3000
+#: At most this many of them are re-solved; a search that has not proven its best optimal by then goes to the MILP.
+LATTICE_MAX_SOLVES = 40
 #: Stop trying rounding candidates once one scores within this fraction of the relaxed objective.
 ROUNDING_GAP_REL = 0.01
 #: Row generation for large problems (every node of a big feeder): problems up to ROWGEN_MIN_NODES critical
