@@ -3,8 +3,9 @@
 Every floor/ceil combination of the (at most ``MAX_ENUMERATED_FRACTIONAL``) most fractional relaxed tap changes
 is a candidate, the other taps rounded to nearest; Q is re-solved with each candidate's taps fixed (same form),
 best-first by a dual lower bound, by the exact dual active-set method (OSQP if it fails); the cheapest candidate
-meeting the hard limits wins. If none does, a MILP looks for integer taps further away that meet them
-(``agent.solve.milp``); if there are none, the nearest rounding is re-solved in the soft form.
+meeting the hard limits wins. If none does, integer taps further away: first those near "no move", with Lagrangian
+cuts and a proof of optimality (``agent.solve.lattice``), then, without that proof, a MILP cut off at the best of
+them (``agent.solve.milp``); if there are none, the nearest rounding is re-solved in the soft form.
 """
 
 from __future__ import annotations

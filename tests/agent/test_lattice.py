@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from agent.cvvc_qp import CvvcInputs, build_cvvc_qp
-from agent.solve import solve_cvvc, solve_milp_reference
+from agent.solve import V_TOL_PU, solve_cvvc, solve_milp_reference
 from agent.solve.lattice import LagrangianCut, cut_at, phase_one_multipliers, region_bound, tap_bounds, tap_lattice
 from agent.solve.polish import active_set_polish
 from benchmarks.synthetic import random_cvvc_inputs
@@ -117,7 +117,8 @@ def _slab(dv_dtap, v_min, v_max, cost_per_tap=(1.0, 1.0), max_taps=(4, 4)) -> Cv
 @pytest.mark.parametrize(
     ("inputs", "taps"),
     [
-        # +0.019-0.022 pu: neither rounding of regulator 1's 19/30 step does; regulator 2 one step down does
+        # +0.019-0.022 pu: the relaxation moves regulator 1 by 19/30 of a step, and neither rounding (0 or 1) meets
+        # the limits; regulator 2 one step down does (and 2 up with 2 down, at twice the cost)
         (_slab([0.03, -0.02], 1.019, 1.022), [0, -1]),
         # +0.038-0.041 pu: the relaxation's 1.27 steps of regulator 1 round to 0.03 or 0.06; regulator 2 two down
         (_slab([0.03, -0.02], 1.038, 1.041), [0, -2]),
@@ -125,13 +126,16 @@ def _slab(dv_dtap, v_min, v_max, cost_per_tap=(1.0, 1.0), max_taps=(4, 4)) -> Cv
         (_slab([0.03, 0.011], 1.0295, 1.0305, cost_per_tap=(1.0, 0.1)), [1, 0]),
     ],
 )
-def test_the_lattice_finds_the_exact_optimum_without_the_milp(inputs, taps):
+def test_integer_taps_beyond_one_tap_of_the_relaxation_are_the_exact_optimum_without_the_milp(inputs, taps):
     sol = solve_cvvc(inputs)
+    assert sol.relaxed_form == "hard" and sol.candidates_tried > 0  # the rounding re-solved its candidates first
     assert sol.status == "optimal", sol.reason
     assert sol.milp_solves == 0 and sol.lattice_tried > 0
     ref = solve_milp_reference(inputs)
     assert sol.taps_new.tolist() == taps == ref.taps_new.tolist()
     assert sol.cost == pytest.approx(ref.cost, abs=1e-9)
+    assert sol.max_violation_pu <= V_TOL_PU
+    assert solve_cvvc(inputs).taps_new.tolist() == sol.taps_new.tolist()  # deterministic
 
 
 def test_no_integer_taps_at_all_is_proven_without_the_milp():
