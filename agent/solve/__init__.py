@@ -4,6 +4,7 @@
 - ``relaxation``: OSQP set-up and ADMM in chunks; ``polish``: the exact active-set polish with its KKT check;
 - ``active_set``: the dense dual active-set QP solve (DAQP, in C) the polish, Q re-solves and robust check use;
 - ``rows``: row generation and the presolve's interval arithmetic; ``rounding``: taps to integers, Q re-solved;
+- ``lattice``: the rounding's search of integer taps near "no move", with Lagrangian cuts, before its MILP;
 - ``milp``: the exact MILP reference (tests, benchmarks) and the rounding's MILP fallback (``highspy``);
   ``solution``: the typed results and ``WarmStart``;
 - ``settings``: every fixed limit and OSQP setting.

@@ -125,7 +125,8 @@ def solve_cvvc(inputs: CvvcInputs, *, warm_start: WarmStart | CvvcSolution | Non
         rounded.status, rounded.reason, rounded.d_tap, rounded.q_new_kvar, rounded.tried
     )
     t_rounded = time.perf_counter()
-    seconds = StageSeconds(t_built - t_start, t_relaxed - t_built, t_rounded - t_relaxed, t_rounded - t_start)
+    seconds = StageSeconds(t_built - t_start, t_relaxed - t_built, t_rounded - t_relaxed, t_rounded - t_start,
+                           rounded.milp_s)
     # Commands to 1 var resolution (ADMM leaves 1e-7 kvar dust); moves voltages by < 1e-7 pu.
     q_new = np.clip(np.round(q_new, Q_DECIMALS), inputs.q_min_kvar, inputs.q_max_kvar) + 0.0
     v_pred = inputs.predict_v_pu(d_int, q_new)
@@ -146,4 +147,6 @@ def solve_cvvc(inputs: CvvcInputs, *, warm_start: WarmStart | CvvcSolution | Non
         relaxed_problem=qp,
         candidates_tried=tried,
         seconds=seconds,
+        lattice_tried=rounded.lattice_tried,
+        milp_solves=rounded.milp_solves,
     )

@@ -40,8 +40,10 @@ def _milp(qp: CvvcQp, n_int: int, options: dict[str, float]) -> scipy.optimize.O
     )
 
 
-def milp_tap_changes(inputs: CvvcInputs, soft_nodes: np.ndarray, nodes: np.ndarray | None = None) -> np.ndarray | None:
-    """(R,) integer tap changes meeting the hard limits of the nodes not in ``soft_nodes``, or None if none exists.
+def milp_tap_changes(inputs: CvvcInputs, soft_nodes: np.ndarray, nodes: np.ndarray | None = None,
+                     cutoff_cost: float = np.inf) -> np.ndarray | None:
+    """(R,) integer tap changes meeting the hard limits of the nodes not in ``soft_nodes``, or None if none exists
+    (or none costs less than ``cutoff_cost``).
 
     Eq. (9)-(15)'s linear costs (no proximal or violation terms: the caller re-solves Q with these taps fixed in
     its own form), violation variables at ``soft_nodes``, rows of ``nodes`` only (default: all). Variables
@@ -49,7 +51,8 @@ def milp_tap_changes(inputs: CvvcInputs, soft_nodes: np.ndarray, nodes: np.ndarr
     voltage rows take ``d`` with a step up's coefficients (``build_cvvc_qp`` gives a step down the negated ones).
     Bounded by a node limit, not a time limit, so that the same inputs give the same taps. HiGHS through ``highspy``
     with its primal heuristics and presolve off (``MILP_OPTIONS``): on this small dense problem they were most of
-    its time (its sub-MIPs 0.32 of 0.54 s in one IEEE 8500 problem).
+    its time (its sub-MIPs 0.32 of 0.54 s in one IEEE 8500 problem). ``cutoff_cost`` [cost units, eq. 9] is the
+    cost of integer taps the caller already has (HiGHS's objective bound: it prunes every branch that cannot beat it).
     """
     qp = build_cvvc_qp(inputs, soft=soft_nodes, nodes=nodes)
     lay, r, n = qp.layout, inputs.n_reg, qp.nodes.size
@@ -76,13 +79,15 @@ def milp_tap_changes(inputs: CvvcInputs, soft_nodes: np.ndarray, nodes: np.ndarr
     col_hi = np.concatenate([rest_hi[lay.tap_up], np.full(r, np.inf), rest_hi[rest]])
     row_lo = np.concatenate([qp.lower[:n], np.zeros(2 * r)])
     row_hi = np.concatenate([qp.upper[:n], np.full(2 * r, np.inf)])
-    x = _highs_milp(cost, integer, col_lo, col_hi, rows.tocsc(), row_lo, row_hi)
+    x = _highs_milp(cost, integer, col_lo, col_hi, rows.tocsc(), row_lo, row_hi, cutoff_cost / qp.cost_scale)
     return None if x is None else np.round(x[:r])
 
 
 def _highs_milp(cost: np.ndarray, integer: np.ndarray, col_lo: np.ndarray, col_hi: np.ndarray, a: sp.csc_matrix,
-                row_lo: np.ndarray, row_hi: np.ndarray) -> np.ndarray | None:
-    """A feasible (at the node limit) or optimal point of the MILP by HiGHS through ``highspy``, or None."""
+                row_lo: np.ndarray, row_hi: np.ndarray, cutoff: float = np.inf) -> np.ndarray | None:
+    """A feasible (at the node limit) or optimal point of the MILP by HiGHS through ``highspy``, or None; ``cutoff``
+    (in the units of ``cost``) bounds the objective from above when finite.
+    """
     lp = highspy.HighsLp()
     lp.num_col_, lp.num_row_ = cost.size, a.shape[0]
     lp.col_cost_, lp.col_lower_, lp.col_upper_ = cost, col_lo, col_hi
@@ -94,8 +99,14 @@ def _highs_milp(cost: np.ndarray, integer: np.ndarray, col_lo: np.ndarray, col_h
     h = highspy.Highs()
     for name, value in MILP_OPTIONS.items():
         h.setOptionValue(name, value)
+    if np.isfinite(cutoff):
+        h.setOptionValue("objective_bound", float(cutoff))
     h.passModel(lp)
-    h.run()
+    if h.run() == highspy.HighsStatus.kError:
+        # HiGHS's one scheduler per process was started with another thread count (an earlier Highs object of this
+        # process): it refuses to run. Restart the scheduler with ours.
+        highspy.Highs.resetGlobalScheduler(True)
+        h.run()
     if (h.getModelStatus() == highspy.HighsModelStatus.kInfeasible
             or h.getInfo().primal_solution_status != highspy.SolutionStatus.kSolutionStatusFeasible):
         return None

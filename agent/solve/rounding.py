@@ -3,19 +3,29 @@
 Every floor/ceil combination of the (at most ``MAX_ENUMERATED_FRACTIONAL``) most fractional relaxed tap changes
 is a candidate, the other taps rounded to nearest; Q is re-solved with each candidate's taps fixed (same form),
 best-first by a dual lower bound, by the exact dual active-set method (OSQP if it fails); the cheapest candidate
-meeting the hard limits wins. If none does, a MILP looks for integer taps further away that meet them
-(``agent.solve.milp``); if there are none, the nearest rounding is re-solved in the soft form.
+meeting the hard limits wins. If none does, integer taps further away: first those near "no move", with Lagrangian
+cuts and a proof of optimality (``agent.solve.lattice``), then, without that proof, a MILP cut off at the best of
+them (``agent.solve.milp``); if there are none, the nearest rounding is re-solved in the soft form.
 """
 
 from __future__ import annotations
 
 import itertools
+import time
 from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
 
 from agent.cvvc_qp import PROX_WEIGHT, CvvcInputs, CvvcQp, build_cvvc_qp
+from agent.solve.lattice import (
+    LagrangianCut,
+    cut_at,
+    phase_one_multipliers,
+    region_bound,
+    tap_bounds,
+    tap_lattice,
+)
 from agent.solve.milp import milp_tap_changes
 from agent.solve.polish import active_set_polish
 from agent.solve.relaxation import osqp_run, setup_osqp, solve_qp
@@ -23,6 +33,8 @@ from agent.solve.rows import outside_violations, remap, row_ranges, solve_rows
 from agent.solve.settings import (
     FRACTIONAL_TOL_STEPS,
     INTEGRAL_TOL_STEPS,
+    LATTICE_MAX_POINTS,
+    LATTICE_MAX_SOLVES,
     MAX_ENUMERATED_FRACTIONAL,
     MAX_ITER,
     MAX_ITER_RESOLVE,
@@ -46,6 +58,10 @@ class Rounded:
     q_new_kvar : (K,) Q set points before the final rounding to ``Q_DECIMALS`` [kvar].
     iterations : OSQP iterations of the re-solves.
     tried : rounding candidates re-solved.
+    lattice_tried : integer points near no move re-solved when no rounding met the hard limits
+        (``agent.solve.lattice``).
+    milp_solves : MILP solves (0 or 1): only when the lattice search cannot prove its best optimal.
+    milp_s : wall time of the MILP and its Q re-solve [s] (diagnostics, not deterministic).
     """
 
     status: Literal["optimal", "soft"]
@@ -54,6 +70,9 @@ class Rounded:
     q_new_kvar: np.ndarray
     iterations: int
     tried: int
+    lattice_tried: int = 0
+    milp_solves: int = 0
+    milp_s: float = 0.0
 
 
 def round_taps(inputs: CvvcInputs, qp: CvvcQp, run: Run, reason: str) -> Rounded:
@@ -61,7 +80,6 @@ def round_taps(inputs: CvvcInputs, qp: CvvcQp, run: Run, reason: str) -> Rounded
     d_rel = qp.d_tap(run.x)
     q_rel = qp.q_kvar(run.x)
     form: Literal["hard", "soft"] = "soft" if qp.soft else "hard"
-    iterations = 0
 
     # Rounding, then Q re-solved with the taps fixed, in the relaxation's form: a small best-first branch
     # and bound over the candidates. Each candidate's score (eq. 9 cost plus the proximal terms, which the
@@ -72,68 +90,16 @@ def round_taps(inputs: CvvcInputs, qp: CvvcQp, run: Run, reason: str) -> Rounded
     candidates = rounding_candidates(d_rel)
     bound = qp.objective(run.x)
     hard_nodes = ~qp.soft_nodes
+    resolver = _Resolver(inputs, qp, run)
     if np.max(np.abs(candidates[0] - d_rel), initial=0.0) <= INTEGRAL_TOL_STEPS:
         # The relaxed taps are integral (the usual case: no tap move): the relaxation is the answer.
-        plan = [(bound, 0, candidates[0], 0.0)]
+        q_new = np.clip(q_rel, inputs.q_min_kvar, inputs.q_max_kvar)
+        v_new = inputs.predict_v_pu(candidates[0], q_new)
+        if np.max(violation_pu(inputs, v_new)[hard_nodes], initial=0.0) <= V_TOL_PU:
+            resolver.best = (bound, candidates[0], q_new)
     else:
-        fixed = build_cvvc_qp(inputs, soft=qp.soft_nodes, fixed_d_tap=candidates[0], nodes=qp.nodes)
-        x_q0, y_q0 = remap(qp, run.x, run.y, fixed)
-        plan = []
-        for index, d_int in enumerate(candidates):
-            tap_prox = 0.5 * PROX_WEIGHT * fixed.cost_scale * float(d_int @ d_int)
-            tap_cost = float(inputs.cost_per_tap @ np.abs(d_int)) + tap_prox
-            lo, hi = fixed.bounds_with_d_tap(d_int)
-            lower_bound = tap_cost + dual_bound(fixed, lo, hi, y_q0)
-            plan.append((lower_bound, index, d_int, tap_cost))
-        plan.sort(key=lambda item: (item[0], item[1]))
-        ranges = row_ranges(fixed)
-    best = None  # (score, d_int, q_new_kvar)
-    solver = None
-    tried = 0
-    for lower_bound, _, d_int, tap_cost in plan:
-        if best is not None and (best[0] <= lower_bound or best[0] <= bound + ROUNDING_GAP_REL * abs(bound)):
-            break  # no remaining candidate can beat the best by more than the tolerance
-        if np.max(np.abs(d_int - d_rel), initial=0.0) <= INTEGRAL_TOL_STEPS:
-            q_new = np.clip(q_rel, inputs.q_min_kvar, inputs.q_max_kvar)  # relaxed optimum is integral
-            score = qp.objective(run.x)
-        else:
-            lo, hi = fixed.bounds_with_d_tap(d_int)
-            rows = fixed.voltage_rows
-            out_of_reach = (ranges[1] < lo[rows] - 1e-9) | (ranges[0] > hi[rows] + 1e-9)
-            if np.any(out_of_reach & ~fixed.soft_rows):
-                continue  # some hard node cannot meet its limits with these taps, whatever Q does
-            res = active_set_polish(fixed, lo, hi, None, None, "active set")  # measured: the box start is better here
-            if res is None:
-                if solver is None:
-                    solver = setup_osqp(fixed)
-                    if solver is None:
-                        break
-                solver.update(l=lo, u=hi)
-                res = osqp_run(solver, fixed, lo, hi, x_q0, y_q0, MAX_ITER if best is None else MAX_ITER_RESOLVE)
-            iterations += res.iterations
-            tried += 1
-            if not res.ok:
-                continue
-            outside = outside_violations(inputs, fixed, d_int, fixed.q_kvar(res.x))
-            if outside.size:
-                # Nodes without a row are violated: add their rows and re-solve this candidate; the larger
-                # problem serves the following candidates too.
-                res, bigger = solve_rows(
-                    inputs, qp.soft_nodes, d_int, np.union1d(fixed.nodes, outside), (fixed, res.x, res.y)
-                )
-                iterations += res.iterations
-                fixed, solver = bigger, None
-                ranges = row_ranges(fixed)
-                x_q0, y_q0 = remap(qp, run.x, run.y, fixed)
-                if not res.ok:
-                    continue
-            q_new = np.clip(fixed.q_kvar(res.x), inputs.q_min_kvar, inputs.q_max_kvar)
-            score = fixed.objective(res.x) + tap_cost
-        v_new = inputs.predict_v_pu(d_int, q_new)
-        if np.max(violation_pu(inputs, v_new)[hard_nodes], initial=0.0) > V_TOL_PU:
-            continue
-        if best is None or score < best[0]:
-            best = (score, d_int, q_new)
+        resolver.search(candidates, stop_at=bound + ROUNDING_GAP_REL * abs(bound))
+    best = resolver.best
 
     status: Literal["optimal", "soft"] = "optimal" if form == "hard" else "soft"
     if best is None and hard_nodes.any():
@@ -145,12 +111,22 @@ def round_taps(inputs: CvvcInputs, qp: CvvcQp, run: Run, reason: str) -> Rounded
             if np.max(violation[hard_nodes], initial=0.0) <= V_TOL_PU:
                 best = (0.0, d_int, q_keep)
                 break
+    milp_solves, milp_s = 0, 0.0
     if best is None and hard_nodes.any():
         # No integer point within one tap of the relaxation meets the hard limits; one further away may (the
         # feasible set of a regulated feeder's taps is a thin slab: IEEE 8500 went soft here in 160 of 864
-        # winter decisions): integer taps from the MILP, then Q re-solved with them fixed, in the same form.
-        best, n = _milp_fallback(inputs, qp, hard_nodes)
-        tried += n
+        # winter decisions). First the integer points nearest "no move", cheapest first, with a proof of
+        # optimality from their tap cost alone; only without that proof the MILP, and the better of the two.
+        best, certified = resolver.lattice_search()
+        if not certified:
+            t_milp = time.perf_counter()
+            found, n = _milp_fallback(inputs, qp, hard_nodes, np.inf if best is None else best[0])
+            milp_s = time.perf_counter() - t_milp
+            resolver.tried += n
+            milp_solves = 1
+            if found is not None and (best is None or found[0] < best[0]):
+                best = found
+    iterations, tried = resolver.iterations, resolver.tried
     if best is None and hard_nodes.any():
         # No integer taps meet the hard limits: soft Q re-solve at the nearest rounding.
         reason = "no rounding of the relaxed taps meets the hard limits: Q re-solved in soft form (eq. 17)"
@@ -169,14 +145,193 @@ def round_taps(inputs: CvvcInputs, qp: CvvcQp, run: Run, reason: str) -> Rounded
         status = "soft"
         best = (0.0, candidates[0], np.clip(q_rel, inputs.q_min_kvar, inputs.q_max_kvar))
     _, d_int, q_new = best
-    return Rounded(status=status, reason=reason, d_tap=d_int, q_new_kvar=q_new, iterations=iterations, tried=tried)
+    return Rounded(status=status, reason=reason, d_tap=d_int, q_new_kvar=q_new, iterations=iterations, tried=tried,
+                   lattice_tried=resolver.lattice_tried, milp_solves=milp_solves, milp_s=milp_s)
+
+
+class _Resolver:
+    """The Q re-solve of integer tap candidates with the taps fixed, in the relaxation's form, and the best so far.
+
+    Holds one tap-fixed problem (its rows grow when a candidate violates a node without a row), the OSQP solver
+    set up on it if the active-set method ever fails, and the warm start remapped from the relaxation.
+    ``best`` is ``(score, d_int, q_new_kvar)``: the score is eq. (9)'s cost plus the proximal terms [cost units].
+    """
+
+    def __init__(self, inputs: CvvcInputs, qp: CvvcQp, run: Run) -> None:
+        self.inputs, self.qp, self.run = inputs, qp, run
+        self.hard_nodes = ~qp.soft_nodes
+        self.fixed: CvvcQp | None = None
+        self.solver = None
+        self.best: tuple[float, np.ndarray, np.ndarray] | None = None
+        self.iterations = self.tried = self.lattice_tried = self.failed = 0
+        self.seen: set[bytes] = set()  # candidates already re-solved (float64 bytes)
+
+    def _fixed(self, d_first: np.ndarray | None = None) -> CvvcQp:
+        """The tap-fixed problem, built at ``d_first`` (default no move) on first use; any taps re-fix its bounds."""
+        if self.fixed is None:
+            d = np.zeros(self.inputs.n_reg) if d_first is None else d_first
+            self.fixed = build_cvvc_qp(self.inputs, soft=self.qp.soft_nodes, fixed_d_tap=d, nodes=self.qp.nodes)
+            self.ranges = row_ranges(self.fixed)
+            self.x_q0, self.y_q0 = remap(self.qp, self.run.x, self.run.y, self.fixed)
+        return self.fixed
+
+    def tap_cost(self, d_int: np.ndarray) -> float:
+        """Eq. (14)'s cost of ``d_int`` plus its proximal term [cost units]: the part of the score Q leaves alone."""
+        tap_prox = 0.5 * PROX_WEIGHT * self._fixed().cost_scale * float(d_int @ d_int)
+        return float(self.inputs.cost_per_tap @ np.abs(d_int)) + tap_prox
+
+    def search(self, candidates: list[np.ndarray], stop_at: float = -np.inf) -> None:
+        """Re-solve ``candidates`` best-first by their dual lower bound, keeping the best that meets the hard limits.
+
+        Stops once the best score is at most the next candidate's bound or ``stop_at``.
+        """
+        if not candidates:
+            return
+        fixed = self._fixed(candidates[0])
+        plan = []
+        for index, d_int in enumerate(candidates):
+            tap_cost = self.tap_cost(d_int)
+            lo, hi = fixed.bounds_with_d_tap(d_int)
+            plan.append((tap_cost + dual_bound(fixed, lo, hi, self.y_q0), index, d_int, tap_cost))
+        plan.sort(key=lambda item: (item[0], item[1]))
+        for lower_bound, _, d_int, tap_cost in plan:
+            if self.best is not None and (self.best[0] <= lower_bound or self.best[0] <= stop_at):
+                break  # no remaining candidate can beat the best by more than the tolerance
+            if not self._try(d_int, tap_cost):
+                break
+
+    def _try(self, d_int: np.ndarray, tap_cost: float) -> bool:
+        """Re-solve one candidate and keep it if it is the best feasible one; False when no solver can be set up."""
+        return self.evaluate(d_int, tap_cost)[0] != "no solver"
+
+    def evaluate(self, d_int: np.ndarray, tap_cost: float) -> tuple[str, CvvcQp | None, np.ndarray | None]:
+        """``(outcome, problem, y)``: re-solve one candidate, keep it if it is the best feasible one.
+
+        ``outcome``: ``feasible`` (``y`` the multipliers of ``problem``, the tap-fixed problem it was solved on;
+        ``None`` for the relaxation's own taps), ``infeasible`` (no Q meets the hard limits with these taps),
+        ``seen`` (re-solved before), ``failed`` (not solved within the budget) or ``no solver``.
+        """
+        inputs = self.inputs
+        key = np.asarray(d_int, float).tobytes()
+        if key in self.seen:
+            return "seen", None, None
+        self.seen.add(key)
+        d_rel = self.qp.d_tap(self.run.x)
+        fixed: CvvcQp | None = None
+        y = None
+        if np.max(np.abs(d_int - d_rel), initial=0.0) <= INTEGRAL_TOL_STEPS:
+            q_new = np.clip(self.qp.q_kvar(self.run.x), inputs.q_min_kvar, inputs.q_max_kvar)
+            score = self.qp.objective(self.run.x)  # relaxed optimum is integral
+        else:
+            fixed = self._fixed()
+            lo, hi = fixed.bounds_with_d_tap(d_int)
+            rows = fixed.voltage_rows
+            out_of_reach = (self.ranges[1] < lo[rows] - 1e-9) | (self.ranges[0] > hi[rows] + 1e-9)
+            if np.any(out_of_reach & ~fixed.soft_rows):
+                return "infeasible", fixed, None  # some hard node cannot meet its limits, whatever Q does
+            res = active_set_polish(fixed, lo, hi, None, None, "active set")  # measured: the box start is better here
+            if res is None:
+                if self.solver is None:
+                    self.solver = setup_osqp(fixed)
+                    if self.solver is None:
+                        self.failed += 1
+                        return "no solver", None, None
+                self.solver.update(l=lo, u=hi)
+                res = osqp_run(self.solver, fixed, lo, hi, self.x_q0, self.y_q0,
+                               MAX_ITER if self.best is None else MAX_ITER_RESOLVE)
+            self.iterations += res.iterations
+            self.tried += 1
+            if not res.ok:
+                self.failed += not res.infeasible
+                return ("infeasible" if res.infeasible else "failed"), fixed, None
+            outside = outside_violations(inputs, fixed, d_int, fixed.q_kvar(res.x))
+            if outside.size:
+                # Nodes without a row are violated: add their rows and re-solve this candidate; the larger
+                # problem serves the following candidates too.
+                res, bigger = solve_rows(
+                    inputs, self.qp.soft_nodes, d_int, np.union1d(fixed.nodes, outside), (fixed, res.x, res.y)
+                )
+                self.iterations += res.iterations
+                self.fixed, self.solver = bigger, None
+                self.ranges = row_ranges(bigger)
+                self.x_q0, self.y_q0 = remap(self.qp, self.run.x, self.run.y, bigger)
+                fixed = bigger
+                if not res.ok:
+                    self.failed += not res.infeasible
+                    return ("infeasible" if res.infeasible else "failed"), fixed, None
+            q_new = np.clip(fixed.q_kvar(res.x), inputs.q_min_kvar, inputs.q_max_kvar)
+            score = fixed.objective(res.x) + tap_cost
+            y = res.y
+        v_new = inputs.predict_v_pu(d_int, q_new)
+        if np.max(violation_pu(inputs, v_new)[self.hard_nodes], initial=0.0) > V_TOL_PU:
+            return "infeasible", fixed, None
+        if self.best is None or score < self.best[0]:
+            self.best = (score, d_int, q_new)
+        return "feasible", fixed, y
+
+    def lattice_search(self) -> tuple[tuple[float, np.ndarray, np.ndarray] | None, bool]:
+        """``(best, certified)``: the best integer taps within ``k`` steps in all of no move, and whether no
+        integer taps at all can score lower (``agent.solve.lattice``).
+
+        The points (``tap_lattice``, ``k`` as large as ``LATTICE_MAX_POINTS`` allows) are re-solved cheapest
+        bound first (at most ``LATTICE_MAX_SOLVES``, else uncertified), each bound the tap cost plus the best
+        Lagrangian cut so far (and at least 0 for Q); every re-solve adds a cut. Certified when the best is at most
+        every remaining point's bound and the bound of every point further away (``region_bound``), or when the
+        points are all the integer taps there are.
+        """
+        inputs = self.inputs
+        fixed = self._fixed()
+        if fixed.a_dense is None:
+            return self.best, False
+        lo_steps, hi_steps = tap_bounds(inputs)
+        points, k, complete = tap_lattice(lo_steps, hi_steps, LATTICE_MAX_POINTS)
+        prox = 0.5 * PROX_WEIGHT * fixed.cost_scale
+        tap = np.abs(points) @ inputs.cost_per_tap + prox * np.sum(points * points, axis=1)
+        q_part = np.zeros(points.shape[0])  # best lower bound on the Q part of each point's score so far
+        unsolved = np.ones(points.shape[0], bool)
+        floor = region_bound(None, inputs.cost_per_tap, lo_steps, hi_steps, k + 1)
+
+        def add(cut: LagrangianCut | None) -> None:
+            nonlocal floor
+            if cut is not None:
+                np.maximum(q_part, cut.const + points @ cut.slope, out=q_part)
+                floor = max(floor, region_bound(cut, inputs.cost_per_tap, lo_steps, hi_steps, k + 1))
+
+        if self.y_q0 is not None:
+            add(cut_at(fixed, self.y_q0, np.zeros(inputs.n_reg) if fixed.fixed_d_tap is None else fixed.fixed_d_tap,
+                       scale_to_best=False))
+        while unsolved.any():
+            if self.lattice_tried >= LATTICE_MAX_SOLVES:
+                return self.best, False  # left to the MILP
+            bound = np.where(unsolved, tap + q_part, np.inf)
+            i = int(np.argmin(bound))
+            if self.best is not None and self.best[0] <= bound[i]:
+                break
+            unsolved[i] = False
+            d_int = points[i]
+            outcome, problem, y = self.evaluate(d_int, float(tap[i]))
+            self.lattice_tried += outcome != "seen"
+            if outcome in ("failed", "no solver"):
+                return self.best, False  # a point may have been missed
+            if problem is None:
+                continue
+            if outcome == "feasible" and y is not None:
+                add(cut_at(problem, y, d_int, scale_to_best=False))
+            elif outcome == "infeasible":
+                y1 = phase_one_multipliers(problem, d_int)
+                if y1 is not None:
+                    add(cut_at(problem, y1, d_int, scale_to_best=True))
+        return self.best, complete or (self.best is not None and self.best[0] <= floor)
 
 
 def _milp_fallback(
-    inputs: CvvcInputs, qp: CvvcQp, hard_nodes: np.ndarray
+    inputs: CvvcInputs, qp: CvvcQp, hard_nodes: np.ndarray, cutoff_cost: float
 ) -> tuple[tuple[float, np.ndarray, np.ndarray] | None, int]:
-    """``(best, tried)``: the MILP's integer taps with Q re-solved (``best`` None when they fail the hard limits)."""
-    d_int = milp_tap_changes(inputs, qp.soft_nodes, qp.nodes)
+    """``(best, tried)``: the MILP's integer taps with Q re-solved (``best`` None when they fail the hard limits or
+    no integer taps cost less than ``cutoff_cost`` [cost units]: the score of taps the caller has, an upper bound on
+    their eq. (9) cost).
+    """
+    d_int = milp_tap_changes(inputs, qp.soft_nodes, qp.nodes, cutoff_cost * (1.0 + 1e-9))
     if d_int is None:
         return None, 0
     fixed = build_cvvc_qp(inputs, soft=qp.soft_nodes, fixed_d_tap=d_int, nodes=qp.nodes)
@@ -186,7 +341,8 @@ def _milp_fallback(
     q_new = np.clip(fixed.q_kvar(res.x), inputs.q_min_kvar, inputs.q_max_kvar)
     if np.max(violation_pu(inputs, inputs.predict_v_pu(d_int, q_new))[hard_nodes], initial=0.0) > V_TOL_PU:
         return None, 1
-    return (0.0, d_int, q_new), 1
+    tap_prox = 0.5 * PROX_WEIGHT * fixed.cost_scale * float(d_int @ d_int)
+    return (fixed.objective(res.x) + float(inputs.cost_per_tap @ np.abs(d_int)) + tap_prox, d_int, q_new), 1
 
 
 def rounding_candidates(d_rel: np.ndarray) -> list[np.ndarray]:

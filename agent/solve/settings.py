@@ -59,10 +59,13 @@ INTEGRAL_TOL_STEPS = 1e-6
 #: HiGHS options of the MILP that looks for integer taps beyond one tap of the relaxation when no rounding meets the
 #: hard limits (``agent.solve.milp.milp_tap_changes``): a node limit (never a time limit: same inputs, same taps), a
 #: 0.1 % gap, and no presolve or primal heuristics (sub-MIPs, feasibility jump, RINS/RENS: most of HiGHS's time on
-#: these small dense problems; docs/optimizer.md).
+#: these small dense problems; docs/optimizer.md). One thread: HiGHS's thread pool cost 20 % more CPU on the 56
+#: fallback problems of an IEEE 8500 day, and on a loaded machine its workers waited for cores (one root node took
+#: 6.4 s of wall time for 0.87 s of CPU).
 MILP_OPTIONS: Mapping[str, bool | float | str] = MappingProxyType(
     {
         "output_flag": False,
+        "threads": 1,
         "mip_rel_gap": 1e-3,
         "mip_max_nodes": 500,
         "presolve": "off",
@@ -75,6 +78,12 @@ MILP_OPTIONS: Mapping[str, bool | float | str] = MappingProxyType(
         "mip_heuristic_run_shifting": False,
     }
 )
+#: When no rounding meets the hard limits: the integer tap changes within k steps in all of no move are searched
+#: before the MILP (``agent.solve.lattice``), k the largest with at most this many points (12 regulators: k = 3,
+#: 2,625 points).
+LATTICE_MAX_POINTS = 3000
+#: At most this many of them are re-solved; a search that has not proven its best optimal by then goes to the MILP.
+LATTICE_MAX_SOLVES = 40
 #: Stop trying rounding candidates once one scores within this fraction of the relaxed objective.
 ROUNDING_GAP_REL = 0.01
 #: Row generation for large problems (every node of a big feeder): problems up to ROWGEN_MIN_NODES critical

@@ -28,6 +28,7 @@ class StageSeconds:
     relaxed_s: float = 0.0
     rounding_s: float = 0.0
     total_s: float = 0.0
+    milp_s: float = 0.0  # the part of rounding_s spent in the MILP fallback
 
 
 @dataclass(frozen=True)
@@ -82,6 +83,8 @@ class CvvcSolution:
     relaxed_problem : the relaxation as finally solved (its rows: see ``CvvcQp.nodes``), None on early hold.
     candidates_tried : rounding candidates re-solved.
     seconds : stage timings (not deterministic).
+    lattice_tried : integer taps near no move re-solved when no rounding met the hard limits.
+    milp_solves : MILP solves of the rounding's last fallback (0 or 1).
     """
 
     status: Status
@@ -100,6 +103,8 @@ class CvvcSolution:
     relaxed_problem: CvvcQp | None
     candidates_tried: int
     seconds: StageSeconds
+    lattice_tried: int = 0
+    milp_solves: int = 0
 
     @property
     def warm_start(self) -> WarmStart | None:

@@ -2,6 +2,7 @@
 
 import itertools
 
+import highspy
 import numpy as np
 import pytest
 import qpsolvers
@@ -264,35 +265,6 @@ def test_row_generation_on_many_nodes_meets_every_limit():
     assert optimal >= 2
 
 
-def test_integer_taps_beyond_one_tap_of_the_relaxation_keep_the_hard_limits():
-    """A thin slab: the node must rise 0.019-0.022 pu, regulator 1 gives +0.03 and regulator 2 -0.02 per step, Q
-    cannot help. The relaxation moves regulator 1 by 19/30 of a step; neither rounding (0 or 1) meets the limits,
-    but regulator 2 one step down does (and 2 up with 2 down, at twice the cost): found by the MILP fallback."""
-    inputs = CvvcInputs(
-        v0_pu=np.array([1.0]),
-        dv_dq_pu_per_kvar=np.array([[0.0]]),
-        dv_dtap_pu=np.array([[0.03, -0.02]]),
-        q0_kvar=np.array([0.0]),
-        q_min_kvar=np.array([0.0]),
-        q_max_kvar=np.array([0.0]),
-        q_rating_kvar=np.array([1000.0]),
-        taps=np.array([0, 0]),
-        tap_min=np.array([-16, -16]),
-        tap_max=np.array([16, 16]),
-        max_taps_per_interval=np.array([4, 4]),
-        cost_per_tap=np.array([1.0, 1.0]),
-        cost_per_kvar=np.array([1e-4]),
-        v_min_pu=1.019,
-        v_max_pu=1.022,
-    )
-    sol = solve_cvvc(inputs)
-    assert sol.relaxed_form == "hard" and abs(sol.relaxed_d_tap[0] - 19 / 30) < 1e-3
-    assert sol.status == "optimal", sol.reason
-    assert sol.taps_new.tolist() == [0, -1] == solve_milp_reference(inputs).taps_new.tolist()
-    assert sol.max_violation_pu <= V_TOL_PU
-    assert solve_cvvc(inputs).taps_new.tolist() == sol.taps_new.tolist()  # deterministic
-
-
 def test_the_fallbacks_net_tap_milp_finds_the_exact_milps_optimum():
     """``milp_tap_changes`` (one integer net change per regulator) against ``solve_milp_reference`` (tap steps up
     and down, each integer): same feasibility, and its taps with the best Q for them cost the exact optimum."""
@@ -438,3 +410,16 @@ def test_robust_check_agrees_with_the_lp_it_replaces():
         assert verdict == _robust_lp_verdict(inputs, hard)
         verdicts.append(verdict)
     assert True in verdicts and False in verdicts
+
+
+def test_the_fallback_milp_runs_after_highs_started_with_another_thread_count():
+    """HiGHS keeps one thread scheduler per process and refuses to run a model asking for another thread count: the
+    fallback MILP (one thread) must still answer after a Highs object with two threads ran in the process."""
+    other = highspy.Highs()
+    other.setOptionValue("output_flag", False)
+    other.setOptionValue("threads", 2)
+    other.addVar(0.0, 1.0)
+    other.run()
+    inputs = random_cvvc_inputs(np.random.default_rng(5))
+    assert solve_milp_reference(inputs).status == "optimal"
+    assert milp_tap_changes(inputs, np.zeros(inputs.n_nodes, bool)) is not None
