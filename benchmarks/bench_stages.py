@@ -74,9 +74,9 @@ def bench_stages(recording: str | Path) -> StagesBench:
         per_decision[-1]["total_s"] = time.perf_counter() - t0
         return out
 
-    def held(self, moving, held_problem):  # noqa: ANN001, ANN202
+    def held(self, moving, held_problem, n_nodes):  # noqa: ANN001, ANN202
         per_decision[-1]["role"] = "deadband"
-        return deadband(self, moving, held_problem)
+        return deadband(self, moving, held_problem, n_nodes)
 
     def keeping(inputs, *, warm_start=None):  # noqa: ANN001, ANN202
         now = per_decision[-1]

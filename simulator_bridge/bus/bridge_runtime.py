@@ -18,6 +18,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Literal
 
+import msgspec
 import numpy as np
 import zenoh
 
@@ -159,7 +160,8 @@ class BridgeRuntime:
         external_vr = frozenset(dnp3.regulator_ids) if dnp3 is not None else frozenset()
         external_cap = frozenset(dnp3.capacitor_ids) if dnp3 is not None else frozenset()
         behind: dict[tuple[str, str], Protocol] = {("pv", p): "sunspec" for p in external}
-        behind |= {("vr", r): "dnp3" for r in external_vr} | {("cap", k): "dnp3" for k in external_cap}
+        dnp3_behind: dict[tuple[str, str], Protocol] = {("vr", r): "dnp3" for r in external_vr}
+        behind |= dnp3_behind | {("cap", k): "dnp3" for k in external_cap}
         self.frames = AdapterFrames(behind) if behind else None  # the adapters' frames each step waits for
         # secure: only the command role's certificate can put commands, so replay protection is keyed on it
         self.bank = DeviceBank(session, self.fid, engine, qsts, local=local,
@@ -233,8 +235,9 @@ class BridgeRuntime:
         self.inbox.subscribe(s, keys.agent_decision(f), m.Decision)
         self.agents = LivelinessWatcher(s, f"{keys.ROOT}/{f}/alive/agent/*", self._on_agent)
         self.adapter_tokens: list[LivelinessWatcher] = []
-        frames = {"pv": (keys.meas_pv(f), m.PvFrame), "vr": (keys.meas_vr(f), m.RegFrame),
-                  "cap": (keys.meas_cap(f), m.CapFrame)}
+        frames: dict[str, tuple[str, type[msgspec.Struct]]] = {
+            "pv": (keys.meas_pv(f), m.PvFrame), "vr": (keys.meas_vr(f), m.RegFrame),
+            "cap": (keys.meas_cap(f), m.CapFrame)}
         for kind, (key, frame_type) in frames.items():  # the adapters' frames (the step's wait), acks (lockstep)
             if self.frames is not None and any(self.frames.devices(kind)):
                 self.inbox.subscribe(s, key, frame_type)

@@ -30,6 +30,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from schemas import messages as m
 from simulator_bridge.errors import BridgeError
 from simulator_bridge.field import devices as dv
 from simulator_bridge.field.dnp3_sim import (
@@ -47,7 +48,7 @@ __all__ = ["Dnp3Fleet", "regulator_phases"]
 _V120_MAX = 200.0  # the frames' (and the adapter's) ceiling of a voltage on the 120 V base [V]
 
 
-def regulator_phases(engine: FeederEngine) -> tuple[str, ...]:
+def regulator_phases(engine: FeederEngine) -> tuple[m.Phase, ...]:
     """Each map regulator's phase letter (``a``, ``b``, ``c``), from its secondary node (``bus.1`` is phase a)."""
     return tuple(dv.PHASE_NAMES[int(engine.node_names[n].split(".")[1]) - 1] for n in engine.reg_secondary_node)
 
@@ -142,8 +143,8 @@ class Dnp3Fleet:
             if now != self._reg_in_force[did]:
                 self._reg_in_force[did] = reg_changes[r] = now
         cap_changes: dict[int, int | None] = {}
-        for did, (c, sim) in self.caps.items():
-            closed = sim.commanded_closed()
+        for did, (c, bank) in self.caps.items():
+            closed = bank.commanded_closed()
             steps = None if closed is None else int(closed)
             if steps != self._cap_in_force[did]:
                 self._cap_in_force[did] = cap_changes[c] = steps
@@ -162,7 +163,7 @@ class Dnp3Fleet:
         for r, sim in self.regs.values():
             sim.set_measurements(v_compared_120=min(float(v_compared_120[r]), _V120_MAX),
                                  v_120=min(float(v_120[r]), _V120_MAX), tap=int(taps[r]), load_current_a=0.0)
-        for c, sim in self.caps.values():
+        for c, bank in self.caps.values():
             value = float(cap_control_value[c])
-            sim.set_measurements(closed=int(cap_states[c]) > 0, v_v=float(cap_v_v[c]),
+            bank.set_measurements(closed=int(cap_states[c]) > 0, v_v=float(cap_v_v[c]),
                                  control_value=None if np.isnan(value) else value)
