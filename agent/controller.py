@@ -514,11 +514,6 @@ class CvvcController:
             v_min_pu, v_max_pu = v_min_pu + scale * bounds[0], v_max_pu - scale * bounds[1]
         # Capacitor banks are integer devices after the regulators: closed steps 0..steps, cost per switching.
         movable = self._cap_movable(snap, state)
-        taps_now = np.asarray(state.taps, int)
-        if locks == "reversals":
-            no_down, no_up = self.reversal_locks(int(snap.t_ns))
-        else:
-            no_down = no_up = np.full(taps_now.size, locks == "all")
         n = state.v0_pu.shape[0]
         dv_dcap = self._arrays.dv_dcap_pu if state.critical else np.zeros((n, len(self._cap_ids)))
         v0, dv_dq = state.v0_pu, state.dv_dq_pu_per_kvar
@@ -531,7 +526,7 @@ class CvvcController:
             dv_dtap = np.vstack([dv_dtap, rows.du_dtap])
             v_min_pu = np.concatenate([np.broadcast_to(np.asarray(v_min_pu, float), (n,)), rows.lo])
             v_max_pu = np.concatenate([np.broadcast_to(np.asarray(v_max_pu, float), (n,)), rows.hi])
-        return CvvcInputs(
+        inputs = CvvcInputs(
             v0_pu=v0,
             dv_dq_pu_per_kvar=dv_dq,
             dv_dtap_pu=dv_dtap,
@@ -540,10 +535,8 @@ class CvvcController:
             q_max_kvar=np.where(pv_ok, np.minimum(headroom, np.maximum(q_hi, -headroom)), pv_q),
             q_rating_kvar=np.maximum(self._pv_rating_kva, 1.0),
             taps=np.concatenate([state.taps, self._cap_last]).astype(int),
-            tap_min=np.concatenate([np.where(no_down, np.maximum(self._tap_min, taps_now), self._tap_min),
-                                    np.zeros(len(self._cap_ids), int)]),
-            tap_max=np.concatenate([np.where(no_up, np.minimum(self._tap_max, taps_now), self._tap_max),
-                                    self._cap_steps_max]),
+            tap_min=np.concatenate([self._tap_min, np.zeros(len(self._cap_ids), int)]),
+            tap_max=np.concatenate([self._tap_max, self._cap_steps_max]),
             max_taps_per_interval=np.concatenate([np.where(reg_ok, self._max_taps, 0),
                                                   np.where(movable, self._cap_max_sw, 0)]),
             cost_per_tap=np.concatenate([self._tap_cost, self._cap_cost]),
@@ -552,6 +545,22 @@ class CvvcController:
             v_max_pu=v_max_pu,
             dv_dq_rel_error=self.sensitivity_error if state.critical else 0.0,
         )
+        return inputs if locks == "none" else self.relocked(inputs, locks, int(snap.t_ns))
+
+    def relocked(self, inputs: CvvcInputs, locks: Literal["reversals", "none", "all"], t_ns: int) -> CvvcInputs:
+        """``inputs`` (a :meth:`problem` of step ``t_ns``) with the regulators' tap ranges that ``locks`` leave
+        (see :meth:`problem`); the banks' and everything else as they are, so a re-solve builds nothing again.
+        """
+        n_reg = len(self._reg_ids)
+        taps_now = np.asarray(inputs.taps[:n_reg], int)
+        if locks == "reversals":
+            no_down, no_up = self.reversal_locks(t_ns)
+        else:
+            no_down = no_up = np.full(n_reg, locks == "all")
+        tap_min, tap_max = np.array(inputs.tap_min), np.array(inputs.tap_max)
+        tap_min[:n_reg] = np.where(no_down, np.maximum(self._tap_min, taps_now), self._tap_min)
+        tap_max[:n_reg] = np.where(no_up, np.minimum(self._tap_max, taps_now), self._tap_max)
+        return dataclasses.replace(inputs, tap_min=tap_min, tap_max=tap_max)
 
     def pv_margins_pu(self, dv_dp_pu_per_kw: np.ndarray, pv_p_kw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(rise, fall)`` PV variability margins [pu] of nodes with these sensitivities (N, K) [pu/kW].
@@ -648,11 +657,10 @@ class CvvcController:
             # the limits are not met with the locks: the soft form trades every lever, the reverse moves included
             # (keeping the locks there distorted every decision of a feeder always in the soft form: epri-ckt24
             # winter day, NVV 54,765 against 413)
-            unlocked = self.problem(snap, state, out_of_envelope=bool(outside), plants=plants, locks="none")
-            solution = solve_cvvc(unlocked, warm_start=self._warm if oracle is None else None)
+            solution = solve_cvvc(self.relocked(inputs, "none", int(snap.t_ns)),
+                                  warm_start=self._warm if oracle is None else None)
         if oracle is None and self.tap_deadband_pu > 0 and np.any(solution.taps_new[:n_reg] != state.taps):
-            solution = self.tap_deadband(solution, self.problem(snap, state, out_of_envelope=bool(outside),
-                                                                plants=plants, locks="all"), state.v0_pu.shape[0])
+            solution = self.tap_deadband(solution, self.relocked(inputs, "all", int(snap.t_ns)), state.v0_pu.shape[0])
         sec = solution.seconds
         if solution.status == "hold":
             return self._hold(snap, prefix + solution.reason, missing, t0, state=state, solution=solution,
