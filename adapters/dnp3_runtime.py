@@ -24,12 +24,11 @@ import time
 from collections.abc import Callable
 from typing import Annotated, Literal
 
-import msgspec
 from msgspec import Meta
 
 from adapters.dnp3 import Dnp3Master
 from adapters.dnp3_device import Dnp3Device, Dnp3DeviceSettings
-from adapters.runtime import run_device
+from adapters.runtime import LoopConfig, run_device
 from schemas import keys
 from schemas import messages as m
 from schemas.bus import BusConfig
@@ -37,33 +36,23 @@ from schemas.bus import BusConfig
 __all__ = ["Dnp3AdapterConfig", "run_dnp3_adapter"]
 
 
-class Dnp3AdapterConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
-    """What ``cvvc adapter dnp3`` runs: which outstation, as which device, on which periods.
+class Dnp3AdapterConfig(LoopConfig, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """What ``cvvc adapter dnp3`` runs: the loop's settings (``LoopConfig``), which outstation and as which device.
 
     ``dnp3`` is ``tcp/127.0.0.1:PORT``; ``kind`` ``vr`` (regulator control) or ``cap`` (bank);
-    ``outstation_address`` / ``master_address`` the DNP3 link addresses. ``scan_period_s`` [s]: frames at its
-    multiples; ``control_period_s`` [s]: the unit of the command windows; ``status_period_s`` [s]: ``LinkStatus``
-    at least this often; ``timeout_s`` [s]: one DNP3 request. ``phase`` (regulator), ``kvar_rated`` and
-    ``control_type`` (bank): what the frames say of the device beyond its points. ``clock``: ``wall`` reads on
-    the scan period of ``clock_ns``; ``head`` reads when a newer feeder-head frame arrives (``cvvc/F/meas/head``)
-    and takes its ``t_ns`` as the adapter's time: frames, command windows and hold times then follow the feeder's
-    scan (a simulation in lockstep, or a SCADA poll cycle).
+    ``outstation_address`` / ``master_address`` the DNP3 link addresses; ``timeout_s`` [s]: one DNP3 request.
+    ``phase`` (regulator), ``kvar_rated`` and ``control_type`` (bank): what the frames say of the device beyond its
+    points. With ``clock`` ``head`` the outstation is read when a newer feeder-head frame arrives.
     """
 
-    feeder_id: Annotated[str, Meta(pattern=r"^[A-Za-z0-9_.\-]{1,64}$")]
-    device_id: Annotated[str, Meta(pattern=r"^[A-Za-z0-9_.\-]{1,64}$")]
     kind: Literal["vr", "cap"]
     dnp3: str
     outstation_address: Annotated[int, Meta(ge=0, le=65519)] = 10
     master_address: Annotated[int, Meta(ge=0, le=65519)] = 1
-    scan_period_s: Annotated[float, Meta(gt=0.0, le=3600.0)] = 60.0
-    control_period_s: Annotated[float, Meta(gt=0.0, le=86400.0)] = 300.0
-    status_period_s: Annotated[float, Meta(gt=0.0, le=3600.0)] = 10.0
     timeout_s: Annotated[float, Meta(gt=0.0, le=60.0)] = 2.0
     phase: m.Phase = "a"
     kvar_rated: Annotated[float, Meta(gt=0.0, le=1e6)] = 600.0
     control_type: m.CapControlType = "none"
-    clock: Literal["wall", "head"] = "wall"
 
 
 def run_dnp3_adapter(config: Dnp3AdapterConfig, bus: BusConfig, *, stop: threading.Event,

@@ -23,16 +23,34 @@ from __future__ import annotations
 import threading
 import time
 from collections.abc import Callable
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 import msgspec
+from msgspec import Meta
 
 from adapters.device import LinkedDevice
 from schemas import keys
 from schemas import messages as m
 from schemas.bus import BusConfig, Inbox, LivelinessWatcher, Received, TypedPublisher, open_session
 
-__all__ = ["run_device"]
+__all__ = ["LoopConfig", "run_device"]
+
+
+class LoopConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """What every adapter's bus loop takes (each protocol's config adds its device and link): the feeder and the
+    device it stands for; ``scan_period_s`` [s]: frames at its multiples; ``control_period_s`` [s]: the feeder's
+    control period, the unit of the command windows (as the bridge's); ``status_period_s`` [s]: ``LinkStatus`` at
+    least this often; ``clock``: ``wall`` scans on the scan period of ``clock_ns``; ``head`` scans when a newer
+    feeder-head frame arrives (``cvvc/F/meas/head``) and takes its ``t_ns`` as the adapter's time: frames, command
+    windows and hold or revert timers then follow the feeder's scan (a simulation in lockstep, or a SCADA poll cycle).
+    """
+
+    feeder_id: Annotated[str, Meta(pattern=r"^[A-Za-z0-9_.\-]{1,64}$")]
+    device_id: Annotated[str, Meta(pattern=r"^[A-Za-z0-9_.\-]{1,64}$")]
+    scan_period_s: Annotated[float, Meta(gt=0.0, le=3600.0)] = 60.0
+    control_period_s: Annotated[float, Meta(gt=0.0, le=86400.0)] = 300.0
+    status_period_s: Annotated[float, Meta(gt=0.0, le=3600.0)] = 10.0
+    clock: Literal["wall", "head"] = "wall"
 
 _MAX_WAIT_S = 0.2  # the loop looks at its clock at least this often [s]
 

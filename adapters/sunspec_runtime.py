@@ -28,11 +28,10 @@ import time
 from collections.abc import Callable
 from typing import Annotated, Literal
 
-import msgspec
 from msgspec import Meta
 
 from adapters.errors import AdapterError
-from adapters.runtime import run_device
+from adapters.runtime import LoopConfig, run_device
 from adapters.sunspec import SunSpecLink
 from adapters.sunspec_plant import PlantSettings, SunSpecPlant
 from schemas import keys
@@ -44,29 +43,18 @@ __all__ = ["AdapterConfig", "parse_modbus_endpoint", "run_adapter"]
 _ENDPOINT = re.compile(r"^tcp/(?P<host>[A-Za-z0-9_.\-]+|\[[0-9A-Fa-f:.]+\]):(?P<port>[0-9]{1,5})$")
 
 
-class AdapterConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
-    """What ``cvvc adapter sunspec`` runs: which inverter, as which device, on which periods.
+class AdapterConfig(LoopConfig, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """What ``cvvc adapter sunspec`` runs: the loop's settings (``LoopConfig``), which inverter and as which device.
 
-    ``modbus`` is ``tcp/HOST:PORT``; ``unit`` the Modbus unit id. ``scan_period_s`` [s]: frames at its multiples;
-    ``control_period_s`` [s]: the feeder's control period, the unit of the command windows (as the bridge's);
-    ``status_period_s`` [s]: ``LinkStatus`` at least this often; ``timeout_s`` [s]: one Modbus request.
-    ``clock``: ``wall`` scans on the scan period of ``clock_ns``; ``head`` scans when a newer feeder-head frame
-    arrives (``cvvc/F/meas/head``) and takes its ``t_ns`` as the adapter's time: frames, command windows and
-    revert timers then follow the feeder's scan (a simulation in lockstep, or a SCADA poll cycle).
+    ``modbus`` is ``tcp/HOST:PORT``; ``unit`` the Modbus unit id; ``timeout_s`` [s]: one Modbus request.
     ``set_local_mode``: write ``local_mode`` into the inverter's model 705 (volt-var enabled or not) when it differs.
     """
 
-    feeder_id: Annotated[str, Meta(pattern=r"^[A-Za-z0-9_.\-]{1,64}$")]
-    device_id: Annotated[str, Meta(pattern=r"^[A-Za-z0-9_.\-]{1,64}$")]
     modbus: str
     unit: Annotated[int, Meta(ge=0, le=255)] = 1
-    scan_period_s: Annotated[float, Meta(gt=0.0, le=3600.0)] = 60.0
-    control_period_s: Annotated[float, Meta(gt=0.0, le=86400.0)] = 300.0
-    status_period_s: Annotated[float, Meta(gt=0.0, le=3600.0)] = 10.0
     timeout_s: Annotated[float, Meta(gt=0.0, le=60.0)] = 1.0
     local_mode: Literal["unity_pf", "volt_var"] = "unity_pf"
     q_at_night: bool = False
-    clock: Literal["wall", "head"] = "wall"
     set_local_mode: bool = False
 
 
