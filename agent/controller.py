@@ -68,7 +68,8 @@ NOISY_READING_STEPS = 0.25  # readings noisier than this share of a tap step: th
 # (chosen on epri-m1's noiseless day, whose load moves the readings by up to 0.1 step between minutes, and the rural
 # winter with 1 % SCADA noise, 1.6 steps: judged on epri-k1 and the noiseless rural winter)
 OUT_OF_ENVELOPE_WIDEN = 2.0  # on the calibrated estimate bounds when the inputs leave the training envelope
-_MIN_BAND_PU = 1e-3  # the narrowest band the estimate bounds leave between a node's limits [pu]
+_MIN_BAND_PU = 1e-3
+PRECISION_OUTLIER = 3.0  # precision_weights: bounds wider than this many times the median node's weigh less  # the narrowest band the estimate bounds leave between a node's limits [pu]
 STALE_PLANT_AGE_S = 150.0
 """A plant's stand-in frame older than this [s] (two lost 1-minute frames and more: an outage, not a dropped frame)
 is treated by ``agent.stale_plants``; a younger one as it is (20 % of the frames lost at random: stand-ins of a
@@ -76,6 +77,22 @@ minute, and the rule at every one of them took the rural winter week from 20 to 
 
 
 _SHIPPED = AgentOptions()  # the shipped agent's options (``schemas.settings``), written there once
+
+
+def precision_weights(bound_low_pu: np.ndarray, bound_high_pu: np.ndarray) -> np.ndarray:
+    """(N,) weights of the nodes' squared violations in the soft form: ``(PRECISION_OUTLIER * median / bound)^2``,
+    at most 1.
+
+    A node's bound is the mean of its two calibrated bounds [pu]. A node whose estimate is more than
+    ``PRECISION_OUTLIER`` times as uncertain as the median node's (a deep secondary that no feeder-level measurement
+    sees, whose bounds close the band) weighs the square of that ratio's inverse, so it cannot move the whole feeder
+    for a violation its estimate cannot confirm; every other node weighs 1, as in the paper's eq. (17).
+    """
+    width = 0.5 * (np.asarray(bound_low_pu, float) + np.asarray(bound_high_pu, float))
+    ref = PRECISION_OUTLIER * float(np.median(width)) if width.size else 0.0
+    if ref <= 0.0:
+        return np.ones(width.size)
+    return np.minimum(1.0, (ref / np.maximum(width, ref * 1e-3)) ** 2)
 
 
 def _finite(*arrays: np.ndarray) -> bool:
@@ -160,6 +177,7 @@ class CvvcController:
         self.bounds_in_margin = bool(o.bounds_in_margin)
         self.bounds_cover_filter = bool(o.bounds_cover_filter)
         self.predict_banks = bool(o.predict_banks)
+        self.soft_precision = bool(o.soft_precision)
         if not (np.isfinite(o.tap_reversal_lockout_s) and o.tap_reversal_lockout_s >= 0.0):
             raise AgentInputError(f"tap_reversal_lockout_s must be >= 0, not {o.tap_reversal_lockout_s}")
         self._lockout_ns = int(o.tap_reversal_lockout_s * 1e9)
@@ -500,6 +518,7 @@ class CvvcController:
                                      self._margin_cap_pu)
             v_min_pu, v_max_pu = lo_pu + fall, hi_pu - rise
         bounds = self.bounds_pu(out_of_envelope) if state.critical else None
+        soft_weight = None if bounds is None or not self.soft_precision else precision_weights(*bounds)
         if bounds is not None and self.bounds_in_margin:
             (judged_lo, judged_hi), (lo_b, hi_b) = self.model.judged_limits_pu, bounds
             bounds = (np.maximum(lo_b - max(lo_pu - judged_lo, 0.0), 0.0),
@@ -526,6 +545,8 @@ class CvvcController:
             dv_dtap = np.vstack([dv_dtap, rows.du_dtap])
             v_min_pu = np.concatenate([np.broadcast_to(np.asarray(v_min_pu, float), (n,)), rows.lo])
             v_max_pu = np.concatenate([np.broadcast_to(np.asarray(v_max_pu, float), (n,)), rows.hi])
+            if soft_weight is not None:
+                soft_weight = np.concatenate([soft_weight, np.ones(rows.lo.size)])
         inputs = CvvcInputs(
             v0_pu=v0,
             dv_dq_pu_per_kvar=dv_dq,
@@ -544,6 +565,7 @@ class CvvcController:
             v_min_pu=v_min_pu,
             v_max_pu=v_max_pu,
             dv_dq_rel_error=self.sensitivity_error if state.critical else 0.0,
+            soft_weight=soft_weight,
         )
         return inputs if locks == "none" else self.relocked(inputs, locks, int(snap.t_ns))
 

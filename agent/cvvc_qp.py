@@ -120,6 +120,8 @@ class CvvcInputs:
         eq. 17). Each node with a violation variable adds the expected square of its voltage error under the
         plants' Q, ``beta * sum_k (err * dv/dq_ik * Q_k)^2``: plants then no longer pull against each other
         on sensitivity differences a regression cannot resolve (a diagonal term in the Q variables).
+    soft_weight : beyond the paper: (N,) weight of each node's squared violation in eq. (17), in (0, 1]; None: 1
+        at every node (the paper's).
     """
 
     v0_pu: np.ndarray
@@ -140,6 +142,7 @@ class CvvcInputs:
     soft_alpha: float = DEFAULT_SOFT_ALPHA
     soft_beta_per_pu2: float = DEFAULT_SOFT_BETA_PER_PU2
     dv_dq_rel_error: float = 0.0
+    soft_weight: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         n = np.size(self.v0_pu)
@@ -156,6 +159,10 @@ class CvvcInputs:
         put(self, "cost_per_tap", _vec("cost_per_tap", self.cost_per_tap, r))
         for name in ("v_min_pu", "v_max_pu"):
             put(self, name, _vec(name, np.broadcast_to(np.asarray(getattr(self, name), float), (n,)), n))
+        if self.soft_weight is not None:
+            put(self, "soft_weight", _vec("soft_weight", self.soft_weight, n))
+            if not np.all((self.soft_weight > 0.0) & (self.soft_weight <= 1.0)):
+                raise AgentInputError("CvvcInputs.soft_weight must be within (0, 1] at every node")
         for name in ("soft_alpha", "soft_beta_per_pu2", "dv_dq_rel_error"):
             value = float(getattr(self, name))
             if not np.isfinite(value):
@@ -382,9 +389,11 @@ def build_cvvc_qp(
         p_diag[:n_tap] = PROX_WEIGHT
     c[q_inj] = c[q_abs] = alpha * q_cost / cost_scale
     p_diag[q_inj] = p_diag[q_abs] = PROX_WEIGHT
+    row_weight = (np.ones(rows_of.size) if inputs.soft_weight is None
+                  else np.asarray(inputs.soft_weight)[rows_of])  # eq. (17)'s weight of each row's violation
     if vio is not None:
         # beta * (w_pct / 100)^2 in cost units, normalised: P entry = 2 beta / (cost_scale * 1e4).
-        p_diag[vio] = 2.0 * inputs.soft_beta_per_pu2 / (cost_scale * _PCT_PER_PU**2)
+        p_diag[vio] = 2.0 * inputs.soft_beta_per_pu2 / (cost_scale * _PCT_PER_PU**2) * row_weight[soft_idx]
 
     # Voltage rows (eq. 13 / 17) in %.
     s_q = _PCT_PER_PU * inputs.dv_dq_pu_per_kvar[rows_of] * rating  # (n, K) % per rating
@@ -401,7 +410,7 @@ def build_cvvc_qp(
         # E[beta (err s_ik x_k)^2] summed over the soft rows, in the scaled units of the violation term above;
         # diagonal in x+ and x- (never both non-zero at an optimum: lowering both alike keeps Q and costs less).
         h = (2.0 * inputs.soft_beta_per_pu2 / (cost_scale * _PCT_PER_PU**2)
-             * inputs.dv_dq_rel_error**2 * np.sum(s_q[soft_idx] ** 2, axis=0))  # (K,)
+             * inputs.dv_dq_rel_error**2 * (row_weight[soft_idx] @ s_q[soft_idx] ** 2))  # (K,)
         p_diag[q_inj] += h
         p_diag[q_abs] += h
     v_lo = _PCT_PER_PU * np.asarray(inputs.v_min_pu)[rows_of] - v_base

@@ -77,6 +77,11 @@ class AgentOptions(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fie
     # (epri-ckt24, first winter day: plants pulling against each other, Q cost 2,130 -> 57 at NVV 435 -> 441)
     bounds_in_margin: Annotated[bool, Meta(description=(
         "the estimate bounds tighten a limit only past the optimization/judged gap"))] = True
+    soft_precision: Annotated[bool, Meta(description=(
+        "soft form (eq. 17): a node whose bounds are more than 3x the median node's weighs (3 x median / its "
+        "bound)^2; off: every node alike (the paper's)"))] = True
+    # (epri-ckt24 without meters, first winter day: node-minutes outside the optimization limits 779,204 -> 130,081,
+    # no control 227,005; docs/method.md "The soft form's node weights")
     bounds_cover_filter: Annotated[bool, Meta(description=(
         "the estimate bounds cover eq. (6) as computed and as filtered"))] = True
     # (agent.state.filter_gap_bounds_pu; epri-m1 case D, 1 July: 37 % of node-decisions outside the bounds without)
@@ -96,7 +101,7 @@ class AgentOptions(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fie
 PAPER_AGENT = AgentOptions(pv_margin_window_s=0.0, correction_window_s=0.0, filtered_setpoints=False,
                            sensitivity_error=0.0, bounds_in_margin=False, bounds_cover_filter=False,
                            tap_reversal_lockout_s=0.0, tap_deadband_pu=0.0, predict_banks=False,
-                           stale_plants=False)
+                           stale_plants=False, soft_precision=False)
 
 
 class AgentSettings(AgentOptions, frozen=True, kw_only=True, forbid_unknown_fields=True):

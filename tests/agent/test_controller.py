@@ -6,7 +6,7 @@ import msgspec
 import numpy as np
 import pytest
 
-from agent.controller import CvvcController, Decision, MeasurementSnapshot
+from agent.controller import CvvcController, Decision, MeasurementSnapshot, precision_weights
 from agent.errors import AgentInputError
 from agent.state import GridState, oracle_state
 from benchmarks.synthetic import synthetic_model
@@ -660,3 +660,14 @@ def test_the_controllers_defaults_are_the_shipped_agents():
     for t in range(3):
         snap = snapshot(t * 300 * 10**9, reading_error_pu=HIGH)
         assert shipped.decide(snap).same_content(plain.decide(snap))
+
+
+def test_precision_weights_weigh_an_uncertain_node_by_its_bound_against_the_median():
+    # Nodes with 3 mV/V bounds, one with 8 mV/V and a deep secondary with 27 mV/V: past 3x the median (9 mV/V)
+    # only the secondary weighs less, (9/27)^2 = 1/9; the others 1.
+    w = precision_weights(np.array([0.003, 0.002, 0.004, 0.008, 0.025]),
+                          np.array([0.003, 0.004, 0.002, 0.008, 0.029]))
+    np.testing.assert_allclose(w, [1.0, 1.0, 1.0, 1.0, 1.0 / 9.0])
+    # Narrower than the median weighs 1, not more; bounds of zero leave every node at 1.
+    assert precision_weights(np.array([0.001, 0.01, 0.01]), np.array([0.001, 0.01, 0.01])).tolist() == [1.0] * 3
+    assert precision_weights(np.zeros(3), np.zeros(3)).tolist() == [1.0] * 3

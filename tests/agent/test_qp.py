@@ -1,5 +1,6 @@
 """The CVVC problem (paper eq. 9-17) and its solution: known optima, a second solver, soft fallback, rounding."""
 
+import dataclasses
 import itertools
 
 import highspy
@@ -102,6 +103,18 @@ def test_infeasible_falls_back_to_soft_form():
     assert over == pytest.approx(0.0075, abs=2e-5) and under == pytest.approx(0.0075, abs=2e-5)
     assert sol.max_violation_pu == pytest.approx(0.0075, abs=2e-5)
     assert solve_milp_reference(inputs).status == "infeasible"
+
+
+def test_a_soft_weight_shifts_the_balance_toward_the_heavier_node():
+    # The same conflict with node 1's violation weighing a quarter: minimise (0.01 - x)^2 + 0.25 (0.005 + x)^2 over
+    # the downward shift x: x = 0.007 pu, 700 kvar absorbed (the paper's equal weights: 250 kvar).
+    weighted = dataclasses.replace(_tiny(v0=[1.05, 0.97], dv_dq=(1e-5, 1e-5)), soft_weight=np.array([1.0, 0.25]))
+    sol = solve_cvvc(weighted)
+    assert sol.status == "soft"
+    np.testing.assert_allclose(sol.q_new_kvar, [-700.0], atol=2.0)
+    for bad in ([1.0, 0.0], [1.0, 1.5], [1.0, np.nan]):
+        with pytest.raises(AgentInputError, match="soft_weight"):
+            dataclasses.replace(weighted, soft_weight=np.array(bad))
 
 
 def test_node_out_of_reach_is_soft_while_the_others_stay_hard():
