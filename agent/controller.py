@@ -68,8 +68,8 @@ NOISY_READING_STEPS = 0.25  # readings noisier than this share of a tap step: th
 # (chosen on epri-m1's noiseless day, whose load moves the readings by up to 0.1 step between minutes, and the rural
 # winter with 1 % SCADA noise, 1.6 steps: judged on epri-k1 and the noiseless rural winter)
 OUT_OF_ENVELOPE_WIDEN = 2.0  # on the calibrated estimate bounds when the inputs leave the training envelope
-_MIN_BAND_PU = 1e-3
-PRECISION_OUTLIER = 3.0  # precision_weights: bounds wider than this many times the median node's weigh less  # the narrowest band the estimate bounds leave between a node's limits [pu]
+_MIN_BAND_PU = 1e-3  # the narrowest band the estimate bounds leave between a node's limits [pu]
+PRECISION_OUTLIER = 3.0  # precision_weights: bounds wider than this many times the median node's weigh less
 STALE_PLANT_AGE_S = 150.0
 """A plant's stand-in frame older than this [s] (two lost 1-minute frames and more: an outage, not a dropped frame)
 is treated by ``agent.stale_plants``; a younger one as it is (20 % of the frames lost at random: stand-ins of a

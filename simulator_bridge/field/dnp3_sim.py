@@ -217,9 +217,23 @@ class _Outstation(ABC):
     def check(self, command: Any, index: int, *, direct: bool) -> Any:
         """The status a select (or an operate) of ``command`` on ``index`` gets, without acting [CommandStatus]."""
 
-    @abstractmethod
     def operate(self, command: Any, index: int, *, direct: bool) -> Any:
-        """Check and act on ``command`` at ``index``; the status for the master [CommandStatus]."""
+        """Check and act on ``command`` at ``index`` (``_act``, after dropping a hold that ran out); the status for
+        the master [CommandStatus].
+        """
+        status = self.check(command, index, direct=direct)
+        if status != dnp3.CommandStatus.SUCCESS:
+            return status
+        now = self._clock()
+        self._expire(now)
+        self._act(command, index, now)
+        self.operates += 1
+        self._publish()
+        return dnp3.CommandStatus.SUCCESS
+
+    @abstractmethod
+    def _act(self, command: Any, index: int, now_ns: int) -> None:
+        """Apply an accepted ``command`` on ``index`` at ``now_ns`` to the device's state."""
 
     @abstractmethod
     def _expire(self, now_ns: int) -> bool:
@@ -379,24 +393,16 @@ class SimulatedRegulatorControl(_Outstation):
                 return self._refuse(dnp3.CommandStatus.NOT_SUPPORTED, f"analog output {index} is not in the map")
         return dnp3.CommandStatus.SUCCESS
 
-    def operate(self, command: Any, index: int, *, direct: bool) -> Any:
+    def _act(self, command: Any, index: int, now_ns: int) -> None:
         """Write an analog output; a set point write puts the remote set point in force for the hold time."""
-        status = self.check(command, index, direct=direct)
-        if status != dnp3.CommandStatus.SUCCESS:
-            return status
-        now = self._clock()
-        self._expire(now)
         value = float(command.value)
         self._ao[index] = value
         if index == RegulatorPoints.AO_SETPOINT_120:
             hold_ns = int(round(self._ao[RegulatorPoints.AO_HOLD_S] * 1e9))
             self._remote = RemoteSetpoint(setpoint_v120=value, band_v120=self._ao[RegulatorPoints.AO_BAND_120],
-                                          until_ns=now + hold_ns)
+                                          until_ns=now_ns + hold_ns)
         elif index == RegulatorPoints.AO_HOLD_S and value == 0.0:
             self._remote = None
-        self.operates += 1
-        self._publish()
-        return dnp3.CommandStatus.SUCCESS
 
     def _expire(self, now_ns: int) -> bool:
         if self._remote is not None and now_ns > self._remote.until_ns:
@@ -502,24 +508,16 @@ class SimulatedCapBankController(_Outstation):
             return self._refuse(dnp3.CommandStatus.OUT_OF_RANGE, f"hold time {value} s outside 0..{HOLD_MAX_S}")
         return dnp3.CommandStatus.SUCCESS
 
-    def operate(self, command: Any, index: int, *, direct: bool) -> Any:
+    def _act(self, command: Any, index: int, now_ns: int) -> None:
         """Switch the bank (held for the hold time) or write the hold time (0 releases it)."""
-        status = self.check(command, index, direct=direct)
-        if status != dnp3.CommandStatus.SUCCESS:
-            return status
-        now = self._clock()
-        self._expire(now)
         if isinstance(command, dnp3.ControlRelayOutputBlock):
             close = bool(self._crob_close(command))
-            self._commanded = (close, now + int(round(self._hold_s * 1e9)))
+            self._commanded = (close, now_ns + int(round(self._hold_s * 1e9)))
             self._last_crob = close
         else:
             self._hold_s = float(command.value)
             if self._hold_s == 0.0:
                 self._commanded = None
-        self.operates += 1
-        self._publish()
-        return dnp3.CommandStatus.SUCCESS
 
     def _expire(self, now_ns: int) -> bool:
         if self._commanded is not None and now_ns > self._commanded[1]:
