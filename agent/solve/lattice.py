@@ -6,7 +6,9 @@ score (Q's cost and proximal terms, the Q re-solve) is a QP whose Lagrangian dua
 ``y`` of its rows, is a lower bound (weak duality) and is *affine in the taps*: the taps only shift the voltage rows'
 bounds. So every solved candidate gives a bound on every other one (``LagrangianCut``, a Benders cut): its optimal
 multipliers where it is feasible, the multipliers of a least-violation problem (``phase_one_multipliers``) where it
-is not, scaled to the best bound at that candidate (``cut_at``). Candidates are solved cheapest bound first; the
+is not, scaled to the best bound at that candidate (``cut_at``). An infeasible candidate's Farkas certificate (from its
+least-violation problem) is affine in the taps too (``feasibility_cut``): every point it covers is infeasible and is
+never re-solved. Candidates are solved cheapest bound first; the
 search stops when the best score found is at most every remaining bound, and it is *optimal over all integer
 taps* when it is also at most the bound of every point further away (``region_bound``: at least ``k + 1`` steps in
 all, the tap cost and any cut over that region, in closed form). Without that proof the MILP decides.
@@ -24,8 +26,11 @@ import numpy as np
 
 from agent.cvvc_qp import CvvcInputs, CvvcQp
 from agent.solve.active_set import solve_dense_qp
+from agent.solve.polish import farkas_excess, least_violation_multipliers
+from agent.solve.settings import FARKAS_MIN_EXCESS
 
-__all__ = ["LagrangianCut", "cut_at", "phase_one_multipliers", "region_bound", "tap_bounds", "tap_lattice"]
+__all__ = ["FeasibilityCut", "LagrangianCut", "cut_at", "feasibility_cut", "phase_one_multipliers", "region_bound",
+           "tap_bounds", "tap_lattice"]
 
 #: Largest scale of a least-violation problem's multipliers in a cut (a near-certificate of infeasibility has
 #: almost no curvature: the best scale could be huge and the cut numerically meaningless).
@@ -40,6 +45,41 @@ class LagrangianCut:
 
     const: float
     slope: np.ndarray  # (R,) [cost units/step]
+
+
+@dataclass(frozen=True)
+class FeasibilityCut:
+    """Integer tap changes ``d`` with ``const + slope @ d > 0`` have no Q meeting the hard limits (a Farkas
+    certificate of the tap-fixed problem, affine in the taps) [% of voltage].
+    """
+
+    const: float
+    slope: np.ndarray  # (R,) [%/step]
+
+
+def feasibility_cut(fixed: CvvcQp, d_tap: np.ndarray) -> FeasibilityCut | None:
+    """A Farkas certificate of the tap-fixed ``fixed`` at ``d_tap`` as a cut in the taps, or None when it proves
+    nothing there (``d_tap`` feasible, or infeasible by too little).
+
+    The multipliers ``y`` of the least-violation problem at ``d_tap`` (``least_violation_multipliers``), their
+    ``farkas_excess``: the least of ``(A'y)'x`` over the variables' box less ``hi(d)'y+ + lo(d)'y-``. The voltage
+    rows' bounds shift by ``-dv_dtap_pct @ d``, so the excess is affine in ``d`` with slope ``y_rows @ dv_dtap_pct``;
+    less ``FARKAS_MIN_EXCESS`` per unit of ``|y|`` on the rows with more than one entry (what
+    ``agent.solve.polish.proven_infeasible`` asks too).
+    """
+    a = fixed.a_dense
+    if a is None or fixed.fixed_d_tap is None:
+        return None
+    lo, hi = fixed.bounds_with_d_tap(d_tap)
+    y = least_violation_multipliers(a, lo, hi)
+    if y is None:
+        return None
+    rows = np.count_nonzero(a, axis=1) > 1
+    excess = farkas_excess(a, lo, hi, y) - FARKAS_MIN_EXCESS * float(np.sum(np.abs(y[rows])))
+    if not excess > 0.0:
+        return None
+    slope = y[fixed.voltage_rows] @ fixed.dv_dtap_pct
+    return FeasibilityCut(const=excess - float(slope @ d_tap), slope=slope)
 
 
 def tap_bounds(inputs: CvvcInputs) -> tuple[np.ndarray, np.ndarray]:

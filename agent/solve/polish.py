@@ -6,10 +6,14 @@ import numpy as np
 
 from agent.cvvc_qp import CvvcQp
 from agent.solve.active_set import solve_dense_qp
-from agent.solve.settings import KKT_TOL
+from agent.solve.settings import FARKAS_MIN_EXCESS, KKT_TOL
 from agent.solve.solution import Run
 
-__all__ = ["active_set_polish", "kkt_ok", "warm_polish"]
+#: Proximal weight on the variables of the least-violation problem (DAQP needs a positive definite Hessian).
+_PHASE_ONE_PROX = 1e-6
+
+__all__ = ["active_set_polish", "farkas_excess", "kkt_ok", "least_violation_multipliers", "proven_infeasible",
+           "warm_polish"]
 
 
 def active_set_polish(
@@ -34,6 +38,8 @@ def active_set_polish(
     out = solve_dense_qp(qp.p_diag, qp.c, a_dense, lo, hi, guess=guess)
     if out.status == "infeasible":
         return Run(False, True, "infeasible (active set)", out.x, out.y, 0)
+    if out.status == "failed" and proven_infeasible(a_dense, lo, hi):
+        return Run(False, True, "infeasible (least violation)", np.zeros(qp.layout.n), np.zeros(lo.shape[0]), 0)
     if out.status != "optimal" or not kkt_ok(a_dense, qp.p_diag, qp.c, lo, hi, out.x, out.y):
         return None
     return Run(True, False, status, out.x, out.y, 0)
@@ -63,3 +69,77 @@ def kkt_ok(
     if np.any(ax < lo - KKT_TOL) or np.any(ax > hi + KKT_TOL):
         return False
     return not (np.any((y > KKT_TOL) & (ax < hi - KKT_TOL)) or np.any((y < -KKT_TOL) & (ax > lo + KKT_TOL)))
+
+
+def proven_infeasible(a: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> bool:
+    """Whether no ``x`` meets ``lo <= A x <= hi``, proven by a Farkas certificate from the least-violation problem.
+
+    For the problems the dual active-set method gives up on (it cycles on the near-parallel voltage rows of nodes
+    behind one regulator), which ADMM then took up to its whole budget to declare infeasible, or never did. Proven
+    when ``least_violation_multipliers``' ``y`` have a ``farkas_excess`` above ``FARKAS_MIN_EXCESS`` per unit of
+    ``|y|`` on the rows with more than one entry: a least violation that small proves nothing (left to ADMM, as
+    before). False when not proven.
+    """
+    y = least_violation_multipliers(a, lo, hi)
+    if y is None:
+        return False
+    rows = np.count_nonzero(a, axis=1) > 1
+    return farkas_excess(a, lo, hi, y) > FARKAS_MIN_EXCESS * float(np.sum(np.abs(y[rows])))
+
+
+def least_violation_multipliers(a: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray | None:
+    """(m,) multipliers of ``lo <= A x <= hi`` from its least-violation problem, or None when its violation is at most
+    ``FARKAS_MIN_EXCESS`` (or the method fails).
+
+    The rows with one entry (the variable bounds) stay hard, every other row's bounds widen by one slack ``s >= 0``;
+    ``min s^2/2 + 1e-6 |x|^2/2`` (DAQP: strictly convex, always feasible). Where the rows conflict, its multipliers are
+    a Farkas certificate (``farkas_excess``) up to the small proximal term.
+    """
+    m, n = a.shape
+    single = np.count_nonzero(a, axis=1) == 1
+    rows, box = np.flatnonzero(~single), np.flatnonzero(single)
+    k = rows.size
+    if k == 0:
+        return None
+    one = np.ones((k, 1))
+    a1 = np.vstack([
+        np.hstack([a[rows], -one]),  # A x - s <= hi
+        np.hstack([a[rows], one]),  # A x + s >= lo
+        np.hstack([a[box], np.zeros((box.size, 1))]),
+        np.hstack([np.zeros((1, n)), np.ones((1, 1))]),  # s >= 0
+    ])
+    lo1 = np.concatenate([np.full(k, -np.inf), lo[rows], lo[box], [0.0]])
+    hi1 = np.concatenate([hi[rows], np.full(k, np.inf), hi[box], [np.inf]])
+    out = solve_dense_qp(np.append(np.full(n, _PHASE_ONE_PROX), 1.0), np.zeros(n + 1), a1, lo1, hi1)
+    if out.status != "optimal" or out.x[-1] <= FARKAS_MIN_EXCESS:
+        return None
+    y = np.zeros(m)
+    y[rows] = out.y[:k] + out.y[k : 2 * k]
+    y[box] = out.y[2 * k : 2 * k + box.size]
+    return y
+
+
+def farkas_excess(a: np.ndarray, lo: np.ndarray, hi: np.ndarray, y: np.ndarray) -> float:
+    """``min over the box of (A'y)'x - (hi'y+ + lo'y-)``: positive, it proves that no ``x`` meets ``lo <= A x <= hi``.
+
+    The box is the one-entry rows' (the variable bounds); ``-inf`` when ``y`` leans on a missing bound or ``A'y``
+    points along a variable without one. Every ``x`` meeting the rows has ``y'Ax <= hi'y+ + lo'y-`` and
+    ``y'Ax >= min over the box of (A'y)'x``.
+    """
+    if np.any((y > 0.0) & ~np.isfinite(hi)) or np.any((y < 0.0) & ~np.isfinite(lo)):
+        return -np.inf
+    n = a.shape[1]
+    box = np.flatnonzero(np.count_nonzero(a, axis=1) == 1)
+    upper = float(np.sum(np.where(y > 0.0, y * np.where(y > 0.0, hi, 0.0), 0.0))
+                  + np.sum(np.where(y < 0.0, y * np.where(y < 0.0, lo, 0.0), 0.0)))
+    col = np.argmax(a[box] != 0.0, axis=1)
+    coef = a[box, col]
+    x_lo, x_hi = np.full(n, -np.inf), np.full(n, np.inf)
+    np.maximum.at(x_lo, col, np.where(coef > 0, lo[box], hi[box]) / coef)
+    np.minimum.at(x_hi, col, np.where(coef > 0, hi[box], lo[box]) / coef)
+    r = a.T @ y
+    with np.errstate(invalid="ignore"):
+        least = np.where(r > 0.0, r * x_lo, np.where(r < 0.0, r * x_hi, 0.0))
+    if not np.all(np.isfinite(least)):
+        return -np.inf
+    return float(np.sum(least)) - upper

@@ -21,6 +21,7 @@ from agent.cvvc_qp import PROX_WEIGHT, CvvcInputs, CvvcQp, build_cvvc_qp
 from agent.solve.lattice import (
     LagrangianCut,
     cut_at,
+    feasibility_cut,
     phase_one_multipliers,
     region_bound,
     tap_bounds,
@@ -275,7 +276,8 @@ class _Resolver:
 
         The points (``tap_lattice``, ``k`` as large as ``LATTICE_MAX_POINTS`` allows) are re-solved cheapest
         bound first (at most ``LATTICE_MAX_SOLVES``, else uncertified), each bound the tap cost plus the best
-        Lagrangian cut so far (and at least 0 for Q); every re-solve adds a cut. Certified when the best is at most
+        Lagrangian cut so far (and at least 0 for Q); every re-solve adds a cut, and an infeasible one's Farkas
+        certificate drops every point it covers (``feasibility_cut``). Certified when the best is at most
         every remaining point's bound and the bound of every point further away (``region_bound``), or when the
         points are all the integer taps there are.
         """
@@ -321,6 +323,10 @@ class _Resolver:
                 y1 = phase_one_multipliers(problem, d_int)
                 if y1 is not None:
                     add(cut_at(problem, y1, d_int, scale_to_best=True))
+                infeasible = feasibility_cut(problem, d_int)
+                if infeasible is not None:
+                    # every point the certificate covers is infeasible too: never re-solved
+                    unsolved &= infeasible.const + points @ infeasible.slope <= 0.0
         return self.best, complete or (self.best is not None and self.best[0] <= floor)
 
 

@@ -50,6 +50,9 @@ MAX_ITER = 4000
 LOOSE_EPS = 1e-4
 #: Tolerance of the KKT optimality check in scaled units (% of voltage, fraction of rating, steps).
 KKT_TOL = 1e-6
+#: A Farkas certificate of infeasibility counts only with an excess above this per unit of its multipliers (and a
+#: least-violation problem only with a violation above it) [scaled units: % of voltage]: smaller ones prove nothing.
+FARKAS_MIN_EXCESS = 1e-5
 #: Up to this many fractional taps, every floor/ceil combination is tried (2**3 = 8 Q re-solves).
 MAX_ENUMERATED_FRACTIONAL = 3
 #: A relaxed tap change this close to an integer counts as integer [steps].

@@ -7,7 +7,15 @@ import pytest
 
 from agent.cvvc_qp import CvvcInputs, build_cvvc_qp
 from agent.solve import V_TOL_PU, solve_cvvc, solve_milp_reference
-from agent.solve.lattice import LagrangianCut, cut_at, phase_one_multipliers, region_bound, tap_bounds, tap_lattice
+from agent.solve.lattice import (
+    LagrangianCut,
+    cut_at,
+    feasibility_cut,
+    phase_one_multipliers,
+    region_bound,
+    tap_bounds,
+    tap_lattice,
+)
 from agent.solve.polish import active_set_polish
 from benchmarks.synthetic import random_cvvc_inputs
 
@@ -145,3 +153,23 @@ def test_no_integer_taps_at_all_is_proven_without_the_milp():
     assert sol.status == "soft" and "no rounding" in sol.reason
     assert sol.milp_solves == 0
     assert solve_milp_reference(inputs).status == "infeasible"
+
+
+def test_feasibility_cuts_exclude_only_infeasible_points():
+    """A point a Farkas certificate (taken at another, infeasible point) covers has no Q meeting the hard limits."""
+    rng = np.random.default_rng(13)
+    cuts = excluded = 0
+    for _ in range(15):
+        inputs = random_cvvc_inputs(rng)
+        fixed = build_cvvc_qp(inputs, soft=False, fixed_d_tap=np.zeros(inputs.n_reg))
+        points, _, _ = tap_lattice(*tap_bounds(inputs), 200)
+        feasible = np.array([np.isfinite(_q_part(fixed, d)[0]) for d in points])
+        for i in np.flatnonzero(~feasible)[:4]:
+            cut = feasibility_cut(fixed, points[i])
+            if cut is None:
+                continue
+            cuts += 1
+            covered = cut.const + points @ cut.slope > 0.0
+            assert covered[i] and not np.any(covered & feasible)
+            excluded += int(covered.sum())
+    assert cuts >= 5 and excluded > cuts  # each covers more than its own point
