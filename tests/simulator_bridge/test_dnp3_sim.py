@@ -167,6 +167,8 @@ def test_malformed_frames_get_no_answer_and_the_outstation_keeps_serving(
     for frame in frames:
         with socket.create_connection((host, port), timeout=_OPEN_S) as s:
             s.sendall(frame)
+    # the device closes a new connection while it still holds the last raw one (CloseNew)
+    assert wait_for(lambda: not regulator.master_connected, _OPEN_S), "the device still holds a raw connection"
     with _master(regulator) as m:
         assert m.read().analog_inputs[RegulatorPoints.AI_TAP] == 3.0
         assert m.operate_analog(RegulatorPoints.AO_HOLD_S, 60.0).ok
