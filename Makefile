@@ -17,13 +17,15 @@ install: $(STAMP)
 demo: $(STAMP)
 	$(BIN)/cvvc run
 
+# both targets run the tests on two worker processes (pytest-xdist), each test file on one worker (its module
+# fixtures made once); plain `pytest` runs them in one process
 test: $(STAMP)
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n 2 --dist loadfile
 
 # the fast tier for the edit loop (< 2 minutes on 2 cores): no bus, no processes, no training on a real feeder;
 # markers in pyproject.toml, tiers in docs/testing.md
 check: $(STAMP)
-	$(BIN)/python -m pytest -q -m "not bus and not process and not slow"
+	$(BIN)/python -m pytest -q -n 2 --dist loadfile -m "not bus and not process and not slow"
 
 lint: $(STAMP)
 	$(BIN)/ruff check .

@@ -18,8 +18,8 @@ STEP_NS = 60 * 1_000_000_000
 
 
 # ------------------------------------------------------------------------------------ the test client
-#: Bound on a bridge subprocess's first frames: a fresh interpreter imports and compiles the feeder first (seconds
-#: when idle, tens of seconds on a loaded 2-core machine). It only bounds a failure.
+#: Bound on the first frames of a bridge subprocess or publisher process: a fresh interpreter imports (and compiles
+#: the feeder) first: seconds when idle, tens of seconds on a loaded 2-core machine. It only bounds a failure.
 STARTUP_S = 90.0
 
 

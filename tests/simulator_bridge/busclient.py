@@ -79,8 +79,8 @@ class BusClient:
             if pred(key, msg):
                 return msg
 
-    def head(self, t_ns: int | None = None) -> m.HeadFrame:
-        return self.next(lambda k, x: isinstance(x, m.HeadFrame) and (t_ns is None or x.t_ns == t_ns))
+    def head(self, t_ns: int | None = None, timeout_s: float = 20.0) -> m.HeadFrame:
+        return self.next(lambda k, x: isinstance(x, m.HeadFrame) and (t_ns is None or x.t_ns == t_ns), timeout_s)
 
     def cap(self, cap_id: str, t_ns: int) -> m.CapFrame:
         return self.next(lambda k, x: isinstance(x, m.CapFrame) and x.capacitor_id == cap_id and x.t_ns == t_ns)

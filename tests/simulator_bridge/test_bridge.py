@@ -35,7 +35,7 @@ def test_commands_are_acked_and_show_in_the_next_frames(client: Client, router_e
     th, stop, out = bridge_thread(bridge_config(device_map_path, cache_dir, steps=11, publisher=publisher),
                                    router_endpoint)
     try:
-        h0 = client.head()
+        h0 = client.head(timeout_s=STARTUP_S)  # a publisher process is a fresh interpreter: it imports first
         t0 = h0.t_ns
         # every device publishes a frame per step, all with the step's t_ns
         frames = {(type(x).__name__, getattr(x, "plant_id", getattr(x, "regulator_id", ""))) for _, x, _ in
@@ -258,7 +258,7 @@ def test_realtime_keeps_its_clock_and_serves_commands_without_an_agent(
     th, stop, out = bridge_thread(bridge_config(device_map_path, cache_dir, steps=41, clock="realtime", speed=1200.0,
                                            wait_agent_s=0.0, publisher=publisher), router_endpoint)
     try:
-        t0 = client.head().t_ns
+        t0 = client.head(timeout_s=STARTUP_S).t_ns  # a publisher process is a fresh interpreter: it imports first
         c = client.pv_cmd("pv680", -100.0, t0)
         a = client.ack(c.cmd_id)
         frame = client.next(lambda k, x: isinstance(x, m.PvFrame) and x.plant_id == "pv680" and x.t_ns > a.t_ns)
@@ -327,7 +327,7 @@ def test_a_stopped_run_publishes_every_simulated_step_before_its_final_metrics(
     th, stop, out = bridge_thread(bridge_config(device_map_path, cache_dir, steps=100000, clock="realtime",
                                            speed=6000.0, wait_agent_s=0.0, truth_every=1, publisher="process"),
                                    router_endpoint)
-    client.next(lambda k, x: isinstance(x, m.HeadFrame) and x.seq >= 20)
+    client.next(lambda k, x: isinstance(x, m.HeadFrame) and x.seq >= 20, STARTUP_S)  # the publisher process starts
     summary = finish(th, stop, out, stop_now=True)
     final = client.next(lambda k, x: isinstance(x, m.MetricsFrame) and x.final)
     assert summary.stopped_early and final.steps == summary.steps == summary.truth_frames

@@ -49,7 +49,7 @@ def test_the_publisher_process_sends_what_inline_publishing_sends(router_endpoin
                 device_map_path, cache_dir, steps=16, truth_every=1, pv_local="volt_var", noise_pmu_pct=0.2,
                 noise_scada_pct=1.0, drop_prob=0.1, noise_seed=5, publisher=publisher), router_endpoint)
             try:
-                t0 = client.next(lambda k, x: isinstance(x, m.TruthPack)).t_ns
+                t0 = client.next(lambda k, x: isinstance(x, m.TruthPack), STARTUP_S).t_ns  # a process starts first
                 for i, t in enumerate(t0 + 5 * j * STEP_NS for j in range(4)):
                     client.next(lambda k, x, t=t: isinstance(x, m.TruthPack) and x.t_ns == t)
                     cmds = [client.pv_cmd("pv675", 100.0 + 50 * i, t, valid_s=120),
@@ -136,7 +136,7 @@ def test_the_publisher_process_fails_the_run_and_is_stopped(client: Client, rout
         th, stop, out = bridge_thread(bridge_config(device_map_path, cache_dir, steps=100000, clock="realtime",
                                                speed=600.0, wait_agent_s=0.0, publisher="process"),
                                        router_endpoint)
-        client.next(lambda k, x: isinstance(x, m.HeadFrame) and x.seq >= 3)
+        client.next(lambda k, x: isinstance(x, m.HeadFrame) and x.seq >= 3, STARTUP_S)  # the publisher process starts
     finally:
         pub.PublisherProcess.__init__ = orig  # type: ignore[method-assign]
     assert len(procs) == 1
