@@ -112,8 +112,15 @@ def _sim(args: argparse.Namespace) -> int:
     return int(_with_stop(serve))
 
 
-def _add_loop_arguments(p: argparse.ArgumentParser, *, device: str, protocol: str, timeout_s: float) -> None:
-    """The flags of the adapters' loop (``adapters.runtime``): its periods, and the time-out of one request."""
+def _add_loop_arguments(p: argparse.ArgumentParser, *, device: str, protocol: str, timeout_s: float,
+                        device_id: tuple[str, str]) -> None:
+    """The flags every adapter takes (``adapters.runtime``): the feeder and device ids, the loop's periods, the
+    time-out of one request, the summary file. ``device_id``: the ``--device`` flag's metavar and help.
+    """
+    p.add_argument("--feeder-id", required=True, help="feeder id of the keys (cvvc/<ID>/...)")
+    p.add_argument("--device", required=True, metavar=device_id[0], help=device_id[1])
+    p.add_argument("--summary-out", metavar="FILE",
+                   help="write the link's last LinkStatus as JSON to FILE at exit (the launcher reads it)")
     p.add_argument("--scan-period-s", type=float, default=60.0,
                    help=f"read {device} at every multiple of this period (UTC) and stamp the frame with it [s]")
     p.add_argument("--control-period-s", type=float, default=300.0,
@@ -135,38 +142,33 @@ def register(sub: argparse._SubParsersAction) -> None:
                          description="Read the inverter's SunSpec models with pysunspec2, publish its PV frames, "
                                      "write the agent's reactive power commands as 704 set points with a revert "
                                      "timer, and acknowledge what the inverter applied. See docs/sunspec.md.")
-    s.add_argument("--feeder-id", required=True, help="feeder id of the keys (cvvc/<ID>/...)")
-    s.add_argument("--device", required=True, metavar="PV_ID", help="the plant's id in the device map")
     s.add_argument("--modbus", required=True, metavar="tcp/HOST:PORT", help="the inverter's Modbus TCP endpoint")
     s.add_argument("--unit", type=int, default=1, help="Modbus unit (slave) id [default: 1]")
-    _add_loop_arguments(s, device="the inverter", protocol="Modbus", timeout_s=1.0)
+    _add_loop_arguments(s, device="the inverter", protocol="Modbus", timeout_s=1.0,
+                        device_id=("PV_ID", "the plant's id in the device map"))
     s.add_argument("--local-mode", choices=["unity_pf", "volt_var"], default="unity_pf",
                    help="the inverter's local default, reported in its frames")
     s.add_argument("--set-local-mode", action="store_true",
                    help="write --local-mode into the inverter's model 705 (volt-var curve enabled or not) whenever a "
                         "scan finds it otherwise; without this flag 705 is only read")
     s.add_argument("--q-at-night", action="store_true", help="the inverter gives reactive power at zero output")
-    s.add_argument("--summary-out", metavar="FILE",
-                   help="write the link's last LinkStatus as JSON to FILE at exit (the launcher reads it)")
     add_bus_arguments(s)
     s.set_defaults(func=_sunspec)
     dn = verbs.add_parser("dnp3", help="a regulator control or capacitor bank controller behind DNP3 (IEEE 1815)",
                           description="Poll the outstation (opendnp3 master), publish the device's frames, operate "
                                       "the agent's commands with a hold time that follows their validity, and "
                                       "acknowledge from the outstation's answer and a read back. See docs/dnp3.md.")
-    dn.add_argument("--feeder-id", required=True, help="feeder id of the keys (cvvc/<ID>/...)")
-    dn.add_argument("--device", required=True, metavar="ID", help="the regulator's or bank's id in the device map")
     dn.add_argument("--kind", choices=["vr", "cap"], default="vr",
                     help="vr: a regulator control; cap: a capacitor bank controller [default: vr]")
     dn.add_argument("--dnp3", required=True, metavar="tcp/127.0.0.1:PORT", help="the outstation's endpoint")
     dn.add_argument("--outstation-address", type=int, default=10, help="the outstation's link address")
     dn.add_argument("--master-address", type=int, default=1, help="this master's link address")
-    _add_loop_arguments(dn, device="the outstation", protocol="DNP3", timeout_s=2.0)
+    _add_loop_arguments(dn, device="the outstation", protocol="DNP3", timeout_s=2.0,
+                        device_id=("ID", "the regulator's or bank's id in the device map"))
     dn.add_argument("--phase", choices=["a", "b", "c"], default="a", help="the regulator's phase (its frames)")
     dn.add_argument("--kvar-rated", type=float, default=600.0, help="the bank's rating (its frames) [kvar]")
     dn.add_argument("--control-type", default="none",
                     help="the bank's local control type, as in its frames (none, voltage, kvar, ...)")
-    dn.add_argument("--summary-out", metavar="FILE", help="write the link's last LinkStatus as JSON to FILE at exit")
     add_bus_arguments(dn)
     dn.set_defaults(func=_dnp3)
     sim = verbs.add_parser("sim", help="serve a simulated SunSpec inverter (models 1, 701, 702, 704) to try on",
