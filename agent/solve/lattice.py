@@ -25,8 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from agent.cvvc_qp import CvvcInputs, CvvcQp
-from agent.solve.active_set import solve_dense_qp
-from agent.solve.polish import farkas_excess, least_violation_multipliers
+from agent.solve.polish import farkas_excess, least_violation, least_violation_multipliers
 from agent.solve.settings import FARKAS_MIN_EXCESS
 
 __all__ = ["FeasibilityCut", "LagrangianCut", "cut_at", "feasibility_cut", "phase_one_multipliers", "region_bound",
@@ -177,33 +176,16 @@ def cut_at(fixed: CvvcQp, y: np.ndarray, d_tap: np.ndarray, *, scale_to_best: bo
 def phase_one_multipliers(fixed: CvvcQp, d_tap: np.ndarray) -> np.ndarray | None:
     """Multipliers of ``fixed``'s rows from its least-violation problem at ``d_tap`` (for a cut), or None.
 
-    One slack ``s >= 0`` widens every hard voltage row's bounds; minimise ``x'Px/2 + c'x + s^2/2`` (DAQP). The
-    rows' multipliers are valid for the hard problem's dual function (any multipliers are); where the hard
-    problem is infeasible, scaled by ``cut_at`` they give a large bound there and nearby.
+    One slack ``s >= 0`` widens every hard row's bounds; minimise ``x'Px/2 + c'x + s^2/2`` (``least_violation``,
+    with ``fixed``'s own objective). The rows' multipliers are valid for the hard problem's dual function (any
+    multipliers are); where the hard problem is infeasible, scaled by ``cut_at`` they give a large bound there and
+    nearby.
     """
-    a = fixed.a_dense
-    if a is None:
+    if fixed.a_dense is None:
         return None
     lo, hi = fixed.bounds_with_d_tap(d_tap)
-    hard = np.flatnonzero(~fixed.soft_rows)
-    other = np.setdiff1d(np.arange(fixed.n_rows), hard)
-    n = a.shape[1]
-    ones = np.ones((hard.size, 1))
-    a1 = np.vstack([
-        np.hstack([a[hard], -ones]),  # A x - s <= hi
-        np.hstack([a[hard], ones]),  # A x + s >= lo
-        np.hstack([a[other], np.zeros((other.size, 1))]),
-        np.hstack([np.zeros((1, n)), np.ones((1, 1))]),  # s >= 0
-    ])
-    lo1 = np.concatenate([np.full(hard.size, -np.inf), lo[hard], lo[other], [0.0]])
-    hi1 = np.concatenate([hi[hard], np.full(hard.size, np.inf), hi[other], [np.inf]])
-    out = solve_dense_qp(np.append(fixed.p_diag, 1.0), np.append(fixed.c, 0.0), a1, lo1, hi1)
-    if out.status != "optimal":
-        return None
-    y = np.zeros(fixed.n_rows)
-    y[hard] = out.y[: hard.size] + out.y[hard.size : 2 * hard.size]
-    y[other] = out.y[2 * hard.size : 2 * hard.size + other.size]
-    return y
+    out = least_violation(fixed.a_dense, lo, hi, ~np.asarray(fixed.soft_rows, bool), fixed.p_diag, fixed.c)
+    return None if out is None else out[0]
 
 
 def region_bound(cut: LagrangianCut | None, cost_per_tap: np.ndarray, lo_steps: np.ndarray, hi_steps: np.ndarray,

@@ -12,8 +12,8 @@ from agent.solve.solution import Run
 #: Proximal weight on the variables of the least-violation problem (DAQP needs a positive definite Hessian).
 _PHASE_ONE_PROX = 1e-6
 
-__all__ = ["active_set_polish", "farkas_excess", "kkt_ok", "least_violation_multipliers", "proven_infeasible",
-           "warm_polish"]
+__all__ = ["active_set_polish", "farkas_excess", "kkt_ok", "least_violation", "least_violation_multipliers",
+           "proven_infeasible", "warm_polish"]
 
 
 def active_set_polish(
@@ -92,31 +92,44 @@ def least_violation_multipliers(a: np.ndarray, lo: np.ndarray, hi: np.ndarray) -
     ``FARKAS_MIN_EXCESS`` (or the method fails).
 
     The rows with one entry (the variable bounds) stay hard, every other row's bounds widen by one slack ``s >= 0``;
-    ``min s^2/2 + 1e-6 |x|^2/2`` (DAQP: strictly convex, always feasible). Where the rows conflict, its multipliers are
-    a Farkas certificate (``farkas_excess``) up to the small proximal term.
+    ``min s^2/2 + 1e-6 |x|^2/2`` (``least_violation``: strictly convex, always feasible). Where the rows conflict, its
+    multipliers are a Farkas certificate (``farkas_excess``) up to the small proximal term.
+    """
+    n = a.shape[1]
+    widen = np.count_nonzero(a, axis=1) > 1
+    if not widen.any():
+        return None
+    out = least_violation(a, lo, hi, widen, np.full(n, _PHASE_ONE_PROX), np.zeros(n))
+    if out is None or out[1] <= FARKAS_MIN_EXCESS:
+        return None
+    return out[0]
+
+
+def least_violation(a: np.ndarray, lo: np.ndarray, hi: np.ndarray, widen: np.ndarray, p_diag: np.ndarray,
+                    c: np.ndarray) -> tuple[np.ndarray, float] | None:
+    """``(y, s)``: ``min x'diag(p_diag)x/2 + c'x + s^2/2`` with the rows ``widen`` (bool mask) within
+    ``[lo - s, hi + s]``, the others within ``[lo, hi]``, ``s >= 0`` (DAQP); ``y`` (m,) the multipliers of the rows
+    ``lo <= A x <= hi`` (a widened row's two sides summed), ``s`` the least slack. None when DAQP fails.
     """
     m, n = a.shape
-    single = np.count_nonzero(a, axis=1) == 1
-    rows, box = np.flatnonzero(~single), np.flatnonzero(single)
+    rows, other = np.flatnonzero(widen), np.flatnonzero(~widen)
     k = rows.size
-    if k == 0:
-        return None
     one = np.ones((k, 1))
     a1 = np.vstack([
         np.hstack([a[rows], -one]),  # A x - s <= hi
         np.hstack([a[rows], one]),  # A x + s >= lo
-        np.hstack([a[box], np.zeros((box.size, 1))]),
+        np.hstack([a[other], np.zeros((other.size, 1))]),
         np.hstack([np.zeros((1, n)), np.ones((1, 1))]),  # s >= 0
     ])
-    lo1 = np.concatenate([np.full(k, -np.inf), lo[rows], lo[box], [0.0]])
-    hi1 = np.concatenate([hi[rows], np.full(k, np.inf), hi[box], [np.inf]])
-    out = solve_dense_qp(np.append(np.full(n, _PHASE_ONE_PROX), 1.0), np.zeros(n + 1), a1, lo1, hi1)
-    if out.status != "optimal" or out.x[-1] <= FARKAS_MIN_EXCESS:
+    lo1 = np.concatenate([np.full(k, -np.inf), lo[rows], lo[other], [0.0]])
+    hi1 = np.concatenate([hi[rows], np.full(k, np.inf), hi[other], [np.inf]])
+    out = solve_dense_qp(np.append(p_diag, 1.0), np.append(c, 0.0), a1, lo1, hi1)
+    if out.status != "optimal":
         return None
     y = np.zeros(m)
     y[rows] = out.y[:k] + out.y[k : 2 * k]
-    y[box] = out.y[2 * k : 2 * k + box.size]
-    return y
+    y[other] = out.y[2 * k : 2 * k + other.size]
+    return y, float(out.x[-1])
 
 
 def farkas_excess(a: np.ndarray, lo: np.ndarray, hi: np.ndarray, y: np.ndarray) -> float:
