@@ -89,7 +89,8 @@ class AgentOptions(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fie
         "a regulator's move is not reversed within this unless needed [s]; 0: off"))] = 900.0
     tap_deadband_pu: Annotated[float, Meta(ge=0, le=0.02, description=(
         "estimated states: no tap moves for a violation of the tightened limits up to this [pu]; 0: off"))] = 0.004
-    # (IEEE 8500, first three days of each season: NTC 1.14-1.47x case A's, was 1.45-1.91x; docs/method.md)
+    # (IEEE 8500, first three days of each season at 52c31b0: NTC 1.15-1.46x case A's but spring 1.75x, one
+    # trajectory; docs/method.md "Tap deadband", docs/results.md)
     predict_banks: Annotated[bool, Meta(description=(
         "banks on their local control: the decision keeps them from switching because of it"))] = True
     stale_plants: Annotated[bool, Meta(description=(
