@@ -67,6 +67,7 @@ def bench_decision(
     from schemas import messages as m
     from schemas.cache import cache_root
     from schemas.devicemap import load_device_map
+    from schemas.settings import TrainingOptions
     from simulator_bridge.field import devices as dv
     from simulator_bridge.opendss.engine import FeederEngine
     from simulator_bridge.simulation.profiles import month_steps
@@ -80,8 +81,8 @@ def bench_decision(
     if not model_path.is_file():
         model_path.parent.mkdir(parents=True, exist_ok=True)
         opts = default_feature_options(dm)  # the model ``cvvc run`` trains
-        write_model(train(device_map_path, year_seed=1, cache_dir=cache / "profiles", progress=False,
-                          **opts.train_kwargs()).model, model_path)
+        write_model(train(device_map_path, TrainingOptions(features=opts), cache_dir=cache / "profiles",
+                          progress=False).model, model_path)
     model = read_model(model_path, expect_fingerprint=dm.fingerprint())
     engine = FeederEngine(dm)
     profiles = load_profiles(dm, engine, seed=2, cache_dir=cache / "profiles")

@@ -101,9 +101,9 @@ def bench_training(quick: bool) -> dict[str, TrainingBench]:
     if not quick:
         feeders.append(("ieee8500", FEEDERS / "ieee8500.toml"))
     for name, path in feeders:
-        train(path, year_seed=1, cache_dir=profiles_dir(None), progress=False)  # profiles cached: not timed
+        train(path, cache_dir=profiles_dir(None), progress=False)  # profiles cached: not timed
         t0 = time.perf_counter()
-        result = train(path, year_seed=1, cache_dir=profiles_dir(None), progress=False)
+        result = train(path, cache_dir=profiles_dir(None), progress=False)
         out[name] = TrainingBench(wall_s=round(time.perf_counter() - t0, 2), scenarios=result.summary.scenarios,
                                   power_flows=result.summary.power_flows,
                                   critical_nodes=result.summary.critical_nodes,

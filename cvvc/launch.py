@@ -235,14 +235,15 @@ def train_model(dm_path: Path, model_path: Path, *, train_seed: int, cache: Path
     """
     from regression.model import write_model
     from schemas.devicemap import load_device_map
+    from schemas.settings import TrainingOptions
     from training.extended import default_feature_options
     from training.train import train
 
     dm = load_device_map(dm_path)
     _log(f"training a model for {dm.feeder.name} (year seed {train_seed}) into {model_path}")
     t0 = time.monotonic()
-    result = train(dm_path, year_seed=train_seed, selection="guided", cache_dir=cache / "profiles",
-                   progress=progress, **default_feature_options(dm).train_kwargs())
+    options = TrainingOptions(year_seed=train_seed, features=default_feature_options(dm))
+    result = train(dm_path, options, cache_dir=cache / "profiles", progress=progress)
     model_path.parent.mkdir(parents=True, exist_ok=True)
     tmp = model_path.with_name(model_path.name + ".tmp")
     write_model(result.model, tmp)

@@ -29,6 +29,7 @@ import numpy as np
 from msgspec import Meta
 
 from regression.errors import ModelError
+from schemas.settings import FeatureSet
 
 __all__ = [
     "MODEL_FORMAT_VERSION",
@@ -71,7 +72,6 @@ NodeKind = Literal["head", "reg_primary", "reg_secondary", "pv", "extreme", "nea
 #: training taps and banks (beyond the paper, docs/method.md).
 #: ``extended_readings``: ``extended`` plus the field devices' voltage readings (regulator secondaries, capacitor
 #: buses) as regressors: measured fragile, a reading outside its training range extrapolates badly.
-FeatureSet = Literal["paper", "extended", "extended_readings"]
 
 
 class CriticalNode(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):

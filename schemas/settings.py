@@ -12,6 +12,9 @@ description). Its sections::
     [output]              # OutputSection: the run's folder, recording and baseline
     [security]            # SecuritySection: mTLS and the access policy, the certificate authority
 
+``TrainingOptions`` (with its ``FeatureOptions``) is what ``cvvc train`` and ``training.train.train`` train with;
+a run trains its model with the defaults and the feeder's feature options (``training.extended``).
+
 ``AgentSettings`` (what the agent process decides with, recorded with every session) is ``AgentOptions`` plus what
 the case and the feeder fix (feeder id, mode, correction, full visibility, AMI meters); ``CvvcController``'s keyword
 defaults, ``cvvc run``'s flags, ``RunConfig`` and the bridge's realism defaults all read their defaults from here.
@@ -27,14 +30,17 @@ from msgspec import Meta
 
 from schemas.devicemap import MeterSpec
 
-__all__ = ["CASES", "PAPER_AGENT", "SECTIONS", "AgentOptions", "AgentSettings", "BridgeSection", "Case",
-           "FeederSection", "FieldProtocol", "OutputSection", "PvProtocol", "RunCase", "SecuritySection",
-           "WindowSection"]
+__all__ = ["CASES", "DEFAULT_COMBINED_PCT", "DEFAULT_Q_STEPS_PCT", "PAPER_AGENT", "SECTIONS", "AgentOptions",
+           "AgentSettings", "BridgeSection", "Case", "FeatureOptions", "FeatureSet", "FeederSection", "FieldProtocol",
+           "OutputSection", "PvProtocol", "RunCase", "SecuritySection", "TrainingOptions", "WindowSection"]
 
 Case = Literal["A", "B", "C", "D", "none", "local"]
 CASES: tuple[Case, ...] = ("A", "B", "C", "D", "none", "local")
 PvProtocol = Literal["bus", "sunspec"]
 FieldProtocol = Literal["bus", "dnp3"]
+FeatureSet = Literal["paper", "extended", "extended_readings"]
+DEFAULT_Q_STEPS_PCT: tuple[float, ...] = tuple(float(p) for p in range(-100, 101, 20))
+DEFAULT_COMBINED_PCT: tuple[float, ...] = (-100.0, -50.0, 50.0, 100.0)
 
 class AgentOptions(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
     """The agent's decision settings (docs/agent.md); the case sets the mode and the correction."""
@@ -201,3 +207,47 @@ class RunCase(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=T
 
 #: The sections of ``RunCase`` in the order a case file lists them.
 SECTIONS: tuple[str, ...] = ("feeder", "window", "agent", "bridge", "output", "security")
+
+
+class FeatureOptions(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """The feature set of a model and its companions (docs/method.md "Extended features"; ``training.extended``
+    names the paper's and the extended choice and picks one per feeder).
+    """
+
+    feature_set: Annotated[FeatureSet, Meta(description=(
+        "paper: eq. (5) on head and plant P, Q; extended: plus the banks' state term, features mapped back to the "
+        "training taps and banks; extended_readings: plus the field devices' voltage readings as regressors"))] = (
+        "paper")
+    calendar: Annotated[bool, Meta(description=(
+        "extended sets only: time of day and day of year among the features"))] = False
+    critical_margin_pu: Annotated[float, Meta(ge=0, description=(
+        "> 0: the nodes within this of each flow's extremes covered by the critical nodes; 0: the paper's "
+        "extremes only [pu]"))] = 0.0
+    calendar_cover_per_cell: Annotated[int, Meta(ge=0, description=(
+        "beyond the guided scenarios, this many minutes of every (month, local hour) cell, one base flow each"))] = 0
+    calendar_seasonal: Annotated[int, Meta(ge=0, le=2, description=(
+        "with calendar: the first 1 or 2 daily harmonics times the yearly one; 0: none"))] = 0
+    calendar_weekly: Annotated[bool, Meta(description="with calendar: the weekend and its daily shape")] = False
+
+
+class TrainingOptions(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """What a model is trained with (paper II.A-II.D; ``training.train.train``); the model records them."""
+
+    year_seed: Annotated[int, Meta(description="seed of the training year's profiles")] = 1
+    selection: Annotated[Literal["guided", "random"], Meta(description=(
+        "guided (paper II.A) or random (6 random minutes per block, the paper's Fig. 8a)"))] = "guided"
+    blocks: Annotated[tuple[int, int], Meta(description="bins on the (load, PV) axes")] = (5, 5)
+    q_steps_pct: Annotated[tuple[float, ...], Meta(description=(
+        "PV Q steps (Algorithm 1 line 9) [% of kVA]"))] = DEFAULT_Q_STEPS_PCT
+    combined_pct: Annotated[tuple[float, ...], Meta(description=(
+        "extra flows with all plants at this share of their headroom at once; empty: none [%]"))] = (
+        DEFAULT_COMBINED_PCT)
+    tolerance: Annotated[float, Meta(gt=0, description=(
+        "OpenDSS solve tolerance of the training flows (finite differences need 1e-8)"))] = 1e-8
+    rcond: Annotated[float, Meta(gt=0, description="truncation of the eq. (5) least squares")] = 1e-6
+    calibration_minutes: Annotated[int, Meta(ge=0, description=(
+        "held-out minutes of the training year the estimate bounds are calibrated on; 0: no bounds (the "
+        "paper's)"))] = 1440
+    bound_alpha: Annotated[float, Meta(gt=0, lt=1, description=(
+        "miscoverage of the calibrated two-sided bounds (0.01: the true voltage within them in 99 %)"))] = 0.01
+    features: FeatureOptions = msgspec.field(default_factory=FeatureOptions)

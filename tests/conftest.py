@@ -99,10 +99,11 @@ def shared_feeders() -> Path:
 def ieee13_model(tmp_path_factory) -> Path:
     """A model trained on IEEE 13 (real OpenDSS power flows, ~4 s), once per test session."""
     from regression.model import write_model
+    from schemas.settings import TrainingOptions
     from training.train import train
 
     out = tmp_path_factory.mktemp("ieee13-model") / "model.json"
-    result = train(REPO / "feeders" / "ieee13.toml", year_seed=1, blocks=(3, 3),
+    result = train(REPO / "feeders" / "ieee13.toml", TrainingOptions(blocks=(3, 3)),
                    cache_dir=tmp_path_factory.getbasetemp() / "profiles", progress=False)
     write_model(result.model, out)
     return out

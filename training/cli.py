@@ -20,11 +20,14 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from schemas.cache import CACHE_HELP
+from schemas.settings import TrainingOptions
 
 if TYPE_CHECKING:
-    from training.extended import FeatureOptions
+    from schemas.settings import FeatureOptions
 
 __all__ = ["register", "register_accuracy"]
+
+_DEFAULT = TrainingOptions()
 
 
 def _feeder_path(feeder: str | None, cache: str | None) -> Path:
@@ -40,12 +43,26 @@ def _feeder_path(feeder: str | None, cache: str | None) -> Path:
 def _feature_options(args: argparse.Namespace, device_map_path: Path) -> FeatureOptions:
     """The feature options of ``--features`` (``auto``: ``training.extended.default_feature_options``)."""
     from schemas.devicemap import load_device_map
-    from training.extended import FeatureOptions, default_feature_options
+    from schemas.settings import FeatureOptions
+    from training.extended import default_feature_options
 
     if args.features == "auto":
         return default_feature_options(load_device_map(device_map_path))
-    return FeatureOptions(args.features, args.calendar, args.critical_margin_pu, args.calendar_cover, args.seasonal,
-                          args.weekly)
+    return FeatureOptions(feature_set=args.features, calendar=args.calendar,
+                          critical_margin_pu=args.critical_margin_pu, calendar_cover_per_cell=args.calendar_cover,
+                          calendar_seasonal=args.seasonal, calendar_weekly=args.weekly)
+
+
+def _training_options(args: argparse.Namespace, device_map_path: Path) -> TrainingOptions:
+    """What ``cvvc train``'s flags ask for (their defaults are ``TrainingOptions``')."""
+    return TrainingOptions(
+        year_seed=args.year_seed,
+        selection=args.selection,
+        blocks=(args.blocks[0], args.blocks[1]),
+        combined_pct=() if args.no_combined else _DEFAULT.combined_pct,
+        calibration_minutes=args.calibration_minutes,
+        features=_feature_options(args, device_map_path),
+    )
 
 
 def _train(args: argparse.Namespace) -> int:
@@ -53,22 +70,11 @@ def _train(args: argparse.Namespace) -> int:
 
     from regression.model import write_model
     from schemas.cache import profiles_dir
-    from training.train import DEFAULT_COMBINED_PCT, train
+    from training.train import train
 
     path = _feeder_path(args.feeder, args.cache)
-    options = _feature_options(args, path)
-    result = train(
-        path,
-        year_seed=args.year_seed,
-        cache_dir=profiles_dir(args.cache),
-        selection=args.selection,
-        blocks=(args.blocks[0], args.blocks[1]),
-        workers=args.workers,
-        combined_pct=() if args.no_combined else DEFAULT_COMBINED_PCT,
-        progress=not (args.json or args.quiet),
-        calibration_minutes=args.calibration_minutes,
-        **options.train_kwargs(),
-    )
+    result = train(path, _training_options(args, path), cache_dir=profiles_dir(args.cache), workers=args.workers,
+                   progress=not (args.json or args.quiet))
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     write_model(result.model, out)
@@ -160,14 +166,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser("train", help="train the estimator of a feeder (scenarios, power flows, fits)")
     p.add_argument("--feeder", help="device map TOML or folder with devicemap.toml (default: rural feeder)")
     p.add_argument("--out", required=True, help="model file to write (JSON)")
-    p.add_argument("--year-seed", type=int, default=1, help="seed of the training year (default 1)")
-    p.add_argument("--selection", choices=("guided", "random"), default="guided", help="scenario selection")
-    p.add_argument(
-        "--blocks", type=int, nargs=2, default=(5, 5), metavar=("NL", "NPV"), help="load x PV blocks (default 5 5)"
-    )
+    p.add_argument("--year-seed", type=int, default=_DEFAULT.year_seed,
+                   help=f"seed of the training year (default {_DEFAULT.year_seed})")
+    p.add_argument("--selection", choices=("guided", "random"), default=_DEFAULT.selection, help="scenario selection")
+    p.add_argument("--blocks", type=int, nargs=2, default=_DEFAULT.blocks, metavar=("NL", "NPV"),
+                   help="load x PV blocks (default {} {})".format(*_DEFAULT.blocks))
     p.add_argument("--workers", type=int, default=None, help="power-flow processes (default: one per core)")
     p.add_argument("--no-combined", action="store_true", help="only the paper's one-plant-at-a-time Q perturbations")
-    p.add_argument("--calibration-minutes", type=int, default=1440,
+    p.add_argument("--calibration-minutes", type=int, default=_DEFAULT.calibration_minutes,
                    help="held-out minutes of the training year for the calibrated estimate bounds (0: none)")
     p.add_argument(
         "--features", choices=("auto", "paper", "extended", "extended_readings"), default="auto",
@@ -178,7 +184,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "extended_readings: plus the regulators' and banks' voltage readings as regressors (docs/method.md)",
     )
     p.add_argument(
-        "--critical-margin-pu", type=float, default=0.0,
+        "--critical-margin-pu", type=float, default=_DEFAULT.features.critical_margin_pu,
         help="also make critical a small cover of the nodes within this of each training flow's extremes [pu] "
         "(default 0: the paper's extremes only; ignored with --features auto)",
     )
@@ -188,11 +194,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "ignored with --features auto)",
     )
     p.add_argument(
-        "--calendar-cover", type=int, default=0, metavar="N",
+        "--calendar-cover", type=int, default=_DEFAULT.features.calendar_cover_per_cell, metavar="N",
         help="also N minutes in every (month, local hour) cell of the year, one base flow each, in eq. (5)'s fit "
         "(training.scenarios.calendar_cover; default 0: the paper's scenarios only; ignored with --features auto)",
     )
-    p.add_argument("--seasonal", type=int, nargs="?", const=1, default=0, choices=(0, 1, 2), metavar="H",
+    p.add_argument("--seasonal", type=int, nargs="?", const=1, default=_DEFAULT.features.calendar_seasonal,
+                   choices=(0, 1, 2), metavar="H",
                    help="with a calendar: also the first H (1 or 2; no value: 1) daily harmonics times the yearly one "
                    "among the features (default 0: none; ignored with --features auto)")
     p.add_argument("--weekly", action="store_true",

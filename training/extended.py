@@ -19,11 +19,12 @@ Pure functions of arrays plus one function that drives the engine for the pertur
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 
 import numpy as np
 
-from regression.model import FeatureSet, features
+from regression.model import features
+from schemas.settings import FeatureOptions
 from simulator_bridge.opendss.sensitivities import one_step_each
 
 __all__ = ["EXTENDED_OPTIONS", "PAPER_OPTIONS", "SINGLE_TAP_SHIFTS", "TAP_SHIFTS", "FeatureOptions", "Perturbations",
@@ -31,30 +32,14 @@ __all__ = ["EXTENDED_OPTIONS", "PAPER_OPTIONS", "SINGLE_TAP_SHIFTS", "TAP_SHIFTS
            "reading_matrix", "zone_extreme_cover"]
 
 
-@dataclass(frozen=True)
-class FeatureOptions:
-    """The feature set of a model and its companions (``training.train.train``'s keywords of the same names)."""
-
-    feature_set: FeatureSet
-    calendar: bool
-    critical_margin_pu: float
-    calendar_cover_per_cell: int = 0
-    calendar_seasonal: int = 0
-    calendar_weekly: bool = False
-
-    def train_kwargs(self) -> dict:
-        """These options as ``training.train.train`` keywords (the fields carry their names)."""
-        return asdict(self)
-
-
 #: The paper's method (eq. (5) on head and plant P, Q; the paper's extreme nodes).
-PAPER_OPTIONS = FeatureOptions("paper", False, 0.0)
+PAPER_OPTIONS = FeatureOptions()
 #: The extended set as measured on the real feeders (docs/method.md): banks, tap/bank mapping, calendar and the
 #: near-extreme cover at 0.001 pu; since training revision 8 the calendar cover (one minute per month and hour),
 #: the seasonal (two daily harmonics x the yearly one) and the weekly calendar terms (docs/method.md, "The deep
 #: secondaries' calendar bias").
-EXTENDED_OPTIONS = FeatureOptions("extended", True, 0.001, calendar_cover_per_cell=1, calendar_seasonal=2,
-                                  calendar_weekly=True)
+EXTENDED_OPTIONS = FeatureOptions(feature_set="extended", calendar=True, critical_margin_pu=0.001,
+                                  calendar_cover_per_cell=1, calendar_seasonal=2, calendar_weekly=True)
 
 
 def default_feature_options(device_map) -> FeatureOptions:

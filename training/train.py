@@ -10,7 +10,7 @@ import os
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Literal, NamedTuple
+from typing import NamedTuple
 
 import msgspec
 import numpy as np
@@ -27,6 +27,7 @@ from regression.model import (
     extended_feature_names,
     feature_names,
 )
+from schemas.settings import TrainingOptions
 from training.capbanks import bank_controls, bank_infos, bank_sensitivities
 from training.critical import extreme_nodes, movable_nodes, node_phase, select_critical, upstream_regulators
 from training.errors import TrainingError
@@ -57,7 +58,7 @@ from training.powerflows import (
 )
 from training.scenarios import ScenarioSet, calendar_cover, select_scenarios, summarize_year
 
-__all__ = ["DEFAULT_Q_STEPS_PCT", "TRAINING_REVISION", "TrainResult", "TrainSummary", "load_profiles", "train"]
+__all__ = ["TRAINING_REVISION", "TrainResult", "TrainSummary", "load_profiles", "train"]
 
 #: Bump when training changes what it produces, so cached models (``cvvc run``'s cache) are retrained.
 TRAINING_REVISION = 11  # 3: critical nodes in the zone, movable only; 4: model format 2; 5: bounds and banks;
@@ -69,8 +70,7 @@ TRAINING_REVISION = 11  # 3: critical nodes in the zone, movable only; 4: model 
 # 10: bounds from node-scaled scores pooled, the level set by held-out windows (training.conformal);
 # 11: the banks' VoltOverride (training.capbanks.bank_controls, override_*)
 
-DEFAULT_Q_STEPS_PCT = tuple(float(p) for p in range(-100, 101, 20))
-DEFAULT_COMBINED_PCT = (-100.0, -50.0, 50.0, 100.0)
+_DEFAULT_OPTIONS = TrainingOptions()
 _HOLDOUT_EVERY = 5  # every 5th scenario is held out to choose eq. (3)'s form and to report validation error
 
 
@@ -218,64 +218,38 @@ def _critical(engine, dm, flows: PowerFlowSet, dv_dtap_all: np.ndarray, dv_dq_al
 
 def train(
     device_map_path: str | Path,
+    options: TrainingOptions = _DEFAULT_OPTIONS,
     *,
-    year_seed: int = 1,
-    selection: Literal["guided", "random"] = "guided",
-    blocks: tuple[int, int] = (5, 5),
     workers: int | None = None,
-    q_steps_pct: tuple[float, ...] = DEFAULT_Q_STEPS_PCT,
-    combined_pct: tuple[float, ...] = DEFAULT_COMBINED_PCT,
-    tolerance: float = 1e-8,
-    rcond: float = 1e-6,
     cache_dir: str | Path | None = None,
     profiles=None,
     progress: bool = True,
-    calibration_minutes: int = 1440,
-    bound_alpha: float = 0.01,
-    feature_set: Literal["paper", "extended", "extended_readings"] = "paper",
-    critical_margin_pu: float = 0.0,
-    calendar: bool = False,
-    calendar_cover_per_cell: int = 0,
-    calendar_seasonal: int = 0,
-    calendar_weekly: bool = False,
 ) -> TrainResult:
-    """Train the estimator of one feeder (paper II.A-II.D).
+    """Train the estimator of one feeder (paper II.A-II.D) with ``options`` (``schemas.settings.TrainingOptions``:
+    every setting, its default and its meaning).
 
     Parameters
     ----------
     device_map_path : the feeder's device map TOML.
-    year_seed : seed of the training year's profiles.
-    selection : "guided" (paper II.A) or "random" (6 random minutes per block, the paper's Fig. 8a).
-    blocks : bins on the (load, PV) axes.
+    options : the training settings; the model records them (``CvvcModel.settings``, ``feature_set``).
     workers : power-flow processes; None: one per core; 1: in this process.
-    q_steps_pct : PV Q steps [% of kVA] (Algorithm 1 line 9).
-    combined_pct : extra flows with all plants at this share of their headroom at once ([] to disable).
-    tolerance : OpenDSS solve tolerance for training (1e-8: finite differences need it, trap 5).
-    rcond : truncation of the eq. (5) regression (``fits.fit_voltage_regression``).
     cache_dir : where to cache the year profiles (None: no cache; the CLI passes ``schemas.cache.profiles_dir``).
     profiles : use these ``YearProfiles`` instead of generating them (tests).
     progress : progress bar on stderr when it is a terminal.
-    calibration_minutes : held-out minutes of the training year on which the estimate bounds are calibrated
-        (``training.calibration``; 0: a model without bounds, as the paper's).
-    bound_alpha : miscoverage of the calibrated two-sided bounds (0.01: the true voltage within them in 99 %).
-    feature_set : "paper" (eq. (5) on head and plant P, Q), "extended" (plus the capacitor banks' state term,
-        features mapped back to ``tap0``/``cap0``) or "extended_readings" (plus the field devices' voltage
-        readings as regressors); ``training.extended``.
-    critical_margin_pu : > 0 adds a greedy cover of the nodes within this of each flow's extremes to the
-        critical nodes (``training.extended.near_extreme_cover``); 0: the paper's extremes only.
-    calendar : extended sets only: time of day and day of year among the features (``calendar_features``).
-    calendar_cover_per_cell : beyond the guided scenarios, this many minutes in every (month, local hour) cell
-        (``training.scenarios.calendar_cover``), each one base flow (no Q sweep) weighted in eq. (5) as a
-        guided scenario's flows together; 0: none (the paper).
-    calendar_seasonal : with ``calendar``: also the first 1 or 2 daily harmonics times the yearly one (seasonal daily
-        shapes, ``regression.model.SEASONAL_CALENDAR_FEATURES``); 0: none.
-    calendar_weekly : with ``calendar``: also the weekend and its daily shape (``WEEKLY_CALENDAR_FEATURES``).
 
     Raises
     ------
     TrainingError
         No PV plant or regulator in the map, no usable scenario, a singular regression.
     """
+    year_seed, selection, blocks = options.year_seed, options.selection, options.blocks
+    q_steps_pct, combined_pct = options.q_steps_pct, options.combined_pct
+    tolerance, rcond = options.tolerance, options.rcond
+    calibration_minutes, bound_alpha = options.calibration_minutes, options.bound_alpha
+    feature_set, calendar = options.features.feature_set, options.features.calendar
+    critical_margin_pu = options.features.critical_margin_pu
+    calendar_cover_per_cell = options.features.calendar_cover_per_cell
+    calendar_seasonal, calendar_weekly = options.features.calendar_seasonal, options.features.calendar_weekly
     from schemas.devicemap import load_device_map
     from simulator_bridge.opendss.engine import FeederEngine
     from simulator_bridge.simulation.profiles import UTC_OFFSET_H

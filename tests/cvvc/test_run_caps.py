@@ -30,11 +30,12 @@ def _cap_map(folder: Path) -> Path:
 @pytest.fixture(scope="module")
 def caps_run(tmp_path_factory, profile_cache):
     from regression.model import write_model
+    from schemas.settings import TrainingOptions
     from training.train import train
 
     work = tmp_path_factory.mktemp("caps-run")
     dm = _cap_map(work)
-    result = train(dm, year_seed=1, blocks=(3, 3), cache_dir=profile_cache, progress=False)
+    result = train(dm, TrainingOptions(blocks=(3, 3)), cache_dir=profile_cache, progress=False)
     assert [c.id for c in result.model.capacitors] == ["cap1", "cap2"]
     model = work / "model.json"
     write_model(result.model, model)

@@ -13,8 +13,7 @@ IEEE123 = REPO / "feeders" / "ieee123.toml"
 
 @pytest.fixture(scope="session")
 def trained_123(profile_cache):
+    from schemas.settings import TrainingOptions
     from training.train import train
 
-    return train(
-        IEEE123, year_seed=1, selection="guided", blocks=(3, 3), workers=1, cache_dir=profile_cache, progress=False
-    )
+    return train(IEEE123, TrainingOptions(blocks=(3, 3)), workers=1, cache_dir=profile_cache, progress=False)

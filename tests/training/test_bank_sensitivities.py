@@ -17,6 +17,7 @@ REPO = Path(__file__).resolve().parents[2]
 @pytest.fixture(scope="module")
 def banks_only(tmp_path_factory, profile_cache):
     """IEEE 13 with its two banks and one plant in the map, no regulator: banks and PV Q are the levers."""
+    from schemas.settings import TrainingOptions
     from training.train import train
 
     master = (REPO.parent / "shared" / "feeders" / "ieee13" / "IEEE13Nodeckt.dss").resolve()
@@ -26,7 +27,7 @@ def banks_only(tmp_path_factory, profile_cache):
             '[[capacitor]]\nid = "cap2"\ncapacitor = "Cap2"\n')
     path = tmp_path_factory.mktemp("capmap") / "map.toml"
     path.write_text(text)
-    return path, train(path, year_seed=1, blocks=(3, 3), cache_dir=profile_cache, progress=False).model
+    return path, train(path, TrainingOptions(blocks=(3, 3)), cache_dir=profile_cache, progress=False).model
 
 
 def test_banks_are_in_the_model_without_a_regulator(banks_only):

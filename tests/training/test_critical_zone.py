@@ -33,11 +33,12 @@ def test_movable_nodes(dv_dtap, dv_dq, kva, expected):
 def test_ltc_primary_and_other_feeders_are_never_critical_on_epri_k1(tmp_path):
     """epri-k1: the 69 kV primary of LTC t2 (trans_equiv) and the second feeder K22 lie upstream of the meter."""
     from schemas.devicemap import load_device_map
+    from schemas.settings import TrainingOptions
     from simulator_bridge.opendss.engine import FeederEngine
     from training.train import train
 
     path = REPO / "feeders" / "epri-k1.toml"
-    result = train(path, year_seed=1, blocks=(2, 2), workers=1, cache_dir=tmp_path, progress=False)
+    result = train(path, TrainingOptions(blocks=(2, 2)), workers=1, cache_dir=tmp_path, progress=False)
     names = [c.name for c in result.model.critical_nodes]
     engine = FeederEngine(load_device_map(path))
     try:

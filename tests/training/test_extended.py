@@ -12,6 +12,7 @@ import pytest
 
 from regression.batch import estimate_v_pu
 from regression.model import ModelArrays, ModelError, features, read_model, write_model
+from schemas.settings import FeatureOptions, TrainingOptions
 from tests.training.conftest import REPO
 from training.extended import device_shifted_voltages, near_extreme_cover, zone_extreme_cover
 
@@ -57,10 +58,12 @@ def ieee13_high_source(tmp_path_factory):
 def models(ieee13_caps, profile_cache):
     from training.train import train
 
-    kw = dict(year_seed=1, blocks=(3, 3), workers=1, cache_dir=profile_cache, progress=False)
-    return (train(ieee13_caps, **kw).model,
-            train(ieee13_caps, feature_set="extended", critical_margin_pu=0.002, calendar=True, **kw).model,
-            train(ieee13_caps, feature_set="extended_readings", **kw).model)
+    kw = dict(workers=1, cache_dir=profile_cache, progress=False)
+    extended = FeatureOptions(feature_set="extended", critical_margin_pu=0.002, calendar=True)
+    return (train(ieee13_caps, TrainingOptions(blocks=(3, 3)), **kw).model,
+            train(ieee13_caps, TrainingOptions(blocks=(3, 3), features=extended), **kw).model,
+            train(ieee13_caps, TrainingOptions(blocks=(3, 3), features=FeatureOptions(feature_set="extended_readings")),
+                  **kw).model)
 
 
 @pytest.fixture(scope="module")
@@ -69,8 +72,8 @@ def calendar_model(ieee13_caps, profile_cache):
     from training.extended import EXTENDED_OPTIONS
     from training.train import train
 
-    return train(ieee13_caps, year_seed=1, blocks=(3, 3), workers=1, cache_dir=profile_cache, progress=False,
-                 **EXTENDED_OPTIONS.train_kwargs()).model
+    return train(ieee13_caps, TrainingOptions(blocks=(3, 3), features=EXTENDED_OPTIONS), workers=1,
+                 cache_dir=profile_cache, progress=False).model
 
 
 def _state(path, model, *, caps, step=None):
@@ -281,7 +284,7 @@ def test_auto_features_are_the_extended_set_on_a_feeder_whose_banks_switch(ieee1
 
     from cvvc.cli import build_parser
     from schemas.devicemap import load_device_map
-    from training.cli import _feature_options
+    from training.cli import _feature_options, _training_options
     from training.extended import EXTENDED_OPTIONS, PAPER_OPTIONS, default_feature_options
 
     fixed_banks = load_device_map(ieee13_caps)  # IEEE 13's banks have no CapControl
@@ -298,6 +301,11 @@ def test_auto_features_are_the_extended_set_on_a_feeder_whose_banks_switch(ieee1
     assert _feature_options(parse(["train", "--out", "m.json"]), ieee13_caps) == PAPER_OPTIONS
     explicit = parse(["train", "--out", "m.json", "--features", "paper"])
     assert _feature_options(explicit, m1) == PAPER_OPTIONS
+    # the flags' defaults are the settings tree's: no flag trains what ``train``'s default options train
+    assert _training_options(parse(["train", "--out", "m.json"]), ieee13_caps) == TrainingOptions()
+    assert _training_options(parse(["train", "--out", "m.json"]), m1) == TrainingOptions(features=EXTENDED_OPTIONS)
+    custom = parse(["train", "--out", "m.json", "--blocks", "3", "4", "--no-combined", "--year-seed", "7"])
+    assert _training_options(custom, ieee13_caps) == TrainingOptions(year_seed=7, blocks=(3, 4), combined_pct=())
 
 
 def test_the_calendar_cover_and_the_seasonal_and_weekly_terms_enter_the_model(ieee13_caps, calendar_model, tmp_path):
