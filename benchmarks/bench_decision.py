@@ -68,6 +68,7 @@ def bench_decision(
     from schemas.cache import cache_root
     from schemas.devicemap import load_device_map
     from schemas.settings import TrainingOptions
+    from simulator_bridge.bus.dnp3_fleet import regulator_phases
     from simulator_bridge.field import devices as dv
     from simulator_bridge.opendss.engine import FeederEngine
     from simulator_bridge.simulation.profiles import month_steps
@@ -94,10 +95,13 @@ def bench_decision(
     oracle = FeederEngine(dm)
     fid = dm.feeder.name
     pvs = [dv.PvInverter(p.id, k, float(engine.pv_kva[k]), "unity_pf") for k, p in enumerate(model.pv)]
-    regs = [
-        dv.RegulatorController(r.id, i, 16, r.default_setpoint_v120, r.default_band_v120)
+    regs = [  # as the bridge's: tap range and phase from the feeder (the model lists the map's regulators)
+        dv.RegulatorController(r.id, i, int(engine.reg_tap_max[i]), r.default_setpoint_v120, r.default_band_v120)
         for i, r in enumerate(model.regulators)
     ]
+    if [r.id for r in model.regulators] != list(engine.regulator_ids):
+        raise ValueError("the model's regulators are not the feeder's, in its order: retrain the model")
+    phases = regulator_phases(engine)
     caps = [  # the model's banks report too (the aligner waits for them), on their local control
         dv.CapBankController(c.id, i, int(engine.cap_steps[i]), float(engine.cap_kvar[i]),
                              engine.cap_control_type[i])
@@ -153,7 +157,7 @@ def bench_decision(
                     reg=reg,
                     t_ns=t,
                     seq=seq,
-                    phase="a",
+                    phase=phases[r],
                     v120=float(rd.reg_v120[r]),
                     v_compared_120=float(rd.reg_v120_compared[r]),
                     tap=int(res.taps[r]),
