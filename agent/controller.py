@@ -39,7 +39,7 @@ import numpy as np
 from agent.ami import AmiReadings
 from agent.bank_rows import local_bank_rows, predicted_banks
 from agent.cvvc_qp import CvvcInputs
-from agent.decision import Decision, MeasurementSnapshot
+from agent.decision import Decision, MeasurementSnapshot, SolveRole
 from agent.errors import AgentInputError
 from agent.setpoints import expected_compared_v120, setpoint_for_tap_change
 from agent.solve import V_TOL_PU, CvvcSolution, WarmStart, solve_cvvc
@@ -284,13 +284,14 @@ class CvvcController:
         *,
         state: GridState | None = None,
         solution: CvvcSolution | None = None,
+        solves: tuple[tuple[SolveRole, CvvcSolution], ...] = (),
         estimate_s: float = 0.0,
     ) -> Decision:
         """The one constructor of a ``hold``: no commands; the state and solver figures reached, if any.
 
         ``state`` (when the grid state was built) gives the reported estimates (critical nodes only),
-        ``solution`` (when the solver ran) its iterations, status and stage times; ``t0`` is
-        ``time.perf_counter()`` at the start of the decision.
+        ``solution`` (when the solver ran) its iterations, status and stage times, ``solves`` every solve the
+        decision made; ``t0`` is ``time.perf_counter()`` at the start of the decision.
         """
         n_pv, n_reg = len(self._pv_ids), len(self._reg_ids)
         report = state is not None and state.critical
@@ -314,6 +315,7 @@ class CvvcController:
             objective=0.0,
             solver_status=solution.status if solution is not None else "not run",
             cap_command=np.zeros(len(self._cap_ids), bool),
+            solves=solves,
             timings=Timings(
                 estimate_s=float(estimate_s),
                 solve_s=sec.build_s + sec.relaxed_s if sec is not None else 0.0,
@@ -468,9 +470,11 @@ class CvvcController:
         recent = (self._last_move != 0) & (int(t_ns) - self._last_move_t_ns < self._lockout_ns)
         return recent & (self._last_move > 0), recent & (self._last_move < 0)
 
-    def tap_deadband(self, moving: CvvcSolution, held_problem: CvvcInputs, n_nodes: int) -> CvvcSolution:
-        """``moving`` (a decision that moves taps), or the decision with every tap held if that one predicts no
-        violation of the tightened limits beyond ``tap_deadband_pu`` and costs no more.
+    def tap_deadband(self, moving: CvvcSolution, held: CvvcSolution, held_problem: CvvcInputs,
+                     n_nodes: int) -> CvvcSolution:
+        """``moving`` (a decision that moves taps), or ``held`` (the same problem solved with every tap held,
+        ``held_problem``) if that one predicts no violation of the tightened limits beyond ``tap_deadband_pu`` and
+        costs no more.
 
         Beyond the paper, estimated states only (case A's voltages are the truth): a regulator's own band keeps it
         from moving for a small deviation, and so does this. The limits a decision meets are the optimization limits
@@ -481,7 +485,6 @@ class CvvcController:
         predicted bank's row (``agent.bank_rows``) may not come closer to its local control's setting than with the
         move (without that rule, the first three October days of IEEE 8500: bank switchings 118 -> 240).
         """
-        held = solve_cvvc(held_problem, warm_start=self._warm)
         if held.status != "soft" or held.cost > moving.cost:
             return moving
         over, before = violation_pu(held_problem, held.v_pred_pu), violation_pu(held_problem, moving.v_pred_pu)
@@ -675,17 +678,23 @@ class CvvcController:
                               estimate_s=t_est - t0)
         # Case A solves cold (as it always has): its rows are every live node, not the critical nodes.
         solution = solve_cvvc(inputs, warm_start=self._warm if oracle is None else None)
+        solves: list[tuple[SolveRole, CvvcSolution]] = [("main", solution)]
         if solution.status != "optimal" and any(lock.any() for lock in self.reversal_locks(int(snap.t_ns))):
             # the limits are not met with the locks: the soft form trades every lever, the reverse moves included
             # (keeping the locks there distorted every decision of a feeder always in the soft form: epri-ckt24
             # winter day, NVV 54,765 against 413)
             solution = solve_cvvc(self.relocked(inputs, "none", int(snap.t_ns)),
                                   warm_start=self._warm if oracle is None else None)
+            solves.append(("unlocked", solution))
         if oracle is None and self.tap_deadband_pu > 0 and np.any(solution.taps_new[:n_reg] != state.taps):
-            solution = self.tap_deadband(solution, self.relocked(inputs, "all", int(snap.t_ns)), state.v0_pu.shape[0])
+            held_problem = self.relocked(inputs, "all", int(snap.t_ns))
+            held = solve_cvvc(held_problem, warm_start=self._warm)
+            solves.append(("deadband", held))
+            solution = self.tap_deadband(solution, held, held_problem, state.v0_pu.shape[0])
         sec = solution.seconds
         if solution.status == "hold":
             return self._hold(snap, prefix + solution.reason, missing, t0, state=state, solution=solution,
+                              solves=tuple(solves),
                               estimate_s=t_est - t0)
         if oracle is None:
             self._warm = solution.warm_start
@@ -752,4 +761,5 @@ class CvvcController:
             v_bound_low_pu=None if applied is None else applied[0],
             v_bound_high_pu=None if applied is None else applied[1],
             out_of_envelope=outside,
+            solves=tuple(solves),
         )

@@ -13,9 +13,13 @@ from typing import Literal
 
 import numpy as np
 
+from agent.solve import CvvcSolution
 from schemas.messages import Timings
 
-__all__ = ["Decision", "MeasurementSnapshot", "decision_time_ms", "reason_kind"]
+__all__ = ["Decision", "MeasurementSnapshot", "SolveRole", "decision_time_ms", "reason_kind"]
+
+#: Why a decision solved: the decision itself, again without the tap reversal locks, or with every tap held.
+SolveRole = Literal["main", "unlocked", "deadband"]
 
 _DECIMAL = re.compile(r"\d+\.\d+")
 
@@ -113,6 +117,10 @@ class Decision:
     out_of_envelope : the features outside what training covered ("" when inside, or without bounds).
     cap_steps : (C,) int, closed steps decided for each capacitor bank, or None on hold.
     cap_command : (C,) bool, banks to command.
+    solves : every solve the decision made, by its role: ``main`` (the decision), ``unlocked`` (again without the
+        tap reversal locks, when the first is not optimal), ``deadband`` (every tap held, ``tap_deadband_pu``); what
+        the stage benchmark reads (``benchmarks.bench_stages``). Not part of ``same_content`` (their stage times
+        are wall times).
     """
 
     t_ns: int
@@ -138,11 +146,12 @@ class Decision:
     out_of_envelope: str = ""
     cap_steps: np.ndarray | None = None
     cap_command: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+    solves: tuple[tuple[SolveRole, CvvcSolution], ...] = ()
 
     def same_content(self, other: Decision) -> bool:
-        """Bit-identical in every field but ``timings`` (what replay compares)."""
+        """Bit-identical in every field but ``timings`` and ``solves`` (what replay compares)."""
         for f in fields(self):
-            if f.name == "timings":
+            if f.name in ("timings", "solves"):
                 continue
             a, b = getattr(self, f.name), getattr(other, f.name)
             if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):

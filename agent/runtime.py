@@ -38,7 +38,7 @@ from schemas import messages as m
 from schemas.logs import RateLimitedLog
 from schemas.settings import AgentSettings
 
-__all__ = ["AgentSettings", "AgentSummary", "DecisionMaker", "decide_offline", "run_agent"]
+__all__ = ["AgentSettings", "AgentSummary", "DecisionMaker", "decide_offline", "decide_offline_in_detail", "run_agent"]
 
 log = logging.getLogger(__name__)
 #: The window over which the status judges the share of refused frames [s], and the least refused to say so.
@@ -260,6 +260,13 @@ def decide_offline(model: CvvcModel, settings: AgentSettings | None,
     reader's items) or ``(key, msg)`` pairs. Steps still open at the end are decided as the live agent
     decides them after its late-frame window.
     """
+    for message, _ in decide_offline_in_detail(model, settings, frames):
+        yield message
+
+
+def decide_offline_in_detail(model: CvvcModel, settings: AgentSettings | None,
+                             frames: Iterable[Any]) -> Iterator[tuple[m.Decision, ControllerDecision]]:
+    """``decide_offline`` with each message's controller decision (its solves, ``Decision.solves``)."""
     settings = settings or AgentSettings()
     if settings.full_visibility:
         raise ValueError("case A (full visibility) needs the live bridge's oracle; it cannot be re-run offline")
@@ -268,9 +275,9 @@ def decide_offline(model: CvvcModel, settings: AgentSettings | None,
         key, msg = (item.key, item.msg) if hasattr(item, "key") else item
         if isinstance(msg, _FRAME_TYPES):
             for aligned, d in maker.on_frame(key, msg):
-                yield maker.to_message(aligned, d)
+                yield maker.to_message(aligned, d), d
     for aligned, d in maker.close_pending():
-        yield maker.to_message(aligned, d)
+        yield maker.to_message(aligned, d), d
 
 
 # ------------------------------------------------------------------------------------------- live

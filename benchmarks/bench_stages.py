@@ -4,16 +4,14 @@ The agent's decision code re-runs on the recording's frames offline (as ``cvvc r
 decisions bit for bit, checked against the recorded ones), each decision timed once, and every solve the controller
 makes within it is split into its stages (``CvvcSolution.seconds``: problem build, relaxation, rounding and the MILP
 fallback within it) and by why it was made: ``main`` (the decision), ``unlocked`` (again without the tap reversal
-locks, when the first is not optimal), ``deadband`` (taps held, ``tap_deadband_pu``). The controller calls
-``agent.controller.solve_cvvc``; for this run it is wrapped to keep each solution's stages, as
-``benchmarks.bench_decision`` does.
+locks, when the first is not optimal), ``deadband`` (taps held, ``tap_deadband_pu``): each controller decision
+lists its solves (``agent.decision.Decision.solves``).
 """
 
 from __future__ import annotations
 
 import argparse
 import os
-import time
 from pathlib import Path
 
 import msgspec
@@ -54,67 +52,41 @@ def _figures(values_s: list[float]) -> StageFigures:
 
 def bench_stages(recording: str | Path) -> StagesBench:
     """Re-run the agent on ``recording``'s frames and time every decision and its solves' stages."""
-    from agent import controller
+    from agent.runtime import AgentSettings, decide_offline_in_detail
     from recordings.info import recording_info
-    from recordings.offline import agent_decider, diff_decisions, recorded_decisions, recorded_frames, recorded_model
+    from recordings.offline import diff_decisions, recorded_decisions, recorded_frames, recorded_model
     from recordings.recorder import METADATA_NAME
     from recordings.replay import MEASUREMENT_KEYS
+    from regression.model import read_model
 
     meta = recording_info(recording).metadata.get(METADATA_NAME, {})
-    decide = agent_decider(recorded_model(recording, meta.get("model_path", "")), meta.get("agent_settings", ""))
+    model = read_model(recorded_model(recording, meta.get("model_path", "")))
+    settings_json = meta.get("agent_settings", "")
+    settings = msgspec.json.decode(settings_json, type=AgentSettings) if settings_json else AgentSettings()
     frames = list(recorded_frames(recording, MEASUREMENT_KEYS))
-    per_decision: list[dict] = []
-    solve, decide_one, deadband = (controller.solve_cvvc, controller.CvvcController.decide,
-                                   controller.CvvcController.tap_deadband)
-
-    def timed_decide(self, snap, oracle=None):  # noqa: ANN001, ANN202 (the controller's own signature)
-        per_decision.append({"calls": [], "role": "main"})
-        t0 = time.perf_counter()
-        out = decide_one(self, snap, oracle)
-        per_decision[-1]["total_s"] = time.perf_counter() - t0
-        return out
-
-    def held(self, moving, held_problem, n_nodes):  # noqa: ANN001, ANN202
-        per_decision[-1]["role"] = "deadband"
-        return deadband(self, moving, held_problem, n_nodes)
-
-    def keeping(inputs, *, warm_start=None):  # noqa: ANN001, ANN202
-        now = per_decision[-1]
-        sol = solve(inputs, warm_start=warm_start)
-        role = "deadband" if now["role"] == "deadband" else ("unlocked" if now["calls"] else "main")
-        now["calls"].append((role, sol))
-        return sol
-
-    controller.solve_cvvc = keeping
-    setattr(controller.CvvcController, "decide", timed_decide)  # noqa: B010 (a method, for this run only)
-    setattr(controller.CvvcController, "tap_deadband", held)  # noqa: B010
-    try:
-        rerun = list(decide(frames))
-    finally:
-        controller.solve_cvvc = solve
-        setattr(controller.CvvcController, "decide", decide_one)  # noqa: B010
-        setattr(controller.CvvcController, "tap_deadband", deadband)  # noqa: B010
+    pairs = list(decide_offline_in_detail(model, settings, frames))
+    rerun, per_decision = [message for message, _ in pairs], [decision for _, decision in pairs]
     diff = diff_decisions(recorded_decisions(recording), rerun)
 
     def stage(pick) -> StageFigures:  # noqa: ANN001
-        return _figures([sum(pick(role, s) for role, s in d["calls"]) for d in per_decision])
+        return _figures([sum(pick(role, s) for role, s in d.solves) for d in per_decision])
 
     stages = {
-        "decision": _figures([d["total_s"] for d in per_decision]),
+        "decision": _figures([d.timings.total_s for d in per_decision]),
         "build": stage(lambda r, s: s.seconds.build_s),
         "relaxation": stage(lambda r, s: s.seconds.relaxed_s),
         "rounding without the MILP": stage(lambda r, s: s.seconds.rounding_s - s.seconds.milp_s),
         "MILP": stage(lambda r, s: s.seconds.milp_s),
-        "outside the solves": _figures([d["total_s"] - sum(s.seconds.total_s for _, s in d["calls"])
+        "outside the solves": _figures([d.timings.total_s - sum(s.seconds.total_s for _, s in d.solves)
                                         for d in per_decision]),
     }
     for role in ("main", "unlocked", "deadband"):
         stages[f"solves: {role}"] = stage(lambda r, s, role=role: s.seconds.total_s if r == role else 0.0)
-    calls = [(r, s) for d in per_decision for r, s in d["calls"]]
+    calls = [(r, s) for d in per_decision for r, s in d.solves]
     return StagesBench(
         recording=str(recording), decisions=len(per_decision), identical_to_recorded=diff.identical,
         load_average=os.getloadavg()[0], stages=stages,
-        milp_decisions=sum(1 for d in per_decision if any(s.milp_solves for _, s in d["calls"])),
+        milp_decisions=sum(1 for d in per_decision if any(s.milp_solves for _, s in d.solves)),
         milp_solves=sum(s.milp_solves for _, s in calls), lattice_tried=sum(s.lattice_tried for _, s in calls),
         solves_by_role={role: sum(1 for r, _ in calls if r == role) for role in ("main", "unlocked", "deadband")},
     )
