@@ -619,6 +619,10 @@ def test_no_tap_moves_for_a_predicted_violation_within_the_deadband():
     assert decide(-0.032, 0.004).reg_tap.sum() >= 1
     with pytest.raises(AgentInputError, match="tap_deadband_pu"):
         paper_controller(tap_deadband_pu=-0.001)
+    # each decision lists its solves by role (what the stage benchmark reads): the held one is the deadband's
+    assert [role for role, _ in moved.solves] == ["main"]
+    assert [role for role, _ in held.solves] == ["main", "deadband"]
+    assert held.solves[1][1].cost == held.objective and held.solves[0][1].taps_new[:R].sum() == 1
 
 
 def test_noisy_readings_widen_the_bounds_from_their_window_mean_not_the_last_reading():
