@@ -95,12 +95,12 @@ def bench_decision(
     oracle = FeederEngine(dm)
     fid = dm.feeder.name
     pvs = [dv.PvInverter(p.id, k, float(engine.pv_kva[k]), "unity_pf") for k, p in enumerate(model.pv)]
-    regs = [  # as the bridge's: tap range and phase from the feeder (the model lists the map's regulators)
+    if [r.id for r in model.regulators] != list(engine.regulator_ids):
+        raise ValueError("the model's regulators are not the feeder's, in its order: retrain the model")
+    regs = [  # as the bridge's: tap range and phase from the feeder
         dv.RegulatorController(r.id, i, int(engine.reg_tap_max[i]), r.default_setpoint_v120, r.default_band_v120)
         for i, r in enumerate(model.regulators)
     ]
-    if [r.id for r in model.regulators] != list(engine.regulator_ids):
-        raise ValueError("the model's regulators are not the feeder's, in its order: retrain the model")
     phases = regulator_phases(engine)
     caps = [  # the model's banks report too (the aligner waits for them), on their local control
         dv.CapBankController(c.id, i, int(engine.cap_steps[i]), float(engine.cap_kvar[i]),

@@ -52,17 +52,15 @@ def _figures(values_s: list[float]) -> StageFigures:
 
 def bench_stages(recording: str | Path) -> StagesBench:
     """Re-run the agent on ``recording``'s frames and time every decision and its solves' stages."""
-    from agent.runtime import AgentSettings, decide_offline_in_detail
+    from agent.runtime import decide_offline_in_detail
     from recordings.info import recording_info
-    from recordings.offline import diff_decisions, recorded_decisions, recorded_frames, recorded_model
+    from recordings.offline import agent_inputs, diff_decisions, recorded_decisions, recorded_frames, recorded_model
     from recordings.recorder import METADATA_NAME
     from recordings.replay import MEASUREMENT_KEYS
-    from regression.model import read_model
 
     meta = recording_info(recording).metadata.get(METADATA_NAME, {})
-    model = read_model(recorded_model(recording, meta.get("model_path", "")))
-    settings_json = meta.get("agent_settings", "")
-    settings = msgspec.json.decode(settings_json, type=AgentSettings) if settings_json else AgentSettings()
+    model, settings = agent_inputs(recorded_model(recording, meta.get("model_path", "")),
+                                   meta.get("agent_settings", ""))
     frames = list(recorded_frames(recording, MEASUREMENT_KEYS))
     pairs = list(decide_offline_in_detail(model, settings, frames))
     rerun, per_decision = [message for message, _ in pairs], [decision for _, decision in pairs]

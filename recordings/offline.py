@@ -43,6 +43,7 @@ __all__ = [
     "DiffReport",
     "OfflineResult",
     "agent_decider",
+    "agent_inputs",
     "command_values",
     "diff_decisions",
     "recorded_decisions",
@@ -226,16 +227,15 @@ def _track_largest(largest: dict[str, CommandChange], presence: Counter[str], ol
 
 
 # ------------------------------------------------------------------------------------------ re-run
-def agent_decider(model_path: str | Path, settings_json: str = "") -> Decider:
-    """Bind ``agent.runtime.decide_offline`` to a model file and the agent settings (JSON, may be empty)."""
+def agent_inputs(model_path: str | Path, settings_json: str = "") -> tuple[Any, Any]:
+    """``(model, settings)`` of an offline re-run: the model file and the recorded agent settings (JSON, may be empty)
+    as ``agent.runtime`` reads them; a case A session (full visibility) is refused.
+    """
     try:
         from agent import runtime
     except ImportError as e:
         raise OfflineError(f"the agent runtime cannot be imported ({e}); offline re-run needs "
                            "agent.runtime.decide_offline") from e
-    decide = getattr(runtime, "decide_offline", None)
-    if decide is None:
-        raise OfflineError("agent.runtime has no decide_offline(model, settings, frames) yet")
     from regression.model import read_model
 
     model = read_model(model_path)
@@ -249,6 +249,17 @@ def agent_decider(model_path: str | Path, settings_json: str = "") -> Decider:
     if getattr(settings, "full_visibility", False):
         raise OfflineError("this session ran case A (full visibility): its decisions used the live bridge's "
                            "oracle and cannot be re-run offline")
+    return model, settings
+
+
+def agent_decider(model_path: str | Path, settings_json: str = "") -> Decider:
+    """Bind ``agent.runtime.decide_offline`` to a model file and the agent settings (JSON, may be empty)."""
+    model, settings = agent_inputs(model_path, settings_json)
+    from agent import runtime
+
+    decide = getattr(runtime, "decide_offline", None)
+    if decide is None:
+        raise OfflineError("agent.runtime has no decide_offline(model, settings, frames) yet")
 
     def run(frames: Iterable[Received]) -> Iterable[m.Decision]:
         return decide(model, settings, frames)

@@ -242,23 +242,17 @@ def train(
     TrainingError
         No PV plant or regulator in the map, no usable scenario, a singular regression.
     """
-    year_seed, selection, blocks = options.year_seed, options.selection, options.blocks
-    q_steps_pct, combined_pct = options.q_steps_pct, options.combined_pct
-    tolerance, rcond = options.tolerance, options.rcond
-    calibration_minutes, bound_alpha = options.calibration_minutes, options.bound_alpha
-    feature_set, calendar = options.features.feature_set, options.features.calendar
-    critical_margin_pu = options.features.critical_margin_pu
-    calendar_cover_per_cell = options.features.calendar_cover_per_cell
-    calendar_seasonal, calendar_weekly = options.features.calendar_seasonal, options.features.calendar_weekly
     from schemas.devicemap import load_device_map
     from simulator_bridge.opendss.engine import FeederEngine
     from simulator_bridge.simulation.profiles import UTC_OFFSET_H
 
+    o, f = options, options.features  # the run's settings and its feature set
+
     t_start = time.perf_counter()
     device_map_path = Path(device_map_path)
     dm = load_device_map(device_map_path)
-    _check_device_map(dm, feature_set)
-    engine = FeederEngine(dm, tolerance=tolerance)
+    _check_device_map(dm, f.feature_set)
+    engine = FeederEngine(dm, tolerance=o.tolerance)
     for what, d in (("load", engine.load_distance_ohm), ("PV plant", engine.pv_distance_ohm)):
         if not np.all(np.isfinite(d)):
             raise TrainingError(
@@ -266,7 +260,7 @@ def train(
                 f"{dm.feeder.source_bus!r}; check feeder.source_bus in the device map"
             )
     if profiles is None:
-        profiles = load_profiles(dm, engine, seed=year_seed, cache_dir=cache_dir)
+        profiles = load_profiles(dm, engine, seed=o.year_seed, cache_dir=cache_dir)
     if profiles.n_loads != len(engine.load_kw_nominal) or profiles.n_pv != len(engine.pv_kva):
         raise TrainingError(
             f"profiles have {profiles.n_loads} loads / {profiles.n_pv} plants, the feeder "
@@ -275,9 +269,9 @@ def train(
 
     # II.A: representative scenarios
     summary = summarize_year(profiles, engine.load_distance_ohm, engine.pv_distance_ohm)
-    scen: ScenarioSet = select_scenarios(summary, blocks=blocks, selection=selection, seed=year_seed)
+    scen: ScenarioSet = select_scenarios(summary, blocks=o.blocks, selection=o.selection, seed=o.year_seed)
     inputs = _inputs(profiles, scen.steps)
-    cover = calendar_cover(profiles.n_steps, profiles.year, per_cell=calendar_cover_per_cell, seed=year_seed,
+    cover = calendar_cover(profiles.n_steps, profiles.year, per_cell=f.calendar_cover_per_cell, seed=o.year_seed,
                            exclude=scen.steps)
     all_steps = np.concatenate([scen.steps, cover]).astype(int)
 
@@ -292,16 +286,16 @@ def train(
 
     # Algorithm 1 lines 2-6 (eq. 4), then the Q sweeps
     _, dv_dtap_all = _tap_perturbation(engine, inputs[0], tap0)
-    pert = perturb_devices(engine, inputs[0].load_kw, inputs[0].pv_kw, tap0) if feature_set != "paper" else None
+    pert = perturb_devices(engine, inputs[0].load_kw, inputs[0].pv_kw, tap0) if f.feature_set != "paper" else None
     t_pf = time.perf_counter()
     n_workers = max(1, min((os.cpu_count() or 1) if workers is None else workers, len(inputs)))
     flows = run_power_flows(
         engine,
         inputs,
         device_map_path=str(device_map_path),
-        tolerance=tolerance,
-        q_steps_pct=q_steps_pct,
-        combined_pct=combined_pct,
+        tolerance=o.tolerance,
+        q_steps_pct=o.q_steps_pct,
+        combined_pct=o.combined_pct,
         workers=n_workers,
         progress=progress,
     )
@@ -310,7 +304,7 @@ def train(
     weights = np.ones(flows.n)
     if cover.size:  # base flows only, each weighted as a guided scenario's flows together
         extra = run_power_flows(engine, _inputs(profiles, cover, len(scen.steps)), device_map_path=str(device_map_path),
-                                tolerance=tolerance, q_steps_pct=(), combined_pct=(), workers=n_workers,
+                                tolerance=o.tolerance, q_steps_pct=(), combined_pct=(), workers=n_workers,
                                 progress=progress)
         weights = np.concatenate([weights, np.full(extra.n, flows.n / np.unique(flows.scenario).size)])
         flows = replace(PowerFlowSet.concat([flows, extra]), workers=flows.workers)
@@ -320,22 +314,23 @@ def train(
     dv_dq_all = _q_sensitivities(engine, inputs[0], tap0)
     # the banks' per-step sensitivities: the extended set's perturbations have them already
     dv_dcap_all = bank_sensitivities(engine, inputs, tap0, cap0) if pert is None else pert.dv_dcap_pu
-    crit, upstream_all, phases = _critical(engine, dm, flows, dv_dtap_all, dv_dq_all, critical_margin_pu, tap0,
+    crit, upstream_all, phases = _critical(engine, dm, flows, dv_dtap_all, dv_dq_all, f.critical_margin_pu, tap0,
                                            None if pert is None else dv_dcap_all)
     nodes = crit.nodes
     pos = {int(n): i for i, n in enumerate(nodes)}
 
     # II.D: eq. (5) on the critical nodes (the target is the voltage at tap0: identity for frozen-tap flows)
     v_crit = flows.v_pu[:, nodes] - (flows.taps - tap0) @ dv_dtap_all[nodes].T
-    if calendar and feature_set == "paper":
+    if f.calendar and f.feature_set == "paper":
         raise TrainingError("calendar features belong to the extended feature sets; add --features extended")
-    cal = calendar_features(np.asarray([profiles.t_ns(int(all_steps[i])) for i in flows.scenario], np.int64),
-                            UTC_OFFSET_H, calendar_seasonal, calendar_weekly) if calendar else np.zeros((flows.n, 0))
-    ext = None if pert is None else _extended(dm, engine, flows, pert, nodes, cap0, rcond, feature_set, cal.shape[1],
-                                           float(UTC_OFFSET_H),
-                                           _CalendarTerms(seasonal=calendar_seasonal, weekly=calendar_weekly))
+    cal = (calendar_features(np.asarray([profiles.t_ns(int(all_steps[i])) for i in flows.scenario], np.int64),
+                             UTC_OFFSET_H, f.calendar_seasonal, f.calendar_weekly)
+           if f.calendar else np.zeros((flows.n, 0)))
+    ext = None if pert is None else _extended(dm, engine, flows, pert, nodes, cap0, o.rcond, f.feature_set,
+                                              cal.shape[1], float(UTC_OFFSET_H),
+                                              _CalendarTerms(seasonal=f.calendar_seasonal, weekly=f.calendar_weekly))
     x = flows.features if ext is None else np.concatenate([flows.features, cal, ext.readings], axis=1)
-    vfit, val_rmse, val_max = fit_voltages_with_holdout(flows.scenario, x, v_crit, rcond=rcond, weights=weights,
+    vfit, val_rmse, val_max = fit_voltages_with_holdout(flows.scenario, x, v_crit, rcond=o.rcond, weights=weights,
                                                         every=_HOLDOUT_EVERY)
     # eq. (3): samples from single-plant sweeps, form chosen on held-out scenarios
     samples = sensitivity_samples(flows.scenario, flows.plant, flows.pv_q_kvar, flows.q_head_kvar, v_crit)
@@ -392,21 +387,21 @@ def train(
         fingerprint=dm.fingerprint(),
         cvvc_version=__version__,
         settings=TrainingSettings(
-            year_seed=year_seed,
-            selection=selection,
-            blocks=(int(blocks[0]), int(blocks[1])),
-            q_steps_pct=list(q_steps_pct),
+            year_seed=o.year_seed,
+            selection=o.selection,
+            blocks=(int(o.blocks[0]), int(o.blocks[1])),
+            q_steps_pct=list(o.q_steps_pct),
             scenarios=len(scen.steps),
             power_flows=flows.n,
             seconds=round(seconds, 3),
-            combined_pct=list(combined_pct),
-            rcond=rcond,
-            tolerance=tolerance,
-            critical_margin_pu=critical_margin_pu,
-            calendar_cover_per_cell=calendar_cover_per_cell,
+            combined_pct=list(o.combined_pct),
+            rcond=o.rcond,
+            tolerance=o.tolerance,
+            critical_margin_pu=f.critical_margin_pu,
+            calendar_cover_per_cell=f.calendar_cover_per_cell,
         ),
         feature_names=feature_names(len(dm.pv)) if ext is None
-        else extended_feature_names(len(dm.pv), ext.names, calendar, calendar_seasonal, calendar_weekly),
+        else extended_feature_names(len(dm.pv), ext.names, f.calendar, f.calendar_seasonal, f.calendar_weekly),
         critical_nodes=crit_nodes,
         regulators=regs,
         pv=pvs,
@@ -423,21 +418,21 @@ def train(
                        ext),
     )
     t_cal = time.perf_counter()
-    if calibration_minutes > 0:
+    if o.calibration_minutes > 0:
         from training.calibration import calibrate_bounds
 
         bounds = calibrate_bounds(model, engine, profiles, training_steps=all_steps,
-                                  training_features=flows.features, minutes=calibration_minutes,
-                                  alpha=bound_alpha, progress=progress)
+                                  training_features=flows.features, minutes=o.calibration_minutes,
+                                  alpha=o.bound_alpha, progress=progress)
         model = msgspec.structs.replace(model, bounds=bounds)
     seconds_cal = time.perf_counter() - t_cal
     _check_finite(model)
     b = model.bounds
     summ = TrainSummary(
         feeder=dm.feeder.name,
-        selection=selection,
-        year_seed=year_seed,
-        blocks=(int(blocks[0]), int(blocks[1])),
+        selection=o.selection,
+        year_seed=o.year_seed,
+        blocks=(int(o.blocks[0]), int(o.blocks[1])),
         non_empty_blocks=scen.non_empty_blocks,
         scenarios=len(scen.steps),
         power_flows=flows.n,
