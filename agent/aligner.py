@@ -37,7 +37,8 @@ produce the same aligned sets. The rule, documented in docs/agent.md:
 - A device's first frame of a time stays: another frame of the same device for a time already received (e.g. one
   stamped a few seconds off the step and snapped onto it) is refused as ``duplicate``, so it never replaces it.
 - Only groups on a control step (``t_ns`` a multiple of the control period) are released as decisions to
-  make; the others only refresh the last-known state.
+  make; the others only refresh the last-known state (and are handed to the runtime's follow-ups,
+  ``take_between``).
 - Field clocks off by a little:
   a frame or scan-end marker stamped within ``clock_tolerance_ns`` of a control step is taken as that step's
   (its ``t_ns`` is set to the step's, counted in ``snapped``); before, a frame stamped 2 s off never fell on a
@@ -197,6 +198,9 @@ class FrameAligner:
         self._head_history: deque[m.HeadFrame] = deque(maxlen=_VR_HISTORY)
         self._pv_latest: dict[str, m.PvFrame] = {}
         self._newest_t_ns: int | None = None  # newest accepted frame time; None before the first
+        # groups between control steps released since take_between (bounded: an aligner nobody drains)
+        self._between: deque[AlignedFrames] = deque(maxlen=_VR_HISTORY)
+        self.between_seen = False  # whether any group between control steps was released (frames every minute)
         self._held: list[tuple[str, _Frame]] = []  # frames ahead of the clock, awaiting a second device
         n_sources = 1 + len(pv_ids) + len(regulator_ids) + len(capacitor_ids)
         self._sources_needed = min(2, n_sources)
@@ -238,6 +242,15 @@ class FrameAligner:
             return frame
         self.snapped += 1
         return msgspec.structs.replace(frame, t_ns=t_ns - off + (period if off > tol else 0))
+
+    def take_between(self) -> list[AlignedFrames]:
+        """The groups between control steps released since the last call, oldest first (no decision is made on
+        them; the runtime's follow-ups read them).
+        """
+        out = list(self._between)
+        self._between.clear()
+        self.between_seen = self.between_seen or bool(out)
+        return out
 
     def reject(self, kind: str, detail: str) -> None:
         """Count one refused input of ``kind`` (also the runtime's, e.g. an AMI reading of an unknown meter)."""
@@ -409,7 +422,9 @@ class FrameAligner:
             self._head_history.append(g.head)
         self._pv_latest.update(g.pv)
         if t_ns % self.control_period_ns:  # a minute between control steps: nobody decides on it
-            return AlignedFrames(t_ns=g.t_ns, head=g.head, pv=g.pv, vr=g.vr, missing=(), cap=g.cap)
+            between = AlignedFrames(t_ns=g.t_ns, head=g.head, pv=g.pv, vr=g.vr, missing=(), cap=g.cap)
+            self._between.append(between)
+            return between
         recent = {r: tuple(f for f in h if f.t_ns <= t_ns) for r, h in self._vr_history.items() if h}
         return AlignedFrames(t_ns=g.t_ns, head=g.head, pv=dict(g.pv), vr=dict(g.vr), missing=self._missing(g),
                              cap=dict(g.cap), vr_recent=recent, head_recent=self._head_latest,

@@ -45,6 +45,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="beyond the paper (setpoints mode): re-send the last set point unchanged when no tap change is "
                         "decided, instead of re-centring the band on the reading "
                         f"[default: {'on' if _SHIPPED.setpoint_hold else 'off'}]")
+    p.add_argument("--setpoint-recentre", choices=["on", "off"], default=None,
+                   help="beyond the paper (setpoints mode): once a regulator told to step has stepped, send its band "
+                        "again centred on its reading, at the next step; off: eq. (8) alone "
+                        f"[default: {'on' if _SHIPPED.setpoint_recentre else 'off'}]")
     p.add_argument("--control-banks", choices=["on", "off"], default=None,
                    help="beyond the paper: decide and command the capacitor banks (else they stay on their local "
                         "control) "
@@ -89,6 +93,7 @@ def settings_from_args(args: argparse.Namespace):
 
     given = {"pv_margin_window_s": args.pv_margin_window_s, "pv_margin_cap_pu": args.pv_margin_cap_pu,
              "setpoint_hold": None if args.setpoint_hold is None else args.setpoint_hold == "on",
+             "setpoint_recentre": None if args.setpoint_recentre is None else args.setpoint_recentre == "on",
              "control_banks": None if args.control_banks is None else args.control_banks == "on",
              "reading_window_s": args.reading_window_s, "reading_fit_s": args.reading_fit_s,
              "filtered_setpoints": None if args.filtered_setpoints is None else args.filtered_setpoints == "on"}

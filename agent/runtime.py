@@ -7,7 +7,8 @@ so a replay of the recorded frames reproduces the live decisions exactly.
 
 Live loop: a Zenoh callback decodes and enqueues (``schemas.bus.Inbox``); this thread takes frames from the
 queue, feeds the aligner, and on each control step publishes the commands (reliable, high priority) and
-then the ``Decision`` that lists them. An incomplete step is decided after a short wall-clock window for
+then the ``Decision`` that lists them; once the next step's frames are in, the follow-ups the decision announced
+(``DecisionMaker.take_follow_ups``). An incomplete step is decided after a short wall-clock window for
 late frames. A wall-clock watchdog publishes ``AgentStatus`` every second and says ``stale`` when no frame
 has come for ``stale_after_s``; the agent never sends commands without fresh frames.
 """
@@ -30,6 +31,8 @@ from agent.ami import REFUSED_KINDS
 from agent.controller import CvvcController
 from agent.controller import Decision as ControllerDecision
 from agent.decision import decision_time_ms, reason_kind
+from agent.errors import AgentInputError
+from agent.setpoints import recentred_setpoint
 from agent.snapshot import snapshot_from
 from agent.state import OracleSource
 from regression.model import CvvcModel
@@ -74,6 +77,18 @@ class AgentSummary(msgspec.Struct, frozen=True, kw_only=True):
     decided_after_late_window: int = 0  # live: control steps decided only once the late-frame window was over
     clock_snapped: int = 0  # frames stamped off a control step within ``clock_tolerance_s``, taken as on it
     commands_refused: dict[str, int] = {}  # by device: its 'rejected' acks to this agent's commands (taken acks only)
+    follow_ups: int = 0  # commands sent after a decision, at the next step (set points re-centred; in ``commands``)
+
+
+class _Recentre(msgspec.Struct, frozen=True):
+    """A regulator told to step by eq. (8) at ``t_ns``: what its follow-up needs."""
+
+    t_ns: int
+    cmd_id: str
+    tap_before: int
+    tap_target: int
+    action: m.SetpointAction
+    valid_until_t_ns: int
 
 
 def _round(x: float, digits: int = 9) -> float:
@@ -97,8 +112,9 @@ def _within_array(x: np.ndarray, lo: float, hi: float, digits: int) -> list:
 class DecisionMaker:
     """Frames in, decision messages out: aligner + controller + message construction. No I/O, no clock.
 
-    Command ids are ``<agent>:<step t_ns>:<device>``, the ``seq`` of every message of one decision is the
-    decision counter, and commands expire ``valid_intervals`` control periods after their step.
+    Command ids are ``<agent>:<step t_ns>:<device>`` (a follow-up's ``<agent>:<step t_ns>:<device>:recentre``, the
+    step being its decision's), the ``seq`` of every message of one decision or one batch of follow-ups is the
+    count of both so far, and commands expire ``valid_intervals`` control periods after their decision's step.
     """
 
     def __init__(self, model: CvvcModel, settings: AgentSettings) -> None:
@@ -113,7 +129,10 @@ class DecisionMaker:
         self.controller = CvvcController(model, settings, mode=settings.mode, correction=settings.correction,
                                          meters=settings.meters)
         self.oracle: OracleSource | None = None  # case A: set by the live runtime once its session is open
-        self.seq = 0
+        self.seq = 0  # decisions and batches of follow-ups sent
+        self.decisions = 0
+        self.follow_ups = 0
+        self._recentre: dict[str, _Recentre] = {}  # regulator -> its follow-up, announced by the latest decision
         self.holds = 0
         self.commands_sent = 0
         self.clamped = 0  # set points / bands brought into the regulators' accepted range
@@ -169,6 +188,8 @@ class DecisionMaker:
         """The bus message of one controller decision, with the commands it sends."""
         s = self.settings
         self.seq += 1
+        self.decisions += 1
+        self._recentre.clear()  # a new decision: the last one's follow-ups are due no more
         seq = self.seq
         t = aligned.t_ns
         valid_until = t + int(s.valid_intervals * self.period_ns)
@@ -196,6 +217,7 @@ class DecisionMaker:
                 else:
                     continue
                 commands.append(m.RegCommand(regulator_id=reg.id, action=action, **header(reg.id)))
+                self._announce(aligned, d, r, action, valid_until)
             if d.cap_steps is not None:
                 for c, bank in enumerate(self.model.capacitors):
                     if d.cap_command[c]:
@@ -234,7 +256,57 @@ class DecisionMaker:
             timings=msgspec.structs.replace(tm, align_s=align_s, total_s=tm.total_s + align_s),
             corrected=d.corrected, missing=list(aligned.missing) + [x for x in d.missing if x not in aligned.missing],
             out_of_envelope=bool(d.out_of_envelope),
+            follow_ups=[f.cmd_id for f in self._recentre.values()],
         )
+
+    def _announce(self, aligned: AlignedFrames, d: ControllerDecision, r: int,
+                  action: m.TapAction | m.SetpointAction, valid_until: int) -> None:
+        """Note regulator ``r``'s follow-up if ``d`` tells it to step by eq. (8) (``setpoint_recentre``) and the
+        frames come between control steps (there is a next step before the next decision).
+        """
+        reg_id = self.model.regulators[r].id
+        recent = aligned.vr.get(reg_id) or (aligned.vr_recent.get(reg_id) or (None,))[-1]
+        if (not self.settings.setpoint_recentre or not isinstance(action, m.SetpointAction) or d.reg_tap is None
+                or recent is None or int(d.reg_tap[r]) == recent.tap or not self.aligner.between_seen):
+            return
+        self._recentre[reg_id] = _Recentre(
+            t_ns=aligned.t_ns, cmd_id=f"{self.settings.agent_id}:{aligned.t_ns}:{reg_id}:recentre",
+            tap_before=recent.tap, tap_target=int(d.reg_tap[r]), action=action, valid_until_t_ns=valid_until)
+
+    def take_follow_ups(self) -> list[m.RegCommand]:
+        """The follow-ups due: once a step after the latest decision's is in, one command for each regulator
+        that decision told to step (``agent.setpoints.recentred_setpoint``: the band centred on the reading once
+        the regulator has stepped, else eq. (8)'s set point again), all with one new ``seq``. Call after
+        publishing the decisions of each frame taken (the live loop and ``decide_offline`` both do).
+        """
+        between = self.aligner.take_between()
+        due = [a for a in between if self._recentre and a.t_ns > next(iter(self._recentre.values())).t_ns]
+        if not due:
+            return []
+        a, s = due[0], self.settings
+        self.seq += 1
+        out = []
+        for reg_id, f in self._recentre.items():
+            frame = a.vr.get(reg_id)
+            setpoint = f.action.setpoint_v120
+            if frame is not None:
+                try:
+                    setpoint = self._clamp(recentred_setpoint(f.tap_before, f.tap_target, frame.tap,
+                                                              frame.v_compared_120, setpoint), m.SETPOINT_RANGE_V120)
+                except AgentInputError:
+                    pass  # eq. (8)'s again
+            cmd = m.RegCommand(t_ns=a.t_ns, seq=self.seq, source=s.agent_id,
+                               in_reply_to=a.head.seq if a.head is not None else 0,
+                               valid_until_t_ns=f.valid_until_t_ns, cmd_id=f.cmd_id, regulator_id=reg_id,
+                               action=m.SetpointAction(setpoint_v120=setpoint, band_v120=f.action.band_v120))
+            self._sent[cmd.cmd_id] = (reg_id, False)
+            out.append(cmd)
+        self._recentre.clear()
+        self.commands_sent += len(out)
+        self.follow_ups += len(out)
+        while len(self._sent) > SENT_COMMANDS_KEPT:
+            self._sent.popitem(last=False)
+        return out
 
 
     def _clamp(self, value: float, accepted: tuple[float, float]) -> float:
@@ -276,6 +348,7 @@ def decide_offline_in_detail(model: CvvcModel, settings: AgentSettings | None,
         if isinstance(msg, _FRAME_TYPES):
             for aligned, d in maker.on_frame(key, msg):
                 yield maker.to_message(aligned, d), d
+            maker.take_follow_ups()  # as the live loop does (their seq counts)
     for aligned, d in maker.close_pending():
         yield maker.to_message(aligned, d), d
 
@@ -317,6 +390,9 @@ def run_agent(model: CvvcModel, settings: AgentSettings, bus, *, stop: threading
             cmd_pubs[r.id] = TypedPublisher(session, keys.cmd(f, "vr", r.id), m.RegCommand, **batched)
         for c in model.capacitors:
             cmd_pubs[c.id] = TypedPublisher(session, keys.cmd(f, "cap", c.id), m.CapCommand, **batched)
+        # follow-ups have no decision after them to flush a batch: sent at once
+        follow_pubs = {r.id: TypedPublisher(session, keys.cmd(f, "vr", r.id), m.RegCommand, reliable=True)
+                       for r in model.regulators} if settings.mode == "setpoints" else {}
         if settings.full_visibility:
             maker.oracle = _Oracle(session, f, settings.oracle_timeout_s, rlog).reply
 
@@ -333,6 +409,8 @@ def run_agent(model: CvvcModel, settings: AgentSettings, bus, *, stop: threading
                 for c in msg.commands:
                     cmd_pubs[_command_device(c)].put(c)
                 decision_pub.put(msg)
+            for c in maker.take_follow_ups():
+                follow_pubs[c.regulator_id].put(c)
 
         try:
             while not stop.is_set():
@@ -375,7 +453,7 @@ def run_agent(model: CvvcModel, settings: AgentSettings, bus, *, stop: threading
                     status_pub.put(m.AgentStatus(
                         t_ns=last_frame_t_ns, seq=status_seq, source=settings.agent_id, feeder_id=f, state=state,
                         last_frame_t_ns=last_frame_t_ns, seconds_since_frame=min(since, 1e6),
-                        decisions=maker.seq, rejected=rejected, reason=(degraded or "")[:500],
+                        decisions=maker.decisions, rejected=rejected, reason=(degraded or "")[:500],
                         log_suppressed=_suppressed(rlog, inbox.rejects.log_suppressed())))
                     if state == "stale":
                         rlog.warning("stale", "no frames for %.0f s: inputs stale, sending nothing", since)
@@ -388,7 +466,7 @@ def run_agent(model: CvvcModel, settings: AgentSettings, bus, *, stop: threading
     rejected = dict(inbox.rejects.by_kind())
     for k, n in maker.aligner.rejected.items():
         rejected[k] = rejected.get(k, 0) + n
-    return AgentSummary(decisions=maker.seq, holds=maker.holds, commands=maker.commands_sent, acks=dict(acks),
+    return AgentSummary(decisions=maker.decisions, holds=maker.holds, commands=maker.commands_sent, acks=dict(acks),
                         rejected=rejected, clamped=maker.clamped,
                         log_suppressed=_suppressed(rlog, inbox.rejects.log_suppressed()),
                         soft=maker.soft, reasons=dict(maker.reasons.most_common(20)),
@@ -396,7 +474,7 @@ def run_agent(model: CvvcModel, settings: AgentSettings, bus, *, stop: threading
                         ami=dict(maker.controller.ami.counts),
                         step_ends=maker.aligner.step_ends, released_by_step_end=maker.aligner.released_by_step_end,
                         decided_after_late_window=late_decided, clock_snapped=maker.aligner.snapped,
-                        commands_refused=dict(refused_by))
+                        commands_refused=dict(refused_by), follow_ups=maker.follow_ups)
 
 
 def _suppressed(rlog: RateLimitedLog, rejects: dict[str, int]) -> dict[str, int]:

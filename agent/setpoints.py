@@ -13,6 +13,12 @@ compared reading plus the change the linear model predicts at the secondary, inc
 tap change), ``B`` the bandwidth and ``T`` the voltage of one tap step, all in volts on the 120 V base
 (0.75 V for a +/-10 %, 32-step regulator). With the desired tap applied the compared voltage is ``V_s^1``,
 which is then half a step inside the new band edge: the desired tap is the first tap inside the band.
+
+Beyond the paper, the band re-centred once the regulator has stepped (``recentred_setpoint``): landed half a step
+inside its band edge, a regulator under its own control steps again for any drift of half a step the same way
+before the next decision re-centres it (IEEE 8500, first 3 summer days, case D: 25-30 % of the downstream
+regulators' tap changes came between decisions, three in four the minute-or-more after a move of the agent, the same
+way). The agent sends the band again, centred on the regulator's reading, at the next step after a move.
 """
 
 from __future__ import annotations
@@ -21,7 +27,7 @@ import numpy as np
 
 from agent.errors import AgentInputError
 
-__all__ = ["expected_compared_v120", "setpoint_for_tap_change"]
+__all__ = ["expected_compared_v120", "recentred_setpoint", "setpoint_for_tap_change"]
 
 
 def setpoint_for_tap_change(v_s1_v120: float, d_tap: int, band_v120: float, step_v120: float) -> float:
@@ -74,3 +80,19 @@ def expected_compared_v120(
     (R,) expected compared voltage after the actions [V on 120 V base].
     """
     return np.asarray(compared_v120, float) + np.asarray(dv_secondary_pu, float) / np.asarray(pu_per_v120, float)
+
+
+def recentred_setpoint(tap_before: int, tap_target: int, tap_now: int, compared_now_v120: float,
+                       setpoint_v120: float) -> float:
+    """The set point to send a step after an eq. (8) move from ``tap_before`` towards ``tap_target``.
+
+    Once the regulator has stepped that way (``tap_now`` past ``tap_before`` towards the target, or beyond it), its
+    band is centred on its present compared reading ``compared_now_v120`` (eq. 8's no-change rule, a step later),
+    so it holds there under its own control unless the voltage drifts half a band; before it has stepped, eq.
+    (8)'s ``setpoint_v120`` is sent again unchanged (the regulator is on its way).
+    """
+    if not (np.isfinite(compared_now_v120) and np.isfinite(setpoint_v120)):
+        raise AgentInputError("the follow-up set point needs finite readings; reject the regulator frame instead")
+    direction = int(np.sign(tap_target - tap_before))
+    stepped = direction != 0 and (tap_now - tap_before) * direction > 0
+    return float(compared_now_v120) if stepped else float(setpoint_v120)

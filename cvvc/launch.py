@@ -535,7 +535,8 @@ def run(config: RunConfig) -> RunSummary:
     summary = RunSummary(
         feeder=str(dm_path), feeder_id=feeder_id, case=config.case, start=start_text, days=config.days,
         steps=steps, wall_s=round(wall_s, 2), metrics=final, baseline=baseline,
-        lockstep_misses=bridge_summary.lockstep_misses,
+        lockstep_misses=bridge_summary.lockstep_misses, follow_up_misses=bridge_summary.follow_up_misses,
+        follow_ups=agent_summary.follow_ups if agent_summary else 0,
         decisions=agent_summary.decisions if agent_summary else 0, out_dir=str(out),
         recording=str(mcap_path) if config.record else None,
         model=str(kept_model) if agent_settings is not None else None,

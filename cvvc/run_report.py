@@ -67,6 +67,8 @@ def render_summary(s: RunSummary, dm: DeviceMap | None) -> str:
     lines += ["", *cost_lines(s, dm), "", f"**Verdict:** {verdict(s)}", "",
               f"- decisions: {s.decisions} (soft {s.soft}, hold {s.holds}{why}); lockstep misses: "
               f"{s.lockstep_misses}; wall time {s.wall_s:.1f} s",
+              *([f"- bands re-centred a step after a move: {s.follow_ups} (late: {s.follow_up_misses})"]
+                if s.follow_ups or s.follow_up_misses else []),
               *([f"- decision time (the agent's, per control step): {decision_time_text(s.decision_ms)}"]
                 if s.decision_ms else []),
               *([f"- {live_accuracy_text(s.live)}"] if s.live is not None and s.live.samples else []),

@@ -70,3 +70,5 @@ class RunSummary(msgspec.Struct, frozen=True, kw_only=True):
     case_file: str | None = None  # the case file the run was read from (``cvvc run case.toml``)
     settings: RunCase | None = None  # the resolved case: every setting of the run, file and flags applied
     integrity: RunIntegrity = RunIntegrity()  # what was refused, missed or overwritten; whether control was lost
+    follow_ups: int = 0  # commands sent a step after their decision (re-centred bands, ``Decision.follow_ups``)
+    follow_up_misses: int = 0  # lockstep: steps whose announced follow-ups did not all reach the devices in time

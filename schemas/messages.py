@@ -334,6 +334,9 @@ class Decision(Message, frozen=True, kw_only=True, forbid_unknown_fields=True):
     corrected: bool = False
     missing: Annotated[list[Ident], Meta(max_length=3 * MAX_DEVICES + 1)] = []  # frames missing, stale or invalid
     out_of_envelope: bool = False  # the inputs left what training covered: bounds widened (``reason`` says which)
+    # commands (their cmd_id) the agent sends once the next step's frames are in: set points mode, the band of a
+    # regulator told to step re-centred on its new reading (agent.setpoints.recentred_setpoint); lockstep waits
+    follow_ups: Annotated[list[Annotated[str, Meta(max_length=96)]], Meta(max_length=MAX_DEVICES)] = []
 
 
 class AgentStatus(Message, frozen=True, kw_only=True, forbid_unknown_fields=True):

@@ -97,6 +97,8 @@ class AgentOptions(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fie
         "estimated states: no tap moves for a violation of the tightened limits up to this [pu]; 0: off"))] = 0.004
     # (IEEE 8500, first three days of each season at 52c31b0: NTC 1.15-1.46x case A's but spring 1.75x, one
     # trajectory; docs/method.md "Tap deadband", docs/results.md)
+    setpoint_recentre: Annotated[bool, Meta(description=(
+        "cases C/D: a regulator told to step by eq. (8) gets its band centred on its next step's reading"))] = True
     predict_banks: Annotated[bool, Meta(description=(
         "banks on their local control: the decision keeps them from switching because of it"))] = True
     stale_plants: Annotated[bool, Meta(description=(
@@ -108,7 +110,7 @@ class AgentOptions(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fie
 PAPER_AGENT = AgentOptions(pv_margin_window_s=0.0, correction_window_s=0.0, filtered_setpoints=False,
                            sensitivity_error=0.0, bounds_in_margin=False, bounds_cover_filter=False,
                            tap_reversal_lockout_s=0.0, tap_deadband_pu=0.0, predict_banks=False,
-                           stale_plants=False, soft_precision=False)
+                           stale_plants=False, soft_precision=False, setpoint_recentre=False)
 
 
 class AgentSettings(AgentOptions, frozen=True, kw_only=True, forbid_unknown_fields=True):

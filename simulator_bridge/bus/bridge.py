@@ -18,7 +18,10 @@ in ``qsts.py`` / ``engine.py``. ``docs/bridge.md`` is the user's guide; in short
   the agent's :class:`Decision` for that step has arrived *and* every command it lists (by ``cmd_id``)
   has been handled by its device, or until ``timeout_s`` of wall time (a *miss*: counted, logged,
   published in ``BridgeStatus``; the run goes on with what the devices have). With no agent liveliness
-  token alive, the bridge does not wait (counted as ``lockstep_skipped``).
+  token alive, the bridge does not wait (counted as ``lockstep_skipped``). A decision may announce follow-up
+  commands (``Decision.follow_ups``, by ``cmd_id``) for the step after its own: once that step's frames are out,
+  the bridge waits for them the same way (a miss counted in ``follow_up_misses``), so a run in lockstep applies
+  them at the same step every time.
 * **Real time**: step ``i`` is simulated at ``t0 + i · step_s / speed`` of wall time; the bridge never
   waits for anyone, it serves commands and oracle queries while it waits for the next tick.
 * **Publishing** (``simulator_bridge.bus.publishing``): a step's device frames, metrics update and truth frame,
@@ -119,6 +122,7 @@ class BridgeSummary(msgspec.Struct, frozen=True, kw_only=True):
     sunspec_frame_misses: int = 0  # steps some SunSpec adapter's frame did not come within the time-out
     sunspec_foreign_master_writes: dict[str, int] = {}  # Modbus writes an inverter refused: not its adapter's, by plant
     dnp3_frame_misses: int = 0  # steps some DNP3 adapter's frame did not come within the time-out
+    follow_up_misses: int = 0  # lockstep: steps whose announced follow-up commands did not all come in the time-out
     live_accuracy: LiveAccuracy | None = None  # the agent's estimates against the truth of their step
 
 
@@ -240,6 +244,10 @@ def _loop(rt: BridgeRuntime, stop: threading.Event, on_ready: Callable[[], None]
         res = rt.step()
         if rt.frames is not None:
             rt.await_adapter_frames(int(res.t_ns), stop)
+        if c.clock == "lockstep" and (follow_ups := rt.follow_ups_due(int(res.t_ns))):
+            t_wait = time.monotonic()
+            _await_follow_ups(rt, int(res.t_ns), follow_ups, stop)
+            rt.decision_wait_s += time.monotonic() - t_wait
         if rt.is_control_step(res.step):
             rt.control_steps += 1
             if c.clock == "lockstep":
@@ -283,6 +291,7 @@ def _loop(rt: BridgeRuntime, stop: threading.Event, on_ready: Callable[[], None]
         sunspec_frame_misses=rt.frames.misses["sunspec"] if rt.frames is not None else 0,
         sunspec_foreign_master_writes=rt.fleet.foreign_master_writes() if rt.fleet is not None else {},
         dnp3_frame_misses=rt.frames.misses["dnp3"] if rt.frames is not None else 0,
+        follow_up_misses=rt.follow_up_misses,
         live_accuracy=rt.live.result() if rt.decisions else None)
 
 
@@ -308,6 +317,21 @@ def _startup(rt: BridgeRuntime, stop: threading.Event) -> None:
             rt.child.wait_matched(timeout_s)
         elif rt.framer is not None:
             rt.framer.pub_head.wait_matched(timeout_s)
+
+
+def _await_follow_ups(rt: BridgeRuntime, t_ns: int, cmd_ids: tuple[str, ...], stop: threading.Event) -> None:
+    """Lockstep: wait (serving the queue) for the follow-up commands the last decision announced, sent once the
+    frames of step ``t_ns`` (the next) are in; a miss is counted (``follow_up_misses``) and the run goes on.
+    """
+    rt.serve(time.monotonic() + rt.config.latency_s + 1.0, stop, lambda: rt.held() == 0)
+    if not rt.agent_alive:
+        return
+    if not rt.serve(time.monotonic() + rt.config.timeout_s, stop, lambda: all(rt.bank.handled(c) for c in cmd_ids)):
+        if stop.is_set():
+            return
+        rt.follow_up_misses += 1
+        rt.counters.rlog.warning("follow_up_miss", "lockstep: follow-ups announced for t_ns=%d not all in within "
+                                 "%.3f s (%d misses so far)", t_ns, rt.config.timeout_s, rt.follow_up_misses)
 
 
 def _await_decision(rt: BridgeRuntime, t_ns: int, stop: threading.Event) -> None:

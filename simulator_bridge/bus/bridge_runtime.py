@@ -191,6 +191,10 @@ class BridgeRuntime:
         self.decision_wait_s = 0.0  # stepping thread's waits for decisions on control steps [s]
         self.logged_no_agent = False  # the lockstep said once that it steps without an agent
         self.decision: m.Decision | None = None  # the last decision received
+        # the follow-up commands (cmd_id) the last decision announced for the step after its own; lockstep waits for
+        # them once that step's frames are out
+        self.follow_ups: tuple[int, tuple[str, ...]] = (0, ())
+        self.follow_up_misses = 0
         # the agent's estimates judged against the truth of their step (control steps' voltages kept until then)
         self.live = LiveAccuracyAccumulator(engine.node_names, zone_phase_nodes(engine))
         self._control_truth: dict[int, np.ndarray] = {}
@@ -343,11 +347,20 @@ class BridgeRuntime:
         if pub is not None:
             self.round_trips.append((recv_wall_ns - pub) / _NS)
         self.decision = d
+        self.follow_ups = (d.step_t_ns, tuple(d.follow_ups))
         truth = self._control_truth.pop(d.step_t_ns, None)
         if truth is not None and d.estimates:
             est = d.estimates
             self.live.add([e.node for e in est], np.array([e.v_pu for e in est]),
                           np.array([e.bound_low_pu for e in est]), np.array([e.bound_high_pu for e in est]), truth)
+
+    def follow_ups_due(self, t_ns: int) -> tuple[str, ...]:
+        """The follow-ups to wait for after step ``t_ns`` (the first step after their decision's), and forget them."""
+        after, ids = self.follow_ups
+        if not ids or t_ns <= after:
+            return ()
+        self.follow_ups = (0, ())
+        return ids
 
     def decided(self, t_ns: int) -> bool:
         """Whether the decision of step ``t_ns`` arrived and every command it lists was handled."""

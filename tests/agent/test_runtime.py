@@ -174,6 +174,9 @@ def test_filtered_setpoints_are_on_by_default_and_the_agent_flag_turns_them_off(
                                                 "--filtered-setpoints", "off"]))
     assert default.filtered_setpoints and AgentSettings().filtered_setpoints
     assert not off.filtered_setpoints
+    paper = settings_from_args(parser.parse_args(["agent", "--model", "-", "--feeder-id", "rural",
+                                                  "--setpoint-recentre", "off"]))
+    assert default.setpoint_recentre and not paper.setpoint_recentre
 
 
 def test_reasons_are_counted_by_kind_with_their_figures_masked():
@@ -189,3 +192,64 @@ def test_reasons_are_counted_by_kind_with_their_figures_masked():
               "soft form (eq. 17) used")
     assert reason_kind(robust) == robust[:120]  # integers (30 %, eq. 17) are part of the kind
     assert len(reason_kind("x" * 300)) == 120
+
+
+def _minute(model, maker: DecisionMaker, i: int, *, tap: int = 0, v_compared: float = 122.0):
+    """Feed minute ``i``'s frames (every regulator at ``tap``, reading ``v_compared``); the steps it completes."""
+    pairs = []
+    for key, frame in _frames(model, T0 + i * 60_000_000_000, i + 1):
+        if isinstance(frame, m.RegFrame):
+            frame = msgspec.structs.replace(frame, tap=tap, v_compared_120=v_compared)
+        pairs += maker.on_frame(key, frame)
+    return pairs
+
+
+@pytest.mark.parametrize(("tap_next", "recentred"), [(1, True), (0, False)])
+def test_a_regulator_told_to_step_gets_its_band_recentred_at_the_next_step(model, tap_next, recentred):
+    """Set points mode: a decision that tells a regulator to step announces a follow-up; once the next minute's
+    frames are in, the band is centred on the regulator's reading if it stepped (eq. 8's set point again if not),
+    with a seq between the decision's and the next decision's."""
+    import dataclasses
+
+    import numpy as np
+
+    maker = DecisionMaker(model, AgentSettings(feeder_id=FEEDER))
+    for i in range(5):
+        assert all(maker.to_message(a, d).follow_ups == [] for a, d in _minute(model, maker, i))
+        assert maker.take_follow_ups() == []
+    ((aligned, d),) = _minute(model, maker, 5)
+    n, reg = len(model.regulators), model.regulators[0].id
+    told = dataclasses.replace(d, reg_tap=np.array([2] + [0] * (n - 1)), reg_command=np.ones(n, bool))
+    msg = maker.to_message(aligned, told)
+    assert msg.follow_ups == [f"agent:{aligned.t_ns}:{reg}:recentre"]
+    eq8 = next(c.action for c in msg.commands if isinstance(c, m.RegCommand) and c.regulator_id == reg)
+    assert maker.take_follow_ups() == []  # not before the next step's frames
+    _minute(model, maker, 6, tap=tap_next, v_compared=121.3)
+    (cmd,) = maker.take_follow_ups()
+    assert cmd.cmd_id == msg.follow_ups[0] and cmd.regulator_id == reg and cmd.t_ns == T0 + 6 * 60_000_000_000
+    assert cmd.action.setpoint_v120 == (121.3 if recentred else eq8.setpoint_v120)
+    assert cmd.action.band_v120 == eq8.band_v120 and cmd.valid_until_t_ns == msg.commands[0].valid_until_t_ns
+    assert cmd.seq > msg.seq
+    assert maker.take_follow_ups() == []  # once
+    for i in range(7, 11):
+        pairs = _minute(model, maker, i, tap=tap_next)
+    ((aligned, d),) = pairs
+    assert maker.to_message(aligned, d).seq > cmd.seq and maker.decisions == 3 and maker.follow_ups == 1
+
+
+def test_no_follow_up_without_recentring_or_in_taps_mode(model):
+    import dataclasses
+
+    import numpy as np
+
+    for settings in (AgentSettings(feeder_id=FEEDER, setpoint_recentre=False),
+                     AgentSettings(feeder_id=FEEDER, mode="taps")):
+        maker = DecisionMaker(model, settings)
+        for i in range(5):
+            _minute(model, maker, i)
+        ((aligned, d),) = _minute(model, maker, 5)
+        n = len(model.regulators)
+        msg = maker.to_message(aligned, dataclasses.replace(d, reg_tap=np.array([2] + [0] * (n - 1))))
+        assert msg.follow_ups == []
+        _minute(model, maker, 6, tap=1)
+        assert maker.take_follow_ups() == []

@@ -65,9 +65,30 @@ def test_recording_holds_frames_decisions_and_acks(one_hour_run):
     assert all(d["status"] in ("optimal", "soft") for d in decisions), [d["reason"] for d in decisions]
     acks = [a for topic, msgs in rec.items() if "/ack/" in topic for a in msgs]
     commands = [c for d in decisions for c in d["commands"]]
-    assert len(acks) == len(commands) > 0
+    follow_ups = [f for d in decisions for f in d["follow_ups"]]
+    assert len(acks) == len(commands) + len(follow_ups) > 0
     assert {a["status"] for a in acks} <= {"accepted", "clipped"}
     assert summary["lockstep_misses"] == 0
+
+
+def test_follow_ups_are_applied_at_the_step_after_their_decision(one_hour_run):
+    """Every re-centred band a decision announced was sent once the next minute's frames were in, applied before
+    the minute after (lockstep waits for it), and shows in that minute's regulator frame."""
+    out, summary = one_hour_run
+    rec = messages_by_topic(Path(summary["recording"]))
+    sent = {c["cmd_id"]: c for t, msgs in rec.items() if "/cmd/vr/" in t for c in msgs}
+    frames = {(f["regulator_id"], f["t_ns"]): f for t, msgs in rec.items() if "/meas/vr/" in t for f in msgs}
+    minute = 60_000_000_000
+    checked = 0
+    for d in rec["cvvc/ieee13/agent/decision"]:
+        for cmd_id in d["follow_ups"]:
+            c = sent[cmd_id]
+            assert c["t_ns"] == d["step_t_ns"] + minute
+            after = frames.get((c["regulator_id"], c["t_ns"] + minute))
+            if after is not None:
+                assert after["setpoint_v120"] == pytest.approx(c["action"]["setpoint_v120"], abs=1e-3)
+                checked += 1
+    assert checked >= 1 and summary["follow_up_misses"] == 0
 
 
 def test_summary_metrics_equal_those_recomputed_from_the_recording(one_hour_run):

@@ -56,6 +56,10 @@ def test_the_regulators_frames_and_acks_come_from_the_adapters(dnp3_runs):
     rec = messages_by_topic(dn["recording"])
     commands = {c["cmd_id"]: c for d in rec["cvvc/ieee13/agent/decision"] for c in d["commands"]
                 if "regulator_id" in c}
+    follow_ups = {f for d in rec["cvvc/ieee13/agent/decision"] for f in d["follow_ups"]}
+    commands |= {c["cmd_id"]: c for reg in REGULATORS for c in rec[f"cvvc/ieee13/cmd/vr/{reg}"]
+                 if c["cmd_id"] in follow_ups}  # the re-centred bands, sent a step after their decision
+    assert commands and dn["follow_up_misses"] == 0
     assert dn["integrity"]["foreign_writes"] == {} and dn["integrity"]["degraded"] == ""
     for reg in REGULATORS:
         link = json.loads((out / f"adapter.{reg}-summary.json").read_text())
