@@ -18,8 +18,9 @@ from schemas.messages import Timings
 
 __all__ = ["Decision", "MeasurementSnapshot", "SolveRole", "decision_time_ms", "reason_kind"]
 
-#: Why a decision solved: the decision itself, again without the tap reversal locks, or with every tap held.
-SolveRole = Literal["main", "unlocked", "deadband"]
+#: Why a decision solved: the decision itself, again without the tap reversal locks, with every tap held, or with
+#: every tap held and the nodes' limits widened by the tap deadband (the Q of a decision whose taps the deadband held).
+SolveRole = Literal["main", "unlocked", "deadband", "tolerated"]
 
 _DECIMAL = re.compile(r"\d+\.\d+")
 

@@ -4,18 +4,21 @@ The agent's decision code re-runs on the recording's frames offline (as ``cvvc r
 decisions bit for bit, checked against the recorded ones), each decision timed once, and every solve the controller
 makes within it is split into its stages (``CvvcSolution.seconds``: problem build, relaxation, rounding and the MILP
 fallback within it) and by why it was made: ``main`` (the decision), ``unlocked`` (again without the tap reversal
-locks, when the first is not optimal), ``deadband`` (taps held, ``tap_deadband_pu``): each controller decision
-lists its solves (``agent.decision.Decision.solves``).
+locks, when the first is not optimal), ``deadband`` (taps held, ``tap_deadband_pu``) and ``tolerated`` (their Q,
+the limits widened by the deadband): each controller decision lists its solves (``agent.decision.Decision.solves``).
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+import typing
 from pathlib import Path
 
 import msgspec
 import numpy as np
+
+from agent.decision import SolveRole
 
 __all__ = ["StageFigures", "StagesBench", "bench_stages", "main"]
 
@@ -78,7 +81,7 @@ def bench_stages(recording: str | Path) -> StagesBench:
         "outside the solves": _figures([d.timings.total_s - sum(s.seconds.total_s for _, s in d.solves)
                                         for d in per_decision]),
     }
-    for role in ("main", "unlocked", "deadband"):
+    for role in typing.get_args(SolveRole):
         stages[f"solves: {role}"] = stage(lambda r, s, role=role: s.seconds.total_s if r == role else 0.0)
     calls = [(r, s) for d in per_decision for r, s in d.solves]
     return StagesBench(
@@ -86,7 +89,7 @@ def bench_stages(recording: str | Path) -> StagesBench:
         load_average=os.getloadavg()[0], stages=stages,
         milp_decisions=sum(1 for d in per_decision if any(s.milp_solves for _, s in d.solves)),
         milp_solves=sum(s.milp_solves for _, s in calls), lattice_tried=sum(s.lattice_tried for _, s in calls),
-        solves_by_role={role: sum(1 for r, _ in calls if r == role) for role in ("main", "unlocked", "deadband")},
+        solves_by_role={role: sum(1 for r, _ in calls if r == role) for role in typing.get_args(SolveRole)},
     )
 
 

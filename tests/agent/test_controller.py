@@ -619,10 +619,28 @@ def test_no_tap_moves_for_a_predicted_violation_within_the_deadband():
     assert decide(-0.032, 0.004).reg_tap.sum() >= 1
     with pytest.raises(AgentInputError, match="tap_deadband_pu"):
         paper_controller(tap_deadband_pu=-0.001)
-    # each decision lists its solves by role (what the stage benchmark reads): the held one is the deadband's
+    # each decision lists its solves by role (what the stage benchmark reads): the held one is the deadband's, the
+    # decision the one with the limits widened by the deadband
     assert [role for role, _ in moved.solves] == ["main"]
-    assert [role for role, _ in held.solves] == ["main", "deadband"]
-    assert held.solves[1][1].cost == held.objective and held.solves[0][1].taps_new[:R].sum() == 1
+    assert [role for role, _ in held.solves] == ["main", "deadband", "tolerated"]
+    assert held.solves[2][1].cost == held.objective and held.solves[0][1].taps_new[:R].sum() == 1
+
+
+def test_taps_held_by_the_deadband_buy_no_q_for_what_it_tolerates():
+    """Some Q headroom and dear taps: the held decision's soft form buys Q for the 0.003 pu the deadband tolerates;
+    the decision takes the Q of the limits widened by the deadband instead (none here), not below them."""
+    dear = msgspec.structs.replace(MODEL, regulators=[msgspec.structs.replace(r, cost_per_tap=0.5)
+                                                      for r in MODEL.regulators])
+    snap = dataclasses.replace(snapshot(0, reading_error_pu=np.full(R, -0.03)), pv_kva_available=np.full(K, 902.0))
+    d = paper_controller(dear, tap_deadband_pu=0.004).decide(snap)
+    roles = dict(d.solves)
+    assert [role for role, _ in d.solves] == ["main", "deadband", "tolerated"] and not d.reg_tap.any()
+    assert np.abs(roles["deadband"].q_new_kvar).sum() > 100.0  # the soft form's Q for 0.003 pu
+    assert np.abs(d.pv_q_kvar).sum() < 1.0 and d.status == "soft" and "widened by the deadband" in d.reason
+    lo, _ = MODEL.optimization_limits_pu
+    assert 0.001 < lo - d.v_pred_pu.min() <= 0.004 + 1e-9
+    no_tolerance = paper_controller(dear, tap_deadband_pu=0.0).decide(snap)
+    assert no_tolerance.reg_tap.sum() == 1  # without the deadband the tap moves
 
 
 def test_noisy_readings_widen_the_bounds_from_their_window_mean_not_the_last_reading():
