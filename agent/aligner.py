@@ -249,7 +249,6 @@ class FrameAligner:
         """
         out = list(self._between)
         self._between.clear()
-        self.between_seen = self.between_seen or bool(out)
         return out
 
     def reject(self, kind: str, detail: str) -> None:
@@ -424,6 +423,7 @@ class FrameAligner:
         if t_ns % self.control_period_ns:  # a minute between control steps: nobody decides on it
             between = AlignedFrames(t_ns=g.t_ns, head=g.head, pv=g.pv, vr=g.vr, missing=(), cap=g.cap)
             self._between.append(between)
+            self.between_seen = True
             return between
         recent = {r: tuple(f for f in h if f.t_ns <= t_ns) for r, h in self._vr_history.items() if h}
         return AlignedFrames(t_ns=g.t_ns, head=g.head, pv=dict(g.pv), vr=dict(g.vr), missing=self._missing(g),

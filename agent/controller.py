@@ -471,31 +471,30 @@ class CvvcController:
         return recent & (self._last_move > 0), recent & (self._last_move < 0)
 
     def tap_deadband(self, moving: CvvcSolution, held: CvvcSolution, held_problem: CvvcInputs,
-                     n_nodes: int) -> CvvcSolution:
-        """``moving`` (a decision that moves taps), or ``held`` (the same problem solved with every tap held,
-        ``held_problem``) if that one predicts no violation of the tightened limits beyond ``tap_deadband_pu`` and
-        costs no more.
+                     n_nodes: int) -> str:
+        """Why the taps are held instead of ``moving`` (a decision that moves taps), or "" if they are not: ``held``
+        (the same problem solved with every tap held, ``held_problem``) predicts no violation of the tightened limits
+        beyond ``tap_deadband_pu`` and costs no more.
 
         Beyond the paper, estimated states only (case A's voltages are the truth): a regulator's own band keeps it
         from moving for a small deviation, and so does this. The limits a decision meets are the optimization limits
         tightened by the estimate's calibrated bounds; whether a node ends a few mV/V inside or outside them moves with
         every estimate, and a tap moved for it is moved back at a later decision (IEEE 8500, first summer day: 150 of
         ~400 moves reversed within 30 minutes, the reversal locks released because the limits could not be met with
-        them). The held decision is the soft form's (eq. 17), and says so; ``decide`` then takes the Q of the same
-        problem with the nodes' limits widened by the deadband (``deadband_widened``) when those are met. The
+        them). The held decision is the soft form's (eq. 17), or the Q of the same problem with the nodes' limits
+        widened by the deadband (``deadband_widened``) when those are met (``decide``), and says so. The
         deadband is the nodes' alone: a predicted bank's row (``agent.bank_rows``) may not come closer to its local
         control's setting than with the move (without that rule, the first three October days of IEEE 8500: bank
         switchings 118 -> 240).
         """
         if held.status != "soft" or held.cost > moving.cost:
-            return moving
+            return ""
         over, before = violation_pu(held_problem, held.v_pred_pu), violation_pu(held_problem, moving.v_pred_pu)
         worst = float(over[:n_nodes].max(initial=0.0))
         if worst > self.tap_deadband_pu or np.any(over[n_nodes:] > before[n_nodes:] + V_TOL_PU):
-            return moving
-        note = (f"taps held: {worst:.4f} pu predicted beyond the tightened limits, within the tap deadband "
+            return ""
+        return (f"taps held: {worst:.4f} pu predicted beyond the tightened limits, within the tap deadband "
                 f"{self.tap_deadband_pu:g} pu")
-        return dataclasses.replace(held, reason=f"{note}; {held.reason}" if held.reason else note)
 
     def deadband_widened(self, held_problem: CvvcInputs, n_nodes: int) -> CvvcInputs:
         """``held_problem`` (taps held) with its first ``n_nodes`` rows' limits widened by ``tap_deadband_pu``.
@@ -707,15 +706,15 @@ class CvvcController:
             held_problem = self.relocked(inputs, "all", int(snap.t_ns))
             held = solve_cvvc(held_problem, warm_start=self._warm)
             solves.append(("deadband", held))
-            chosen = self.tap_deadband(solution, held, held_problem, state.v0_pu.shape[0])
-            if chosen is not solution:  # the taps held: Q only for what the deadband does not tolerate
+            note = self.tap_deadband(solution, held, held_problem, state.v0_pu.shape[0])
+            if note:  # the taps held: Q only for what the deadband does not tolerate
                 tolerated = solve_cvvc(self.deadband_widened(held_problem, state.v0_pu.shape[0]),
                                        warm_start=self._warm)
                 solves.append(("tolerated", tolerated))
-                if tolerated.status == "optimal":
-                    chosen = dataclasses.replace(tolerated, status="soft", reason=(
-                        f"{chosen.reason.split('; ')[0]}; Q for the limits widened by the deadband"))
-            solution = chosen
+                solution = (dataclasses.replace(tolerated, status="soft",
+                                                reason=f"{note}; Q for the limits widened by the deadband")
+                            if tolerated.status == "optimal" else
+                            dataclasses.replace(held, reason=f"{note}; {held.reason}" if held.reason else note))
         sec = solution.seconds
         if solution.status == "hold":
             return self._hold(snap, prefix + solution.reason, missing, t0, state=state, solution=solution,

@@ -81,9 +81,8 @@ class AgentSummary(msgspec.Struct, frozen=True, kw_only=True):
 
 
 class _Recentre(msgspec.Struct, frozen=True):
-    """A regulator told to step by eq. (8) at ``t_ns``: what its follow-up needs."""
+    """A regulator told to step by eq. (8) by the latest decision: what its follow-up needs."""
 
-    t_ns: int
     cmd_id: str
     tap_before: int
     tap_target: int
@@ -133,6 +132,7 @@ class DecisionMaker:
         self.decisions = 0
         self.follow_ups = 0
         self._recentre: dict[str, _Recentre] = {}  # regulator -> its follow-up, announced by the latest decision
+        self._decided_t_ns = -1  # the latest decision's step: follow-ups go with the first step after it
         self.holds = 0
         self.commands_sent = 0
         self.clamped = 0  # set points / bands brought into the regulators' accepted range
@@ -191,7 +191,7 @@ class DecisionMaker:
         self.decisions += 1
         self._recentre.clear()  # a new decision: the last one's follow-ups are due no more
         seq = self.seq
-        t = aligned.t_ns
+        t = self._decided_t_ns = aligned.t_ns
         valid_until = t + int(s.valid_intervals * self.period_ns)
         in_reply_to = aligned.head.seq if aligned.head is not None else 0
 
@@ -270,7 +270,7 @@ class DecisionMaker:
                 or recent is None or int(d.reg_tap[r]) == recent.tap or not self.aligner.between_seen):
             return
         self._recentre[reg_id] = _Recentre(
-            t_ns=aligned.t_ns, cmd_id=f"{self.settings.agent_id}:{aligned.t_ns}:{reg_id}:recentre",
+            cmd_id=f"{self.settings.agent_id}:{aligned.t_ns}:{reg_id}:recentre",
             tap_before=recent.tap, tap_target=int(d.reg_tap[r]), action=action, valid_until_t_ns=valid_until)
 
     def take_follow_ups(self) -> list[m.RegCommand]:
@@ -279,9 +279,8 @@ class DecisionMaker:
         the regulator has stepped, else eq. (8)'s set point again), all with one new ``seq``. Call after
         publishing the decisions of each frame taken (the live loop and ``decide_offline`` both do).
         """
-        between = self.aligner.take_between()
-        due = [a for a in between if self._recentre and a.t_ns > next(iter(self._recentre.values())).t_ns]
-        if not due:
+        due = [a for a in self.aligner.take_between() if a.t_ns > self._decided_t_ns]
+        if not due or not self._recentre:
             return []
         a, s = due[0], self.settings
         self.seq += 1

@@ -16,9 +16,9 @@ which is then half a step inside the new band edge: the desired tap is the first
 
 Beyond the paper, the band re-centred once the regulator has stepped (``recentred_setpoint``): landed half a step
 inside its band edge, a regulator under its own control steps again for any drift of half a step the same way
-before the next decision re-centres it (IEEE 8500, first 3 summer days, case D: 25-30 % of the downstream
-regulators' tap changes came between decisions, three in four the minute-or-more after a move of the agent, the same
-way). The agent sends the band again, centred on the regulator's reading, at the next step after a move.
+before the next decision re-centres it (IEEE 8500, first summer week, case D: 14-35 % of each downstream
+regulator's tap changes came between decisions, 70-94 % of those after a move of the agent in that control period,
+the same way). The agent sends the band again, centred on the regulator's reading, at the next step after a move.
 """
 
 from __future__ import annotations

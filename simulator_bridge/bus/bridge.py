@@ -319,16 +319,22 @@ def _startup(rt: BridgeRuntime, stop: threading.Event) -> None:
             rt.framer.pub_head.wait_matched(timeout_s)
 
 
+def _frames_out(rt: BridgeRuntime, stop: threading.Event) -> None:
+    """Lockstep: serve the queue until the latency line's frames are out (the agent answers only frames it has)."""
+    rt.serve(time.monotonic() + rt.config.latency_s + 1.0, stop, lambda: rt.held() == 0)
+
+
+def _answered(rt: BridgeRuntime, stop: threading.Event, done: Callable[[], bool]) -> bool:
+    """Lockstep: serve the queue until ``done()`` or the time-out; False only on a time-out (not when stopped)."""
+    return rt.serve(time.monotonic() + rt.config.timeout_s, stop, done) or stop.is_set()
+
+
 def _await_follow_ups(rt: BridgeRuntime, t_ns: int, cmd_ids: tuple[str, ...], stop: threading.Event) -> None:
     """Lockstep: wait (serving the queue) for the follow-up commands the last decision announced, sent once the
     frames of step ``t_ns`` (the next) are in; a miss is counted (``follow_up_misses``) and the run goes on.
     """
-    rt.serve(time.monotonic() + rt.config.latency_s + 1.0, stop, lambda: rt.held() == 0)
-    if not rt.agent_alive:
-        return
-    if not rt.serve(time.monotonic() + rt.config.timeout_s, stop, lambda: all(rt.bank.handled(c) for c in cmd_ids)):
-        if stop.is_set():
-            return
+    _frames_out(rt, stop)
+    if rt.agent_alive and not _answered(rt, stop, lambda: all(rt.bank.handled(c) for c in cmd_ids)):
         rt.follow_up_misses += 1
         rt.counters.rlog.warning("follow_up_miss", "lockstep: follow-ups announced for t_ns=%d not all in within "
                                  "%.3f s (%d misses so far)", t_ns, rt.config.timeout_s, rt.follow_up_misses)
@@ -336,8 +342,7 @@ def _await_follow_ups(rt: BridgeRuntime, t_ns: int, cmd_ids: tuple[str, ...], st
 
 def _await_decision(rt: BridgeRuntime, t_ns: int, stop: threading.Event) -> None:
     """Lockstep: wait (serving the queue) for the decision of step ``t_ns`` and its commands."""
-    # frames held by the latency line must be out before the agent can answer them
-    rt.serve(time.monotonic() + rt.config.latency_s + 1.0, stop, lambda: rt.held() == 0)
+    _frames_out(rt, stop)
     if not rt.agent_alive:
         rt.skipped += 1
         if not rt.logged_no_agent:
@@ -347,9 +352,7 @@ def _await_decision(rt: BridgeRuntime, t_ns: int, stop: threading.Event) -> None
         return
     rt.logged_no_agent = False
     rt.qsts.stage_loads()  # the next step's loads do not depend on the decision: set them while it comes
-    if not rt.serve(time.monotonic() + rt.config.timeout_s, stop, lambda: rt.decided(t_ns)):
-        if stop.is_set():
-            return
+    if not _answered(rt, stop, lambda: rt.decided(t_ns)):
         rt.misses += 1
         d = rt.decision
         why = ("no decision" if d is None or d.step_t_ns != t_ns
