@@ -596,6 +596,8 @@ class CvvcController:
         taps_now = np.asarray(inputs.taps[:n_reg], int)
         if locks == "reversals":
             no_down, no_up = self.reversal_locks(t_ns)
+            if not (no_down.any() or no_up.any()):
+                return inputs  # no lock in force: the problem's own tap ranges (no copy to check again)
         else:
             no_down = no_up = np.full(n_reg, locks == "all")
         tap_min, tap_max = np.array(inputs.tap_min), np.array(inputs.tap_max)

@@ -72,13 +72,20 @@ DENSE_LIMIT = 2_000_000
 
 
 def _vec(name: str, value, n: int, dtype=float) -> np.ndarray:
+    # (array methods, not np.all / np.any: a problem is built several times a decision, this is on its hot path)
+    if dtype is int and isinstance(value, np.ndarray) and value.dtype.kind in "iu":
+        a = value.astype(int)  # integers already (the controller's taps): a copy, nothing to check but the shape
+        if a.shape != (n,):
+            raise AgentInputError(f"CvvcInputs.{name} has shape {a.shape}, expected ({n},)")
+        a.flags.writeable = False
+        return a
     a = np.array(value, dtype=float)
     if a.shape != (n,):
         raise AgentInputError(f"CvvcInputs.{name} has shape {a.shape}, expected ({n},)")
-    if not np.all(np.isfinite(a)):
+    if not np.isfinite(a).all():
         raise AgentInputError(f"CvvcInputs.{name} is not finite: reject the measurement that produced it")
     if dtype is int:
-        if not np.all(a == np.round(a)):
+        if not (a == np.round(a)).all():
             raise AgentInputError(f"CvvcInputs.{name} must hold integers, got {a}")
         a = a.astype(int)
     a.flags.writeable = False
@@ -89,7 +96,7 @@ def _mat(name: str, value, shape: tuple[int, int]) -> np.ndarray:
     a = np.array(value, dtype=float).reshape(shape) if np.size(value) == shape[0] * shape[1] else None
     if a is None:
         raise AgentInputError(f"CvvcInputs.{name} has {np.size(value)} entries, expected shape {shape}")
-    if not np.all(np.isfinite(a)):
+    if not np.isfinite(a).all():
         raise AgentInputError(f"CvvcInputs.{name} is not finite: check the model's sensitivity fits")
     a.flags.writeable = False
     return a
@@ -158,25 +165,28 @@ class CvvcInputs:
             put(self, name, _vec(name, getattr(self, name), r, int))
         put(self, "cost_per_tap", _vec("cost_per_tap", self.cost_per_tap, r))
         for name in ("v_min_pu", "v_max_pu"):
-            put(self, name, _vec(name, np.broadcast_to(np.asarray(getattr(self, name), float), (n,)), n))
+            value = getattr(self, name)
+            if np.shape(value) != (n,):  # one limit for every node (or any shape that broadcasts to them)
+                value = np.broadcast_to(np.asarray(value, float), (n,))
+            put(self, name, _vec(name, value, n))
         if self.soft_weight is not None:
             put(self, "soft_weight", _vec("soft_weight", self.soft_weight, n))
-            if not np.all((self.soft_weight > 0.0) & (self.soft_weight <= 1.0)):
+            if not ((self.soft_weight > 0.0) & (self.soft_weight <= 1.0)).all():
                 raise AgentInputError("CvvcInputs.soft_weight must be within (0, 1] at every node")
         for name in ("soft_alpha", "soft_beta_per_pu2", "dv_dq_rel_error"):
             value = float(getattr(self, name))
             if not np.isfinite(value):
                 raise AgentInputError(f"CvvcInputs.{name} is not finite")
             put(self, name, value)
-        if np.any(self.q_min_kvar > self.q_max_kvar):
+        if (self.q_min_kvar > self.q_max_kvar).any():
             raise AgentInputError("CvvcInputs.q_min_kvar exceeds q_max_kvar for some plant; pass q_min <= q_max")
-        if np.any(self.q_rating_kvar <= 0):
+        if (self.q_rating_kvar <= 0).any():
             raise AgentInputError("CvvcInputs.q_rating_kvar must be positive (the plant's kVA rating)")
-        if np.any(self.tap_min > self.tap_max) or np.any(self.max_taps_per_interval < 0):
+        if (self.tap_min > self.tap_max).any() or (self.max_taps_per_interval < 0).any():
             raise AgentInputError("tap limits must satisfy tap_min <= tap_max and max_taps_per_interval >= 0")
-        if np.any(self.cost_per_tap < 0) or np.any(self.cost_per_kvar < 0):
+        if (self.cost_per_tap < 0).any() or (self.cost_per_kvar < 0).any():
             raise AgentInputError("costs must be non-negative")
-        if not np.all(self.v_min_pu < self.v_max_pu):
+        if not (self.v_min_pu < self.v_max_pu).all():
             raise AgentInputError("v_min_pu must be below v_max_pu at every node")
         if self.soft_alpha < 0 or self.soft_beta_per_pu2 <= 0:
             raise AgentInputError("soft_alpha must be >= 0 and soft_beta_per_pu2 > 0")
