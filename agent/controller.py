@@ -325,27 +325,19 @@ class CvvcController:
         )
 
     def _usable(self, snap: MeasurementSnapshot) -> tuple[bool, np.ndarray, np.ndarray]:
-        """Which frames are usable: valid flag set and values finite and plausible."""
-        head_ok = bool(snap.head_valid) and _finite(snap.head_p_kw, snap.head_q_kvar)
-        head_ok = head_ok and bool(np.all(np.abs(snap.head_p_kw) < _POWER_LIMIT_KW))
-        head_ok = head_ok and bool(np.all(np.abs(snap.head_q_kvar) < _POWER_LIMIT_KW))
-        pv_ok = np.asarray(snap.pv_valid, bool).copy()
-        for k in range(len(self._pv_ids)):
-            pv_vals = np.array([snap.pv_p_kw[k], snap.pv_q_kvar[k], snap.pv_kva_available[k]], float)
-            pv_ok[k] = pv_ok[k] and _finite(pv_vals) and snap.pv_kva_available[k] >= 0.0
-            pv_ok[k] = pv_ok[k] and abs(snap.pv_p_kw[k]) < _POWER_LIMIT_KW and abs(snap.pv_q_kvar[k]) < _POWER_LIMIT_KW
-        reg_ok = np.asarray(snap.reg_valid, bool).copy()
+        """Which frames are usable: valid flag set and values finite and plausible (a NaN fails every comparison)."""
+        head_p, head_q = np.asarray(snap.head_p_kw, float), np.asarray(snap.head_q_kvar, float)
+        head_ok = bool(snap.head_valid) and bool((np.abs(head_p) < _POWER_LIMIT_KW).all()
+                                                 and (np.abs(head_q) < _POWER_LIMIT_KW).all())
+        pv_p, pv_q = np.asarray(snap.pv_p_kw, float), np.asarray(snap.pv_q_kvar, float)
+        kva = np.asarray(snap.pv_kva_available, float)
+        pv_ok = (np.asarray(snap.pv_valid, bool) & np.isfinite(kva) & (kva >= 0.0)
+                 & (np.abs(pv_p) < _POWER_LIMIT_KW) & (np.abs(pv_q) < _POWER_LIMIT_KW))
         lo, hi = _V120_RANGE
-        for r in range(len(self._reg_ids)):
-            vals = np.array([snap.reg_v120[r], snap.reg_v120_compared[r], snap.reg_tap[r]], float)
-            reg_ok[r] = (
-                reg_ok[r]
-                and _finite(vals)
-                and lo < snap.reg_v120[r] < hi
-                and lo < snap.reg_v120_compared[r] < hi
-                and float(snap.reg_tap[r]) == round(float(snap.reg_tap[r]))
-                and self._tap_min[r] <= snap.reg_tap[r] <= self._tap_max[r]
-            )
+        v, vc = np.asarray(snap.reg_v120, float), np.asarray(snap.reg_v120_compared, float)
+        tap = np.asarray(snap.reg_tap, float)
+        reg_ok = (np.asarray(snap.reg_valid, bool) & (lo < v) & (v < hi) & (lo < vc) & (vc < hi)
+                  & (tap == np.round(tap)) & (self._tap_min <= tap) & (tap <= self._tap_max))
         return head_ok, pv_ok, reg_ok
 
     def _correction_filter(self, snap: MeasurementSnapshot) -> Callable[[np.ndarray, np.ndarray], np.ndarray] | None:
