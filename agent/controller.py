@@ -41,7 +41,7 @@ from agent.bank_rows import local_bank_rows, predicted_banks
 from agent.cvvc_qp import CvvcInputs
 from agent.decision import Decision, MeasurementSnapshot, SolveRole
 from agent.errors import AgentInputError
-from agent.setpoints import expected_compared_v120, setpoint_for_tap_change
+from agent.setpoints import MeasuredSteps, expected_compared_v120, setpoint_for_tap_change, with_measured_steps
 from agent.solve import V_TOL_PU, CvvcSolution, WarmStart, solve_cvvc
 from agent.solve.solution import violation_pu
 from agent.stale_plants import StalePlants, stale_rise_pu
@@ -213,6 +213,8 @@ class CvvcController:
         self._max_taps = np.array([r.max_taps_per_interval for r in regs], int)
         self._tap_cost = np.array([r.cost_per_tap for r in regs], float)
         self._step_v120 = steps
+        # each regulator's step on its compared reading, measured at its own moves (eq. 8 lands with it)
+        self._measured_steps = MeasuredSteps(steps) if o.measured_tap_step else None
         # Last known values (None until first seen) and the previous solution.
         n_pv, n_reg = len(model.pv), len(regs)
         self._pv_last_p_kw: list[float | None] = [None] * n_pv
@@ -241,6 +243,13 @@ class CvvcController:
         self.stale_plants = bool(o.stale_plants)
         # our Q command is in force as long as the runtime's commands are valid (``AgentSettings.valid_intervals``)
         self._stale = StalePlants(self._pv_rating_kva, int(o.valid_intervals * self._period_ns))
+
+    def measured_steps_v120(self) -> dict[str, float]:
+        """Each regulator's tap step as its compared reading measured it, by id, those measured so far [V on 120 V]."""
+        if self._measured_steps is None:
+            return {}
+        return {rid: round(float(v), 4) for rid, v in zip(self._reg_ids, self._measured_steps.step_v120(), strict=True)
+                if np.isfinite(v)}
 
     # ------------------------------------------------------------------------------------------ bounds
     def bounds_pu(self, out_of_envelope: bool) -> tuple[np.ndarray, np.ndarray] | None:
@@ -643,6 +652,10 @@ class CvvcController:
             self._pv_last_q_kvar[k] = float(snap.pv_q_kvar[k])
         for r in np.flatnonzero(reg_ok):
             self._reg_last_tap[r] = int(snap.reg_tap[r])
+        if self._measured_steps is not None and snap.reg_steps_seen is not None:
+            noisy = (np.full(n_reg, False) if snap.reg_v120_noise is None
+                     else np.asarray(snap.reg_v120_noise, float) > NOISY_READING_STEPS * self._step_v120)
+            self._measured_steps.observe(snap.reg_steps_seen, reg_ok & ~noisy)
         for c in np.flatnonzero(cap_ok):
             self._cap_last[c] = int(snap.cap_steps[c])
         self._stale.observe(snap.pv_p_kw, pv_ok & self._pv_fresh(snap))
@@ -726,6 +739,10 @@ class CvvcController:
                                           self._arrays.reg_pu_per_v120)
             d_tap = solution.taps_new[:n_reg] - state.taps
             band, step = self.bandwidth_v120, self._step_v120
+            if self._measured_steps is not None:  # beyond the paper: each regulator's step as it measured it
+                own = np.reshape(state.dv_dtap_pu, (state.v0_pu.shape[0], -1))[sec_node, np.arange(n_reg)]
+                v_s1, step = with_measured_steps(v_s1, d_tap, step, own / self._arrays.reg_pu_per_v120,
+                                                 self._measured_steps.step_v120())
             setpoints = np.array(
                 [setpoint_for_tap_change(float(v_s1[r]), int(d_tap[r]), band, float(step[r])) for r in range(n_reg)]
             )

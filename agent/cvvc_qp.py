@@ -186,7 +186,7 @@ class CvvcInputs:
             raise AgentInputError("tap limits must satisfy tap_min <= tap_max and max_taps_per_interval >= 0")
         if (self.cost_per_tap < 0).any() or (self.cost_per_kvar < 0).any():
             raise AgentInputError("costs must be non-negative")
-        if not (self.v_min_pu < self.v_max_pu).all():
+        if not np.asarray(self.v_min_pu < self.v_max_pu).all():
             raise AgentInputError("v_min_pu must be below v_max_pu at every node")
         if self.soft_alpha < 0 or self.soft_beta_per_pu2 <= 0:
             raise AgentInputError("soft_alpha must be >= 0 and soft_beta_per_pu2 > 0")

@@ -61,6 +61,9 @@ class MeasurementSnapshot:
         without one), before any averaging: what the calibrated bounds assume eq. (6) starts from; None: unknown.
     pv_age_s : (K,) how old each plant's frame is at the step [s] (0 for its own); None: unknown (a stand-in is
         then taken as old).
+    reg_steps_seen : per regulator, the single-tap moves in its recent frames that no coupled regulator's move
+        blurs, as (time of the frame after the move [ns], change of its compared reading per tap up [V on 120 V
+        base]) (``agent.snapshot.steps_seen_v120``); None: unknown.
     """
 
     t_ns: int
@@ -86,6 +89,7 @@ class MeasurementSnapshot:
     cap_control_value: np.ndarray = field(default_factory=lambda: np.zeros(0))
     reg_v120_noise: np.ndarray | None = None
     pv_age_s: np.ndarray | None = None
+    reg_steps_seen: tuple[tuple[tuple[int, float], ...], ...] | None = None
 
 
 @dataclass(frozen=True)

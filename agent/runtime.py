@@ -78,6 +78,9 @@ class AgentSummary(msgspec.Struct, frozen=True, kw_only=True):
     clock_snapped: int = 0  # frames stamped off a control step within ``clock_tolerance_s``, taken as on it
     commands_refused: dict[str, int] = {}  # by device: its 'rejected' acks to this agent's commands (taken acks only)
     follow_ups: int = 0  # commands sent after a decision, at the next step (set points re-centred; in ``commands``)
+    # each regulator's tap step as its compared reading measured it at its own moves [V on 120 V base], those measured
+    # (``agent.setpoints.MeasuredSteps``: eq. 8 lands one-step moves with it)
+    measured_steps_v120: dict[str, float] = {}
 
 
 class _Recentre(msgspec.Struct, frozen=True):
@@ -473,7 +476,8 @@ def run_agent(model: CvvcModel, settings: AgentSettings, bus, *, stop: threading
                         ami=dict(maker.controller.ami.counts),
                         step_ends=maker.aligner.step_ends, released_by_step_end=maker.aligner.released_by_step_end,
                         decided_after_late_window=late_decided, clock_snapped=maker.aligner.snapped,
-                        commands_refused=dict(refused_by), follow_ups=maker.follow_ups)
+                        commands_refused=dict(refused_by), follow_ups=maker.follow_ups,
+                        measured_steps_v120=maker.controller.measured_steps_v120())
 
 
 def _suppressed(rlog: RateLimitedLog, rejects: dict[str, int]) -> dict[str, int]:

@@ -19,6 +19,15 @@ inside its band edge, a regulator under its own control steps again for any drif
 before the next decision re-centres it (IEEE 8500, first summer week, case D: 14-35 % of each downstream
 regulator's tap changes came between decisions, 70-94 % of those after a move of the agent in that control period,
 the same way). The agent sends the band again, centred on the regulator's reading, at the next step after a move.
+
+Beyond the paper, ``T`` and the regulator's own share of ``V_s^1`` measured (``MeasuredSteps``): eq. (8) takes a tap
+step to move the compared voltage as much as the raw one, but line-drop compensation and the load's response to
+its own voltage make it move less (IEEE 123's substation regulator: 0.57-0.60 V per 0.75 V step; epri-ckt24's LTC
+0.58 against 0.63 V; IEEE 13's first two 0.50 against 0.75 V). Landed on the raw step, the regulator then sits
+closer to its band edge than half a step, and a small drift the same way steps it again: on IEEE 123's first spring
+week, case D, 7 of 15 single-step raises and 7 of 15 lowerings of the substation regulator moved two steps. The
+agent measures each regulator's step on its compared reading from its own single-step moves
+(``agent.snapshot.steps_seen_v120``) and, once it has ``STEPS_LEAST`` of them, lands eq. (8) with that step.
 """
 
 from __future__ import annotations
@@ -27,7 +36,13 @@ import numpy as np
 
 from agent.errors import AgentInputError
 
-__all__ = ["expected_compared_v120", "recentred_setpoint", "setpoint_for_tap_change"]
+__all__ = ["STEPS_KEPT", "STEPS_LEAST", "MeasuredSteps", "expected_compared_v120", "recentred_setpoint",
+           "setpoint_for_tap_change", "with_measured_steps"]
+
+STEPS_KEPT = 24  # the latest single-step moves each regulator's measured step is the median of
+STEPS_LEAST = 3  # fewer moves seen: eq. (8) with the model's step
+#: a measured step outside this share of the model's is not believed (a reading error, not the regulator's step)
+STEP_PLAUSIBLE = (0.5, 1.5)
 
 
 def setpoint_for_tap_change(v_s1_v120: float, d_tap: int, band_v120: float, step_v120: float) -> float:
@@ -96,3 +111,54 @@ def recentred_setpoint(tap_before: int, tap_target: int, tap_now: int, compared_
     direction = int(np.sign(tap_target - tap_before))
     stepped = direction != 0 and (tap_now - tap_before) * direction > 0
     return float(compared_now_v120) if stepped else float(setpoint_v120)
+
+
+class MeasuredSteps:
+    """Each regulator's compared-reading change per tap step, measured from its own single-step moves.
+
+    ``observe`` takes a snapshot's ``reg_steps_seen`` (``agent.snapshot.steps_seen_v120``: each move once per
+    frame time, however many snapshots carry it); ``step_v120`` is the median of each regulator's latest
+    ``STEPS_KEPT`` moves, NaN with fewer than ``STEPS_LEAST`` or when the median lies outside ``STEP_PLAUSIBLE`` of
+    ``model_step_v120`` (eq. 8 then takes the model's step).
+    """
+
+    def __init__(self, model_step_v120: np.ndarray) -> None:
+        self._model_step = np.asarray(model_step_v120, float)
+        self._seen: list[dict[int, float]] = [{} for _ in range(self._model_step.size)]
+
+    def observe(self, seen: tuple[tuple[tuple[int, float], ...], ...], usable: np.ndarray) -> None:
+        """Keep the moves of the regulators whose readings are ``usable`` (valid and not noisy)."""
+        for r, moves in enumerate(seen[: len(self._seen)]):
+            if not usable[r] or not moves:
+                continue
+            kept = self._seen[r]
+            kept.update((int(t), float(v)) for t, v in moves if np.isfinite(v))
+            for t in sorted(kept)[: max(0, len(kept) - STEPS_KEPT)]:
+                del kept[t]
+
+    def step_v120(self) -> np.ndarray:
+        """(R,) each regulator's measured step [V on 120 V base], NaN where not (yet) measured."""
+        out = np.full(self._model_step.size, np.nan)
+        lo, hi = STEP_PLAUSIBLE
+        for r, kept in enumerate(self._seen):
+            if len(kept) >= STEPS_LEAST:
+                step = float(np.median(list(kept.values())))
+                if lo * self._model_step[r] <= step <= hi * self._model_step[r]:
+                    out[r] = step
+        return out
+
+
+def with_measured_steps(v_s1_v120: np.ndarray, d_tap: np.ndarray, model_step_v120: np.ndarray,
+                        own_step_v120: np.ndarray, measured_v120: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(V_s^1, T)`` of eq. (8) per regulator, a one-step move's taken with the regulator's measured step.
+
+    ``v_s1_v120`` is ``expected_compared_v120``'s, whose own-tap share is ``d_tap * own_step_v120`` (the model's
+    dV/dtap at the secondary); where ``|d_tap| == 1`` and ``measured_v120`` is known (``MeasuredSteps.step_v120``),
+    that share becomes ``d_tap * measured`` and ``T`` the measured step. A longer move keeps the model's: single
+    steps are what was measured (IEEE 8500's line regulators, first three winter days: a four-step move of vreg3_b
+    moved its compared reading 0.80 V a step where its single steps had moved it 0.72 V, and landed one step
+    further with the measured step).
+    """
+    use = (np.abs(np.asarray(d_tap)) == 1) & np.isfinite(measured_v120)
+    v_s1 = np.where(use, v_s1_v120 + d_tap * (measured_v120 - own_step_v120), v_s1_v120)
+    return v_s1, np.where(use, measured_v120, model_step_v120)

@@ -12,7 +12,8 @@ if TYPE_CHECKING:
     from schemas.devicemap import DeviceMap
     from simulator_bridge.simulation.live_accuracy import LiveAccuracy
 
-__all__ = ["cost_lines", "decision_time_text", "live_accuracy_text", "render_summary", "top_reasons", "verdict"]
+__all__ = ["cost_lines", "decision_time_text", "live_accuracy_text", "measured_steps_text", "render_summary",
+           "top_reasons", "verdict"]
 
 
 def top_reasons(reasons: dict[str, int], n: int = 3) -> str:
@@ -24,6 +25,12 @@ def top_reasons(reasons: dict[str, int], n: int = 3) -> str:
 def decision_time_text(ms: dict[str, float]) -> str:
     """``p50 x ms, p99 y ms, max z ms`` of a summary's ``decision_ms`` (empty: no decision)."""
     return ", ".join(f"{k} {ms[k]:.1f} ms" for k in ("p50", "p99", "max") if k in ms) or "no decision"
+
+
+def measured_steps_text(steps_v120: dict[str, float], n: int = 8) -> str:
+    """``creg1a 0.58 V, ...``: each regulator's tap step as its compared reading measured it (the first ``n``)."""
+    text = ", ".join(f"{rid} {v:.2f} V" for rid, v in list(steps_v120.items())[:n])
+    return text + (f" and {len(steps_v120) - n} more" if len(steps_v120) > n else "")
 
 
 def live_accuracy_text(a: LiveAccuracy) -> str:
@@ -69,6 +76,9 @@ def render_summary(s: RunSummary, dm: DeviceMap | None) -> str:
               f"{s.lockstep_misses}; wall time {s.wall_s:.1f} s",
               *([f"- bands re-centred a step after a move: {s.follow_ups} (late: {s.follow_up_misses})"]
                 if s.follow_ups or s.follow_up_misses else []),
+              *([f"- tap steps as the regulators' compared readings measured them: "
+                 f"{measured_steps_text(s.measured_steps_v120)}"]
+                if s.measured_steps_v120 else []),
               *([f"- decision time (the agent's, per control step): {decision_time_text(s.decision_ms)}"]
                 if s.decision_ms else []),
               *([f"- {live_accuracy_text(s.live)}"] if s.live is not None and s.live.samples else []),

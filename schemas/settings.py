@@ -99,6 +99,8 @@ class AgentOptions(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fie
     # trajectory; docs/method.md "Tap deadband", docs/results.md)
     setpoint_recentre: Annotated[bool, Meta(description=(
         "cases C/D: a regulator told to step by eq. (8) gets its band centred on its next step's reading"))] = True
+    measured_tap_step: Annotated[bool, Meta(description=(
+        "cases C/D: eq. (8) with each regulator's tap step as its compared reading measured it at its moves"))] = True
     predict_banks: Annotated[bool, Meta(description=(
         "banks on their local control: the decision keeps them from switching because of it"))] = True
     stale_plants: Annotated[bool, Meta(description=(
@@ -110,7 +112,8 @@ class AgentOptions(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fie
 PAPER_AGENT = AgentOptions(pv_margin_window_s=0.0, correction_window_s=0.0, filtered_setpoints=False,
                            sensitivity_error=0.0, bounds_in_margin=False, bounds_cover_filter=False,
                            tap_reversal_lockout_s=0.0, tap_deadband_pu=0.0, predict_banks=False,
-                           stale_plants=False, soft_precision=False, setpoint_recentre=False)
+                           stale_plants=False, soft_precision=False, setpoint_recentre=False,
+                           measured_tap_step=False)
 
 
 class AgentSettings(AgentOptions, frozen=True, kw_only=True, forbid_unknown_fields=True):

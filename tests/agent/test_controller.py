@@ -159,6 +159,32 @@ def test_setpoints_mode_follows_eq8():
     assert np.any(d.reg_tap != snap.reg_tap)  # the case exercises a tap change
 
 
+def test_setpoints_land_on_the_step_each_regulator_measured_at_its_own_moves():
+    """Every regulator's compared reading seen moving 0.5 V per step at three of its moves (the model's step is
+    0.75 V): a one-step move's eq. (8) lands half that step inside the band, from the compared voltage expected with
+    that step; with two moves seen, or the option off, it lands on the model's step."""
+    band, seen_step = 4.0, 0.5
+    seen = tuple(tuple((t, seen_step) for t in (1, 2, 3)) for _ in range(R))
+    snap = dataclasses.replace(snapshot(reading_error_pu=HIGH), reg_steps_seen=seen)
+    sec = ARRAYS.reg_secondary_node
+    own = np.reshape(ARRAYS.dv_dtap_pu, (-1, R))[sec, np.arange(R)] / ARRAYS.reg_pu_per_v120  # the model's step
+
+    def offset(c: CvvcController, s: MeasurementSnapshot) -> tuple[Decision, np.ndarray, np.ndarray]:
+        d = c.decide(s)
+        d_tap = d.reg_tap - s.reg_tap
+        v_s1 = s.reg_v120_compared + (d.v_pred_pu[sec] - d.v_pu[sec]) / ARRAYS.reg_pu_per_v120
+        return d, d_tap, d.reg_setpoint_v120 - (v_s1 + d_tap * (seen_step - own))
+
+    d, d_tap, off = offset(controller(mode="setpoints", bandwidth_v120=band), snap)
+    assert np.any(d_tap != 0) and np.all(np.abs(d_tap) <= 1) and np.all(np.abs(own - seen_step) > 0.1)
+    np.testing.assert_allclose(off, np.sign(d_tap) * (band - seen_step) / 2, atol=1e-9)
+    two = dataclasses.replace(snap, reg_steps_seen=tuple(s[:2] for s in seen))
+    for c, s in ((controller(mode="setpoints", bandwidth_v120=band), two),
+                 (controller(mode="setpoints", bandwidth_v120=band, measured_tap_step=False), snap)):
+        d, d_tap, off = offset(c, s)
+        np.testing.assert_allclose(off + d_tap * (seen_step - own), np.sign(d_tap) * (band - 0.75) / 2, atol=1e-9)
+
+
 def _sequence() -> list[MeasurementSnapshot]:
     rng = np.random.default_rng(4)
     snaps = []
