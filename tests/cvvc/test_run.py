@@ -236,6 +236,20 @@ def test_a_run_whose_decisions_mostly_held_ends_with_a_clear_error():
         check_mostly_held(msgspec.structs.replace(base, holds=288, reasons={"case A: no oracle reply": 288}))
 
 
+def test_the_run_report_lists_the_steps_the_agent_measured():
+    from cvvc.launch import RunSummary
+    from cvvc.run_report import render_summary
+    from schemas.examples import example
+
+    base = RunSummary(feeder="f.toml", feeder_id="f", case="D", start="2023-01-01", days=1.0, steps=1440,
+                      wall_s=1.0, metrics=example(m.MetricsFrame), baseline=None, lockstep_misses=0, decisions=288,
+                      out_dir="out", recording=None, model=None)
+    assert "tap steps as the regulators' compared readings measured them" not in render_summary(base, None)
+    steps = {f"vr{i}": 0.6 + i / 100 for i in range(10)}
+    text = render_summary(msgspec.structs.replace(base, measured_steps_v120=steps), None)
+    assert "measured them: vr0 0.60 V, vr1 0.61 V," in text and "vr7 0.67 V and 2 more" in text
+
+
 def test_offline_replay_reproduces_every_decision(one_hour_run, tmp_path):
     out, summary = one_hour_run
     proc = _cvvc("replay", summary["recording"], "--offline", "--json", cwd=tmp_path)  # from another directory
