@@ -21,9 +21,10 @@ regulator's tap changes came between decisions, 70-94 % of those after a move of
 the same way). The agent sends the band again, centred on the regulator's reading, at the next step after a move.
 
 Beyond the paper, ``T`` and the regulator's own share of ``V_s^1`` measured (``MeasuredSteps``): eq. (8) takes a tap
-step to move the compared voltage as much as the raw one, but line-drop compensation and the load's response to
-its own voltage make it move less (IEEE 123's substation regulator: 0.57-0.60 V per 0.75 V step; epri-ckt24's LTC
-0.58 against 0.63 V; IEEE 13's first two 0.50 against 0.75 V). Landed on the raw step, the regulator then sits
+step to move the compared voltage by the model's step at the secondary, but it moves less: line-drop compensation
+(IEEE 123's substation regulator: the raw reading 0.75 V a step, the compared one 0.57-0.60 V) and, where there is
+none, a raw change below the training's static step (epri-ckt24's LTC: compared 0.58 V, raw 0.63 V, the model's
+0.87 V; IEEE 8500's most-moved regulators 0.67-0.81 against 0.83-0.87 V). Landed on the model's step, the regulator sits
 closer to its band edge than half a step, and a small drift the same way steps it again: on IEEE 123's first spring
 week, case D, 7 of 15 single-step raises and 7 of 15 lowerings of the substation regulator moved two steps. The
 agent measures each regulator's step on its compared reading from its own single-step moves
@@ -125,9 +126,11 @@ class MeasuredSteps:
     def __init__(self, model_step_v120: np.ndarray) -> None:
         self._model_step = np.asarray(model_step_v120, float)
         self._seen: list[dict[int, float]] = [{} for _ in range(self._model_step.size)]
+        self._step = np.full(self._model_step.size, np.nan)  # the medians, updated when a regulator's moves change
 
     def observe(self, seen: tuple[tuple[tuple[int, float], ...], ...], usable: np.ndarray) -> None:
         """Keep the moves of the regulators whose readings are ``usable`` (valid and not noisy)."""
+        lo, hi = STEP_PLAUSIBLE
         for r, moves in enumerate(seen[: len(self._seen)]):
             if not usable[r] or not moves:
                 continue
@@ -135,17 +138,13 @@ class MeasuredSteps:
             kept.update((int(t), float(v)) for t, v in moves if np.isfinite(v))
             for t in sorted(kept)[: max(0, len(kept) - STEPS_KEPT)]:
                 del kept[t]
+            step = float(np.median(list(kept.values()))) if len(kept) >= STEPS_LEAST else np.nan
+            plausible = lo * self._model_step[r] <= step <= hi * self._model_step[r]
+            self._step[r] = step if plausible else np.nan
 
     def step_v120(self) -> np.ndarray:
         """(R,) each regulator's measured step [V on 120 V base], NaN where not (yet) measured."""
-        out = np.full(self._model_step.size, np.nan)
-        lo, hi = STEP_PLAUSIBLE
-        for r, kept in enumerate(self._seen):
-            if len(kept) >= STEPS_LEAST:
-                step = float(np.median(list(kept.values())))
-                if lo * self._model_step[r] <= step <= hi * self._model_step[r]:
-                    out[r] = step
-        return out
+        return self._step.copy()
 
 
 def with_measured_steps(v_s1_v120: np.ndarray, d_tap: np.ndarray, model_step_v120: np.ndarray,
@@ -156,8 +155,8 @@ def with_measured_steps(v_s1_v120: np.ndarray, d_tap: np.ndarray, model_step_v12
     dV/dtap at the secondary); where ``|d_tap| == 1`` and ``measured_v120`` is known (``MeasuredSteps.step_v120``),
     that share becomes ``d_tap * measured`` and ``T`` the measured step. A longer move keeps the model's: single
     steps are what was measured (IEEE 8500's line regulators, first three winter days: a four-step move of vreg3_b
-    moved its compared reading 0.80 V a step where its single steps had moved it 0.72 V, and landed one step
-    further with the measured step).
+    moved its compared reading 0.80 V a step where its 14 clean single steps of those days had moved it 0.72 V (their
+    median), and landed one step further with the measured step).
     """
     use = (np.abs(np.asarray(d_tap)) == 1) & np.isfinite(measured_v120)
     v_s1 = np.where(use, v_s1_v120 + d_tap * (measured_v120 - own_step_v120), v_s1_v120)

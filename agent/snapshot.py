@@ -128,30 +128,27 @@ def steps_seen_v120(aligned: AlignedFrames, model: CvvcModel) -> tuple[tuple[tup
     (R = 3, X = 7.5 V) the raw reading moves 0.75 V per step and the compared one 0.57-0.60 V.
     """
     regs = model.regulators
-    if not regs:
-        return ()
+    period_ns = int(model.control_period_s * 1e9)
+    since = aligned.t_ns - 2 * period_ns  # the controller keeps what it saw: the last two periods' moves suffice
+    frames = [[f for f in aligned.vr_recent.get(reg.id, ()) if f.t_ns >= since - period_ns] for reg in regs]
+    moves = [[(a, b) for a, b in zip(fs, fs[1:], strict=False)
+              if abs(b.tap - a.tap) == 1 and b.t_ns > since and 0 < b.t_ns - a.t_ns <= period_ns] for fs in frames]
+    if not any(moves):  # most decisions: no regulator moved one step lately (nothing else to read)
+        return tuple(() for _ in regs)
     rows = [model.dv_dtap_pu[r.secondary_node] for r in regs]
     if all(len(row) == len(regs) for row in rows):
         dv = np.abs(np.asarray(rows, float))
         coupled = dv >= _COUPLED_SHARE * np.diag(dv)[:, None]  # [r, r2]: r2's move blurs r's step
     else:  # sensitivities that do not fit the regulators: every other regulator's move blurs
         coupled = np.ones((len(regs), len(regs)), bool)
-    period_ns = int(model.control_period_s * 1e9)
-    since = aligned.t_ns - 2 * period_ns  # the controller keeps what it saw: the last two periods' moves suffice
-    taps = [{f.t_ns: f.tap for f in aligned.vr_recent.get(reg.id, ()) if f.t_ns >= since - period_ns} for reg in regs]
+    taps = [{f.t_ns: f.tap for f in fs} for fs in frames]
     out: list[tuple[tuple[int, float], ...]] = []
-    for r, reg in enumerate(regs):
-        frames = [f for f in aligned.vr_recent.get(reg.id, ()) if f.t_ns >= since - period_ns]
+    for r, pairs in enumerate(moves):
         others = [r2 for r2 in np.flatnonzero(coupled[r]) if r2 != r]
-        seen = []
-        for a, b in zip(frames, frames[1:], strict=False):
-            d_tap = b.tap - a.tap
-            if abs(d_tap) != 1 or b.t_ns <= since or not 0 < b.t_ns - a.t_ns <= period_ns:
-                continue
-            if all(a.t_ns in taps[r2] and b.t_ns in taps[r2] and taps[r2][a.t_ns] == taps[r2][b.t_ns]
-                   for r2 in others):
-                seen.append((int(b.t_ns), float(b.v_compared_120 - a.v_compared_120) * d_tap))
-        out.append(tuple(seen))
+        out.append(tuple((int(b.t_ns), float(b.v_compared_120 - a.v_compared_120) * (b.tap - a.tap))
+                         for a, b in pairs
+                         if all(a.t_ns in taps[r2] and b.t_ns in taps[r2] and taps[r2][a.t_ns] == taps[r2][b.t_ns]
+                                for r2 in others)))
     return tuple(out)
 
 
