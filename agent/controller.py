@@ -184,6 +184,8 @@ class CvvcController:
         if not (np.isfinite(o.tap_deadband_pu) and 0.0 <= o.tap_deadband_pu <= 0.02):
             raise AgentInputError(f"tap_deadband_pu must be within 0 to 0.02 pu, not {o.tap_deadband_pu}")
         self.tap_deadband_pu = float(o.tap_deadband_pu)
+        self.tap_break_even = bool(o.tap_break_even)
+        self._rent = 0.0  # Q paid beyond the offered moves' over the decisions in a row with one [cost units]
         # each regulator's last decided move: its direction (+1, -1, 0 for none yet) and the step it was decided at
         self._last_move = np.zeros(len(model.regulators), int)
         self._last_move_t_ns = np.zeros(len(model.regulators), np.int64)
@@ -497,6 +499,43 @@ class CvvcController:
         return (f"taps held: {worst:.4f} pu predicted beyond the tightened limits, within the tap deadband "
                 f"{self.tap_deadband_pu:g} pu")
 
+    @staticmethod
+    def _q_cost(inputs: CvvcInputs, solution: CvvcSolution) -> float:
+        """Eq. (15)'s part of a solution's cost: its Q set points' [cost units per interval]."""
+        return float(inputs.cost_per_kvar @ np.abs(solution.q_new_kvar))
+
+    def tap_offer(self, inputs: CvvcInputs, n_reg: int) -> CvvcSolution:
+        """The same problem with the regulators' taps free of cost, its cost priced back at the taps' (the move
+        that would stand in for a decision's Q, when it moves a tap and buys less Q).
+        """
+        free = np.array(inputs.cost_per_tap, float)
+        free[:n_reg] = 0.0
+        offer = solve_cvvc(dataclasses.replace(inputs, cost_per_tap=free), warm_start=self._warm)
+        return dataclasses.replace(offer, cost=inputs.cost(offer.taps_new - inputs.taps, offer.q_new_kvar))
+
+    def rent_or_buy(self, inputs: CvvcInputs, solution: CvvcSolution, buy: CvvcSolution | None,
+                    n_reg: int) -> CvvcSolution:
+        """``solution`` (its Q standing in for a move), or ``buy`` (the move) once the Q it would have saved, summed
+        over the decisions in a row that had such a move on offer, reaches the move's taps' price.
+
+        Beyond the paper, estimated states only: eq. (9) prices one interval, where a tap is paid once and the Q
+        that stands in for it is paid again every interval (IEEE 123's first summer week: case D 1.5x case A's
+        total cost, most of it Q bought where case A had lowered a regulator). Rent or buy: pay the Q while what
+        it has cost beyond the move's Q stays below the move's taps, then move (the deterministic break-even rule:
+        at most twice the cost of knowing in advance how long the need lasts). The offers are the deadband's moves
+        (``tap_deadband``) and, after an optimal decision that buys Q and moves no tap, the same problem with the
+        regulators' taps free (``tap_offer``). Off (``tap_break_even``): the decision as eq. (9) prices it.
+        """
+        if buy is None or not self.tap_break_even:
+            self._rent = 0.0
+            return solution
+        price = float(inputs.cost_per_tap[:n_reg] @ np.abs(buy.taps_new[:n_reg] - inputs.taps[:n_reg]))
+        self._rent += max(self._q_cost(inputs, solution) - self._q_cost(inputs, buy), 0.0)
+        if self._rent < price:
+            return solution
+        self._rent = 0.0
+        return buy
+
     def deadband_widened(self, held_problem: CvvcInputs, n_nodes: int) -> CvvcInputs:
         """``held_problem`` (taps held) with its first ``n_nodes`` rows' limits widened by ``tap_deadband_pu``.
 
@@ -709,6 +748,7 @@ class CvvcController:
             solution = solve_cvvc(self.relocked(inputs, "none", int(snap.t_ns)),
                                   warm_start=self._warm if oracle is None else None)
             solves.append(("unlocked", solution))
+        buy: CvvcSolution | None = None  # a move the Q of ``solution`` stands in for, if any (``rent_or_buy``)
         if oracle is None and self.tap_deadband_pu > 0 and np.any(solution.taps_new[:n_reg] != state.taps):
             held_problem = self.relocked(inputs, "all", int(snap.t_ns))
             held = solve_cvvc(held_problem, warm_start=self._warm)
@@ -718,10 +758,19 @@ class CvvcController:
                 tolerated = solve_cvvc(self.deadband_widened(held_problem, state.v0_pu.shape[0]),
                                        warm_start=self._warm)
                 solves.append(("tolerated", tolerated))
-                solution = (dataclasses.replace(tolerated, status="soft",
-                                                reason=f"{note}; Q for the limits widened by the deadband")
-                            if tolerated.status == "optimal" else
-                            dataclasses.replace(held, reason=f"{note}; {held.reason}" if held.reason else note))
+                kept = (dataclasses.replace(tolerated, status="soft",
+                                            reason=f"{note}; Q for the limits widened by the deadband")
+                        if tolerated.status == "optimal" else
+                        dataclasses.replace(held, reason=f"{note}; {held.reason}" if held.reason else note))
+                solution, buy = kept, solution  # held: Q paid every interval; the move: its taps paid once
+        elif oracle is None and self.tap_break_even and solution.status == "optimal" \
+                and not np.any(solution.taps_new[:n_reg] != state.taps) and self._q_cost(inputs, solution) > 0:
+            offer = self.tap_offer(inputs, n_reg)
+            solves.append(("buy", offer))
+            if (offer.status == "optimal" and np.any(offer.taps_new[:n_reg] != state.taps)
+                    and self._q_cost(inputs, offer) < self._q_cost(inputs, solution) - 1e-9):
+                buy = offer
+        solution = self.rent_or_buy(inputs, solution, buy, n_reg)
         sec = solution.seconds
         if solution.status == "hold":
             return self._hold(snap, prefix + solution.reason, missing, t0, state=state, solution=solution,

@@ -20,7 +20,7 @@ __all__ = ["Decision", "MeasurementSnapshot", "SolveRole", "decision_time_ms", "
 
 #: Why a decision solved: the decision itself, again without the tap reversal locks, with every tap held, or with
 #: every tap held and the nodes' limits widened by the tap deadband (the Q of a decision whose taps the deadband held).
-SolveRole = Literal["main", "unlocked", "deadband", "tolerated"]
+SolveRole = Literal["main", "unlocked", "deadband", "tolerated", "buy"]
 
 _DECIMAL = re.compile(r"\d+\.\d+")
 

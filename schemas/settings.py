@@ -97,6 +97,9 @@ class AgentOptions(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fie
         "estimated states: no tap moves for a violation of the tightened limits up to this [pu]; 0: off"))] = 0.004
     # (IEEE 8500, first three days of each season at 52c31b0: NTC 1.15-1.46x case A's but spring 1.75x, one
     # trajectory; docs/method.md "Tap deadband", docs/results.md)
+    tap_break_even: Annotated[bool, Meta(description=(
+        "estimated states: Q that stands in for a tap move is paid until it has cost the move, then the tap "
+        "moves (rent or buy)"))] = True
     setpoint_recentre: Annotated[bool, Meta(description=(
         "cases C/D: a regulator told to step by eq. (8) gets its band centred on its next step's reading"))] = True
     measured_tap_step: Annotated[bool, Meta(description=(
@@ -111,7 +114,8 @@ class AgentOptions(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fie
 #: The paper's method: every option beyond the paper off (tests of the equations as the paper writes them).
 PAPER_AGENT = AgentOptions(pv_margin_window_s=0.0, correction_window_s=0.0, filtered_setpoints=False,
                            sensitivity_error=0.0, bounds_in_margin=False, bounds_cover_filter=False,
-                           tap_reversal_lockout_s=0.0, tap_deadband_pu=0.0, predict_banks=False,
+                           tap_reversal_lockout_s=0.0, tap_deadband_pu=0.0, tap_break_even=False,
+                           predict_banks=False,
                            stale_plants=False, soft_precision=False, setpoint_recentre=False,
                            measured_tap_step=False)
 

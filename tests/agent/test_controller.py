@@ -669,6 +669,55 @@ def test_taps_held_by_the_deadband_buy_no_q_for_what_it_tolerates():
     assert no_tolerance.reg_tap.sum() == 1  # without the deadband the tap moves
 
 
+def test_taps_held_by_the_deadband_rent_q_only_until_it_has_cost_the_move():
+    """Readings 3.15 % below the estimate and some Q headroom: the deadband holds the tap and buys 51 kvar (0.051 an
+    interval) where one tap (0.14) meets the limits. Held decision after held decision, the Q paid adds up; once it
+    would pass the tap's price the tap moves (rent or buy), and the count starts again. Without the rule the taps
+    stay held, paying every interval."""
+
+    def run(break_even: bool) -> list[Decision]:
+        c = paper_controller(tap_deadband_pu=0.004, tap_break_even=break_even, sensitivity_error=0.3)
+        snap = dataclasses.replace(snapshot(0, reading_error_pu=np.full(R, -0.0315)),
+                                   pv_kva_available=np.full(K, 930.0))
+        return [c.decide(dataclasses.replace(snap, t_ns=i * 300 * 10**9)) for i in range(6)]
+
+    renting = run(False)
+    assert all(d.status == "soft" and not d.reg_tap.any() and "tap deadband" in d.reason for d in renting)
+    rent = renting[0].objective
+    assert 0.14 / 3 < rent < 0.14 / 2  # two held decisions cost less than the tap, three more
+    assert np.abs(renting[0].pv_q_kvar).sum() > 10.0
+    buying = run(True)
+    assert [int(d.reg_tap.sum()) for d in buying] == [0, 0, 1, 0, 0, 1]
+    for d in (buying[2], buying[5]):
+        assert d.status == "optimal" and d.objective == pytest.approx(0.14) and "tap deadband" not in d.reason
+    assert all(d.objective == pytest.approx(rent) for i, d in enumerate(buying) if i not in (2, 5))
+
+
+def test_q_standing_in_for_a_tap_is_paid_until_it_has_cost_the_tap():
+    """Dear taps (0.5 a step) and Q headroom: eq. (9) buys 338 kvar (0.338 an interval) where one tap meets the limits
+    without Q. The second such decision in a row has paid more than the tap's price: the tap moves, and the count
+    starts again. Without the rule every decision buys the Q."""
+    dear = msgspec.structs.replace(MODEL, regulators=[msgspec.structs.replace(r, cost_per_tap=0.5)
+                                                      for r in MODEL.regulators])
+
+    def run(break_even: bool) -> list[Decision]:
+        c = paper_controller(dear, tap_break_even=break_even)
+        snap = dataclasses.replace(snapshot(0, reading_error_pu=np.full(R, -0.03)),
+                                   pv_kva_available=np.full(K, 1000.0))
+        return [c.decide(dataclasses.replace(snap, t_ns=i * 300 * 10**9)) for i in range(4)]
+
+    renting = run(False)
+    assert all(d.status == "optimal" and not d.reg_tap.any() for d in renting)
+    assert 0.25 < renting[0].objective < 0.5 and [r for r, _ in renting[0].solves] == ["main"]
+    buying = run(True)
+    assert [int(d.reg_tap.sum()) for d in buying] == [0, 1, 0, 1]
+    assert [r for r, _ in buying[0].solves] == ["main", "buy"]
+    for d in buying[1::2]:
+        assert d.status == "optimal" and d.objective == pytest.approx(0.5) and np.abs(d.pv_q_kvar).sum() < 1.0
+        lo, hi = MODEL.optimization_limits_pu
+        assert lo - 1e-5 <= d.v_pred_pu.min() and d.v_pred_pu.max() <= hi + 1e-5
+
+
 def test_noisy_readings_widen_the_bounds_from_their_window_mean_not_the_last_reading():
     """The bounds' gap takes eq. (6) from the step's own reading when the readings are quiet, and from the reading
     window's mean when they are noisier than a quarter of a tap step: one noisy reading would otherwise widen and
