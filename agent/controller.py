@@ -186,6 +186,7 @@ class CvvcController:
         self.tap_deadband_pu = float(o.tap_deadband_pu)
         self.tap_break_even = bool(o.tap_break_even)
         self._rent = 0.0  # Q paid beyond the offered moves' over the decisions in a row with one [cost units]
+        self.bought = 0  # decisions that took the offered move once the Q standing in for it had cost as much
         # each regulator's last decided move: its direction (+1, -1, 0 for none yet) and the step it was decided at
         self._last_move = np.zeros(len(model.regulators), int)
         self._last_move_t_ns = np.zeros(len(model.regulators), np.int64)
@@ -534,6 +535,7 @@ class CvvcController:
         if self._rent < price:
             return solution
         self._rent = 0.0
+        self.bought += 1
         return buy
 
     def deadband_widened(self, held_problem: CvvcInputs, n_nodes: int) -> CvvcInputs:

@@ -81,6 +81,7 @@ class AgentSummary(msgspec.Struct, frozen=True, kw_only=True):
     # each regulator's tap step as its compared reading measured it at its own moves [V on 120 V base], those measured
     # (``agent.setpoints.MeasuredSteps``: eq. 8 lands one-step moves with it)
     measured_steps_v120: dict[str, float] = {}
+    bought: int = 0  # decisions that took a tap move once the Q standing in for it had cost as much (rent or buy)
 
 
 class _Recentre(msgspec.Struct, frozen=True):
@@ -477,7 +478,8 @@ def run_agent(model: CvvcModel, settings: AgentSettings, bus, *, stop: threading
                         step_ends=maker.aligner.step_ends, released_by_step_end=maker.aligner.released_by_step_end,
                         decided_after_late_window=late_decided, clock_snapped=maker.aligner.snapped,
                         commands_refused=dict(refused_by), follow_ups=maker.follow_ups,
-                        measured_steps_v120=maker.controller.measured_steps_v120())
+                        measured_steps_v120=maker.controller.measured_steps_v120(),
+                        bought=maker.controller.bought)
 
 
 def _suppressed(rlog: RateLimitedLog, rejects: dict[str, int]) -> dict[str, int]:

@@ -538,6 +538,7 @@ def run(config: RunConfig) -> RunSummary:
         lockstep_misses=bridge_summary.lockstep_misses, follow_up_misses=bridge_summary.follow_up_misses,
         follow_ups=agent_summary.follow_ups if agent_summary else 0,
         measured_steps_v120=dict(agent_summary.measured_steps_v120) if agent_summary else {},
+        bought=agent_summary.bought if agent_summary else 0,
         decisions=agent_summary.decisions if agent_summary else 0, out_dir=str(out),
         recording=str(mcap_path) if config.record else None,
         model=str(kept_model) if agent_settings is not None else None,

@@ -76,6 +76,8 @@ def render_summary(s: RunSummary, dm: DeviceMap | None) -> str:
               f"{s.lockstep_misses}; wall time {s.wall_s:.1f} s",
               *([f"- bands re-centred a step after a move: {s.follow_ups} (late: {s.follow_up_misses})"]
                 if s.follow_ups or s.follow_up_misses else []),
+              *([f"- tap moves taken once the Q standing in for them had cost as much (rent or buy): {s.bought} "
+                 "decision(s)"] if s.bought else []),
               *([f"- tap steps as the regulators' compared readings measured them: "
                  f"{measured_steps_text(s.measured_steps_v120)}"]
                 if s.measured_steps_v120 else []),

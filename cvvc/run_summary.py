@@ -72,4 +72,5 @@ class RunSummary(msgspec.Struct, frozen=True, kw_only=True):
     integrity: RunIntegrity = RunIntegrity()  # what was refused, missed or overwritten; whether control was lost
     follow_ups: int = 0  # commands sent a step after their decision (re-centred bands, ``Decision.follow_ups``)
     follow_up_misses: int = 0  # lockstep: steps whose announced follow-ups did not all reach the devices in time
+    bought: int = 0  # the agent's decisions that took a tap move once the Q standing in for it had cost as much
     measured_steps_v120: dict[str, float] = {}  # the agent's: each regulator's step on its compared reading [V]

@@ -699,9 +699,11 @@ def test_q_standing_in_for_a_tap_is_paid_until_it_has_cost_the_tap():
     starts again. Without the rule every decision buys the Q."""
     dear = msgspec.structs.replace(MODEL, regulators=[msgspec.structs.replace(r, cost_per_tap=0.5)
                                                       for r in MODEL.regulators])
+    buying_controller = None
 
     def run(break_even: bool) -> list[Decision]:
-        c = paper_controller(dear, tap_break_even=break_even)
+        nonlocal buying_controller
+        c = buying_controller = paper_controller(dear, tap_break_even=break_even)
         snap = dataclasses.replace(snapshot(0, reading_error_pu=np.full(R, -0.03)),
                                    pv_kva_available=np.full(K, 1000.0))
         return [c.decide(dataclasses.replace(snap, t_ns=i * 300 * 10**9)) for i in range(4)]
@@ -711,6 +713,7 @@ def test_q_standing_in_for_a_tap_is_paid_until_it_has_cost_the_tap():
     assert 0.25 < renting[0].objective < 0.5 and [r for r, _ in renting[0].solves] == ["main"]
     buying = run(True)
     assert [int(d.reg_tap.sum()) for d in buying] == [0, 1, 0, 1]
+    assert buying_controller.bought == 2
     assert [r for r, _ in buying[0].solves] == ["main", "buy"]
     for d in buying[1::2]:
         assert d.status == "optimal" and d.objective == pytest.approx(0.5) and np.abs(d.pv_q_kvar).sum() < 1.0

@@ -248,6 +248,8 @@ def test_the_run_report_lists_the_steps_the_agent_measured():
     steps = {f"vr{i}": 0.6 + i / 100 for i in range(10)}
     text = render_summary(msgspec.structs.replace(base, measured_steps_v120=steps), None)
     assert "measured them: vr0 0.60 V, vr1 0.61 V," in text and "vr7 0.67 V and 2 more" in text
+    assert "rent or buy" not in text
+    assert "(rent or buy): 7 decision(s)" in render_summary(msgspec.structs.replace(base, bought=7), None)
 
 
 def test_offline_replay_reproduces_every_decision(one_hour_run, tmp_path):
