@@ -38,7 +38,7 @@ import numpy as np
 from agent.errors import AgentInputError
 
 __all__ = ["STEPS_KEPT", "STEPS_LEAST", "MeasuredSteps", "expected_compared_v120", "recentred_setpoint",
-           "setpoint_for_tap_change", "with_measured_steps"]
+           "safety_band", "setpoint_for_tap_change", "with_measured_steps"]
 
 STEPS_KEPT = 24  # the latest single-step moves each regulator's measured step is the median of
 STEPS_LEAST = 3  # fewer moves seen: eq. (8) with the model's step
@@ -161,3 +161,26 @@ def with_measured_steps(v_s1_v120: np.ndarray, d_tap: np.ndarray, model_step_v12
     use = (np.abs(np.asarray(d_tap)) == 1) & np.isfinite(measured_v120)
     v_s1 = np.where(use, v_s1_v120 + d_tap * (measured_v120 - own_step_v120), v_s1_v120)
     return v_s1, np.where(use, measured_v120, model_step_v120)
+
+
+def safety_band(setpoint_v120: float, band_v120: float, compared_v120: float, lo_margin_v120: float,
+                hi_margin_v120: float, step_v120: float) -> tuple[float, float]:
+    """A held regulator's ``(set point, band)`` narrowed so that its own control steps before a node it moves
+    leaves its limits between two decisions, never widened.
+
+    Beyond the paper: the band eq. (8) holds a regulator in (``B`` wide) lets its compared reading drift ``B/2``
+    before its own control acts, where with no control its native band would have stepped it earlier (epri-ckt24's
+    LTC, winter nights: its native band 3 V; held by a 4 V band it rose 5-10 minutes later than with no control, a
+    deep secondary below 0.95 pu meanwhile). ``lo_margin_v120`` / ``hi_margin_v120``: how far the compared reading
+    (expected at ``compared_v120``) may fall / rise before the first node this regulator moves reaches its limit [V on
+    120 V base]. Each band edge comes to that distance from the expected reading, but no closer than one tap step
+    (so a step lands inside the band: no hunting) and no farther than the band's own edge. Unchanged when less than
+    two steps would be left between the edges, or any input is not finite.
+    """
+    if not np.all(np.isfinite([setpoint_v120, band_v120, compared_v120, lo_margin_v120, hi_margin_v120, step_v120])):
+        return setpoint_v120, band_v120
+    lo_edge = max(setpoint_v120 - band_v120 / 2, compared_v120 - max(lo_margin_v120, step_v120))
+    hi_edge = min(setpoint_v120 + band_v120 / 2, compared_v120 + max(hi_margin_v120, step_v120))
+    if hi_edge - lo_edge < 2 * step_v120 - 1e-9:
+        return setpoint_v120, band_v120
+    return 0.5 * (lo_edge + hi_edge), hi_edge - lo_edge

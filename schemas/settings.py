@@ -30,9 +30,10 @@ from msgspec import Meta
 
 from schemas.devicemap import MeterSpec
 
-__all__ = ["CASES", "DEFAULT_COMBINED_PCT", "DEFAULT_Q_STEPS_PCT", "PAPER_AGENT", "SECTIONS", "AgentOptions",
-           "AgentSettings", "BridgeSection", "Case", "FeatureOptions", "FeatureSet", "FeederSection", "FieldProtocol",
-           "OutputSection", "PvProtocol", "RunCase", "SecuritySection", "TrainingOptions", "WindowSection"]
+__all__ = ["ANSI_RANGE_A_PU", "CASES", "DEFAULT_COMBINED_PCT", "DEFAULT_Q_STEPS_PCT", "PAPER_AGENT", "SECTIONS",
+           "AgentOptions", "AgentSettings", "BridgeSection", "Case", "FeatureOptions", "FeatureSet", "FeederSection",
+           "FieldProtocol", "OutputSection", "PvProtocol", "RunCase", "SecuritySection", "TrainingOptions",
+           "WindowSection"]
 
 Case = Literal["A", "B", "C", "D", "none", "local"]
 CASES: tuple[Case, ...] = ("A", "B", "C", "D", "none", "local")
@@ -102,6 +103,9 @@ class AgentOptions(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fie
         "moves (rent or buy)"))] = True
     setpoint_recentre: Annotated[bool, Meta(description=(
         "cases C/D: a regulator told to step by eq. (8) gets its band centred on its next step's reading"))] = True
+    setpoint_safety: Annotated[bool, Meta(description=(
+        "cases C/D: a held regulator's band narrowed so that its own control steps before the estimate of a node "
+        "it moves would leave ANSI Range A"))] = True
     measured_tap_step: Annotated[bool, Meta(description=(
         "cases C/D: eq. (8) with each regulator's tap step as its compared reading measured it at its moves"))] = True
     predict_banks: Annotated[bool, Meta(description=(
@@ -111,13 +115,17 @@ class AgentOptions(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fie
     # (rural winter week, 5 % lost in 10-minute outages: NVV 3 -> 0, NTC 72 -> 25; 20 % outages: NTC 98 -> 70)
 
 
+ANSI_RANGE_A_PU = (0.95, 1.05)
+"""ANSI C84.1 service voltage Range A [pu of nominal]: every minute of a run is judged against it, and a held
+regulator's band (``AgentOptions.setpoint_safety``) lets its own control step before a node leaves it."""
+
 #: The paper's method: every option beyond the paper off (tests of the equations as the paper writes them).
 PAPER_AGENT = AgentOptions(pv_margin_window_s=0.0, correction_window_s=0.0, filtered_setpoints=False,
                            sensitivity_error=0.0, bounds_in_margin=False, bounds_cover_filter=False,
                            tap_reversal_lockout_s=0.0, tap_deadband_pu=0.0, tap_break_even=False,
                            predict_banks=False,
                            stale_plants=False, soft_precision=False, setpoint_recentre=False,
-                           measured_tap_step=False)
+                           measured_tap_step=False, setpoint_safety=False)
 
 
 class AgentSettings(AgentOptions, frozen=True, kw_only=True, forbid_unknown_fields=True):

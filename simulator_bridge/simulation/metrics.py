@@ -41,6 +41,7 @@ import msgspec
 import numpy as np
 from msgspec import Meta
 
+from schemas.settings import ANSI_RANGE_A_PU
 from simulator_bridge.errors import SimulatorError
 
 __all__ = [
@@ -66,8 +67,6 @@ JUDGED_LIMITS_PU = (0.965, 1.05)
 OPTIMIZATION_LIMITS_PU = (0.975, 1.04)
 """The paper's optimization limits (IV) [pu]: the default of the per-minute count ``opt_limits_pu``."""
 
-ANSI_RANGE_A_PU = (0.95, 1.05)
-"""ANSI C84.1 service voltage Range A [pu of nominal]: every minute is judged against it."""
 
 VIOLATION_TOLERANCE_PU = 1e-9
 """Violations no larger than this are floating-point rounding and are not counted [pu]."""

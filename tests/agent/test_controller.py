@@ -146,7 +146,7 @@ def test_missing_regulator_is_not_moved_nor_used_for_correction():
 
 def test_setpoints_mode_follows_eq8():
     band, step = 4.0, 0.75
-    c = controller(mode="setpoints", bandwidth_v120=band)
+    c = controller(mode="setpoints", bandwidth_v120=band, setpoint_safety=False)
     snap = snapshot(reading_error_pu=HIGH)
     d = c.decide(snap)
     assert d.status == "optimal" and d.reg_setpoint_v120 is not None
@@ -157,6 +157,32 @@ def test_setpoints_mode_follows_eq8():
     expected = np.sign(d.reg_tap - snap.reg_tap) * (band - step) / 2
     np.testing.assert_allclose(offset, expected, atol=1e-9)
     assert np.any(d.reg_tap != snap.reg_tap)  # the case exercises a tap change
+
+
+def test_a_held_regulator_band_lets_its_own_control_step_before_a_node_leaves_ansi_range_a():
+    """Readings 4.5 % below the estimate, taps the decision may not move (0 a period), no Q headroom: the decision
+    holds every tap, the lowest node it predicts at 0.957 pu. The bands of the regulators that move it come down to
+    where it would reach 0.95 pu (never closer than a step, never wider than the 4 V band); off, every band is 4 V
+    wide on the reading."""
+    dear = msgspec.structs.replace(MODEL, regulators=[msgspec.structs.replace(r, max_taps_per_interval=0)
+                                                      for r in MODEL.regulators])
+    snap = dataclasses.replace(snapshot(0, reading_error_pu=np.full(R, -0.045)), pv_kva_available=np.full(K, 900.0))
+    on = _controller(dear, AgentOptions(), {"mode": "setpoints", "bandwidth_v120": 4.0}).decide(snap)
+    off = _controller(dear, AgentOptions(), {"mode": "setpoints", "bandwidth_v120": 4.0,
+                                            "setpoint_safety": False}).decide(snap)
+    assert not np.any(on.reg_tap != snap.reg_tap) and np.array_equal(on.reg_tap, off.reg_tap)
+    np.testing.assert_array_equal(off.reg_band_v120, 4.0)
+    narrowed = on.reg_band_v120 < 4.0 - 1e-9
+    assert narrowed.any()
+    lo_on = on.reg_setpoint_v120 - on.reg_band_v120 / 2
+    lo_off = off.reg_setpoint_v120 - off.reg_band_v120 / 2
+    assert np.all(lo_on[narrowed] > lo_off[narrowed] + 0.1)  # the lower edge comes up: the regulator steps sooner
+    assert np.all(on.reg_band_v120 >= 2 * 0.75 - 1e-9)  # never narrower than two steps
+    hi_on, hi_off = on.reg_setpoint_v120 + on.reg_band_v120 / 2, off.reg_setpoint_v120 + off.reg_band_v120 / 2
+    assert np.all(hi_on <= hi_off + 1e-9) and np.all(lo_on >= lo_off - 1e-9)  # never widened
+    sec = ARRAYS.reg_secondary_node
+    v_s1 = snap.reg_v120_compared + (on.v_pred_pu[sec] - on.v_pu[sec]) / ARRAYS.reg_pu_per_v120
+    assert np.all((lo_on < v_s1) & (v_s1 < hi_on))  # the expected reading stays inside: no step now
 
 
 def test_setpoints_land_on_the_step_each_regulator_measured_at_its_own_moves():
@@ -175,12 +201,13 @@ def test_setpoints_land_on_the_step_each_regulator_measured_at_its_own_moves():
         v_s1 = s.reg_v120_compared + (d.v_pred_pu[sec] - d.v_pu[sec]) / ARRAYS.reg_pu_per_v120
         return d, d_tap, d.reg_setpoint_v120 - (v_s1 + d_tap * (seen_step - own))
 
-    d, d_tap, off = offset(controller(mode="setpoints", bandwidth_v120=band), snap)
+    d, d_tap, off = offset(controller(mode="setpoints", bandwidth_v120=band, setpoint_safety=False), snap)
     assert np.any(d_tap != 0) and np.all(np.abs(d_tap) <= 1) and np.all(np.abs(own - seen_step) > 0.1)
     np.testing.assert_allclose(off, np.sign(d_tap) * (band - seen_step) / 2, atol=1e-9)
     two = dataclasses.replace(snap, reg_steps_seen=tuple(s[:2] for s in seen))
-    for c, s in ((controller(mode="setpoints", bandwidth_v120=band), two),
-                 (controller(mode="setpoints", bandwidth_v120=band, measured_tap_step=False), snap)):
+    for c, s in ((controller(mode="setpoints", bandwidth_v120=band, setpoint_safety=False), two),
+                 (controller(mode="setpoints", bandwidth_v120=band, measured_tap_step=False, setpoint_safety=False),
+                  snap)):
         d, d_tap, off = offset(c, s)
         np.testing.assert_allclose(off + d_tap * (seen_step - own), np.sign(d_tap) * (band - 0.75) / 2, atol=1e-9)
 
@@ -341,7 +368,8 @@ def test_setpoint_hold_resends_the_last_set_point_when_no_tap_change_is_decided(
     """Beyond the paper: with ``setpoint_hold`` a noisy regulator reading cannot move the band when the decided tap
     does not change; without it, eq. (8) re-centres the band on the reading."""
     minute = 60_000_000_000
-    held, plain = controller(mode="setpoints", setpoint_hold=True), controller(mode="setpoints")
+    held = controller(mode="setpoints", setpoint_hold=True, setpoint_safety=False)
+    plain = controller(mode="setpoints", setpoint_safety=False)
     first = [c.decide(snapshot(0)) for c in (held, plain)]
     noisy = snapshot(5 * minute, reading_error_pu=np.full(R, 0.004))  # readings 0.5 V higher, same taps
     second = [c.decide(noisy) for c in (held, plain)]

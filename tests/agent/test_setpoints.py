@@ -162,3 +162,20 @@ def test_only_a_one_step_move_lands_on_the_measured_step():
     v_s1, step = with_measured_steps(np.full(5, 121.0), d_tap, np.full(5, 0.75), np.full(5, 0.8), measured)
     np.testing.assert_allclose(v_s1, [121.0 - 0.3, 121.0 + 0.3, 121.0, 121.0, 121.0])
     np.testing.assert_allclose(step, [0.5, 0.5, 0.75, 0.75, 0.75])
+
+
+def test_a_held_band_is_narrowed_to_where_a_node_would_leave_its_limits_never_widened():
+    from agent.setpoints import safety_band
+
+    # 4 V band on 122 V; the first node below would reach its lower limit 1.0 V down, its upper limit 3 V up
+    sp, band = safety_band(122.0, 4.0, 122.0, 1.0, 3.0, 0.6)
+    assert (sp - band / 2, sp + band / 2) == pytest.approx((121.0, 124.0))  # lower edge at 1 V, upper kept
+    sp, band = safety_band(122.0, 4.0, 122.0, -0.5, 0.2, 0.6)  # already outside: one tap step each side, no closer
+    assert (sp - band / 2, sp + band / 2) == pytest.approx((121.4, 122.6))
+    assert safety_band(122.0, 4.0, 122.0, 5.0, 5.0, 0.6) == (122.0, 4.0)  # margins wider than the band: unchanged
+    # a held set point the reading has drifted from: the band is narrowed where it has room, and never below two
+    # steps wide
+    sp, band = safety_band(122.0, 4.0, 123.0, 0.5, 0.1, 0.6)
+    assert (sp - band / 2, sp + band / 2) == pytest.approx((122.4, 123.6))
+    assert safety_band(122.0, 4.0, 123.5, 0.5, 0.1, 0.6) == (122.0, 4.0)  # 1.1 V wide would be left: unchanged
+    assert safety_band(122.0, 4.0, 122.0, float("nan"), 1.0, 0.6) == (122.0, 4.0)
