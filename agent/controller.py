@@ -527,12 +527,13 @@ class CvvcController:
         over the decisions in a row that had such a move on offer, reaches the move's taps' price.
 
         Beyond the paper, estimated states only: eq. (9) prices one interval, where a tap is paid once and the Q
-        that stands in for it is paid again every interval (IEEE 123's first summer week: case D 1.5x case A's
-        total cost, most of it Q bought where case A had lowered a regulator). Rent or buy: pay the Q while what
-        it has cost beyond the move's Q stays below the move's taps, then move (the deterministic break-even rule:
-        at most twice the cost of knowing in advance how long the need lasts). The offers are the deadband's moves
-        (``tap_deadband``) and, after an optimal decision that buys Q and moves no tap, the same problem with the
-        regulators' taps free (``tap_offer``). Off (``tap_break_even``): the decision as eq. (9) prices it.
+        that stands in for it is paid again every interval (IEEE 123's first summer week before this rule: case D
+        1.50x case A's total cost, most of it Q bought where case A had lowered a regulator; docs/results.md).
+        Rent or buy: pay the Q while what it has cost beyond the move's Q stays below the move's taps, then move
+        (the deterministic break-even rule: at most twice the cost of knowing in advance how long the need lasts).
+        The offers are the deadband's moves (``tap_deadband``) and, after an optimal decision that buys Q and moves
+        no tap, the same problem with the regulators' taps free (``tap_offer``). Off (``tap_break_even``): the
+        decision as eq. (9) prices it.
         """
         if buy is None or not self.tap_break_even:
             self._rent = 0.0
@@ -546,18 +547,17 @@ class CvvcController:
         return buy
 
     def narrowed(self, setpoints: np.ndarray, bands: np.ndarray, held: np.ndarray, v_s1: np.ndarray,
-                 step: np.ndarray, v_pred_pu: np.ndarray, state: GridState) -> None:
+                 step: np.ndarray, v_pred_pu: np.ndarray, dv_dtap: np.ndarray) -> None:
         """Narrow the bands of the ``held`` regulators in place (``agent.setpoints.safety_band``): each edge where the
         compared reading, moving from ``v_s1``, would bring the predicted voltage of the first critical node the
         regulator moves (at least half as much as its secondary) to ANSI Range A.
 
         The estimates, not their bounds: with the bounds (and the judged limits, 0.965-1.05 pu) the bands stepped
         IEEE 8500's regulators far more often (first 3 summer days: NTC 1,231 -> 1,786, case A 948); with the
-        estimates and ANSI Range A, 1,204 (docs/method.md "A held regulator's band").
+        estimates and ANSI Range A, 1,204 (docs/method.md "A held regulator's band"). ``dv_dtap``: (N, R) the
+        critical nodes' tap sensitivities [pu/step].
         """
-        n = state.v0_pu.shape[0]
-        dv_dtap = np.reshape(state.dv_dtap_pu, (n, -1))
-        v = np.asarray(v_pred_pu, float)[:n]
+        v = np.asarray(v_pred_pu, float)[:dv_dtap.shape[0]]
         lo_pu, hi_pu = ANSI_RANGE_A_PU
         for r in np.flatnonzero(held):
             sec = self._arrays.reg_secondary_node[r]
@@ -823,8 +823,9 @@ class CvvcController:
                                           self._arrays.reg_pu_per_v120)
             d_tap = solution.taps_new[:n_reg] - state.taps
             band, step = self.bandwidth_v120, self._step_v120
+            dv_dtap = np.reshape(state.dv_dtap_pu, (state.v0_pu.shape[0], -1))  # (N, R)
             if self._measured_steps is not None:  # beyond the paper: each regulator's step as it measured it
-                own = np.reshape(state.dv_dtap_pu, (state.v0_pu.shape[0], -1))[sec_node, np.arange(n_reg)]
+                own = dv_dtap[sec_node, np.arange(n_reg)]
                 v_s1, step = with_measured_steps(v_s1, d_tap, step, own / self._arrays.reg_pu_per_v120,
                                                  self._measured_steps.step_v120())
             setpoints = np.array(
@@ -842,7 +843,7 @@ class CvvcController:
                     self._last_setpoint[r] = (t_now, float(setpoints[r]))
             bands = np.full(n_reg, self.bandwidth_v120)
             if self.setpoint_safety and state.critical:
-                self.narrowed(setpoints, bands, (d_tap == 0) & reg_ok, v_s1, step, solution.v_pred_pu, state)
+                self.narrowed(setpoints, bands, (d_tap == 0) & reg_ok, v_s1, step, solution.v_pred_pu, dv_dtap)
         self._stale.commanded(int(snap.t_ns), solution.q_new_kvar, pv_ok)
         moved = reg_ok & (solution.taps_new[:n_reg] != state.taps)
         self._last_move = np.where(moved, np.sign(solution.taps_new[:n_reg] - state.taps), self._last_move)
