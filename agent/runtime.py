@@ -373,7 +373,6 @@ def run_agent(model: CvvcModel, settings: AgentSettings, bus, *, stop: threading
     rlog = RateLimitedLog(log)
     health = _FrameHealth(maker.aligner)
     with open_session(bus) as session:
-        token = session.liveliness().declare_token(keys.alive(f, "agent", settings.agent_id))
         devices = LivelinessWatcher(session, keys.alive_all(f),
                                     on_change=lambda k, up: log.info("device %s %s", k, "up" if up else "down"))
         inbox = Inbox(maxsize=8192)
@@ -398,6 +397,8 @@ def run_agent(model: CvvcModel, settings: AgentSettings, bus, *, stop: threading
                        for r in model.regulators} if settings.mode == "setpoints" else {}
         if settings.full_visibility:
             maker.oracle = _Oracle(session, f, settings.oracle_timeout_s, rlog).reply
+        # alive once listening: a device or a watcher that sees the token may count on the next step being heard
+        token = session.liveliness().declare_token(keys.alive(f, "agent", settings.agent_id))
 
         last_frame_wall = time.monotonic()
         last_frame_t_ns = 0
