@@ -42,6 +42,7 @@ from cvvc.run_trace import (
     read_series,
     window_envelope_pu,
 )
+from cvvc.step_effect import TapStepAccumulator, tap_steps_text
 from schemas.errors import CvvcError
 from schemas.truth import TruthDecodeError, decode_truth
 from simulator_bridge.rural.synthesis import UTC_OFFSET_H
@@ -73,6 +74,7 @@ class _Estimate(msgspec.Struct):
 class _Decision(msgspec.Struct):
     step_t_ns: int
     estimates: list[_Estimate] = []
+    dv_dtap_pu: list[list[float]] = []
 
 
 def _topic(reader, suffix: str) -> str | None:
@@ -100,16 +102,20 @@ def read_trace(mcap_path: str | Path, *, regulator_ids: tuple[str, ...] = (), pv
         if truth_topic is None:
             raise ReportError(f"{path}: no sim/truth channel; the bridge must publish the truth (--truth-every)")
         estimates: dict[int, list[_Estimate]] = {}
+        sensitivities: tuple[list[str], np.ndarray] | None = None  # the critical nodes and the model's dV/dtap
         if decision_topic is not None:
             for _, _, msg in reader.iter_messages(topics=[decision_topic]):
                 d = dec_dec.decode(msg.data)
                 if d.estimates:
                     estimates[d.step_t_ns] = d.estimates
+                    if sensitivities is None and len(d.dv_dtap_pu) == len(d.estimates):
+                        sensitivities = [x.node for x in d.estimates], np.asarray(d.dv_dtap_pu, float)
         node_index: dict[str, int] = {}
         series = TruthSeries(WINDOW_STEPS)
         err_t, err_max, err_min, err_rms, errors = [], [], [], [], []
         judged: list[tuple[int, list[_Estimate], np.ndarray]] = []  # (t_ns, estimates, true v at their nodes)
         live: LiveAccuracyAccumulator | None = None
+        steps: TapStepAccumulator | None = None
         for _, channel, msg in reader.iter_messages(topics=[truth_topic]):
             try:  # every encoding the truth was ever recorded in (schemas.truth)
                 tr = decode_truth(msg.data, channel.message_encoding)
@@ -118,8 +124,12 @@ def read_trace(mcap_path: str | Path, *, regulator_ids: tuple[str, ...] = (), pv
             if tr.node_names:
                 node_index = {n: i for i, n in enumerate(tr.node_names)}
                 live = LiveAccuracyAccumulator(tr.node_names)
+                if sensitivities is not None and regulator_ids:
+                    steps = TapStepAccumulator(tr.node_names, *sensitivities, regulator_ids)
             v = tr.v_pu
             series.add(tr.t_ns, v, tr.taps, tr.pv_q_kvar, tr.cap_states)
+            if steps is not None:
+                steps.add(tr.t_ns, v, tr.taps, tr.pv_q_kvar, tr.cap_states)
             est = estimates.get(tr.t_ns)
             if est and node_index:
                 e = np.array([x.v_pu - v[node_index[x.node]] for x in est if x.node in node_index])
@@ -139,7 +149,8 @@ def read_trace(mcap_path: str | Path, *, regulator_ids: tuple[str, ...] = (), pv
     trace = series.trace(regulator_ids=regulator_ids, pv_ids=pv_ids, limits_pu=limits_pu, capacitor_ids=capacitor_ids)
     return replace(trace, err_t_ns=np.asarray(err_t, dtype=np.int64), err_max_pu=np.asarray(err_max),
                    err_min_pu=np.asarray(err_min), err_rms_pu=np.asarray(err_rms),
-                   errors_pu=np.concatenate(errors) if errors else np.zeros(0), worst=_worst_node(live, judged))
+                   errors_pu=np.concatenate(errors) if errors else np.zeros(0), worst=_worst_node(live, judged),
+                   tap_steps=steps.result() if steps is not None else ())
 
 
 def _worst_node(live: LiveAccuracyAccumulator | None,
@@ -454,7 +465,10 @@ def plot_run(run_dir: str | Path, *, out: str | Path | None = None) -> list[Path
     paths += [_save(worst, folder / "worst_node.png")] if worst is not None else []
     report_dir = folder if out else d
     links = [f"![{p.stem.replace('_', ' ')}]({p.relative_to(report_dir).as_posix()})" for p in paths]
-    (report_dir / "report.md").write_text(render_summary(summary, dm) + "\n## Plots\n\n" + "\n\n".join(links) + "\n")
+    steps = traces[f"case {summary.case}"].tap_steps
+    measured = f"\n## What the truth says of the model\n\n- {tap_steps_text(steps)}\n" if steps else ""
+    (report_dir / "report.md").write_text(render_summary(summary, dm) + measured + "\n## Plots\n\n"
+                                          + "\n\n".join(links) + "\n")
     return paths
 
 

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+from cvvc.step_effect import TapStepEffect
 from simulator_bridge.simulation.live_accuracy import LiveAccuracy
 
 __all__ = ["BASELINE_TRACE", "WINDOW_STEPS", "NodeTrace", "RunTrace", "TruthSeries", "read_series", "write_series",
@@ -64,6 +65,7 @@ class RunTrace:
     cap_states: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
     capacitor_ids: tuple[str, ...] = ()
     worst: NodeTrace | None = None  # the critical node whose bounds missed most often
+    tap_steps: tuple[TapStepEffect, ...] = ()  # each regulator's single steps against the model (``cvvc.step_effect``)
 
 
 def window_envelope_pu(v_pu: np.ndarray, window_steps: int = WINDOW_STEPS) -> tuple[np.ndarray, np.ndarray]:

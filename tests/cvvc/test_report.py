@@ -25,6 +25,7 @@ from cvvc.report import (
     taps_figure,
     window_envelope_pu,
 )
+from cvvc.step_effect import TapStepAccumulator
 from schemas.truth import to_truth_frame, truth_pack
 
 REPO = Path(__file__).resolve().parents[2]
@@ -66,6 +67,10 @@ def test_report_run_writes_the_five_pngs(tiny_evaluation, tmp_path):
     out, ev = tiny_evaluation
     paths = plot_run(ev.runs[0].out_dir, out=tmp_path / "plots")
     _assert_pngs(paths, {"voltage_envelope.png", "pv_q.png", "taps.png", "estimation_error.png", "worst_node.png"})
+    steps = read_trace(Path(ev.runs[0].recording), regulator_ids=("reg1", "reg2", "reg3")).tap_steps
+    report = (tmp_path / "plots" / "report.md").read_text()
+    assert ("## What the truth says of the model" in report) == bool(steps)
+    assert all(f"{e.regulator} {e.share_of_model:.2f} ({e.steps} step" in report for e in steps)
 
 
 def test_live_accuracy_from_the_recording_equals_the_bridges(tiny_evaluation):
@@ -116,6 +121,18 @@ def test_trace_matches_the_recorded_truth(tiny_evaluation):
     # decisions every 5 minutes, each matched with the truth of its step
     assert trace.err_t_ns.size == 5
     assert trace.errors_pu.size > 0 and np.abs(trace.errors_pu).max() < 0.05
+    # the regulators' single steps against the model: the same as the accumulator fed the decoded frames
+    with rec.open("rb") as f:
+        decision = next(msgspec.json.decode(m.data) for _, ch, m in make_reader(f).iter_messages()
+                        if ch.topic.endswith("/agent/decision"))
+    regulators = ("reg1", "reg2", "reg3")
+    acc = TapStepAccumulator(truth[0]["node_names"], [e["node"] for e in decision["estimates"]],
+                             np.array(decision["dv_dtap_pu"]), regulators)
+    for t in truth:
+        acc.add(t["t_ns"], np.array(t["v_pu"]), np.array(t["taps"]), np.array(t["pv_q_kvar"]),
+                np.array(t["cap_states"]))
+    assert read_trace(rec, regulator_ids=regulators).tap_steps == acc.result()
+    assert trace.tap_steps == ()  # no regulator named, nothing measured
 
 
 def test_figures_draw_the_trace(tiny_evaluation):
