@@ -557,19 +557,21 @@ class CvvcController:
         estimates and ANSI Range A, 1,204 (docs/method.md "A held regulator's band"). ``dv_dtap``: (N, R) the
         critical nodes' tap sensitivities [pu/step].
         """
-        v = np.asarray(v_pred_pu, float)[:dv_dtap.shape[0]]
+        v = np.asarray(v_pred_pu, float)[:dv_dtap.shape[0], None]
         lo_pu, hi_pu = ANSI_RANGE_A_PU
+        n_reg = dv_dtap.shape[1]
+        own = dv_dtap[self._arrays.reg_secondary_node, np.arange(n_reg)]
+        held = np.asarray(held, bool) & (own > 0)
+        if not held.any():
+            return
+        share = dv_dtap / np.where(own > 0, own, 1.0)  # (N, R): each node's move per step of its secondary's
+        moved = share >= 0.5  # the secondary's own row is 1: every held regulator moves at least one node
+        per_v = np.asarray(self._arrays.reg_pu_per_v120, float)
+        lo_margin = np.min(np.where(moved, (v - lo_pu) / np.where(moved, share, 1.0), np.inf), axis=0) / per_v
+        hi_margin = np.min(np.where(moved, (hi_pu - v) / np.where(moved, share, 1.0), np.inf), axis=0) / per_v
         for r in np.flatnonzero(held):
-            sec = self._arrays.reg_secondary_node[r]
-            if not dv_dtap[sec, r] > 0:
-                continue
-            share = dv_dtap[:, r] / dv_dtap[sec, r]
-            moved = share >= 0.5
-            per_v = self._arrays.reg_pu_per_v120[r]
-            lo_margin = float(np.min((v - lo_pu)[moved] / share[moved])) / per_v
-            hi_margin = float(np.min((hi_pu - v)[moved] / share[moved])) / per_v
-            setpoints[r], bands[r] = safety_band(float(setpoints[r]), float(bands[r]), float(v_s1[r]), lo_margin,
-                                                 hi_margin, float(step[r]))
+            setpoints[r], bands[r] = safety_band(float(setpoints[r]), float(bands[r]), float(v_s1[r]),
+                                                 float(lo_margin[r]), float(hi_margin[r]), float(step[r]))
 
     def deadband_widened(self, held_problem: CvvcInputs, n_nodes: int) -> CvvcInputs:
         """``held_problem`` (taps held) with its first ``n_nodes`` rows' limits widened by ``tap_deadband_pu``.
