@@ -518,7 +518,7 @@ class CvvcController:
         """
         free = np.array(inputs.cost_per_tap, float)
         free[:n_reg] = 0.0
-        offer = solve_cvvc(dataclasses.replace(inputs, cost_per_tap=free), warm_start=self._warm)
+        offer = solve_cvvc(inputs.replaced(cost_per_tap=free), warm_start=self._warm)
         return dataclasses.replace(offer, cost=inputs.cost(offer.taps_new - inputs.taps, offer.q_new_kvar))
 
     def rent_or_buy(self, inputs: CvvcInputs, solution: CvvcSolution, buy: CvvcSolution | None,
@@ -586,7 +586,7 @@ class CvvcController:
         hi = np.broadcast_to(np.asarray(held_problem.v_max_pu, float), (rows,)).copy()
         lo[:n_nodes] -= self.tap_deadband_pu
         hi[:n_nodes] += self.tap_deadband_pu
-        return dataclasses.replace(held_problem, v_min_pu=lo, v_max_pu=hi)
+        return held_problem.replaced(v_min_pu=lo, v_max_pu=hi)
 
     def problem(self, snap: MeasurementSnapshot, state: GridState, *, out_of_envelope: bool = False,
                 plants: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None,
@@ -680,7 +680,7 @@ class CvvcController:
         tap_min, tap_max = np.array(inputs.tap_min), np.array(inputs.tap_max)
         tap_min[:n_reg] = np.where(no_down, np.maximum(self._tap_min, taps_now), self._tap_min)
         tap_max[:n_reg] = np.where(no_up, np.minimum(self._tap_max, taps_now), self._tap_max)
-        return dataclasses.replace(inputs, tap_min=tap_min, tap_max=tap_max)
+        return inputs.replaced(tap_min=tap_min, tap_max=tap_max)
 
     def pv_margins_pu(self, dv_dp_pu_per_kw: np.ndarray, pv_p_kw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(rise, fall)`` PV variability margins [pu] of nodes with these sensitivities (N, K) [pu/kW].

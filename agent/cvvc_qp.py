@@ -37,8 +37,10 @@ Deviations from the paper, for the solver's sake (see docs/optimizer.md):
 
 from __future__ import annotations
 
+import copy
 import functools
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import qpsolvers
@@ -152,32 +154,59 @@ class CvvcInputs:
     soft_weight: np.ndarray | None = None
 
     def __post_init__(self) -> None:
+        self._check(_INPUT_FIELDS)
+
+    def replaced(self, **changes: Any) -> CvvcInputs:
+        """A copy with ``changes`` (as ``dataclasses.replace``): only the changed fields are converted and checked
+        again, with every relation between fields; the others are this object's checked read-only arrays.
+
+        A problem is re-made several times a decision (the regulators' tap ranges for the locks, the deadband's
+        limits, the tap offer's costs); checking its every array again each time was most of that.
+        """
+        unknown = set(changes) - set(_INPUT_FIELDS)
+        if unknown:
+            raise TypeError(f"CvvcInputs has no field {', '.join(sorted(unknown))}")
+        new = copy.copy(self)
+        for name, value in changes.items():
+            object.__setattr__(new, name, value)
+        new._check(tuple(name for name in _INPUT_FIELDS if name in changes))
+        return new
+
+    def _check(self, names: tuple[str, ...]) -> None:
+        """Convert and check the fields ``names`` (copies, read-only), then every relation between the fields."""
         n = np.size(self.v0_pu)
         k = np.size(self.q0_kvar)
         r = np.size(self.taps)
         put = object.__setattr__
-        put(self, "v0_pu", _vec("v0_pu", self.v0_pu, n))
-        put(self, "dv_dq_pu_per_kvar", _mat("dv_dq_pu_per_kvar", self.dv_dq_pu_per_kvar, (n, k)))
-        put(self, "dv_dtap_pu", _mat("dv_dtap_pu", self.dv_dtap_pu, (n, r)))
-        for name in ("q0_kvar", "q_min_kvar", "q_max_kvar", "q_rating_kvar", "cost_per_kvar"):
-            put(self, name, _vec(name, getattr(self, name), k))
-        for name in ("taps", "tap_min", "tap_max", "max_taps_per_interval"):
-            put(self, name, _vec(name, getattr(self, name), r, int))
-        put(self, "cost_per_tap", _vec("cost_per_tap", self.cost_per_tap, r))
-        for name in ("v_min_pu", "v_max_pu"):
+        for name in names:
             value = getattr(self, name)
-            if np.shape(value) != (n,):  # one limit for every node (or any shape that broadcasts to them)
-                value = np.broadcast_to(np.asarray(value, float), (n,))
-            put(self, name, _vec(name, value, n))
-        if self.soft_weight is not None:
-            put(self, "soft_weight", _vec("soft_weight", self.soft_weight, n))
-            if not ((self.soft_weight > 0.0) & (self.soft_weight <= 1.0)).all():
-                raise AgentInputError("CvvcInputs.soft_weight must be within (0, 1] at every node")
-        for name in ("soft_alpha", "soft_beta_per_pu2", "dv_dq_rel_error"):
-            value = float(getattr(self, name))
-            if not np.isfinite(value):
-                raise AgentInputError(f"CvvcInputs.{name} is not finite")
-            put(self, name, value)
+            if name == "dv_dq_pu_per_kvar":
+                put(self, name, _mat(name, value, (n, k)))
+            elif name == "dv_dtap_pu":
+                put(self, name, _mat(name, value, (n, r)))
+            elif name in ("v0_pu",):
+                put(self, name, _vec(name, value, n))
+            elif name in ("q0_kvar", "q_min_kvar", "q_max_kvar", "q_rating_kvar", "cost_per_kvar"):
+                put(self, name, _vec(name, value, k))
+            elif name in ("taps", "tap_min", "tap_max", "max_taps_per_interval"):
+                put(self, name, _vec(name, value, r, int))
+            elif name == "cost_per_tap":
+                put(self, name, _vec(name, value, r))
+            elif name in ("v_min_pu", "v_max_pu"):
+                if np.shape(value) != (n,):  # one limit for every node (or any shape that broadcasts to them)
+                    value = np.broadcast_to(np.asarray(value, float), (n,))
+                put(self, name, _vec(name, value, n))
+            elif name == "soft_weight":
+                if value is not None:
+                    weight = _vec(name, value, n)
+                    put(self, name, weight)
+                    if not ((weight > 0.0) & (weight <= 1.0)).all():
+                        raise AgentInputError("CvvcInputs.soft_weight must be within (0, 1] at every node")
+            else:  # soft_alpha, soft_beta_per_pu2, dv_dq_rel_error
+                scalar = float(value)
+                if not np.isfinite(scalar):
+                    raise AgentInputError(f"CvvcInputs.{name} is not finite")
+                put(self, name, scalar)
         if (self.q_min_kvar > self.q_max_kvar).any():
             raise AgentInputError("CvvcInputs.q_min_kvar exceeds q_max_kvar for some plant; pass q_min <= q_max")
         if (self.q_rating_kvar <= 0).any():
@@ -219,6 +248,13 @@ class CvvcInputs:
     def cost(self, d_tap: np.ndarray, q_new_kvar: np.ndarray) -> float:
         """Eq. (9) with (14)-(15): flat cost per tap change plus per kvar of the new set point [cost units]."""
         return float(self.cost_per_tap @ np.abs(d_tap) + self.cost_per_kvar @ np.abs(q_new_kvar))
+
+
+#: Every field of ``CvvcInputs``, in the order they are checked (so a problem with several bad fields names the same
+#: one first, however it was made).
+_INPUT_FIELDS = ("v0_pu", "dv_dq_pu_per_kvar", "dv_dtap_pu", "q0_kvar", "q_min_kvar", "q_max_kvar", "q_rating_kvar",
+                 "cost_per_kvar", "taps", "tap_min", "tap_max", "max_taps_per_interval", "cost_per_tap", "v_min_pu",
+                 "v_max_pu", "soft_weight", "soft_alpha", "soft_beta_per_pu2", "dv_dq_rel_error")
 
 
 @dataclass(frozen=True)
@@ -373,12 +409,16 @@ def build_cvvc_qp(
     rating = inputs.q_rating_kvar
     with_taps = fixed_d_tap is None
     n_tap = 2 * r if with_taps else 0
-    soft_nodes = np.broadcast_to(np.asarray(soft, bool), (inputs.n_nodes,)).copy()
+    # (array methods and plain allocations, not np.broadcast_to / np.hstack / np.max: a problem is built several
+    # times a decision, and their wrappers were a third of its time)
+    soft_given = np.asarray(soft, bool)
+    soft_nodes = (soft_given.copy() if soft_given.shape == (inputs.n_nodes,)
+                  else np.broadcast_to(soft_given, (inputs.n_nodes,)).copy())
     soft_nodes.flags.writeable = False
     rows_of = np.arange(inputs.n_nodes) if nodes is None else np.unique(np.asarray(nodes, int))
     rows_of.flags.writeable = False
     n = rows_of.size  # voltage rows
-    soft_idx = np.flatnonzero(soft_nodes[rows_of])  # rows (not nodes) with a violation variable
+    soft_idx = soft_nodes[rows_of].nonzero()[0]  # rows (not nodes) with a violation variable
     n_vio = soft_idx.size
     n_var = n_tap + 2 * k + n_vio
     tap_up = slice(0, r) if with_taps else None
@@ -390,7 +430,7 @@ def build_cvvc_qp(
 
     # Objective: normalised linear cost, proximal term, squared violations (eq. 17).
     q_cost = inputs.cost_per_kvar * rating
-    cost_scale = float(max(np.max(inputs.cost_per_tap, initial=0.0), np.max(q_cost, initial=0.0), 1e-9))
+    cost_scale = float(max(inputs.cost_per_tap.max(initial=0.0), q_cost.max(initial=0.0), 1e-9))
     alpha = inputs.soft_alpha if n_vio else 1.0
     c = np.zeros(n_var)
     p_diag = np.zeros(n_var)
@@ -408,11 +448,10 @@ def build_cvvc_qp(
     # Voltage rows (eq. 13 / 17) in %.
     s_q = _PCT_PER_PU * inputs.dv_dq_pu_per_kvar[rows_of] * rating  # (n, K) % per rating
     s_t = _PCT_PER_PU * inputs.dv_dtap_pu[rows_of]  # (n, R) % per step
-    blocks = []
+    a_act = np.empty((n, n_tap + 2 * k))  # (N, n_tap + 2K): the action columns, dense
     if with_taps:
-        blocks += [s_t, -s_t]
-    blocks += [s_q, -s_q]
-    a_act = np.hstack(blocks)  # (N, n_tap + 2K): the action columns, dense
+        a_act[:, tap_up], a_act[:, tap_down] = s_t, -s_t
+    a_act[:, q_inj], a_act[:, q_abs] = s_q, -s_q
     v_base = _PCT_PER_PU * inputs.v0_pu[rows_of] - s_q @ (inputs.q0_kvar / rating)
     if not with_taps:
         v_base = v_base + s_t @ np.asarray(fixed_d_tap, float)

@@ -76,19 +76,22 @@ def solve_dense_qp(
     An ``ActiveSetResult``; never raises on numeric trouble.
     """
     n, m = p_diag.shape[0], a.shape[0]
-    zeros = ActiveSetResult("failed", np.zeros(n), np.zeros(m), 0)
-    if np.any(p_diag <= 0.0) or np.any(lo > hi) or a.shape != (m, n) or c.shape != (n,):
-        return ActiveSetResult("failed", zeros.x, zeros.y, 0, "inconsistent data (P not positive, lo > hi or shapes)")
+    # (array methods, not np.any / np.unique: several calls a decision, each a few microseconds of wrappers)
+    if (p_diag <= 0.0).any() or (lo > hi).any() or a.shape != (m, n) or c.shape != (n,):
+        return _failed(n, m, 0, "inconsistent data (P not positive, lo > hi or shapes)")
     # One single-entry row per variable becomes a simple bound (scaled by its entry); the others stay rows.
     nonzero = a != 0.0
-    single = np.count_nonzero(nonzero, axis=1) == 1
-    singles = np.flatnonzero(single)
-    _, first = np.unique(np.argmax(nonzero[singles], axis=1), return_index=True)  # the first row of each variable
-    is_bound = np.zeros(m, bool)
-    is_bound[singles[first]] = True
-    bound_rows = np.flatnonzero(is_bound)
-    general = np.flatnonzero(~is_bound)
-    column = np.argmax(nonzero[bound_rows], axis=1)
+    single = nonzero.sum(axis=1) == 1
+    singles = single.nonzero()[0]
+    column = nonzero[singles].argmax(axis=1)  # the variable of each single-entry row
+    if singles.size and np.bincount(column, minlength=n).max() > 1:  # a variable with two: its first row is the bound
+        _, first = np.unique(column, return_index=True)
+        is_bound = np.zeros(m, bool)
+        is_bound[singles[first]] = True
+        bound_rows, general = is_bound.nonzero()[0], (~is_bound).nonzero()[0]
+        column = nonzero[bound_rows].argmax(axis=1)
+    else:
+        bound_rows, general = singles, (~single).nonzero()[0]
     coef = a[bound_rows, column]
     b_lo = np.full(n, -np.inf)
     b_hi = np.full(n, np.inf)
@@ -103,7 +106,7 @@ def solve_dense_qp(
     limit = 2 * (m + n) + 100 if max_steps is None else max_steps
     h, f, a_rows = np.diag(p_diag), np.array(c, float), np.array(a[general], float)
     flag, steps = 0, 0
-    if guess is not None and np.any(guess):
+    if guess is not None and np.asarray(guess).any():
         # Warm: the guessed rows start active. A guess DAQP cannot start from (dependent rows) is dropped.
         warm = sense.copy()
         guessed = np.zeros(sense.size, bool)
@@ -111,21 +114,26 @@ def solve_dense_qp(
         warm[guessed & (warm == 0)] = _ACTIVE
         x, _, flag, info = daqp.solve(h, f, a_rows, upper, lower, warm, iter_limit=limit)
         steps = int(info["iterations"])
-        if flag == _OPTIMAL and not np.all(np.isfinite(info["lam"])):
+        if flag == _OPTIMAL and not np.isfinite(info["lam"]).all():
             flag = 0
     if flag != _OPTIMAL:
         x, _, flag, info = daqp.solve(h, f, a_rows, upper, lower, sense, iter_limit=limit)
         steps += int(info["iterations"])
     if flag == _INFEASIBLE:
-        return ActiveSetResult("infeasible", zeros.x, zeros.y, steps, "no point meets every constraint")
+        return ActiveSetResult("infeasible", np.zeros(n), np.zeros(m), steps, "no point meets every constraint")
     if flag != _OPTIMAL:
         why = f"step limit ({limit})" if flag == _ITERATION_LIMIT else f"DAQP exit flag {flag}"
-        return ActiveSetResult("failed", zeros.x, zeros.y, steps, why)
+        return _failed(n, m, steps, why)
     lam = np.asarray(info["lam"], float)
     y = np.zeros(m)
     y[bound_rows] = lam[column] / coef
     y[general] = lam[n:]
     x = np.asarray(x, float)
-    if not (np.all(np.isfinite(x)) and np.all(np.isfinite(y))):
-        return ActiveSetResult("failed", zeros.x, zeros.y, steps, "non-finite solution")
+    if not (np.isfinite(x).all() and np.isfinite(y).all()):
+        return _failed(n, m, steps, "non-finite solution")
     return ActiveSetResult("optimal", x, y, steps)
+
+
+def _failed(n: int, m: int, steps: int, why: str) -> ActiveSetResult:
+    """A ``failed`` result (zeros for ``x`` and ``y``) saying ``why``."""
+    return ActiveSetResult("failed", np.zeros(n), np.zeros(m), steps, why)

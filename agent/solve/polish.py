@@ -63,12 +63,12 @@ def kkt_ok(
     a: np.ndarray, p_diag: np.ndarray, c: np.ndarray, lo: np.ndarray, hi: np.ndarray, x: np.ndarray, y: np.ndarray
 ) -> bool:
     """KKT conditions of ``min x'Px/2 + c'x, lo <= Ax <= hi`` hold within ``KKT_TOL`` (so ``x`` is optimal)."""
-    ax = a @ x
-    if np.max(np.abs(p_diag * x + c + a.T @ y), initial=0.0) > KKT_TOL:
+    ax = a @ x  # (array methods, not np.max / np.any: several calls a decision)
+    if np.abs(p_diag * x + c + a.T @ y).max(initial=0.0) > KKT_TOL:
         return False
-    if np.any(ax < lo - KKT_TOL) or np.any(ax > hi + KKT_TOL):
+    if (ax < lo - KKT_TOL).any() or (ax > hi + KKT_TOL).any():
         return False
-    return not (np.any((y > KKT_TOL) & (ax < hi - KKT_TOL)) or np.any((y < -KKT_TOL) & (ax > lo + KKT_TOL)))
+    return not (((y > KKT_TOL) & (ax < hi - KKT_TOL)).any() or ((y < -KKT_TOL) & (ax > lo + KKT_TOL)).any())
 
 
 def proven_infeasible(a: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> bool:

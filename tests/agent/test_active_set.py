@@ -67,6 +67,18 @@ def test_optimum_matches_clarabel(seed):
         assert np.all((out.y <= 1e-9) | (ax >= hi - 1e-8)) and np.all((out.y >= -1e-9) | (ax <= lo + 1e-8))
 
 
+def test_a_variable_with_two_single_entry_rows_keeps_both():
+    """The first single-entry row of a variable is its bound, the second stays a row: both hold at the optimum."""
+    p, c = np.array([1.0, 1.0]), np.array([-4.0, 1.0])  # unconstrained minimum (4, -1)
+    a = np.array([[1.0, 0.0], [0.0, 1.0], [2.0, 0.0], [1.0, 1.0]])
+    lo, hi = np.array([-1.0, -0.5, -np.inf, -np.inf]), np.array([3.0, 0.5, 5.0, 10.0])  # x0 <= 3, 2 x0 <= 5 binds
+    out = solve_dense_qp(p, c, a, lo, hi)
+    assert out.status == "optimal", out.reason
+    np.testing.assert_allclose(out.x, [2.5, -0.5], atol=1e-9)
+    np.testing.assert_allclose(out.x, _clarabel(p, c, a, lo, hi), atol=1e-6)
+    assert out.y[0] == 0.0 and out.y[2] > 0.0 and out.y[1] < 0.0  # OSQP's signs: upper > 0, lower < 0
+
+
 def test_any_guess_gives_the_same_optimum():
     """A guess only changes the start: right, wrong or random, the answer is the same."""
     rng = np.random.default_rng(7)

@@ -244,6 +244,27 @@ def test_inputs_are_validated(change, match):
     base = _tiny(v0=[1.0, 1.0])
     with pytest.raises(AgentInputError, match=match):
         CvvcInputs(**{**base.__dict__, **change})
+    with pytest.raises(AgentInputError, match=match):  # a copy with the bad field is refused alike
+        base.replaced(**change)
+
+
+def test_a_replaced_copy_is_the_problem_built_again():
+    """``replaced`` checks only what changed, and gives every field as building the problem again does."""
+    base = random_cvvc_inputs(np.random.default_rng(3), n_nodes=12, n_pv=3)  # 8 regulators
+    changes = {"tap_min": base.tap_min - 1, "v_max_pu": 1.04, "cost_per_tap": np.arange(8) / 10, "soft_alpha": 2}
+    copy, rebuilt = base.replaced(**changes), dataclasses.replace(base, **changes)
+    for f in dataclasses.fields(CvvcInputs):
+        a, b = getattr(copy, f.name), getattr(rebuilt, f.name)
+        if isinstance(b, np.ndarray):
+            assert a.dtype == b.dtype and np.array_equal(a, b) and not a.flags.writeable, f.name
+        else:
+            assert a == b and type(a) is type(b), f.name
+    assert not np.shares_memory(copy.tap_min, base.tap_min) and copy.v0_pu is base.v0_pu  # unchanged: shared
+    np.testing.assert_array_equal(base.tap_max, copy.tap_max)
+    with pytest.raises(AgentInputError, match="tap_min <= tap_max"):
+        base.replaced(tap_min=base.tap_max + 1)
+    with pytest.raises(TypeError, match="no field"):
+        base.replaced(taps_now=base.taps)
 
 
 def test_large_soft_problem_stays_sparse_and_is_solved():
