@@ -104,6 +104,37 @@ def _mat(name: str, value, shape: tuple[int, int]) -> np.ndarray:
     return a
 
 
+def _converted(name: str, value: Any, n: int, k: int, r: int) -> Any:
+    """``CvvcInputs``' field ``name`` as stored: a checked read-only array of its shape (``n`` nodes, ``k`` plants,
+    ``r`` regulators), a float, or None (``soft_weight`` only). Raises ``AgentInputError``.
+    """
+    if name == "dv_dq_pu_per_kvar":
+        return _mat(name, value, (n, k))
+    if name == "dv_dtap_pu":
+        return _mat(name, value, (n, r))
+    if name in ("q0_kvar", "q_min_kvar", "q_max_kvar", "q_rating_kvar", "cost_per_kvar"):
+        return _vec(name, value, k)
+    if name in ("taps", "tap_min", "tap_max", "max_taps_per_interval"):
+        return _vec(name, value, r, int)
+    if name == "cost_per_tap":
+        return _vec(name, value, r)
+    if name in ("v0_pu", "v_min_pu", "v_max_pu"):
+        if name != "v0_pu" and np.shape(value) != (n,):  # one limit for every node (or any shape that broadcasts)
+            value = np.broadcast_to(np.asarray(value, float), (n,))
+        return _vec(name, value, n)
+    if name == "soft_weight":
+        if value is None:
+            return None
+        weight = _vec(name, value, n)
+        if not ((weight > 0.0) & (weight <= 1.0)).all():
+            raise AgentInputError("CvvcInputs.soft_weight must be within (0, 1] at every node")
+        return weight
+    scalar = float(value)  # soft_alpha, soft_beta_per_pu2, dv_dq_rel_error
+    if not np.isfinite(scalar):
+        raise AgentInputError(f"CvvcInputs.{name} is not finite")
+    return scalar
+
+
 @dataclass(frozen=True)
 class CvvcInputs:
     """Everything one CVVC solve needs. Arrays are copied, checked and made read-only on construction.
@@ -174,39 +205,9 @@ class CvvcInputs:
 
     def _check(self, names: tuple[str, ...]) -> None:
         """Convert and check the fields ``names`` (copies, read-only), then every relation between the fields."""
-        n = np.size(self.v0_pu)
-        k = np.size(self.q0_kvar)
-        r = np.size(self.taps)
-        put = object.__setattr__
+        n, k, r = np.size(self.v0_pu), np.size(self.q0_kvar), np.size(self.taps)
         for name in names:
-            value = getattr(self, name)
-            if name == "dv_dq_pu_per_kvar":
-                put(self, name, _mat(name, value, (n, k)))
-            elif name == "dv_dtap_pu":
-                put(self, name, _mat(name, value, (n, r)))
-            elif name in ("v0_pu",):
-                put(self, name, _vec(name, value, n))
-            elif name in ("q0_kvar", "q_min_kvar", "q_max_kvar", "q_rating_kvar", "cost_per_kvar"):
-                put(self, name, _vec(name, value, k))
-            elif name in ("taps", "tap_min", "tap_max", "max_taps_per_interval"):
-                put(self, name, _vec(name, value, r, int))
-            elif name == "cost_per_tap":
-                put(self, name, _vec(name, value, r))
-            elif name in ("v_min_pu", "v_max_pu"):
-                if np.shape(value) != (n,):  # one limit for every node (or any shape that broadcasts to them)
-                    value = np.broadcast_to(np.asarray(value, float), (n,))
-                put(self, name, _vec(name, value, n))
-            elif name == "soft_weight":
-                if value is not None:
-                    weight = _vec(name, value, n)
-                    put(self, name, weight)
-                    if not ((weight > 0.0) & (weight <= 1.0)).all():
-                        raise AgentInputError("CvvcInputs.soft_weight must be within (0, 1] at every node")
-            else:  # soft_alpha, soft_beta_per_pu2, dv_dq_rel_error
-                scalar = float(value)
-                if not np.isfinite(scalar):
-                    raise AgentInputError(f"CvvcInputs.{name} is not finite")
-                put(self, name, scalar)
+            object.__setattr__(self, name, _converted(name, getattr(self, name), n, k, r))
         if (self.q_min_kvar > self.q_max_kvar).any():
             raise AgentInputError("CvvcInputs.q_min_kvar exceeds q_max_kvar for some plant; pass q_min <= q_max")
         if (self.q_rating_kvar <= 0).any():
