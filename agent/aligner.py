@@ -49,7 +49,6 @@ from __future__ import annotations
 
 from collections import Counter, deque
 from dataclasses import dataclass, field
-from typing import Any
 
 import msgspec
 
@@ -57,13 +56,6 @@ from agent.errors import AgentInputError
 from schemas import messages as m
 
 __all__ = ["AlignedFrames", "FrameAligner", "plausibility_problem"]
-
-
-def _until(history: deque[Any], t_ns: int, newest_t_ns: int) -> tuple[Any, ...]:
-    """The frames of ``history`` stamped at or before ``t_ns`` (all of them when none is newer than ``newest_t_ns``)."""
-    if newest_t_ns <= t_ns:
-        return tuple(history)
-    return tuple(f for f in history if f.t_ns <= t_ns)
 
 
 @dataclass(frozen=True)
@@ -204,9 +196,6 @@ class FrameAligner:
         self._vr_history: dict[str, deque[m.RegFrame]] = {r: deque(maxlen=_VR_HISTORY) for r in regulator_ids}
         self._head_latest: m.HeadFrame | None = None
         self._head_history: deque[m.HeadFrame] = deque(maxlen=_VR_HISTORY)
-        # the newest frame time ever put in each history (an upper bound of what it holds; "head" for the head's):
-        # a release at or after it takes the whole history without looking at every frame
-        self._history_newest_t_ns: dict[str, int] = {}
         self._pv_latest: dict[str, m.PvFrame] = {}
         self._newest_t_ns: int | None = None  # newest accepted frame time; None before the first
         # groups between control steps released since take_between (bounded: an aligner nobody drains)
@@ -425,22 +414,19 @@ class FrameAligner:
         self._released_t_ns = max(self._released_t_ns, t_ns)
         for t in [t for t in self._expected if t <= self._released_t_ns]:
             del self._expected[t]
-        newest = self._history_newest_t_ns
         for reg_id, frame in g.vr.items():
             self._vr_history[reg_id].append(frame)
-            newest[reg_id] = max(newest.get(reg_id, frame.t_ns), frame.t_ns)
         if g.head is not None:
             self._head_latest = g.head
             self._head_history.append(g.head)
-            newest["head"] = max(newest.get("head", g.head.t_ns), g.head.t_ns)
         self._pv_latest.update(g.pv)
         if t_ns % self.control_period_ns:  # a minute between control steps: nobody decides on it
             between = AlignedFrames(t_ns=g.t_ns, head=g.head, pv=g.pv, vr=g.vr, missing=(), cap=g.cap)
             self._between.append(between)
             self.between_seen = True
             return between
-        recent = {r: _until(h, t_ns, newest[r]) for r, h in self._vr_history.items() if h}
+        recent = {r: tuple(f for f in h if f.t_ns <= t_ns) for r, h in self._vr_history.items() if h}
         return AlignedFrames(t_ns=g.t_ns, head=g.head, pv=dict(g.pv), vr=dict(g.vr), missing=self._missing(g),
                              cap=dict(g.cap), vr_recent=recent, head_recent=self._head_latest,
                              pv_recent=dict(self._pv_latest),
-                             head_history=_until(self._head_history, t_ns, newest.get("head", t_ns)))
+                             head_history=tuple(f for f in self._head_history if f.t_ns <= t_ns))
