@@ -21,14 +21,15 @@ produce the same aligned sets. The rule, documented in docs/agent.md:
   ``max_jump_ns``; then the held frames are taken in arrival order. Lost-frame bursts and the start of a run
   pass at once (every device reports the same step); a lone forged timestamp stays held, and is counted as
   ``time_jump`` when it is pushed out of the bounded hold.
-- No single frame locks a source out: a frame whose ``seq`` is not above its source's last but whose ``t_ns`` is
-  at least one control period past that source's last accepted frame is taken (a restarted device, or a forged
-  high ``seq`` earlier) and counted in ``seq_resets``.
-- A sequence jump is held until the device's next frame confirms it: a frame whose ``seq`` is more than
-  ``SEQ_JUMP_MAX`` above its device's last is kept aside; if the device's next frame goes on from the jumped
-  ``seq`` the new sequence stands (``seq_jumps``), if it goes on from the old one the held frame is refused as
-  ``seq_jump``. So a forged frame with a high ``seq`` (e.g. stamped a few seconds after a step, which the clock
-  tolerance would snap onto it) neither replaces the step's real frame nor refuses the device's next ones.
+- A device's sequence stands while the device reports: a frame that breaks it (a ``seq`` not above the device's
+  last, or more than ``SEQ_JUMP_MAX`` above it) is refused (``duplicate``, ``out_of_order``, ``seq_jump``) until
+  the other devices of the map have reported a control period past that device's last accepted frame (its
+  sequence silent that long); then the new sequence is taken and counted (``seq_resets`` for one that went back,
+  ``seq_jumps`` for one that jumped). The clock for that is the newest time the *other* devices' frames carry, so
+  frames on the device's own key, forged or not, never move it. A device that restarts its counter loses at most
+  a control period of frames; a forged frame with a high or low ``seq`` (e.g. stamped a few seconds after a step,
+  which the clock tolerance would snap onto it) never replaces the frame of a device that is still reporting,
+  whatever it and its followers claim. On a map of a single device, the frame's own time is the only clock.
 - A scan's end marker (``StepEnd``, sent after a step's frames by whoever collects them) names the devices that
   sent a frame for its time: once those have arrived, the group is released at once, the rest listed as
   ``missing``, instead of waiting for the late-frame window. A marker never moves the clock, never releases a group that
@@ -120,7 +121,7 @@ _Frame = m.HeadFrame | m.PvFrame | m.RegFrame | m.CapFrame
 _FRAME_TYPES = (m.HeadFrame, m.PvFrame, m.RegFrame, m.CapFrame)
 _EXPECT_MAX = 64  # scan-end markers kept ahead of their frames (the oldest goes first)
 SEQ_JUMP_MAX = 1440
-"""The largest ``seq`` step a device's frame may take unconfirmed: a day of one-minute frames lost."""
+"""The largest ``seq`` step a device's frame may take while the device reports: a day of one-minute frames lost."""
 _VR_HISTORY = 64  # frames kept per regulator for the averaged readings (one per minute: an hour)
 
 
@@ -182,14 +183,14 @@ class FrameAligner:
         self.last_reject: dict[str, str] = {}
         self.accepted = 0
         self.ignored = 0  # device frames of a kind the agent does not use
-        self.seq_resets = 0
-        self.seq_jumps = 0  # sequence jumps confirmed by the device's next frame
-        self._seq_held: dict[str, _Frame] = {}  # device -> a frame whose seq jumped, awaiting its next frame
+        self.seq_resets = 0  # device sequences that went back, taken after a control period of silence
+        self.seq_jumps = 0  # device sequences that jumped, taken after a control period of silence
         self.step_ends = 0  # scan-end markers taken
         self.released_by_step_end = 0  # incomplete groups released at once because a marker said all had come
         self._expected: dict[int, frozenset[str]] = {}  # t_ns -> the devices a marker says sent a frame
         self._last_seq: dict[str, int] = {}
         self._last_t_ns: dict[str, int] = {}
+        self._seen_t_ns: dict[str, int] = {}  # device -> the newest time its frames carried, taken or not
         self._groups: dict[int, _Group] = {}
         self._released_t_ns = -1
         # every regulator's frames released lately (control steps or not): the readings of a control period
@@ -278,8 +279,6 @@ class FrameAligner:
         return []
 
     def _take(self, key: str, frame: _Frame) -> list[AlignedFrames]:
-        if self._seq_jumped(frame):
-            return []
         why = self._check_order(frame)
         if why is not None:
             self._reject(*why)
@@ -367,40 +366,34 @@ class FrameAligner:
             return "implausible", f"{_device(frame)}: {problem}"
         return None
 
-    def _seq_jumped(self, frame: _Frame) -> bool:
-        """Whether ``frame`` is held aside for a ``seq`` jump (module docstring); settles an earlier held one."""
-        device = _device(frame)
-        last = self._last_seq.get(device)
-        held = self._seq_held.pop(device, None)
-        if last is None or frame.seq <= last + SEQ_JUMP_MAX:
-            if held is not None:
-                self._reject("seq_jump", f"{device} seq {held.seq} (t_ns {held.t_ns}): a jump from {last} that its "
-                             f"next frame (seq {frame.seq}) did not confirm")
-            return False
-        if held is not None and held.seq < frame.seq <= held.seq + SEQ_JUMP_MAX:
-            self.seq_jumps += 1  # the device's next frame goes on from the jump: its new sequence stands
-            return False
-        if held is not None:
-            self._reject("seq_jump", f"{device} seq {held.seq}: a jump from {last} not confirmed")
-        self._seq_held[device] = frame
-        return True
-
     def _check_order(self, frame: _Frame) -> tuple[str, str] | None:
-        """Why a frame is a duplicate, out of order or stale, or None (may count a ``seq`` reset)."""
+        """Why a frame is a duplicate, out of order, a sequence jump or stale, or None (may count a new sequence)."""
         device = _device(frame)
         last = self._last_seq.get(device)
-        if last is not None and frame.seq <= last:
-            if frame.t_ns >= self._last_t_ns[device] + self.control_period_ns:
-                self.seq_resets += 1  # the device moved on by more than a period: its seq restarted
+        clock = self._other_devices_clock(device, frame)
+        self._seen_t_ns[device] = max(self._seen_t_ns.get(device, frame.t_ns), frame.t_ns)
+        if last is not None and not last < frame.seq <= last + SEQ_JUMP_MAX:
+            silent_ns = clock - self._last_t_ns[device]
+            if silent_ns < self.control_period_ns:
+                kind = "duplicate" if frame.seq == last else "out_of_order" if frame.seq < last else "seq_jump"
+                return kind, (f"{device} seq {frame.seq} (t_ns {frame.t_ns}) after {last}: the device reported "
+                              f"{silent_ns / 1e9:.0f} s ago, less than a control period")
+            if frame.seq > last:
+                self.seq_jumps += 1
             else:
-                kind = "duplicate" if frame.seq == last else "out_of_order"
-                return kind, f"{device} seq {frame.seq} <= {last}"
+                self.seq_resets += 1
         if frame.t_ns <= self._released_t_ns:
             return "stale", f"{device} t_ns {frame.t_ns} not after released {self._released_t_ns}"
         g = self._groups.get(frame.t_ns)
         if g is not None and _in_group(g, frame):
             return "duplicate", f"{device}: a second frame for t_ns {frame.t_ns}; the first one stays"
         return None
+
+    def _other_devices_clock(self, device: str, frame: _Frame) -> int:
+        """The newest time the frames of the map's other devices carried (a frame's own on a one-device map)."""
+        if self._sources_needed < 2:
+            return frame.t_ns
+        return max((t for d, t in self._seen_t_ns.items() if d != device), default=-1)
 
     def _missing(self, g: _Group) -> tuple[str, ...]:
         miss = [] if g.head is not None else ["head"]

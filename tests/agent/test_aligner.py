@@ -152,19 +152,45 @@ def test_a_burst_of_lost_frames_passes_at_once(aligner):
     assert out.t_ns == t and out.complete and sum(aligner.rejected.values()) == 0
 
 
-def test_a_forged_huge_seq_is_held_and_refused_when_the_devices_next_frame_does_not_confirm_it(aligner):
+def test_a_forged_huge_seq_is_refused_while_the_device_reports(aligner):
     """A head frame with seq 2**63-1 made the agent hold for the rest of the run; then it locked the
-    head out for a control period. Now the jump waits for the head's next frame, which refuses it."""
+    head out for a control period. Now it is refused: the head's own sequence goes on."""
     for k, f in (head(T0, 1), pv(T0, 1), vr(T0, 1)):
         aligner.add(k, f)
-    assert aligner.add(*head(T0 + MINUTE, 2**63 - 1)) == []  # held aside, not taken
+    assert aligner.add(*head(T0 + MINUTE, 2**63 - 1)) == []
     released = []
     for i in range(2, 12):
         t = T0 + i * MINUTE
         for k, f in (head(t, i), pv(t, i), vr(t, i)):
             released += aligner.add(k, f)
-    assert aligner.rejected == {"seq_jump": 1} and aligner.seq_resets == 0
+    assert aligner.rejected == {"seq_jump": 1} and aligner.seq_resets == aligner.seq_jumps == 0
     assert [(a.t_ns, a.head is not None) for a in released] == [(T0 + 5 * MINUTE, True), (T0 + 10 * MINUTE, True)]
+
+
+@pytest.mark.parametrize(("forged", "after_minute"), [
+    ([(1, 10**6)], 0),  # a jump, before the minutes between arrive
+    ([(1, 0)], 0),  # a 'restarted counter', a period past the head's last frame
+    ([(1, 10**6), (2, 10**6 + 5)], 5),  # a jump, and its follower for the next step, both late
+], ids=["jump", "reset", "late-jump-and-its-follower"])
+def test_forged_frames_on_a_reporting_devices_key_never_take_a_step(forged, after_minute):
+    """Near-future head frames stamped 3 s after the next control steps, put on the head's key (a forger that sees
+    the head's frames). Before, a late forgery with a high seq was held and the forger's next one, going on from
+    it, confirmed the 'jump' (the head's real frames then refused as out of order); one with a seq below the
+    head's was taken as a restarted counter, its time being a period past the head's last frame."""
+    snapping = FrameAligner(feeder_id="rural", pv_ids=("pv1",), regulator_ids=("vr1a",),
+                            control_period_ns=PERIOD_NS, clock_tolerance_ns=5 * 10**9)
+    released = []
+    for i in range(0, 11):
+        t = T0 + i * MINUTE
+        for k, f in (head(t, 1 + i), pv(t, 1 + i), vr(t, 1 + i)):
+            released += snapping.add(k, f)
+        if i == after_minute:
+            for steps, seq in forged:
+                assert snapping.add(*head(T0 + steps * PERIOD_NS + 3 * 10**9, seq)) == []
+    assert [(a.t_ns, a.head.seq, a.complete) for a in released] == [
+        (T0, 1, True), (T0 + PERIOD_NS, 6, True), (T0 + 2 * PERIOD_NS, 11, True)]
+    assert sum(snapping.rejected.values()) == len(forged) and snapping.accepted == 33
+    assert snapping.seq_jumps == snapping.seq_resets == 0
 
 
 def test_a_near_future_frame_with_a_high_seq_never_replaces_the_real_one(aligner):
@@ -191,15 +217,35 @@ def test_a_second_frame_of_a_device_for_the_same_time_is_a_duplicate_the_first_s
     assert out.head.seq == 1 and aligner.rejected == {"duplicate": 1}
 
 
-def test_a_device_whose_seq_really_jumps_is_confirmed_by_its_next_frame(aligner):
+def test_a_device_whose_seq_really_jumps_is_taken_after_a_control_period(aligner):
+    """The head's counter restarts from a saved value: its frames are refused until the others have reported a
+    control period past its last frame of the old sequence, then its new sequence stands (one control step is
+    decided without its frame)."""
     for k, f in (head(T0, 1), pv(T0, 1), vr(T0, 1)):
         aligner.add(k, f)
     released = []
-    for i, seq in ((1, 5000), (2, 5001), (3, 5002)):  # the head's counter restarted from a saved value
+    for i in range(1, 11):
         t = T0 + i * MINUTE
-        for k, f in (head(t, seq), pv(t, 1 + i), vr(t, 1 + i)):
+        for k, f in (head(t, 5000 + i), pv(t, 1 + i), vr(t, 1 + i)):
             released += aligner.add(k, f)
-    assert aligner.seq_jumps == 1 and sum(aligner.rejected.values()) == 0
+    assert aligner.rejected == {"seq_jump": 5} and aligner.seq_jumps == 1
+    assert [(a.t_ns, a.missing) for a in released] == [(T0 + PERIOD_NS, ("head",)), (T0 + 2 * PERIOD_NS, ())]
+
+
+def test_when_every_counter_restarts_the_new_sequences_are_taken_after_a_control_period(aligner):
+    """A restarted bridge counts every device from 1 again two minutes after its last frames: each device's frames
+    are refused until a control period has passed since the old sequences' last frames, then all are taken."""
+    for i in range(0, 3):
+        t = T0 + i * MINUTE
+        for k, f in (head(t, 100 + i), pv(t, 100 + i), vr(t, 100 + i)):
+            aligner.add(k, f)
+    released = []
+    for i in range(4, 16):
+        t = T0 + i * MINUTE
+        for k, f in (head(t, i), pv(t, i), vr(t, i)):
+            released += aligner.add(k, f)
+    assert aligner.seq_resets == 3 and aligner.rejected["out_of_order"] == 3 + 3 + 3 + 1
+    assert [(a.t_ns, a.complete) for a in released] == [(T0 + 2 * PERIOD_NS, True), (T0 + 3 * PERIOD_NS, True)]
 
 
 def test_capacitor_bank_frames_are_ignored_not_fatal(aligner):

@@ -260,8 +260,9 @@ def test_head_frames_of_made_up_sources_dated_2100_do_not_blind_the_agent(attack
 
 def test_near_future_head_frames_with_a_high_seq_never_replace_the_real_ones(attacked):
     """A head frame 3 s after a control step is snapped onto it; with a seq a million above the device's it was taken
-    as the step's head (the real one then refused as out of order). Now it waits for the device's next frame, which
-    goes on from the old sequence: each is refused ``seq_jump``, every real head frame taken."""
+    as the step's head (the real one then refused as out of order); later a jump was held for the device's next frame,
+    and a forgery arriving late was confirmed by the forger's next one. Now a frame breaking the sequence of a device
+    that still reports is refused: each is refused ``seq_jump`` whenever it arrives, every real head frame taken."""
     agent, sent = attacked["agent"], attacked["sent"]["OnEachControlStep"]
     assert agent["rejected"]["seq_jump"] == sent["near_future_heads"] >= STEPS // 5 - 1
     assert agent["rejected"].get("out_of_order", 0) == 0 and agent["rejected"].get("duplicate", 0) == 0
