@@ -17,7 +17,8 @@ Each (feeder, variant) is one evaluation (:func:`cvvc.evaluate.prepare_evaluatio
 profiles built once, here) with its folder ``OUT/<feeder>/<variant>/`` holding ``results.md``, ``results.json``
 and the run folders; every run of every evaluation is a task of the same cluster. ``OUT/campaign.csv`` is tidy:
 one row per run with feeder, variant, case, season, bandwidth, status (``ok`` or ``failed``, with the error and
-the number of attempts) and every metric (a per-device metric is one JSON object cell).
+the number of attempts) and every metric (a per-device metric is one JSON object cell). ``OUT/goals.md`` judges
+every agent run against case A and no control of its season (``cvvc.goals``).
 """
 
 from __future__ import annotations
@@ -44,6 +45,7 @@ from cvvc.evaluate import (
     run_prepared,
     write_results,
 )
+from cvvc.goals import render_campaign_goals
 from schemas import messages as m
 from schemas.errors import CvvcError
 from schemas.settings import AgentOptions, RunCase
@@ -185,6 +187,7 @@ def run_campaign(path: str | Path, out: str | Path, *, jobs: int = 1, scheduler:
     out.mkdir(parents=True, exist_ok=True)
     csv_path = out / "campaign.csv"
     csv_path.write_text(campaign_rows(evaluations, broken))
+    (out / "goals.md").write_text(render_campaign_goals(evaluations))
     failed = [f"{k}/{f.spec.name}" for k, ev in evaluations.items() for f in ev.failures]
     failed += [f"{k} ({len(plan_runs(config))} runs: not prepared)" for k, (config, _) in broken.items()]
     if failed:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
+from cvvc.goals import GOALS, goal_cells, season_goals
 from cvvc.reference import REFERENCE_CASE
 from cvvc.run_report import top_reasons
 
@@ -125,6 +126,16 @@ def render_results_md(ev: Evaluation) -> str:
             lines.append("| " + " | ".join(_row_label(r, robust, bands) + [
                 f"{a.rmse_pu:.4f}", f"{a.within_001:.1%}", miss_rate, promised, f"{a.extremes_captured:.0%}",
                 a.worst.node if a.worst is not None else ""]) + " |")
+    goals = season_goals(ev.runs)
+    if goals:
+        lines += ["", "## Closed-loop goals", "",
+                  "Each agent run against case A and no control of its season (docs/results.md, \"Goals\"): the "
+                  "run's figure, bold with its limit where the goal is not met; blank where the reference run is "
+                  "not in this evaluation.", "",
+                  "| " + " | ".join(head + list(GOALS) + ["unmet"]) + " |", "|" + "---|" * (len(head) + len(GOALS) + 1)]
+        for r, checks in goals:
+            lines.append("| " + " | ".join(_row_label(r, robust, bands) + goal_cells(checks)
+                                           + [str(sum(not c.met for c in checks))]) + " |")
     agent_runs = [r for r in ev.runs if r.decisions]
     if agent_runs:
         lines += ["", "## Decisions", "",

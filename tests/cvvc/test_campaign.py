@@ -158,6 +158,7 @@ def test_a_campaign_writes_one_tidy_row_per_run_and_each_feeders_tables(campaign
                                                                                                "reg3"}
     assert (row["steps"], row["attempts"], row["lockstep_misses"]) == ("14", "1", "0")
     assert "| winter | none |" in (out / "ieee13" / "lost-model" / "results.md").read_text()
+    assert (out / "goals.md").read_text().endswith("Unmet: 0 of 0 goals judged.\n")  # no agent run finished
 
 
 def test_a_campaign_reports_a_failed_run_after_one_retry_and_a_bad_feeder_while_the_others_finish(campaign_out):

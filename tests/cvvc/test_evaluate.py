@@ -145,6 +145,20 @@ def test_results_list_each_agent_runs_soft_and_hold_decisions_and_its_decision_t
     assert f"decision time (the agent's, per control step): p50 {d.decision_ms['p50']:.1f} ms" in report
 
 
+def test_results_md_judges_the_agent_run_against_no_control_of_its_season(small_evaluation):
+    """Without case A in the evaluation, only the goals against no control and the bounds are judged."""
+    out, ev = small_evaluation
+    d, none = ev.runs
+    goals = (out / "results.md").read_text().split("## Closed-loop goals")[1].split("##")[0]
+    (row,) = [line for line in goals.splitlines() if line.startswith("| summer | D |")]
+    cells = [c.strip() for c in row.strip("|").split("|")]
+    nvv, ntc, cost, ansi = cells[2:6]
+    assert nvv == ntc == cost == ""  # no case A to judge them against
+    dm, nm = d.metrics.node_minutes_outside_ansi, none.metrics.node_minutes_outside_ansi
+    assert ansi == (f"{dm:,}" if dm <= nm else f"**{dm:,}** > {nm:,}")
+    assert "| summer | none |" not in goals
+
+
 @pytest.mark.process  # ``cvvc evaluate`` as a program
 def test_unknown_case_or_season_is_a_clear_error(tmp_path):
     with pytest.raises(EvaluateError, match="unknown case.*E.*choose from A,B,C,D,none,local"):

@@ -1,0 +1,123 @@
+"""The closed-loop goals an agent's run is judged by, against case A and no control on the same days.
+
+Each check is one line of docs/results.md "Goals"; a run of case C or D is judged against the runs of case ``A``
+and ``none`` of its season and variant in the same evaluation (a check whose reference run is missing is not made):
+
+* ``NVV``: at most case A's + 0.1 % of no control's;
+* ``NTC``: at most 1.5x case A's tap changes; ``cost``: total cost at most 1.15x case A's;
+* ``ANSI A``, ``opt. limits``: node-minutes outside ANSI C84.1 Range A and outside the optimization limits, judged
+  every minute, at most no control's;
+* ``bounds``: the calibrated bounds' realised miss rate at most 2x the rate they promise (live, the agent's own);
+* ``banks``: each bank's switchings at most no control's + 1 a day;
+* ``soft``: decisions on the soft form (eq. 17) at most 5 % of the decisions, or case A's count;
+* ``MVVM``: at most 0.005 pu.
+
+Whether a regulator moved faster than its RegControl allows is not judged here (the simulation applies the
+RegControl's own delays).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+
+import msgspec
+
+from cvvc.evaluation import Evaluation, RunResult
+
+__all__ = ["GOALS", "GoalCheck", "goal_cells", "render_campaign_goals", "run_goals", "season_goals"]
+
+GOALS = ("NVV", "NTC", "cost", "ANSI A", "opt. limits", "bounds", "banks", "soft", "MVVM")
+NVV_SHARE_OF_NONE = 0.001
+NTC_RATIO = 1.5
+COST_RATIO = 1.15
+BOUND_MISS_FACTOR = 2.0
+BANK_EXTRA_PER_DAY = 1.0
+SOFT_SHARE = 0.05
+MVVM_PU = 0.005
+
+
+class GoalCheck(msgspec.Struct, frozen=True, kw_only=True):
+    """One goal of one run: met or not, the run's figure and the limit it is held to, as printed."""
+
+    goal: str
+    met: bool
+    value: str
+    limit: str
+
+
+def run_goals(d: RunResult, a: RunResult | None, none: RunResult | None) -> tuple[GoalCheck, ...]:
+    """The goals of the agent's run ``d`` against case A's run ``a`` and no control's ``none`` of the same days."""
+    out: list[GoalCheck] = []
+    md = d.metrics
+    if a is not None and none is not None:
+        limit = a.metrics.nvv + NVV_SHARE_OF_NONE * none.metrics.nvv
+        out.append(GoalCheck(goal="NVV", met=md.nvv <= limit, value=f"{md.nvv:,}", limit=f"{limit:,.0f}"))
+    if a is not None:
+        ntc = NTC_RATIO * a.metrics.ntc
+        out.append(GoalCheck(goal="NTC", met=md.ntc <= ntc, value=f"{md.ntc:,}", limit=f"{ntc:,.1f}"))
+        cost = COST_RATIO * a.metrics.total_cost
+        out.append(GoalCheck(goal="cost", met=md.total_cost <= cost, value=f"{md.total_cost:,.1f}",
+                             limit=f"{cost:,.1f}"))
+    if none is not None:
+        mn = none.metrics
+        out.append(GoalCheck(goal="ANSI A", met=md.node_minutes_outside_ansi <= mn.node_minutes_outside_ansi,
+                             value=f"{md.node_minutes_outside_ansi:,}", limit=f"{mn.node_minutes_outside_ansi:,}"))
+        out.append(GoalCheck(goal="opt. limits", met=md.node_minutes_outside_opt <= mn.node_minutes_outside_opt,
+                             value=f"{md.node_minutes_outside_opt:,}", limit=f"{mn.node_minutes_outside_opt:,}"))
+    hold = None if d.live is None else d.live.bounds_hold(BOUND_MISS_FACTOR)
+    if d.live is not None and hold is not None and d.live.promised_miss_rate is not None:
+        out.append(GoalCheck(goal="bounds", met=hold, value=f"{d.live.bound_miss_rate:.2%}",
+                             limit=f"{BOUND_MISS_FACTOR * d.live.promised_miss_rate:.2%}"))
+    if none is not None and md.cap_switches_per_bank:
+        extra = BANK_EXTRA_PER_DAY * d.spec.days
+        over = {b: n for b, n in md.cap_switches_per_bank.items()
+                if n > none.metrics.cap_switches_per_bank.get(b, 0) + extra}
+        worst = max(md.cap_switches_per_bank, key=lambda b: md.cap_switches_per_bank[b]
+                    - none.metrics.cap_switches_per_bank.get(b, 0))
+        shown = next(iter(over)) if over else worst
+        out.append(GoalCheck(goal="banks", met=not over, value=f"{shown} {md.cap_switches_per_bank[shown]}",
+                             limit=f"{none.metrics.cap_switches_per_bank.get(shown, 0) + extra:g}"))
+    if a is not None and d.decisions:
+        soft = max(SOFT_SHARE * d.decisions, a.soft)
+        out.append(GoalCheck(goal="soft", met=d.soft <= soft, value=f"{d.soft:,}", limit=f"{soft:,.0f}"))
+    out.append(GoalCheck(goal="MVVM", met=md.mvvm_pu <= MVVM_PU, value=f"{md.mvvm_pu:.4f}", limit=f"{MVVM_PU:.4f}"))
+    return tuple(out)
+
+
+def season_goals(runs: Iterable[RunResult]) -> list[tuple[RunResult, tuple[GoalCheck, ...]]]:
+    """Every run of case C or D with its goals, against the case A and no-control runs of its season and variant."""
+    runs = list(runs)
+    ref = {(r.spec.case, r.spec.season, r.spec.variant): r for r in runs if r.spec.case in ("A", "none")}
+    out = []
+    for r in runs:
+        if r.spec.case not in ("C", "D"):
+            continue
+        a, none = ref.get(("A", r.spec.season, r.spec.variant)), ref.get(("none", r.spec.season, r.spec.variant))
+        if a is None and none is None:
+            continue
+        out.append((r, run_goals(r, a, none)))
+    return out
+
+
+def goal_cells(checks: tuple[GoalCheck, ...]) -> list[str]:
+    """A markdown cell per goal of ``GOALS``: the run's figure, bold with its limit when unmet; blank: not judged."""
+    by = {c.goal: c for c in checks}
+    return ["" if g not in by else by[g].value if by[g].met else f"**{by[g].value}** > {by[g].limit}" for g in GOALS]
+
+
+def render_campaign_goals(evaluations: dict[str, Evaluation]) -> str:
+    """``goals.md`` of a campaign: each feeder's agent runs, the goals they miss, and the count over the campaign."""
+    lines = ["# Closed-loop goals", "",
+             "Each agent run (cases C, D) against case A and no control of its season (docs/results.md, \"Goals\"): "
+             "the run's figure, bold with its limit where the goal is not met; blank where the reference run is not "
+             "in the campaign.", "",
+             "| feeder | season | case | " + " | ".join(GOALS) + " | unmet |", "|" + "---|" * (len(GOALS) + 4)]
+    unmet = judged = 0
+    for key, ev in evaluations.items():
+        for r, checks in season_goals(ev.runs):
+            miss = sum(not c.met for c in checks)
+            unmet, judged = unmet + miss, judged + len(checks)
+            case = r.spec.case if r.spec.variant == "nominal" else f"{r.spec.case} ({r.spec.variant})"
+            lines.append(f"| {key} | {r.spec.season} | {case} | " + " | ".join(goal_cells(checks)) + f" | {miss} |")
+    lines += ["", f"Unmet: {unmet} of {judged} goals judged.", ""]
+    return "\n".join(lines)
