@@ -129,9 +129,9 @@ def render_results_md(ev: Evaluation) -> str:
     goals = season_goals(ev.runs)
     if goals:
         lines += ["", "## Closed-loop goals", "",
-                  "Each agent run against case A and no control of its season (docs/results.md, \"Goals\"): the "
-                  "run's figure, bold with its limit where the goal is not met; blank where the reference run is "
-                  "not in this evaluation.", "",
+                  "Each agent run against case A and no control of its season (docs/profiles-and-metrics.md, "
+                  "\"Closed-loop goals\"): the run's figure, bold with its limit where the goal is not met; blank "
+                  "where the reference run is not in this evaluation.", "",
                   "| " + " | ".join(head + list(GOALS) + ["unmet"]) + " |", "|" + "---|" * (len(head) + len(GOALS) + 1)]
         for r, checks in goals:
             lines.append("| " + " | ".join(_row_label(r, robust, bands) + goal_cells(checks)

@@ -1,7 +1,8 @@
 """The closed-loop goals an agent's run is judged by, against case A and no control on the same days.
 
-Each check is one line of docs/results.md "Goals"; a run of case C or D is judged against the runs of case ``A``
-and ``none`` of its season and variant in the same evaluation (a check whose reference run is missing is not made):
+Each check is one line of docs/profiles-and-metrics.md "Closed-loop goals"; a run of case C or D is judged against
+the runs of case ``A`` and ``none`` of its season and variant in the same evaluation (a check whose reference run is
+missing is not made):
 
 * ``NVV``: at most case A's + 0.1 % of no control's;
 * ``NTC``: at most 1.5x case A's tap changes; ``cost``: total cost at most 1.15x case A's;
@@ -12,8 +13,7 @@ and ``none`` of its season and variant in the same evaluation (a check whose ref
 * ``soft``: decisions on the soft form (eq. 17) at most 5 % of the decisions, or case A's count;
 * ``MVVM``: at most 0.005 pu.
 
-Whether a regulator moved faster than its RegControl allows is not judged here (the simulation applies the
-RegControl's own delays).
+Not judged here: whether a regulator moved faster than its RegControl allows.
 """
 
 from __future__ import annotations
@@ -108,9 +108,9 @@ def goal_cells(checks: tuple[GoalCheck, ...]) -> list[str]:
 def render_campaign_goals(evaluations: dict[str, Evaluation]) -> str:
     """``goals.md`` of a campaign: each feeder's agent runs, the goals they miss, and the count over the campaign."""
     lines = ["# Closed-loop goals", "",
-             "Each agent run (cases C, D) against case A and no control of its season (docs/results.md, \"Goals\"): "
-             "the run's figure, bold with its limit where the goal is not met; blank where the reference run is not "
-             "in the campaign.", "",
+             "Each agent run (cases C, D) against case A and no control of its season (docs/profiles-and-metrics.md, "
+             "\"Closed-loop goals\"): the run's figure, bold with its limit where the goal is not met; blank where "
+             "the reference run is not in the campaign.", "",
              "| feeder | season | case | " + " | ".join(GOALS) + " | unmet |", "|" + "---|" * (len(GOALS) + 4)]
     unmet = judged = 0
     for key, ev in evaluations.items():
