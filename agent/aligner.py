@@ -370,10 +370,9 @@ class FrameAligner:
         """Why a frame is a duplicate, out of order, a sequence jump or stale, or None (may count a new sequence)."""
         device = _device(frame)
         last = self._last_seq.get(device)
-        clock = self._other_devices_clock(device, frame)
         self._seen_t_ns[device] = max(self._seen_t_ns.get(device, frame.t_ns), frame.t_ns)
         if last is not None and not last < frame.seq <= last + SEQ_JUMP_MAX:
-            silent_ns = clock - self._last_t_ns[device]
+            silent_ns = self._other_devices_clock(device, frame) - self._last_t_ns[device]
             if silent_ns < self.control_period_ns:
                 kind = "duplicate" if frame.seq == last else "out_of_order" if frame.seq < last else "seq_jump"
                 return kind, (f"{device} seq {frame.seq} (t_ns {frame.t_ns}) after {last}: the device reported "
