@@ -75,7 +75,7 @@ def run_goals(d: RunResult, a: RunResult | None, none: RunResult | None) -> tupl
         worst = max(md.cap_switches_per_bank, key=lambda b: md.cap_switches_per_bank[b]
                     - none.metrics.cap_switches_per_bank.get(b, 0))
         shown = next(iter(over)) if over else worst
-        out.append(GoalCheck(goal="banks", met=not over, value=f"{shown} {md.cap_switches_per_bank[shown]}",
+        out.append(GoalCheck(goal="banks", met=not over, value=f"{shown}: {md.cap_switches_per_bank[shown]}",
                              limit=f"{none.metrics.cap_switches_per_bank.get(shown, 0) + extra:g}"))
     if a is not None and d.decisions:
         soft = max(SOFT_SHARE * d.decisions, a.soft)

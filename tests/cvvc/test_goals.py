@@ -45,9 +45,10 @@ def test_each_goal_holds_at_its_limit_and_fails_one_past_it(goal, at_limit, past
 
 
 def test_a_missed_goal_is_shown_bold_with_its_limit_and_a_met_one_as_the_figure():
-    checks = run_goals(_run("D", ntc=16, total_cost=5.0), A, NONE)
+    checks = run_goals(_run("D", ntc=16, total_cost=5.0, cap_switches_per_bank={"c1": 7, "c2": 4}), A, NONE)
     cells = dict(zip(GOALS, goal_cells(checks), strict=True))
     assert cells["NTC"] == "**16** > 15.0" and cells["cost"] == "5.0"
+    assert cells["banks"] == "**c2: 4** > 3"  # the bank past its limit (c1's 7 is within 4 + 3)
     assert cells["bounds"] == "" and cells["MVVM"] == "0.0000"  # no live figures
 
 
