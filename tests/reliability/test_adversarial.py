@@ -106,7 +106,7 @@ class ForeignAcks(Attack):
 
 class OnEachControlStep(Attack):
     """Watches the real head frames (the policy lets a devices certificate read them) and, once for every control
-    step ahead of the one just seen, puts: a head frame stamped 3 s after it with a seq a million above the real one,
+    step of the window ahead of the one just seen, puts: a head frame stamped 3 s after it with a seq a million above the real one,
     a command to a plant stamped a period ahead with the largest seq, a rogue bank command, and a decision without
     commands for that step (a few small puts, from the subscriber's callback)."""
 
@@ -128,8 +128,8 @@ class OnEachControlStep(Attack):
         if head.t_ns % (60 * NS) or head.t_ns >= T_2100:  # not a real step's frame (our own forgeries come back too)
             return
         nxt = (head.t_ns // PERIOD_NS + 1) * PERIOD_NS  # the next control step
-        if nxt in self.done:
-            return
+        if nxt in self.done or nxt >= T0 + STEPS * 60 * NS:  # none after the window's last step: every forgery
+            return  # then reaches the agent while it runs, however late the forger is
         self.done.add(nxt)
         self.pub_head.put(codec.encode(msgspec.structs.replace(head, t_ns=nxt + 3 * NS, seq=head.seq + 10**6)))
         self.count("near_future_heads")
