@@ -106,9 +106,9 @@ class ForeignAcks(Attack):
 
 class OnEachControlStep(Attack):
     """Watches the real head frames (the policy lets a devices certificate read them) and, once for every control
-    step of the window ahead of the one just seen, puts: a head frame stamped 3 s after it with a seq a million above the real one,
-    a command to a plant stamped a period ahead with the largest seq, a rogue bank command, and a decision without
-    commands for that step (a few small puts, from the subscriber's callback)."""
+    step of the window ahead of the one just seen, puts: a head frame stamped 3 s after it with a seq a million above
+    the real one, a command to a plant stamped a period ahead with the largest seq, a rogue bank command, and a
+    decision without commands for that step (a few small puts, from the subscriber's callback)."""
 
     def __init__(self) -> None:
         super().__init__()
