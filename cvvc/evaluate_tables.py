@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-from cvvc.goals import GOALS, goal_cells, season_goals
+from cvvc.goals import GOALS, GOALS_LEGEND, goal_cells, season_goals
 from cvvc.reference import REFERENCE_CASE
 from cvvc.run_report import top_reasons
 
@@ -128,10 +128,7 @@ def render_results_md(ev: Evaluation) -> str:
                 a.worst.node if a.worst is not None else ""]) + " |")
     goals = season_goals(ev.runs)
     if goals:
-        lines += ["", "## Closed-loop goals", "",
-                  "Each agent run against case A and no control of its season (docs/profiles-and-metrics.md, "
-                  "\"Closed-loop goals\"): the run's figure, bold with its limit where the goal is not met; blank "
-                  "where the reference run is not in this evaluation.", "",
+        lines += ["", "## Closed-loop goals", "", GOALS_LEGEND, "",
                   "| " + " | ".join(head + list(GOALS) + ["unmet"]) + " |", "|" + "---|" * (len(head) + len(GOALS) + 1)]
         for r, checks in goals:
             lines.append("| " + " | ".join(_row_label(r, robust, bands) + goal_cells(checks)

@@ -7,6 +7,8 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
+from simulator_bridge.simulation.live_accuracy import HOLD_FACTOR
+
 if TYPE_CHECKING:
     from cvvc.run_summary import RunSummary
     from schemas.devicemap import DeviceMap
@@ -44,7 +46,7 @@ def live_accuracy_text(a: LiveAccuracy) -> str:
         verdict = a.bounds_hold()
         if verdict is not None and a.promised_miss_rate is not None:
             text += (f", promised at most {100 * a.promised_miss_rate:.1f} %: "
-                     + ("held (within 2x)" if verdict else "**not held** (more than 2x)"))
+                     + (f"held (within {HOLD_FACTOR:g}x)" if verdict else f"**not held** (more than {HOLD_FACTOR:g}x)"))
     if a.worst is not None:
         text += (f"; worst node {a.worst.node} (RMSE {a.worst.rmse_pu:.4f} pu, "
                  f"{a.worst.misses_below + a.worst.misses_above} misses)")

@@ -22,7 +22,10 @@ from collections.abc import Sequence
 import msgspec
 import numpy as np
 
-__all__ = ["MISS_TOLERANCE_PU", "WITHIN_PU", "LiveAccuracy", "LiveAccuracyAccumulator", "NodeAccuracy"]
+__all__ = ["HOLD_FACTOR", "MISS_TOLERANCE_PU", "WITHIN_PU", "LiveAccuracy", "LiveAccuracyAccumulator", "NodeAccuracy"]
+
+HOLD_FACTOR = 2.0
+"""The bounds hold when their realised miss rate is at most this many times the rate they promise."""
 
 WITHIN_PU = 0.01
 """The accuracy band of the offline report (``training.accuracy.WITHIN_PU``) [pu]."""
@@ -69,7 +72,7 @@ class LiveAccuracy(msgspec.Struct, frozen=True, kw_only=True):
     worst: NodeAccuracy | None = None
     promised_miss_rate: float | None = None
 
-    def bounds_hold(self, factor: float = 2.0) -> bool | None:
+    def bounds_hold(self, factor: float = HOLD_FACTOR) -> bool | None:
         """Whether the realised miss rate is at most ``factor`` x the promised one (None: nothing to judge)."""
         if self.promised_miss_rate is None or self.bound_samples == 0:
             return None
