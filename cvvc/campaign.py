@@ -186,8 +186,13 @@ def run_campaign(path: str | Path, out: str | Path, *, jobs: int = 1, scheduler:
     evaluations = {key: write_results(prep) for key, prep in preps.items()}
     out.mkdir(parents=True, exist_ok=True)
     csv_path = out / "campaign.csv"
-    csv_path.write_text(campaign_rows(evaluations, broken))
-    (out / "goals.md").write_text(render_campaign_goals(evaluations))
+    for path, text in ((csv_path, campaign_rows(evaluations, broken)), (out / "goals.md",
+                                                                          render_campaign_goals(evaluations))):
+        try:
+            path.write_text(text)
+        except OSError as e:
+            raise EvaluateError(f"cannot write {path}: {e.strerror or e}; each feeder's results.json under {out} "
+                                "holds its runs; free the space, then rerun with --resume") from e
     failed = [f"{k}/{f.spec.name}" for k, ev in evaluations.items() for f in ev.failures]
     failed += [f"{k} ({len(plan_runs(config))} runs: not prepared)" for k, (config, _) in broken.items()]
     if failed:

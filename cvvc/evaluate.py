@@ -365,8 +365,17 @@ class PreparedEvaluation:
 
 
 def _write(out: Path, ev: Evaluation) -> None:
-    (out / "results.json").write_bytes(msgspec.json.format(msgspec.json.encode(ev), indent=2))
-    (out / "results.md").write_text(render_results_md(ev))
+    """Write ``results.json`` and ``results.md``; :class:`EvaluateError` when they cannot be written (a full disk):
+    the runs already finished stay in their folders for ``--resume``.
+    """
+    path = out / "results.json"
+    try:
+        path.write_bytes(msgspec.json.format(msgspec.json.encode(ev), indent=2))
+        path = out / "results.md"
+        path.write_text(render_results_md(ev))
+    except OSError as e:
+        raise EvaluateError(f"cannot write {path}: {e.strerror or e}; the {len(ev.runs)} finished run(s) are kept "
+                            f"in their folders under {out}; free the space, then rerun with --resume") from e
 
 
 def _check(config: EvaluateConfig) -> None:
@@ -519,4 +528,7 @@ def finish(prep: PreparedEvaluation) -> Evaluation:
 
 
 def _log(msg: str) -> None:
-    print(f"[cvvc evaluate] {msg}", file=sys.stderr, flush=True)
+    try:
+        print(f"[cvvc evaluate] {msg}", file=sys.stderr, flush=True)
+    except OSError:  # stderr on a full disk: the line is lost, results.json (or the error it raises) still tells
+        pass

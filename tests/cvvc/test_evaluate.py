@@ -298,3 +298,22 @@ def test_runs_with_lockstep_misses_are_listed_as_not_the_methods_figures(tmp_pat
     assert f"**{run.lockstep_misses} lockstep miss(es)**" in render_summary(summary, None)
     with pytest.raises(EvaluateError, match="lockstep-timeout-s"):
         evaluate(msgspec.structs.replace(ev.config, lockstep_timeout_s=0.0, out=str(tmp_path / "bad")))
+
+
+def test_results_that_cannot_be_written_stop_the_evaluation_with_a_clear_error(tmp_path, ieee13_model, profile_cache,
+                                                                               dask_scheduler):
+    """A full disk (``results.json`` on /dev/full: every write fails with ENOSPC) stops the evaluation with an error
+    that names the file and the way on; the finished run stays in its folder and ``--resume`` takes it."""
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "results.json").symlink_to("/dev/full")
+    config = EvaluateConfig(feeder=str(IEEE13), model=str(ieee13_model), cases=("none",), seasons=("winter",),
+                            days_per_season=0.01, out=str(out), cache=str(profile_cache.parent), progress=False,
+                            scheduler=dask_scheduler)
+    with pytest.raises(EvaluateError, match=r"cannot write .*results\.json: No space left on device; the 1 finished "
+                                            r"run\(s\) are kept .*--resume"):
+        evaluate(config)
+    assert (out / "winter-none" / "summary.json").is_file()
+    (out / "results.json").unlink()
+    again = evaluate(msgspec.structs.replace(config, resume=True))
+    assert [r.spec.name for r in again.runs] == ["winter-none"] and not again.failures
