@@ -11,9 +11,9 @@ missing is not made):
 * ``bounds``: the calibrated bounds' realised miss rate at most ``HOLD_FACTOR`` (2) x the rate they promise (live);
 * ``banks``: each bank's switchings at most no control's + 1 a day;
 * ``soft``: decisions on the soft form (eq. 17) at most 5 % of the decisions, or case A's count;
-* ``MVVM``: at most 0.005 pu.
-
-Not judged here: whether a regulator moved faster than its RegControl allows.
+* ``MVVM``: at most 0.005 pu;
+* ``tap rate``: no step at which a regulator had moved faster than its RegControl's ``tapdelay`` allows (judged by the
+  simulation on the moves it counted, ``metrics.over_tap_rate``; not judged for runs that did not count them).
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ from simulator_bridge.simulation.live_accuracy import HOLD_FACTOR
 
 __all__ = ["GOALS", "GOALS_LEGEND", "GoalCheck", "goal_cells", "render_campaign_goals", "run_goals", "season_goals"]
 
-GOALS = ("NVV", "NTC", "cost", "ANSI A", "opt. limits", "bounds", "banks", "soft", "MVVM")
+GOALS = ("NVV", "NTC", "cost", "ANSI A", "opt. limits", "bounds", "banks", "soft", "MVVM", "tap rate")
 NVV_SHARE_OF_NONE = 0.001
 NTC_RATIO = 1.5
 COST_RATIO = 1.15
@@ -83,6 +83,10 @@ def run_goals(d: RunResult, a: RunResult | None, none: RunResult | None) -> tupl
         soft = max(SOFT_SHARE * d.decisions, a.soft)
         out.append(GoalCheck(goal="soft", met=d.soft <= soft, value=f"{d.soft:,}", limit=f"{soft:,.0f}"))
     out.append(GoalCheck(goal="MVVM", met=md.mvvm_pu <= MVVM_PU, value=f"{md.mvvm_pu:.4f}", limit=f"{MVVM_PU:.4f}"))
+    if md.steps_over_tap_rate:
+        fastest = max(md.steps_over_tap_rate, key=lambda r: md.steps_over_tap_rate[r])
+        n = md.steps_over_tap_rate[fastest]
+        out.append(GoalCheck(goal="tap rate", met=n == 0, value=f"{fastest}: {n}" if n else "0", limit="0"))
     return tuple(out)
 
 

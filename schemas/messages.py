@@ -463,6 +463,8 @@ class MetricsFrame(Message, frozen=True, kw_only=True, forbid_unknown_fields=Tru
     minutes_outside_opt: Count = 0
     node_minutes_outside_ansi: Count = 0
     minutes_outside_ansi: Count = 0
+    # steps at which a regulator had moved faster than its RegControl's tapdelay allows (empty: not judged)
+    steps_over_tap_rate: Counts = {}
 
 
 class BridgeStatus(Message, frozen=True, kw_only=True, forbid_unknown_fields=True):

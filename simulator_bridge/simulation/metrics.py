@@ -122,6 +122,9 @@ class Metrics(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=T
     minutes_outside_opt: NonNegFloat = 0.0
     node_minutes_outside_ansi: NonNegFloat = 0.0
     minutes_outside_ansi: NonNegFloat = 0.0
+    # steps at which a regulator had moved faster than its RegControl's tapdelay allows (append-only; empty: the
+    # tapdelays were not given, nothing judged): :func:`over_tap_rate`
+    steps_over_tap_rate_per_regulator: tuple[NonNegInt, ...] = ()
 
     def combine(self, other: Metrics) -> Metrics:
         """The metrics of this run and ``other`` together (counts and costs add, extremes combine).
@@ -164,6 +167,8 @@ class Metrics(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=T
             minutes_outside_opt=self.minutes_outside_opt + other.minutes_outside_opt,
             node_minutes_outside_ansi=self.node_minutes_outside_ansi + other.node_minutes_outside_ansi,
             minutes_outside_ansi=self.minutes_outside_ansi + other.minutes_outside_ansi,
+            steps_over_tap_rate_per_regulator=_add(self.steps_over_tap_rate_per_regulator,
+                                                   other.steps_over_tap_rate_per_regulator),
         )
 
 
@@ -243,6 +248,31 @@ def q_cost_per_plant(
     return np.asarray(cost_per_kvar, dtype=float) * q.sum(axis=0) * (step_s / control_period_s)
 
 
+#: The longest run of steps whose tap moves are held to the RegControls' tapdelays [steps].
+TAP_RATE_WINDOW_STEPS = 10
+
+
+def tap_rate_allowance(tap_delay_s: Sequence[float], step_s: int, window_steps: int = TAP_RATE_WINDOW_STEPS
+                       ) -> np.ndarray:
+    """(window_steps, R) the most tap moves each regulator's RegControl can make in ``k`` consecutive steps
+    (row ``k - 1``): ``floor(k * step_s / tapdelay) + 1``, moves at least ``tapdelay`` apart within a closed span of
+    ``k * step_s`` seconds (the ``delay`` before a first move only lowers it); no limit where ``tapdelay <= 0``.
+    """
+    td = np.asarray(tap_delay_s, dtype=float)
+    k = np.arange(1, window_steps + 1, dtype=float)[:, None] * step_s
+    with np.errstate(divide="ignore"):
+        return np.where(td > 0.0, np.floor(k / np.where(td > 0.0, td, 1.0)) + 1.0, np.inf)
+
+
+def over_tap_rate(recent_moves: np.ndarray, allowance: np.ndarray) -> np.ndarray:
+    """(R,) bool: a regulator's moves over the latest ``k`` steps exceed ``allowance[k - 1]`` for some ``k``
+    (``recent_moves`` (k_max, R), the latest step last, ``k_max <= len(allowance)``): it moved faster than its
+    RegControl allows. Moves are what the simulation counted (an up-then-down is 2), a locked tap's jump included.
+    """
+    sums = np.cumsum(recent_moves[::-1], axis=0)
+    return np.any(sums > allowance[: len(recent_moves)], axis=0)
+
+
 def metrics_from_series(
     v_pu: np.ndarray,
     tap_changes: np.ndarray,
@@ -274,6 +304,13 @@ def metrics_from_series(
     n_steps = int(np.shape(v_pu)[0])
     v, taps, q = cfg.check(v_pu, tap_changes, pv_q_kvar, rows=(n_steps,))
     sw = cfg.check_switches(cap_switches, rows=(n_steps,))
+    over = None
+    if cfg.tap_delay_s is not None:
+        allowance = tap_rate_allowance(cfg.tap_delay_s, cfg.step_s)
+        w = len(allowance)
+        over = np.zeros(cfg.n_regs, dtype=np.int64)
+        for t in range(n_steps):
+            over += over_tap_rate(taps[max(0, t - w + 1): t + 1], allowance)
     avg = rolling_mean_pu(v, cfg.window_steps)[cfg.window_steps - 1 :]
     n_opt, n_ansi = outside_count(v, cfg.opt_limits_pu), outside_count(v, ANSI_RANGE_A_PU)
     viol = violation_pu(avg, cfg.limits_pu)
@@ -294,6 +331,7 @@ def metrics_from_series(
         cap_switches=sw.sum(axis=0),
         minute_counts=MinuteCounts(opt_nodes=int(n_opt.sum()), opt_steps=int(np.count_nonzero(n_opt)),
                                    ansi_nodes=int(n_ansi.sum()), ansi_steps=int(np.count_nonzero(n_ansi))),
+        steps_over_tap_rate=over,
     )
 
 
@@ -316,7 +354,8 @@ class MetricsSettings(_RequiredSettings, total=False):
 
     The first four are required; the others default to ``limits_pu = JUDGED_LIMITS_PU`` [pu],
     ``window_steps = 10`` [steps], ``step_s = 60`` [s], ``control_period_s = 300`` [s], ``capacitor_ids = ()``,
-    ``cost_per_switch = 1.0``, ``opt_limits_pu = OPTIMIZATION_LIMITS_PU`` [pu].
+    ``cost_per_switch = 1.0``, ``opt_limits_pu = OPTIMIZATION_LIMITS_PU`` [pu], ``tap_delay_s = None`` (each
+    regulator's RegControl ``tapdelay`` [s]; None: how fast the regulators moved is not judged).
     """
 
     limits_pu: tuple[float, float]
@@ -326,6 +365,7 @@ class MetricsSettings(_RequiredSettings, total=False):
     capacitor_ids: Sequence[str]
     cost_per_switch: float | Sequence[float]
     opt_limits_pu: tuple[float, float]
+    tap_delay_s: Sequence[float] | None
 
 
 class MinuteCounts(msgspec.Struct, frozen=True, kw_only=True):
@@ -356,6 +396,7 @@ class MetricsConfig(msgspec.Struct, frozen=True, kw_only=True):
     capacitor_ids: tuple[str, ...] = ()
     cost_per_switch: tuple[float, ...] = ()
     opt_limits_pu: tuple[float, float] = OPTIMIZATION_LIMITS_PU
+    tap_delay_s: tuple[float, ...] | None = None
 
     @property
     def n_regs(self) -> int:
@@ -387,6 +428,7 @@ class MetricsConfig(msgspec.Struct, frozen=True, kw_only=True):
         control_period_s = settings.get("control_period_s", 300)
         capacitor_ids, cost_per_switch = settings.get("capacitor_ids", ()), settings.get("cost_per_switch", 1.0)
         opt_lo, opt_hi = (float(x) for x in settings.get("opt_limits_pu", OPTIMIZATION_LIMITS_PU))
+        tap_delay = settings.get("tap_delay_s")
         if int(n_nodes) < 1:
             raise MetricsError(f"n_nodes = {n_nodes}; voltages must be (n_steps, n_nodes) with n_nodes >= 1")
         regs, pvs = tuple(str(r) for r in regulator_ids), tuple(str(p) for p in pv_ids)
@@ -411,6 +453,7 @@ class MetricsConfig(msgspec.Struct, frozen=True, kw_only=True):
             capacitor_ids=tuple(str(c) for c in capacitor_ids),
             cost_per_switch=_costs(cost_per_switch, len(tuple(capacitor_ids)), "cost_per_switch", "capacitor bank"),
             opt_limits_pu=(opt_lo, opt_hi),
+            tap_delay_s=None if tap_delay is None else _tap_delays(tap_delay, len(regs)),
         )
 
     def check_switches(self, cap_switches: np.ndarray | None, rows: tuple[int, ...] = ()) -> np.ndarray:
@@ -485,6 +528,7 @@ class MetricsConfig(msgspec.Struct, frozen=True, kw_only=True):
         abs_q_kvar_steps: np.ndarray,
         cap_switches: np.ndarray,
         minute_counts: MinuteCounts,
+        steps_over_tap_rate: np.ndarray | None = None,
     ) -> Metrics:
         t_cost = tap_cost_per_regulator(taps[None, :], np.array(self.cost_per_tap))
         c_cost = cap_cost_per_bank(cap_switches[None, :], np.array(self.cost_per_switch))
@@ -531,6 +575,8 @@ class MetricsConfig(msgspec.Struct, frozen=True, kw_only=True):
             minutes_outside_opt=minute_counts.opt_steps * minutes,
             node_minutes_outside_ansi=minute_counts.ansi_nodes * minutes,
             minutes_outside_ansi=minute_counts.ansi_steps * minutes,
+            steps_over_tap_rate_per_regulator=() if steps_over_tap_rate is None
+            else tuple(int(x) for x in steps_over_tap_rate),
         )
 
 
@@ -543,6 +589,13 @@ def _costs(value: float | Sequence[float], n: int, name: str, what: str) -> tupl
     if not np.all(np.isfinite(c)) or (c.size and c.min() < 0):
         raise MetricsError(f"{name} {c.tolist()} must be finite and >= 0")
     return tuple(float(x) for x in c)
+
+
+def _tap_delays(value: Sequence[float], n: int) -> tuple[float, ...]:
+    out = tuple(float(x) for x in value)
+    if len(out) != n or not all(np.isfinite(x) and x >= 0.0 for x in out):
+        raise MetricsError(f"tap_delay_s = {value!r}; need one finite tapdelay >= 0 [s] per regulator ({n})")
+    return out
 
 
 def _opt(f, a: float | None, b: float | None) -> float | None:

@@ -13,6 +13,7 @@ import numpy as np
 
 from simulator_bridge.simulation.metrics import (
     ANSI_RANGE_A_PU,
+    TAP_RATE_WINDOW_STEPS,
     VIOLATION_TOLERANCE_PU,
     Metrics,
     MetricsConfig,
@@ -20,6 +21,8 @@ from simulator_bridge.simulation.metrics import (
     MetricsSettings,
     MinuteCounts,
     outside_count,
+    over_tap_rate,
+    tap_rate_allowance,
     violation_pu,
 )
 
@@ -71,6 +74,9 @@ class MetricsAccumulator:
         Names of the capacitor banks (entries of ``cap_switches``); none by default.
     cost_per_switch : float or sequence of float
         Cost of one switching operation, per bank or one for all.
+    tap_delay_s : sequence of float, optional
+        Each regulator's RegControl ``tapdelay`` [s]: the steps at which a regulator had moved faster than it
+        allows (``metrics.over_tap_rate``) are counted; None: not judged.
     """
 
     def __init__(self, *, n_nodes: int, judged_nodes: Sequence[int] | np.ndarray | None = None,
@@ -100,6 +106,10 @@ class MetricsAccumulator:
         self._cap_sw = np.zeros(len(cfg.capacitor_ids), dtype=np.int64)
         self._avg = np.empty(n_judged)  # the present rolling average, rewritten in place every step
         self._minutes = [0, 0, 0, 0]  # every step on its own: MinuteCounts' fields
+        # the latest steps' tap moves (a ring), against what the RegControls' tapdelays allow
+        self._allowance = None if cfg.tap_delay_s is None else tap_rate_allowance(cfg.tap_delay_s, cfg.step_s)
+        self._moves = np.zeros((0 if self._allowance is None else TAP_RATE_WINDOW_STEPS, cfg.n_regs), dtype=np.int64)
+        self._over_rate = np.zeros(cfg.n_regs, dtype=np.int64)
 
     @property
     def n_steps(self) -> int:
@@ -135,6 +145,10 @@ class MetricsAccumulator:
         self._v_min = min(self._v_min, v_lo)
         self._v_max = max(self._v_max, v_hi)
         self._taps += taps
+        if self._allowance is not None:
+            self._moves[:-1] = self._moves[1:]
+            self._moves[-1] = taps
+            self._over_rate += over_tap_rate(self._moves[-min(self._n_steps, len(self._moves)):], self._allowance)
         self._abs_q += np.abs(q)
         if self._n_steps < w:
             return
@@ -178,12 +192,15 @@ class MetricsAccumulator:
         """The accumulator of a feeder: its nodes, devices, costs and judged limits from the device map.
 
         ``engine`` is any object with ``node_names``, ``regulator_ids`` and ``pv_ids`` (a ``FeederEngine``);
-        ``step_s`` defaults to the device map's step. When it has ``node_in_feeder`` (the feeder zone: downstream
+        ``step_s`` defaults to the device map's step; each regulator's ``tapdelay`` is its RegControl's
+        (``engine.reg_controls``, when it has them). When it has ``node_in_feeder`` (the feeder zone: downstream
         of the head meter), only the zone's phase nodes (phases 1-3) are judged: the transmission side, other
         feeders and neutral nodes are not this feeder's voltages (``docs/feeders.md``).
         """
         f = device_map.feeder
         judged = zone_phase_nodes(engine)
+        controls = getattr(engine, "reg_controls", None)  # the map's regulators first
+        n_reg = len(engine.regulator_ids)
         return cls(
             n_nodes=len(engine.node_names), regulator_ids=list(engine.regulator_ids), pv_ids=list(engine.pv_ids),
             cost_per_tap=[r.cost_per_tap for r in device_map.regulator],
@@ -193,6 +210,7 @@ class MetricsAccumulator:
             capacitor_ids=list(getattr(engine, "capacitor_ids", ())),
             cost_per_switch=[c.cost_per_switch for c in device_map.capacitor],
             opt_limits_pu=tuple(f.optimization_limits_pu),
+            tap_delay_s=None if controls is None else [c.tap_delay_s for c in controls[:n_reg]],
         )
 
     def result(self) -> Metrics:
@@ -211,4 +229,5 @@ class MetricsAccumulator:
             cap_switches=self._cap_sw,
             minute_counts=MinuteCounts(opt_nodes=self._minutes[0], opt_steps=self._minutes[1],
                                        ansi_nodes=self._minutes[2], ansi_steps=self._minutes[3]),
+            steps_over_tap_rate=None if self._allowance is None else self._over_rate,
         )

@@ -15,7 +15,7 @@ from simulator_bridge.simulation.live_accuracy import LiveAccuracy
 def _run(case: str, season: str = "summer", days: float = 3.0, live: LiveAccuracy | None = None,
          **metrics) -> RunResult:
     base = dict(mvvm_pu=0.0, nvv=0, ntc=0, total_cost=0.0, node_minutes_outside_ansi=0, node_minutes_outside_opt=0,
-                cap_switches_per_bank={})
+                cap_switches_per_bank={}, steps_over_tap_rate={})
     frame = msgspec.structs.replace(example(m.MetricsFrame), **{**base, **metrics})
     spec = RunSpec(case=case, season=season, bandwidth_v120=4.0, start="2023-07-01", days=days)
     return RunResult(spec=spec, metrics=frame, wall_s=1.0, steps=10, decisions=2, lockstep_misses=0, out_dir="",
@@ -38,6 +38,7 @@ def _met(d: RunResult, a: RunResult | None = A, none: RunResult | None = NONE) -
     ("ANSI A", {"node_minutes_outside_ansi": 50}, {"node_minutes_outside_ansi": 51}),  # no control's
     ("opt. limits", {"node_minutes_outside_opt": 900}, {"node_minutes_outside_opt": 901}),
     ("banks", {"cap_switches_per_bank": {"c1": 7, "c2": 3}}, {"cap_switches_per_bank": {"c1": 7, "c2": 4}}),
+    ("tap rate", {"steps_over_tap_rate": {"r1": 0, "r2": 0}}, {"steps_over_tap_rate": {"r1": 0, "r2": 1}}),
 ])
 def test_each_goal_holds_at_its_limit_and_fails_one_past_it(goal, at_limit, past_limit):
     assert _met(_run("D", **at_limit))[goal] is True
@@ -74,6 +75,7 @@ def test_only_the_checks_whose_reference_runs_are_there_are_made():
     assert set(_met(_run("D", cap_switches_per_bank=banks), a=None)) == {"ANSI A", "opt. limits", "banks", "MVVM"}
     assert set(_met(_run("D", cap_switches_per_bank=banks), none=None)) == {"NTC", "cost", "soft", "MVVM"}
     assert "banks" not in _met(_run("D"))  # a map without banks
+    assert "tap rate" not in _met(_run("D"))  # a run whose simulation did not count its regulators' rate
 
 
 def test_agent_runs_are_judged_against_the_reference_runs_of_their_own_season():

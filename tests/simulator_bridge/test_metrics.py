@@ -10,9 +10,11 @@ from simulator_bridge.simulation.metrics import (
     MetricsError,
     combine_metrics,
     metrics_from_series,
+    over_tap_rate,
     q_cost_per_plant,
     rolling_mean_pu,
     tap_cost_per_regulator,
+    tap_rate_allowance,
     violation_pu,
 )
 from simulator_bridge.simulation.metrics_stream import MetricsAccumulator
@@ -403,3 +405,41 @@ def test_stream_and_batch_count_the_same_minutes_on_random_series():
     for name in ("node_minutes_outside_opt", "minutes_outside_opt", "node_minutes_outside_ansi",
                  "minutes_outside_ansi"):
         assert getattr(s, name) == getattr(b, name), name
+
+
+def test_moves_faster_than_the_regcontrols_tapdelay_are_counted_step_by_step():
+    """A tapdelay of 45 s allows 2 moves in a minute and 3 in two (moves 45 s apart in a closed span); 2 s, 31."""
+    allowance = tap_rate_allowance([45.0, 2.0, 0.0], 60)
+    assert allowance[:2, 0].tolist() == [2.0, 3.0] and allowance[0, 1] == 31.0 and np.isinf(allowance[0, 2])
+    moves = np.zeros((8, 2), dtype=int)
+    moves[1, 0] = 2  # at the limit
+    moves[4, 0], moves[5, 0] = 2, 2  # 2 and 2: 4 in two minutes, past 3
+    moves[7, 0] = 3  # past 2 in a minute
+    moves[7, 1] = 31  # at the limit of a 2 s tapdelay
+    v, q = np.ones((8, 3)), np.zeros((8, 2))
+    s = _stream(v, moves, q, tap_delay_s=[45.0, 2.0])
+    b = _batch(v, moves, q, tap_delay_s=[45.0, 2.0])
+    assert s.steps_over_tap_rate_per_regulator == b.steps_over_tap_rate_per_regulator == (2, 0)
+    assert _stream(v, moves, q).steps_over_tap_rate_per_regulator == ()  # no tapdelays: not judged
+    assert over_tap_rate(np.array([[1, 0], [2, 0]]), allowance[:, :2]).tolist() == [False, False]  # 3 in two
+    assert over_tap_rate(np.array([[2, 0], [2, 0]]), allowance[:, :2]).tolist() == [True, False]
+    with pytest.raises(MetricsError, match="one finite tapdelay"):
+        _stream(v, moves, q, tap_delay_s=[45.0])
+
+
+def test_for_feeder_holds_each_regulator_to_its_regcontrols_tapdelay(repo_root):
+    from schemas.devicemap import load_device_map
+    from simulator_bridge.opendss.engine import FeederEngine
+
+    dm = load_device_map(repo_root / "feeders" / "ieee13.toml")
+    engine = FeederEngine(dm)
+    try:
+        acc = MetricsAccumulator.for_feeder(dm, engine)
+        delays = [c.tap_delay_s for c in engine.reg_controls[:len(engine.regulator_ids)]]
+        n_nodes = len(engine.node_names)
+    finally:
+        engine.close()
+    allowed = int(tap_rate_allowance(delays, 60)[0, 0])
+    acc.update(np.ones(n_nodes), np.array([allowed, 0, 0]), np.zeros(3))
+    acc.update(np.ones(n_nodes), np.array([0, allowed + 1, 0]), np.zeros(3))
+    assert acc.result().steps_over_tap_rate_per_regulator == (0, 1, 0)
