@@ -8,6 +8,8 @@ missing is not made):
 * ``NTC``: at most 1.5x case A's tap changes; ``cost``: total cost at most 1.15x case A's;
 * ``ANSI A``, ``opt. limits``: node-minutes outside ANSI C84.1 Range A and outside the optimization limits, judged
   every minute, at most no control's;
+* ``1-min V``: the 1-minute V min and V max no further outside the optimization limits than no control's (inside
+  them is never worse);
 * ``bounds``: the calibrated bounds' realised miss rate at most ``HOLD_FACTOR`` (2) x the rate they promise (live);
 * ``banks``: each bank's switchings at most no control's + 1 a day;
 * ``soft``: decisions on the soft form (eq. 17) at most 5 % of the decisions, or case A's count;
@@ -27,7 +29,7 @@ from simulator_bridge.simulation.live_accuracy import HOLD_FACTOR
 
 __all__ = ["GOALS", "GOALS_LEGEND", "GoalCheck", "goal_cells", "render_campaign_goals", "run_goals", "season_goals"]
 
-GOALS = ("NVV", "NTC", "cost", "ANSI A", "opt. limits", "bounds", "banks", "soft", "MVVM", "tap rate")
+GOALS = ("NVV", "NTC", "cost", "ANSI A", "opt. limits", "1-min V", "bounds", "banks", "soft", "MVVM", "tap rate")
 NVV_SHARE_OF_NONE = 0.001
 NTC_RATIO = 1.5
 COST_RATIO = 1.15
@@ -67,6 +69,10 @@ def run_goals(d: RunResult, a: RunResult | None, none: RunResult | None) -> tupl
                              value=f"{md.node_minutes_outside_ansi:,}", limit=f"{mn.node_minutes_outside_ansi:,}"))
         out.append(GoalCheck(goal="opt. limits", met=md.node_minutes_outside_opt <= mn.node_minutes_outside_opt,
                              value=f"{md.node_minutes_outside_opt:,}", limit=f"{mn.node_minutes_outside_opt:,}"))
+        if md.opt_limits_pu is not None:
+            lo, hi = min(mn.v_min_pu, md.opt_limits_pu[0]), max(mn.v_max_pu, md.opt_limits_pu[1])
+            out.append(GoalCheck(goal="1-min V", met=lo <= md.v_min_pu and md.v_max_pu <= hi,
+                                 value=f"{md.v_min_pu:.4f}-{md.v_max_pu:.4f}", limit=f"{lo:.4f}-{hi:.4f}"))
     live = d.live
     if live is not None and live.promised_miss_rate is not None and live.bound_samples:
         out.append(GoalCheck(goal="bounds", met=bool(live.bounds_hold()), value=f"{live.bound_miss_rate:.2%}",

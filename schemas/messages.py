@@ -465,6 +465,8 @@ class MetricsFrame(Message, frozen=True, kw_only=True, forbid_unknown_fields=Tru
     minutes_outside_ansi: Count = 0
     # steps at which a regulator had moved faster than its RegControl's tapdelay allows (empty: not judged)
     steps_over_tap_rate: Counts = {}
+    # the optimization limits the per-minute counts were judged against (None: not stated, older recordings)
+    opt_limits_pu: tuple[Pu, Pu] | None = None
 
 
 class BridgeStatus(Message, frozen=True, kw_only=True, forbid_unknown_fields=True):

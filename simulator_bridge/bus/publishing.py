@@ -398,4 +398,5 @@ def metrics_frame(r: Metrics, *, t_ns: int, seq: int, feeder_id: str, start_t_ns
         node_minutes_outside_ansi=int(round(r.node_minutes_outside_ansi)),
         minutes_outside_ansi=int(round(r.minutes_outside_ansi)),
         steps_over_tap_rate={} if not r.steps_over_tap_rate_per_regulator
-        else dict(zip(r.regulator_ids, r.steps_over_tap_rate_per_regulator, strict=True)))
+        else dict(zip(r.regulator_ids, r.steps_over_tap_rate_per_regulator, strict=True)),
+        opt_limits_pu=(float(r.opt_limits_pu[0]), float(r.opt_limits_pu[1])))

@@ -157,6 +157,9 @@ def test_results_md_judges_the_agent_run_against_no_control_of_its_season(small_
     dm, nm = d.metrics.node_minutes_outside_ansi, none.metrics.node_minutes_outside_ansi
     assert ansi == (f"{dm:,}" if dm <= nm else f"**{dm:,}** > {nm:,}")
     assert "| summer | none |" not in goals
+    # the simulation states the limits it judged against and counts how fast each regulator moved
+    assert d.metrics.opt_limits_pu == (0.975, 1.04) and cells[7].startswith(f"{d.metrics.v_min_pu:.4f}")
+    assert set(d.metrics.steps_over_tap_rate) == set(d.metrics.taps_changes) and cells[-1] == "0"
 
 
 @pytest.mark.process  # ``cvvc evaluate`` as a program

@@ -15,7 +15,8 @@ from simulator_bridge.simulation.live_accuracy import LiveAccuracy
 def _run(case: str, season: str = "summer", days: float = 3.0, live: LiveAccuracy | None = None,
          **metrics) -> RunResult:
     base = dict(mvvm_pu=0.0, nvv=0, ntc=0, total_cost=0.0, node_minutes_outside_ansi=0, node_minutes_outside_opt=0,
-                cap_switches_per_bank={}, steps_over_tap_rate={})
+                cap_switches_per_bank={}, steps_over_tap_rate={}, v_min_pu=0.98, v_max_pu=1.03,
+                opt_limits_pu=(0.975, 1.04))
     frame = msgspec.structs.replace(example(m.MetricsFrame), **{**base, **metrics})
     spec = RunSpec(case=case, season=season, bandwidth_v120=4.0, start="2023-07-01", days=days)
     return RunResult(spec=spec, metrics=frame, wall_s=1.0, steps=10, decisions=2, lockstep_misses=0, out_dir="",
@@ -24,7 +25,7 @@ def _run(case: str, season: str = "summer", days: float = 3.0, live: LiveAccurac
 
 A = _run("A", nvv=100, ntc=10, total_cost=20.0, mvvm_pu=0.004)
 NONE = _run("none", nvv=20_000, node_minutes_outside_ansi=50, node_minutes_outside_opt=900,
-            cap_switches_per_bank={"c1": 4, "c2": 0})
+            cap_switches_per_bank={"c1": 4, "c2": 0}, v_min_pu=0.96, v_max_pu=1.035)
 
 
 def _met(d: RunResult, a: RunResult | None = A, none: RunResult | None = NONE) -> dict[str, bool]:
@@ -39,6 +40,9 @@ def _met(d: RunResult, a: RunResult | None = A, none: RunResult | None = NONE) -
     ("opt. limits", {"node_minutes_outside_opt": 900}, {"node_minutes_outside_opt": 901}),
     ("banks", {"cap_switches_per_bank": {"c1": 7, "c2": 3}}, {"cap_switches_per_bank": {"c1": 7, "c2": 4}}),
     ("tap rate", {"steps_over_tap_rate": {"r1": 0, "r2": 0}}, {"steps_over_tap_rate": {"r1": 0, "r2": 1}}),
+    # no lower than no control's 0.96 below the limits; up to the 1.04 limit above them (no control's 1.035 inside)
+    ("1-min V", {"v_min_pu": 0.96, "v_max_pu": 1.04}, {"v_min_pu": 0.9599, "v_max_pu": 1.04}),
+    ("1-min V", {"v_min_pu": 0.97, "v_max_pu": 1.04}, {"v_min_pu": 0.97, "v_max_pu": 1.0401}),
 ])
 def test_each_goal_holds_at_its_limit_and_fails_one_past_it(goal, at_limit, past_limit):
     assert _met(_run("D", **at_limit))[goal] is True
@@ -72,10 +76,12 @@ def test_the_bounds_are_held_to_twice_the_miss_rate_they_promise():
 
 def test_only_the_checks_whose_reference_runs_are_there_are_made():
     banks = {"c1": 0, "c2": 0}
-    assert set(_met(_run("D", cap_switches_per_bank=banks), a=None)) == {"ANSI A", "opt. limits", "banks", "MVVM"}
+    assert set(_met(_run("D", cap_switches_per_bank=banks), a=None)) == {"ANSI A", "opt. limits", "1-min V", "banks",
+                                                                         "MVVM"}
     assert set(_met(_run("D", cap_switches_per_bank=banks), none=None)) == {"NTC", "cost", "soft", "MVVM"}
     assert "banks" not in _met(_run("D"))  # a map without banks
     assert "tap rate" not in _met(_run("D"))  # a run whose simulation did not count its regulators' rate
+    assert "1-min V" not in _met(_run("D", opt_limits_pu=None))  # a recording that does not state its limits
 
 
 def test_agent_runs_are_judged_against_the_reference_runs_of_their_own_season():
