@@ -194,6 +194,9 @@ class CvvcController:
         self.setpoint_safety = bool(o.setpoint_safety)
         self._rent = 0.0  # Q paid beyond the offered moves' over the decisions in a row with one [cost units]
         self.bought = 0  # decisions that took the offered move once the Q standing in for it had cost as much
+        # the arguments of the latest decision's problem: (snapshot, state, out of envelope, plants); read by
+        # ``cvvc.explain`` to take the problem apart, never by the decisions
+        self.last_problem: tuple[MeasurementSnapshot, GridState, bool, tuple] | None = None
         # each regulator's last decided move: its direction (+1, -1, 0 for none yet) and the step it was decided at
         self._last_move = np.zeros(len(model.regulators), int)
         self._last_move_t_ns = np.zeros(len(model.regulators), np.int64)
@@ -590,7 +593,7 @@ class CvvcController:
 
     def problem(self, snap: MeasurementSnapshot, state: GridState, *, out_of_envelope: bool = False,
                 plants: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None,
-                locks: Literal["reversals", "none", "all"] = "reversals") -> CvvcInputs:
+                locks: Literal["reversals", "none", "all"] = "reversals", pv_margin: bool = True) -> CvvcInputs:
         """The CVVC problem (eq. 9-17) of a snapshot the controller has taken in, over ``state``'s nodes.
 
         The one inputs builder, whichever the state's source: missing plants fixed at their last Q, missing
@@ -598,7 +601,8 @@ class CvvcController:
         dV/dP over the window recorded so far and, for estimated critical nodes, by the estimate's calibrated bounds
         (widened ``out_of_envelope``). ``plants``: ``_plant_inputs``'s result for ``snap`` if the caller has it.
         ``locks``: which tap moves are not offered: the reverse of recent moves (``reversal_locks``), none, or every
-        one (the taps held). No state changes. Raises ``AgentInputError`` on unusable inputs.
+        one (the taps held). ``pv_margin=False``: without the PV variability margin (what it takes from the limits, for
+        explanations). No state changes. Raises ``AgentInputError`` on unusable inputs.
         """
         _, pv_ok, reg_ok = self._usable(snap)
         pv_p, pv_q, kva, q_hi = self._plant_inputs(snap, pv_ok) if plants is None else plants
@@ -606,7 +610,7 @@ class CvvcController:
         lo_pu, hi_pu = self.model.optimization_limits_pu
         v_min_pu: np.ndarray | float = lo_pu
         v_max_pu: np.ndarray | float = hi_pu
-        if self._margin_window_ns > 0:
+        if self._margin_window_ns > 0 and pv_margin:
             rise, fall = self.pv_margins_pu(state.dv_dp_pu_per_kw, pv_p)
             if self.stale_plants and self._recent_pv_p:
                 recent = np.array([x for _, x in self._recent_pv_p])
@@ -772,6 +776,7 @@ class CvvcController:
             features(np.asarray(snap.head_p_kw, float), np.asarray(snap.head_q_kvar, float), pv_p, pv_q))
         try:
             inputs = self.problem(snap, state, out_of_envelope=bool(outside), plants=plants)
+            self.last_problem = (snap, state, bool(outside), plants)
         except AgentInputError as e:
             return self._hold(snap, f"{prefix}unusable optimization inputs: {e}", missing, t0, state=state,
                               estimate_s=t_est - t0)

@@ -339,13 +339,16 @@ def decide_offline(model: CvvcModel, settings: AgentSettings | None,
         yield message
 
 
-def decide_offline_in_detail(model: CvvcModel, settings: AgentSettings | None,
-                             frames: Iterable[Any]) -> Iterator[tuple[m.Decision, ControllerDecision]]:
-    """``decide_offline`` with each message's controller decision (its solves, ``Decision.solves``)."""
+def decide_offline_in_detail(model: CvvcModel, settings: AgentSettings | None, frames: Iterable[Any], *,
+                             maker: DecisionMaker | None = None) -> Iterator[tuple[m.Decision, ControllerDecision]]:
+    """``decide_offline`` with each message's controller decision (its solves, ``Decision.solves``). ``maker``: the
+    decision maker to use (made from ``model`` and ``settings`` when None), for a caller that reads its controller
+    between decisions (``cvvc.explain``).
+    """
     settings = settings or AgentSettings()
     if settings.full_visibility:
         raise ValueError("case A (full visibility) needs the live bridge's oracle; it cannot be re-run offline")
-    maker = DecisionMaker(model, settings)
+    maker = maker or DecisionMaker(model, settings)
     for item in frames:
         key, msg = (item.key, item.msg) if hasattr(item, "key") else item
         if isinstance(msg, _FRAME_TYPES):

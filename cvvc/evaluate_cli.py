@@ -122,6 +122,30 @@ def register_report_plots(rsub: argparse._SubParsersAction) -> None:
     p.add_argument("dir", help="a cvvc evaluate output folder (with results.json)")
     p.add_argument("--out", default=None, help="where the PNGs go (default: DIR/plots)")
     p.set_defaults(func=_report_evaluate)
+    p = rsub.add_parser("decision", help="why the agent decided what it did at one step of a recording (re-run "
+                                         "offline): its solves, its rows nearest their limits and what tightened them")
+    p.add_argument("dir", help="a cvvc run output folder (with session.mcap) or an MCAP recording")
+    p.add_argument("--at", required=True, metavar="YYYY-MM-DDTHH:MM",
+                   help="local standard time of the profiles (UTC-5); the control step at or before it")
+    p.add_argument("--rows", type=int, default=6, help="rows nearest their limits to show (default 6)")
+    p.add_argument("--json", action="store_true", help="print JSON")
+    p.set_defaults(func=_report_decision)
+
+
+def _report_decision(args: argparse.Namespace) -> int:
+    import msgspec
+
+    from cvvc.errors import CliError
+    from cvvc.explain import ExplainError, explain_decision, local_time_ns, render_explanation
+
+    if args.rows < 1:
+        raise CliError(f"--rows {args.rows}: give at least 1")
+    try:
+        x = explain_decision(args.dir, local_time_ns(args.at), rows=args.rows)
+    except ExplainError as e:
+        raise CliError(str(e)) from e
+    print(msgspec.json.format(msgspec.json.encode(x)).decode() if args.json else render_explanation(x))
+    return 0
 
 
 def _report_run(args: argparse.Namespace) -> int:
