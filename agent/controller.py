@@ -791,6 +791,7 @@ class CvvcController:
                                   warm_start=self._warm if oracle is None else None)
             solves.append(("unlocked", solution))
         buy: CvvcSolution | None = None  # a move the Q of ``solution`` stands in for, if any (``rent_or_buy``)
+        widened: CvvcSolution | None = None  # the deadband's decision on the limits it widened, if it made one
         if oracle is None and self.tap_deadband_pu > 0 and np.any(solution.taps_new[:n_reg] != state.taps):
             held_problem = self.relocked(inputs, "all", int(snap.t_ns))
             held = solve_cvvc(held_problem, warm_start=self._warm)
@@ -800,10 +801,11 @@ class CvvcController:
                 tolerated = solve_cvvc(self.deadband_widened(held_problem, state.v0_pu.shape[0]),
                                        warm_start=self._warm)
                 solves.append(("tolerated", tolerated))
-                kept = (dataclasses.replace(tolerated, status="soft",
-                                            reason=f"{note}; Q for the limits widened by the deadband")
-                        if tolerated.status == "optimal" else
-                        dataclasses.replace(held, reason=f"{note}; {held.reason}" if held.reason else note))
+                if tolerated.status == "optimal":
+                    kept = widened = dataclasses.replace(tolerated, status="soft",
+                                                         reason=f"{note}; Q for the limits widened by the deadband")
+                else:
+                    kept = dataclasses.replace(held, reason=f"{note}; {held.reason}" if held.reason else note)
                 solution, buy = kept, solution  # held: Q paid every interval; the move: its taps paid once
         elif oracle is None and self.tap_break_even and solution.status == "optimal" \
                 and not np.any(solution.taps_new[:n_reg] != state.taps) and self._q_cost(inputs, solution) > 0:
@@ -891,4 +893,5 @@ class CvvcController:
             v_bound_high_pu=None if applied is None else applied[1],
             out_of_envelope=outside,
             solves=tuple(solves),
+            tolerated=widened is not None and solution is widened,
         )

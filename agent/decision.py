@@ -126,6 +126,8 @@ class Decision:
         tap reversal locks, when the first is not optimal), ``deadband`` (every tap held, ``tap_deadband_pu``); what
         the stage benchmark reads (``benchmarks.bench_stages``). Not part of ``same_content`` (their stage times
         are wall times).
+    tolerated : a soft decision of the tap deadband: every tap held for a predicted violation of the tightened limits
+        within ``tap_deadband_pu``, Q for the limits widened by it (met); False for the soft form (eq. 17).
     """
 
     t_ns: int
@@ -152,6 +154,7 @@ class Decision:
     cap_steps: np.ndarray | None = None
     cap_command: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
     solves: tuple[tuple[SolveRole, CvvcSolution], ...] = ()
+    tolerated: bool = False
 
     def same_content(self, other: Decision) -> bool:
         """Bit-identical in every field but ``timings`` and ``solves`` (what replay compares)."""

@@ -69,6 +69,9 @@ class AgentSummary(msgspec.Struct, frozen=True, kw_only=True):
     clamped: int = 0
     log_suppressed: dict[str, int] = {}
     soft: int = 0
+    # of the soft decisions, those of the tap deadband: taps held for a predicted violation within it, the limits
+    # widened by it met (``Decision.tolerated``); the others are the soft form, eq. (17)
+    tolerated: int = 0
     reasons: dict[str, int] = {}  # why decisions were soft or held, by kind of reason (``reason_kind``)
     decision_ms: dict[str, float] = {}  # the agent's wall time per decision (``decision_time_ms``): p50, p99, max
     ami: dict[str, int] = {}  # AMI meter readings taken, used and ignored by kind (``agent.ami``; none without meters)
@@ -141,6 +144,7 @@ class DecisionMaker:
         self.commands_sent = 0
         self.clamped = 0  # set points / bands brought into the regulators' accepted range
         self.soft = 0
+        self.tolerated = 0  # of the soft ones: taps held by the tap deadband, the limits widened by it met
         self.reasons: Counter[str] = Counter()  # of soft and hold decisions
         self.decision_s: deque[float] = deque(maxlen=DECISION_TIMES_KEPT)  # wall time of each decision [s]
         # cmd_id -> (device, answered) of the latest commands sent: one answer (accepted, clipped, rejected) and one
@@ -231,6 +235,7 @@ class DecisionMaker:
             self.holds += 1
         if d.status in ("soft", "hold"):
             self.soft += d.status == "soft"
+            self.tolerated += d.status == "soft" and d.tolerated
             self.reasons[reason_kind(d.reason)] += 1
         self.commands_sent += len(commands)
         for cmd in commands:
@@ -476,7 +481,7 @@ def run_agent(model: CvvcModel, settings: AgentSettings, bus, *, stop: threading
     return AgentSummary(decisions=maker.decisions, holds=maker.holds, commands=maker.commands_sent, acks=dict(acks),
                         rejected=rejected, clamped=maker.clamped,
                         log_suppressed=_suppressed(rlog, inbox.rejects.log_suppressed()),
-                        soft=maker.soft, reasons=dict(maker.reasons.most_common(20)),
+                        soft=maker.soft, tolerated=maker.tolerated, reasons=dict(maker.reasons.most_common(20)),
                         decision_ms=decision_time_ms(maker.decision_s),
                         ami=dict(maker.controller.ami.counts),
                         step_ends=maker.aligner.step_ends, released_by_step_end=maker.aligner.released_by_step_end,

@@ -264,6 +264,7 @@ def _result(spec: RunSpec, s: RunSummary) -> RunResult:
     """A run's result from its summary."""
     return RunResult(spec=spec, metrics=s.metrics, wall_s=s.wall_s, steps=s.steps, decisions=s.decisions,
                      lockstep_misses=s.lockstep_misses, out_dir=s.out_dir, recording=s.recording, soft=s.soft,
+                     tolerated=s.tolerated,
                      holds=s.holds, reasons=dict(s.reasons), decision_ms=dict(s.decision_ms),
                      live=s.live)
 

@@ -138,14 +138,16 @@ def render_results_md(ev: Evaluation) -> str:
         lines += ["", "## Decisions", "",
                   "Soft: the hard limits were not met (paper eq. 17); hold: no command sent. Decision time: the "
                   "agent's wall time per control step, from the frames' alignment to the decision message.", "",
-                  "| " + " | ".join(head + ["decisions", "soft", "hold", "most frequent reason",
+                  "| " + " | ".join(head + ["decisions", "soft (of which the tap deadband's)", "hold",
+                                            "most frequent reason",
                                             "p50 [ms]", "p99 [ms]", "max [ms]"]) + " |",
                   "|" + "---|" * (len(head) + 7)]
         for r in agent_runs:
             why = top_reasons(r.reasons, 1).replace("|", "/") if r.reasons else ""
             ms = [f"{r.decision_ms[k]:.1f}" if k in r.decision_ms else "" for k in ("p50", "p99", "max")]
             lines.append("| " + " | ".join(_row_label(r, robust, bands) + [
-                str(r.decisions), f"{r.soft} ({r.soft / r.decisions:.0%})", str(r.holds), why] + ms) + " |")
+                str(r.decisions), f"{r.soft} ({r.soft / r.decisions:.0%}; {r.tolerated})", str(r.holds), why] + ms)
+                         + " |")
     missed = [r for r in ev.runs if r.lockstep_misses]
     if missed:
         lines += ["", "## Runs with lockstep misses: not the method's figures", "",

@@ -91,7 +91,8 @@ class RunResult(msgspec.Struct, frozen=True, kw_only=True):
     out_dir: str
     recording: str | None
     attempts: int = 1  # how many times the run was started (a failed attempt is retried once)
-    soft: int = 0  # decisions on the soft form (eq. 17), as the agent counted them
+    soft: int = 0  # soft decisions as the agent counted them: the soft form (eq. 17) and the tap deadband's
+    tolerated: int = 0  # of them, the tap deadband's (taps held, the limits widened by the deadband met)
     holds: int = 0  # decisions without a command
     reasons: dict[str, int] = {}  # the reasons of soft and hold decisions, by kind
     decision_ms: dict[str, float] = {}  # the agent's wall time per decision [ms]: p50, p99, max

@@ -543,6 +543,7 @@ def run(config: RunConfig) -> RunSummary:
         recording=str(mcap_path) if config.record else None,
         model=str(kept_model) if agent_settings is not None else None,
         holds=agent_summary.holds if agent_summary else 0, soft=agent_summary.soft if agent_summary else 0,
+        tolerated=agent_summary.tolerated if agent_summary else 0,
         reasons=dict(agent_summary.reasons) if agent_summary else {},
         decision_ms=dict(agent_summary.decision_ms) if agent_summary else {},
         recorder_restarts=recorder.restarts if recorder is not None else 0, recording_gaps=gaps,

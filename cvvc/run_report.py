@@ -73,8 +73,9 @@ def render_summary(s: RunSummary, dm: DeviceMap | None) -> str:
         b = "" if base is None else _fmt(getattr(base, key), key)
         lines.append(f"| {label} | {_fmt(getattr(mt, key), key)} | {b} |")
     why = f"; most frequent reasons: {top_reasons(s.reasons)}" if s.holds or s.soft else ""
+    deadband = f" of which {s.tolerated} the tap deadband's" if s.tolerated else ""
     lines += ["", *cost_lines(s, dm), "", f"**Verdict:** {verdict(s)}", "",
-              f"- decisions: {s.decisions} (soft {s.soft}, hold {s.holds}{why}); lockstep misses: "
+              f"- decisions: {s.decisions} (soft {s.soft}{deadband}, hold {s.holds}{why}); lockstep misses: "
               f"{s.lockstep_misses}; wall time {s.wall_s:.1f} s",
               *([f"- bands re-centred a step after a move: {s.follow_ups} (late: {s.follow_up_misses})"]
                 if s.follow_ups or s.follow_up_misses else []),

@@ -55,7 +55,8 @@ class RunSummary(msgspec.Struct, frozen=True, kw_only=True):
     recording: str | None
     model: str | None
     holds: int = 0  # decisions with status 'hold' (no command sent), as the agent counted them
-    soft: int = 0  # decisions on the soft form (eq. 17)
+    soft: int = 0  # soft decisions: the soft form (eq. 17) and those the tap deadband tolerated
+    tolerated: int = 0  # of them, the tap deadband's (taps held, the limits widened by the deadband met)
     reasons: dict[str, int] = {}  # the reasons of soft and hold decisions, most frequent first
     decision_ms: dict[str, float] = {}  # the agent's wall time per decision [ms]: p50, p99, max
     recorder_restarts: int = 0  # the recorder died and was restarted this many times; control went on

@@ -671,6 +671,9 @@ def test_no_tap_moves_for_a_predicted_violation_within_the_deadband():
     lo, _ = MODEL.optimization_limits_pu
     assert 0.001 < lo - held.v_pred_pu.min() <= 0.004 + 1e-9
     assert decide(-0.032, 0.004).reg_tap.sum() >= 1
+    assert held.tolerated and not moved.tolerated
+    beyond = decide(-0.2, 0.004)  # no taps and Q can meet the limits: the soft form (eq. 17), not the deadband's
+    assert beyond.status == "soft" and not beyond.tolerated and "tap deadband" not in beyond.reason
     with pytest.raises(AgentInputError, match="tap_deadband_pu"):
         paper_controller(tap_deadband_pu=-0.001)
     # each decision lists its solves by role (what the stage benchmark reads): the held one is the deadband's, the
@@ -691,6 +694,7 @@ def test_taps_held_by_the_deadband_buy_no_q_for_what_it_tolerates():
     assert [role for role, _ in d.solves] == ["main", "deadband", "tolerated"] and not d.reg_tap.any()
     assert np.abs(roles["deadband"].q_new_kvar).sum() > 100.0  # the soft form's Q for 0.003 pu
     assert np.abs(d.pv_q_kvar).sum() < 1.0 and d.status == "soft" and "widened by the deadband" in d.reason
+    assert d.tolerated  # the deadband's soft decision, not the soft form (eq. 17)
     lo, _ = MODEL.optimization_limits_pu
     assert 0.001 < lo - d.v_pred_pu.min() <= 0.004 + 1e-9
     no_tolerance = paper_controller(dear, tap_deadband_pu=0.0).decide(snap)
@@ -711,6 +715,7 @@ def test_taps_held_by_the_deadband_rent_q_only_until_it_has_cost_the_move():
 
     renting = run(False)
     assert all(d.status == "soft" and not d.reg_tap.any() and "tap deadband" in d.reason for d in renting)
+    assert all(d.tolerated for d in renting)
     rent = renting[0].objective
     assert 0.14 / 3 < rent < 0.14 / 2  # two held decisions cost less than the tap, three more
     assert np.abs(renting[0].pv_q_kvar).sum() > 10.0
@@ -718,6 +723,7 @@ def test_taps_held_by_the_deadband_rent_q_only_until_it_has_cost_the_move():
     assert [int(d.reg_tap.sum()) for d in buying] == [0, 0, 1, 0, 0, 1]
     for d in (buying[2], buying[5]):
         assert d.status == "optimal" and d.objective == pytest.approx(0.14) and "tap deadband" not in d.reason
+        assert not d.tolerated  # the move bought, not the deadband's decision
     assert all(d.objective == pytest.approx(rent) for i, d in enumerate(buying) if i not in (2, 5))
 
 

@@ -127,13 +127,14 @@ def test_results_list_each_agent_runs_soft_and_hold_decisions_and_its_decision_t
     d, none = ev.runs
     agent = json.loads((Path(d.out_dir) / "agent-summary.json").read_text())
     assert (d.soft, d.holds, d.reasons) == (agent["soft"], agent["holds"], agent["reasons"])
+    assert d.tolerated == agent["tolerated"] <= d.soft
     assert d.soft + d.holds == sum(d.reasons.values())
     assert set(d.decision_ms) == {"p50", "p99", "max"}
     assert 0.0 < d.decision_ms["p50"] <= d.decision_ms["p99"] <= d.decision_ms["max"] < 60_000.0
     assert none.decision_ms == {} and none.decisions == 0
     md = (out / "results.md").read_text()
     assert "## Decisions" in md
-    row = f"| summer | D | 15 | {d.soft} ({d.soft / 15:.0%}) | {d.holds} |"
+    row = f"| summer | D | 15 | {d.soft} ({d.soft / 15:.0%}; {d.tolerated}) | {d.holds} |"
     assert row in md and f"| {d.decision_ms['p99']:.1f} | {d.decision_ms['max']:.1f} |" in md
     assert "| summer | none | 0 |" not in md.split("## Decisions")[1]
     live = md.split("## Live accuracy")[1].split("##")[0]  # the agent's run is judged, the baseline has nothing to

@@ -62,6 +62,11 @@ def test_mvvm_is_held_to_0005_pu_and_soft_decisions_to_5_percent_or_case_as():
     d = msgspec.structs.replace(_run("D"), decisions=864, soft=43)  # 5 % of 864 is 43.2
     assert _met(d)["soft"] is True and _met(msgspec.structs.replace(d, soft=44))["soft"] is False
     assert _met(msgspec.structs.replace(d, soft=300), msgspec.structs.replace(A, soft=300))["soft"] is True
+    # the tap deadband's soft decisions are not the soft form: 43 of eq. (17) beside 200 of the deadband are met
+    deadband = msgspec.structs.replace(d, soft=243, tolerated=200)
+    assert _met(deadband)["soft"] is True and _met(msgspec.structs.replace(deadband, soft=244))["soft"] is False
+    (cell,) = [c.value for c in run_goals(deadband, A, NONE) if c.goal == "soft"]
+    assert cell == "43 (+200 deadband)"
 
 
 def test_the_bounds_are_held_to_twice_the_miss_rate_they_promise():
