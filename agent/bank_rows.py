@@ -33,7 +33,8 @@ import numpy as np
 
 from regression.model import CapacitorInfo
 
-__all__ = ["BANK_MARGIN_SHARE", "OVERRIDE_MARGIN", "ROW_SPAN_PU", "BankRows", "local_bank_rows", "predicted_banks"]
+__all__ = ["BANK_MARGIN_SHARE", "OVERRIDE_MARGIN", "ROW_SPAN_PU", "BankRows", "bank_row_names", "local_bank_rows",
+           "predicted_banks"]
 
 BANK_MARGIN_SHARE = 0.1  # of the ON-OFF gap, kept between the predicted quantity and a setting
 ROW_SPAN_PU = 0.05  # the ON-OFF gap in the rows' scaled unit (a band of voltages' width)
@@ -60,6 +61,13 @@ def predicted_banks(banks: Sequence[CapacitorInfo]) -> np.ndarray:
     """Indices of the banks whose local control the agent predicts (a voltage, current or kvar control)."""
     return np.array([c for c, b in enumerate(banks) if b.control_kind != "none" and b.control_on != b.control_off],
                     dtype=np.intp)
+
+
+def bank_row_names(banks: Sequence[CapacitorInfo]) -> list[str]:
+    """A name for each row of :func:`local_bank_rows`, in its order: ``bank <id>``, then ``bank <id> override``."""
+    idx = predicted_banks(banks)
+    return ([f"bank {banks[c].id}" for c in idx]
+            + [f"bank {banks[c].id} override" for c in idx if banks[c].override_vmin_v > 0])
 
 
 def local_bank_rows(banks: Sequence[CapacitorInfo], value: np.ndarray, closed: np.ndarray, held: np.ndarray,

@@ -133,6 +133,8 @@ def explain_decision(recording: str | Path, at_t_ns: int, *, rows: int = 6) -> D
 
 
 def _explain(message, recorded, decision, maker, n_rows: int) -> DecisionExplanation:
+    from agent.bank_rows import bank_row_names
+
     controller, model = maker.controller, maker.model
     reg_ids = [r.id for r in model.regulators] + [c.id for c in model.capacitors]
     pv_ids = [p.id for p in model.pv]
@@ -147,7 +149,8 @@ def _explain(message, recorded, decision, maker, n_rows: int) -> DecisionExplana
         taps0 = np.asarray(inputs.taps)
         n = inputs.v0_pu.shape[0]
         names = [c.name for c in model.critical_nodes][:n] if state.critical else []
-        names += [f"bank row {i}" for i in range(n - len(names))]
+        banks = bank_row_names(model.capacitors)
+        names += banks if len(names) + len(banks) == n else [f"row {i}" for i in range(len(names), n)]
         lo, hi = (np.broadcast_to(np.asarray(x, float), (n,)) for x in (inputs.v_min_pu, inputs.v_max_pu))
         lo0, hi0 = (np.broadcast_to(np.asarray(x, float), (n,)) for x in (plain.v_min_pu, plain.v_max_pu))
         after = np.asarray(dict(decision.solves).get("main", decision.solves[0][1]).v_pred_pu, float)[:n]

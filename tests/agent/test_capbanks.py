@@ -333,7 +333,7 @@ def test_a_volt_override_gets_a_row_on_the_voltage_it_tests():
     """A kvar bank whose control closes it below Vmin: an open bank's tested voltage is kept OVERRIDE_MARGIN above
     Vmin even when it is already below (the override would close it, and its kvar rule open it, at every decision);
     a closed one's below Vmax; held or unread, free."""
-    from agent.bank_rows import OVERRIDE_MARGIN, ROW_SPAN_PU, local_bank_rows
+    from agent.bank_rows import OVERRIDE_MARGIN, ROW_SPAN_PU, bank_row_names, local_bank_rows
 
     bank = CapacitorInfo(id="k", steps=1, kvar_rated=300.0, phases=[1], closed0=0, control_kind="kvar",
                          control_on=150.0, control_off=-225.0, control_dq=[-0.4], control_dtap=[-20.0],
@@ -355,3 +355,6 @@ def test_a_volt_override_gets_a_row_on_the_voltage_it_tests():
     plain = local_bank_rows([msgspec.structs.replace(bank, override_vmin_v=0.0)], np.array([-400.0]), np.array([0]),
                             np.zeros(1, bool), 1, 1, v_v=np.array([7000.0]))
     assert plain.u0.shape == (1,)  # no override: no second row
+    # the rows named in their order (what `cvvc report decision` prints)
+    assert bank_row_names([bank]) == ["bank k", "bank k override"]
+    assert bank_row_names([msgspec.structs.replace(bank, override_vmin_v=0.0)]) == ["bank k"]
