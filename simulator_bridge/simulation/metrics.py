@@ -167,8 +167,10 @@ class Metrics(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=T
             minutes_outside_opt=self.minutes_outside_opt + other.minutes_outside_opt,
             node_minutes_outside_ansi=self.node_minutes_outside_ansi + other.node_minutes_outside_ansi,
             minutes_outside_ansi=self.minutes_outside_ansi + other.minutes_outside_ansi,
+            # judged over both runs or not at all
             steps_over_tap_rate_per_regulator=_add(self.steps_over_tap_rate_per_regulator,
-                                                   other.steps_over_tap_rate_per_regulator),
+                                                   other.steps_over_tap_rate_per_regulator)
+            if self.steps_over_tap_rate_per_regulator and other.steps_over_tap_rate_per_regulator else (),
         )
 
 

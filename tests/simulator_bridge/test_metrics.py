@@ -443,3 +443,11 @@ def test_for_feeder_holds_each_regulator_to_its_regcontrols_tapdelay(repo_root):
     acc.update(np.ones(n_nodes), np.array([allowed, 0, 0]), np.zeros(3))
     acc.update(np.ones(n_nodes), np.array([0, allowed + 1, 0]), np.zeros(3))
     assert acc.result().steps_over_tap_rate_per_regulator == (0, 1, 0)
+
+
+def test_combined_runs_count_the_steps_over_the_tap_rate_only_when_both_were_judged():
+    v, q = np.ones((3, 3)), np.zeros((3, 2))
+    moves = np.array([[3, 0], [0, 0], [0, 0]])
+    judged = _batch(v, moves, q, tap_delay_s=[45.0, 45.0])
+    assert judged.combine(judged).steps_over_tap_rate_per_regulator == (2, 0)
+    assert judged.combine(_batch(v, moves, q)).steps_over_tap_rate_per_regulator == ()
