@@ -217,7 +217,7 @@ def _live_cells(live: LiveAccuracy | None) -> list[object]:
 
 
 def _cell(value: object) -> object:
-    return msgspec.json.encode(value).decode() if isinstance(value, dict) else value
+    return msgspec.json.encode(value).decode() if isinstance(value, (dict, tuple, list)) else value
 
 
 def campaign_rows(evaluations: dict[str, Evaluation], broken: dict[str, tuple[EvaluateConfig, str]]) -> str:

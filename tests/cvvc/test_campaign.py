@@ -142,8 +142,8 @@ def test_a_campaign_writes_one_tidy_row_per_run_and_each_feeders_tables(campaign
         "error", "wall_s", "steps", "decisions", "lockstep_misses", "mvvm_pu", "nvv", "minutes_in_violation", "ntc",
         "q_cost", "t_cost", "total_cost", "v_min_pu", "v_max_pu", "taps_changes", "q_mvar_intervals", "cap_switches",
         "cap_cost", "cap_switches_per_bank", "node_minutes_outside_opt", "minutes_outside_opt",
-        "node_minutes_outside_ansi", "minutes_outside_ansi", "live_rmse_pu", "live_within_001", "live_bound_miss_rate",
-        "live_promised_miss_rate", "live_extremes_captured"]
+        "node_minutes_outside_ansi", "minutes_outside_ansi", "steps_over_tap_rate", "opt_limits_pu", "live_rmse_pu",
+        "live_within_001", "live_bound_miss_rate", "live_promised_miss_rate", "live_extremes_captured"]
     assert [(r["feeder"], r["feeder_id"], r["variant"], r["case"], r["season"], r["start"], r["status"])
             for r in rows] == [("ieee13", "ieee13", "lost-model", "none", "winter", "2023-01-01", "ok"),
                                ("ieee13", "ieee13", "lost-model", "D", "winter", "2023-01-01", "failed"),
@@ -157,6 +157,8 @@ def test_a_campaign_writes_one_tidy_row_per_run_and_each_feeders_tables(campaign
     assert json.loads(row["taps_changes"]) == mt["taps_changes"] and set(mt["taps_changes"]) == {"reg1", "reg2",
                                                                                                "reg3"}
     assert (row["steps"], row["attempts"], row["lockstep_misses"]) == ("14", "1", "0")
+    assert json.loads(row["opt_limits_pu"]) == [0.975, 1.04] and json.loads(row["steps_over_tap_rate"]) == {
+        "reg1": 0, "reg2": 0, "reg3": 0}
     assert "| winter | none |" in (out / "ieee13" / "lost-model" / "results.md").read_text()
     assert (out / "goals.md").read_text().endswith("Unmet: 0 of 0 goals judged.\n")  # no agent run finished
 
