@@ -66,8 +66,12 @@ def predicted_banks(banks: Sequence[CapacitorInfo]) -> np.ndarray:
 def bank_row_names(banks: Sequence[CapacitorInfo]) -> list[str]:
     """A name for each row of :func:`local_bank_rows`, in its order: ``bank <id>``, then ``bank <id> override``."""
     idx = predicted_banks(banks)
-    return ([f"bank {banks[c].id}" for c in idx]
-            + [f"bank {banks[c].id} override" for c in idx if banks[c].override_vmin_v > 0])
+    return [f"bank {banks[c].id}" for c in idx] + [f"bank {banks[c].id} override" for c in _overridden(banks, idx)]
+
+
+def _overridden(banks: Sequence[CapacitorInfo], idx: np.ndarray) -> list[int]:
+    """The banks of ``idx`` whose control has a ``VoltOverride`` (their second rows, in this order)."""
+    return [int(c) for c in idx if banks[c].override_vmin_v > 0]
 
 
 def local_bank_rows(banks: Sequence[CapacitorInfo], value: np.ndarray, closed: np.ndarray, held: np.ndarray,
@@ -113,7 +117,7 @@ def local_bank_rows(banks: Sequence[CapacitorInfo], value: np.ndarray, closed: n
     rows = BankRows(u0=u0, du_dq=du_dq, du_dtap=du_dtap, lo=lo, hi=hi, binding=binding)
     v_v = np.zeros(0) if v_v is None else v_v
     over = [_override_row(banks[c], float(v_v[c]) if c < len(v_v) else float("nan"), int(closed[c]), bool(held[c]),
-                          n_pv, n_reg + n_cap) for c in idx if banks[c].override_vmin_v > 0]
+                          n_pv, n_reg + n_cap) for c in _overridden(banks, idx)]
     if not over:
         return rows
     return BankRows(**{f.name: np.concatenate([getattr(rows, f.name), *(getattr(o, f.name) for o in over)])

@@ -194,9 +194,9 @@ class CvvcController:
         self.setpoint_safety = bool(o.setpoint_safety)
         self._rent = 0.0  # Q paid beyond the offered moves' over the decisions in a row with one [cost units]
         self.bought = 0  # decisions that took the offered move once the Q standing in for it had cost as much
-        # the arguments of the latest decision's problem: (snapshot, state, out of envelope, plants); read by
-        # ``cvvc.explain`` to take the problem apart, never by the decisions
-        self.last_problem: tuple[MeasurementSnapshot, GridState, bool, tuple] | None = None
+        # the latest decision's problem as solved and the arguments it was built from: (inputs, snapshot, state, out of
+        # envelope, plants); read by ``cvvc.explain`` to take the problem apart, never by the decisions
+        self.last_problem: tuple[CvvcInputs, MeasurementSnapshot, GridState, bool, tuple] | None = None
         # each regulator's last decided move: its direction (+1, -1, 0 for none yet) and the step it was decided at
         self._last_move = np.zeros(len(model.regulators), int)
         self._last_move_t_ns = np.zeros(len(model.regulators), np.int64)
@@ -776,7 +776,7 @@ class CvvcController:
             features(np.asarray(snap.head_p_kw, float), np.asarray(snap.head_q_kvar, float), pv_p, pv_q))
         try:
             inputs = self.problem(snap, state, out_of_envelope=bool(outside), plants=plants)
-            self.last_problem = (snap, state, bool(outside), plants)
+            self.last_problem = (inputs, snap, state, bool(outside), plants)
         except AgentInputError as e:
             return self._hold(snap, f"{prefix}unusable optimization inputs: {e}", missing, t0, state=state,
                               estimate_s=t_est - t0)

@@ -235,7 +235,7 @@ class DecisionMaker:
             self.holds += 1
         if d.status in ("soft", "hold"):
             self.soft += d.status == "soft"
-            self.tolerated += d.status == "soft" and d.tolerated
+            self.tolerated += d.tolerated  # a soft decision by construction
             self.reasons[reason_kind(d.reason)] += 1
         self.commands_sent += len(commands)
         for cmd in commands:

@@ -46,6 +46,7 @@ class SolveLine(msgspec.Struct, frozen=True, kw_only=True):
     moves: dict[str, tuple[int, int]]
     q_kvar: dict[str, float]
     reason: str = ""
+    taken: bool = False  # the solve the decision took (the deadband's relabelled, rent or buy's move ...)
 
 
 class LimitRow(msgspec.Struct, frozen=True, kw_only=True):
@@ -63,6 +64,7 @@ class LimitRow(msgspec.Struct, frozen=True, kw_only=True):
     lower_pv_margin_pu: float
     upper_pv_margin_pu: float
     slack_pu: float  # the nearer limit's distance from the estimate after the decision (negative: past it)
+    # ``v_after_pu``: the prediction of the solve the decision took
 
 
 class DecisionExplanation(msgspec.Struct, frozen=True, kw_only=True):
@@ -72,8 +74,8 @@ class DecisionExplanation(msgspec.Struct, frozen=True, kw_only=True):
     local_time: str
     status: str
     reason: str
-    commands: list[str]
-    reproduced: bool  # the re-run's decision equals the recorded one (commands, status, estimates)
+    commands: list[str]  # "quantity value", ``recordings.offline.command_values``
+    reproduced: bool  # the re-run's decision is the recorded one (``recordings.offline.diff_decisions``: identical)
     optimization_limits_pu: tuple[float, float]
     solves: list[SolveLine]
     rows: list[LimitRow]
@@ -134,6 +136,7 @@ def explain_decision(recording: str | Path, at_t_ns: int, *, rows: int = 6) -> D
 
 def _explain(message, recorded, decision, maker, n_rows: int) -> DecisionExplanation:
     from agent.bank_rows import bank_row_names
+    from recordings.offline import command_values, diff_decisions
 
     controller, model = maker.controller, maker.model
     reg_ids = [r.id for r in model.regulators] + [c.id for c in model.capacitors]
@@ -142,9 +145,12 @@ def _explain(message, recorded, decision, maker, n_rows: int) -> DecisionExplana
     solves = []
     taps0 = None
     rows: list[LimitRow] = []
+    # the solve the decision took: its Q and cost (``Decision.pv_q_kvar``, ``objective``); the main one otherwise
+    taken = next((k for k, (_, s) in enumerate(decision.solves)
+                  if decision.pv_q_kvar is not None and s.cost == decision.objective
+                  and np.array_equal(s.q_new_kvar, decision.pv_q_kvar)), 0)
     if controller.last_problem is not None and decision.solves:
-        snap, state, outside, plants = controller.last_problem
-        inputs = controller.problem(snap, state, out_of_envelope=outside, plants=plants)
+        inputs, snap, state, outside, plants = controller.last_problem
         plain = controller.problem(snap, state, out_of_envelope=outside, plants=plants, pv_margin=False)
         taps0 = np.asarray(inputs.taps)
         n = inputs.v0_pu.shape[0]
@@ -153,7 +159,7 @@ def _explain(message, recorded, decision, maker, n_rows: int) -> DecisionExplana
         names += banks if len(names) + len(banks) == n else [f"row {i}" for i in range(len(names), n)]
         lo, hi = (np.broadcast_to(np.asarray(x, float), (n,)) for x in (inputs.v_min_pu, inputs.v_max_pu))
         lo0, hi0 = (np.broadcast_to(np.asarray(x, float), (n,)) for x in (plain.v_min_pu, plain.v_max_pu))
-        after = np.asarray(dict(decision.solves).get("main", decision.solves[0][1]).v_pred_pu, float)[:n]
+        after = np.asarray(decision.solves[taken][1].v_pred_pu, float)[:n]
         slack = np.minimum(hi - after, after - lo)
         for i in np.argsort(slack, kind="stable")[:n_rows]:
             node = i < len(model.critical_nodes) and state.critical
@@ -164,31 +170,18 @@ def _explain(message, recorded, decision, maker, n_rows: int) -> DecisionExplana
                 upper_bound_pu=float(hi_opt - hi0[i]) if node else 0.0,
                 lower_pv_margin_pu=float(lo[i] - lo0[i]), upper_pv_margin_pu=float(hi0[i] - hi[i]),
                 slack_pu=float(slack[i])))
-    for role, s in decision.solves:
+    for k_solve, (role, s) in enumerate(decision.solves):
         new = np.asarray(s.taps_new)
         moves = {} if taps0 is None else {reg_ids[k]: (int(taps0[k]), int(new[k]))
                                           for k in range(min(len(reg_ids), new.size)) if new[k] != taps0[k]}
         solves.append(SolveLine(role=role, status=s.status, cost=float(s.cost), moves=moves,
                                 q_kvar={p: round(float(q), 1) for p, q in zip(pv_ids, s.q_new_kvar, strict=False)},
-                                reason=s.reason[:300]))
-    same = (msgspec.json.encode(message.commands) == msgspec.json.encode(recorded.commands)
-            and message.status == recorded.status
-            and msgspec.json.encode(message.estimates) == msgspec.json.encode(recorded.estimates))
+                                reason=s.reason[:300], taken=k_solve == taken))
     return DecisionExplanation(
         step_t_ns=message.step_t_ns, local_time=_local(message.step_t_ns), status=message.status,
-        reason=message.reason, commands=[_command(c) for c in message.commands], reproduced=same,
+        reason=message.reason, commands=[f"{k} {v:g}" for k, v in command_values(message).items()],
+        reproduced=diff_decisions([recorded], [message]).identical == 1,
         optimization_limits_pu=(lo_opt, hi_opt), solves=solves, rows=rows)
-
-
-def _command(c) -> str:
-    if hasattr(c, "q_kvar"):
-        return f"{c.plant_id}: Q {c.q_kvar:g} kvar"
-    if hasattr(c, "closed_steps"):
-        return f"{c.capacitor_id}: {c.closed_steps} step(s) closed"
-    a = c.action
-    if hasattr(a, "tap"):
-        return f"{c.regulator_id}: tap {a.tap}"
-    return f"{c.regulator_id}: set point {a.setpoint_v120:g} V, band {a.band_v120:g} V"
 
 
 def render_explanation(x: DecisionExplanation) -> str:
@@ -198,11 +191,11 @@ def render_explanation(x: DecisionExplanation) -> str:
            + (f": {x.reason}" if x.reason else ""),
            "re-run offline: " + ("the recorded decision, reproduced" if x.reproduced
                                  else "NOT the recorded decision (model or settings differ): read with care"),
-           "sent: " + ("; ".join(x.commands) if x.commands else "nothing"), "", "solves:"]
+           "sent: " + ("; ".join(x.commands) if x.commands else "nothing"), "", "solves (* the one taken):"]
     for s in x.solves:
         moves = ", ".join(f"{k} {a} -> {b}" for k, (a, b) in s.moves.items()) or "no move"
         q = ", ".join(f"{k} {v:g}" for k, v in s.q_kvar.items() if v) or "no Q"
-        out.append(f"  {s.role:<9} {s.status:<8} cost {s.cost:.4f}  {moves}; Q [kvar]: {q}"
+        out.append(f"{'*' if s.taken else ' '} {s.role:<9} {s.status:<8} cost {s.cost:.4f}  {moves}; Q [kvar]: {q}"
                    + (f"  ({s.reason})" if s.reason else ""))
     if x.rows:
         out += ["", f"rows nearest their limits (optimization limits {lo:g}-{hi:g} pu; each limit is the optimization "

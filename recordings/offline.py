@@ -15,7 +15,7 @@ Pairing and comparison (``diff_decisions``): a re-run decision answers the recor
 counters (``seq``, ``in_reply_to``, command ``seq`` / ``cmd_id`` / ``in_reply_to``: a recording that
 started after the agent) is counted as ``changed_identity_only``. For every changed pair the command values
 are compared per device and quantity (``pv/<id>/q_kvar``, ``vr/<id>/tap``, ``vr/<id>/setpoint_v120``,
-``vr/<id>/band_v120``) and the largest absolute change of each is reported with its step.
+``vr/<id>/band_v120``, ``cap/<id>/closed_steps``) and the largest absolute change of each is reported with its step.
 """
 
 from __future__ import annotations
@@ -59,7 +59,8 @@ _MAX_LISTED_STEPS = 20
 class CommandChange(msgspec.Struct, frozen=True, kw_only=True):
     """One command quantity at one step: recorded and re-run values and the absolute change."""
 
-    quantity: str  # pv/<id>/q_kvar [kvar], vr/<id>/tap [steps], vr/<id>/setpoint_v120 [V], vr/<id>/band_v120 [V]
+    quantity: str  # pv/<id>/q_kvar [kvar], vr/<id>/tap [steps], vr/<id>/setpoint_v120 [V], vr/<id>/band_v120 [V],
+    # cap/<id>/closed_steps [steps]
     step_t_ns: int
     recorded: float
     rerun: float
@@ -153,6 +154,8 @@ def command_values(decision: m.Decision) -> dict[str, float]:
             case m.RegCommand(action=m.SetpointAction() as a):
                 out[f"vr/{c.regulator_id}/setpoint_v120"] = a.setpoint_v120
                 out[f"vr/{c.regulator_id}/band_v120"] = a.band_v120
+            case m.CapCommand(closed_steps=int() as steps):  # a bank released to its own control has no value
+                out[f"cap/{c.capacitor_id}/closed_steps"] = float(steps)
     return out
 
 

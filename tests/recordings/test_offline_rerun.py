@@ -10,7 +10,7 @@ import pytest
 from recutil import EXAMPLE_KEYS, head_frame, write_recording
 
 from cvvc.cli import main as cvvc_main
-from recordings.offline import diff_decisions, recorded_decisions, run_offline
+from recordings.offline import command_values, diff_decisions, recorded_decisions, run_offline
 from schemas import messages as m
 from schemas.bus import Received
 from schemas.examples import examples
@@ -144,3 +144,14 @@ def test_cli_offline_refuses_case_a(tmp_path: Path, capsys: pytest.CaptureFixtur
     assert "case A (full visibility)" in capsys.readouterr().err
     assert cvvc_main(["replay", "--offline", "--agent-settings", '{"nonsense": 1}', str(path)]) == 2
     assert "do not decode as AgentSettings" in capsys.readouterr().err
+
+
+def test_bank_commands_are_command_quantities_and_a_release_has_none():
+    ex = examples()
+    cap = ex[m.CapCommand]
+    d = msgspec.structs.replace(ex[m.Decision], commands=[ex[m.PvCommand], msgspec.structs.replace(cap, closed_steps=1),
+                                                         msgspec.structs.replace(cap, capacitor_id="cap2",
+                                                                                 closed_steps=None)])
+    values = command_values(d)
+    assert values[f"cap/{cap.capacitor_id}/closed_steps"] == 1.0 and not any(k.startswith("cap/cap2") for k in values)
+    assert f"pv/{ex[m.PvCommand].plant_id}/q_kvar" in values
