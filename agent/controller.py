@@ -143,8 +143,9 @@ class CvvcController:
     filtered_setpoints : beyond the paper, ``setpoints`` mode with the correction and its filter (case D; case C keeps
         the paper's eq. 8 on the reading): eq. (8)'s ``V_s^1`` starts
         from the corrected estimate at the regulator's secondary plus the filtered difference between the compared
-        reading and that estimate (a second ``CorrectionFilter``), instead of the compared reading itself: the
-        reading's noise then moves the band by a fraction of itself.
+        reading and that estimate (a second ``CorrectionFilter``), instead of the compared reading itself, where the
+        regulator's readings are noisy (``NOISY_READING_STEPS``): the reading's noise then moves the band by a fraction
+        of itself. Quiet readings are taken as they are.
     stale_plants : beyond the paper: a plant behind a stand-in frame older than ``STALE_PLANT_AGE_S`` is taken as
         ``agent.stale_plants`` says (P projected from the fresh plants, Q our command in force and not raised, its
         P's own variability margin).
@@ -407,7 +408,13 @@ class CvvcController:
         fresh = np.full(len(self._reg_ids), True) if snap.reg_fresh is None else np.asarray(snap.reg_fresh, bool)
         inputs_fresh = bool(snap.head_fresh) and (snap.pv_fresh is None or bool(np.all(snap.pv_fresh)))
         offset_pu = filt((compared - est_v120) * per_v, reg_ok, fresh, inputs_fresh=inputs_fresh)
-        return np.where(reg_ok, est_v120 + offset_pu / per_v, compared)
+        # quiet readings are taken as they are: the offset follows line-drop compensation, which moves with the load
+        # current, and an hour's mean of it lags (IEEE 123's substation regulator, a winter morning: 0.45 V low, and
+        # eq. 8 lowered it two steps for the one decided)
+        noise = (np.full(len(self._reg_ids), np.nan) if snap.reg_v120_noise is None
+                 else np.asarray(snap.reg_v120_noise, float))
+        quiet = noise <= NOISY_READING_STEPS * self._step_v120  # too few readings at the tap to tell: filtered
+        return np.where(reg_ok & ~quiet, est_v120 + offset_pu / per_v, compared)
 
     def _pv_fresh(self, snap: MeasurementSnapshot) -> np.ndarray:
         """(K,) bool: the plants whose frame is this step's own."""

@@ -557,6 +557,27 @@ def test_filtered_setpoints_shed_reading_noise_and_keep_a_steady_offset():
     np.testing.assert_array_equal(setpoints(True, noise, correction=False), setpoints(False, noise, correction=False))
 
 
+def test_filtered_setpoints_take_quiet_readings_as_they_are():
+    """The compared reading's offset from the estimate is line-drop compensation, which moves with the load current:
+    where the regulator's readings are quiet, eq. (8) starts from the reading itself (an hour's mean of the offset lags
+    a change of it by most of the change); where they are noisy, from the filtered offset."""
+    minute = 60_000_000_000
+
+    def last_setpoints(filtered: bool, noise_v120: float) -> np.ndarray:
+        c = controller(mode="setpoints", correction_window_s=3000.0, filtered_setpoints=filtered)
+        d = None
+        for i in range(12):  # the offset 0.5 V for an hour, then 1.0 V (the load current changed)
+            s = snapshot(i * 5 * minute, reg_v120_noise=np.full(R, noise_v120))
+            s = dataclasses.replace(s, reg_v120_compared=s.reg_v120 + (0.5 if i < 11 else 1.0))
+            d = c.decide(s)
+            assert d.status == "optimal", d.reason
+        return d.reg_setpoint_v120
+
+    quiet, noisy, plain = last_setpoints(True, 0.01), last_setpoints(True, 1.2), last_setpoints(False, 0.01)
+    np.testing.assert_allclose(quiet, plain, atol=1e-9)
+    assert np.all(plain - noisy > 0.3)  # the filtered offset has taken a tenth of the change
+
+
 def test_correction_filter_averages_its_first_readings_instead_of_keeping_the_first():
     """Until ``1 / weight`` readings have entered, the filter's mean is their plain average: the first reading's
     noise is not kept at 0.9^(n-1) of itself for an hour (IEEE 8500 winter with 1 % SCADA noise: NVV 803 from the
