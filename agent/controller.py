@@ -40,6 +40,7 @@ from agent.ami import AmiReadings
 from agent.bank_rows import local_bank_rows, predicted_banks
 from agent.cvvc_qp import CvvcInputs
 from agent.decision import Decision, MeasurementSnapshot, SolveRole
+from agent.drift import DriftMargin
 from agent.errors import AgentInputError
 from agent.setpoints import (
     MeasuredSteps,
@@ -151,8 +152,8 @@ class CvvcController:
         P's own variability margin).
     valid_intervals : how many control periods a command stays in force after its step (the runtime's too): how
         long ``stale_plants`` takes our last Q command as the plant's Q.
-    correction_window_s, bounds_cover_filter, predict_banks, tap_reversal_lockout_s : see
-        ``schemas.settings.AgentOptions``.
+    correction_window_s, bounds_cover_filter, predict_banks, tap_reversal_lockout_s, drift_margin,
+    tap_deadband_hold_s : see ``schemas.settings.AgentOptions``.
     """
 
     def __init__(
@@ -216,6 +217,11 @@ class CvvcController:
         self._margin_cap_pu = float(o.pv_margin_cap_pu)
         self._dv_dp = dv_dp_pu_per_kw(self._arrays, model.feature_names, len(model.pv))
         self._recent_pv_p: deque[tuple[int, np.ndarray]] = deque()  # (t_ns, (K,) P) at recent decisions
+        self._drift = DriftMargin(int(model.control_period_s) * 1_000_000_000, o.pv_margin_cap_pu) \
+            if o.drift_margin else None
+        self._drift_pu: tuple[np.ndarray, np.ndarray] | None = None  # this decision's (fall, rise) drift margins
+        self._deadband_hold_ns = int(o.tap_deadband_hold_s * 1e9)
+        self._deadband_since_ns: int | None = None  # the first of the decisions in a row the deadband held the taps
         self._sens = SensitivityTable.of(model.sens_q)
         self._pv_ids = tuple(p.id for p in model.pv)
         self._reg_ids = tuple(r.id for r in model.regulators)
@@ -316,6 +322,8 @@ class CvvcController:
         ``solution`` (when the solver ran) its iterations, status and stage times, ``solves`` every solve the
         decision made; ``t0`` is ``time.perf_counter()`` at the start of the decision.
         """
+        if self._drift is not None:
+            self._drift.forget()
         n_pv, n_reg = len(self._pv_ids), len(self._reg_ids)
         report = state is not None and state.critical
         sec = solution.seconds if solution is not None else None
@@ -583,6 +591,23 @@ class CvvcController:
             setpoints[r], bands[r] = safety_band(float(setpoints[r]), float(bands[r]), float(v_s1[r]),
                                                  float(lo_margin[r]), float(hi_margin[r]), float(step[r]))
 
+    def _deadband_in_time(self, note: str, t_ns: int) -> str:
+        """``note`` (the tap deadband's reason to hold the taps, "" for none), or "" once the deadband has held them
+        for ``tap_deadband_hold_s`` in a row: the violation it tolerated has lasted, and the move is taken.
+
+        Beyond the paper: a node the deadband leaves below its limit stays there while the load drifts on (IEEE 123,
+        3 January: the same node 0.003 pu below the limit for four decisions in a row, the 1-minute minimum 0.970 pu
+        against no control's 0.982), as a regulator's time delay lets a voltage out of band for a while, not for ever.
+        """
+        if not note:
+            return note
+        if self._deadband_since_ns is None:
+            self._deadband_since_ns = t_ns
+        if self._deadband_hold_ns > 0 and t_ns - self._deadband_since_ns >= self._deadband_hold_ns:
+            self._deadband_since_ns = None
+            return ""
+        return note
+
     def deadband_widened(self, held_problem: CvvcInputs, n_nodes: int) -> CvvcInputs:
         """``held_problem`` (taps held) with its first ``n_nodes`` rows' limits widened by ``tap_deadband_pu``.
 
@@ -600,7 +625,7 @@ class CvvcController:
 
     def problem(self, snap: MeasurementSnapshot, state: GridState, *, out_of_envelope: bool = False,
                 plants: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None,
-                locks: Literal["reversals", "none", "all"] = "reversals", pv_margin: bool = True) -> CvvcInputs:
+                locks: Literal["reversals", "none", "all"] = "reversals", margins: bool = True) -> CvvcInputs:
         """The CVVC problem (eq. 9-17) of a snapshot the controller has taken in, over ``state``'s nodes.
 
         The one inputs builder, whichever the state's source: missing plants fixed at their last Q, missing
@@ -608,8 +633,8 @@ class CvvcController:
         dV/dP over the window recorded so far and, for estimated critical nodes, by the estimate's calibrated bounds
         (widened ``out_of_envelope``). ``plants``: ``_plant_inputs``'s result for ``snap`` if the caller has it.
         ``locks``: which tap moves are not offered: the reverse of recent moves (``reversal_locks``), none, or every
-        one (the taps held). ``pv_margin=False``: without the PV variability margin (what it takes from the limits, for
-        explanations). No state changes. Raises ``AgentInputError`` on unusable inputs.
+        one (the taps held). ``margins=False``: without the PV variability and drift margins (what they take from the
+        limits, for explanations). No state changes. Raises ``AgentInputError`` on unusable inputs.
         """
         _, pv_ok, reg_ok = self._usable(snap)
         pv_p, pv_q, kva, q_hi = self._plant_inputs(snap, pv_ok) if plants is None else plants
@@ -617,13 +642,17 @@ class CvvcController:
         lo_pu, hi_pu = self.model.optimization_limits_pu
         v_min_pu: np.ndarray | float = lo_pu
         v_max_pu: np.ndarray | float = hi_pu
-        if self._margin_window_ns > 0 and pv_margin:
+        if self._margin_window_ns > 0 and margins:
             rise, fall = self.pv_margins_pu(state.dv_dp_pu_per_kw, pv_p)
             if self.stale_plants and self._recent_pv_p:
                 recent = np.array([x for _, x in self._recent_pv_p])
                 rise = stale_rise_pu(rise, state.dv_dp_pu_per_kw, pv_p, recent, self._pv_old(snap, pv_ok),
                                      self._margin_cap_pu)
             v_min_pu, v_max_pu = lo_pu + fall, hi_pu - rise
+        drift = self._drift_pu if state.critical and margins else None
+        if drift is not None and drift[0].shape == state.v0_pu.shape:
+            v_min_pu = lo_pu + np.maximum(np.asarray(v_min_pu, float) - lo_pu, drift[0])
+            v_max_pu = hi_pu - np.maximum(hi_pu - np.asarray(v_max_pu, float), drift[1])
         bounds = self.bounds_pu(out_of_envelope) if state.critical else None
         soft_weight = None if bounds is None or not self.soft_precision else precision_weights(*bounds)
         if bounds is not None and self.bounds_in_margin:
@@ -779,6 +808,8 @@ class CvvcController:
                               estimate_s=t_est - t0)
 
         self._remember_pv_p(int(snap.t_ns), pv_p)
+        self._drift_pu = (self._drift.margins(int(snap.t_ns), state.v0_pu)
+                          if self._drift is not None and state.critical and oracle is None else None)
         outside = "" if not state.critical else self.envelope_problem(
             features(np.asarray(snap.head_p_kw, float), np.asarray(snap.head_q_kvar, float), pv_p, pv_q))
         try:
@@ -799,11 +830,14 @@ class CvvcController:
             solves.append(("unlocked", solution))
         buy: CvvcSolution | None = None  # a move the Q of ``solution`` stands in for, if any (``rent_or_buy``)
         widened: CvvcSolution | None = None  # the deadband's decision on the limits it widened, if it made one
+        held_by_deadband = False
         if oracle is None and self.tap_deadband_pu > 0 and np.any(solution.taps_new[:n_reg] != state.taps):
             held_problem = self.relocked(inputs, "all", int(snap.t_ns))
             held = solve_cvvc(held_problem, warm_start=self._warm)
             solves.append(("deadband", held))
             note = self.tap_deadband(solution, held, held_problem, state.v0_pu.shape[0])
+            note = self._deadband_in_time(note, int(snap.t_ns))
+            held_by_deadband = bool(note)
             if note:  # the taps held: Q only for what the deadband does not tolerate
                 tolerated = solve_cvvc(self.deadband_widened(held_problem, state.v0_pu.shape[0]),
                                        warm_start=self._warm)
@@ -821,6 +855,8 @@ class CvvcController:
             if (offer.status == "optimal" and np.any(offer.taps_new[:n_reg] != state.taps)
                     and self._q_cost(inputs, offer) < self._q_cost(inputs, solution) - 1e-9):
                 buy = offer
+        if not held_by_deadband:
+            self._deadband_since_ns = None
         solution = self.rent_or_buy(inputs, solution, buy, n_reg)
         sec = solution.seconds
         if solution.status == "hold":
@@ -865,6 +901,11 @@ class CvvcController:
         self._last_move = np.where(moved, np.sign(solution.taps_new[:n_reg] - state.taps), self._last_move)
         self._last_move_t_ns = np.where(moved, int(snap.t_ns), self._last_move_t_ns)
         applied = self.bounds_pu(bool(outside)) if state.critical else None
+        if self._drift is not None:
+            if state.critical and oracle is None:
+                self._drift.predicted(int(snap.t_ns), solution.v_pred_pu[: state.v0_pu.shape[0]])
+            else:
+                self._drift.forget()
         reason = solution.reason
         if outside:
             note = (f"inputs outside the training envelope ({outside}): estimate bounds widened "

@@ -8,8 +8,9 @@ taken apart:
   moves and Q;
 * the rows of its problem nearest their limits: the estimate now and after the decision, each limit and what
   tightened it from the optimization limits: the estimate's calibrated bound (as applied, widened out of the training
-  envelope, the gap of the correction filter) and the PV variability margin (``AgentOptions.pv_margin_window_s``),
-  read from the controller's own problem built with and without the margin (``CvvcController.problem``).
+  envelope, the gap of the correction filter) and the variability margin, the larger of the PV margin
+  (``AgentOptions.pv_margin_window_s``) and the drift margin (``AgentOptions.drift_margin``), read from the
+  controller's own problem built with and without the margins (``CvvcController.problem``).
 
 Local times are the profiles' fixed local standard time (UTC-5, docs/profiles-and-metrics.md). The re-run must
 reproduce the recorded decision (``cvvc replay --offline`` checks it for a whole recording); the explanation says
@@ -51,7 +52,7 @@ class SolveLine(msgspec.Struct, frozen=True, kw_only=True):
 
 class LimitRow(msgspec.Struct, frozen=True, kw_only=True):
     """One row of the decision's problem: its estimate now and after the decision [pu], its limits [pu] and what
-    tightened each from the optimization limits: the bound as applied and the PV variability margin [pu].
+    tightened each from the optimization limits: the bound as applied and the variability margin (PV or drift) [pu].
     """
 
     row: str
@@ -61,8 +62,8 @@ class LimitRow(msgspec.Struct, frozen=True, kw_only=True):
     upper_pu: float
     lower_bound_pu: float
     upper_bound_pu: float
-    lower_pv_margin_pu: float
-    upper_pv_margin_pu: float
+    lower_margin_pu: float
+    upper_margin_pu: float
     slack_pu: float  # the nearer limit's distance from the estimate after the decision (negative: past it)
     # ``v_after_pu``: the prediction of the solve the decision took
 
@@ -151,7 +152,7 @@ def _explain(message, recorded, decision, maker, n_rows: int) -> DecisionExplana
                   and np.array_equal(s.q_new_kvar, decision.pv_q_kvar)), 0)
     if controller.last_problem is not None and decision.solves:
         inputs, snap, state, outside, plants = controller.last_problem
-        plain = controller.problem(snap, state, out_of_envelope=outside, plants=plants, pv_margin=False)
+        plain = controller.problem(snap, state, out_of_envelope=outside, plants=plants, margins=False)
         taps0 = np.asarray(inputs.taps)
         n = inputs.v0_pu.shape[0]
         names = [c.name for c in model.critical_nodes][:n] if state.critical else []
@@ -168,7 +169,7 @@ def _explain(message, recorded, decision, maker, n_rows: int) -> DecisionExplana
                 lower_pu=float(lo[i]), upper_pu=float(hi[i]),
                 lower_bound_pu=float(lo0[i] - lo_opt) if node else 0.0,
                 upper_bound_pu=float(hi_opt - hi0[i]) if node else 0.0,
-                lower_pv_margin_pu=float(lo[i] - lo0[i]), upper_pv_margin_pu=float(hi0[i] - hi[i]),
+                lower_margin_pu=float(lo[i] - lo0[i]), upper_margin_pu=float(hi0[i] - hi[i]),
                 slack_pu=float(slack[i])))
     for k_solve, (role, s) in enumerate(decision.solves):
         new = np.asarray(s.taps_new)
@@ -199,12 +200,12 @@ def render_explanation(x: DecisionExplanation) -> str:
                    + (f"  ({s.reason})" if s.reason else ""))
     if x.rows:
         out += ["", f"rows nearest their limits (optimization limits {lo:g}-{hi:g} pu; each limit is the optimization "
-                    "limit tightened by the estimate's bound and the PV variability margin):",
+                    "limit tightened by the estimate's bound and the variability margin, PV or drift):",
                 "  row                      now      after    lower = opt + bound + margin      upper = opt - bound - "
                 "margin      slack"]
         for r in x.rows:
             out.append(f"  {r.row:<22} {r.v_now_pu:.4f}   {r.v_after_pu:.4f}   "
-                       f"{r.lower_pu:.4f} = {lo:g} + {r.lower_bound_pu:.4f} + {r.lower_pv_margin_pu:.4f}   "
-                       f"{r.upper_pu:.4f} = {hi:g} - {r.upper_bound_pu:.4f} - {r.upper_pv_margin_pu:.4f}   "
+                       f"{r.lower_pu:.4f} = {lo:g} + {r.lower_bound_pu:.4f} + {r.lower_margin_pu:.4f}   "
+                       f"{r.upper_pu:.4f} = {hi:g} - {r.upper_bound_pu:.4f} - {r.upper_margin_pu:.4f}   "
                        f"{r.slack_pu:+.4f}")
     return "\n".join(out)

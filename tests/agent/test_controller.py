@@ -704,6 +704,26 @@ def test_no_tap_moves_for_a_predicted_violation_within_the_deadband():
     assert held.solves[2][1].cost == held.objective and held.solves[0][1].taps_new[:R].sum() == 1
 
 
+def test_the_deadband_holds_the_taps_for_a_lasting_violation_only_so_long():
+    """The same violation within the deadband at every decision: with ``tap_deadband_hold_s`` of one control period
+    the taps are held at the first decision and move at the second; a decision in between that the deadband did not
+    hold starts the count again; 0 holds them as long as the violation lasts."""
+    period = int(MODEL.control_period_s) * 1_000_000_000
+
+    def taps(hold_s: float, errors: list[float]) -> list[int]:
+        c = paper_controller(tap_deadband_pu=0.004, tap_deadband_hold_s=hold_s)
+        out = []
+        for i, e in enumerate(errors):
+            snap = snapshot(i * period, reading_error_pu=np.full(R, e))
+            d = c.decide(dataclasses.replace(snap, pv_kva_available=np.full(K, 900.0)))
+            out.append(int(d.reg_tap.sum()))
+        return out
+
+    assert taps(0.0, [-0.03] * 3) == [0, 0, 0]
+    assert taps(float(MODEL.control_period_s), [-0.03] * 2) == [0, 1]
+    assert taps(float(MODEL.control_period_s), [-0.03, 0.0, -0.03]) == [0, 0, 0]  # not in a row: held again
+
+
 def test_taps_held_by_the_deadband_buy_no_q_for_what_it_tolerates():
     """Some Q headroom and dear taps: the held decision's soft form buys Q for the 0.003 pu the deadband tolerates;
     the decision takes the Q of the limits widened by the deadband instead (none here), not below them."""
@@ -826,3 +846,32 @@ def test_precision_weights_weigh_an_uncertain_node_by_its_bound_against_the_medi
     # Narrower than the median weighs 1, not more; bounds of zero leave every node at 1.
     assert precision_weights(np.array([0.001, 0.01, 0.01]), np.array([0.001, 0.01, 0.01])).tolist() == [1.0] * 3
     assert precision_weights(np.zeros(3), np.zeros(3)).tolist() == [1.0] * 3
+
+
+def test_limits_make_room_for_a_ramp_two_intervals_long():
+    """The drift margin: where the last two intervals each left a node's estimate below what the decision before
+    predicted for it (the load rising), its lower limit is raised by the smaller of the two drifts (capped at
+    ``pv_margin_cap_pu``); nothing for a ramp that turned, after a gap (no decision one control period before), or
+    with the option off."""
+    period = int(MODEL.control_period_s) * 1_000_000_000
+    cap = AgentOptions().pv_margin_cap_pu
+
+    def run(drift: bool, loads: list[float], times: list[int]) -> tuple[np.ndarray, np.ndarray, list[Decision]]:
+        c = controller(pv_margin_window_s=0.0, drift_margin=drift)
+        ds = [c.decide(snapshot(t, head_p_kw=p)) for p, t in zip(loads, times, strict=True)]
+        assert all(d.status == "optimal" for d in ds), [d.reason for d in ds]
+        inputs, n = c.last_problem[0], ds[-1].v_pu.shape[0]
+        return (np.broadcast_to(np.asarray(inputs.v_min_pu, float), (n,)),
+                np.broadcast_to(np.asarray(inputs.v_max_pu, float), (n,)), ds)
+
+    ramp, steps = [800.0, 1100.0, 1400.0], [0, period, 2 * period]
+    v_min, v_max, ds = run(True, ramp, steps)
+    off_min, off_max, _ = run(False, ramp, steps)
+    drifts = [ds[k + 1].v_pu - ds[k].v_pred_pu for k in range(2)]
+    fell = np.clip(np.minimum(-drifts[0], -drifts[1]), 0.0, cap)
+    assert fell.max() > 0.001  # each heavier load: the nodes about a mV/V below what was predicted
+    np.testing.assert_allclose(v_min - off_min, fell, atol=1e-12)  # the bounds on top as without the margin
+    np.testing.assert_allclose(v_max, off_max, atol=1e-12)
+    for loads, times in (([800.0, 1400.0, 1100.0], steps), (ramp, [0, period, 3 * period])):
+        other_min, other_max, _ = run(True, loads, times)  # a ramp that turned; a gap
+        np.testing.assert_allclose(other_min, run(False, loads, times)[0], atol=1e-12)

@@ -47,12 +47,12 @@ def test_a_decision_is_reproduced_and_its_limits_taken_apart(noon_run):
         e = estimates[r.row]
         assert r.v_now_pu == pytest.approx(e.v_pu, abs=1e-8)
         assert r.v_after_pu == pytest.approx(e.v_predicted_pu, abs=1e-8)
-        assert r.upper_pu == pytest.approx(hi - r.upper_bound_pu - r.upper_pv_margin_pu, abs=1e-12)
-        assert r.lower_pu == pytest.approx(lo + r.lower_bound_pu + r.lower_pv_margin_pu, abs=1e-12)
+        assert r.upper_pu == pytest.approx(hi - r.upper_bound_pu - r.upper_margin_pu, abs=1e-12)
+        assert r.lower_pu == pytest.approx(lo + r.lower_bound_pu + r.lower_margin_pu, abs=1e-12)
         # the bound takes at most the bound as applied, never more; the margin only tightens
         assert -1e-12 <= r.upper_bound_pu <= e.bound_high_pu + 1e-6
         assert -1e-12 <= r.lower_bound_pu <= e.bound_low_pu + 1e-6
-        assert r.upper_pv_margin_pu >= -1e-12 and r.lower_pv_margin_pu >= -1e-12
+        assert r.upper_margin_pu >= -1e-12 and r.lower_margin_pu >= -1e-12
         assert r.slack_pu == pytest.approx(min(r.upper_pu - r.v_after_pu, r.v_after_pu - r.lower_pu), abs=1e-12)
 
 
