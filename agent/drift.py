@@ -8,7 +8,7 @@ A node's drift over an interval is how far its estimate at a decision lies from 
 before predicted for it once its actions were applied. Where the last two intervals drifted the same way (a ramp),
 the smaller of the two drifts is the margin on that side, capped like the PV variability margin. One interval's drift
 alone moved taps for ramps that had ended (epri-k1, first 3 days of fall: 5 -> 10 tap changes; with two in a row, 6).
-Measured on the shared feeders in docs/method.md ("Drift margin"): not on by default.
+Measured on the shared feeders in docs/method.md ("Drift margin and the deadband's hold"): not on by default.
 """
 
 from __future__ import annotations
