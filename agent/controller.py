@@ -144,9 +144,9 @@ class CvvcController:
     filtered_setpoints : beyond the paper, ``setpoints`` mode with the correction and its filter (case D; case C keeps
         the paper's eq. 8 on the reading): eq. (8)'s ``V_s^1`` starts
         from the corrected estimate at the regulator's secondary plus the filtered difference between the compared
-        reading and that estimate (a second ``CorrectionFilter``), instead of the compared reading itself, where the
-        regulator's readings are noisy (``NOISY_READING_STEPS``): the reading's noise then moves the band by a fraction
-        of itself. Quiet readings are taken as they are.
+        reading and that estimate (a second ``CorrectionFilter``), instead of the compared reading itself: the
+        reading's noise then moves the band by a fraction of itself. Line-drop compensation (the compared minus the
+        raw reading) is taken as it is where the readings are quiet (``NOISY_READING_STEPS``).
     stale_plants : beyond the paper: a plant behind a stand-in frame older than ``STALE_PLANT_AGE_S`` is taken as
         ``agent.stale_plants`` says (P projected from the fresh plants, Q our command in force and not raised, its
         P's own variability margin).
@@ -210,6 +210,9 @@ class CvvcController:
         self._cmp_filter = (CorrectionFilter(len(model.regulators),
                                              min(1.0, float(model.control_period_s) / o.correction_window_s))
                             if correction and o.correction_window_s > 0 and o.filtered_setpoints else None)
+        self._ldc_filter = (CorrectionFilter(len(model.regulators),
+                                             min(1.0, float(model.control_period_s) / o.correction_window_s))
+                            if self._cmp_filter is not None else None)
         self.correction = correction
         self.bandwidth_v120 = float(o.bandwidth_v120)
         self._arrays = ModelArrays.of(model)
@@ -405,24 +408,31 @@ class CvvcController:
 
     def _compared_v120(self, snap: MeasurementSnapshot, state: GridState, reg_ok: np.ndarray) -> np.ndarray:
         """(R,) the compared voltages eq. (8) starts from [V on the 120 V base]: the readings, or with
-        ``filtered_setpoints`` the estimate at each secondary plus the filtered reading-minus-estimate.
+        ``filtered_setpoints`` the estimate at each secondary plus the filtered difference between the raw reading and
+        that estimate, plus the line-drop compensation (compared minus raw reading): as it is where the readings are
+        quiet, filtered where they are noisy.
+
+        Line-drop compensation moves with the load current, and an hour's mean of it lags: on IEEE 123's substation
+        regulator (R = 3, X = 7.5) a winter morning's mean was 0.45 V below the reading, and eq. (8) lowered the
+        regulator two steps for the one decided. Without compensation the compared reading is the raw one, and
+        nothing changes.
         """
         compared = np.asarray(snap.reg_v120_compared, float)
         filt = self._cmp_filter
-        if filt is None or not state.critical:
+        if filt is None or self._ldc_filter is None or not state.critical:
             return compared
+        raw = np.asarray(snap.reg_v120, float)
         per_v = self._arrays.reg_pu_per_v120
         est_v120 = state.v0_pu[self._arrays.reg_secondary_node] / per_v
         fresh = np.full(len(self._reg_ids), True) if snap.reg_fresh is None else np.asarray(snap.reg_fresh, bool)
         inputs_fresh = bool(snap.head_fresh) and (snap.pv_fresh is None or bool(np.all(snap.pv_fresh)))
-        offset_pu = filt((compared - est_v120) * per_v, reg_ok, fresh, inputs_fresh=inputs_fresh)
-        # quiet readings are taken as they are: the offset follows line-drop compensation, which moves with the load
-        # current, and an hour's mean of it lags (IEEE 123's substation regulator, a winter morning: 0.45 V low, and
-        # eq. 8 lowered it two steps for the one decided)
+        residual_pu = filt((raw - est_v120) * per_v, reg_ok, fresh, inputs_fresh=inputs_fresh)
+        ldc_pu = self._ldc_filter((compared - raw) * per_v, reg_ok, fresh, inputs_fresh=inputs_fresh)
         noise = (np.full(len(self._reg_ids), np.nan) if snap.reg_v120_noise is None
                  else np.asarray(snap.reg_v120_noise, float))
         quiet = noise <= NOISY_READING_STEPS * self._step_v120  # too few readings at the tap to tell: filtered
-        return np.where(reg_ok & ~quiet, est_v120 + offset_pu / per_v, compared)
+        ldc_v120 = np.where(quiet, compared - raw, ldc_pu / per_v)
+        return np.where(reg_ok, est_v120 + residual_pu / per_v + ldc_v120, compared)
 
     def _pv_fresh(self, snap: MeasurementSnapshot) -> np.ndarray:
         """(K,) bool: the plants whose frame is this step's own."""

@@ -83,7 +83,8 @@ class AgentOptions(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fie
         "eq. (6)'s corrections: exponential mean over about this [s]; 0: off"))] = 3000.0
     # (rural winter week with 1 % SCADA noise: NVV 10 -> 0, NTC 196 -> 66; agent.state.CorrectionFilter)
     filtered_setpoints: Annotated[bool, Meta(description=(
-        "beyond the paper: eq. (8) from the filtered compared reading (with the correction filter)"))] = True
+        "beyond the paper: eq. (8) from the estimate plus the filtered reading residual (with the correction "
+        "filter); line-drop compensation as read where the readings are quiet"))] = True
     # (rural winter week with 1 % SCADA noise: NTC 66 -> 25, summer 134 -> 73; CvvcController)
     sensitivity_error: Annotated[float, Meta(ge=0, le=1, description=(
         "soft form: relative error of the estimated Q sensitivities; 0: the paper's eq. (17) [-]"))] = 0.3

@@ -557,10 +557,10 @@ def test_filtered_setpoints_shed_reading_noise_and_keep_a_steady_offset():
     np.testing.assert_array_equal(setpoints(True, noise, correction=False), setpoints(False, noise, correction=False))
 
 
-def test_filtered_setpoints_take_quiet_readings_as_they_are():
-    """The compared reading's offset from the estimate is line-drop compensation, which moves with the load current:
-    where the regulator's readings are quiet, eq. (8) starts from the reading itself (an hour's mean of the offset lags
-    a change of it by most of the change); where they are noisy, from the filtered offset."""
+def test_filtered_setpoints_take_line_drop_compensation_from_a_quiet_reading_as_it_is():
+    """Line-drop compensation (the compared minus the raw reading) moves with the load current: where the regulator's
+    readings are quiet, eq. (8) takes it from the reading as it is (an hour's mean of it lags a change by most of the
+    change); where they are noisy, filtered."""
     minute = 60_000_000_000
 
     def last_setpoints(filtered: bool, noise_v120: float) -> np.ndarray:
