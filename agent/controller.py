@@ -143,10 +143,10 @@ class CvvcController:
         gap, i.e. to the judged limit less the bound when that is tighter. Off: the bounds come on top of the gap.
     filtered_setpoints : beyond the paper, ``setpoints`` mode with the correction and its filter (case D; case C keeps
         the paper's eq. 8 on the reading): eq. (8)'s ``V_s^1`` starts
-        from the corrected estimate at the regulator's secondary plus the filtered difference between the compared
+        from the corrected estimate at the regulator's secondary plus the filtered difference between the raw
         reading and that estimate (a second ``CorrectionFilter``), instead of the compared reading itself: the
         reading's noise then moves the band by a fraction of itself. Line-drop compensation (the compared minus the
-        raw reading) is taken as it is where the readings are quiet (``NOISY_READING_STEPS``).
+        raw reading) is added as read where the readings are quiet (``NOISY_READING_STEPS``), filtered where noisy.
     stale_plants : beyond the paper: a plant behind a stand-in frame older than ``STALE_PLANT_AGE_S`` is taken as
         ``agent.stale_plants`` says (P projected from the fresh plants, Q our command in force and not raised, its
         P's own variability margin).
@@ -640,8 +640,9 @@ class CvvcController:
 
         The one inputs builder, whichever the state's source: missing plants fixed at their last Q, missing
         regulators frozen; the optimization limits tightened by the PV variability margin of ``state``'s
-        dV/dP over the window recorded so far and, for estimated critical nodes, by the estimate's calibrated bounds
-        (widened ``out_of_envelope``). ``plants``: ``_plant_inputs``'s result for ``snap`` if the caller has it.
+        dV/dP over the window recorded so far (or, for estimated critical nodes, by the drift margin where larger,
+        ``drift_margin``) and, for estimated critical nodes, by the estimate's calibrated bounds (widened
+        ``out_of_envelope``). ``plants``: ``_plant_inputs``'s result for ``snap`` if the caller has it.
         ``locks``: which tap moves are not offered: the reverse of recent moves (``reversal_locks``), none, or every
         one (the taps held). ``margins=False``: without the PV variability and drift margins (what they take from the
         limits, for explanations). No state changes. Raises ``AgentInputError`` on unusable inputs.
