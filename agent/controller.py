@@ -35,6 +35,7 @@ from collections.abc import Callable, Iterable
 from typing import Literal
 
 import numpy as np
+from scipy.stats import norm
 
 from agent.ami import AmiReadings
 from agent.bank_rows import local_bank_rows, predicted_banks
@@ -58,6 +59,7 @@ from agent.state import (
     OracleSource,
     estimated_state,
     filter_gap_bounds_pu,
+    noise_bounds_pu,
     oracle_state,
 )
 from regression.estimator import SensitivityTable, dv_dp_pu_per_kw, pv_variability_margins_pu
@@ -254,6 +256,11 @@ class CvvcController:
         self._env = None if b is None else (np.asarray(b.envelope_lo, float), np.asarray(b.envelope_hi, float))
         # this decision's eq. (6) correction as computed minus as applied through the filter, per regulator [pu]
         self._filter_gap_pu = np.zeros(len(model.regulators))
+        # noisy readings: the filtered correction's own noise, from the mean square of that gap (``noise_bounds_pu``)
+        self._noise_z = float(norm.ppf(1.0 - b.alpha / 2.0)) if b is not None and 0.0 < b.alpha < 1.0 else 0.0
+        self._gap_sq = np.full(len(model.regulators), np.nan)  # per regulator, NaN until a noisy reading entered [pu^2]
+        self._noise_pu = np.zeros(len(model.regulators))  # this decision's filtered-correction noise [pu]
+        self._noisy = np.zeros(len(model.regulators), bool)  # each regulator's readings last told noisy
         self.ami = AmiReadings(model, meters)  # AMI meter readings (explicit option): the map's meters only
         banks = model.capacitors
         self._cap_ids = tuple(c.id for c in banks)
@@ -285,6 +292,7 @@ class CvvcController:
         lo, hi = widen * self._bound_lo, widen * self._bound_hi
         if self.bounds_cover_filter:
             lo, hi = filter_gap_bounds_pu(lo, hi, self._filter_gap_pu, self._arrays.upstream_regulator)
+            lo, hi = noise_bounds_pu(lo, hi, self._noise_z * self._noise_pu, self._arrays.upstream_regulator)
         return self.ami.bounds(lo, hi)
 
     def envelope_problem(self, x: np.ndarray) -> str:
@@ -402,9 +410,33 @@ class CvvcController:
             inst = np.asarray(eps, float) + to_now_pu
             own = np.asarray(ok, bool) & fresh & np.isfinite(inst)
             self._filter_gap_pu = np.where(own, inst - applied, 0.0)
+            self._noise_pu = self._filtered_noise_pu(self._filter_gap_pu, own, noise, filt.weight)
             return applied
 
         return apply
+
+    def _filtered_noise_pu(self, gap_pu: np.ndarray, own: np.ndarray, noise_v120: np.ndarray, w: float) -> np.ndarray:
+        """(R,) the noise the filtered correction keeps of noisy readings [pu] (0 for quiet ones), learnt from the
+        gap between the correction as computed and as applied at the decisions whose own reading was noisy
+        (``noise_v120`` above ``NOISY_READING_STEPS`` of a step; a regulator whose noise cannot be told at this step,
+        just after a move, is taken as it was last told).
+
+        With readings of noise ``s`` (the window's mean) the exponential mean of weight ``w`` keeps a noise ``s_f``,
+        ``s_f^2 = s^2 w / (2 - w)``, and the gap ``(1 - w)(eps - mean before)`` has the mean square
+        ``(1 - w)^2 (s^2 + s_f^2)``, so ``s_f^2 = gap^2 w / (2 (1 - w)^2)``. The calibrated bounds are of the
+        correction from a clean reading: they missed 21.5 % of IEEE 123's node-decisions with 1 % SCADA noise.
+        """
+        told = np.isfinite(noise_v120)
+        loud = told & (np.nan_to_num(noise_v120) > NOISY_READING_STEPS * self._step_v120)
+        self._noisy = np.where(told, loud, self._noisy)
+        noisy = self._noisy
+        sq = self._gap_sq
+        seen = own & loud & np.isfinite(gap_pu)
+        self._gap_sq = np.where(seen, np.where(np.isfinite(sq), (1.0 - w) * sq + w * gap_pu**2, gap_pu**2), sq)
+        if w >= 1.0:
+            return np.zeros_like(sq)
+        s_f = np.sqrt(np.nan_to_num(self._gap_sq) * w / (2.0 * (1.0 - w) ** 2))
+        return np.where(noisy, s_f, 0.0)
 
     def _compared_v120(self, snap: MeasurementSnapshot, state: GridState, reg_ok: np.ndarray) -> np.ndarray:
         """(R,) the compared voltages eq. (8) starts from [V on the 120 V base]: the readings, or with

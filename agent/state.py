@@ -18,7 +18,8 @@ from regression.estimator import SensitivityTable, dv_dq_pu_per_kvar, estimate_c
 from regression.model import CvvcModel, ModelArrays, features
 from schemas import messages as m
 
-__all__ = ["CorrectionFilter", "GridState", "OracleSource", "estimated_state", "filter_gap_bounds_pu", "oracle_state"]
+__all__ = ["CorrectionFilter", "GridState", "OracleSource", "estimated_state", "filter_gap_bounds_pu",
+           "noise_bounds_pu", "oracle_state"]
 
 #: Case A's source: the bridge's oracle reply for a step time [ns], or None when it did not answer.
 OracleSource = Callable[[int], "m.OracleReply | None"]
@@ -122,6 +123,17 @@ def filter_gap_bounds_pu(lo_pu: np.ndarray, hi_pu: np.ndarray, gap_pu: np.ndarra
     up = np.asarray(upstream_regulator, int)
     gap = np.where(up >= 0, np.asarray(gap_pu, float)[np.maximum(up, 0)] if np.size(gap_pu) else 0.0, 0.0)
     return (np.asarray(lo_pu, float) + np.maximum(-gap, 0.0), np.asarray(hi_pu, float) + np.maximum(gap, 0.0))
+
+
+def noise_bounds_pu(lo_pu: np.ndarray, hi_pu: np.ndarray, margin_pu: np.ndarray,
+                    upstream_regulator: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Estimate bounds widened on both sides by ``margin_pu`` (R,) of each node's nearest upstream regulator (eq. 7's
+    ``r_i``; none for -1): the noise of a noisy reading's filtered correction, which the calibrated bounds (of a clean
+    reading's) do not hold. New arrays [pu].
+    """
+    up = np.asarray(upstream_regulator, int)
+    m = np.where(up >= 0, np.asarray(margin_pu, float)[np.maximum(up, 0)] if np.size(margin_pu) else 0.0, 0.0)
+    return np.asarray(lo_pu, float) + m, np.asarray(hi_pu, float) + m
 
 
 def estimated_state(

@@ -875,3 +875,32 @@ def test_limits_make_room_for_a_ramp_two_intervals_long():
     for loads, times in (([800.0, 1400.0, 1100.0], steps), (ramp, [0, period, 3 * period])):
         other_min, other_max, _ = run(True, loads, times)  # a ramp that turned; a gap
         np.testing.assert_allclose(other_min, run(False, loads, times)[0], atol=1e-12)
+
+
+def test_bounds_hold_the_noise_a_noisy_readings_filtered_correction_keeps():
+    """Readings whose noise is above a quarter of a tap step: the bounds as applied widen, on both sides and below the
+    regulator only, by the noise the filtered correction keeps (``z`` of the promised miss rate times the noise learnt
+    from the correction's gap); quiet readings with the same errors, or a readings' noise that cannot be told (None),
+    leave them as without noise."""
+    below = ARRAYS.upstream_regulator == 0
+    rng = np.random.default_rng(5)
+    errors = [np.r_[0.004 * rng.standard_normal(), np.zeros(R - 1)] for _ in range(24)]
+
+    def last(noise_v120: float | None) -> Decision:
+        c = CvvcController(_bounded_model(0.001, 0.001), AgentOptions(bandwidth_v120=4.0, correction_window_s=3000.0),
+                           mode="taps", correction=True)
+        d = None
+        for i, e in enumerate(errors):
+            s = snapshot(i * 300 * 10**9, reading_error_pu=e)
+            s = dataclasses.replace(s, reg_v120_now=s.reg_v120)  # this step's own reading: the window's mean
+            if noise_v120 is not None:
+                s = dataclasses.replace(s, reg_v120_noise=np.full(R, noise_v120))
+            d = c.decide(s)
+        return d
+
+    noisy, quiet, unknown = last(1.2), last(0.01), last(None)
+    np.testing.assert_allclose(quiet.v_bound_low_pu, unknown.v_bound_low_pu)
+    wider_lo = noisy.v_bound_low_pu - quiet.v_bound_low_pu
+    wider_hi = noisy.v_bound_high_pu - quiet.v_bound_high_pu
+    assert np.all(wider_lo[below] > 0.0005) and np.all(wider_hi[below] > 0.0005)
+    assert np.all(wider_lo[~below] == 0.0) and np.all(wider_hi[~below] == 0.0)
