@@ -55,6 +55,7 @@ from agent.solve.solution import violation_pu
 from agent.stale_plants import StalePlants, stale_rise_pu
 from agent.state import (
     CorrectionFilter,
+    CorrectionNoise,
     GridState,
     OracleSource,
     estimated_state,
@@ -258,9 +259,9 @@ class CvvcController:
         self._filter_gap_pu = np.zeros(len(model.regulators))
         # noisy readings: the filtered correction's own noise, from the mean square of that gap (``noise_bounds_pu``)
         self._noise_z = float(norm.ppf(1.0 - b.alpha / 2.0)) if b is not None and 0.0 < b.alpha < 1.0 else 0.0
-        self._gap_sq = np.full(len(model.regulators), np.nan)  # per regulator, NaN until a noisy reading entered [pu^2]
         self._noise_pu = np.zeros(len(model.regulators))  # this decision's filtered-correction noise [pu]
-        self._noisy = np.zeros(len(model.regulators), bool)  # each regulator's readings last told noisy
+        self._correction_noise = (CorrectionNoise(len(model.regulators), self._eps_filter.weight)
+                                  if self._eps_filter is not None else None)
         self.ami = AmiReadings(model, meters)  # AMI meter readings (explicit option): the map's meters only
         banks = model.capacitors
         self._cap_ids = tuple(c.id for c in banks)
@@ -410,33 +411,12 @@ class CvvcController:
             inst = np.asarray(eps, float) + to_now_pu
             own = np.asarray(ok, bool) & fresh & np.isfinite(inst)
             self._filter_gap_pu = np.where(own, inst - applied, 0.0)
-            self._noise_pu = self._filtered_noise_pu(self._filter_gap_pu, own, noise, filt.weight)
+            if self._correction_noise is not None:
+                loud = noise > NOISY_READING_STEPS * self._step_v120
+                self._noise_pu = self._correction_noise.observe(self._filter_gap_pu, own, loud, np.isfinite(noise))
             return applied
 
         return apply
-
-    def _filtered_noise_pu(self, gap_pu: np.ndarray, own: np.ndarray, noise_v120: np.ndarray, w: float) -> np.ndarray:
-        """(R,) the noise the filtered correction keeps of noisy readings [pu] (0 for quiet ones), learnt from the
-        gap between the correction as computed and as applied at the decisions whose own reading was noisy
-        (``noise_v120`` above ``NOISY_READING_STEPS`` of a step; a regulator whose noise cannot be told at this step,
-        just after a move, is taken as it was last told).
-
-        With readings of noise ``s`` (the window's mean) the exponential mean of weight ``w`` keeps a noise ``s_f``,
-        ``s_f^2 = s^2 w / (2 - w)``, and the gap ``(1 - w)(eps - mean before)`` has the mean square
-        ``(1 - w)^2 (s^2 + s_f^2)``, so ``s_f^2 = gap^2 w / (2 (1 - w)^2)``. The calibrated bounds are of the
-        correction from a clean reading: they missed 21.5 % of IEEE 123's node-decisions with 1 % SCADA noise.
-        """
-        told = np.isfinite(noise_v120)
-        loud = told & (np.nan_to_num(noise_v120) > NOISY_READING_STEPS * self._step_v120)
-        self._noisy = np.where(told, loud, self._noisy)
-        noisy = self._noisy
-        sq = self._gap_sq
-        seen = own & loud & np.isfinite(gap_pu)
-        self._gap_sq = np.where(seen, np.where(np.isfinite(sq), (1.0 - w) * sq + w * gap_pu**2, gap_pu**2), sq)
-        if w >= 1.0:
-            return np.zeros_like(sq)
-        s_f = np.sqrt(np.nan_to_num(self._gap_sq) * w / (2.0 * (1.0 - w) ** 2))
-        return np.where(noisy, s_f, 0.0)
 
     def _compared_v120(self, snap: MeasurementSnapshot, state: GridState, reg_ok: np.ndarray) -> np.ndarray:
         """(R,) the compared voltages eq. (8) starts from [V on the 120 V base]: the readings, or with

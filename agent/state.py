@@ -18,8 +18,8 @@ from regression.estimator import SensitivityTable, dv_dq_pu_per_kvar, estimate_c
 from regression.model import CvvcModel, ModelArrays, features
 from schemas import messages as m
 
-__all__ = ["CorrectionFilter", "GridState", "OracleSource", "estimated_state", "filter_gap_bounds_pu",
-           "noise_bounds_pu", "oracle_state"]
+__all__ = ["CorrectionFilter", "CorrectionNoise", "GridState", "OracleSource", "estimated_state",
+           "filter_gap_bounds_pu", "noise_bounds_pu", "oracle_state"]
 
 #: Case A's source: the bridge's oracle reply for a step time [ns], or None when it did not answer.
 OracleSource = Callable[[int], "m.OracleReply | None"]
@@ -123,6 +123,40 @@ def filter_gap_bounds_pu(lo_pu: np.ndarray, hi_pu: np.ndarray, gap_pu: np.ndarra
     up = np.asarray(upstream_regulator, int)
     gap = np.where(up >= 0, np.asarray(gap_pu, float)[np.maximum(up, 0)] if np.size(gap_pu) else 0.0, 0.0)
     return (np.asarray(lo_pu, float) + np.maximum(-gap, 0.0), np.asarray(hi_pu, float) + np.maximum(gap, 0.0))
+
+
+class CorrectionNoise:
+    """The noise the filtered correction (``CorrectionFilter`` of weight ``weight``) keeps of noisy readings, per
+    regulator, learnt from the gap between the correction as computed and as applied.
+
+    With readings of noise ``s`` (the window's mean) the exponential mean of weight ``w`` keeps a noise ``s_f``,
+    ``s_f^2 = s^2 w / (2 - w)``, and the gap ``(1 - w)(eps - mean before)`` has the mean square
+    ``(1 - w)^2 (s^2 + s_f^2)``, so ``s_f^2 = gap^2 w / (2 (1 - w)^2)``. The calibrated bounds are of the correction
+    from a clean reading: they missed 21.5 % of IEEE 123's node-decisions with 1 % SCADA noise (``noise_bounds_pu``).
+    """
+
+    def __init__(self, n_regulators: int, weight: float) -> None:
+        self._w = float(weight)
+        self._gap_sq = np.full(n_regulators, np.nan)  # NaN until a noisy reading entered [pu^2]
+        self._noisy = np.zeros(n_regulators, bool)  # each regulator's readings as last told
+
+    def observe(self, gap_pu: np.ndarray, own: np.ndarray, loud: np.ndarray, told: np.ndarray) -> np.ndarray:
+        """(R,) the filtered correction's noise [pu], 0 for regulators whose readings are quiet.
+
+        ``gap_pu``: this decision's correction as computed minus as applied; ``own``: the regulators whose reading is
+        this step's own; ``loud``: whose readings were told noisy at this step; ``told``: whose noise could be told at
+        all (not just after a move: those are taken as last told).
+        """
+        told = np.asarray(told, bool)
+        loud = told & np.asarray(loud, bool)
+        self._noisy = np.where(told, loud, self._noisy)
+        w, sq = self._w, self._gap_sq
+        gap = np.asarray(gap_pu, float)
+        seen = np.asarray(own, bool) & loud & np.isfinite(gap)
+        self._gap_sq = np.where(seen, np.where(np.isfinite(sq), (1.0 - w) * sq + w * gap**2, gap**2), sq)
+        if w >= 1.0:
+            return np.zeros_like(sq)
+        return np.where(self._noisy, np.sqrt(np.nan_to_num(self._gap_sq) * w / (2.0 * (1.0 - w) ** 2)), 0.0)
 
 
 def noise_bounds_pu(lo_pu: np.ndarray, hi_pu: np.ndarray, margin_pu: np.ndarray,
