@@ -207,15 +207,12 @@ class CvvcController:
         self._last_move_t_ns = np.zeros(len(model.regulators), np.int64)
         self.model = model
         self.mode = mode
-        self._eps_filter = (CorrectionFilter(len(model.regulators),
-                                             min(1.0, float(model.control_period_s) / o.correction_window_s))
-                            if o.correction_window_s > 0 else None)
-        self._cmp_filter = (CorrectionFilter(len(model.regulators),
-                                             min(1.0, float(model.control_period_s) / o.correction_window_s))
-                            if correction and o.correction_window_s > 0 and o.filtered_setpoints else None)
-        self._ldc_filter = (CorrectionFilter(len(model.regulators),
-                                             min(1.0, float(model.control_period_s) / o.correction_window_s))
-                            if self._cmp_filter is not None else None)
+        # eq. (6)'s corrections, and eq. (8)'s residual and line-drop compensation, averaged over about an hour
+        weight = min(1.0, float(model.control_period_s) / o.correction_window_s) if o.correction_window_s > 0 else 0.0
+        self._eps_filter = CorrectionFilter(len(model.regulators), weight) if weight > 0 else None
+        setpoint_filters = correction and weight > 0 and o.filtered_setpoints
+        self._cmp_filter = CorrectionFilter(len(model.regulators), weight) if setpoint_filters else None
+        self._ldc_filter = CorrectionFilter(len(model.regulators), weight) if setpoint_filters else None
         self.correction = correction
         self.bandwidth_v120 = float(o.bandwidth_v120)
         self._arrays = ModelArrays.of(model)
@@ -383,6 +380,22 @@ class CvvcController:
                   & (tap == np.round(tap)) & (self._tap_min <= tap) & (tap <= self._tap_max))
         return head_ok, pv_ok, reg_ok
 
+    def _reading_noise(self, snap: MeasurementSnapshot) -> tuple[np.ndarray, np.ndarray]:
+        """(R,) bool each: the regulators whose readings are quiet, and those whose readings are noisy (above
+        ``NOISY_READING_STEPS`` of a tap step); neither where the noise cannot be told (too few readings at the tap).
+        """
+        if snap.reg_v120_noise is None:
+            none = np.zeros(len(self._reg_ids), bool)
+            return none, none.copy()
+        noise = np.asarray(snap.reg_v120_noise, float)
+        limit = NOISY_READING_STEPS * self._step_v120
+        return noise <= limit, noise > limit
+
+    def _freshness(self, snap: MeasurementSnapshot) -> tuple[np.ndarray, bool]:
+        """(R,) bool the regulators whose frame is this step's own, and whether the head's and every plant's are."""
+        fresh = np.full(len(self._reg_ids), True) if snap.reg_fresh is None else np.asarray(snap.reg_fresh, bool)
+        return fresh, bool(snap.head_fresh) and (snap.pv_fresh is None or bool(np.all(snap.pv_fresh)))
+
     def _correction_filter(self, snap: MeasurementSnapshot) -> Callable[[np.ndarray, np.ndarray], np.ndarray] | None:
         """The correction filter for this step (None without a filter): only this step's own readings, with its
         own head and plant frames, enter the mean; with a head or plant frame standing in for a lost one, this
@@ -390,10 +403,10 @@ class CvvcController:
         """
         filt = self._eps_filter
         self._filter_gap_pu = np.zeros(len(self._reg_ids))
+        self._noise_pu = np.zeros(len(self._reg_ids))
         if filt is None:
             return None
-        fresh = np.full(len(self._reg_ids), True) if snap.reg_fresh is None else np.asarray(snap.reg_fresh, bool)
-        inputs_fresh = bool(snap.head_fresh) and (snap.pv_fresh is None or bool(np.all(snap.pv_fresh)))
+        fresh, inputs_fresh = self._freshness(snap)
 
         # eq. (6) from this step's own reading differs from eq. (6) from the averaged one by the readings' difference
         now = (np.full(len(self._reg_ids), np.nan) if snap.reg_v120_now is None
@@ -401,9 +414,7 @@ class CvvcController:
         to_now_pu = (now - np.asarray(snap.reg_v120, float)) * self._arrays.reg_pu_per_v120
         # noisy readings: the reading window's mean (noise / sqrt(n)) instead of the last reading (its noise would
         # widen and narrow the bounds at random, every decision)
-        noise = (np.full(len(self._reg_ids), np.nan) if snap.reg_v120_noise is None
-                 else np.asarray(snap.reg_v120_noise, float))
-        quiet = noise <= NOISY_READING_STEPS * self._step_v120
+        quiet, loud = self._reading_noise(snap)
         to_now_pu = np.where(quiet & np.isfinite(to_now_pu), to_now_pu, np.where(np.isfinite(to_now_pu), 0.0, np.nan))
 
         def apply(eps: np.ndarray, ok: np.ndarray) -> np.ndarray:
@@ -412,8 +423,7 @@ class CvvcController:
             own = np.asarray(ok, bool) & fresh & np.isfinite(inst)
             self._filter_gap_pu = np.where(own, inst - applied, 0.0)
             if self._correction_noise is not None:
-                loud = noise > NOISY_READING_STEPS * self._step_v120
-                self._noise_pu = self._correction_noise.observe(self._filter_gap_pu, own, loud, np.isfinite(noise))
+                self._noise_pu = self._correction_noise.observe(self._filter_gap_pu, own, loud, quiet | loud)
             return applied
 
         return apply
@@ -436,13 +446,10 @@ class CvvcController:
         raw = np.asarray(snap.reg_v120, float)
         per_v = self._arrays.reg_pu_per_v120
         est_v120 = state.v0_pu[self._arrays.reg_secondary_node] / per_v
-        fresh = np.full(len(self._reg_ids), True) if snap.reg_fresh is None else np.asarray(snap.reg_fresh, bool)
-        inputs_fresh = bool(snap.head_fresh) and (snap.pv_fresh is None or bool(np.all(snap.pv_fresh)))
+        fresh, inputs_fresh = self._freshness(snap)
         residual_pu = filt((raw - est_v120) * per_v, reg_ok, fresh, inputs_fresh=inputs_fresh)
         ldc_pu = self._ldc_filter((compared - raw) * per_v, reg_ok, fresh, inputs_fresh=inputs_fresh)
-        noise = (np.full(len(self._reg_ids), np.nan) if snap.reg_v120_noise is None
-                 else np.asarray(snap.reg_v120_noise, float))
-        quiet = noise <= NOISY_READING_STEPS * self._step_v120  # too few readings at the tap to tell: filtered
+        quiet, _ = self._reading_noise(snap)  # too few readings at the tap to tell: filtered
         ldc_v120 = np.where(quiet, compared - raw, ldc_pu / per_v)
         return np.where(reg_ok, est_v120 + residual_pu / per_v + ldc_v120, compared)
 
@@ -792,8 +799,7 @@ class CvvcController:
         for r in np.flatnonzero(reg_ok):
             self._reg_last_tap[r] = int(snap.reg_tap[r])
         if self._measured_steps is not None and snap.reg_steps_seen is not None:
-            noisy = (np.full(n_reg, False) if snap.reg_v120_noise is None
-                     else np.asarray(snap.reg_v120_noise, float) > NOISY_READING_STEPS * self._step_v120)
+            _, noisy = self._reading_noise(snap)
             self._measured_steps.observe(snap.reg_steps_seen, reg_ok & ~noisy)
         for c in np.flatnonzero(cap_ok):
             self._cap_last[c] = int(snap.cap_steps[c])

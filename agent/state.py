@@ -120,9 +120,15 @@ def filter_gap_bounds_pu(lo_pu: np.ndarray, hi_pu: np.ndarray, gap_pu: np.ndarra
     lo_pu, hi_pu : (N,) the bounds as they would be applied [pu]. gap_pu : (R,) per regulator [pu].
     upstream_regulator : (N,) each node's nearest upstream regulator (eq. 7's ``r_i``), -1 for none.
     """
-    up = np.asarray(upstream_regulator, int)
-    gap = np.where(up >= 0, np.asarray(gap_pu, float)[np.maximum(up, 0)] if np.size(gap_pu) else 0.0, 0.0)
+    gap = _below_regulators(gap_pu, upstream_regulator)
     return (np.asarray(lo_pu, float) + np.maximum(-gap, 0.0), np.asarray(hi_pu, float) + np.maximum(gap, 0.0))
+
+
+def _below_regulators(per_regulator: np.ndarray, upstream_regulator: np.ndarray) -> np.ndarray:
+    """(N,) each node's value of its nearest upstream regulator (eq. 7's ``r_i``), 0 for a node with none (-1)."""
+    up = np.asarray(upstream_regulator, int)
+    values = np.asarray(per_regulator, float)
+    return np.where(up >= 0, values[np.maximum(up, 0)] if values.size else 0.0, 0.0)
 
 
 class CorrectionNoise:
@@ -165,8 +171,7 @@ def noise_bounds_pu(lo_pu: np.ndarray, hi_pu: np.ndarray, margin_pu: np.ndarray,
     ``r_i``; none for -1): the noise of a noisy reading's filtered correction, which the calibrated bounds (of a clean
     reading's) do not hold. New arrays [pu].
     """
-    up = np.asarray(upstream_regulator, int)
-    m = np.where(up >= 0, np.asarray(margin_pu, float)[np.maximum(up, 0)] if np.size(margin_pu) else 0.0, 0.0)
+    m = _below_regulators(margin_pu, upstream_regulator)
     return np.asarray(lo_pu, float) + m, np.asarray(hi_pu, float) + m
 
 
