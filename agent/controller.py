@@ -28,7 +28,6 @@ settings and iteration limits (``agent.solve``).
 
 from __future__ import annotations
 
-import dataclasses
 import time
 from collections import deque
 from collections.abc import Callable, Iterable
@@ -50,8 +49,7 @@ from agent.setpoints import (
     setpoint_for_tap_change,
     with_measured_steps,
 )
-from agent.solve import V_TOL_PU, CvvcSolution, WarmStart, solve_cvvc
-from agent.solve.solution import violation_pu
+from agent.solve import CvvcSolution, WarmStart, solve_cvvc
 from agent.stale_plants import StalePlants, stale_rise_pu
 from agent.state import (
     CorrectionFilter,
@@ -63,6 +61,7 @@ from agent.state import (
     noise_bounds_pu,
     oracle_state,
 )
+from agent.tap_moves import TapMoves
 from regression.estimator import SensitivityTable, dv_dp_pu_per_kw, pv_variability_margins_pu
 from regression.model import CvvcModel, ModelArrays, features
 from schemas.devicemap import MeterSpec
@@ -189,22 +188,10 @@ class CvvcController:
         self.bounds_cover_filter = bool(o.bounds_cover_filter)
         self.predict_banks = bool(o.predict_banks)
         self.soft_precision = bool(o.soft_precision)
-        if not (np.isfinite(o.tap_reversal_lockout_s) and o.tap_reversal_lockout_s >= 0.0):
-            raise AgentInputError(f"tap_reversal_lockout_s must be >= 0, not {o.tap_reversal_lockout_s}")
-        self._lockout_ns = int(o.tap_reversal_lockout_s * 1e9)
-        if not (np.isfinite(o.tap_deadband_pu) and 0.0 <= o.tap_deadband_pu <= 0.02):
-            raise AgentInputError(f"tap_deadband_pu must be within 0 to 0.02 pu, not {o.tap_deadband_pu}")
-        self.tap_deadband_pu = float(o.tap_deadband_pu)
-        self.tap_break_even = bool(o.tap_break_even)
         self.setpoint_safety = bool(o.setpoint_safety)
-        self._rent = 0.0  # Q paid beyond the offered moves' over the decisions in a row with one [cost units]
-        self.bought = 0  # decisions that took the offered move once the Q standing in for it had cost as much
         # the latest decision's problem as solved and the arguments it was built from: (inputs, snapshot, state, out of
         # envelope, plants); read by ``cvvc.explain`` to take the problem apart, never by the decisions
         self.last_problem: tuple[CvvcInputs, MeasurementSnapshot, GridState, bool, tuple] | None = None
-        # each regulator's last decided move: its direction (+1, -1, 0 for none yet) and the step it was decided at
-        self._last_move = np.zeros(len(model.regulators), int)
-        self._last_move_t_ns = np.zeros(len(model.regulators), np.int64)
         self.model = model
         self.mode = mode
         # eq. (6)'s corrections, and eq. (8)'s residual and line-drop compensation, averaged over about an hour
@@ -223,8 +210,6 @@ class CvvcController:
         self._drift = DriftMargin(int(model.control_period_s) * 1_000_000_000, o.pv_margin_cap_pu) \
             if o.drift_margin else None
         self._drift_pu: tuple[np.ndarray, np.ndarray] | None = None  # this decision's (fall, rise) drift margins
-        self._deadband_hold_ns = int(o.tap_deadband_hold_s * 1e9)
-        self._deadband_since_ns: int | None = None  # the first of the decisions in a row the deadband held the taps
         self._sens = SensitivityTable.of(model.sens_q)
         self._pv_ids = tuple(p.id for p in model.pv)
         self._reg_ids = tuple(r.id for r in model.regulators)
@@ -233,6 +218,7 @@ class CvvcController:
         regs = model.regulators
         self._tap_min = np.array([r.tap_min for r in regs], int)
         self._tap_max = np.array([r.tap_max for r in regs], int)
+        self.taps = TapMoves(o, self._tap_min, self._tap_max)  # reversal locks, tap deadband, rent or buy
         self._max_taps = np.array([r.max_taps_per_interval for r in regs], int)
         self._tap_cost = np.array([r.cost_per_tap for r in regs], float)
         self._step_v120 = steps
@@ -517,82 +503,6 @@ class CvvcController:
             recent.popleft()
         recent.append((t_ns, pv_p_kw.copy()))
 
-    def reversal_locks(self, t_ns: int) -> tuple[np.ndarray, np.ndarray]:
-        """(R,) bool each: regulators that may not move down (raised lately) and up (lowered lately) at ``t_ns``.
-
-        Beyond the paper: a tap decided one way and the other way a decision later is wear for nothing (IEEE 8500, a
-        day of case D: 210 of 386 tap moves reversed the one before); within ``tap_reversal_lockout_s`` of a
-        regulator's last decided move, the reverse move is not offered, unless the limits cannot be met without it
-        (``decide`` solves again without the locks).
-        """
-        recent = (self._last_move != 0) & (int(t_ns) - self._last_move_t_ns < self._lockout_ns)
-        return recent & (self._last_move > 0), recent & (self._last_move < 0)
-
-    def tap_deadband(self, moving: CvvcSolution, held: CvvcSolution, held_problem: CvvcInputs,
-                     n_nodes: int) -> str:
-        """Why the taps are held instead of ``moving`` (a decision that moves taps), or "" if they are not: ``held``
-        (the same problem solved with every tap held, ``held_problem``) predicts no violation of the tightened limits
-        beyond ``tap_deadband_pu`` and costs no more.
-
-        Beyond the paper, estimated states only (case A's voltages are the truth): a regulator's own band keeps it
-        from moving for a small deviation, and so does this. The limits a decision meets are the optimization limits
-        tightened by the estimate's calibrated bounds; whether a node ends a few mV/V inside or outside them moves with
-        every estimate, and a tap moved for it is moved back at a later decision (IEEE 8500, first summer day: 150 of
-        ~400 moves reversed within 30 minutes, the reversal locks released because the limits could not be met with
-        them). The held decision is the soft form's (eq. 17), or the Q of the same problem with the nodes' limits
-        widened by the deadband (``deadband_widened``) when those are met (``decide``), and says so. The
-        deadband is the nodes' alone: a predicted bank's row (``agent.bank_rows``) may not come closer to its local
-        control's setting than with the move (without that rule, the first three October days of IEEE 8500: bank
-        switchings 118 -> 240).
-        """
-        if held.status != "soft" or held.cost > moving.cost:
-            return ""
-        over, before = violation_pu(held_problem, held.v_pred_pu), violation_pu(held_problem, moving.v_pred_pu)
-        worst = float(over[:n_nodes].max(initial=0.0))
-        if worst > self.tap_deadband_pu or np.any(over[n_nodes:] > before[n_nodes:] + V_TOL_PU):
-            return ""
-        return (f"taps held: {worst:.4f} pu predicted beyond the tightened limits, within the tap deadband "
-                f"{self.tap_deadband_pu:g} pu")
-
-    @staticmethod
-    def _q_cost(inputs: CvvcInputs, solution: CvvcSolution) -> float:
-        """Eq. (15)'s part of a solution's cost: its Q set points' [cost units per interval]."""
-        return float(inputs.cost_per_kvar @ np.abs(solution.q_new_kvar))
-
-    def tap_offer(self, inputs: CvvcInputs, n_reg: int) -> CvvcSolution:
-        """The same problem with the regulators' taps free of cost, its cost priced back at the taps' (the move
-        that would stand in for a decision's Q, when it moves a tap and buys less Q).
-        """
-        free = np.array(inputs.cost_per_tap, float)
-        free[:n_reg] = 0.0
-        offer = solve_cvvc(inputs.replaced(cost_per_tap=free), warm_start=self._warm)
-        return dataclasses.replace(offer, cost=inputs.cost(offer.taps_new - inputs.taps, offer.q_new_kvar))
-
-    def rent_or_buy(self, inputs: CvvcInputs, solution: CvvcSolution, buy: CvvcSolution | None,
-                    n_reg: int) -> CvvcSolution:
-        """``solution`` (its Q standing in for a move), or ``buy`` (the move) once the Q it would have saved, summed
-        over the decisions in a row that had such a move on offer, reaches the move's taps' price.
-
-        Beyond the paper, estimated states only: eq. (9) prices one interval, where a tap is paid once and the Q
-        that stands in for it is paid again every interval (IEEE 123's first summer week before this rule: case D
-        1.50x case A's total cost, most of it Q bought where case A had lowered a regulator; docs/results.md).
-        Rent or buy: pay the Q while what it has cost beyond the move's Q stays below the move's taps, then move
-        (the deterministic break-even rule: at most twice the cost of knowing in advance how long the need lasts).
-        The offers are the deadband's moves (``tap_deadband``) and, after an optimal decision that buys Q and moves
-        no tap, the same problem with the regulators' taps free (``tap_offer``). Off (``tap_break_even``): the
-        decision as eq. (9) prices it.
-        """
-        if buy is None or not self.tap_break_even:
-            self._rent = 0.0
-            return solution
-        price = float(inputs.cost_per_tap[:n_reg] @ np.abs(buy.taps_new[:n_reg] - inputs.taps[:n_reg]))
-        self._rent += max(self._q_cost(inputs, solution) - self._q_cost(inputs, buy), 0.0)
-        if self._rent < price:
-            return solution
-        self._rent = 0.0
-        self.bought += 1
-        return buy
-
     def narrowed(self, setpoints: np.ndarray, bands: np.ndarray, held: np.ndarray, v_s1: np.ndarray,
                  step: np.ndarray, v_pred_pu: np.ndarray, dv_dtap: np.ndarray) -> None:
         """Narrow the bands of the ``held`` regulators in place (``agent.setpoints.safety_band``): each edge where the
@@ -619,38 +529,6 @@ class CvvcController:
         for r in np.flatnonzero(held):
             setpoints[r], bands[r] = safety_band(float(setpoints[r]), float(bands[r]), float(v_s1[r]),
                                                  float(lo_margin[r]), float(hi_margin[r]), float(step[r]))
-
-    def _deadband_in_time(self, note: str, t_ns: int) -> str:
-        """``note`` (the tap deadband's reason to hold the taps, "" for none), or "" once the deadband has held them
-        for ``tap_deadband_hold_s`` in a row: the violation it tolerated has lasted, and the move is taken.
-
-        Beyond the paper: a node the deadband leaves below its limit stays there while the load drifts on (IEEE 123,
-        3 January: the same node 0.003 pu below the limit for four decisions in a row, the 1-minute minimum 0.970 pu
-        against no control's 0.982), as a regulator's time delay lets a voltage out of band for a while, not for ever.
-        """
-        if not note:
-            return note
-        if self._deadband_since_ns is None:
-            self._deadband_since_ns = t_ns
-        if self._deadband_hold_ns > 0 and t_ns - self._deadband_since_ns >= self._deadband_hold_ns:
-            self._deadband_since_ns = None
-            return ""
-        return note
-
-    def deadband_widened(self, held_problem: CvvcInputs, n_nodes: int) -> CvvcInputs:
-        """``held_problem`` (taps held) with its first ``n_nodes`` rows' limits widened by ``tap_deadband_pu``.
-
-        Once the deadband has held the taps, the predicted violation it tolerates is tolerated by the Q too: the soft
-        form on the tightened limits bought Q for it, where case A (whose voltages are the truth, no deadband) moves a
-        tap at 0.14 (IEEE 123, first 3 days of spring and summer: total cost 1.41x and 1.70x case A's, most of it Q).
-        A predicted bank's row keeps its limits.
-        """
-        rows = np.asarray(held_problem.v0_pu).shape[0]
-        lo = np.broadcast_to(np.asarray(held_problem.v_min_pu, float), (rows,)).copy()
-        hi = np.broadcast_to(np.asarray(held_problem.v_max_pu, float), (rows,)).copy()
-        lo[:n_nodes] -= self.tap_deadband_pu
-        hi[:n_nodes] += self.tap_deadband_pu
-        return held_problem.replaced(v_min_pu=lo, v_max_pu=hi)
 
     def problem(self, snap: MeasurementSnapshot, state: GridState, *, out_of_envelope: bool = False,
                 plants: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None,
@@ -733,24 +611,7 @@ class CvvcController:
             dv_dq_rel_error=self.sensitivity_error if state.critical else 0.0,
             soft_weight=soft_weight,
         )
-        return inputs if locks == "none" else self.relocked(inputs, locks, int(snap.t_ns))
-
-    def relocked(self, inputs: CvvcInputs, locks: Literal["reversals", "none", "all"], t_ns: int) -> CvvcInputs:
-        """``inputs`` (a :meth:`problem` of step ``t_ns``) with the regulators' tap ranges that ``locks`` leave
-        (see :meth:`problem`); the banks' and everything else as they are, so a re-solve builds nothing again.
-        """
-        n_reg = len(self._reg_ids)
-        taps_now = np.asarray(inputs.taps[:n_reg], int)
-        if locks == "reversals":
-            no_down, no_up = self.reversal_locks(t_ns)
-            if not (no_down.any() or no_up.any()):
-                return inputs  # no lock in force: the problem's own tap ranges (no copy to check again)
-        else:
-            no_down = no_up = np.full(n_reg, locks == "all")
-        tap_min, tap_max = np.array(inputs.tap_min), np.array(inputs.tap_max)
-        tap_min[:n_reg] = np.where(no_down, np.maximum(self._tap_min, taps_now), self._tap_min)
-        tap_max[:n_reg] = np.where(no_up, np.minimum(self._tap_max, taps_now), self._tap_max)
-        return inputs.replaced(tap_min=tap_min, tap_max=tap_max)
+        return inputs if locks == "none" else self.taps.relocked(inputs, locks, int(snap.t_ns))
 
     def pv_margins_pu(self, dv_dp_pu_per_kw: np.ndarray, pv_p_kw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(rise, fall)`` PV variability margins [pu] of nodes with these sensitivities (N, K) [pu/kW].
@@ -850,43 +711,17 @@ class CvvcController:
         # Case A solves cold (as it always has): its rows are every live node, not the critical nodes.
         solution = solve_cvvc(inputs, warm_start=self._warm if oracle is None else None)
         solves: list[tuple[SolveRole, CvvcSolution]] = [("main", solution)]
-        if solution.status != "optimal" and any(lock.any() for lock in self.reversal_locks(int(snap.t_ns))):
+        if solution.status != "optimal" and any(lock.any() for lock in self.taps.reversal_locks(int(snap.t_ns))):
             # the limits are not met with the locks: the soft form trades every lever, the reverse moves included
             # (keeping the locks there distorted every decision of a feeder always in the soft form: epri-ckt24
             # winter day, NVV 54,765 against 413)
-            solution = solve_cvvc(self.relocked(inputs, "none", int(snap.t_ns)),
+            solution = solve_cvvc(self.taps.relocked(inputs, "none", int(snap.t_ns)),
                                   warm_start=self._warm if oracle is None else None)
             solves.append(("unlocked", solution))
-        buy: CvvcSolution | None = None  # a move the Q of ``solution`` stands in for, if any (``rent_or_buy``)
-        widened: CvvcSolution | None = None  # the deadband's decision on the limits it widened, if it made one
-        held_by_deadband = False
-        if oracle is None and self.tap_deadband_pu > 0 and np.any(solution.taps_new[:n_reg] != state.taps):
-            held_problem = self.relocked(inputs, "all", int(snap.t_ns))
-            held = solve_cvvc(held_problem, warm_start=self._warm)
-            solves.append(("deadband", held))
-            note = self.tap_deadband(solution, held, held_problem, state.v0_pu.shape[0])
-            note = self._deadband_in_time(note, int(snap.t_ns))
-            held_by_deadband = bool(note)
-            if note:  # the taps held: Q only for what the deadband does not tolerate
-                tolerated = solve_cvvc(self.deadband_widened(held_problem, state.v0_pu.shape[0]),
-                                       warm_start=self._warm)
-                solves.append(("tolerated", tolerated))
-                if tolerated.status == "optimal":
-                    kept = widened = dataclasses.replace(tolerated, status="soft",
-                                                         reason=f"{note}; Q for the limits widened by the deadband")
-                else:
-                    kept = dataclasses.replace(held, reason=f"{note}; {held.reason}" if held.reason else note)
-                solution, buy = kept, solution  # held: Q paid every interval; the move: its taps paid once
-        elif oracle is None and self.tap_break_even and solution.status == "optimal" \
-                and not np.any(solution.taps_new[:n_reg] != state.taps) and self._q_cost(inputs, solution) > 0:
-            offer = self.tap_offer(inputs, n_reg)
-            solves.append(("buy", offer))
-            if (offer.status == "optimal" and np.any(offer.taps_new[:n_reg] != state.taps)
-                    and self._q_cost(inputs, offer) < self._q_cost(inputs, solution) - 1e-9):
-                buy = offer
-        if not held_by_deadband:
-            self._deadband_since_ns = None
-        solution = self.rent_or_buy(inputs, solution, buy, n_reg)
+        settled = self.taps.settle(inputs, solution, state.taps, state.v0_pu.shape[0], int(snap.t_ns),
+                                   lambda problem: solve_cvvc(problem, warm_start=self._warm), estimated=oracle is None)
+        solution = settled.solution
+        solves.extend(settled.solves)
         sec = solution.seconds
         if solution.status == "hold":
             return self._hold(snap, prefix + solution.reason, missing, t0, state=state, solution=solution,
@@ -927,8 +762,7 @@ class CvvcController:
                 self.narrowed(setpoints, bands, (d_tap == 0) & reg_ok, v_s1, step, solution.v_pred_pu, dv_dtap)
         self._stale.commanded(int(snap.t_ns), solution.q_new_kvar, pv_ok)
         moved = reg_ok & (solution.taps_new[:n_reg] != state.taps)
-        self._last_move = np.where(moved, np.sign(solution.taps_new[:n_reg] - state.taps), self._last_move)
-        self._last_move_t_ns = np.where(moved, int(snap.t_ns), self._last_move_t_ns)
+        self.taps.moved(moved, solution.taps_new[:n_reg] - state.taps, int(snap.t_ns))
         applied = self.bounds_pu(bool(outside)) if state.critical else None
         if self._drift is not None:
             if state.critical and oracle is None:
@@ -970,5 +804,5 @@ class CvvcController:
             v_bound_high_pu=None if applied is None else applied[1],
             out_of_envelope=outside,
             solves=tuple(solves),
-            tolerated=widened is not None and solution is widened,
+            tolerated=settled.tolerated,
         )
