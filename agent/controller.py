@@ -45,7 +45,7 @@ from agent.errors import AgentInputError
 from agent.setpoints import (
     MeasuredSteps,
     expected_compared_v120,
-    safety_band,
+    narrow_held_bands,
     setpoint_for_tap_change,
     with_measured_steps,
 )
@@ -66,7 +66,7 @@ from regression.estimator import SensitivityTable, dv_dp_pu_per_kw, pv_variabili
 from regression.model import CvvcModel, ModelArrays, features
 from schemas.devicemap import MeterSpec
 from schemas.messages import Timings
-from schemas.settings import ANSI_RANGE_A_PU, AgentOptions
+from schemas.settings import AgentOptions
 
 __all__ = ["CvvcController", "Decision", "MeasurementSnapshot"]
 
@@ -503,33 +503,6 @@ class CvvcController:
             recent.popleft()
         recent.append((t_ns, pv_p_kw.copy()))
 
-    def narrowed(self, setpoints: np.ndarray, bands: np.ndarray, held: np.ndarray, v_s1: np.ndarray,
-                 step: np.ndarray, v_pred_pu: np.ndarray, dv_dtap: np.ndarray) -> None:
-        """Narrow the bands of the ``held`` regulators in place (``agent.setpoints.safety_band``): each edge where the
-        compared reading, moving from ``v_s1``, would bring the predicted voltage of the first critical node the
-        regulator moves (at least half as much as its secondary) to ANSI Range A.
-
-        The estimates, not their bounds: with the bounds (and the judged limits, 0.965-1.05 pu) the bands stepped
-        IEEE 8500's regulators far more often (first 3 summer days: NTC 1,231 -> 1,786, case A 948); with the
-        estimates and ANSI Range A, 1,204 (docs/method.md "A held regulator's band"). ``dv_dtap``: (N, R) the
-        critical nodes' tap sensitivities [pu/step].
-        """
-        v = np.asarray(v_pred_pu, float)[:dv_dtap.shape[0], None]
-        lo_pu, hi_pu = ANSI_RANGE_A_PU
-        n_reg = dv_dtap.shape[1]
-        own = dv_dtap[self._arrays.reg_secondary_node, np.arange(n_reg)]
-        held = np.asarray(held, bool) & (own > 0)
-        if not held.any():
-            return
-        share = dv_dtap / np.where(own > 0, own, 1.0)  # (N, R): each node's move per step of its secondary's
-        moved = share >= 0.5  # the secondary's own row is 1: every held regulator moves at least one node
-        per_v = np.asarray(self._arrays.reg_pu_per_v120, float)
-        lo_margin = np.min(np.where(moved, (v - lo_pu) / np.where(moved, share, 1.0), np.inf), axis=0) / per_v
-        hi_margin = np.min(np.where(moved, (hi_pu - v) / np.where(moved, share, 1.0), np.inf), axis=0) / per_v
-        for r in np.flatnonzero(held):
-            setpoints[r], bands[r] = safety_band(float(setpoints[r]), float(bands[r]), float(v_s1[r]),
-                                                 float(lo_margin[r]), float(hi_margin[r]), float(step[r]))
-
     def problem(self, snap: MeasurementSnapshot, state: GridState, *, out_of_envelope: bool = False,
                 plants: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None,
                 locks: Literal["reversals", "none", "all"] = "reversals", margins: bool = True) -> CvvcInputs:
@@ -759,7 +732,8 @@ class CvvcController:
                     self._last_setpoint[r] = (t_now, float(setpoints[r]))
             bands = np.full(n_reg, self.bandwidth_v120)
             if self.setpoint_safety and state.critical:
-                self.narrowed(setpoints, bands, (d_tap == 0) & reg_ok, v_s1, step, solution.v_pred_pu, dv_dtap)
+                narrow_held_bands(setpoints, bands, (d_tap == 0) & reg_ok, v_s1, step, solution.v_pred_pu, dv_dtap,
+                                  self._arrays.reg_secondary_node, self._arrays.reg_pu_per_v120)
         self._stale.commanded(int(snap.t_ns), solution.q_new_kvar, pv_ok)
         moved = reg_ok & (solution.taps_new[:n_reg] != state.taps)
         self.taps.moved(moved, solution.taps_new[:n_reg] - state.taps, int(snap.t_ns))
