@@ -513,9 +513,9 @@ class CvvcController:
         dV/dP over the window recorded so far (or, for estimated critical nodes, by the drift margin where larger,
         ``drift_margin``) and, for estimated critical nodes, by the estimate's calibrated bounds (widened
         ``out_of_envelope``). ``plants``: ``_plant_inputs``'s result for ``snap`` if the caller has it.
-        ``locks``: which tap moves are not offered: the reverse of recent moves (``reversal_locks``), none, or every
-        one (the taps held). ``margins=False``: without the PV variability and drift margins (what they take from the
-        limits, for explanations). No state changes. Raises ``AgentInputError`` on unusable inputs.
+        ``locks``: which tap moves are not offered: the reverse of recent moves (``TapMoves.reversal_locks``), none,
+        or every one (the taps held). ``margins=False``: without the PV variability and drift margins (what they take
+        from the limits, for explanations). No state changes. Raises ``AgentInputError`` on unusable inputs.
         """
         _, pv_ok, reg_ok = self._usable(snap)
         pv_p, pv_q, kva, q_hi = self._plant_inputs(snap, pv_ok) if plants is None else plants

@@ -79,8 +79,8 @@ class TapMoves:
     # ------------------------------------------------------------------ reversal locks
     def reversal_locks(self, t_ns: int) -> tuple[np.ndarray, np.ndarray]:
         """``(no_down, no_up)`` (R,) at step ``t_ns``: within ``tap_reversal_lockout_s`` of a regulator's last decided
-        move, the reverse move is not offered, unless the limits cannot be met without it (``decide`` solves again
-        without the locks).
+        move, the reverse move is not offered, unless the limits cannot be met without it (``CvvcController.decide``
+        solves again without the locks).
         """
         recent = (self._last_move != 0) & (int(t_ns) - self._last_move_t_ns < self._lockout_ns)
         return recent & (self._last_move > 0), recent & (self._last_move < 0)
