@@ -29,9 +29,12 @@ from agent.solve import V_TOL_PU, CvvcSolution
 from agent.solve.solution import violation_pu
 from schemas.settings import AgentOptions
 
-__all__ = ["Settled", "TapMoves", "q_cost"]
+__all__ = ["HELD_BY_DEADBAND", "Settled", "TapMoves", "q_cost"]
 
 Locks = Literal["reversals", "none", "all"]
+
+HELD_BY_DEADBAND = "taps held:"
+"""How the reason of a decision whose taps the deadband held starts (``TapMoves.tap_deadband``)."""
 
 
 def q_cost(inputs: CvvcInputs, solution: CvvcSolution) -> float:
@@ -173,7 +176,7 @@ class TapMoves:
         worst = float(over[:n_nodes].max(initial=0.0))
         if worst > self.deadband_pu or np.any(over[n_nodes:] > before[n_nodes:] + V_TOL_PU):
             return ""
-        return (f"taps held: {worst:.4f} pu predicted beyond the tightened limits, within the tap deadband "
+        return (f"{HELD_BY_DEADBAND} {worst:.4f} pu predicted beyond the tightened limits, within the tap deadband "
                 f"{self.deadband_pu:g} pu")
 
     def _deadband_in_time(self, note: str, t_ns: int) -> str:

@@ -32,10 +32,12 @@ from typing import TYPE_CHECKING, Any, TypeVar
 import msgspec
 import numpy as np
 
+from agent.tap_moves import HELD_BY_DEADBAND
 from cvvc.errors import CommandError
 from cvvc.run_trace import (
     BASELINE_TRACE,
     WINDOW_STEPS,
+    LimitMinutes,
     NodeTrace,
     RunTrace,
     TruthSeries,
@@ -47,6 +49,7 @@ from schemas.errors import CvvcError
 from schemas.truth import TruthDecodeError, decode_truth
 from simulator_bridge.rural.synthesis import UTC_OFFSET_H
 from simulator_bridge.simulation.live_accuracy import LiveAccuracyAccumulator
+from simulator_bridge.simulation.metrics import VIOLATION_TOLERANCE_PU
 
 if TYPE_CHECKING:
     from cvvc.evaluation import Evaluation
@@ -55,7 +58,8 @@ if TYPE_CHECKING:
 
 _T = TypeVar("_T")
 
-__all__ = ["NO_CONTROL", "NodeTrace", "ReportError", "RunTrace", "decode_evaluation", "decode_summary",
+__all__ = ["BEFORE_FIRST_DECISION", "NO_CONTROL", "NodeTrace", "ReportError", "RunTrace", "decision_kind",
+           "decode_evaluation", "decode_summary",
            "envelope_figure", "errors_figure", "plot_evaluation", "plot_run", "pv_figure", "read_trace", "run_traces",
            "taps_figure", "window_envelope_pu", "worst_node_figure"]
 
@@ -73,8 +77,36 @@ class _Estimate(msgspec.Struct):
 
 class _Decision(msgspec.Struct):
     step_t_ns: int
+    status: str = ""
+    reason: str = ""
     estimates: list[_Estimate] = []
     dv_dtap_pu: list[list[float]] = []
+
+
+BEFORE_FIRST_DECISION = "before the first decision"
+
+
+def decision_kind(status: str, reason: str) -> str:
+    """What a recorded decision was: ``optimal``, ``soft form`` (eq. 17), ``taps held by the tap deadband`` or
+    ``hold`` (``LimitMinutes.kind``).
+    """
+    if status == "soft":
+        return "taps held by the tap deadband" if reason.startswith(HELD_BY_DEADBAND) else "soft form"
+    return status or "optimal"
+
+
+class _InForce:
+    """The kind of the decision in force at each truth step, from the run's decisions in step order."""
+
+    def __init__(self, decided: list[tuple[int, str]]) -> None:
+        self._decided = sorted(decided)
+        self._i = -1
+
+    def at(self, t_ns: int) -> str:
+        """The kind of the latest decision of a step before ``t_ns`` (steps come in time order)."""
+        while self._i + 1 < len(self._decided) and self._decided[self._i + 1][0] < t_ns:
+            self._i += 1
+        return self._decided[self._i][1] if self._i >= 0 else BEFORE_FIRST_DECISION
 
 
 def _topic(reader, suffix: str) -> str | None:
@@ -88,8 +120,13 @@ def _topic(reader, suffix: str) -> str | None:
 
 
 def read_trace(mcap_path: str | Path, *, regulator_ids: tuple[str, ...] = (), pv_ids: tuple[str, ...] = (),
-               limits_pu: tuple[float, float] = (0.965, 1.05), capacitor_ids: tuple[str, ...] = ()) -> RunTrace:
-    """Reduce one run's MCAP recording to a :class:`RunTrace` (two streaming passes: decisions, then truth)."""
+               limits_pu: tuple[float, float] = (0.965, 1.05), capacitor_ids: tuple[str, ...] = (),
+               opt_limits_pu: tuple[float, float] | None = None) -> RunTrace:
+    """Reduce one run's MCAP recording to a :class:`RunTrace` (two streaming passes: decisions, then truth).
+
+    ``opt_limits_pu``: the optimization limits the run was judged against (its metrics' ``opt_limits_pu``); with
+    them, the minutes any node spent outside them are counted by the decision in force (``RunTrace.limit_minutes``).
+    """
     from mcap.reader import make_reader
 
     path = Path(mcap_path)
@@ -103,9 +140,11 @@ def read_trace(mcap_path: str | Path, *, regulator_ids: tuple[str, ...] = (), pv
             raise ReportError(f"{path}: no sim/truth channel; the bridge must publish the truth (--truth-every)")
         estimates: dict[int, list[_Estimate]] = {}
         sensitivities: tuple[list[str], np.ndarray] | None = None  # the critical nodes and the model's dV/dtap
+        decided: list[tuple[int, str]] = []  # (step, kind) of every decision
         if decision_topic is not None:
             for _, _, msg in reader.iter_messages(topics=[decision_topic]):
                 d = dec_dec.decode(msg.data)
+                decided.append((d.step_t_ns, decision_kind(d.status, d.reason)))
                 if d.estimates:
                     estimates[d.step_t_ns] = d.estimates
                     if sensitivities is None and len(d.dv_dtap_pu) == len(d.estimates):
@@ -116,11 +155,17 @@ def read_trace(mcap_path: str | Path, *, regulator_ids: tuple[str, ...] = (), pv
         judged: list[tuple[int, list[_Estimate], np.ndarray]] = []  # (t_ns, estimates, true v at their nodes)
         live: LiveAccuracyAccumulator | None = None
         steps: TapStepAccumulator | None = None
-        for _, channel, msg in reader.iter_messages(topics=[truth_topic]):
+        in_force = _InForce(decided)
+        outside: dict[str, list[int]] = {}  # kind -> [minutes under, minutes over] the optimization limits
+        for _, channel, msg in reader.iter_messages(topics=[truth_topic], log_time_order=True):
             try:  # every encoding the truth was ever recorded in (schemas.truth)
                 tr = decode_truth(msg.data, channel.message_encoding)
             except TruthDecodeError as bad:
                 raise ReportError(f"{path}: {truth_topic} at {msg.log_time}: {bad}") from bad
+            if opt_limits_pu is not None:
+                counts = outside.setdefault(in_force.at(tr.t_ns), [0, 0])
+                counts[0] += tr.v_min_pu < opt_limits_pu[0] - VIOLATION_TOLERANCE_PU
+                counts[1] += tr.v_max_pu > opt_limits_pu[1] + VIOLATION_TOLERANCE_PU
             if tr.node_names:
                 node_index = {n: i for i, n in enumerate(tr.node_names)}
                 live = LiveAccuracyAccumulator(tr.node_names)
@@ -150,7 +195,9 @@ def read_trace(mcap_path: str | Path, *, regulator_ids: tuple[str, ...] = (), pv
     return replace(trace, err_t_ns=np.asarray(err_t, dtype=np.int64), err_max_pu=np.asarray(err_max),
                    err_min_pu=np.asarray(err_min), err_rms_pu=np.asarray(err_rms),
                    errors_pu=np.concatenate(errors) if errors else np.zeros(0), worst=_worst_node(live, judged),
-                   tap_steps=steps.result() if steps is not None else ())
+                   tap_steps=steps.result() if steps is not None else (),
+                   limit_minutes=tuple(LimitMinutes(k, under, over) for k, (under, over) in outside.items()
+                                       if under or over))
 
 
 def _worst_node(live: LiveAccuracyAccumulator | None,
@@ -280,7 +327,8 @@ def _trace_of(run_dir: Path, summary: RunSummary, dm: DeviceMap | None) -> RunTr
     rec = summary.recording or str(run_dir / "session.mcap")
     path = Path(rec) if Path(rec).is_file() else run_dir / "session.mcap"
     return read_trace(path, regulator_ids=tuple(mt.taps_changes), pv_ids=tuple(mt.q_mvar_intervals),
-                      limits_pu=limits, capacitor_ids=tuple(mt.cap_switches_per_bank))
+                      limits_pu=limits, capacitor_ids=tuple(mt.cap_switches_per_bank),
+                      opt_limits_pu=mt.opt_limits_pu)
 
 
 def _baseline_of(run_dir: Path) -> RunTrace | None:
@@ -454,7 +502,7 @@ def plot_run(run_dir: str | Path, *, out: str | Path | None = None) -> list[Path
     """The PNGs of one ``cvvc run`` folder (default into ``run_dir/plots``), the case against no control when the
     run simulated it, and ``report.md`` beside them (the run's report with the plots); returns the PNGs' paths.
     """
-    from cvvc.run_report import render_summary
+    from cvvc.run_report import limit_minutes_text, render_summary
 
     d = Path(run_dir)
     summary, dm, traces = _run_traces(d)
@@ -465,9 +513,11 @@ def plot_run(run_dir: str | Path, *, out: str | Path | None = None) -> list[Path
     paths += [_save(worst, folder / "worst_node.png")] if worst is not None else []
     report_dir = folder if out else d
     links = [f"![{p.stem.replace('_', ' ')}]({p.relative_to(report_dir).as_posix()})" for p in paths]
-    steps = traces[f"case {summary.case}"].tap_steps
+    trace = traces[f"case {summary.case}"]
+    steps = trace.tap_steps
     measured = f"\n## What the truth says of the model\n\n- {tap_steps_text(steps)}\n" if steps else ""
-    (report_dir / "report.md").write_text(render_summary(summary, dm) + measured + "\n## Plots\n\n"
+    outside = limit_minutes_text(trace.limit_minutes, summary.metrics.opt_limits_pu)
+    (report_dir / "report.md").write_text(render_summary(summary, dm) + measured + outside + "\n## Plots\n\n"
                                           + "\n\n".join(links) + "\n")
     return paths
 

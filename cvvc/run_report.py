@@ -11,11 +11,12 @@ from simulator_bridge.simulation.live_accuracy import HOLD_FACTOR
 
 if TYPE_CHECKING:
     from cvvc.run_summary import RunSummary
+    from cvvc.run_trace import LimitMinutes
     from schemas.devicemap import DeviceMap
     from simulator_bridge.simulation.live_accuracy import LiveAccuracy
 
-__all__ = ["cost_lines", "decision_time_text", "live_accuracy_text", "measured_steps_text", "render_summary",
-           "top_reasons", "verdict"]
+__all__ = ["cost_lines", "decision_time_text", "limit_minutes_text", "live_accuracy_text", "measured_steps_text",
+           "render_summary", "top_reasons", "verdict"]
 
 
 def top_reasons(reasons: dict[str, int], n: int = 3) -> str:
@@ -33,6 +34,20 @@ def measured_steps_text(steps_v120: dict[str, float], n: int = 8) -> str:
     """``creg1a 0.58 V, ...``: each regulator's tap step as its compared reading measured it (the first ``n``)."""
     text = ", ".join(f"{rid} {v:.2f} V" for rid, v in list(steps_v120.items())[:n])
     return text + (f" and {len(steps_v120) - n} more" if len(steps_v120) > n else "")
+
+
+def limit_minutes_text(rows: tuple[LimitMinutes, ...], limits_pu: tuple[float, float] | None) -> str:
+    """The report's section on the minutes with any node outside the optimization limits, by the decision in force
+    (``cvvc.report.read_trace``); empty without limits or without such minutes.
+    """
+    if limits_pu is None or not rows:
+        return ""
+    lo, hi = limits_pu
+    lines = ["", "## Minutes outside the optimization limits, by the decision in force", "",
+             f"A step's truth against the decision of an earlier step; any node under {lo:g} or over {hi:g} pu.", "",
+             "| decision in force | minutes under | minutes over |", "|---|---|---|"]
+    lines += [f"| {r.kind} | {r.under:,} | {r.over:,} |" for r in sorted(rows, key=lambda r: -(r.under + r.over))]
+    return "\n".join(lines) + "\n"
 
 
 def live_accuracy_text(a: LiveAccuracy) -> str:

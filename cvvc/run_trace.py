@@ -16,11 +16,24 @@ import numpy as np
 from cvvc.step_effect import TapStepEffect
 from simulator_bridge.simulation.live_accuracy import LiveAccuracy
 
-__all__ = ["BASELINE_TRACE", "WINDOW_STEPS", "NodeTrace", "RunTrace", "TruthSeries", "read_series", "write_series",
-           "window_envelope_pu"]
+__all__ = ["BASELINE_TRACE", "WINDOW_STEPS", "LimitMinutes", "NodeTrace", "RunTrace", "TruthSeries", "read_series",
+           "write_series", "window_envelope_pu"]
 
 WINDOW_STEPS = 10  # 10-minute averages at the 1-minute step
 BASELINE_TRACE = "baseline_trace.npz"  # the no-control baseline's series in a ``cvvc run`` folder
+
+
+@dataclass(frozen=True)
+class LimitMinutes:
+    """The minutes with any node under (``under``) or over (``over``) the optimization limits, while the decision in
+    force was of one ``kind``: ``optimal``, ``soft form`` (eq. 17), ``taps held by the tap deadband``, ``hold``, or
+    ``before the first decision``. A step's truth is taken before that step's decision acts: the decision in force
+    is the latest of an earlier step.
+    """
+
+    kind: str
+    under: int
+    over: int
 
 
 @dataclass(frozen=True)
@@ -66,6 +79,7 @@ class RunTrace:
     capacitor_ids: tuple[str, ...] = ()
     worst: NodeTrace | None = None  # the critical node whose bounds missed most often
     tap_steps: tuple[TapStepEffect, ...] = ()  # each regulator's single steps against the model (``cvvc.step_effect``)
+    limit_minutes: tuple[LimitMinutes, ...] = ()  # minutes outside the optimization limits by the decision in force
 
 
 def window_envelope_pu(v_pu: np.ndarray, window_steps: int = WINDOW_STEPS) -> tuple[np.ndarray, np.ndarray]:

@@ -13,9 +13,12 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 
+from agent.tap_moves import HELD_BY_DEADBAND
 from cvvc.evaluate import EvaluateConfig, evaluate
 from cvvc.report import (
+    BEFORE_FIRST_DECISION,
     ReportError,
+    decision_kind,
     envelope_figure,
     errors_figure,
     plot_evaluation,
@@ -71,6 +74,33 @@ def test_report_run_writes_the_five_pngs(tiny_evaluation, tmp_path):
     report = (tmp_path / "plots" / "report.md").read_text()
     assert ("## What the truth says of the model" in report) == bool(steps)
     assert all(f"{e.regulator} {e.share_of_model:.2f} ({e.steps} step" in report for e in steps)
+
+
+def test_minutes_outside_the_limits_are_counted_by_the_decision_in_force(tiny_evaluation, tmp_path):
+    """Limits at the recording's median extremes: every minute a node is under (over) them is counted once, against
+    the decision of an earlier step (the first minutes, before any, apart); the run's report lists them when its own
+    limits were left."""
+    out, ev = tiny_evaluation
+    rec = Path(ev.runs[0].recording)
+    truth = _truth(rec)
+    lo, hi = float(np.median([t["v_min_pu"] for t in truth])), float(np.median([t["v_max_pu"] for t in truth]))
+    rows = read_trace(rec, opt_limits_pu=(lo, hi)).limit_minutes
+    assert sum(r.under for r in rows) == sum(t["v_min_pu"] < lo for t in truth) > 0
+    assert sum(r.over for r in rows) == sum(t["v_max_pu"] > hi for t in truth) > 0
+    with rec.open("rb") as f:
+        steps = sorted(msgspec.json.decode(m.data)["step_t_ns"] for _, ch, m in make_reader(f).iter_messages()
+                       if ch.topic.endswith("/agent/decision"))
+    first = [t for t in truth if t["t_ns"] <= steps[0]]  # the first decision acts from the next step on
+    early = next((r for r in rows if r.kind == BEFORE_FIRST_DECISION), None)
+    assert (early.under if early else 0) == sum(t["v_min_pu"] < lo for t in first)
+    assert {r.kind for r in rows} <= {BEFORE_FIRST_DECISION, "optimal", "soft form", "taps held by the tap deadband",
+                                      "hold"}
+    assert decision_kind("soft", f"{HELD_BY_DEADBAND} 0.0010 pu predicted") == "taps held by the tap deadband"
+    assert decision_kind("soft", "hard voltage limits infeasible") == "soft form"
+    plot_run(ev.runs[0].out_dir, out=tmp_path / "plots")
+    own = read_trace(rec, opt_limits_pu=ev.runs[0].metrics.opt_limits_pu).limit_minutes
+    report = (tmp_path / "plots" / "report.md").read_text()
+    assert ("## Minutes outside the optimization limits" in report) == bool(own)
 
 
 def test_live_accuracy_from_the_recording_equals_the_bridges(tiny_evaluation):
