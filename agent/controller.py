@@ -218,7 +218,7 @@ class CvvcController:
         regs = model.regulators
         self._tap_min = np.array([r.tap_min for r in regs], int)
         self._tap_max = np.array([r.tap_max for r in regs], int)
-        self.taps = TapMoves(o, self._tap_min, self._tap_max)  # reversal locks, tap deadband, rent or buy
+        self.tap_moves = TapMoves(o, self._tap_min, self._tap_max)  # reversal locks, tap deadband, rent or buy
         self._max_taps = np.array([r.max_taps_per_interval for r in regs], int)
         self._tap_cost = np.array([r.cost_per_tap for r in regs], float)
         self._step_v120 = steps
@@ -584,7 +584,7 @@ class CvvcController:
             dv_dq_rel_error=self.sensitivity_error if state.critical else 0.0,
             soft_weight=soft_weight,
         )
-        return inputs if locks == "none" else self.taps.relocked(inputs, locks, int(snap.t_ns))
+        return inputs if locks == "none" else self.tap_moves.relocked(inputs, locks, int(snap.t_ns))
 
     def pv_margins_pu(self, dv_dp_pu_per_kw: np.ndarray, pv_p_kw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(rise, fall)`` PV variability margins [pu] of nodes with these sensitivities (N, K) [pu/kW].
@@ -684,14 +684,14 @@ class CvvcController:
         # Case A solves cold (as it always has): its rows are every live node, not the critical nodes.
         solution = solve_cvvc(inputs, warm_start=self._warm if oracle is None else None)
         solves: list[tuple[SolveRole, CvvcSolution]] = [("main", solution)]
-        if solution.status != "optimal" and any(lock.any() for lock in self.taps.reversal_locks(int(snap.t_ns))):
+        if solution.status != "optimal" and any(lock.any() for lock in self.tap_moves.reversal_locks(int(snap.t_ns))):
             # the limits are not met with the locks: the soft form trades every lever, the reverse moves included
             # (keeping the locks there distorted every decision of a feeder always in the soft form: epri-ckt24
             # winter day, NVV 54,765 against 413)
-            solution = solve_cvvc(self.taps.relocked(inputs, "none", int(snap.t_ns)),
+            solution = solve_cvvc(self.tap_moves.relocked(inputs, "none", int(snap.t_ns)),
                                   warm_start=self._warm if oracle is None else None)
             solves.append(("unlocked", solution))
-        settled = self.taps.settle(inputs, solution, state.taps, state.v0_pu.shape[0], int(snap.t_ns),
+        settled = self.tap_moves.settle(inputs, solution, state.taps, state.v0_pu.shape[0], int(snap.t_ns),
                                    lambda problem: solve_cvvc(problem, warm_start=self._warm), estimated=oracle is None)
         solution = settled.solution
         solves.extend(settled.solves)
@@ -736,7 +736,7 @@ class CvvcController:
                                   self._arrays.reg_secondary_node, self._arrays.reg_pu_per_v120)
         self._stale.commanded(int(snap.t_ns), solution.q_new_kvar, pv_ok)
         moved = reg_ok & (solution.taps_new[:n_reg] != state.taps)
-        self.taps.moved(moved, solution.taps_new[:n_reg] - state.taps, int(snap.t_ns))
+        self.tap_moves.moved(moved, solution.taps_new[:n_reg] - state.taps, int(snap.t_ns))
         applied = self.bounds_pu(bool(outside)) if state.critical else None
         if self._drift is not None:
             if state.critical and oracle is None:

@@ -488,7 +488,7 @@ def run_agent(model: CvvcModel, settings: AgentSettings, bus, *, stop: threading
                         decided_after_late_window=late_decided, clock_snapped=maker.aligner.snapped,
                         commands_refused=dict(refused_by), follow_ups=maker.follow_ups,
                         measured_steps_v120=maker.controller.measured_steps_v120(),
-                        bought=maker.controller.taps.bought)
+                        bought=maker.controller.tap_moves.bought)
 
 
 def _suppressed(rlog: RateLimitedLog, rejects: dict[str, int]) -> dict[str, int]:

@@ -155,7 +155,7 @@ def test_q_standing_in_for_a_tap_is_paid_until_it_has_cost_the_tap():
     assert 0.25 < renting[0].objective < 0.5 and [r for r, _ in renting[0].solves] == ["main"]
     buying = run(True)
     assert [int(d.reg_tap.sum()) for d in buying] == [0, 1, 0, 1]
-    assert buying_controller.taps.bought == 2
+    assert buying_controller.tap_moves.bought == 2
     assert [r for r, _ in buying[0].solves] == ["main", "buy"]
     for d in buying[1::2]:
         assert d.status == "optimal" and d.objective == pytest.approx(0.5) and np.abs(d.pv_q_kvar).sum() < 1.0
