@@ -61,14 +61,15 @@ from training.scenarios import ScenarioSet, calendar_cover, select_scenarios, su
 __all__ = ["TRAINING_REVISION", "TrainResult", "TrainSummary", "load_profiles", "train"]
 
 #: Bump when training changes what it produces, so cached models (``cvvc run``'s cache) are retrained.
-TRAINING_REVISION = 11  # 3: critical nodes in the zone, movable only; 4: model format 2; 5: bounds and banks;
+TRAINING_REVISION = 12  # 3: critical nodes in the zone, movable only; 4: model format 2; 5: bounds and banks;
 # 6: cvvc run trains the extended set on feeders with banks (training.extended.default_feature_options);
 # 7: the extended set's cover also takes each regulator zone's extremes (training.extended.zone_extreme_cover);
 # 8: the extended set's calendar cover, seasonal and weekly calendar terms (training.extended.EXTENDED_OPTIONS);
 # 9: the bounds are calibrated over set-point-shifted windows too (training.calibration.SETPOINT_OFFSET_TAPS);
 # the banks' local controls as the agent predicts them (training.capbanks.bank_controls);
 # 10: bounds from node-scaled scores pooled, the level set by held-out windows (training.conformal);
-# 11: the banks' VoltOverride (training.capbanks.bank_controls, override_*)
+# 11: the banks' VoltOverride (training.capbanks.bank_controls, override_*);
+# 12: the calibration windows' simulations start settled (simulator_bridge.simulation.qsts.SETTLE_S)
 
 _DEFAULT_OPTIONS = TrainingOptions()
 _HOLDOUT_EVERY = 5  # every 5th scenario is held out to choose eq. (3)'s form and to report validation error

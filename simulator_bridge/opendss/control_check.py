@@ -122,7 +122,7 @@ def compare_with_opendss(device_map: DeviceMap, load_kw: np.ndarray, *, step_s: 
     eng = FeederEngine(device_map)
     try:
         taps0, caps0 = eng.control_taps(), eng.control_cap_states()
-        q = Qsts(eng, MinuteProfiles(load_kw, len(eng.pv_ids)), start_step=0)
+        q = Qsts(eng, MinuteProfiles(load_kw, len(eng.pv_ids)), start_step=0, settle_s=0)
         n = len(load_kw)
         taps = np.zeros((n, len(taps0)), dtype=int)
         caps = np.zeros((n, len(caps0)), dtype=int)

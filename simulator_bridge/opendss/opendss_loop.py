@@ -134,9 +134,11 @@ def reference_metrics(device_map: DeviceMap, profiles: Profiles, *, start_step: 
     control loop at ``step_s`` [s], measured with the same IV.F metrics as every run (``MetricsAccumulator``).
 
     ``profiles`` must be the feeder's (columns in the engine's load and plant order) at 60 s per row;
-    ``skip_quiet``: see :class:`OpenDssLoop`.
+    ``skip_quiet``: see :class:`OpenDssLoop`. As every QSTS run, the loop first runs ``SETTLE_S`` on the first
+    minute's loads and PV, uncounted (``simulator_bridge.simulation.qsts``: the feeder starts settled).
     """
     from simulator_bridge.simulation.metrics_stream import MetricsAccumulator
+    from simulator_bridge.simulation.qsts import SETTLE_S
 
     if profiles.step_s != 60:
         raise EngineError(f"the OpenDSS reference steps minutes; the profiles have {profiles.step_s} s rows")
@@ -145,9 +147,13 @@ def reference_metrics(device_map: DeviceMap, profiles: Profiles, *, start_step: 
     engine = FeederEngine(device_map)
     try:
         acc = MetricsAccumulator.for_feeder(device_map, engine, step_s=60)
-        loop = OpenDssLoop(engine, step_s=step_s, start_tod_s=(profiles.t_ns(start_step) / 1e9) % _DAY_S,
+        settle_min = int(round(SETTLE_S / 60.0))
+        loop = OpenDssLoop(engine, step_s=step_s,
+                           start_tod_s=(profiles.t_ns(start_step) / 1e9 - 60.0 * settle_min) % _DAY_S,
                            skip_quiet=skip_quiet)
         load, pv = profiles.load_kw(start_step, start_step + steps), profiles.pv_kw(start_step, start_step + steps)
+        for _ in range(settle_min):
+            loop.step(load[0], pv[0])
         for m in range(steps):
             r = loop.step(load[m], pv[m])
             acc.update(r.v_pu, r.tap_changes, r.pv_q_kvar, r.cap_switches)

@@ -26,6 +26,12 @@ Each step (one profile row, 1 minute by default):
    it. A quiet step costs one power flow. So the number of taps a regulator moves in a step follows from its
    own ``delay`` and ``tapdelay``. Every tap moved and every capacitor step switched is counted
    (``StepResult.tap_changes``, ``cap_switches``), commanded moves included.
+
+Before the first step the local controls run for ``SETTLE_S`` (30 minutes) on the first step's loads and PV, and
+their moves are not counted: a simulation starts from a feeder whose regulators and banks have settled, as a real
+feeder is found at any hour, not from the taps and bank states the model file leaves them in. Without it the first
+minutes of a run count the model's own start-up (IEEE 8500: every bank closed, the regulators 1-8 steps from where
+their controls hold them), and every case's tap and bank counts and 1-minute minima carry it.
 """
 
 from __future__ import annotations
@@ -46,6 +52,7 @@ __all__ = [
     "Profiles",
     "Qsts",
     "QstsError",
+    "SETTLE_S",
     "StepResult",
     "VOLT_VAR_RESPONSE",
     "tap_direction",
@@ -116,6 +123,9 @@ class StepResult:
 _MAX_INSTANTS = 10_000  # event times within one step (a runaway control loop is an error, not a hang)
 _MAX_ROUNDS = 100  # action rounds at one instant (OpenDSS's maxcontroliter)
 
+#: Local control run before the first step on its loads, uncounted (module docstring) [s].
+SETTLE_S = 1800.0
+
 #: Share of the way to the volt-var curve's value a plant moves per step (first-order lag; see above).
 VOLT_VAR_RESPONSE = 0.3
 
@@ -152,6 +162,8 @@ class Qsts:
     pv_local : local default of a PV plant without a commanded Q: ``"unity"`` or ``"volt_var"``.
     pv_q_at_night : allow reactive power (commanded or volt-var) when available P is 0.
     chunk_steps : profile rows read at a time.
+    settle_s : local control run, uncounted, on the first step's loads before it (module docstring); 0 starts
+        from the model's own taps and bank states (as OpenDSS's own control loop does, for comparing with it).
     """
 
     def __init__(
@@ -163,6 +175,7 @@ class Qsts:
         pv_local: Literal["unity", "volt_var"] = "unity",
         pv_q_at_night: bool = False,
         chunk_steps: int = 1440,
+        settle_s: float = SETTLE_S,
     ) -> None:
         if profiles.n_loads != len(engine.load_names) or profiles.n_pv != len(engine.pv_ids):
             raise QstsError(
@@ -174,6 +187,8 @@ class Qsts:
             raise QstsError(f"start_step {start_step} outside the profiles' 0..{profiles.n_steps - 1}")
         if pv_local not in ("unity", "volt_var"):
             raise QstsError(f"pv_local must be 'unity' or 'volt_var', not {pv_local!r}")
+        if not (np.isfinite(settle_s) and settle_s >= 0):
+            raise QstsError(f"settle_s must be a finite number of seconds >= 0, not {settle_s!r}")
         self.engine = engine
         self.profiles = profiles
         self.pv_local = pv_local
@@ -206,6 +221,21 @@ class Qsts:
         engine.solve()
         self._pv_v_pu = self._plant_v_pu(engine.node_voltages_pu())
         self._pv_p_kw, self._pv_q_kvar = engine.pv_setpoints()
+        if settle_s > 0:
+            self._settle(float(settle_s))
+
+    def _settle(self, settle_s: float) -> None:
+        """Run the local controls for ``settle_s`` before the first step, on its loads and PV; count nothing."""
+        e, s = self.engine, self._step
+        load_kw, pv_kw = self._rows(s)
+        p = np.minimum(np.maximum(pv_kw, 0.0), e.pv_pmpp_kw)
+        q = e.set_pv(p, self._pv_q_target(p, self._pv_v_pu))
+        e.set_loads_kw(load_kw)
+        e.solve()
+        t0 = self.profiles.t_ns(s) / 1e9
+        self._run_controls(t0 - settle_s, t0, np.zeros(len(self._locked), int), np.zeros(len(self._cap_locked), int))
+        self._pv_v_pu = self._plant_v_pu(e.node_voltages_pu())
+        self._pv_p_kw, self._pv_q_kvar = p, np.asarray(q, dtype=float)
 
     @property
     def next_step(self) -> int:

@@ -74,15 +74,15 @@ def test_first_solve_is_the_engine_snapshot(feeder: str) -> None:
 
 
 def test_reference_taps_agree_with_the_none_case_on_a_load_swing() -> None:
-    """IEEE 13, three hours of a load swing with PV: the reference moves every regulator, as many taps as our
-    none case within one per regulator, and judges the same voltages."""
+    """IEEE 13, three hours of a load swing with PV, both started settled: the reference moves every regulator, as
+    many taps as our none case within one per regulator, and judges the same voltages."""
     dm = load_device_map(MAPS / "ieee13.toml")
     profiles = _swing_profiles(dm)
     ref = reference_metrics(dm, profiles, start_step=0, steps=MINUTES, step_s=5.0)
     ours = _none_case(dm, profiles)
     assert ref.n_steps == ours.n_steps == MINUTES
     assert ref.regulator_ids == ours.regulator_ids
-    assert all(n >= 3 for n in ref.tap_changes_per_regulator), ref.tap_changes_per_regulator
+    assert all(n >= 2 for n in ref.tap_changes_per_regulator), ref.tap_changes_per_regulator
     diff = np.abs(np.subtract(ref.tap_changes_per_regulator, ours.tap_changes_per_regulator))
     assert diff.max() <= 1, (ref.tap_changes_per_regulator, ours.tap_changes_per_regulator)
     assert abs(ref.v_min_pu - ours.v_min_pu) < 5e-3 and abs(ref.v_max_pu - ours.v_max_pu) < 5e-3

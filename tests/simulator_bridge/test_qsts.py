@@ -67,8 +67,8 @@ def test_tap_direction() -> None:
 
 # --------------------------------------------------------------------------- regulators
 def test_local_control_ends_inside_band(eng: FeederEngine) -> None:
-    """From tap 0 at nominal load creg1a compares ~115 V (band 119-121): it must end inside its band."""
-    q = Qsts(eng, constant(eng, 5, 1.0, 0.0), start_step=0)
+    """Started cold (not settled), from tap 0 at nominal load creg1a compares ~115 V (band 119-121): it must end inside its band."""
+    q = Qsts(eng, constant(eng, 5, 1.0, 0.0), start_step=0, settle_s=0)
     first = q.step()
     assert first.tap_changes.sum() > 0
     for _ in range(4):
@@ -90,7 +90,7 @@ def test_taps_per_step_follow_the_regulators_delays(map123: DeviceMap) -> None:
     """creg1a with delay=30 s, tapdelay=10 s, ~5 V (7 taps) low: in the first minute it arms at 0 s and taps at
     30, 40 and 50 s (the one due at 60 s belongs to the next minute), then one tap every 10 s (60..110 s)."""
     eng = FeederEngine(_with_commands(map123, "edit regcontrol.creg1a delay=30 tapdelay=10"))
-    q = Qsts(eng, constant(eng, 10, 1.0, 0.0), start_step=0)
+    q = Qsts(eng, constant(eng, 10, 1.0, 0.0), start_step=0, settle_s=0)
     t0 = eng.taps()
     results = [q.step() for _ in range(10)]
     changes = np.array([r.tap_changes for r in results])
@@ -127,17 +127,18 @@ def test_no_hunting_with_a_band_under_one_tap(eng: FeederEngine) -> None:
 def test_delay_longer_than_a_step(map123: DeviceMap) -> None:
     """delay=150 s: out of band from 0 s, creg1a's first tap comes at 150 s, in the third minute."""
     eng = FeederEngine(_with_commands(map123, "edit regcontrol.creg1a delay=150 tapdelay=5"))
-    q = Qsts(eng, constant(eng, 4, 1.0, 0.0), start_step=0)
+    q = Qsts(eng, constant(eng, 4, 1.0, 0.0), start_step=0, settle_s=0)
     changes = [q.step().tap_changes[0] for _ in range(4)]
     assert changes[0] == 0 and changes[1] == 0 and 1 <= changes[2] <= 6  # 150, 155, ..., 175 s at most
 
 
 def test_locked_tap_stays_then_unlocks(eng: FeederEngine) -> None:
     q = Qsts(eng, constant(eng, 6, 1.0, 0.0), start_step=0)
+    settled = int(eng.taps()[0])  # where the settled start left creg1a
     assert q.command_tap(0, 40) == 16  # clipped to the regulator's range
     assert q.command_tap(0, -3) == -3
     first = q.step()
-    assert first.taps[0] == -3 and first.tap_changes[0] == 3  # commanded move counted
+    assert first.taps[0] == -3 and first.tap_changes[0] == abs(settled + 3)  # commanded move counted
     for _ in range(2):
         res = q.step()
         assert res.taps[0] == -3 and res.tap_changes[0] == 0
@@ -146,6 +147,24 @@ def test_locked_tap_stays_then_unlocks(eng: FeederEngine) -> None:
     q.command_tap(0, None)
     res = q.step()
     assert res.taps[0] > -3 and res.tap_changes[0] > 0
+
+
+def test_the_start_is_settled_and_its_moves_are_not_counted(map123: DeviceMap) -> None:
+    """The model leaves creg1a ~5 V under its band at nominal load. Started settled, the first step finds every
+    regulator inside its band and counts no move; started cold, the same load moves taps in the first step."""
+    cold_engine = FeederEngine(map123, tolerance=1e-6)
+    model_taps = cold_engine.taps()
+    cold = Qsts(cold_engine, constant(cold_engine, 2, 1.0, 0.0), start_step=0, settle_s=0)
+    assert cold.step().tap_changes.sum() > 0
+    eng = FeederEngine(map123, tolerance=1e-6)
+    first = Qsts(eng, constant(eng, 2, 1.0, 0.0), start_step=0).step()
+    assert first.tap_changes.sum() == 0 and first.cap_switches.sum() == 0
+    assert np.any(first.taps != model_taps)  # the settling moved them, uncounted
+    half = eng.reg_default_band_v120 / 2
+    assert np.all(np.abs(first.readings.reg_v120_compared - eng.reg_default_setpoint_v120) <= half + 1e-9)
+    for bad in (-1.0, float("nan")):
+        with pytest.raises(QstsError, match="settle_s"):
+            Qsts(eng, constant(eng, 2, 1.0, 0.0), start_step=0, settle_s=bad)
 
 
 def test_commanded_setpoint_and_band(eng: FeederEngine) -> None:
