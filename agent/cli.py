@@ -124,7 +124,7 @@ def _agent(args: argparse.Namespace) -> int:
     model = read_model(args.model, expect_fingerprint=expect)
     if settings.mode == "taps" and settings.correction and not settings.full_visibility:
         logging.getLogger("agent").info("taps mode with correction: not one of the paper's cases, allowed")
-    summary = run_agent(model, settings, bus_config_from_args(args, role="agent"), own_process=True)
+    summary = run_agent(model, settings, bus_config_from_args(args, role="agent"))
     if args.json:
         print(json.dumps(msgspec.to_builtins(summary)))
     if args.summary_out:

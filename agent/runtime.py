@@ -15,7 +15,6 @@ has come for ``stale_after_s``; the agent never sends commands without fresh fra
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import signal
 import threading
@@ -29,7 +28,6 @@ import numpy as np
 
 from agent.aligner import AlignedFrames, FrameAligner
 from agent.ami import REFUSED_KINDS
-from agent.collector import SafePointCollector
 from agent.controller import CvvcController
 from agent.controller import Decision as ControllerDecision
 from agent.decision import decision_time_ms, reason_kind
@@ -87,8 +85,6 @@ class AgentSummary(msgspec.Struct, frozen=True, kw_only=True):
     # (``agent.setpoints.MeasuredSteps``: eq. 8 lands one-step moves with it)
     measured_steps_v120: dict[str, float] = {}
     bought: int = 0  # decisions that took a tap move once the Q standing in for it had cost as much (rent or buy)
-    # the cyclic garbage collector's collections by generation, run between steps (own process only, agent.collector)
-    collections: list[int] = []
 
 
 class _Recentre(msgspec.Struct, frozen=True):
@@ -370,12 +366,8 @@ def decide_offline_in_detail(model: CvvcModel, settings: AgentSettings | None, f
 
 # ------------------------------------------------------------------------------------------- live
 def run_agent(model: CvvcModel, settings: AgentSettings, bus, *, stop: threading.Event | None = None,
-              install_signals: bool = True, own_process: bool = False) -> AgentSummary:
-    """Run the agent on the bus until ``stop`` is set (or SIGINT/SIGTERM when ``install_signals``).
-
-    ``own_process``: the process is the agent's alone, so its cyclic garbage collector runs between steps (no
-    step's frames waiting), never inside a decision (``agent.collector``).
-    """
+              install_signals: bool = True) -> AgentSummary:
+    """Run the agent on the bus until ``stop`` is set (or SIGINT/SIGTERM when ``install_signals``)."""
     from schemas.bus import Inbox, LivelinessWatcher, TypedPublisher, open_session
 
     stop = stop or threading.Event()
@@ -388,8 +380,7 @@ def run_agent(model: CvvcModel, settings: AgentSettings, bus, *, stop: threading
     refused_by: Counter[str] = Counter()  # device -> our commands it answered 'rejected'
     rlog = RateLimitedLog(log)
     health = _FrameHealth(maker.aligner)
-    collector = SafePointCollector() if own_process else None
-    with open_session(bus) as session, collector or contextlib.nullcontext():
+    with open_session(bus) as session:
         devices = LivelinessWatcher(session, keys.alive_all(f),
                                     on_change=lambda k, up: log.info("device %s %s", k, "up" if up else "down"))
         inbox = Inbox(maxsize=8192)
@@ -460,8 +451,6 @@ def run_agent(model: CvvcModel, settings: AgentSettings, bus, *, stop: threading
                     late_decided += len(late)
                     publish(late, now)
                     pending_since = None
-                if collector is not None and not maker.aligner.pending:
-                    collector.safe_point()  # between steps: no step's frames wait for a decision
                 if now >= next_status:
                     next_status = now + 1.0
                     status_seq += 1
@@ -499,8 +488,7 @@ def run_agent(model: CvvcModel, settings: AgentSettings, bus, *, stop: threading
                         decided_after_late_window=late_decided, clock_snapped=maker.aligner.snapped,
                         commands_refused=dict(refused_by), follow_ups=maker.follow_ups,
                         measured_steps_v120=maker.controller.measured_steps_v120(),
-                        bought=maker.controller.tap_moves.bought,
-                        collections=list(collector.collections) if collector is not None else [])
+                        bought=maker.controller.tap_moves.bought)
 
 
 def _suppressed(rlog: RateLimitedLog, rejects: dict[str, int]) -> dict[str, int]:
