@@ -13,6 +13,7 @@ import logging
 import sys
 
 from cvvc.errors import CliError
+from cvvc.parent_watch import watch_parent
 from schemas.errors import CvvcError
 from schemas.version import __version__
 
@@ -56,6 +57,7 @@ def main(argv: list[str] | None = None) -> int:
     """Run the verb of ``argv`` (default: ``sys.argv[1:]``); returns the exit status (2: a ``CvvcError``)."""
     parser = build_parser()
     args = parser.parse_args(argv)
+    watch_parent()  # a child of `cvvc run` ends with it (cvvc.parent_watch)
     logging.basicConfig(
         level=logging.WARNING - 10 * min(args.verbose, 2),
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",

@@ -39,6 +39,7 @@ import msgspec
 from agent.runtime import AgentSummary
 from cvvc.errors import CommandError
 from cvvc.integrity import run_integrity
+from cvvc.parent_watch import PARENT_ENV
 from cvvc.progress import progress_bar
 from cvvc.run_report import render_summary, top_reasons
 from cvvc.run_summary import RunSummary
@@ -262,7 +263,7 @@ class _Child:
 def _spawn(name: str, args: list[str], log_dir: Path, *, essential: bool = True) -> _Child:
     log = open(log_dir / f"{name}.log", "wb")  # noqa: SIM115  (closed with the process)
     proc = subprocess.Popen([sys.executable, "-m", "cvvc", *args], stdout=log, stderr=subprocess.STDOUT,
-                            stdin=subprocess.DEVNULL)
+                            stdin=subprocess.DEVNULL, env=dict(os.environ, **{PARENT_ENV: str(os.getpid())}))
     log.close()
     return _Child(name, proc, essential)
 
