@@ -67,7 +67,8 @@ def test_tap_direction() -> None:
 
 # --------------------------------------------------------------------------- regulators
 def test_local_control_ends_inside_band(eng: FeederEngine) -> None:
-    """Started cold (not settled), from tap 0 at nominal load creg1a compares ~115 V (band 119-121): it must end inside its band."""
+    """Started cold (not settled), from tap 0 at nominal load creg1a compares ~115 V (band 119-121): it must end
+    inside its band."""
     q = Qsts(eng, constant(eng, 5, 1.0, 0.0), start_step=0, settle_s=0)
     first = q.step()
     assert first.tap_changes.sum() > 0
