@@ -40,6 +40,7 @@ from cvvc.run_trace import (
     LimitMinutes,
     NodeTrace,
     RunTrace,
+    SideMoves,
     TruthSeries,
     read_series,
     window_envelope_pu,
@@ -86,6 +87,16 @@ class _Decision(msgspec.Struct):
 BEFORE_FIRST_DECISION = "before the first decision"
 
 
+def limit_side(estimates: list[_Estimate], limits_pu: tuple[float, float]) -> str:
+    """Which side of ``limits_pu`` a decision saw crossed before its action (``SideMoves.side``): ``over`` where some
+    estimate + its upper bound is above the upper limit, ``under`` where some estimate - its lower bound is below the
+    lower one, ``both`` or ``neither``.
+    """
+    over = any(e.v_pu + e.bound_high_pu > limits_pu[1] + VIOLATION_TOLERANCE_PU for e in estimates)
+    under = any(e.v_pu - e.bound_low_pu < limits_pu[0] - VIOLATION_TOLERANCE_PU for e in estimates)
+    return "both" if over and under else "over" if over else "under" if under else "neither"
+
+
 def decision_kind(status: str, reason: str) -> str:
     """What a recorded decision was: ``optimal``, ``soft form`` (eq. 17), ``taps held by the tap deadband`` or
     ``hold`` (``LimitMinutes.kind``).
@@ -125,7 +136,8 @@ def read_trace(mcap_path: str | Path, *, regulator_ids: tuple[str, ...] = (), pv
     """Reduce one run's MCAP recording to a :class:`RunTrace` (two streaming passes: decisions, then truth).
 
     ``opt_limits_pu``: the optimization limits the run was judged against (its metrics' ``opt_limits_pu``); with
-    them, the minutes any node spent outside them are counted by the decision in force (``RunTrace.limit_minutes``).
+    them, the minutes any node spent outside them are counted by the decision in force (``RunTrace.limit_minutes``),
+    and the regulators' tap steps by the side of them that decision saw crossed (``RunTrace.side_moves``).
     """
     from mcap.reader import make_reader
 
@@ -141,10 +153,13 @@ def read_trace(mcap_path: str | Path, *, regulator_ids: tuple[str, ...] = (), pv
         estimates: dict[int, list[_Estimate]] = {}
         sensitivities: tuple[list[str], np.ndarray] | None = None  # the critical nodes and the model's dV/dtap
         decided: list[tuple[int, str]] = []  # (step, kind) of every decision
+        sides: list[tuple[int, str]] = []  # (step, the side of the limits it saw crossed) of every decision
         if decision_topic is not None:
             for _, _, msg in reader.iter_messages(topics=[decision_topic]):
                 d = dec_dec.decode(msg.data)
                 decided.append((d.step_t_ns, decision_kind(d.status, d.reason)))
+                if opt_limits_pu is not None:
+                    sides.append((d.step_t_ns, limit_side(d.estimates, opt_limits_pu)))
                 if d.estimates:
                     estimates[d.step_t_ns] = d.estimates
                     if sensitivities is None and len(d.dv_dtap_pu) == len(d.estimates):
@@ -155,8 +170,10 @@ def read_trace(mcap_path: str | Path, *, regulator_ids: tuple[str, ...] = (), pv
         judged: list[tuple[int, list[_Estimate], np.ndarray]] = []  # (t_ns, estimates, true v at their nodes)
         live: LiveAccuracyAccumulator | None = None
         steps: TapStepAccumulator | None = None
-        in_force = _InForce(decided)
+        in_force, side_in_force = _InForce(decided), _InForce(sides)
         outside: dict[str, list[int]] = {}  # kind -> [minutes under, minutes over] the optimization limits
+        moved: dict[str, list[int]] = {}  # side -> [tap steps up, tap steps down]
+        last_taps: np.ndarray | None = None
         for _, channel, msg in reader.iter_messages(topics=[truth_topic], log_time_order=True):
             try:  # every encoding the truth was ever recorded in (schemas.truth)
                 tr = decode_truth(msg.data, channel.message_encoding)
@@ -166,6 +183,12 @@ def read_trace(mcap_path: str | Path, *, regulator_ids: tuple[str, ...] = (), pv
                 counts = outside.setdefault(in_force.at(tr.t_ns), [0, 0])
                 counts[0] += tr.v_min_pu < opt_limits_pu[0] - VIOLATION_TOLERANCE_PU
                 counts[1] += tr.v_max_pu > opt_limits_pu[1] + VIOLATION_TOLERANCE_PU
+                taps = np.asarray(tr.taps, int)
+                if last_taps is not None and taps.shape == last_taps.shape and np.any(taps != last_taps):
+                    steps_moved = moved.setdefault(side_in_force.at(tr.t_ns), [0, 0])
+                    steps_moved[0] += int(np.clip(taps - last_taps, 0, None).sum())
+                    steps_moved[1] += int(np.clip(last_taps - taps, 0, None).sum())
+                last_taps = taps
             if tr.node_names:
                 node_index = {n: i for i, n in enumerate(tr.node_names)}
                 live = LiveAccuracyAccumulator(tr.node_names)
@@ -197,7 +220,8 @@ def read_trace(mcap_path: str | Path, *, regulator_ids: tuple[str, ...] = (), pv
                    errors_pu=np.concatenate(errors) if errors else np.zeros(0), worst=_worst_node(live, judged),
                    tap_steps=steps.result() if steps is not None else (),
                    limit_minutes=tuple(LimitMinutes(k, under, over) for k, (under, over) in outside.items()
-                                       if under or over))
+                                       if under or over),
+                   side_moves=tuple(SideMoves(side, up, down) for side, (up, down) in moved.items()))
 
 
 def _worst_node(live: LiveAccuracyAccumulator | None,
@@ -502,7 +526,7 @@ def plot_run(run_dir: str | Path, *, out: str | Path | None = None) -> list[Path
     """The PNGs of one ``cvvc run`` folder (default into ``run_dir/plots``), the case against no control when the
     run simulated it, and ``report.md`` beside them (the run's report with the plots); returns the PNGs' paths.
     """
-    from cvvc.run_report import limit_minutes_text, render_summary
+    from cvvc.run_report import limit_minutes_text, render_summary, side_moves_text
 
     d = Path(run_dir)
     summary, dm, traces = _run_traces(d)
@@ -517,6 +541,7 @@ def plot_run(run_dir: str | Path, *, out: str | Path | None = None) -> list[Path
     steps = trace.tap_steps
     measured = f"\n## What the truth says of the model\n\n- {tap_steps_text(steps)}\n" if steps else ""
     outside = limit_minutes_text(trace.limit_minutes, summary.metrics.opt_limits_pu)
+    outside += side_moves_text(trace.side_moves, summary.metrics.opt_limits_pu)
     (report_dir / "report.md").write_text(render_summary(summary, dm) + measured + outside + "\n## Plots\n\n"
                                           + "\n\n".join(links) + "\n")
     return paths

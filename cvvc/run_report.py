@@ -11,12 +11,12 @@ from simulator_bridge.simulation.live_accuracy import HOLD_FACTOR
 
 if TYPE_CHECKING:
     from cvvc.run_summary import RunSummary
-    from cvvc.run_trace import LimitMinutes
+    from cvvc.run_trace import LimitMinutes, SideMoves
     from schemas.devicemap import DeviceMap
     from simulator_bridge.simulation.live_accuracy import LiveAccuracy
 
 __all__ = ["cost_lines", "decision_time_text", "limit_minutes_text", "live_accuracy_text", "measured_steps_text",
-           "render_summary", "top_reasons", "verdict"]
+           "render_summary", "side_moves_text", "top_reasons", "verdict"]
 
 
 def top_reasons(reasons: dict[str, int], n: int = 3) -> str:
@@ -47,6 +47,22 @@ def limit_minutes_text(rows: tuple[LimitMinutes, ...], limits_pu: tuple[float, f
              f"A step's truth against the decision of an earlier step; any node under {lo:g} or over {hi:g} pu.", "",
              "| decision in force | minutes under | minutes over |", "|---|---|---|"]
     lines += [f"| {r.kind} | {r.under:,} | {r.over:,} |" for r in sorted(rows, key=lambda r: -(r.under + r.over))]
+    return "\n".join(lines) + "\n"
+
+
+def side_moves_text(rows: tuple[SideMoves, ...], limits_pu: tuple[float, float] | None) -> str:
+    """The report's section on the regulators' tap steps by the side of the optimization limits the decision in force
+    saw crossed (``cvvc.report.read_trace``): a run whose steps go down after ``over`` and up after ``under`` chases
+    both limits, its bounds closing the band between them; empty without limits or without tap steps.
+    """
+    if limits_pu is None or not rows:
+        return ""
+    lo, hi = limits_pu
+    lines = ["", "## Tap steps, by the side of the limits the decision in force saw crossed", "",
+             f"Before its action, some critical node's estimate + bound over {hi:g} pu (over), estimate - bound under "
+             f"{lo:g} pu (under), both, or neither.", "",
+             "| decision in force saw | steps up | steps down |", "|---|---|---|"]
+    lines += [f"| {r.side} | {r.up:,} | {r.down:,} |" for r in sorted(rows, key=lambda r: -(r.up + r.down))]
     return "\n".join(lines) + "\n"
 
 

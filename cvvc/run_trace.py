@@ -16,11 +16,24 @@ import numpy as np
 from cvvc.step_effect import TapStepEffect
 from simulator_bridge.simulation.live_accuracy import LiveAccuracy
 
-__all__ = ["BASELINE_TRACE", "WINDOW_STEPS", "LimitMinutes", "NodeTrace", "RunTrace", "TruthSeries", "read_series",
-           "write_series", "window_envelope_pu"]
+__all__ = ["BASELINE_TRACE", "WINDOW_STEPS", "LimitMinutes", "NodeTrace", "RunTrace", "SideMoves", "TruthSeries",
+           "read_series", "write_series", "window_envelope_pu"]
 
 WINDOW_STEPS = 10  # 10-minute averages at the 1-minute step
 BASELINE_TRACE = "baseline_trace.npz"  # the no-control baseline's series in a ``cvvc run`` folder
+
+
+@dataclass(frozen=True)
+class SideMoves:
+    """The tap steps the map's regulators moved up (``up``) and down (``down``) while the decision in force saw one
+    ``side`` of the optimization limits crossed at some critical node before its action: ``over`` (estimate + bound
+    over the upper limit), ``under`` (estimate - bound under the lower one), ``both`` or ``neither``; or ``before the
+    first decision``. A step's taps against the decision of an earlier step, as ``LimitMinutes``.
+    """
+
+    side: str
+    up: int
+    down: int
 
 
 @dataclass(frozen=True)
@@ -80,6 +93,7 @@ class RunTrace:
     worst: NodeTrace | None = None  # the critical node whose bounds missed most often
     tap_steps: tuple[TapStepEffect, ...] = ()  # each regulator's single steps against the model (``cvvc.step_effect``)
     limit_minutes: tuple[LimitMinutes, ...] = ()  # minutes outside the optimization limits by the decision in force
+    side_moves: tuple[SideMoves, ...] = ()  # tap steps by the side of the limits the decision in force saw crossed
 
 
 def window_envelope_pu(v_pu: np.ndarray, window_steps: int = WINDOW_STEPS) -> tuple[np.ndarray, np.ndarray]:

@@ -209,6 +209,32 @@ def test_report_run_draws_the_case_against_no_control(one_hour_run, tmp_path):
     assert "![voltage envelope](voltage_envelope.png)" in report
 
 
+def test_tap_steps_are_counted_by_the_side_of_the_limits_the_decision_in_force_saw(one_hour_run, tmp_path):
+    """Every tap step of the truth frames is counted once, up or down, under the side of the limits the decision in
+    force saw crossed: with limits wide of every estimate none, with the limits swapped (every estimate over the
+    upper and under the lower) both; report.md lists them."""
+    from types import SimpleNamespace
+
+    from cvvc.report import BEFORE_FIRST_DECISION, limit_side, plot_run, read_trace
+
+    out, summary = one_hour_run
+    rec = Path(summary["recording"])
+    taps = np.array([t["taps"] for t in messages_by_topic(rec)["cvvc/ieee13/sim/truth"]])
+    diff = np.diff(taps, axis=0)
+    assert np.abs(diff).sum() > 0, "the hour must move taps for the counts to mean something"
+    for limits, sides in (((0.5, 1.5), {"neither"}), ((1.5, 0.5), {"both"}),
+                          (tuple(summary["metrics"]["opt_limits_pu"]), {"neither", "over", "under", "both"})):
+        rows = read_trace(rec, opt_limits_pu=limits).side_moves
+        assert sum(r.up for r in rows) == np.clip(diff, 0, None).sum()
+        assert sum(r.down for r in rows) == np.clip(-diff, 0, None).sum()
+        assert {r.side for r in rows} <= sides | {BEFORE_FIRST_DECISION}
+    assert limit_side([SimpleNamespace(v_pu=1.035, bound_low_pu=0.002, bound_high_pu=0.006)], (0.975, 1.04)) == "over"
+    assert limit_side([SimpleNamespace(v_pu=0.978, bound_low_pu=0.004, bound_high_pu=0.0)], (0.975, 1.04)) == "under"
+    assert limit_side([SimpleNamespace(v_pu=1.0, bound_low_pu=0.01, bound_high_pu=0.01)], (0.975, 1.04)) == "neither"
+    plot_run(out, out=tmp_path / "plots")
+    assert "## Tap steps, by the side of the limits" in (tmp_path / "plots" / "report.md").read_text()
+
+
 def test_no_process_left_behind_and_outputs_written(one_hour_run):
     out, summary = one_hour_run
     assert _processes_mentioning(str(out)) == []
