@@ -13,6 +13,7 @@ from __future__ import annotations
 import os
 import signal
 import threading
+import time
 
 __all__ = ["PARENT_ENV", "watch_parent"]
 
@@ -29,7 +30,7 @@ def watch_parent(period_s: float = 1.0) -> threading.Thread | None:
 
     def watch() -> None:
         while os.getppid() == parent:
-            threading.Event().wait(period_s)
+            time.sleep(period_s)
         os.kill(os.getpid(), signal.SIGTERM)  # re-parented: the launcher is gone
 
     thread = threading.Thread(target=watch, name="parent-watch", daemon=True)

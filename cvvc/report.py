@@ -60,9 +60,9 @@ if TYPE_CHECKING:
 _T = TypeVar("_T")
 
 __all__ = ["BEFORE_FIRST_DECISION", "NO_CONTROL", "NodeTrace", "ReportError", "RunTrace", "decision_kind",
-           "decode_evaluation", "decode_summary",
-           "envelope_figure", "errors_figure", "plot_evaluation", "plot_run", "pv_figure", "read_trace", "run_traces",
-           "taps_figure", "window_envelope_pu", "worst_node_figure"]
+           "decode_evaluation", "decode_summary", "envelope_figure", "errors_figure", "limit_side", "plot_evaluation",
+           "plot_run", "pv_figure", "read_trace", "run_traces", "taps_figure", "window_envelope_pu",
+           "worst_node_figure"]
 
 
 class ReportError(CommandError):
@@ -107,14 +107,16 @@ def decision_kind(status: str, reason: str) -> str:
 
 
 class _InForce:
-    """The kind of the decision in force at each truth step, from the run's decisions in step order."""
+    """A label of the decision in force at each truth step (its kind, or the side of the limits it saw crossed), from
+    the run's decisions' ``(step, label)`` pairs.
+    """
 
     def __init__(self, decided: list[tuple[int, str]]) -> None:
         self._decided = sorted(decided)
         self._i = -1
 
     def at(self, t_ns: int) -> str:
-        """The kind of the latest decision of a step before ``t_ns`` (steps come in time order)."""
+        """The label of the latest decision of a step before ``t_ns`` (steps come in time order)."""
         while self._i + 1 < len(self._decided) and self._decided[self._i + 1][0] < t_ns:
             self._i += 1
         return self._decided[self._i][1] if self._i >= 0 else BEFORE_FIRST_DECISION

@@ -36,6 +36,13 @@ def measured_steps_text(steps_v120: dict[str, float], n: int = 8) -> str:
     return text + (f" and {len(steps_v120) - n} more" if len(steps_v120) > n else "")
 
 
+def _count_table(title: str, intro: str, columns: tuple[str, str, str], rows: list[tuple[str, int, int]]) -> str:
+    """A report section: a title, a line of introduction and a table of two counts per label, largest first."""
+    lines = ["", f"## {title}", "", intro, "", f"| {' | '.join(columns)} |", "|---|---|---|"]
+    lines += [f"| {label} | {a:,} | {b:,} |" for label, a, b in sorted(rows, key=lambda r: -(r[1] + r[2]))]
+    return "\n".join(lines) + "\n"
+
+
 def limit_minutes_text(rows: tuple[LimitMinutes, ...], limits_pu: tuple[float, float] | None) -> str:
     """The report's section on the minutes with any node outside the optimization limits, by the decision in force
     (``cvvc.report.read_trace``); empty without limits or without such minutes.
@@ -43,11 +50,10 @@ def limit_minutes_text(rows: tuple[LimitMinutes, ...], limits_pu: tuple[float, f
     if limits_pu is None or not rows:
         return ""
     lo, hi = limits_pu
-    lines = ["", "## Minutes outside the optimization limits, by the decision in force", "",
-             f"A step's truth against the decision of an earlier step; any node under {lo:g} or over {hi:g} pu.", "",
-             "| decision in force | minutes under | minutes over |", "|---|---|---|"]
-    lines += [f"| {r.kind} | {r.under:,} | {r.over:,} |" for r in sorted(rows, key=lambda r: -(r.under + r.over))]
-    return "\n".join(lines) + "\n"
+    return _count_table("Minutes outside the optimization limits, by the decision in force",
+                        f"A step's truth against the decision of an earlier step; any node under {lo:g} or over "
+                        f"{hi:g} pu.", ("decision in force", "minutes under", "minutes over"),
+                        [(r.kind, r.under, r.over) for r in rows])
 
 
 def side_moves_text(rows: tuple[SideMoves, ...], limits_pu: tuple[float, float] | None) -> str:
@@ -58,12 +64,10 @@ def side_moves_text(rows: tuple[SideMoves, ...], limits_pu: tuple[float, float] 
     if limits_pu is None or not rows:
         return ""
     lo, hi = limits_pu
-    lines = ["", "## Tap steps, by the side of the limits the decision in force saw crossed", "",
-             f"Before its action, some critical node's estimate + bound over {hi:g} pu (over), estimate - bound under "
-             f"{lo:g} pu (under), both, or neither.", "",
-             "| decision in force saw | steps up | steps down |", "|---|---|---|"]
-    lines += [f"| {r.side} | {r.up:,} | {r.down:,} |" for r in sorted(rows, key=lambda r: -(r.up + r.down))]
-    return "\n".join(lines) + "\n"
+    return _count_table("Tap steps, by the side of the limits the decision in force saw crossed",
+                        f"Before its action, some critical node's estimate + bound over {hi:g} pu (over), estimate - "
+                        f"bound under {lo:g} pu (under), both, or neither.",
+                        ("decision in force saw", "steps up", "steps down"), [(r.side, r.up, r.down) for r in rows])
 
 
 def live_accuracy_text(a: LiveAccuracy) -> str:

@@ -30,8 +30,9 @@ Each step (one profile row, 1 minute by default):
 Before the first step the local controls run for ``SETTLE_S`` (30 minutes) on the first step's loads and PV, and
 their moves are not counted: a simulation starts from a feeder whose regulators and banks have settled, as a real
 feeder is found at any hour, not from the taps and bank states the model file leaves them in. Without it the first
-minutes of a run count the model's own start-up (IEEE 8500: every bank closed, the regulators 1-8 steps from where
-their controls hold them), and every case's tap and bank counts and 1-minute minima carry it.
+minutes of a run count the model's own start-up (IEEE 8500: every bank closed at 00:00, six of them opening in the
+first minute while case D's first decision moved the regulators 1-8 steps), and every case's tap and bank counts and
+1-minute minima carry it.
 """
 
 from __future__ import annotations
@@ -227,15 +228,12 @@ class Qsts:
     def _settle(self, settle_s: float) -> None:
         """Run the local controls for ``settle_s`` before the first step, on its loads and PV; count nothing."""
         e, s = self.engine, self._step
-        load_kw, pv_kw = self._rows(s)
-        p = np.minimum(np.maximum(pv_kw, 0.0), e.pv_pmpp_kw)
-        q = e.set_pv(p, self._pv_q_target(p, self._pv_v_pu))
-        e.set_loads_kw(load_kw)
+        p, q = self._set_injections(s)
         e.solve()
         t0 = self.profiles.t_ns(s) / 1e9
         self._run_controls(t0 - settle_s, t0, np.zeros(len(self._locked), int), np.zeros(len(self._cap_locked), int))
         self._pv_v_pu = self._plant_v_pu(e.node_voltages_pu())
-        self._pv_p_kw, self._pv_q_kvar = p, np.asarray(q, dtype=float)
+        self._pv_p_kw, self._pv_q_kvar = p, q
 
     @property
     def next_step(self) -> int:
@@ -380,17 +378,25 @@ class Qsts:
         headroom = np.sqrt(np.maximum(e.pv_kva**2 - np.minimum(p_kw, e.pv_pmpp_kw) ** 2, 0.0))
         return np.minimum(np.maximum(q, -headroom), headroom)
 
-    def step(self) -> StepResult:
-        """Advance one profile step: set loads and PV, apply held devices, solve, run local control."""
-        e, s = self.engine, self._step
-        if s >= self.profiles.n_steps:
-            raise QstsError(f"step {s} is past the end of the profiles ({self.profiles.n_steps} steps)")
+    def _set_injections(self, s: int) -> tuple[np.ndarray, np.ndarray]:
+        """Set step ``s``'s loads (unless staged) and PV, available P clipped to ``[0, Pmpp]`` and Q as each plant
+        applies it; returns (P [kW], Q [kvar]).
+        """
+        e = self.engine
         load_kw, pv_kw = self._rows(s)
         p = np.minimum(np.maximum(pv_kw, 0.0), e.pv_pmpp_kw)
         q = e.set_pv(p, self._pv_q_target(p, self._pv_v_pu))
         if self._staged != s:
             e.set_loads_kw(load_kw)
         self._staged = None
+        return p, np.asarray(q, dtype=float)
+
+    def step(self) -> StepResult:
+        """Advance one profile step: set loads and PV, apply held devices, solve, run local control."""
+        e, s = self.engine, self._step
+        if s >= self.profiles.n_steps:
+            raise QstsError(f"step {s} is past the end of the profiles ({self.profiles.n_steps} steps)")
+        p, q = self._set_injections(s)
 
         taps0 = e.taps()  # the engine's, in case its owner moved them between steps
         taps = np.where(self._locked, self._lock_tap, taps0)
@@ -409,7 +415,7 @@ class Qsts:
 
         v = e.node_voltages_pu()
         self._pv_v_pu = self._plant_v_pu(v)
-        self._pv_p_kw, self._pv_q_kvar = p, np.asarray(q, dtype=float)
+        self._pv_p_kw, self._pv_q_kvar = p, q
         self._step = s + 1
         return StepResult(
             step=s, t_ns=int(self.profiles.t_ns(s)), readings=readings, v_pu=v, taps=e.taps(),
