@@ -620,7 +620,7 @@ def no_control_baseline(dm_path: Path, start: dt.datetime, steps: int, year_seed
     from schemas.devicemap import load_device_map
     from simulator_bridge.bus.publishing import metrics_frame
     from simulator_bridge.opendss.engine import FeederEngine
-    from simulator_bridge.simulation.metrics_stream import MetricsAccumulator
+    from simulator_bridge.simulation.metrics_stream import MetricsAccumulator, zone_phase_nodes
     from simulator_bridge.simulation.qsts import Qsts
     from training.train import load_profiles
 
@@ -631,11 +631,12 @@ def no_control_baseline(dm_path: Path, start: dt.datetime, steps: int, year_seed
     sim = Qsts(engine, profiles, start_step=first, pv_local="unity")
     acc = MetricsAccumulator.for_feeder(dm, engine)
     series = TruthSeries()
+    judged = zone_phase_nodes(engine)  # the envelope over the voltages judged, as the metrics (no neutral)
     bar = progress_bar(steps, enabled=progress, desc="no control", unit="min")
     for _ in range(steps):
         r = sim.step()
         acc.update(r.v_pu, r.tap_changes, r.pv_q_kvar, r.cap_switches)
-        series.add(r.t_ns, r.v_pu, r.taps, r.pv_q_kvar, r.cap_states)
+        series.add(r.t_ns, r.v_pu if judged is None else r.v_pu[judged], r.taps, r.pv_q_kvar, r.cap_states)
         bar.update(1)
     bar.close()
     result = acc.result()

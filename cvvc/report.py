@@ -34,6 +34,7 @@ import numpy as np
 
 from agent.tap_moves import HELD_BY_DEADBAND
 from cvvc.errors import CommandError
+from cvvc.extreme_minutes import ExtremeMinutes
 from cvvc.run_trace import (
     BASELINE_TRACE,
     WINDOW_STEPS,
@@ -51,6 +52,7 @@ from schemas.truth import TruthDecodeError, decode_truth
 from simulator_bridge.rural.synthesis import UTC_OFFSET_H
 from simulator_bridge.simulation.live_accuracy import LiveAccuracyAccumulator
 from simulator_bridge.simulation.metrics import VIOLATION_TOLERANCE_PU
+from simulator_bridge.simulation.metrics_stream import phase_nodes
 
 if TYPE_CHECKING:
     from cvvc.evaluation import Evaluation
@@ -139,7 +141,8 @@ def read_trace(mcap_path: str | Path, *, regulator_ids: tuple[str, ...] = (), pv
 
     ``opt_limits_pu``: the optimization limits the run was judged against (its metrics' ``opt_limits_pu``); with
     them, the minutes any node spent outside them are counted by the decision in force (``RunTrace.limit_minutes``),
-    and the regulators' tap steps by the side of them that decision saw crossed (``RunTrace.side_moves``).
+    and the regulators' tap steps by the side of them that decision saw crossed (``RunTrace.side_moves``). Always:
+    the lowest and highest minutes with the taps and banks that moved up to each (``RunTrace.extremes``).
     """
     from mcap.reader import make_reader
 
@@ -167,12 +170,15 @@ def read_trace(mcap_path: str | Path, *, regulator_ids: tuple[str, ...] = (), pv
                     if sensitivities is None and len(d.dv_dtap_pu) == len(d.estimates):
                         sensitivities = [x.node for x in d.estimates], np.asarray(d.dv_dtap_pu, float)
         node_index: dict[str, int] = {}
+        phase = np.zeros(0, bool)  # the phase nodes (no neutral), once the frames have named the nodes
+        phase_names: tuple[str, ...] = ()
         series = TruthSeries(WINDOW_STEPS)
         err_t, err_max, err_min, err_rms, errors = [], [], [], [], []
         judged: list[tuple[int, list[_Estimate], np.ndarray]] = []  # (t_ns, estimates, true v at their nodes)
         live: LiveAccuracyAccumulator | None = None
         steps: TapStepAccumulator | None = None
         in_force, side_in_force = _InForce(decided), _InForce(sides)
+        extremes = ExtremeMinutes(regulator_ids, capacitor_ids)
         outside: dict[str, list[int]] = {}  # kind -> [minutes under, minutes over] the optimization limits
         moved: dict[str, list[int]] = {}  # side -> [tap steps up, tap steps down]
         last_taps: np.ndarray | None = None
@@ -181,8 +187,9 @@ def read_trace(mcap_path: str | Path, *, regulator_ids: tuple[str, ...] = (), pv
                 tr = decode_truth(msg.data, channel.message_encoding)
             except TruthDecodeError as bad:
                 raise ReportError(f"{path}: {truth_topic} at {msg.log_time}: {bad}") from bad
+            kind = in_force.at(tr.t_ns)
             if opt_limits_pu is not None:
-                counts = outside.setdefault(in_force.at(tr.t_ns), [0, 0])
+                counts = outside.setdefault(kind, [0, 0])
                 counts[0] += tr.v_min_pu < opt_limits_pu[0] - VIOLATION_TOLERANCE_PU
                 counts[1] += tr.v_max_pu > opt_limits_pu[1] + VIOLATION_TOLERANCE_PU
                 taps = np.asarray(tr.taps, int)
@@ -193,11 +200,16 @@ def read_trace(mcap_path: str | Path, *, regulator_ids: tuple[str, ...] = (), pv
                 last_taps = taps
             if tr.node_names:
                 node_index = {n: i for i, n in enumerate(tr.node_names)}
+                phase = phase_nodes(tr.node_names)
+                phase_names = tuple(n for n, j in zip(tr.node_names, phase, strict=True) if j)
                 live = LiveAccuracyAccumulator(tr.node_names)
                 if sensitivities is not None and regulator_ids:
                     steps = TapStepAccumulator(tr.node_names, *sensitivities, regulator_ids)
             v = tr.v_pu
-            series.add(tr.t_ns, v, tr.taps, tr.pv_q_kvar, tr.cap_states)
+            v_phase = v[phase] if phase.shape == v.shape else v  # frames before the names: every node
+            series.add(tr.t_ns, v_phase, tr.taps, tr.pv_q_kvar, tr.cap_states)
+            extremes.add(tr.t_ns, v_phase, tr.taps, tr.cap_states, kind,
+                         phase_names if tr.node_names and phase.shape == v.shape else None)
             if steps is not None:
                 steps.add(tr.t_ns, v, tr.taps, tr.pv_q_kvar, tr.cap_states)
             est = estimates.get(tr.t_ns)
@@ -223,7 +235,8 @@ def read_trace(mcap_path: str | Path, *, regulator_ids: tuple[str, ...] = (), pv
                    tap_steps=steps.result() if steps is not None else (),
                    limit_minutes=tuple(LimitMinutes(k, under, over) for k, (under, over) in outside.items()
                                        if under or over),
-                   side_moves=tuple(SideMoves(side, up, down) for side, (up, down) in moved.items()))
+                   side_moves=tuple(SideMoves(side, up, down) for side, (up, down) in moved.items()),
+                   extremes=extremes.result())
 
 
 def _worst_node(live: LiveAccuracyAccumulator | None,
@@ -528,7 +541,7 @@ def plot_run(run_dir: str | Path, *, out: str | Path | None = None) -> list[Path
     """The PNGs of one ``cvvc run`` folder (default into ``run_dir/plots``), the case against no control when the
     run simulated it, and ``report.md`` beside them (the run's report with the plots); returns the PNGs' paths.
     """
-    from cvvc.run_report import limit_minutes_text, render_summary, side_moves_text
+    from cvvc.run_report import extreme_minutes_text, limit_minutes_text, render_summary, side_moves_text
 
     d = Path(run_dir)
     summary, dm, traces = _run_traces(d)
@@ -544,6 +557,7 @@ def plot_run(run_dir: str | Path, *, out: str | Path | None = None) -> list[Path
     measured = f"\n## What the truth says of the model\n\n- {tap_steps_text(steps)}\n" if steps else ""
     outside = limit_minutes_text(trace.limit_minutes, summary.metrics.opt_limits_pu)
     outside += side_moves_text(trace.side_moves, summary.metrics.opt_limits_pu)
+    outside += extreme_minutes_text(trace.extremes)
     (report_dir / "report.md").write_text(render_summary(summary, dm) + measured + outside + "\n## Plots\n\n"
                                           + "\n\n".join(links) + "\n")
     return paths

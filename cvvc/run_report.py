@@ -1,22 +1,27 @@
 """The report of one ``cvvc run`` (``report.md``, printed at its end): its metrics beside no control's, its costs
 and what they charge, a one-line verdict, its decisions and their most frequent reasons, lockstep misses, the
-recording and its gaps.
+recording and its gaps; and the sections read from the recording (``cvvc report run``): the minutes outside the
+limits and the tap steps by the decision in force, the lowest and highest minutes with what moved before them.
 """
 
 from __future__ import annotations
 
+from datetime import UTC, datetime
 from typing import TYPE_CHECKING
 
+from cvvc.extreme_minutes import LOOKBACK_STEPS
+from simulator_bridge.rural.synthesis import UTC_OFFSET_H
 from simulator_bridge.simulation.live_accuracy import HOLD_FACTOR
 
 if TYPE_CHECKING:
+    from cvvc.extreme_minutes import ExtremeMinute
     from cvvc.run_summary import RunSummary
     from cvvc.run_trace import LimitMinutes, SideMoves
     from schemas.devicemap import DeviceMap
     from simulator_bridge.simulation.live_accuracy import LiveAccuracy
 
-__all__ = ["cost_lines", "decision_time_text", "limit_minutes_text", "live_accuracy_text", "measured_steps_text",
-           "render_summary", "side_moves_text", "top_reasons", "verdict"]
+__all__ = ["cost_lines", "decision_time_text", "extreme_minutes_text", "limit_minutes_text", "live_accuracy_text",
+           "measured_steps_text", "render_summary", "side_moves_text", "top_reasons", "verdict"]
 
 
 def top_reasons(reasons: dict[str, int], n: int = 3) -> str:
@@ -68,6 +73,24 @@ def side_moves_text(rows: tuple[SideMoves, ...], limits_pu: tuple[float, float] 
                         f"Before its action, some critical node's estimate + bound over {hi:g} pu (over), estimate - "
                         f"bound under {lo:g} pu (under), both, or neither.",
                         ("decision in force saw", "steps up", "steps down"), [(r.side, r.up, r.down) for r in rows])
+
+
+def extreme_minutes_text(rows: tuple[ExtremeMinute, ...]) -> str:
+    """The report's section on the run's lowest and highest minutes and what moved in the minutes up to each
+    (``cvvc.extreme_minutes``); empty without truth steps.
+    """
+    if not rows:
+        return ""
+    lines = ["", "## The lowest and highest minutes, and what moved before them", "",
+             f"Each minute's extreme over the phase nodes (no neutral), at least an hour apart on each side; the taps "
+             f"and banks that moved in that minute and the {LOOKBACK_STEPS - 1} before it (minutes before it in "
+             f"brackets; local standard time, UTC{UTC_OFFSET_H:+d}).", "",
+             "| minute | | voltage [pu] | node | decision in force | moved |", "|---|---|---|---|---|---|"]
+    for r in rows:
+        when = datetime.fromtimestamp(r.t_ns / 1e9 + UTC_OFFSET_H * 3600, tz=UTC).strftime("%Y-%m-%d %H:%M")
+        moved = "; ".join(f"{text} ({ago})" for ago, text in r.moves) or "nothing"
+        lines.append(f"| {when} | {r.side} | {r.v_pu:.4f} | {r.node} | {r.decision} | {moved} |")
+    return "\n".join(lines) + "\n"
 
 
 def live_accuracy_text(a: LiveAccuracy) -> str:

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+from cvvc.extreme_minutes import ExtremeMinute
 from cvvc.step_effect import TapStepEffect
 from simulator_bridge.simulation.live_accuracy import LiveAccuracy
 
@@ -94,6 +95,7 @@ class RunTrace:
     tap_steps: tuple[TapStepEffect, ...] = ()  # each regulator's single steps against the model (``cvvc.step_effect``)
     limit_minutes: tuple[LimitMinutes, ...] = ()  # minutes outside the optimization limits by the decision in force
     side_moves: tuple[SideMoves, ...] = ()  # tap steps by the side of the limits the decision in force saw crossed
+    extremes: tuple[ExtremeMinute, ...] = ()  # the lowest and highest minutes, with what moved before them
 
 
 def window_envelope_pu(v_pu: np.ndarray, window_steps: int = WINDOW_STEPS) -> tuple[np.ndarray, np.ndarray]:

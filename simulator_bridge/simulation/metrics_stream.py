@@ -26,7 +26,14 @@ from simulator_bridge.simulation.metrics import (
     violation_pu,
 )
 
-__all__ = ["MetricsAccumulator", "zone_phase_nodes"]
+__all__ = ["MetricsAccumulator", "phase_nodes", "zone_phase_nodes"]
+
+
+def phase_nodes(node_names) -> np.ndarray:
+    """(N,) bool: the nodes of phases 1-3 by their OpenDSS names (``bus.1`` .. ``bus.3``; a neutral's ``bus.4`` or a
+    bus without a phase is not a voltage a customer sees).
+    """
+    return np.array([n.rpartition(".")[2] in ("1", "2", "3") for n in node_names], dtype=bool)
 
 
 def zone_phase_nodes(engine) -> np.ndarray | None:
@@ -38,8 +45,7 @@ def zone_phase_nodes(engine) -> np.ndarray | None:
     zone = getattr(engine, "node_in_feeder", None)
     if zone is None:
         return None
-    phase_node = np.array([n.rpartition(".")[2] in ("1", "2", "3") for n in engine.node_names], dtype=bool)
-    return np.flatnonzero(np.asarray(zone, dtype=bool) & phase_node)
+    return np.flatnonzero(np.asarray(zone, dtype=bool) & phase_nodes(engine.node_names))
 
 
 class MetricsAccumulator:

@@ -235,6 +235,39 @@ def test_tap_steps_are_counted_by_the_side_of_the_limits_the_decision_in_force_s
     assert "## Tap steps, by the side of the limits" in (tmp_path / "plots" / "report.md").read_text()
 
 
+def test_the_lowest_and_highest_minutes_name_their_node_and_what_moved_before_them(one_hour_run, tmp_path):
+    """The run's extreme minutes are the truth's over the phase nodes (value, time, node), one per side within the
+    hour (episodes an hour apart), each with the decision in force and every tap step of its own and the four minutes
+    before it; the plotted envelope is over the same nodes."""
+    from cvvc.extreme_minutes import LOOKBACK_STEPS
+    from cvvc.report import BEFORE_FIRST_DECISION, plot_run, read_trace
+    from simulator_bridge.simulation.metrics_stream import phase_nodes
+
+    out, summary = one_hour_run
+    rec = Path(summary["recording"])
+    truth = messages_by_topic(rec)["cvvc/ieee13/sim/truth"]
+    names = truth[0]["node_names"]
+    v = np.array([t["v_pu"] for t in truth])[:, phase_nodes(names)]
+    regs = tuple(summary["metrics"]["taps_changes"])
+    trace = read_trace(rec, regulator_ids=regs)
+    rows = trace.extremes
+    assert [r.side for r in rows] == ["lowest", "highest"]
+    assert trace.v_env_min_pu.min() >= v.min() and trace.v_env_max_pu.max() <= v.max()
+    taps = np.array([t["taps"] for t in truth])
+    for r, per_step in ((rows[0], v.min(axis=1)), (rows[1], -v.max(axis=1))):
+        i = int(np.argmin(per_step))
+        assert (r.t_ns, r.v_pu) == (truth[i]["t_ns"], abs(per_step[i]))
+        assert truth[i]["v_pu"][names.index(r.node)] == r.v_pu
+        assert r.decision != BEFORE_FIRST_DECISION or i < 5
+        expected = [(i - j, ", ".join(f"{regs[k]} {int(d):+d}" for k, d in enumerate(taps[j] - taps[j - 1]) if d))
+                    for j in range(max(i - LOOKBACK_STEPS + 1, 1), i + 1) if np.any(taps[j] != taps[j - 1])]
+        assert list(r.moves) == expected
+    plot_run(out, out=tmp_path / "plots")
+    report = (tmp_path / "plots" / "report.md").read_text()
+    assert "## The lowest and highest minutes, and what moved before them" in report
+    assert f"| lowest | {rows[0].v_pu:.4f} | {rows[0].node} |" in report
+
+
 def test_no_process_left_behind_and_outputs_written(one_hour_run):
     out, summary = one_hour_run
     assert _processes_mentioning(str(out)) == []
