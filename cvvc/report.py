@@ -139,10 +139,11 @@ def read_trace(mcap_path: str | Path, *, regulator_ids: tuple[str, ...] = (), pv
                opt_limits_pu: tuple[float, float] | None = None) -> RunTrace:
     """Reduce one run's MCAP recording to a :class:`RunTrace` (two streaming passes: decisions, then truth).
 
-    ``opt_limits_pu``: the optimization limits the run was judged against (its metrics' ``opt_limits_pu``); with
-    them, the minutes any node spent outside them are counted by the decision in force (``RunTrace.limit_minutes``),
-    and the regulators' tap steps by the side of them that decision saw crossed (``RunTrace.side_moves``). Always:
-    the lowest and highest minutes with the taps and banks that moved up to each (``RunTrace.extremes``).
+    Voltages are the phase nodes' (a neutral's is no customer's). ``opt_limits_pu``: the optimization limits the run
+    was judged against (its metrics' ``opt_limits_pu``); with them, the minutes any node spent outside them are
+    counted by the decision in force (``RunTrace.limit_minutes``), and the regulators' tap steps by the side of them
+    that decision saw crossed (``RunTrace.side_moves``). Always: the lowest and highest minutes with the taps and banks
+    that moved up to each (``RunTrace.extremes``).
     """
     from mcap.reader import make_reader
 
@@ -187,17 +188,6 @@ def read_trace(mcap_path: str | Path, *, regulator_ids: tuple[str, ...] = (), pv
                 tr = decode_truth(msg.data, channel.message_encoding)
             except TruthDecodeError as bad:
                 raise ReportError(f"{path}: {truth_topic} at {msg.log_time}: {bad}") from bad
-            kind = in_force.at(tr.t_ns)
-            if opt_limits_pu is not None:
-                counts = outside.setdefault(kind, [0, 0])
-                counts[0] += tr.v_min_pu < opt_limits_pu[0] - VIOLATION_TOLERANCE_PU
-                counts[1] += tr.v_max_pu > opt_limits_pu[1] + VIOLATION_TOLERANCE_PU
-                taps = np.asarray(tr.taps, int)
-                if last_taps is not None and taps.shape == last_taps.shape and np.any(taps != last_taps):
-                    steps_moved = moved.setdefault(side_in_force.at(tr.t_ns), [0, 0])
-                    steps_moved[0] += int(np.clip(taps - last_taps, 0, None).sum())
-                    steps_moved[1] += int(np.clip(last_taps - taps, 0, None).sum())
-                last_taps = taps
             if tr.node_names:
                 node_index = {n: i for i, n in enumerate(tr.node_names)}
                 phase = phase_nodes(tr.node_names)
@@ -207,6 +197,17 @@ def read_trace(mcap_path: str | Path, *, regulator_ids: tuple[str, ...] = (), pv
                     steps = TapStepAccumulator(tr.node_names, *sensitivities, regulator_ids)
             v = tr.v_pu
             v_phase = v[phase] if phase.shape == v.shape else v  # frames before the names: every node
+            kind = in_force.at(tr.t_ns)
+            if opt_limits_pu is not None and v_phase.size:
+                counts = outside.setdefault(kind, [0, 0])
+                counts[0] += bool(v_phase.min() < opt_limits_pu[0] - VIOLATION_TOLERANCE_PU)
+                counts[1] += bool(v_phase.max() > opt_limits_pu[1] + VIOLATION_TOLERANCE_PU)
+                taps = np.asarray(tr.taps, int)
+                if last_taps is not None and taps.shape == last_taps.shape and np.any(taps != last_taps):
+                    steps_moved = moved.setdefault(side_in_force.at(tr.t_ns), [0, 0])
+                    steps_moved[0] += int(np.clip(taps - last_taps, 0, None).sum())
+                    steps_moved[1] += int(np.clip(last_taps - taps, 0, None).sum())
+                last_taps = taps
             series.add(tr.t_ns, v_phase, tr.taps, tr.pv_q_kvar, tr.cap_states)
             extremes.add(tr.t_ns, v_phase, tr.taps, tr.cap_states, kind,
                          phase_names if tr.node_names and phase.shape == v.shape else None)
