@@ -52,7 +52,7 @@ from schemas.truth import TruthDecodeError, decode_truth
 from simulator_bridge.rural.synthesis import UTC_OFFSET_H
 from simulator_bridge.simulation.live_accuracy import LiveAccuracyAccumulator
 from simulator_bridge.simulation.metrics import VIOLATION_TOLERANCE_PU
-from simulator_bridge.simulation.metrics_stream import phase_nodes
+from simulator_bridge.simulation.metrics_stream import phase_nodes, zone_phase_nodes
 
 if TYPE_CHECKING:
     from cvvc.evaluation import Evaluation
@@ -62,8 +62,8 @@ if TYPE_CHECKING:
 _T = TypeVar("_T")
 
 __all__ = ["BEFORE_FIRST_DECISION", "NO_CONTROL", "NodeTrace", "ReportError", "RunTrace", "decision_kind",
-           "decode_evaluation", "decode_summary", "envelope_figure", "errors_figure", "limit_side", "plot_evaluation",
-           "plot_run", "pv_figure", "read_trace", "run_traces", "taps_figure", "window_envelope_pu",
+           "decode_evaluation", "decode_summary", "envelope_figure", "errors_figure", "judged_node_names", "limit_side",
+           "plot_evaluation", "plot_run", "pv_figure", "read_trace", "run_traces", "taps_figure", "window_envelope_pu",
            "worst_node_figure"]
 
 
@@ -136,10 +136,12 @@ def _topic(reader, suffix: str) -> str | None:
 
 def read_trace(mcap_path: str | Path, *, regulator_ids: tuple[str, ...] = (), pv_ids: tuple[str, ...] = (),
                limits_pu: tuple[float, float] = (0.965, 1.05), capacitor_ids: tuple[str, ...] = (),
-               opt_limits_pu: tuple[float, float] | None = None) -> RunTrace:
+               opt_limits_pu: tuple[float, float] | None = None,
+               judged_nodes: frozenset[str] | None = None) -> RunTrace:
     """Reduce one run's MCAP recording to a :class:`RunTrace` (two streaming passes: decisions, then truth).
 
-    Voltages are the phase nodes' (a neutral's is no customer's). ``opt_limits_pu``: the optimization limits the run
+    Voltages are the ``judged_nodes``' (the feeder zone's phase nodes, ``judged_node_names``, as the run's metrics), or
+    without them every phase node's (a neutral's is no customer's). ``opt_limits_pu``: the optimization limits the run
     was judged against (its metrics' ``opt_limits_pu``); with them, the minutes any node spent outside them are
     counted by the decision in force (``RunTrace.limit_minutes``), and the regulators' tap steps by the side of them
     that decision saw crossed (``RunTrace.side_moves``). Always: the lowest and highest minutes with the taps and banks
@@ -190,7 +192,8 @@ def read_trace(mcap_path: str | Path, *, regulator_ids: tuple[str, ...] = (), pv
                 raise ReportError(f"{path}: {truth_topic} at {msg.log_time}: {bad}") from bad
             if tr.node_names:
                 node_index = {n: i for i, n in enumerate(tr.node_names)}
-                phase = phase_nodes(tr.node_names)
+                phase = phase_nodes(tr.node_names) if judged_nodes is None else \
+                    np.array([n in judged_nodes for n in tr.node_names], dtype=bool)
                 phase_names = tuple(n for n, j in zip(tr.node_names, phase, strict=True) if j)
                 live = LiveAccuracyAccumulator(tr.node_names)
                 if sensitivities is not None and regulator_ids:
@@ -358,6 +361,20 @@ def _run_meta(run_dir: Path) -> tuple[RunSummary, DeviceMap | None]:
     return summary, dm
 
 
+def judged_node_names(dm: DeviceMap) -> frozenset[str] | None:
+    """The names of the nodes a feeder's metrics judge (``zone_phase_nodes``: the zone's phase nodes), from its
+    circuit compiled once; None when the circuit cannot be compiled any more (then every phase node is taken).
+    """
+    from simulator_bridge.opendss.engine import FeederEngine
+
+    try:
+        engine = FeederEngine(dm)
+    except (CvvcError, OSError):
+        return None
+    zone = zone_phase_nodes(engine)
+    return None if zone is None else frozenset(engine.node_names[i] for i in zone)
+
+
 def _trace_of(run_dir: Path, summary: RunSummary, dm: DeviceMap | None) -> RunTrace:
     mt = summary.metrics
     limits = (0.965, 1.05)  # the paper's limits, without the map
@@ -368,7 +385,7 @@ def _trace_of(run_dir: Path, summary: RunSummary, dm: DeviceMap | None) -> RunTr
     path = Path(rec) if Path(rec).is_file() else run_dir / "session.mcap"
     return read_trace(path, regulator_ids=tuple(mt.taps_changes), pv_ids=tuple(mt.q_mvar_intervals),
                       limits_pu=limits, capacitor_ids=tuple(mt.cap_switches_per_bank),
-                      opt_limits_pu=mt.opt_limits_pu)
+                      opt_limits_pu=mt.opt_limits_pu, judged_nodes=None if dm is None else judged_node_names(dm))
 
 
 def _baseline_of(run_dir: Path) -> RunTrace | None:

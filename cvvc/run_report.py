@@ -82,7 +82,7 @@ def extreme_minutes_text(rows: tuple[ExtremeMinute, ...]) -> str:
     if not rows:
         return ""
     lines = ["", "## The lowest and highest minutes, and what moved before them", "",
-             f"Each minute's extreme over the phase nodes (no neutral), at least an hour apart on each side; the taps "
+             f"Each minute's extreme over the nodes the metrics judge, at least an hour apart on each side; the taps "
              f"and banks that moved in that minute and the {LOOKBACK_STEPS - 1} before it (minutes before it in "
              f"brackets; local standard time, UTC{UTC_OFFSET_H:+d}).", "",
              "| minute | | voltage [pu] | node | decision in force | moved |", "|---|---|---|---|---|---|"]

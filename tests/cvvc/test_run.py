@@ -262,10 +262,19 @@ def test_the_lowest_and_highest_minutes_name_their_node_and_what_moved_before_th
         expected = [(i - j, ", ".join(f"{regs[k]} {int(d):+d}" for k, d in enumerate(taps[j] - taps[j - 1]) if d))
                     for j in range(max(i - LOOKBACK_STEPS + 1, 1), i + 1) if np.any(taps[j] != taps[j - 1])]
         assert list(r.moves) == expected
+    # over the nodes the run's metrics judge (the zone's phase nodes), its extremes are the metrics' own
+    from cvvc.report import judged_node_names
+    from schemas.devicemap import load_device_map
+
+    zone = judged_node_names(load_device_map(REPO / "feeders" / "ieee13.toml"))
+    assert zone and not any(n.endswith(".4") for n in zone)
+    low, high = read_trace(rec, judged_nodes=zone).extremes
+    assert low.v_pu == pytest.approx(summary["metrics"]["v_min_pu"], abs=1e-6)
+    assert high.v_pu == pytest.approx(summary["metrics"]["v_max_pu"], abs=1e-6)
     plot_run(out, out=tmp_path / "plots")
     report = (tmp_path / "plots" / "report.md").read_text()
     assert "## The lowest and highest minutes, and what moved before them" in report
-    assert f"| lowest | {rows[0].v_pu:.4f} | {rows[0].node} |" in report
+    assert f"| lowest | {low.v_pu:.4f} | {low.node} |" in report
 
 
 def test_no_process_left_behind_and_outputs_written(one_hour_run):
