@@ -56,8 +56,8 @@ def limit_minutes_text(rows: tuple[LimitMinutes, ...], limits_pu: tuple[float, f
         return ""
     lo, hi = limits_pu
     return _count_table("Minutes outside the optimization limits, by the decision in force",
-                        f"A step's truth against the decision of an earlier step; any phase node under {lo:g} or over "
-                        f"{hi:g} pu.", ("decision in force", "minutes under", "minutes over"),
+                        f"A step's truth against the decision of an earlier step; any node the metrics judge under "
+                        f"{lo:g} or over {hi:g} pu.", ("decision in force", "minutes under", "minutes over"),
                         [(r.kind, r.under, r.over) for r in rows])
 
 
