@@ -26,7 +26,7 @@ import msgspec
 import numpy as np
 
 from cvvc.errors import CommandError
-from cvvc.report import LOCAL_UTC_OFFSET_NS
+from cvvc.report import LOCAL_UTC_OFFSET_NS, local_minute
 
 __all__ = ["DecisionExplanation", "ExplainError", "LimitRow", "SolveLine", "explain_decision", "local_time_ns",
            "render_explanation"]
@@ -93,10 +93,6 @@ def local_time_ns(text: str) -> int:
     return int(naive.replace(tzinfo=dt.UTC).timestamp()) * _NS - LOCAL_UTC_OFFSET_NS
 
 
-def _local(t_ns: int) -> str:
-    return dt.datetime.fromtimestamp((t_ns + LOCAL_UTC_OFFSET_NS) / _NS, tz=dt.UTC).strftime("%Y-%m-%d %H:%M")
-
-
 def explain_decision(recording: str | Path, at_t_ns: int, *, rows: int = 6) -> DecisionExplanation:
     """The decision of the control step at or before ``at_t_ns`` [UTC ns] of ``recording`` (a run folder or its
     ``session.mcap``), re-run offline and taken apart; ``rows``: how many rows nearest their limits to keep.
@@ -116,8 +112,8 @@ def explain_decision(recording: str | Path, at_t_ns: int, *, rows: int = 6) -> D
     steps = sorted(t for t in recorded if t <= at_t_ns)
     if not steps:
         first = min(recorded, default=None)
-        raise ExplainError(f"{path}: no recorded decision at or before {_local(at_t_ns)}"
-                           + (f" (the first is at {_local(first)})" if first is not None else ""))
+        raise ExplainError(f"{path}: no recorded decision at or before {local_minute(at_t_ns)}"
+                           + (f" (the first is at {local_minute(first)})" if first is not None else ""))
     target = steps[-1]
     model_path = recorded_model(path, meta.get("model_path", ""))
     if not model_path or not Path(model_path).is_file():
@@ -132,7 +128,7 @@ def explain_decision(recording: str | Path, at_t_ns: int, *, rows: int = 6) -> D
             return _explain(message, recorded[target], decision, maker, rows)
         if message.step_t_ns > target:
             break
-    raise ExplainError(f"{path}: the offline re-run made no decision for the step of {_local(target)}")
+    raise ExplainError(f"{path}: the offline re-run made no decision for the step of {local_minute(target)}")
 
 
 def _explain(message, recorded, decision, maker, n_rows: int) -> DecisionExplanation:
@@ -179,7 +175,7 @@ def _explain(message, recorded, decision, maker, n_rows: int) -> DecisionExplana
                                 q_kvar={p: round(float(q), 1) for p, q in zip(pv_ids, s.q_new_kvar, strict=False)},
                                 reason=s.reason[:300], taken=k_solve == taken))
     return DecisionExplanation(
-        step_t_ns=message.step_t_ns, local_time=_local(message.step_t_ns), status=message.status,
+        step_t_ns=message.step_t_ns, local_time=local_minute(message.step_t_ns), status=message.status,
         reason=message.reason, commands=[f"{k} {v:g}" for k, v in command_values(message).items()],
         reproduced=diff_decisions([recorded], [message]).identical == 1,
         optimization_limits_pu=(lo_opt, hi_opt), solves=solves, rows=rows)

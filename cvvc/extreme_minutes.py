@@ -4,9 +4,10 @@
 The paper's metrics average ten minutes; a 1-minute extreme is often one device's move: a bank that opened on its own
 control drops its phase's secondaries by 0.02-0.04 pu in a minute (IEEE 8500), a regulator steps at the wrong time.
 Read from the truth frames, step by step with bounded memory per step: each step's extremes over the nodes it is given
-(the phase nodes: ``cvvc.report.read_trace``), the node that has each, the decision in force, and what moved since
-the step before (tap steps per regulator, closed steps per bank). The lowest and the highest minutes are then taken as
-episodes, each at least ``EPISODE_GAP_NS`` from the others of its side, so that one ramp does not fill the table.
+(those the run's metrics judge: ``cvvc.report.read_trace``), the node that has each, the decision in force, and what
+moved since the step before (tap steps per regulator, closed steps per bank). The lowest and the highest minutes are
+then taken as episodes, each at least ``EPISODE_GAP_NS`` from the others of its side, so that one ramp does not fill
+the table.
 """
 
 from __future__ import annotations

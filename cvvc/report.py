@@ -24,6 +24,7 @@ fields used). A month of truth is streamed (``cvvc.run_trace.TruthSeries``): not
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
@@ -63,8 +64,8 @@ _T = TypeVar("_T")
 
 __all__ = ["BEFORE_FIRST_DECISION", "NO_CONTROL", "NodeTrace", "ReportError", "RunTrace", "decision_kind",
            "decode_evaluation", "decode_summary", "envelope_figure", "errors_figure", "judged_node_names", "limit_side",
-           "plot_evaluation", "plot_run", "pv_figure", "read_trace", "run_traces", "taps_figure", "window_envelope_pu",
-           "worst_node_figure"]
+           "local_minute", "plot_evaluation", "plot_run", "pv_figure", "read_trace", "run_traces", "taps_figure",
+           "window_envelope_pu", "worst_node_figure"]
 
 
 class ReportError(CommandError):
@@ -277,6 +278,11 @@ def _plt():
     return plt
 
 
+def local_minute(t_ns: int) -> str:
+    """A simulation time [ns since the UTC epoch] as the profiles' local standard time, ``YYYY-MM-DD HH:MM``."""
+    return str(np.datetime64(int(t_ns) + LOCAL_UTC_OFFSET_NS, "ns").astype("datetime64[m]")).replace("T", " ")
+
+
 def _clock(t_ns: np.ndarray) -> np.ndarray:
     """Simulation times [ns since the UTC epoch] as local standard time (UTC-5), ``datetime64[ns]`` for the x axis."""
     return (np.asarray(t_ns, dtype=np.int64) + LOCAL_UTC_OFFSET_NS).astype("datetime64[ns]")
@@ -375,6 +381,17 @@ def judged_node_names(dm: DeviceMap) -> frozenset[str] | None:
     return None if zone is None else frozenset(engine.node_names[i] for i in zone)
 
 
+@functools.lru_cache(maxsize=8)
+def _judged_of_map(feeder: str) -> frozenset[str] | None:
+    """``judged_node_names`` of the device map at ``feeder``, once per map (an evaluation's runs share theirs)."""
+    from schemas.devicemap import load_device_map
+
+    try:
+        return judged_node_names(load_device_map(feeder))
+    except (CvvcError, OSError):
+        return None
+
+
 def _trace_of(run_dir: Path, summary: RunSummary, dm: DeviceMap | None) -> RunTrace:
     mt = summary.metrics
     limits = (0.965, 1.05)  # the paper's limits, without the map
@@ -385,7 +402,8 @@ def _trace_of(run_dir: Path, summary: RunSummary, dm: DeviceMap | None) -> RunTr
     path = Path(rec) if Path(rec).is_file() else run_dir / "session.mcap"
     return read_trace(path, regulator_ids=tuple(mt.taps_changes), pv_ids=tuple(mt.q_mvar_intervals),
                       limits_pu=limits, capacitor_ids=tuple(mt.cap_switches_per_bank),
-                      opt_limits_pu=mt.opt_limits_pu, judged_nodes=None if dm is None else judged_node_names(dm))
+                      opt_limits_pu=mt.opt_limits_pu,
+                      judged_nodes=None if dm is None else _judged_of_map(summary.feeder))
 
 
 def _baseline_of(run_dir: Path) -> RunTrace | None:

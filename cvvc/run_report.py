@@ -6,7 +6,6 @@ limits and the tap steps by the decision in force, the lowest and highest minute
 
 from __future__ import annotations
 
-from datetime import UTC, datetime
 from typing import TYPE_CHECKING
 
 from cvvc.extreme_minutes import LOOKBACK_STEPS
@@ -79,6 +78,8 @@ def extreme_minutes_text(rows: tuple[ExtremeMinute, ...]) -> str:
     """The report's section on the run's lowest and highest minutes and what moved in the minutes up to each
     (``cvvc.extreme_minutes``); empty without truth steps.
     """
+    from cvvc.report import local_minute  # (cvvc.report imports this module's renderers in its functions)
+
     if not rows:
         return ""
     lines = ["", "## The lowest and highest minutes, and what moved before them", "",
@@ -87,9 +88,8 @@ def extreme_minutes_text(rows: tuple[ExtremeMinute, ...]) -> str:
              f"brackets; local standard time, UTC{UTC_OFFSET_H:+d}).", "",
              "| minute | | voltage [pu] | node | decision in force | moved |", "|---|---|---|---|---|---|"]
     for r in rows:
-        when = datetime.fromtimestamp(r.t_ns / 1e9 + UTC_OFFSET_H * 3600, tz=UTC).strftime("%Y-%m-%d %H:%M")
         moved = "; ".join(f"{text} ({ago})" for ago, text in r.moves) or "nothing"
-        lines.append(f"| {when} | {r.side} | {r.v_pu:.4f} | {r.node} | {r.decision} | {moved} |")
+        lines.append(f"| {local_minute(r.t_ns)} | {r.side} | {r.v_pu:.4f} | {r.node} | {r.decision} | {moved} |")
     return "\n".join(lines) + "\n"
 
 
