@@ -26,7 +26,7 @@ import msgspec
 import numpy as np
 
 from cvvc.errors import CommandError
-from cvvc.report import LOCAL_UTC_OFFSET_NS, local_minute
+from cvvc.local_time import LOCAL_UTC_OFFSET_NS, local_minute
 
 __all__ = ["DecisionExplanation", "ExplainError", "LimitRow", "SolveLine", "explain_decision", "local_time_ns",
            "render_explanation"]

@@ -36,6 +36,7 @@ import numpy as np
 from agent.tap_moves import HELD_BY_DEADBAND
 from cvvc.errors import CommandError
 from cvvc.extreme_minutes import ExtremeMinutes
+from cvvc.local_time import LOCAL_UTC_OFFSET_NS
 from cvvc.run_trace import (
     BASELINE_TRACE,
     WINDOW_STEPS,
@@ -50,7 +51,6 @@ from cvvc.run_trace import (
 from cvvc.step_effect import TapStepAccumulator, tap_steps_text
 from schemas.errors import CvvcError
 from schemas.truth import TruthDecodeError, decode_truth
-from simulator_bridge.rural.synthesis import UTC_OFFSET_H
 from simulator_bridge.simulation.live_accuracy import LiveAccuracyAccumulator
 from simulator_bridge.simulation.metrics import VIOLATION_TOLERANCE_PU
 from simulator_bridge.simulation.metrics_stream import phase_nodes, zone_phase_nodes
@@ -64,7 +64,7 @@ _T = TypeVar("_T")
 
 __all__ = ["BEFORE_FIRST_DECISION", "NO_CONTROL", "NodeTrace", "ReportError", "RunTrace", "decision_kind",
            "decode_evaluation", "decode_summary", "envelope_figure", "errors_figure", "judged_node_names", "limit_side",
-           "local_minute", "plot_evaluation", "plot_run", "pv_figure", "read_trace", "run_traces", "taps_figure",
+           "plot_evaluation", "plot_run", "pv_figure", "read_trace", "run_traces", "taps_figure",
            "window_envelope_pu", "worst_node_figure"]
 
 
@@ -263,7 +263,6 @@ def _worst_node(live: LiveAccuracyAccumulator | None,
 # ---------------------------------------------------------------------------------------------------
 
 NO_CONTROL = "no control"  # the label of the baseline a ``cvvc run`` simulated beside the case
-LOCAL_UTC_OFFSET_NS = UTC_OFFSET_H * 3_600_000_000_000  # the profiles' fixed local standard time (docs/conventions.md)
 _LEGEND = {"loc": "upper left", "bbox_to_anchor": (1.01, 1.0), "borderaxespad": 0.0}  # outside the data, right
 Q_LABEL = "Q [kvar]\n(+ injects, - absorbs)"
 TAP_LABEL = "tap [steps]\n(+ raises voltage)"
@@ -276,11 +275,6 @@ def _plt():
     import matplotlib.pyplot as plt
 
     return plt
-
-
-def local_minute(t_ns: int) -> str:
-    """A simulation time [ns since the UTC epoch] as the profiles' local standard time, ``YYYY-MM-DD HH:MM``."""
-    return str(np.datetime64(int(t_ns) + LOCAL_UTC_OFFSET_NS, "ns").astype("datetime64[m]")).replace("T", " ")
 
 
 def _clock(t_ns: np.ndarray) -> np.ndarray:

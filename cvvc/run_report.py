@@ -9,6 +9,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 from cvvc.extreme_minutes import LOOKBACK_STEPS
+from cvvc.local_time import local_minute
 from simulator_bridge.rural.synthesis import UTC_OFFSET_H
 from simulator_bridge.simulation.live_accuracy import HOLD_FACTOR
 
@@ -78,8 +79,6 @@ def extreme_minutes_text(rows: tuple[ExtremeMinute, ...]) -> str:
     """The report's section on the run's lowest and highest minutes and what moved in the minutes up to each
     (``cvvc.extreme_minutes``); empty without truth steps.
     """
-    from cvvc.report import local_minute  # (cvvc.report imports this module's renderers in its functions)
-
     if not rows:
         return ""
     lines = ["", "## The lowest and highest minutes, and what moved before them", "",
