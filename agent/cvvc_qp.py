@@ -47,6 +47,7 @@ import numpy as np
 import qpsolvers
 import scipy.sparse as sp
 
+from agent.dense_split import DenseSplit, dense_split
 from agent.errors import AgentInputError
 
 __all__ = [
@@ -299,6 +300,13 @@ class CvvcQp:
         if self.a_dense is None:
             raise AgentInputError("CvvcQp has neither a dense nor a sparse A: build it with build_cvvc_qp")
         return _dense_to_csc(self.a_dense)
+
+    @functools.cached_property
+    def dense_split(self) -> DenseSplit | None:
+        """How the dense active-set method takes ``a_dense``'s rows (made on first use, shared by every solve of this
+        problem: the rounding re-solves one tap-fixed problem for many candidates); None without a dense copy.
+        """
+        return None if self.a_dense is None else dense_split(self.a_dense)
 
     @functools.cached_property
     def P(self) -> sp.csc_matrix:  # noqa: N802

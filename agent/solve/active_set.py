@@ -22,6 +22,8 @@ from typing import Literal
 import daqp
 import numpy as np
 
+from agent.dense_split import DenseSplit, dense_split
+
 __all__ = ["ActiveSetResult", "solve_dense_qp"]
 
 #: DAQP's constraint kinds (its ``sense`` flags): a row guessed active (a warm start), an equality.
@@ -58,6 +60,7 @@ def solve_dense_qp(
     *,
     guess: np.ndarray | None = None,
     max_steps: int | None = None,
+    split: DenseSplit | None = None,
 ) -> ActiveSetResult:
     """Solve the QP exactly; ``y`` has OSQP's multiplier signs.
 
@@ -70,6 +73,7 @@ def solve_dense_qp(
     guess : (m,) optional start: non-zero marks a row guessed active (DAQP's warm start); the method drops
         the rows of a wrong guess, so only the number of steps depends on it.
     max_steps : limit on the method's iterations (default ``2 (m + n) + 100``).
+    split : ``dense_split(a)``, for a caller that solves with one matrix many times (made here when None).
 
     Returns
     -------
@@ -79,38 +83,25 @@ def solve_dense_qp(
     # (array methods, not np.any / np.unique: several calls a decision, each a few microseconds of wrappers)
     if (p_diag <= 0.0).any() or (lo > hi).any() or a.shape != (m, n) or c.shape != (n,):
         return _failed(n, m, 0, "inconsistent data (P not positive, lo > hi or shapes)")
-    # One single-entry row per variable becomes a simple bound (scaled by its entry); the others stay rows.
-    nonzero = a != 0.0
-    single = nonzero.sum(axis=1) == 1
-    singles = single.nonzero()[0]
-    column = nonzero[singles].argmax(axis=1)  # the variable of each single-entry row
-    if singles.size and np.bincount(column, minlength=n).max() > 1:  # a variable with two: its first row is the bound
-        _, first = np.unique(column, return_index=True)
-        is_bound = np.zeros(m, bool)
-        is_bound[singles[first]] = True
-        bound_rows, general = is_bound.nonzero()[0], (~is_bound).nonzero()[0]
-        column = nonzero[bound_rows].argmax(axis=1)
-    else:
-        bound_rows, general = singles, (~single).nonzero()[0]
-    coef = a[bound_rows, column]
+    if split is None:
+        split = dense_split(a)
+    bound_rows, general, column, coef = split.bound_rows, split.general, split.column, split.coef
     b_lo = np.full(n, -np.inf)
     b_hi = np.full(n, np.inf)
     b_lo[column] = np.where(coef > 0, lo[bound_rows], hi[bound_rows]) / coef
     b_hi[column] = np.where(coef > 0, hi[bound_rows], lo[bound_rows]) / coef
-    order = np.concatenate([bound_rows, general])  # DAQP's constraint j -> our row (for the bound rows: column)
     upper = np.concatenate([b_hi, hi[general]])
     lower = np.concatenate([b_lo, lo[general]])
     sense = np.zeros(n + general.size, np.intc)
-    rows_of = np.concatenate([column, n + np.arange(general.size)])  # our row order -> DAQP's constraint index
     sense[lower == upper] = _EQUALITY
     limit = 2 * (m + n) + 100 if max_steps is None else max_steps
-    h, f, a_rows = np.diag(p_diag), np.array(c, float), np.array(a[general], float)
+    h, f, a_rows = np.diag(p_diag), np.array(c, float), split.a_rows
     flag, steps = 0, 0
     if guess is not None and np.asarray(guess).any():
         # Warm: the guessed rows start active. A guess DAQP cannot start from (dependent rows) is dropped.
         warm = sense.copy()
         guessed = np.zeros(sense.size, bool)
-        guessed[rows_of[np.asarray(guess)[order] != 0]] = True
+        guessed[split.rows_of[np.asarray(guess)[split.order] != 0]] = True
         warm[guessed & (warm == 0)] = _ACTIVE
         x, _, flag, info = daqp.solve(h, f, a_rows, upper, lower, warm, iter_limit=limit)
         steps = int(info["iterations"])

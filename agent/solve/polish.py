@@ -35,7 +35,7 @@ def active_set_polish(
         lower = (lo == hi) | (z - lo < -y0)
         upper = ~lower & (hi - z < y0)
         guess = upper.astype(np.int8) - lower.astype(np.int8)
-    out = solve_dense_qp(qp.p_diag, qp.c, a_dense, lo, hi, guess=guess)
+    out = solve_dense_qp(qp.p_diag, qp.c, a_dense, lo, hi, guess=guess, split=qp.dense_split)
     if out.status == "infeasible":
         return Run(False, True, "infeasible (active set)", out.x, out.y, 0)
     if out.status == "failed" and proven_infeasible(a_dense, lo, hi):

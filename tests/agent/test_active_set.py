@@ -9,6 +9,7 @@ import scipy.optimize
 import scipy.sparse as sp
 
 from agent.cvvc_qp import build_cvvc_qp
+from agent.dense_split import dense_split
 from agent.solve.active_set import solve_dense_qp
 from benchmarks.synthetic import random_cvvc_inputs
 
@@ -131,6 +132,29 @@ def test_step_limit_is_respected():
     assert solve_dense_qp(p, c, a, lo, hi).steps > 1
     out = solve_dense_qp(p, c, a, lo, hi, max_steps=1)
     assert out.status == "failed" and "step limit" in out.reason
+
+
+def test_one_split_serves_every_solve_with_its_matrix():
+    """The rounding re-solves one tap-fixed problem with other bounds: the matrix's split, made once
+    (``CvvcQp.dense_split``), gives each solve the answer a split of its own gives, bit for bit, and the solves
+    leave the split's copy of the rows as it was.
+    """
+    rng = np.random.default_rng(11)
+    inputs = random_cvvc_inputs(rng)
+    qp = build_cvvc_qp(inputs, soft=True, fixed_d_tap=np.zeros(inputs.n_reg))  # always feasible
+    split = qp.dense_split
+    assert split is not None and split.general.size == qp.nodes.size  # the voltage rows; the rest are bounds
+    rows = split.a_rows.copy()
+    compared = 0
+    for d in rng.integers(-2, 3, (20, inputs.n_reg)):
+        lo, hi = qp.bounds_with_d_tap(d)
+        shared = solve_dense_qp(qp.p_diag, qp.c, qp.a_dense, lo, hi, split=split)
+        own = solve_dense_qp(qp.p_diag, qp.c, qp.a_dense, lo, hi, split=dense_split(qp.a_dense))
+        assert (shared.status, shared.steps) == (own.status, own.steps)
+        assert shared.x.tobytes() == own.x.tobytes() and shared.y.tobytes() == own.y.tobytes()
+        compared += shared.status == "optimal"
+    assert compared >= 5
+    assert split.a_rows.tobytes() == rows.tobytes()
 
 
 @pytest.mark.filterwarnings("ignore:Clarabel.rs terminated")  # infeasible random problems are expected
