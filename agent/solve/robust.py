@@ -5,11 +5,18 @@ Estimated Q sensitivities of nearby nodes differ by less than their error (epri-
 between a high and a low node is too narrow, the hard form (eq. 9-15) closes it by pulling the plants against each
 other on those differences: +110 / -3,150 kvar for 0.0015 pu, a decision no real feeder would reward. So a hard
 relaxation that uses Q is kept only if some action meets the hard limits for every sensitivity within the error
-(the robust counterpart of eq. 13 under box uncertainty: ``v0 + S dq + s_t dT +- err |S| |q|`` within the limits,
-``|q|`` the new set point's magnitude as in the soft form's error term); otherwise the soft form with the error
-term decides. The check is one feasibility problem, run only when the relaxation's own action fails it: the
-least-norm point of the robust rows by the dense dual active-set method (DAQP, ``agent.solve.active_set``), which
-proves infeasibility exactly as an LP would, in tens of microseconds instead of the milliseconds of an LP set-up.
+(the robust counterpart of eq. 13 under box uncertainty: ``v0 + S dq + s_t dT +- err |S| |dq|`` within the limits);
+otherwise the soft form with the error term decides.
+
+The error acts on the change ``dq = q - q0``: the estimate ``v0`` is at the plants' present set points, and eq. (13)
+predicts from there. Taken on the set point's magnitude ``|q|`` instead (as the soft form's error term is, which
+keeps the plants from drifting apart decision by decision), a plant holding a large Q failed the check at every
+decision that kept it: IEEE 8500's first 3 fall days went to the soft form in 42 decisions, epri-ckt5's summer in 52
+(docs/method.md, "The soft form with estimated sensitivities").
+
+The check is one feasibility problem, run only when the relaxation's own action fails it: the least-norm point of
+the robust rows by the dense dual active-set method (DAQP, ``agent.solve.active_set``), which proves infeasibility
+exactly as an LP would, in tens of microseconds instead of the milliseconds of an LP set-up.
 """
 
 from __future__ import annotations
@@ -24,12 +31,13 @@ __all__ = ["robust_shortfall_pu", "robustly_feasible"]
 
 def robust_shortfall_pu(inputs: CvvcInputs, d_tap: np.ndarray, q_kvar: np.ndarray, hard: np.ndarray) -> float:
     """Largest overshoot [pu] of the ``hard`` nodes' limits by this action when each Q sensitivity is off by its
-    relative error in the worst direction (0 when the action holds them robustly).
+    relative error in the worst direction over the change from the present set points (0 when the action holds them
+    robustly).
     """
     if not hard.any():
         return 0.0
     v = inputs.predict_v_pu(d_tap, q_kvar)[hard]
-    spread = inputs.dv_dq_rel_error * np.abs(inputs.dv_dq_pu_per_kvar[hard]) @ np.abs(q_kvar)
+    spread = inputs.dv_dq_rel_error * np.abs(inputs.dv_dq_pu_per_kvar[hard]) @ np.abs(q_kvar - inputs.q0_kvar)
     v_min = np.broadcast_to(inputs.v_min_pu, (inputs.n_nodes,))[hard]
     v_max = np.broadcast_to(inputs.v_max_pu, (inputs.n_nodes,))[hard]
     return float(max(np.max(v + spread - v_max, initial=0.0), np.max(v_min - (v - spread), initial=0.0)))
@@ -39,8 +47,9 @@ def robustly_feasible(inputs: CvvcInputs, hard: np.ndarray) -> bool:
     """Whether some action (taps continuous, as in the relaxation) keeps every ``hard`` node within its limits
     for every Q sensitivity within ``inputs.dv_dq_rel_error`` of its estimate. True when the solver cannot tell.
 
-    The hard QP's own scaled rows and variable box (``build_cvvc_qp`` over the ``hard`` nodes), each row split in
-    two: its upper limit with ``+ err |S| (Q+ + Q-)``, its lower limit with ``- err |S| (Q+ + Q-)``.
+    The hard QP's own scaled rows and variable box (``build_cvvc_qp`` over the ``hard`` nodes, whose Q variables are
+    the new set point's parts ``Q+ - Q-``), with one more variable per plant, ``t >= |Q+ - Q- - Q0|``, the change's
+    size; each row split in two: its upper limit with ``+ err |S| t``, its lower limit with ``- err |S| t``.
     """
     idx = np.flatnonzero(hard)
     if idx.size == 0:
@@ -48,11 +57,20 @@ def robustly_feasible(inputs: CvvcInputs, hard: np.ndarray) -> bool:
     qp = build_cvvc_qp(inputs, soft=False, nodes=idx)
     n = idx.size
     rows = qp.A.toarray()[:n]  # voltage rows [%]: taps up/down, Q+, Q- (no violation variables in the hard form)
-    spread = np.zeros_like(rows)
     lay = qp.layout
-    spread[:, lay.q_inj] = spread[:, lay.q_abs] = inputs.dv_dq_rel_error * np.abs(rows[:, lay.q_inj])
-    a = np.vstack([rows + spread, rows - spread, np.eye(lay.n)])
-    lo = np.concatenate([np.full(n, -np.inf), qp.lower[:n], qp.lower[n:]])
-    hi = np.concatenate([qp.upper[:n], np.full(n, np.inf), qp.upper[n:]])
-    out = solve_dense_qp(np.ones(lay.n), np.zeros(lay.n), a, lo, hi)  # the least-norm robust action, if any
+    k = inputs.n_pv
+    spread = inputs.dv_dq_rel_error * np.abs(rows[:, lay.q_inj])  # (n, K) err |S| [% per rating]
+    upper_rows = np.hstack([rows, spread])  # variables: the hard QP's, then t (K,) [rating]
+    lower_rows = np.hstack([rows, -spread])
+    box = np.hstack([np.eye(lay.n), np.zeros((lay.n, k))])
+    q_net = np.zeros((k, lay.n + k))  # Q+ - Q- of each plant
+    q_net[:, lay.q_inj] = np.eye(k)
+    q_net[:, lay.q_abs] = -np.eye(k)
+    t = np.hstack([np.zeros((k, lay.n)), np.eye(k)])
+    q0 = inputs.q0_kvar / inputs.q_rating_kvar
+    # t - (Q+ - Q-) >= -Q0 and t + (Q+ - Q-) >= Q0: t >= |Q+ - Q- - Q0|
+    a = np.vstack([upper_rows, lower_rows, box, t - q_net, t + q_net])
+    lo = np.concatenate([np.full(n, -np.inf), qp.lower[:n], qp.lower[n:], -q0, q0])
+    hi = np.concatenate([qp.upper[:n], np.full(n, np.inf), qp.upper[n:], np.full(2 * k, np.inf)])
+    out = solve_dense_qp(np.ones(lay.n + k), np.zeros(lay.n + k), a, lo, hi)  # the least-norm robust action, if any
     return out.status != "infeasible"  # failed (limits hit) gives the hard form its chance

@@ -417,17 +417,56 @@ def test_hard_limits_that_hold_within_the_sensitivity_error_stay_hard():
     assert robust_shortfall_pu(inputs, np.zeros(1), sol.q_new_kvar, np.ones(2, bool)) == pytest.approx(0.0015, abs=1e-5)
 
 
+def test_a_plant_holding_a_large_q_that_keeps_the_limits_stays_hard():
+    """The sensitivity's error acts on the change from the present set point: plant absorbing 1500 kvar, node 0 at
+    1.039 pu (4 uV/V per kvar), node 1 at 0.976 pu (3 uV/V per kvar), taps frozen. Eq. (13)'s optimum gives up 250
+    kvar (node 0 to 1.04 pu); holding -1500 kvar meets both limits whatever the sensitivities, so the hard form stands.
+    On the set point's magnitude instead (0.3 x 4 uV/V x 1500 kvar = 0.0018 pu at node 0), every Q absorbing enough
+    for node 0 (at most -1786 kvar) would take node 1 under its limit (at least -1410 kvar): the soft form, at every
+    decision that holds the plant there.
+    """
+    inputs = CvvcInputs(
+        v0_pu=np.array([1.039, 0.976]),
+        dv_dq_pu_per_kvar=np.array([[4.0e-6], [3.0e-6]]),
+        dv_dtap_pu=np.array([[0.00625], [0.00625]]),
+        q0_kvar=np.array([-1500.0]),
+        q_min_kvar=np.array([-2000.0]),
+        q_max_kvar=np.array([2000.0]),
+        q_rating_kvar=np.array([2000.0]),
+        taps=np.array([0]),
+        tap_min=np.array([-16]),
+        tap_max=np.array([16]),
+        max_taps_per_interval=np.array([0]),
+        cost_per_tap=np.array([1.0]),
+        cost_per_kvar=np.array([1e-4]),
+        v_min_pu=0.975,
+        v_max_pu=1.04,
+        dv_dq_rel_error=0.3,
+    )
+    assert robustly_feasible(inputs, np.ones(2, bool))
+    sol = solve_cvvc(inputs)
+    assert sol.status == "optimal" and sol.reason == ""
+    assert sol.q_new_kvar[0] == pytest.approx(-1250.0, abs=1.0)
+    # the decision's own change (+250 kvar) is not robust at node 0: 0.3 x 4 uV/V x 250 kvar over the limit
+    assert robust_shortfall_pu(inputs, np.zeros(1), sol.q_new_kvar, np.ones(2, bool)) == pytest.approx(3e-4, abs=1e-5)
+
+
 def _robust_lp_verdict(inputs: CvvcInputs, hard: np.ndarray) -> bool:
-    """The robust counterpart as an LP (HiGHS): feasible unless HiGHS proves it infeasible."""
+    """The robust counterpart as an LP (HiGHS): feasible unless HiGHS proves it infeasible. Variables: the hard QP's,
+    then each plant's change size ``t >= |Q+ - Q- - Q0|`` (rating units)."""
     idx = np.flatnonzero(hard)
     qp = build_cvvc_qp(inputs, soft=False, nodes=idx)
-    n, lay = idx.size, qp.layout
+    n, lay, k = idx.size, qp.layout, inputs.n_pv
     rows = qp.A.toarray()[:n]
-    spread = np.zeros_like(rows)
-    spread[:, lay.q_inj] = spread[:, lay.q_abs] = inputs.dv_dq_rel_error * np.abs(rows[:, lay.q_inj])
-    lp = scipy.optimize.linprog(np.zeros(lay.n), A_ub=np.vstack([rows + spread, -(rows - spread)]),
-                                b_ub=np.concatenate([qp.upper[:n], -qp.lower[:n]]),
-                                bounds=list(zip(qp.lower[n:], qp.upper[n:], strict=True)), method="highs")
+    spread = inputs.dv_dq_rel_error * np.abs(rows[:, lay.q_inj])
+    q0 = inputs.q0_kvar / inputs.q_rating_kvar
+    q_net = np.zeros((k, lay.n))
+    q_net[:, lay.q_inj], q_net[:, lay.q_abs] = np.eye(k), -np.eye(k)
+    a_ub = np.vstack([np.hstack([rows, spread]), -np.hstack([rows, -spread]),
+                      np.hstack([q_net, -np.eye(k)]), np.hstack([-q_net, -np.eye(k)])])
+    b_ub = np.concatenate([qp.upper[:n], -qp.lower[:n], q0, -q0])
+    bounds = list(zip(qp.lower[n:], qp.upper[n:], strict=True)) + [(0.0, None)] * k
+    lp = scipy.optimize.linprog(np.zeros(lay.n + k), A_ub=a_ub, b_ub=b_ub, bounds=bounds, method="highs")
     return bool(lp.status != 2)
 
 
