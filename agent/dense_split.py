@@ -19,8 +19,8 @@ class DenseSplit:
 
     ``bound_rows``: the rows that become variable bounds (one per variable at most: a single non-zero entry, in
     column ``column`` with value ``coef``); ``general``: the other rows, whose copy ``a_rows`` DAQP takes;
-    ``order``: DAQP's constraint j -> our row (for the bound rows, their column's); ``rows_of``: our row order ->
-    DAQP's constraint index.
+    ``order``: the rows in that order (the bound rows, then the others); ``rows_of``: DAQP's constraint index of each
+    row of ``order`` (a bound row's is its column's, the others follow the ``n`` bounds).
     """
 
     bound_rows: np.ndarray
