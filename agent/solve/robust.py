@@ -12,7 +12,7 @@ The error acts on the change ``dq = q - q0``: the estimate ``v0`` is at the plan
 predicts from there. Taken on the set point's magnitude ``|q|`` instead (as the soft form's error term is, which
 keeps the plants from drifting apart decision by decision), a plant holding a large Q failed the check at every
 decision that kept it: IEEE 8500's first 3 fall days went to the soft form in 42 decisions, epri-ckt5's summer in 52
-(docs/method.md, "The soft form with estimated sensitivities").
+(case D at ``69b537c``; docs/method.md, "The soft form with estimated sensitivities").
 
 The check is one feasibility problem, run only when the relaxation's own action fails it: the least-norm point of
 the robust rows by the dense dual active-set method (DAQP, ``agent.solve.active_set``), which proves infeasibility

@@ -425,24 +425,9 @@ def test_a_plant_holding_a_large_q_that_keeps_the_limits_stays_hard():
     for node 0 (at most -1786 kvar) would take node 1 under its limit (at least -1410 kvar): the soft form, at every
     decision that holds the plant there.
     """
-    inputs = CvvcInputs(
-        v0_pu=np.array([1.039, 0.976]),
-        dv_dq_pu_per_kvar=np.array([[4.0e-6], [3.0e-6]]),
-        dv_dtap_pu=np.array([[0.00625], [0.00625]]),
-        q0_kvar=np.array([-1500.0]),
-        q_min_kvar=np.array([-2000.0]),
-        q_max_kvar=np.array([2000.0]),
-        q_rating_kvar=np.array([2000.0]),
-        taps=np.array([0]),
-        tap_min=np.array([-16]),
-        tap_max=np.array([16]),
-        max_taps_per_interval=np.array([0]),
-        cost_per_tap=np.array([1.0]),
-        cost_per_kvar=np.array([1e-4]),
-        v_min_pu=0.975,
-        v_max_pu=1.04,
-        dv_dq_rel_error=0.3,
-    )
+    inputs = _tiny([1.039, 0.976], dv_dq=(4.0e-6, 3.0e-6), q0=-1500.0).replaced(
+        q_min_kvar=[-2000.0], q_max_kvar=[2000.0], q_rating_kvar=[2000.0], max_taps_per_interval=[0],
+        dv_dq_rel_error=0.3)
     assert robustly_feasible(inputs, np.ones(2, bool))
     sol = solve_cvvc(inputs)
     assert sol.status == "optimal" and sol.reason == ""
