@@ -38,14 +38,16 @@ def sunspec_endpoints(dm: DeviceMap, free_port: object) -> dict[str, str]:
 def adapter_args(dm: DeviceMap, feeder_id: str, plant_id: str, endpoint: str, *, volt_var: bool,
                  connect: list[str], summary_out: str | None = None) -> list[str]:
     """The ``cvvc adapter sunspec`` flags of one plant: scans at each head frame (the simulation's clock) and sets
-    the plant's local default (volt-var in the ``local`` case) in the inverter's model 705; ``summary_out``: where it
-    writes its last ``LinkStatus`` at exit.
+    the plant's local default (volt-var in the ``local`` case) in the inverter's model 705; ``--q-at-night`` for a
+    plant whose map entry says so (``q_at_night``); ``summary_out``: where it writes its last ``LinkStatus`` at exit.
     """
+    q_at_night = next(pv.q_at_night for pv in dm.pv if pv.id == plant_id)
     return ["adapter", "sunspec", "--feeder-id", feeder_id, "--device", plant_id, "--modbus", endpoint,
             "--clock", "head", "--scan-period-s", str(dm.feeder.step_s),
             "--control-period-s", str(dm.feeder.control_period_s),
             "--local-mode", "volt_var" if volt_var else "unity_pf", "--set-local-mode",
-            *(["--summary-out", summary_out] if summary_out else []), *connect]
+            *(["--q-at-night"] if q_at_night else []), *(["--summary-out", summary_out] if summary_out else []),
+            *connect]
 
 
 def bridge_args(endpoints: dict[str, str]) -> list[str]:

@@ -110,7 +110,12 @@ class CapacitorSpec(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fi
 class PvPlantSpec(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
     """One PV plant. ``create`` adds it to the model at ``bus``; otherwise ``pvsystem`` names an existing one.
 
-    ``cost_per_kvar`` is per kvar of set point per control interval.
+    ``cost_per_kvar`` is per kvar of set point per control interval. ``q_at_night``: the inverter gives reactive
+    power at zero active power (a "Q at night" or STATCOM mode, an option of many utility-scale inverters), up to
+    its rating; without it, a plant gives no reactive power while it has no active power. Its frames report that
+    headroom (``q_available_kvar``), and the agent takes its limits from them. Training already sweeps each plant's Q
+    up to ``sqrt(kva² - P²)`` at every P, night included: the option leaves the model and the fingerprint as they
+    are.
     """
 
     id: Name
@@ -123,6 +128,7 @@ class PvPlantSpec(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fiel
     create: bool = True
     pvsystem: str | None = None
     profile_lag_min: Annotated[int, Meta(ge=0, le=120)] = 0
+    q_at_night: bool = False
 
 
 class MeterSpec(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
@@ -163,7 +169,9 @@ class DeviceMap(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields
         """
         h = hashlib.sha256()
         own = msgspec.to_builtins(msgspec.structs.replace(self, root="."))
-        del own["meter"]  # meters do not change what training computes
+        del own["meter"]  # meters do not change what training computes, nor does a plant's Q at night
+        for pv in own["pv"]:
+            del pv["q_at_night"]
         h.update(msgspec.json.encode(own))
         folder = self.master_path.parent
         for f in sorted(folder.rglob("*")):

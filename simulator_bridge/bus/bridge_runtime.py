@@ -93,7 +93,7 @@ def sunspec_fleet(c: BridgeConfig, dm: DeviceMap, engine: FeederEngine, qsts: Qs
         return None
     return SunSpecFleet(c.pv_sunspec, dm, tuple(engine.pv_ids),
                         plant_phases(tuple(engine.node_names), engine.pv_node_index),
-                        q_at_night=bool(qsts.pv_q_at_night), volt_var=c.pv_local == "volt_var")
+                        q_at_night=tuple(qsts.pv_q_at_night.tolist()), volt_var=c.pv_local == "volt_var")
 
 
 def dnp3_fleet(c: BridgeConfig, engine: FeederEngine) -> Dnp3Fleet | None:
@@ -178,9 +178,10 @@ class BridgeRuntime:
             pvs=tuple((pv.plant_id, pv.index, pv.s_rated_kva, pv.local_mode) for pv in bank.pvs.values()),
             regs=tuple((r.regulator_id, r.index, r.tap_max, r.default_setpoint_v120, r.default_band_v120)
                        for r in bank.regs.values()),
-            reg_phase=tuple(self.reg_phase), q_at_night=bool(qsts.pv_q_at_night), noise_pmu_pct=c.noise_pmu_pct,
-            noise_scada_pct=c.noise_scada_pct, drop_prob=c.drop_prob, latency_s=c.latency_s,
-            noise_seed=c.noise_seed, metrics=MetricsAccumulator.for_feeder(dm, engine, step_s=self.step_s),
+            reg_phase=tuple(self.reg_phase), q_at_night=tuple(qsts.pv_q_at_night.tolist()),
+            noise_pmu_pct=c.noise_pmu_pct, noise_scada_pct=c.noise_scada_pct, drop_prob=c.drop_prob,
+            latency_s=c.latency_s, noise_seed=c.noise_seed,
+            metrics=MetricsAccumulator.for_feeder(dm, engine, step_s=self.step_s),
             drop_burst_s=60.0 * c.drop_burst_min, clock_skew_s=c.clock_skew_s,
             caps=tuple((k.capacitor_id, k.index, k.steps, k.kvar_rated, k.control_type) for k in bank.caps.values()),
             pv_external=tuple(sorted(external)), meters=_meters(dm, engine.node_names),

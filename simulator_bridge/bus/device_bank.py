@@ -208,7 +208,7 @@ class DeviceBank:
             return
         applied = self.qsts.command_pv_q(pv.index, cmd.q_kvar)
         p = float(self.pv_p_kw[pv.index])
-        headroom = math.sqrt(max(pv.s_rated_kva**2 - p**2, 0.0)) if p > 0 or self.qsts.pv_q_at_night else 0.0
+        headroom = math.sqrt(max(pv.s_rated_kva**2 - p**2, 0.0)) if p > 0 or self.qsts.pv_q_at_night[pv.index] else 0.0
         pv.guard.apply(cmd, cmd.q_kvar)
         self._ack(self.ack_pv[pv.plant_id], pv.plant_id, pv.plant_id, cmd.cmd_id,
                   dv.pv_verdict(cmd.q_kvar, applied, headroom))

@@ -93,9 +93,10 @@ class FramerSpec:
     simulated step's time (metrics frames). truth_every : truth decimation (0: none). node_names : the engine's.
     pvs : (plant_id, index, s_rated_kva, local_mode) per plant. regs : (regulator_id, index, tap_max,
     default set point, default band) per regulator. reg_phase : each regulator's phase letter.
-    q_at_night : PV gives Q without P. noise_pmu_pct, noise_scada_pct, drop_prob, latency_s, noise_seed :
-    measurement realism (``BridgeConfig``). metrics : the run's metrics accumulator, empty at the start, the
-    one mutable part: the framer updates it (inline, the runtime's own; in the process, the pickled copy).
+    q_at_night : per plant (by index), whether it gives Q without P. noise_pmu_pct, noise_scada_pct, drop_prob,
+    latency_s, noise_seed : measurement realism (``BridgeConfig``). metrics : the run's metrics accumulator, empty
+    at the start, the one mutable part: the framer updates it (inline, the runtime's own; in the process, the
+    pickled copy).
     caps : (capacitor_id, index, steps, kvar_rated, control_type) per capacitor bank.
     drop_burst_s : with ``drop_prob``, each device loses its frames in outages of this long [s] (0: each frame
     independently). clock_skew_s : the devices' clocks are this far off the bridge's [s]: every frame and scan
@@ -117,7 +118,7 @@ class FramerSpec:
     pvs: tuple[tuple[str, int, float, Literal["unity_pf", "volt_var"]], ...]
     regs: tuple[tuple[str, int, int, float, float], ...]
     reg_phase: tuple[m.Phase, ...]
-    q_at_night: bool
+    q_at_night: tuple[bool, ...]
     noise_pmu_pct: float
     noise_scada_pct: float
     drop_prob: float
@@ -276,7 +277,7 @@ class StepFramer:
                 p, q, v = (x.tolist() for x in noise.pv(p, q, v, pv.s_rated_kva))
             seqs[pv.plant_id] += 1
             if send(pub, dv.pv_frame(plant=pv, t_ns=t, seq=seqs[pv.plant_id], p_kw=p, q_kvar=q, v_v=v,
-                                     available_p_kw=available[k], q_setpoint_kvar=q_set, q_at_night=q_at_night),
+                                     available_p_kw=available[k], q_setpoint_kvar=q_set, q_at_night=q_at_night[k]),
                     now_s):
                 sent["pv"].append(pv.plant_id)
         v120s = np.asarray(rd.reg_v120, dtype=float).tolist()

@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import math
 import re
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 
@@ -51,13 +51,14 @@ class SunSpecFleet:
     endpoints : plant id -> ``tcp/HOST:PORT`` the plant's inverter serves on (unit id 1).
     dm : the device map (ratings, nominal voltages). pv_ids : the engine's plant ids, in its order (the index of a
     plant in the step's arrays). pv_phases : per plant, the phases it is connected to (``a``, ``b``, ``c``).
-    q_at_night : whether the plants give reactive power at zero active power.
+    q_at_night : per plant (in ``pv_ids`` order), whether it gives reactive power at zero active power.
     volt_var : whether the plants' local default is the IEEE 1547 volt-var curve (the bridge's ``pv_local``): each
     inverter's model 705 holds that curve, enabled or not, so its adapter reports the plant's local mode from it.
     """
 
     def __init__(self, endpoints: Mapping[str, str], dm: DeviceMap, pv_ids: tuple[str, ...],
-                 pv_phases: tuple[tuple[str, ...], ...], *, q_at_night: bool = False, volt_var: bool = False) -> None:
+                 pv_phases: tuple[tuple[str, ...], ...], *, q_at_night: Sequence[bool] = (),
+                 volt_var: bool = False) -> None:
         unknown = sorted(set(endpoints) - set(pv_ids))
         if unknown:
             raise BridgeError(f"--pv-sunspec names plants the feeder does not have: {unknown}; its plants: "
@@ -74,7 +75,8 @@ class SunSpecFleet:
             try:
                 self.inverters[pid] = SimulatedSunSpecInverter(
                     plant_id=pid, s_rated_kva=float(spec.kva), v_nominal_v=v_nominal_v, port=port,
-                    phases=pv_phases[k], host="127.0.0.1", clock_ns=self._clock, q_at_night=q_at_night,
+                    phases=pv_phases[k], host="127.0.0.1", clock_ns=self._clock,
+                    q_at_night=bool(q_at_night[k]) if q_at_night else False,
                     volt_var=volt_var)
             except SunSpecSimError as e:
                 raise BridgeError(f"plant {pid}: {e}") from e

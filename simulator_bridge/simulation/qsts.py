@@ -13,7 +13,7 @@ Each step (one profile row, 1 minute by default):
    feeder, local case, 10 July: 1138 tap changes in a day with the bare delay). A real inverter's open-loop
    response time (IEEE 1547-2018: 1-90 s) settles it continuously onto the curve's fixed point, which the lag
    reaches in a few steps. Q is clipped to the headroom ``sqrt(kVA² − P²)``; at night (available P = 0) it
-   is 0 unless ``pv_q_at_night=True``.
+   is 0 unless the plant gives Q at night (its device map entry's ``q_at_night``, or ``pv_q_at_night``).
 3. Devices held by a command are set (a locked regulator's tap, a held capacitor bank's state); then the
    power flow is solved.
 4. Local control of every RegControl and CapControl of the model, with its own settings, on an event clock
@@ -161,7 +161,9 @@ class Qsts:
         length [s] for the event clock.
     start_step : first profile step to simulate.
     pv_local : local default of a PV plant without a commanded Q: ``"unity"`` or ``"volt_var"``.
-    pv_q_at_night : allow reactive power (commanded or volt-var) when available P is 0.
+    pv_q_at_night : allow reactive power (commanded or volt-var) when available P is 0: for every plant (a bool),
+        or, ``None``, for the plants whose device map entry says so (``q_at_night``). ``self.pv_q_at_night`` is then
+        (K,) bool, in ``engine.pv_ids`` order.
     chunk_steps : profile rows read at a time.
     settle_s : local control run, uncounted, on the first step's loads before it (module docstring); 0 starts
         from the model's own taps and bank states (as OpenDSS's own control loop does, for comparing with it).
@@ -174,7 +176,7 @@ class Qsts:
         *,
         start_step: int,
         pv_local: Literal["unity", "volt_var"] = "unity",
-        pv_q_at_night: bool = False,
+        pv_q_at_night: bool | None = None,
         chunk_steps: int = 1440,
         settle_s: float = SETTLE_S,
     ) -> None:
@@ -193,7 +195,9 @@ class Qsts:
         self.engine = engine
         self.profiles = profiles
         self.pv_local = pv_local
-        self.pv_q_at_night = bool(pv_q_at_night)
+        by_id = {p.id: p.q_at_night for p in engine.device_map.pv}
+        self.pv_q_at_night = np.array([by_id[pid] if pv_q_at_night is None else bool(pv_q_at_night)
+                                       for pid in engine.pv_ids], bool)
         self._chunk_steps = int(chunk_steps)
         self._chunk_start = -1
         self._staged: int | None = None  # the step whose loads are already set (stage_loads)
@@ -245,7 +249,7 @@ class Qsts:
         """Command plant ``k``'s reactive power [kvar, + injects]; ``None`` returns it to its local default.
 
         Returns the value that would be applied at the present available power (clipped to the
-        headroom; 0 at night unless ``pv_q_at_night``). The next step re-clips at its own P.
+        headroom; 0 at night unless the plant gives Q at night). The next step re-clips at its own P.
         """
         self._check_index(k, len(self._pv_cmd), "PV plant")
         if q_kvar is not None and not np.isfinite(q_kvar):
@@ -373,8 +377,7 @@ class Qsts:
         else:
             local = np.zeros(len(p_kw))
         q = np.array([local[k] if c is None else c for k, c in enumerate(self._pv_cmd)], dtype=float)
-        if not self.pv_q_at_night:
-            q = np.where(p_kw > 0.0, q, 0.0)
+        q = np.where((p_kw > 0.0) | self.pv_q_at_night, q, 0.0)
         headroom = np.sqrt(np.maximum(e.pv_kva**2 - np.minimum(p_kw, e.pv_pmpp_kw) ** 2, 0.0))
         return np.minimum(np.maximum(q, -headroom), headroom)
 

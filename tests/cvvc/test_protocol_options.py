@@ -33,3 +33,16 @@ def test_an_unknown_field_protocol_is_refused():
     with pytest.raises(CommandError, match="choose bus or dnp3"):
         check_field_protocol("modbus", case="D", noise_scada_pct=0.0, drop_prob=0.0, meas_delay_s=0.0,
                              clock_skew_s=0.0)
+
+
+def test_the_adapter_of_a_plant_the_map_gives_q_at_night_is_told_so_and_no_other():
+    import msgspec
+
+    from cvvc.pv_protocol import adapter_args
+    from schemas.devicemap import load_device_map
+
+    dm = load_device_map(REPO / "feeders" / "ieee13.toml")
+    dm = msgspec.structs.replace(dm, pv=[msgspec.structs.replace(p, q_at_night=p.id == "pv675") for p in dm.pv])
+    told = {p.id: "--q-at-night" in adapter_args(dm, "ieee13", p.id, "tcp/127.0.0.1:9", volt_var=False, connect=[])
+            for p in dm.pv}
+    assert told == {"pv675": True, "pv680": False, "pv633": False}

@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import os
 import queue
+import re
 import signal
 import subprocess
 from pathlib import Path
@@ -22,6 +23,7 @@ from bridgeutil import FEEDER, STARTUP_S, STEP_NS, bridge_cmd, bridge_config, br
 from busclient import BusClient as Client
 
 from schemas import messages as m
+from schemas.devicemap import load_device_map
 from schemas.truth import truth_arrays
 
 
@@ -111,6 +113,41 @@ def test_commands_are_acked_and_show_in_the_next_frames(client: Client, router_e
     heads = [x for _, x, _ in client.seen if isinstance(x, m.HeadFrame)]
     assert [h.seq for h in heads] == sorted({h.seq for h in heads})
     assert all(b.t_ns - a.t_ns == STEP_NS for a, b in zip(heads, heads[1:], strict=False))
+
+
+def test_a_plant_the_map_gives_q_at_night_takes_its_set_point_at_night_and_the_others_do_not(
+        client: Client, router_endpoint: str, device_map_path: Path, cache_dir: Path, tmp_path: Path) -> None:
+    """IEEE 13 at 02:00 with ``q_at_night`` on pv675 alone: its frames offer its rating and it applies a set point;
+    pv680 offers nothing and clips the same set point to 0."""
+    master = load_device_map(device_map_path).master_path.as_posix()
+    text = re.sub(r"^master = .*$", f'master = "{master}"', device_map_path.read_text(), count=1, flags=re.M)
+    night_map = tmp_path / "ieee13-q-at-night.toml"
+    night_map.write_text(text.replace('id = "pv675"\n', 'id = "pv675"\nq_at_night = true\n'))
+    client.be_agent()
+    th, stop, out = bridge_thread(bridge_config(night_map, cache_dir, steps=3, start="2023-07-01T02:00"),
+                                   router_endpoint)
+    try:
+        t0 = client.head(timeout_s=STARTUP_S).t_ns
+        on, off = (client.next(lambda k, x, p=p: isinstance(x, m.PvFrame) and x.plant_id == p and x.t_ns == t0)
+                   for p in ("pv675", "pv680"))
+        assert on.p_kw == off.p_kw == 0.0  # night
+        assert (on.q_available_kvar, off.q_available_kvar) == (1200.0, 0.0)
+        c_on, c_off = client.pv_cmd("pv675", -300.0, t0), client.pv_cmd("pv680", -300.0, t0)
+        client.decide(t0, [c_on, c_off])
+        a = client.ack(c_on.cmd_id)
+        assert (a.status, a.applied_value) == ("accepted", -300.0)
+        a = client.ack(c_off.cmd_id)
+        assert (a.status, a.applied_value) == ("clipped", 0.0) and "headroom 0.000 kvar" in a.reason
+        t1 = t0 + STEP_NS
+        on, off = (client.next(lambda k, x, p=p: isinstance(x, m.PvFrame) and x.plant_id == p and x.t_ns == t1)
+                   for p in ("pv675", "pv680"))
+        assert on.q_setpoint_kvar == -300.0 and on.q_kvar == pytest.approx(-300.0, abs=3.0)
+        assert off.q_setpoint_kvar == 0.0 and off.q_kvar == pytest.approx(0.0, abs=1e-3)
+        summary = finish(th, stop, out)
+    finally:
+        stop.set()
+        th.join(timeout=30)
+    assert summary.acks == {"accepted": 1, "clipped": 1}
 
 
 def test_every_bad_command_is_rejected_with_a_reason_and_counted(

@@ -2,13 +2,17 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import msgspec
 import numpy as np
 import pytest
 
-from schemas.devicemap import DeviceMap
+from schemas.devicemap import DeviceMap, load_device_map
 from simulator_bridge.opendss.engine import FeederEngine
 from simulator_bridge.simulation.qsts import VOLT_VAR_RESPONSE, Qsts, QstsError, tap_direction, volt_var_q_pu
+
+REPO = Path(__file__).resolve().parents[2]
 
 
 class ArrayProfiles:
@@ -207,6 +211,30 @@ def test_pv_q_at_night_when_asked(eng: FeederEngine) -> None:
     res = q.step()
     assert res.pv_q_kvar[1] == pytest.approx(-eng.pv_kva[1])
     assert res.readings.pv_q_kvar[1].sum() == pytest.approx(-eng.pv_kva[1], abs=1e-2)
+
+
+def test_a_plant_gives_q_at_night_where_its_map_entry_says_so(map123: DeviceMap) -> None:
+    pvs = [msgspec.structs.replace(p, q_at_night=k == 1) for k, p in enumerate(map123.pv)]
+    eng = FeederEngine(msgspec.structs.replace(map123, pv=pvs), tolerance=1e-6)
+    q = Qsts(eng, constant(eng, 2, 0.5, 0.0), start_step=0)
+    np.testing.assert_array_equal(q.pv_q_at_night, [k == 1 for k in range(len(pvs))])
+    assert q.command_pv_q(0, -500.0) == 0.0
+    assert q.command_pv_q(1, -500.0) == -500.0
+    res = q.step()
+    np.testing.assert_allclose(res.pv_q_kvar[:2], [0.0, -500.0])
+    np.testing.assert_allclose(res.readings.pv_q_kvar[:2].sum(axis=1), [0.0, -500.0], atol=1e-2)
+    everyone = Qsts(eng, constant(eng, 2, 0.5, 0.0), start_step=0, pv_q_at_night=False)  # the map overridden
+    assert not everyone.pv_q_at_night.any() and everyone.command_pv_q(1, -500.0) == 0.0
+
+
+def test_the_epri_ckt5_q_at_night_map_is_epri_ckt5_with_every_plant_giving_q_at_night() -> None:
+    """``feeders/epri-ckt5-q-at-night.toml`` is a copy: it must not drift from the map it copies, nor ask for another
+    model."""
+    base = load_device_map(REPO / "feeders" / "epri-ckt5.toml")
+    night = load_device_map(REPO / "feeders" / "epri-ckt5-q-at-night.toml")
+    assert all(p.q_at_night for p in night.pv) and not any(p.q_at_night for p in base.pv)
+    pvs = [msgspec.structs.replace(p, q_at_night=False) for p in night.pv]
+    assert msgspec.structs.replace(night, pv=pvs) == base and night.fingerprint() == base.fingerprint()
 
 
 def test_volt_var_uses_previous_step_voltage(eng: FeederEngine) -> None:
