@@ -7,6 +7,8 @@ The runtime (``agent.runtime``) builds one for every control step, live and offl
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from agent.aligner import AlignedFrames
@@ -22,6 +24,7 @@ _FIT_MIN = 16  # readings a fit needs: with four terms, fewer are noisier than t
 #: another regulator's move blurs a regulator's own step when it moves that one's secondary by at least this share
 #: of what that one's own tap step does there (the model's dV/dtap at the regulators' secondaries)
 _COUPLED_SHARE = 0.1
+_FEW = 8  # NumPy sums fewer values than this one after the other (``_mean``)
 
 
 def snapshot_from(aligned: AlignedFrames, model: CvvcModel, *, reading_window_s: float = 300.0,
@@ -88,10 +91,11 @@ def snapshot_from(aligned: AlignedFrames, model: CvvcModel, *, reading_window_s:
         reg_tap[r] = f.tap
         since = aligned.t_ns - int(reading_window_s * 1e9)
         same_tap = [x for x in recent if x.t_ns > since and x.tap == f.tap and x.phases]
-        reg_noise[r] = reading_noise_v120([x.phases[0].v_120 for x in same_tap])
+        readings = [x.phases[0].v_120 for x in same_tap]
+        reg_noise[r] = reading_noise_v120(readings)
         if reading_window_s > 0 and len(same_tap) > 1:
-            reg_v[r] = float(np.mean([x.phases[0].v_120 for x in same_tap]))
-            reg_vc[r] = float(np.mean([x.v_compared_120 for x in same_tap]))
+            reg_v[r] = _mean(readings)
+            reg_vc[r] = _mean([x.v_compared_120 for x in same_tap])
         if reading_fit_s > 0 and head is not None:
             fitted = _fitted_readings(aligned, reg.id, f, head, reading_fit_s, reg.step_v120)
             if fitted is not None:
@@ -159,7 +163,25 @@ def reading_noise_v120(readings: list[float]) -> float:
     """
     if len(readings) < 4:
         return float("nan")
-    return float(np.std(np.diff(np.asarray(readings, float), n=2)) / np.sqrt(6.0))
+    if len(readings) >= _FEW + 2:
+        return float(np.std(np.diff(np.asarray(readings, float), n=2)) / np.sqrt(6.0))
+    d1 = [float(b) - float(a) for a, b in zip(readings, readings[1:], strict=False)]
+    d2 = [b - a for a, b in zip(d1, d1[1:], strict=False)]
+    mean = _mean(d2)
+    return math.sqrt(_mean([(d - mean) * (d - mean) for d in d2])) / math.sqrt(6.0)
+
+
+def _mean(values: list[float]) -> float:
+    """The mean of ``values``, equal to ``np.mean``'s: under ``_FEW`` values, where NumPy adds them one after the
+    other, in Python (a microsecond, where NumPy's call takes several: a decision takes eight regulators' means and
+    noises); ``_FEW`` or more through NumPy (it adds them in eight partial sums then).
+    """
+    if len(values) >= _FEW:
+        return float(np.mean(np.asarray(values, float)))
+    total = 0.0
+    for v in values:
+        total += v
+    return total / len(values)
 
 
 def _own_reading(frame: m.RegFrame | None) -> float:

@@ -586,6 +586,19 @@ def test_filter_gap_bounds_widen_the_side_the_applied_correction_lags():
     np.testing.assert_allclose(same_hi, hi)
 
 
+def test_the_reading_window_s_mean_and_noise_are_numpy_s_to_the_last_bit():
+    """The snapshot sums a few readings in Python (NumPy's call costs more than the sum) and gives NumPy's floats, bit
+    for bit, so the decisions are the same; from eight values on it is NumPy's own sum."""
+    from agent.snapshot import _mean, reading_noise_v120
+
+    rng = np.random.default_rng(7)
+    for n in [*range(1, 13)] * 300:
+        x = list(120.0 + rng.standard_normal(n) * rng.choice([1e-4, 0.3, 5.0]))
+        assert _mean(x) == float(np.mean(x))
+        if n >= 4:
+            assert reading_noise_v120(x) == float(np.std(np.diff(np.asarray(x), n=2)) / np.sqrt(6.0))
+
+
 def test_noisy_readings_widen_the_bounds_from_their_window_mean_not_the_last_reading():
     """The bounds' gap takes eq. (6) from the step's own reading when the readings are quiet, and from the reading
     window's mean when they are noisier than a quarter of a tap step: one noisy reading would otherwise widen and
