@@ -57,7 +57,7 @@ class SunSpecFleet:
     """
 
     def __init__(self, endpoints: Mapping[str, str], dm: DeviceMap, pv_ids: tuple[str, ...],
-                 pv_phases: tuple[tuple[str, ...], ...], *, q_at_night: Sequence[bool] = (),
+                 pv_phases: tuple[tuple[str, ...], ...], *, q_at_night: Sequence[bool],
                  volt_var: bool = False) -> None:
         unknown = sorted(set(endpoints) - set(pv_ids))
         if unknown:
@@ -75,8 +75,7 @@ class SunSpecFleet:
             try:
                 self.inverters[pid] = SimulatedSunSpecInverter(
                     plant_id=pid, s_rated_kva=float(spec.kva), v_nominal_v=v_nominal_v, port=port,
-                    phases=pv_phases[k], host="127.0.0.1", clock_ns=self._clock,
-                    q_at_night=bool(q_at_night[k]) if q_at_night else False,
+                    phases=pv_phases[k], host="127.0.0.1", clock_ns=self._clock, q_at_night=bool(q_at_night[k]),
                     volt_var=volt_var)
             except SunSpecSimError as e:
                 raise BridgeError(f"plant {pid}: {e}") from e

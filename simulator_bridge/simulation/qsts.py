@@ -162,8 +162,8 @@ class Qsts:
     start_step : first profile step to simulate.
     pv_local : local default of a PV plant without a commanded Q: ``"unity"`` or ``"volt_var"``.
     pv_q_at_night : allow reactive power (commanded or volt-var) when available P is 0: for every plant (a bool),
-        or, ``None``, for the plants whose device map entry says so (``q_at_night``). ``self.pv_q_at_night`` is then
-        (K,) bool, in ``engine.pv_ids`` order.
+        or, ``None``, for the plants whose device map entry says so (``q_at_night``). Kept as ``self.pv_q_at_night``,
+        (K,) bool in ``engine.pv_ids`` order.
     chunk_steps : profile rows read at a time.
     settle_s : local control run, uncounted, on the first step's loads before it (module docstring); 0 starts
         from the model's own taps and bank states (as OpenDSS's own control loop does, for comparing with it).
