@@ -55,21 +55,26 @@ def robustly_feasible(inputs: CvvcInputs, hard: np.ndarray) -> bool:
     if idx.size == 0:
         return True
     qp = build_cvvc_qp(inputs, soft=False, nodes=idx)
-    n = idx.size
-    rows = qp.A.toarray()[:n]  # voltage rows [%]: taps up/down, Q+, Q- (no violation variables in the hard form)
-    lay = qp.layout
-    k = inputs.n_pv
+    n, k, lay = idx.size, inputs.n_pv, qp.layout
+    rows = qp.a_dense[:n] if qp.a_dense is not None else qp.A.toarray()[:n]  # voltage rows [%]: taps up/down, Q+, Q-
     spread = inputs.dv_dq_rel_error * np.abs(rows[:, lay.q_inj])  # (n, K) err |S| [% per rating]
-    upper_rows = np.hstack([rows, spread])  # variables: the hard QP's, then t (K,) [rating]
-    lower_rows = np.hstack([rows, -spread])
-    box = np.hstack([np.eye(lay.n), np.zeros((lay.n, k))])
-    q_net = np.zeros((k, lay.n + k))  # Q+ - Q- of each plant
-    q_net[:, lay.q_inj] = np.eye(k)
-    q_net[:, lay.q_abs] = -np.eye(k)
-    t = np.hstack([np.zeros((k, lay.n)), np.eye(k)])
+    # variables: the hard QP's, then t (K,) [rating]; rows: the voltage rows' upper limits with + err |S| t, their
+    # lower limits with - err |S| t, the hard QP's variable box, t - (Q+ - Q-) >= -Q0 and t + (Q+ - Q-) >= Q0
+    # (t >= |Q+ - Q- - Q0|)
+    a = np.zeros((2 * n + lay.n + 2 * k, lay.n + k))
+    a[:n, : lay.n] = rows
+    a[:n, lay.n :] = spread
+    a[n : 2 * n, : lay.n] = rows
+    a[n : 2 * n, lay.n :] = -spread
+    a[2 * n + np.arange(lay.n), np.arange(lay.n)] = 1.0
+    t_rows = 2 * n + lay.n + np.arange(2 * k)
+    a[t_rows, lay.n + np.tile(np.arange(k), 2)] = 1.0
+    plant = np.arange(k)
+    a[t_rows[:k], lay.q_inj.start + plant] = -1.0
+    a[t_rows[:k], lay.q_abs.start + plant] = 1.0
+    a[t_rows[k:], lay.q_inj.start + plant] = 1.0
+    a[t_rows[k:], lay.q_abs.start + plant] = -1.0
     q0 = inputs.q0_kvar / inputs.q_rating_kvar
-    # t - (Q+ - Q-) >= -Q0 and t + (Q+ - Q-) >= Q0: t >= |Q+ - Q- - Q0|
-    a = np.vstack([upper_rows, lower_rows, box, t - q_net, t + q_net])
     lo = np.concatenate([np.full(n, -np.inf), qp.lower[:n], qp.lower[n:], -q0, q0])
     hi = np.concatenate([qp.upper[:n], np.full(n, np.inf), qp.upper[n:], np.full(2 * k, np.inf)])
     out = solve_dense_qp(np.ones(lay.n + k), np.zeros(lay.n + k), a, lo, hi)  # the least-norm robust action, if any

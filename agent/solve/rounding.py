@@ -2,10 +2,11 @@
 
 Every floor/ceil combination of the (at most ``MAX_ENUMERATED_FRACTIONAL``) most fractional relaxed tap changes
 is a candidate, the other taps rounded to nearest; Q is re-solved with each candidate's taps fixed (same form),
-best-first by a dual lower bound, by the exact dual active-set method (OSQP if it fails); the cheapest candidate
-meeting the hard limits wins. If none does, integer taps further away: first those near "no move", with Lagrangian
-cuts and a proof of optimality (``agent.solve.lattice``), then, without that proof, a MILP cut off at the best of
-them (``agent.solve.milp``); if there are none, the nearest rounding is re-solved in the soft form.
+best-first by a dual lower bound that each re-solve's multipliers tighten for the others, by the exact dual
+active-set method (OSQP if it fails); the cheapest candidate meeting the hard limits wins. If none does, integer
+taps further away: first those near "no move", with Lagrangian cuts and a proof of optimality
+(``agent.solve.lattice``), then, without that proof, a MILP cut off at the best of them (``agent.solve.milp``); if
+there are none, the nearest rounding is re-solved in the soft form.
 """
 
 from __future__ import annotations
@@ -184,26 +185,30 @@ class _Resolver:
     def search(self, candidates: list[np.ndarray], stop_at: float = -np.inf) -> None:
         """Re-solve ``candidates`` best-first by their dual lower bound, keeping the best that meets the hard limits.
 
-        Stops once the best score is at most the next candidate's bound or ``stop_at``.
+        Every candidate's score has a lower bound: its tap cost plus the dual function of its Q re-solve at the
+        relaxation's multipliers, then also at each feasible re-solve's own (the dual function is affine in the
+        taps: ``agent.solve.lattice.cut_at``). A candidate whose bound is not below the best score is skipped;
+        the search stops once none is left or the best score is at most ``stop_at``.
         """
         if not candidates:
             return
         fixed = self._fixed(candidates[0])
-        plan = []
-        for index, d_int in enumerate(candidates):
-            tap_cost = self.tap_cost(d_int)
-            lo, hi = fixed.bounds_with_d_tap(d_int)
-            plan.append((tap_cost + dual_bound(fixed, lo, hi, self.y_q0), index, d_int, tap_cost))
-        plan.sort(key=lambda item: (item[0], item[1]))
-        for lower_bound, _, d_int, tap_cost in plan:
-            if self.best is not None and (self.best[0] <= lower_bound or self.best[0] <= stop_at):
+        points = np.array(candidates, float)
+        taps = np.array([self.tap_cost(d_int) for d_int in candidates])
+        bounds = taps + _q_bounds(fixed, self.y_q0, points)
+        order = np.argsort(bounds, kind="stable")  # ties by candidate order
+        points, taps, bounds = points[order], taps[order], bounds[order]
+        for i in range(points.shape[0]):
+            if self.best is not None and (self.best[0] <= bounds[i:].min() or self.best[0] <= stop_at):
                 break  # no remaining candidate can beat the best by more than the tolerance
-            if not self._try(d_int, tap_cost):
+            if self.best is not None and self.best[0] <= bounds[i]:
+                continue  # a later re-solve's bound: this one cannot beat the best
+            outcome, problem, y = self.evaluate(points[i], float(taps[i]))
+            if outcome == "no solver":
                 break
-
-    def _try(self, d_int: np.ndarray, tap_cost: float) -> bool:
-        """Re-solve one candidate and keep it if it is the best feasible one; False when no solver can be set up."""
-        return self.evaluate(d_int, tap_cost)[0] != "no solver"
+            if outcome == "feasible" and y is not None and problem is not None:
+                np.maximum(bounds[i + 1 :], taps[i + 1 :] + _q_bounds(problem, y, points[i + 1 :]),
+                           out=bounds[i + 1 :])
 
     def evaluate(self, d_int: np.ndarray, tap_cost: float) -> tuple[str, CvvcQp | None, np.ndarray | None]:
         """``(outcome, problem, y)``: re-solve one candidate, keep it if it is the best feasible one.
@@ -369,6 +374,18 @@ def rounding_candidates(d_rel: np.ndarray) -> list[np.ndarray]:
                 cand[i] = np.floor(d_rel[i]) if nearest[i] > d_rel[i] else np.ceil(d_rel[i])
         out.append(cand)
     return out
+
+
+def _q_bounds(qp: CvvcQp, y: np.ndarray | None, points: np.ndarray) -> np.ndarray:
+    """(M,) lower bounds on the Q part of the score of the tap changes ``points`` (M, R) re-solved on the tap-fixed
+    ``qp``: its dual function at ``y`` (``-inf`` without ``y``) [cost units].
+    """
+    if y is None or y.shape != qp.lower.shape or points.shape[0] == 0:
+        return np.full(points.shape[0], -np.inf)
+    if qp.a_dense is not None:
+        cut = cut_at(qp, y, points[0], scale_to_best=False)
+        return np.full(points.shape[0], -np.inf) if cut is None else cut.const + points @ cut.slope
+    return np.array([dual_bound(qp, *qp.bounds_with_d_tap(d), y) for d in points])
 
 
 def dual_bound(qp: CvvcQp, lo: np.ndarray, hi: np.ndarray, y: np.ndarray | None) -> float:

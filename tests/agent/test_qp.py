@@ -2,6 +2,7 @@
 
 import dataclasses
 import itertools
+import warnings
 
 import highspy
 import numpy as np
@@ -9,11 +10,13 @@ import pytest
 import qpsolvers
 import scipy.optimize
 
-from agent.cvvc_qp import CvvcInputs, build_cvvc_qp
+from agent.cvvc_qp import PROX_WEIGHT, CvvcInputs, build_cvvc_qp
 from agent.errors import AgentInputError
 from agent.solve import V_TOL_PU, solve_cvvc, solve_milp_reference
 from agent.solve.milp import milp_tap_changes
 from agent.solve.robust import robust_shortfall_pu, robustly_feasible
+from agent.solve.rounding import rounding_candidates
+from agent.solve.settings import ROUNDING_GAP_REL
 from benchmarks.synthetic import random_cvvc_inputs
 
 
@@ -196,6 +199,44 @@ def test_rounding_keeps_hard_limits_when_an_integer_point_within_one_tap_exists(
         assert sol.status == "optimal", sol.reason
         assert sol.max_violation_pu <= V_TOL_PU
         assert np.all(np.abs(sol.taps_new - inputs.taps - d) < 1.0 + 1e-6)  # within one tap of the relaxation
+    assert checked >= 30
+
+
+def _score_with_taps_fixed(inputs: CvvcInputs, d_tap: np.ndarray) -> float:
+    """The rounding's score of integer tap changes ``d_tap`` (eq. 9 cost plus the proximal terms) with Q re-solved by
+    Clarabel over every node, hard limits; inf when no Q meets them."""
+    fixed = build_cvvc_qp(inputs, soft=False, fixed_d_tap=d_tap)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)  # Clarabel's word for an infeasible problem
+        out = qpsolvers.solve_problem(fixed.to_qpsolvers(), solver="clarabel")
+    if not out.found:
+        return np.inf
+    v = inputs.predict_v_pu(d_tap, fixed.q_kvar(out.x))
+    if np.max(np.maximum(v - inputs.v_max_pu, inputs.v_min_pu - v)) > V_TOL_PU:
+        return np.inf
+    prox = 0.5 * PROX_WEIGHT * fixed.cost_scale * float(d_tap @ d_tap)
+    return fixed.objective(out.x) + float(inputs.cost_per_tap @ np.abs(d_tap)) + prox
+
+
+def test_the_rounding_s_pruned_search_finds_the_best_of_every_candidate():
+    """The rounding skips candidates whose dual bound (at the relaxation's or at a re-solved candidate's multipliers)
+    is not below the best score so far; its taps still score within its stopping tolerance of the best of every
+    rounding candidate re-solved by a second solver."""
+    rng = np.random.default_rng(21)
+    checked = 0
+    for _ in range(80):
+        inputs = random_cvvc_inputs(rng)
+        sol = solve_cvvc(inputs)
+        candidates = rounding_candidates(sol.relaxed_d_tap)
+        if sol.status != "optimal" or sol.relaxed_form != "hard" or len(candidates) < 4:
+            continue
+        scores = [_score_with_taps_fixed(inputs, d) for d in candidates]
+        if not np.isfinite(min(scores)):
+            continue  # no rounding meets the hard limits: the search further away decides
+        checked += 1
+        relaxed = sol.relaxed_problem.objective(sol.relaxed_x)
+        chosen = _score_with_taps_fixed(inputs, (sol.taps_new - inputs.taps).astype(float))
+        assert chosen <= min(scores) + ROUNDING_GAP_REL * abs(relaxed) + 1e-6
     assert checked >= 30
 
 
