@@ -188,6 +188,7 @@ class CvvcInputs:
 
     def __post_init__(self) -> None:
         self._check(_INPUT_FIELDS)
+        object.__setattr__(self, "_feasible_set_memo", {})
 
     def replaced(self, **changes: Any) -> CvvcInputs:
         """A copy with ``changes`` (as ``dataclasses.replace``): only the changed fields are converted and checked
@@ -203,7 +204,18 @@ class CvvcInputs:
         for name, value in changes.items():
             object.__setattr__(new, name, value)
         new._check(tuple(name for name in _INPUT_FIELDS if name in changes))
+        if not set(changes) <= _PRICE_FIELDS:
+            object.__setattr__(new, "_feasible_set_memo", {})
         return new
+
+    @property
+    def feasible_set_memo(self) -> dict[Any, Any]:
+        """Results the solver derives from the feasible set alone (the limits, the sensitivities, the device ranges
+        and ``dv_dq_rel_error``), not from the prices (the costs and the soft form's weights): a copy ``replaced``
+        makes with new prices only shares them (the tap offer's problem is the decision's with the taps free).
+        """
+        memo: dict[Any, Any] = self.__dict__["_feasible_set_memo"]
+        return memo
 
     def _check(self, names: tuple[str, ...]) -> None:
         """Convert and check the fields ``names`` (copies, read-only), then every relation between the fields."""
@@ -255,6 +267,8 @@ class CvvcInputs:
 
 #: Every field of ``CvvcInputs``, in the order they are declared and checked.
 _INPUT_FIELDS = tuple(f.name for f in dataclasses.fields(CvvcInputs))
+#: The fields that price a problem without changing which actions meet its limits (``feasible_set_memo``).
+_PRICE_FIELDS = frozenset({"cost_per_tap", "cost_per_kvar", "soft_alpha", "soft_beta_per_pu2", "soft_weight"})
 
 
 @dataclass(frozen=True)

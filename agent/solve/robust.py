@@ -54,6 +54,16 @@ def robustly_feasible(inputs: CvvcInputs, hard: np.ndarray) -> bool:
     idx = np.flatnonzero(hard)
     if idx.size == 0:
         return True
+    key = ("robustly feasible", idx.tobytes())  # a problem priced anew (the tap offer) asks again: one answer
+    memo = inputs.feasible_set_memo
+    if key not in memo:
+        memo[key] = _robust_action_exists(inputs, idx)
+    verdict: bool = memo[key]
+    return verdict
+
+
+def _robust_action_exists(inputs: CvvcInputs, idx: np.ndarray) -> bool:
+    """``robustly_feasible`` over the nodes ``idx``, solved."""
     qp = build_cvvc_qp(inputs, soft=False, nodes=idx)
     n, k, lay = idx.size, inputs.n_pv, qp.layout
     rows = qp.a_dense[:n] if qp.a_dense is not None else qp.A.toarray()[:n]  # voltage rows [%]: taps up/down, Q+, Q-

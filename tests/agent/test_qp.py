@@ -140,7 +140,7 @@ def test_fully_soft_when_the_reachable_nodes_conflict():
     # the partly hard problem is infeasible, so every node gets a violation variable.
     inputs = CvvcInputs(
         **{
-            **_tiny(v0=[1.10, 1.0]).__dict__,
+            **dataclasses.asdict(_tiny(v0=[1.10, 1.0])),
             "v0_pu": np.array([1.10, 1.05, 0.97]),
             "dv_dq_pu_per_kvar": np.array([[2e-5], [1e-5], [1e-5]]),
             "dv_dtap_pu": np.array([[0.00625], [0.00625], [0.00625]]),
@@ -161,7 +161,7 @@ def test_no_action_needed_is_exactly_zero():
 
 def test_fixed_plant_and_frozen_regulator_are_respected():
     base = _tiny(v0=[1.045, 1.03])
-    inputs = CvvcInputs(**{**base.__dict__, "q_min_kvar": np.array([50.0]), "q_max_kvar": np.array([50.0]),
+    inputs = CvvcInputs(**{**dataclasses.asdict(base), "q_min_kvar": np.array([50.0]), "q_max_kvar": np.array([50.0]),
                            "max_taps_per_interval": np.array([0])})  # fmt: skip
     sol = solve_cvvc(inputs)
     assert sol.taps_new.tolist() == [0]
@@ -284,7 +284,7 @@ def test_solutions_are_finite_deterministic_and_within_device_limits():
 def test_inputs_are_validated(change, match):
     base = _tiny(v0=[1.0, 1.0])
     with pytest.raises(AgentInputError, match=match):
-        CvvcInputs(**{**base.__dict__, **change})
+        CvvcInputs(**{**dataclasses.asdict(base), **change})
     with pytest.raises(AgentInputError, match=match):  # a copy with the bad field is refused alike
         base.replaced(**change)
 
@@ -313,7 +313,7 @@ def test_large_soft_problem_stays_sparse_and_is_solved():
     # need a 2000 x 2000 dense copy; it is kept sparse and solved by OSQP alone.
     base = random_cvvc_inputs(np.random.default_rng(5), n_nodes=2000)
     v0 = 1.0 + np.where(np.arange(2000) % 2 == 0, 0.07, -0.07)
-    inputs = CvvcInputs(**{**base.__dict__, "v0_pu": v0})
+    inputs = CvvcInputs(**{**dataclasses.asdict(base), "v0_pu": v0})
     assert build_cvvc_qp(inputs, soft=True).a_dense is None
     sol = solve_cvvc(inputs)
     assert sol.status == "soft" and "cannot reach" in sol.reason
@@ -367,7 +367,7 @@ def _low_and_high(rel_error: float) -> CvvcInputs:
     """Node 0 is 0.015 pu under 0.975, node 1 at 1.04, both 2e-5 pu/kvar, taps frozen: only the soft form."""
     return CvvcInputs(
         **{
-            **_tiny(v0=[0.96, 1.04], dv_dq=(2e-5, 2e-5)).__dict__,
+            **dataclasses.asdict(_tiny(v0=[0.96, 1.04], dv_dq=(2e-5, 2e-5))),
             "max_taps_per_interval": np.array([0]),
             "v_min_pu": 0.975,
             "v_max_pu": 1.04,
@@ -390,22 +390,22 @@ def test_sensitivity_error_shrinks_q_in_the_soft_form(rel_error, q_kvar):
 
 def test_sensitivity_error_leaves_the_hard_form_alone():
     hard = [build_cvvc_qp(_tiny(v0=[1.045, 1.03]), soft=False)]
-    inputs = CvvcInputs(**{**_tiny(v0=[1.045, 1.03]).__dict__, "dv_dq_rel_error": 0.5})
+    inputs = CvvcInputs(**{**dataclasses.asdict(_tiny(v0=[1.045, 1.03])), "dv_dq_rel_error": 0.5})
     hard.append(build_cvvc_qp(inputs, soft=False))
     np.testing.assert_array_equal(hard[0].p_diag, hard[1].p_diag)
     with pytest.raises(AgentInputError, match="dv_dq_rel_error"):
-        CvvcInputs(**{**inputs.__dict__, "dv_dq_rel_error": 1.5})
+        CvvcInputs(**{**dataclasses.asdict(inputs), "dv_dq_rel_error": 1.5})
 
 
 def test_nothing_can_move_is_answered_without_a_solve():
     """PV at night (no Q headroom) and every tap frozen: the only point is the present one; a violation stays
     and is reported (OSQP called such all-pinned soft problems infeasible: epri-ckt5 case A held 135 decisions)."""
     pinned = {"q_min_kvar": np.array([0.0]), "q_max_kvar": np.array([0.0]), "max_taps_per_interval": np.array([0])}
-    over = solve_cvvc(CvvcInputs(**{**_tiny(v0=[1.043, 1.03]).__dict__, **pinned}))
+    over = solve_cvvc(CvvcInputs(**{**dataclasses.asdict(_tiny(v0=[1.043, 1.03])), **pinned}))
     assert over.status == "soft" and "no action available" in over.reason and "0.0030 pu" in over.reason
     assert over.q_new_kvar.tolist() == [0.0] and over.taps_new.tolist() == [0] and over.iterations == 0
     assert over.max_violation_pu == pytest.approx(0.003)
-    inside = solve_cvvc(CvvcInputs(**{**_tiny(v0=[1.0, 1.0]).__dict__, **pinned}))
+    inside = solve_cvvc(CvvcInputs(**{**dataclasses.asdict(_tiny(v0=[1.0, 1.0])), **pinned}))
     assert inside.status == "optimal" and inside.reason == "" and inside.cost == 0.0
 
 
@@ -448,10 +448,24 @@ def test_hard_limits_that_need_plants_pulling_apart_on_sensitivity_differences_g
     assert robustly_feasible(_narrow_band(0.0), np.ones(2, bool))
 
 
+def test_a_problem_priced_anew_shares_the_robust_verdict_and_one_with_other_limits_does_not():
+    """The robust check depends on the feasible set alone: a copy with new costs (the tap offer's) takes the verdict
+    already found; a copy with another sensitivity error or other tap ranges finds its own."""
+    hard = np.ones(2, bool)
+    tight = _narrow_band(0.3)
+    assert not robustly_feasible(tight, hard)
+    priced = tight.replaced(cost_per_tap=np.zeros(1), cost_per_kvar=np.full(2, 1e-3))
+    assert priced.feasible_set_memo is tight.feasible_set_memo and not robustly_feasible(priced, hard)
+    exact = tight.replaced(dv_dq_rel_error=0.0)
+    assert exact.feasible_set_memo is not tight.feasible_set_memo and robustly_feasible(exact, hard)
+    for other in (tight.replaced(tap_max=np.array([1])), tight.replaced(v_max_pu=1.05)):
+        assert other.feasible_set_memo is not tight.feasible_set_memo
+
+
 def test_hard_limits_that_hold_within_the_sensitivity_error_stay_hard():
     """Case A_q_only with a 30 % error: absorbing 357 kvar (250 / 0.7) would meet the limits at the worst error, so
     the hard form keeps its optimum (-250 kvar at the nominal sensitivity), though that point alone is not robust."""
-    inputs = CvvcInputs(**{**_tiny(v0=[1.045, 1.03]).__dict__, "dv_dq_rel_error": 0.3})
+    inputs = CvvcInputs(**{**dataclasses.asdict(_tiny(v0=[1.045, 1.03])), "dv_dq_rel_error": 0.3})
     sol = solve_cvvc(inputs)
     assert sol.status == "optimal" and sol.reason == ""
     assert sol.q_new_kvar[0] == pytest.approx(-250.0, abs=1.0)
@@ -503,7 +517,7 @@ def test_robust_check_agrees_with_the_lp_it_replaces():
     verdicts = []
     for _ in range(60):
         base = random_cvvc_inputs(rng)
-        inputs = CvvcInputs(**{**base.__dict__, "dv_dq_rel_error": float(rng.choice([0.0, 0.1, 0.3, 0.6]))})
+        inputs = CvvcInputs(**{**dataclasses.asdict(base), "dv_dq_rel_error": float(rng.choice([0.0, 0.1, 0.3, 0.6]))})
         hard = rng.random(inputs.n_nodes) < 0.7
         verdict = robustly_feasible(inputs, hard)
         assert verdict == _robust_lp_verdict(inputs, hard)
