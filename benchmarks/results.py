@@ -21,6 +21,7 @@ __all__ = [
     "BurstBench",
     "ClosedLoopBench",
     "DecisionBench",
+    "LiveDecisionBench",
     "MemoryKib",
     "OfflineRerun",
     "ProcessMemory",
@@ -134,6 +135,27 @@ class DecisionBench(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fi
     case_a_state_max_dv_pu: float  # the oracle engine's voltages against the simulation's
     ratio_case_a_to_agent_mean: float  # on the sampled steps: case A's mean over the agent's mean there
     load_average: float  # the machine's 1-minute load average when the agent's run started
+    method: str
+    goal: str
+
+
+class LiveDecisionBench(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """``bench_live``: the agent's own time per decision in case D runs through the bus, a day of each season,
+    read from the runs' recordings (``align_s + total_s``: the step's alignment and snapshot, then the decision).
+    """
+
+    feeder: str
+    decisions: int  # over the four seasons' days
+    days_per_season: float
+    p50_ms: float
+    p99_ms: float
+    max_ms: float
+    season_p99_ms: dict[str, float]
+    first_decision_ms: dict[str, float]  # each run's first decision (cold: the agent's process just started)
+    lockstep_misses: int  # steps the bridge went on without a decision (a starved machine: the figures are suspect)
+    p99_goal_met: bool
+    load_average: float  # the machine's 1-minute load average before the first run
+    wall_s: float
     method: str
     goal: str
 

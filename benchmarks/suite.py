@@ -13,6 +13,9 @@ result from ``benchmarks.results`` as JSON; ``read_results`` reads a ``--json`` 
   beside OSQP's own solve of each decision's relaxation and case A's per-interval cost (perturbation power flows +
   all-node problem) on the rural feeder, IEEE 13, IEEE 123, IEEE 8500 and the EPRI feeders (goals: p99 <= 5 ms,
   >= 50x);
+- ``live``: the agent's own decision time live, case D through the bus on a day of each season (the runs of
+  ``cvvc evaluate``, one at a time), p50/p99/max over the four days and each season's p99, on every feeder above
+  (goals: p99 <= 5 ms, p50 <= 1 ms on the rural feeder);
 - ``recording``: messages/s through Zenoh into MCAP vs the bare MCAP writer (goal: >= 60 %), offline
   replay speed;
 - ``closedloop``: a recorded ``cvvc run`` of case D on the rural feeder vs bare OpenDSS of the same steps and taps,
@@ -41,6 +44,7 @@ from benchmarks.results import (
     ClosedLoopBench,
     DecisionBench,
     Dnp3Bench,
+    LiveDecisionBench,
     QstsBench,
     RecordingBench,
     SoakBench,
@@ -70,7 +74,7 @@ _EPRI = ("epri-k1", "epri-m1", "epri-ckt5", "epri-ckt24")
 #: What one benchmark of the suite returns: its result, or one result per feeder.
 Result = (dict[str, QstsBench] | dict[str, BridgeBench] | dict[str, TrainingBench] | SolverRun
           | dict[str, DecisionBench] | RecordingBench | SoakBench | SunspecBench | ClosedLoopBench
-          | Dnp3Bench)
+          | Dnp3Bench | dict[str, LiveDecisionBench])
 
 
 def bench_qsts_all(quick: bool) -> dict[str, QstsBench]:
@@ -140,6 +144,19 @@ def bench_decision(quick: bool) -> dict[str, DecisionBench]:
     return out | {name: run(FEEDERS / f"{name}.toml", cache=cache, case_a_every=every[name]) for name in _EPRI}
 
 
+def bench_live_all(quick: bool) -> dict[str, LiveDecisionBench]:
+    from benchmarks.bench_live import bench_live
+
+    cache = cache_root(None)
+    if quick:
+        return {"rural": bench_live(None, days_per_season=0.1, cache=cache)}
+    feeders: list[tuple[str, Path | None]] = [("rural", None), ("ieee13", FEEDERS / "ieee13.toml"),
+                                               ("ieee123", FEEDERS / "ieee123.toml"),
+                                               ("ieee8500", FEEDERS / "ieee8500.toml")]
+    feeders += [(name, FEEDERS / f"{name}.toml") for name in _EPRI]
+    return {name: bench_live(path, cache=cache) for name, path in feeders}
+
+
 def bench_recording(quick: bool) -> RecordingBench:
     from benchmarks.bench_recording import bench_recording as run
 
@@ -176,6 +193,7 @@ BENCHES: dict[str, Callable[[bool], Result]] = {
     "training": bench_training,
     "solver": bench_solver,
     "decision": bench_decision,
+    "live": bench_live_all,
     "recording": bench_recording,
     "closedloop": bench_closedloop,
     "soak": bench_soak,
@@ -190,6 +208,7 @@ RESULT_TYPES: dict[str, object] = {
     "training": dict[str, TrainingBench],
     "solver": SolverRun,
     "decision": dict[str, DecisionBench],
+    "live": dict[str, LiveDecisionBench],
     "recording": RecordingBench,
     "closedloop": ClosedLoopBench,
     "soak": SoakBench,
