@@ -1,10 +1,11 @@
 """Benchmark of the CVVC solver at the paper's size (47 critical nodes, 3 plants, 8 regulators).
 
-``python -m benchmarks.bench_solver [--problems N] [--days D] [--seed S]`` prints, for independent random problems
-(cold start) and for closed-loop synthetic days (5-minute steps, warm start from the previous solution, the
-way the agent runs): solve time p50/p99/max, OSQP iterations, statuses, and the rounding's cost gap to the
-exact MILP (``scipy.optimize.milp``). Wall times depend on the machine's load (printed); thread CPU
-times much less.
+``python -m benchmarks.bench_solver [--problems N] [--days D] [--seed S] [--nodes N,...]`` prints, for independent
+random problems (cold start) and for closed-loop synthetic days (5-minute steps, warm start from the previous solution,
+the way the agent runs): solve time p50/p99/max, OSQP iterations, statuses, and the rounding's cost gap to the
+exact MILP (``scipy.optimize.milp``); then how the closed-loop days' solve time grows with the critical nodes
+(``--nodes``: one day at each size, the same 8 regulators and 3 plants). Wall times depend on the machine's load
+(printed); thread CPU times much less.
 """
 
 from __future__ import annotations
@@ -46,6 +47,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--days", type=int, default=2, help="closed-loop synthetic days of 288 steps (warm start)")
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--gap-every", type=int, default=3, help="compare with the MILP every N-th problem")
+    parser.add_argument("--nodes", default="", help="critical-node counts for the growth section, e.g. 50,100,300")
     args = parser.parse_args(argv)
     rng = np.random.default_rng(args.seed)
 
@@ -90,8 +92,39 @@ def main(argv: list[str] | None = None) -> int:
             except StopIteration:
                 break
     print(_summary("closed-loop days, warm start", secs, cpu, its, stats, gaps))
+    for n_nodes in [int(n) for n in args.nodes.split(",") if n.strip()]:
+        secs, cpu, its, stats = _closed_loop_day(np.random.default_rng(args.seed), n_nodes)
+        ms, cpu_ms = np.array(secs) * 1e3, np.array(cpu) * 1e3
+        wall_p50, wall_p99, cpu_p50, cpu_p99 = *np.percentile(ms, [50, 99]), *np.percentile(cpu_ms, [50, 99])
+        print(f"{n_nodes} critical nodes, a closed-loop day: wall p50 {wall_p50:.3f} ms, p99 {wall_p99:.3f} ms, "
+              f"max {ms.max():.3f} ms; thread CPU p50 {cpu_p50:.3f} ms, p99 {cpu_p99:.3f} ms; ADMM iterations p99 "
+              f"{np.percentile(its, 99):.0f}; {dict(stats)}")
     print(f"load average during the run: {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores")
     return 0
+
+
+def _closed_loop_day(rng: np.random.Generator,
+                     n_nodes: int) -> tuple[list[float], list[float], list[int], Counter[str]]:
+    """Wall and thread CPU time [s] and OSQP iterations of each solve of one synthetic day with ``n_nodes`` critical
+    nodes, each warm-started from the previous solution, and the statuses and MILP fallbacks counted.
+    """
+    secs, cpu, its = [], [], []
+    stats: Counter[str] = Counter()
+    days = cvvc_day_sequence(rng, n_nodes=n_nodes)
+    inputs, previous = next(days), None
+    while True:
+        t_cpu = time.thread_time()
+        sol = solve_cvvc(inputs, warm_start=previous)
+        cpu.append(time.thread_time() - t_cpu)
+        secs.append(sol.seconds.total_s)
+        its.append(sol.iterations)
+        stats[sol.status] += 1
+        stats["milp"] += sol.milp_solves
+        previous = sol
+        try:
+            inputs = days.send((sol.taps_new, sol.q_new_kvar))
+        except StopIteration:
+            return secs, cpu, its, stats
 
 
 if __name__ == "__main__":

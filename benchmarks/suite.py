@@ -8,7 +8,8 @@ result from ``benchmarks.results`` as JSON; ``read_results`` reads a ``--json`` 
 - ``bridge``: lockstep steps/s through Zenoh with a trivial responder vs the bare QSTS (goal overhead < 20 %),
   and the frame -> decision round trip p50/p99;
 - ``training``: training time on the rural feeder (goal < 60 s), IEEE 123 and IEEE 8500 (goal < 10 min);
-- ``solver``: the CVVC solver at the paper's size, cold and warm, and the rounding gap to the exact MILP;
+- ``solver``: the CVVC solver at the paper's size, cold and warm, and the rounding gap to the exact MILP; the
+  growth of its time with the critical nodes (50 to 600);
 - ``decision``: the agent's decision time (aligned frames in -> commands out) over whole days, one run, p50/p99/max,
   beside OSQP's own solve of each decision's relaxation and case A's per-interval cost (perturbation power flows +
   all-node problem) on the rural feeder, IEEE 13, IEEE 123, IEEE 8500 and the EPRI feeders (goals: p99 <= 5 ms,
@@ -119,7 +120,8 @@ def bench_training(quick: bool) -> dict[str, TrainingBench]:
 def bench_solver(quick: bool) -> SolverRun:
     from benchmarks import bench_solver
 
-    argv = ["--problems", "50" if quick else "300", "--days", "1" if quick else "3"]
+    argv = ["--problems", "50" if quick else "300", "--days", "1" if quick else "3",
+            "--nodes", "50,300" if quick else "50,100,200,300,400,600"]
     t0 = time.perf_counter()
     code = bench_solver.main(argv)
     return SolverRun(exit_code=code, wall_s=round(time.perf_counter() - t0, 1))
