@@ -230,6 +230,7 @@ class CvvcController:
         self._pv_last_q_kvar: list[float | None] = [None] * n_pv
         self._reg_last_tap: list[int | None] = [None] * n_reg
         self._warm: WarmStart | None = None
+        self._cpu0 = 0.0  # the thread's CPU clock when the decision under way started [s]
         self.setpoint_hold = bool(o.setpoint_hold)
         self.control_banks = bool(o.control_banks)
         self._setpoint_hold_ns = 2 * int(model.control_period_s) * 1_000_000_000  # commands' validity
@@ -347,6 +348,7 @@ class CvvcController:
                 solve_s=sec.build_s + sec.relaxed_s if sec is not None else 0.0,
                 round_s=sec.rounding_s if sec is not None else 0.0,
                 total_s=time.perf_counter() - t0,
+                cpu_s=time.thread_time() - self._cpu0,
             ),
         )
 
@@ -605,6 +607,7 @@ class CvvcController:
         rule lets the step be decided; without it the estimator gives the state of the critical nodes.
         """
         t0 = time.perf_counter()
+        self._cpu0 = time.thread_time()  # the decision's CPU time (``Timings.cpu_s``)
         n_pv, n_reg = len(self._pv_ids), len(self._reg_ids)
         shapes = {
             "head_p_kw": (snap.head_p_kw, 3), "head_q_kvar": (snap.head_q_kvar, 3),
@@ -773,6 +776,7 @@ class CvvcController:
                 solve_s=sec.build_s + sec.relaxed_s,
                 round_s=sec.rounding_s,
                 total_s=time.perf_counter() - t0,
+                cpu_s=time.thread_time() - self._cpu0,
             ),
             v_bound_low_pu=None if applied is None else applied[0],
             v_bound_high_pu=None if applied is None else applied[1],

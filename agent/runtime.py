@@ -74,6 +74,7 @@ class AgentSummary(msgspec.Struct, frozen=True, kw_only=True):
     tolerated: int = 0
     reasons: dict[str, int] = {}  # why decisions were soft or held, by kind of reason (``reason_kind``)
     decision_ms: dict[str, float] = {}  # the agent's wall time per decision (``decision_time_ms``): p50, p99, max
+    decision_cpu_ms: dict[str, float] = {}  # the deciding thread's CPU time per decision (``Timings.cpu_s``)
     ami: dict[str, int] = {}  # AMI meter readings taken, used and ignored by kind (``agent.ami``; none without meters)
     step_ends: int = 0  # scan-end markers taken (``StepEnd``)
     released_by_step_end: int = 0  # steps with lost frames decided at once, on a marker, not after the late window
@@ -147,6 +148,7 @@ class DecisionMaker:
         self.tolerated = 0  # of the soft ones: taps held by the tap deadband, the limits widened by it met
         self.reasons: Counter[str] = Counter()  # of soft and hold decisions
         self.decision_s: deque[float] = deque(maxlen=DECISION_TIMES_KEPT)  # wall time of each decision [s]
+        self.decision_cpu_s: deque[float] = deque(maxlen=DECISION_TIMES_KEPT)  # its thread's CPU time [s]
         # cmd_id -> (device, answered) of the latest commands sent: one answer (accepted, clipped, rejected) and one
         # 'expired' count per command, so the device's ack to a replay of it by someone else does not
         self._sent: OrderedDict[str, tuple[str, bool]] = OrderedDict()
@@ -254,6 +256,7 @@ class DecisionMaker:
         dv_dq = [] if d.dv_dq_pu_per_kvar is None else _within_array(d.dv_dq_pu_per_kvar, -1.0, 1.0, 12)
         tm = d.timings
         self.decision_s.append(tm.total_s + align_s)
+        self.decision_cpu_s.append(tm.cpu_s)
         return m.Decision(
             t_ns=t, seq=seq, source=s.agent_id, feeder_id=s.feeder_id, step_t_ns=t, in_reply_to=in_reply_to,
             status=d.status, reason=d.reason[:500], commands=commands, estimates=estimates,
@@ -483,6 +486,7 @@ def run_agent(model: CvvcModel, settings: AgentSettings, bus, *, stop: threading
                         log_suppressed=_suppressed(rlog, inbox.rejects.log_suppressed()),
                         soft=maker.soft, tolerated=maker.tolerated, reasons=dict(maker.reasons.most_common(20)),
                         decision_ms=decision_time_ms(maker.decision_s),
+                        decision_cpu_ms=decision_time_ms(maker.decision_cpu_s),
                         ami=dict(maker.controller.ami.counts),
                         step_ends=maker.aligner.step_ends, released_by_step_end=maker.aligner.released_by_step_end,
                         decided_after_late_window=late_decided, clock_snapped=maker.aligner.snapped,

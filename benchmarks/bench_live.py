@@ -44,7 +44,8 @@ def bench_live(device_map_path: str | Path | None, *, days_per_season: float = 1
     -------
     LiveDecisionBench
         The pooled p50 / p99 / max over every decision of the four days, each season's p99, the first (cold)
-        decision of each run, the machine's load average before the first run.
+        decision of each run, the deciding thread's CPU time (``Timings.cpu_s``: p50, p99), the machine's load
+        average before the first run.
 
     Raises
     ------
@@ -64,12 +65,15 @@ def bench_live(device_map_path: str | Path | None, *, days_per_season: float = 1
                                 cache=None if cache is None else str(cache), progress=False)
         evaluation = evaluate(config)
         seasons: dict[str, list[float]] = {}
+        cpu: list[float] = []
         first: dict[str, float] = {}
         misses = 0
         for run in evaluation.runs:
             if run.recording is None:
                 raise ValueError(f"run {run.spec.name} left no recording: its decision times cannot be read")
-            times = [1e3 * (d.timings.align_s + d.timings.total_s) for d in recorded_decisions(run.recording)]
+            decisions = recorded_decisions(run.recording)
+            times = [1e3 * (d.timings.align_s + d.timings.total_s) for d in decisions]
+            cpu += [1e3 * d.timings.cpu_s for d in decisions]
             if not times:
                 raise ValueError(f"run {run.spec.name} recorded no decision")
             seasons[run.spec.season] = times
@@ -78,9 +82,11 @@ def bench_live(device_map_path: str | Path | None, *, days_per_season: float = 1
     pooled = np.concatenate([np.asarray(t, float) for t in seasons.values()])
     p50, p99 = np.percentile(pooled, [50, 99])
     season_p99 = {s: round(float(np.percentile(t, 99)), 2) for s, t in seasons.items()}
+    cpu_p50, cpu_p99 = np.percentile(np.asarray(cpu, float), [50, 99])
     return LiveDecisionBench(
         feeder=evaluation.feeder_id, decisions=int(pooled.size), days_per_season=days_per_season,
         p50_ms=round(float(p50), 2), p99_ms=round(float(p99), 2), max_ms=round(float(pooled.max()), 2),
+        cpu_p50_ms=round(float(cpu_p50), 2), cpu_p99_ms=round(float(cpu_p99), 2),
         season_p99_ms=season_p99, first_decision_ms=first, lockstep_misses=misses,
         p99_goal_met=bool(p99 <= LIVE_GOAL_P99_MS), load_average=round(load, 2),
         wall_s=round(time.perf_counter() - t0, 1),

@@ -547,6 +547,7 @@ def run(config: RunConfig) -> RunSummary:
         tolerated=agent_summary.tolerated if agent_summary else 0,
         reasons=dict(agent_summary.reasons) if agent_summary else {},
         decision_ms=dict(agent_summary.decision_ms) if agent_summary else {},
+        decision_cpu_ms=dict(agent_summary.decision_cpu_ms) if agent_summary else {},
         recorder_restarts=recorder.restarts if recorder is not None else 0, recording_gaps=gaps,
         recorder_gave_up=recorder.gave_up if recorder is not None else False, pv_protocol=config.pv_protocol,
         sunspec_frame_misses=bridge_summary.sunspec_frame_misses, field_protocol=config.field_protocol,

@@ -141,7 +141,9 @@ def render_summary(s: RunSummary, dm: DeviceMap | None) -> str:
               *([f"- tap steps as the regulators' compared readings measured them: "
                  f"{measured_steps_text(s.measured_steps_v120)}"]
                 if s.measured_steps_v120 else []),
-              *([f"- decision time (the agent's, per control step): {decision_time_text(s.decision_ms)}"]
+              *([f"- decision time (the agent's, per control step): {decision_time_text(s.decision_ms)}"
+                 + (f"; the deciding thread's CPU time {decision_time_text(s.decision_cpu_ms)}"
+                    if s.decision_cpu_ms else "")]
                 if s.decision_ms else []),
               *([f"- {live_accuracy_text(s.live)}"] if s.live is not None and s.live.samples else []),
               *([f"- **{s.lockstep_misses} lockstep miss(es)**: at those control steps the bridge went on under local "

@@ -59,6 +59,7 @@ class RunSummary(msgspec.Struct, frozen=True, kw_only=True):
     tolerated: int = 0  # of them, the tap deadband's (taps held, the limits widened by the deadband met)
     reasons: dict[str, int] = {}  # the reasons of soft and hold decisions, most frequent first
     decision_ms: dict[str, float] = {}  # the agent's wall time per decision [ms]: p50, p99, max
+    decision_cpu_ms: dict[str, float] = {}  # of it, the deciding thread's CPU time [ms]: p50, p99, max
     recorder_restarts: int = 0  # the recorder died and was restarted this many times; control went on
     recording_gaps: list[RecorderGap] = []  # what the recording misses because of it (also in the MCAP file)
     recorder_gave_up: bool = False  # the recorder died more than recorder_restarts_max times: recording stopped

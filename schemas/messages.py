@@ -311,6 +311,8 @@ class Timings(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=T
     solve_s: Seconds = 0.0
     round_s: Seconds = 0.0
     total_s: Seconds = 0.0
+    # the deciding thread's CPU time over ``total_s``: the rest of ``total_s`` it waited for a core
+    cpu_s: Seconds = 0.0
 
 
 class Decision(Message, frozen=True, kw_only=True, forbid_unknown_fields=True):

@@ -30,5 +30,7 @@ def test_bench_live_pools_the_agent_s_own_time_of_every_decision_of_the_four_sea
     assert r.p99_ms == round(float(np.percentile(pooled, 99)), 2) and r.max_ms == round(float(pooled.max()), 2)
     assert 0.0 < r.p50_ms <= r.p99_ms <= r.max_ms
     assert r.first_decision_ms == {s: round(t[0], 2) for s, t in times.items()}
+    cpu = np.array([1e3 * d.timings.cpu_s for rec in recordings for d in recorded_decisions(rec)])
+    assert r.cpu_p99_ms == round(float(np.percentile(cpu, 99)), 2) and 0.0 < r.cpu_p50_ms <= r.p50_ms
     assert r.p99_goal_met == (r.p99_ms <= LIVE_GOAL_P99_MS) and r.lockstep_misses == 0
     assert decode_result(to_json(r), LiveDecisionBench) == r

@@ -131,6 +131,8 @@ def test_results_list_each_agent_runs_soft_and_hold_decisions_and_its_decision_t
     assert d.soft + d.holds == sum(d.reasons.values())
     assert set(d.decision_ms) == {"p50", "p99", "max"}
     assert 0.0 < d.decision_ms["p50"] <= d.decision_ms["p99"] <= d.decision_ms["max"] < 60_000.0
+    cpu = agent["decision_cpu_ms"]  # the deciding thread's CPU time: within the decision's wall time
+    assert 0.0 < cpu["p50"] <= d.decision_ms["p50"] and cpu["max"] <= d.decision_ms["max"]
     assert none.decision_ms == {} and none.decisions == 0
     md = (out / "results.md").read_text()
     assert "## Decisions" in md
@@ -144,6 +146,7 @@ def test_results_list_each_agent_runs_soft_and_hold_decisions_and_its_decision_t
     assert f"| summer | none | {none.metrics.node_minutes_outside_opt:,} |" in minutes
     report = (Path(d.out_dir) / "report.md").read_text()
     assert f"decision time (the agent's, per control step): p50 {d.decision_ms['p50']:.1f} ms" in report
+    assert f"the deciding thread's CPU time p50 {cpu['p50']:.1f} ms" in report
 
 
 def test_results_md_judges_the_agent_run_against_no_control_of_its_season(small_evaluation):
