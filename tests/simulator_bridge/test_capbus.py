@@ -306,6 +306,10 @@ def test_recorded_banks_in_recordings_info_and_the_run_report(client: Client, ro
         got["final"] = client.next(lambda k, x: isinstance(x, m.MetricsFrame) and x.final)
 
     with open_session(bus) as session, Recorder(session, RecorderConfig(out_path=str(rec_path), bus=bus)) as rec:
+        # the recorder's subscription reached the router before the run's first message (only its cvvc/** matches)
+        probe = client.session.declare_publisher("cvvc/recorder-probe")
+        assert wait_for(lambda: probe.matching_status.matching, 10.0)
+        probe.undeclare()
         summary = _run(_config(cap_map, cache_dir, steps=8), router_endpoint, drive)
         n_seen = sum(1 for k, _, _ in client.seen if "/cmd/" not in k)  # the recorder sees what the client saw
         assert wait_for(lambda: rec.stats().messages >= n_seen, 10.0), rec.stats()
