@@ -187,7 +187,7 @@ class SunSpecPlant(LinkedDevice):
         if r is None:
             return 0.0, 0.0
         p = max(r.p_kw, 0.0)
-        h = math.sqrt(max(r.s_rated_kva**2 - p**2, 0.0)) if p > 0.0 or self.settings.q_at_night else 0.0
+        h = dv.pv_q_headroom_kvar(r.s_rated_kva, p, self.settings.q_at_night)
         return min(h, r.var_max_inj_kvar), min(h, r.var_max_abs_kvar)
 
     def _verdict(self, cmd: m.PvCommand, now_t_ns: int) -> dv.Verdict:

@@ -230,7 +230,6 @@ class CvvcController:
         self._pv_last_q_kvar: list[float | None] = [None] * n_pv
         self._reg_last_tap: list[int | None] = [None] * n_reg
         self._warm: WarmStart | None = None
-        self._cpu0 = 0.0  # the thread's CPU clock when the decision under way started [s]
         self.setpoint_hold = bool(o.setpoint_hold)
         self.control_banks = bool(o.control_banks)
         self._setpoint_hold_ns = 2 * int(model.control_period_s) * 1_000_000_000  # commands' validity
@@ -305,7 +304,7 @@ class CvvcController:
         snap: MeasurementSnapshot,
         reason: str,
         missing: tuple[str, ...],
-        t0: float,
+        started: tuple[float, float],
         *,
         state: GridState | None = None,
         solution: CvvcSolution | None = None,
@@ -316,7 +315,8 @@ class CvvcController:
 
         ``state`` (when the grid state was built) gives the reported estimates (critical nodes only),
         ``solution`` (when the solver ran) its iterations, status and stage times, ``solves`` every solve the
-        decision made; ``t0`` is ``time.perf_counter()`` at the start of the decision.
+        decision made; ``started`` is ``(time.perf_counter(), time.thread_time())`` at the start of the decision
+        (``decide``'s).
         """
         if self._drift is not None:
             self._drift.forget()
@@ -347,8 +347,8 @@ class CvvcController:
                 estimate_s=float(estimate_s),
                 solve_s=sec.build_s + sec.relaxed_s if sec is not None else 0.0,
                 round_s=sec.rounding_s if sec is not None else 0.0,
-                total_s=time.perf_counter() - t0,
-                cpu_s=time.thread_time() - self._cpu0,
+                total_s=time.perf_counter() - started[0],
+                cpu_s=time.thread_time() - started[1],
             ),
         )
 
@@ -600,14 +600,17 @@ class CvvcController:
         recent = np.array([p for _, p in self._recent_pv_p])
         return pv_variability_margins_pu(dv_dp_pu_per_kw, pv_p_kw, recent, self._margin_cap_pu)
 
-    def decide(self, snap: MeasurementSnapshot, oracle: OracleSource | None = None) -> Decision:
+    def decide(self, snap: MeasurementSnapshot, oracle: OracleSource | None = None, *,
+               cpu_started: float | None = None) -> Decision:
         """Decide the actions for one snapshot (see the module docstring for the hold rule).
 
         ``oracle`` (case A) is asked for the true state of every node at the snapshot's time once the hold
         rule lets the step be decided; without it the estimator gives the state of the critical nodes.
+        ``cpu_started``: the thread's CPU clock (``time.thread_time()``) when the step's work began, the snapshot
+        included (the runtime's); ``Timings.cpu_s`` counts from it (default: from this call).
         """
         t0 = time.perf_counter()
-        self._cpu0 = time.thread_time()  # the decision's CPU time (``Timings.cpu_s``)
+        started = (t0, time.thread_time() if cpu_started is None else cpu_started)
         n_pv, n_reg = len(self._pv_ids), len(self._reg_ids)
         shapes = {
             "head_p_kw": (snap.head_p_kw, 3), "head_q_kvar": (snap.head_q_kvar, 3),
@@ -619,7 +622,7 @@ class CvvcController:
         }  # fmt: skip
         for name, (arr, size) in shapes.items():
             if np.shape(arr) != (size,):
-                return self._hold(snap, f"snapshot.{name} has shape {np.shape(arr)}, expected ({size},)", (), t0)
+                return self._hold(snap, f"snapshot.{name} has shape {np.shape(arr)}, expected ({size},)", (), started)
 
         head_ok, pv_ok, reg_ok = self._usable(snap)
         cap_ok = self._cap_usable(snap)
@@ -642,11 +645,12 @@ class CvvcController:
             self._cap_last[c] = int(snap.cap_steps[c])
         self._stale.observe(snap.pv_p_kw, pv_ok & self._pv_fresh(snap))
         if not head_ok:
-            return self._hold(snap, "no valid feeder-head frame: holding (no commands)", missing, t0)
+            return self._hold(snap, "no valid feeder-head frame: holding (no commands)", missing, started)
         never_pv = [self._pv_ids[k] for k in range(n_pv) if self._pv_last_p_kw[k] is None]
         never_reg = [self._reg_ids[r] for r in range(n_reg) if self._reg_last_tap[r] is None]
         if never_pv or never_reg:
-            return self._hold(snap, f"no valid frame yet from {', '.join(never_pv + never_reg)}: holding", missing, t0)
+            return self._hold(snap, f"no valid frame yet from {', '.join(never_pv + never_reg)}: holding", missing,
+                              started)
 
         # The grid state: the estimator's (eq. 5-7, eq. 3) or, in case A, the bridge's oracle (every node).
         plants = self._plant_inputs(snap, pv_ok)
@@ -663,14 +667,14 @@ class CvvcController:
         else:
             reply = oracle(int(snap.t_ns))
             if reply is None:
-                return self._hold(snap, "case A: no oracle reply from the bridge", missing, t0)
+                return self._hold(snap, "case A: no oracle reply from the bridge", missing, started)
             try:
                 state = oracle_state(self.model, reply, taps)
             except AgentInputError as e:
-                return self._hold(snap, f"case A: {e}", missing, t0)
+                return self._hold(snap, f"case A: {e}", missing, started)
         t_est = time.perf_counter()
         if not _finite(state.v0_pu, state.dv_dq_pu_per_kvar):
-            return self._hold(snap, f"{prefix}estimate is not finite: check the model", missing, t0,
+            return self._hold(snap, f"{prefix}estimate is not finite: check the model", missing, started,
                               estimate_s=t_est - t0)
 
         self._remember_pv_p(int(snap.t_ns), pv_p)
@@ -682,7 +686,7 @@ class CvvcController:
             inputs = self.problem(snap, state, out_of_envelope=bool(outside), plants=plants)
             self.last_problem = (inputs, snap, state, bool(outside), plants)
         except AgentInputError as e:
-            return self._hold(snap, f"{prefix}unusable optimization inputs: {e}", missing, t0, state=state,
+            return self._hold(snap, f"{prefix}unusable optimization inputs: {e}", missing, started, state=state,
                               estimate_s=t_est - t0)
         # Case A solves cold (as it always has): its rows are every live node, not the critical nodes.
         solution = solve_cvvc(inputs, warm_start=self._warm if oracle is None else None)
@@ -700,7 +704,7 @@ class CvvcController:
         solves.extend(settled.solves)
         sec = solution.seconds
         if solution.status == "hold":
-            return self._hold(snap, prefix + solution.reason, missing, t0, state=state, solution=solution,
+            return self._hold(snap, prefix + solution.reason, missing, started, state=state, solution=solution,
                               solves=tuple(solves),
                               estimate_s=t_est - t0)
         if oracle is None:
@@ -776,7 +780,7 @@ class CvvcController:
                 solve_s=sec.build_s + sec.relaxed_s,
                 round_s=sec.rounding_s,
                 total_s=time.perf_counter() - t0,
-                cpu_s=time.thread_time() - self._cpu0,
+                cpu_s=time.thread_time() - started[1],
             ),
             v_bound_low_pu=None if applied is None else applied[0],
             v_bound_high_pu=None if applied is None else applied[1],

@@ -190,9 +190,10 @@ class DecisionMaker:
         return [(a, self._decide(a)) for a in self.aligner.close_pending()]
 
     def _decide(self, aligned: AlignedFrames) -> ControllerDecision:
+        cpu_started = time.thread_time()  # the step's CPU time counts the snapshot too (``Timings.cpu_s``)
         snap = snapshot_from(aligned, self.model, reading_window_s=self.settings.reading_window_s,
                              last_good_s=self.settings.last_good_s, reading_fit_s=self.settings.reading_fit_s)
-        return self.controller.decide(snap, oracle=self.oracle)
+        return self.controller.decide(snap, oracle=self.oracle, cpu_started=cpu_started)
 
     def to_message(self, aligned: AlignedFrames, d: ControllerDecision, *, align_s: float = 0.0) -> m.Decision:
         """The bus message of one controller decision, with the commands it sends."""

@@ -72,28 +72,12 @@ def main(argv: list[str] | None = None) -> int:
     secs, cpu, its, gaps = [], [], [], []
     stats = Counter()
     for _ in range(args.days):
-        days = cvvc_day_sequence(rng)
-        inputs, previous, step = next(days), None, 0
-        while True:
-            t_cpu = time.thread_time()
-            sol = solve_cvvc(inputs, warm_start=previous)
-            cpu.append(time.thread_time() - t_cpu)
-            previous = sol
-            secs.append(sol.seconds.total_s)
-            its.append(sol.iterations)
-            stats[sol.status] += 1
-            if step % args.gap_every == 0:
-                milp = solve_milp_reference(inputs)
-                if milp.status == "optimal" and sol.status == "optimal":
-                    gaps.append((sol.cost - milp.cost) / max(milp.cost, 1e-9))
-            step += 1
-            try:
-                inputs = days.send((sol.taps_new, sol.q_new_kvar))
-            except StopIteration:
-                break
+        _closed_loop_day(rng, secs, cpu, its, stats, gaps, gap_every=args.gap_every)
     print(_summary("closed-loop days, warm start", secs, cpu, its, stats, gaps))
     for n_nodes in [int(n) for n in args.nodes.split(",") if n.strip()]:
-        secs, cpu, its, stats = _closed_loop_day(np.random.default_rng(args.seed), n_nodes)
+        secs, cpu, its, gaps = [], [], [], []
+        stats = Counter()
+        _closed_loop_day(np.random.default_rng(args.seed), secs, cpu, its, stats, gaps, n_nodes=n_nodes)
         ms, cpu_ms = np.array(secs) * 1e3, np.array(cpu) * 1e3
         wall_p50, wall_p99, cpu_p50, cpu_p99 = *np.percentile(ms, [50, 99]), *np.percentile(cpu_ms, [50, 99])
         print(f"{n_nodes} critical nodes, a closed-loop day: wall p50 {wall_p50:.3f} ms, p99 {wall_p99:.3f} ms, "
@@ -103,15 +87,15 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-def _closed_loop_day(rng: np.random.Generator,
-                     n_nodes: int) -> tuple[list[float], list[float], list[int], Counter[str]]:
-    """Wall and thread CPU time [s] and OSQP iterations of each solve of one synthetic day with ``n_nodes`` critical
-    nodes, each warm-started from the previous solution, and the statuses and MILP fallbacks counted.
+def _closed_loop_day(rng: np.random.Generator, secs: list[float], cpu: list[float], its: list[int],
+                     stats: Counter[str], gaps: list[float], *, n_nodes: int | None = None, gap_every: int = 0) -> None:
+    """Solve one synthetic closed-loop day (``cvvc_day_sequence``, ``n_nodes`` critical nodes, default its own), each
+    step warm-started from the previous solution, appending each solve's wall and thread CPU time [s] and OSQP
+    iterations, counting its status and MILP fallbacks, and every ``gap_every``-th step (0: none) its cost gap to the
+    exact MILP.
     """
-    secs, cpu, its = [], [], []
-    stats: Counter[str] = Counter()
-    days = cvvc_day_sequence(rng, n_nodes=n_nodes)
-    inputs, previous = next(days), None
+    days = cvvc_day_sequence(rng) if n_nodes is None else cvvc_day_sequence(rng, n_nodes=n_nodes)
+    inputs, previous, step = next(days), None, 0
     while True:
         t_cpu = time.thread_time()
         sol = solve_cvvc(inputs, warm_start=previous)
@@ -120,11 +104,15 @@ def _closed_loop_day(rng: np.random.Generator,
         its.append(sol.iterations)
         stats[sol.status] += 1
         stats["milp"] += sol.milp_solves
-        previous = sol
+        if gap_every and step % gap_every == 0:
+            milp = solve_milp_reference(inputs)
+            if milp.status == "optimal" and sol.status == "optimal":
+                gaps.append((sol.cost - milp.cost) / max(milp.cost, 1e-9))
+        previous, step = sol, step + 1
         try:
             inputs = days.send((sol.taps_new, sol.q_new_kvar))
         except StopIteration:
-            return secs, cpu, its, stats
+            return
 
 
 if __name__ == "__main__":

@@ -150,7 +150,7 @@ class LiveDecisionBench(msgspec.Struct, frozen=True, kw_only=True, forbid_unknow
     p50_ms: float
     p99_ms: float
     max_ms: float
-    cpu_p50_ms: float  # the deciding thread's CPU time (``Timings.cpu_s``, without the alignment's)
+    cpu_p50_ms: float  # the deciding thread's CPU time (``Timings.cpu_s``: the snapshot and the decision)
     cpu_p99_ms: float
     season_p99_ms: dict[str, float]
     first_decision_ms: dict[str, float]  # each run's first decision (cold: the agent's process just started)

@@ -311,7 +311,8 @@ class Timings(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=T
     solve_s: Seconds = 0.0
     round_s: Seconds = 0.0
     total_s: Seconds = 0.0
-    # the deciding thread's CPU time over ``total_s``: the rest of ``total_s`` it waited for a core
+    # the deciding thread's CPU time from the step's snapshot to its message: the rest of ``total_s`` (which includes
+    # ``align_s``) the step waited, for its frames' alignment or for a core
     cpu_s: Seconds = 0.0
 
 

@@ -9,7 +9,6 @@ bridge's stepping thread (``bridge_runtime.py``); the counters it keeps are the 
 
 from __future__ import annotations
 
-import math
 from collections import Counter, deque
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Literal, cast
@@ -208,7 +207,7 @@ class DeviceBank:
             return
         applied = self.qsts.command_pv_q(pv.index, cmd.q_kvar)
         p = float(self.pv_p_kw[pv.index])
-        headroom = math.sqrt(max(pv.s_rated_kva**2 - p**2, 0.0)) if p > 0 or self.qsts.pv_q_at_night[pv.index] else 0.0
+        headroom = dv.pv_q_headroom_kvar(pv.s_rated_kva, p, bool(self.qsts.pv_q_at_night[pv.index]))
         pv.guard.apply(cmd, cmd.q_kvar)
         self._ack(self.ack_pv[pv.plant_id], pv.plant_id, pv.plant_id, cmd.cmd_id,
                   dv.pv_verdict(cmd.q_kvar, applied, headroom))

@@ -541,6 +541,16 @@ def head_frame(*, feeder_id: str, t_ns: int, seq: int, v_mag_v: _Values, v_ang_d
                        p_kw=float(sum([p.p_kw for p in phases])), q_kvar=float(sum([p.q_kvar for p in phases])))
 
 
+def pv_q_headroom_kvar(s_rated_kva: float, p_kw: float, q_at_night: bool) -> float:
+    """The reactive power an inverter can give at active power ``p_kw`` [kvar], either way: ``sqrt(S² − P²)``, or 0
+    when it has no active power and gives no reactive power at night (``q_at_night`` false). The simulated plants'
+    frames and acks, the simulated SunSpec inverter and the SunSpec adapter all judge a set point by it.
+    """
+    if p_kw <= 0.0 and not q_at_night:
+        return 0.0
+    return math.sqrt(max(s_rated_kva**2 - p_kw**2, 0.0))
+
+
 def pv_frame(*, plant: PvInverter, t_ns: int, seq: int, p_kw: _Values, q_kvar: _Values, v_v: _Values,
              available_p_kw: float, q_setpoint_kvar: float | None, q_at_night: bool = False) -> m.PvFrame:
     """A PV inverter's frame from its per-phase output (generator convention) and voltages, each (3,).
@@ -557,7 +567,7 @@ def pv_frame(*, plant: PvInverter, t_ns: int, seq: int, p_kw: _Values, q_kvar: _
                         v_mag_v=float(v_v[ph])) for ph in present]
     s_rated = plant.s_rated_kva
     p_avail = min(max(float(available_p_kw), 0.0), s_rated)
-    q_avail = math.sqrt(max(s_rated**2 - p_avail**2, 0.0)) if p_avail > 0.0 or q_at_night else 0.0
+    q_avail = pv_q_headroom_kvar(s_rated, p_avail, q_at_night)
     q_applied = None if q_setpoint_kvar is None else min(max(float(q_setpoint_kvar), -q_avail), q_avail)
     return m.PvFrame(t_ns=t_ns, seq=seq, source=plant.plant_id, plant_id=plant.plant_id, phases=phases,
                      p_kw=float(sum([p.p_kw for p in phases])), q_kvar=float(sum([p.q_kvar for p in phases])),

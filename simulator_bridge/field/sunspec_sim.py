@@ -43,6 +43,7 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 from simulator_bridge.errors import SimulatorError
+from simulator_bridge.field.devices import pv_q_headroom_kvar
 
 __all__ = ["SUNSPEC_BASE_ADDR", "SimulatedSunSpecInverter", "SunSpecSimError"]
 
@@ -267,10 +268,7 @@ class SimulatedSunSpecInverter:
         self._image = self._build_image()
 
     def _headroom_kvar(self) -> float:
-        p = sum(self._p_kw)
-        if p <= 0.0 and not self.q_at_night:
-            return 0.0
-        return math.sqrt(max(self.s_rated_kva**2 - p**2, 0.0))
+        return pv_q_headroom_kvar(self.s_rated_kva, sum(self._p_kw), self.q_at_night)
 
     def _q_command_locked(self) -> float | None:
         ctl = self._models[704].points
